@@ -1,0 +1,168 @@
+"""The ``mdlshapemodel`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+from .config import BuildConfig
+from .errors import MDLShapeModelError
+from .strategies import STRATEGIES
+
+log = logging.getLogger("mdlshapemodel")
+
+
+def _labels(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"labels must be integers, got {text!r}") from None
+    return values
+
+
+def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
+    group = parser.add_argument_group("correspondence")
+    group.add_argument("--points", type=int, default=defaults.points,
+                       help="sample points per shape (icosphere when 10*4^k+2; default %(default)s)")
+    group.add_argument("--strategy", choices=STRATEGIES, default=defaults.strategy,
+                       help="optimisation strategy; 'none' keeps the initial (equal-spacing) "
+                            "correspondence (default %(default)s)")
+    group.add_argument("--max-time", type=float, default=defaults.max_time, metavar="SECONDS",
+                       help="time budget of the optimisation (default %(default)s)")
+    group.add_argument("--seed", type=int, default=defaults.seed,
+                       help="random seed; the same seed gives the same model (default %(default)s)")
+    group.add_argument("--delta-range", type=float, nargs=2, default=defaults.delta_range,
+                       metavar=("MIN", "MAX"),
+                       help="coding accuracy range of eq. 14 in voxels (default %(default)s)")
+    group.add_argument("--fixed-delta", type=float, default=defaults.fixed_delta,
+                       help="coding accuracy of the first phase (eq. 13), voxels "
+                            "(default %(default)s)")
+    group.add_argument("--sigma-g", type=float, default=defaults.sigma_g,
+                       help="width distribution of random kernels (default 1/32)")
+    group.add_argument("--no-scaling", action="store_true",
+                       help="keep size: Procrustes and pose use rotation and translation only")
+    group.add_argument("--tolerance", type=float, default=defaults.tolerance,
+                       help="convergence: stop when a sweep gains less than this fraction of the "
+                            "total gain, twice (default %(default)s)")
+    inputs = parser.add_argument_group("inputs and surfaces")
+    inputs.add_argument("--label", type=_labels, action="extend", default=[], metavar="L",
+                        help="label value(s) whose union is the object, e.g. --label 1,2 "
+                             "(default: all non-zero)")
+    inputs.add_argument("--voxel-size", type=float, default=None,
+                        help="mm per voxel for mesh inputs (default: their mean edge length)")
+    inputs.add_argument("--smoothing", type=float, default=defaults.smoothing_sigma,
+                        help="Gaussian blur of masks before contouring, voxels (default %(default)s)")
+    run = parser.add_argument_group("running and evaluation")
+    run.add_argument("--workers", type=int, default=defaults.workers,
+                     help="processes for per-case work (default: all cores, %(default)s)")
+    run.add_argument("--strict", action="store_true", help="fail (exit 2) if any input is rejected")
+    run.add_argument("--evaluation-modes", type=int, default=defaults.evaluation_modes,
+                     help="measures are reported for M = 1..this (default %(default)s)")
+    run.add_argument("--specificity-samples", type=int, default=defaults.specificity_samples,
+                     help="model samples for specificity (default %(default)s)")
+    run.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+
+
+def _config_from(args) -> BuildConfig:
+    return BuildConfig(labels=args.label, voxel_size=args.voxel_size,
+                       smoothing_sigma=args.smoothing,
+                       max_smoothing_sigma=max(2.0, args.smoothing), points=args.points,
+                       strategy=args.strategy, scaling=not args.no_scaling,
+                       delta_range=tuple(args.delta_range), fixed_delta=args.fixed_delta,
+                       sigma_g=args.sigma_g, max_time=args.max_time, tolerance=args.tolerance,
+                       seed=args.seed, evaluation_modes=args.evaluation_modes,
+                       specificity_samples=args.specificity_samples, workers=args.workers,
+                       strict=args.strict).validate()
+
+
+class _Progress:
+    """Prints progress messages to stderr, at most one every few seconds."""
+
+    def __init__(self, interval: float = 5.0):
+        self.interval = interval
+        self.last = 0.0
+
+    def __call__(self, fraction, message):
+        now = time.monotonic()
+        if now - self.last >= self.interval or fraction == 1.0:
+            self.last = now
+            prefix = f"[{100 * fraction:3.0f}%] " if fraction is not None else ""
+            log.info("%s%s", prefix, message)
+
+
+def _summary(result) -> str:
+    m = result.metrics
+    lines = [f"model of {m['n_shapes']} cases written to {result.output}",
+             f"  objective (eq. 14): {result.initial_objective:.3f} -> {result.final_objective:.3f}"
+             f" nats ({m['strategy']})",
+             f"  generalization G(1..3): " + ", ".join(f"{v:.3f}" for v in m["generalization"][:3])
+             + " mm^2",
+             f"  specificity    S(1..3): " + ", ".join(f"{v:.3f}" for v in m["specificity"][:3])
+             + " mm^2",
+             f"  surface fidelity: mean {m['surface_distance_mm']['mean']:.3f} mm, "
+             f"max {m['surface_distance_mm']['max']:.3f} mm",
+             f"  report: {result.output / 'report.html'}"]
+    if result.rejected:
+        lines.append(f"  {len(result.rejected)} input(s) rejected: see {result.output / 'rejected.csv'}")
+    return "\n".join(lines)
+
+
+def _run_build(inputs, output, config) -> int:
+    from .pipeline import build_model
+
+    result = build_model(inputs, output, config, progress=_Progress())
+    print(_summary(result))
+    return 0
+
+
+def main(argv=None) -> int:
+    defaults = BuildConfig()
+    parser = argparse.ArgumentParser(
+        prog="mdlshapemodel",
+        description="Statistical shape models with correspondence by minimum description length.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    build = commands.add_parser("build", help="build a model from label maps or meshes")
+    build.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
+    build.add_argument("-o", "--output", required=True, help="output folder")
+    _add_build_options(build, defaults)
+    demo = commands.add_parser("demo", help="build a model of a generated population (~1 minute)")
+    demo.add_argument("-o", "--output", default="mdlshapemodel-demo", help="output folder "
+                      "(default %(default)s)")
+    demo.add_argument("--subjects", type=int, default=12, help="population size (default 12)")
+    demo.add_argument("--max-time", type=float, default=40.0, help="optimisation seconds (default 40)")
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("-q", "--quiet", action="store_true")
+    args = parser.parse_args(argv)
+
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("mdlshapemodel: %(message)s"))
+    log.addHandler(handler)
+    log.setLevel(logging.WARNING if args.quiet else logging.INFO)
+    try:
+        if args.command == "build":
+            return _run_build(args.inputs, args.output, _config_from(args))
+        if args.command == "demo":
+            from .demo import write_demo_population
+
+            output = Path(args.output)
+            paths = write_demo_population(output / "inputs", args.subjects, args.seed)
+            log.info("wrote %d demo label maps to %s", len(paths), output / "inputs")
+            config = BuildConfig(points=642, max_time=args.max_time, seed=args.seed,
+                                 specificity_samples=2000).validate()
+            return _run_build(paths, output, config)
+    except MDLShapeModelError as error:
+        print(f"mdlshapemodel: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mdlshapemodel: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        log.removeHandler(handler)
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""One configuration object for every knob, with the paper's defaults (Table I).
+
+The command line, the VTK filters and the Slicer panel all fill a :class:`BuildConfig`; ``validate``
+names the field at fault.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field, fields
+
+from .errors import ConfigError
+from .strategies import STRATEGIES
+
+
+@dataclass
+class BuildConfig:
+    """Settings of a model build. Lengths marked *voxels* are in voxels of the source images."""
+
+    # inputs
+    labels: list = field(default_factory=list)   # label values whose union is the object; [] = all non-zero
+    voxel_size: float | None = None   # mm per voxel for mesh inputs; default: their mean edge length
+    # surfaces and sphere maps
+    smoothing_sigma: float = 1.0      # voxels: Gaussian blur of the mask before contouring
+    max_smoothing_sigma: float = 2.0  # voxels: raised up to this when the surface is not genus 0
+    edge_length: float = 1.0          # voxels: isotropic remeshing of label-map surfaces
+    target_vertices: int = 20000      # meshes with more vertices are decimated
+    # correspondence
+    points: int = 2562                # n_p: sample points per shape (icosphere when 10*4^k+2)
+    strategy: str = "one-at-a-time-pose"
+    scaling: bool = True              # Procrustes removes scale
+    delta_range: tuple = (1e-4, 0.5)  # voxels: [Delta_min, Delta_max] of eq. 14 (Table I)
+    fixed_delta: float = 0.1          # voxels: Delta of the first phase (eq. 13)
+    sigma_g: float = 1.0 / 32.0       # width distribution of random kernels (Table I)
+    max_amplitude: float = 1.0        # upper bound of a kernel amplitude A
+    max_time: float = 600.0           # seconds of optimisation
+    tolerance: float = 0.01           # convergence: sweep gain below this fraction of total gain
+    seed: int = 0
+    # evaluation
+    evaluation_modes: int = 10
+    specificity_samples: int = 10_000
+    # running
+    workers: int = field(default_factory=lambda: os.cpu_count() or 1)
+    strict: bool = False
+
+    def validate(self) -> "BuildConfig":
+        """Raise :class:`ConfigError` naming the first bad field; return self."""
+        def need(condition: bool, name: str, text: str):
+            if not condition:
+                raise ConfigError(f"{name}: {text} (got {getattr(self, name)!r})")
+
+        need(all(isinstance(v, int) and v > 0 for v in self.labels), "labels",
+             "label values must be positive integers")
+        need(self.voxel_size is None or self.voxel_size > 0, "voxel_size", "must be positive")
+        need(self.smoothing_sigma >= 0, "smoothing_sigma", "must be >= 0")
+        need(self.max_smoothing_sigma >= self.smoothing_sigma, "max_smoothing_sigma",
+             "must be >= smoothing_sigma")
+        need(self.edge_length > 0, "edge_length", "must be positive")
+        need(self.target_vertices >= 100, "target_vertices", "must be at least 100")
+        need(self.points >= 12, "points", "must be at least 12")
+        need(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
+        need(len(self.delta_range) == 2 and 0 < self.delta_range[0] < self.delta_range[1],
+             "delta_range", "must be two numbers 0 < min < max")
+        need(self.fixed_delta > 0, "fixed_delta", "must be positive")
+        need(self.sigma_g > 0, "sigma_g", "must be positive")
+        need(self.max_amplitude > 0, "max_amplitude", "must be positive")
+        need(self.max_time >= 0, "max_time", "must be >= 0")
+        need(0 < self.tolerance < 1, "tolerance", "must be between 0 and 1")
+        need(self.evaluation_modes >= 1, "evaluation_modes", "must be at least 1")
+        need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")
+        need(self.workers >= 1, "workers", "must be at least 1")
+        return self
+
+    def to_dict(self) -> dict:
+        data = asdict(self)
+        data["delta_range"] = list(self.delta_range)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "BuildConfig":
+        names = {f.name for f in fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise ConfigError(f"{sorted(unknown)[0]}: unknown setting")
+        values = dict(data)
+        if "delta_range" in values:
+            values["delta_range"] = tuple(values["delta_range"])
+        return cls(**values).validate()

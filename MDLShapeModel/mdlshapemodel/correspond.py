@@ -1,0 +1,251 @@
+"""The optimisation state: every example's parameterization, warp and pose, and the fast objective.
+
+An *example* (one subject) has one or more *parts* (multi-part objects, III-E), each a closed surface
+with its own bijective sphere map and its own reparameterization phi, and one pose shared by its
+parts. The shape vector x_i concatenates the parts' samples S_ij(phi_ij(u_k)) after the pose.
+
+The objective F is a function of the reduced covariance D'_ij = sum_k w_k (x_ik - xbar_k).(x_jk - xbar_k)
+(eq. 15-17), with the area weights w on the mean shape. We keep the uncentred weighted Gram matrix
+K_ij = sum_k w_k (x_ik - r_k).(x_jk - r_k) about a fixed reference r, so that changing one example
+costs O(n_s n_p) (one row of K) and D' = H K H with H = I - 11^T / n_s.
+
+Scale: with pose in the optimisation, F must not fall by shrinking the population. F is always
+evaluated on the population rescaled so that the mean shape keeps the centroid size it had after
+Procrustes alignment (``target_size``); the rescaling is folded into the poses at each rebuild.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .mdl import Objective
+from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
+from .sampling import SphereLocator, triangle_vertex_areas
+from .sphere import orientation
+from .surface import face_areas
+from .warps import apply_symmetric_theta
+
+
+@dataclass
+class Kernel:
+    """One accepted symmetric theta transformation."""
+
+    center: np.ndarray
+    omega: float
+    amplitude: float
+
+
+class PartState:
+    """One part of one example: surface, sphere map, current sample positions on the sphere."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
+                 grid: np.ndarray, grid_triangles: np.ndarray):
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self.faces = np.asarray(faces, dtype=np.int64)
+        self.sphere = np.asarray(sphere, dtype=np.float64)
+        self.locator = SphereLocator(self.sphere, self.faces)
+        areas = face_areas(self.vertices, self.faces)
+        self.cumulative_area = np.cumsum(areas) / areas.sum()
+        self.kernels: list[Kernel] = []
+        self.positions = np.asarray(grid, dtype=np.float64).copy()
+        self.grid_triangles = np.asarray(grid_triangles, dtype=np.int64)
+        self.hint = None
+        self.points, self.hint = self.sample(self.positions)
+
+    def sample(self, positions: np.ndarray, hint: np.ndarray | None = None):
+        """S(phi(u_k)) at sphere positions; returns (points, located faces)."""
+        return self.locator.evaluate(self.vertices, positions,
+                                     self.hint if hint is None else hint)
+
+    def random_surface_parameter(self, rng: np.random.Generator) -> np.ndarray:
+        """Sphere coordinate of a point drawn uniformly over the *surface* (by area)."""
+        face = int(np.searchsorted(self.cumulative_area, rng.random(), side="right"))
+        face = min(face, len(self.faces) - 1)
+        r1, r2 = rng.random(2)
+        s = np.sqrt(r1)
+        bary = np.array([1 - s, s * (1 - r2), s * r2])
+        point = bary @ self.sphere[self.faces[face]]
+        return point / np.linalg.norm(point)
+
+    def folds(self, positions: np.ndarray) -> bool:
+        """Whether any sampling-grid triangle is flipped at these positions.
+
+        Every kernel is a homeomorphism of the sphere, but a kernel much narrower than the grid
+        spacing can still turn a grid triangle over (its straight edges are not mapped exactly);
+        amplitudes that would do so are never used.
+        """
+        return bool(np.any(orientation(positions, self.grid_triangles) <= 0))
+
+    def feasible_amplitude(self, center: np.ndarray, omega: float, upper: float,
+                           steps: int = 12) -> float:
+        """Largest amplitude in [0, upper] (to 2**-steps relative) that flips no grid triangle."""
+        if not self.folds(apply_symmetric_theta(self.positions, center, upper, omega)):
+            return upper
+        low, high = 0.0, upper
+        for _ in range(steps):
+            middle = 0.5 * (low + high)
+            if self.folds(apply_symmetric_theta(self.positions, center, middle, omega)):
+                high = middle
+            else:
+                low = middle
+        return low
+
+    def propose_kernel(self, kernel: Kernel):
+        """Positions, points and hint after applying one more kernel (not committed)."""
+        positions = apply_symmetric_theta(self.positions, kernel.center, kernel.amplitude,
+                                          kernel.omega)
+        points, hint = self.sample(positions)
+        return positions, points, hint
+
+    def commit(self, kernel: Kernel, positions, points, hint):
+        self.kernels.append(kernel)
+        self.positions, self.points, self.hint = positions, points, hint
+
+    def set_positions(self, positions: np.ndarray):
+        self.positions = np.asarray(positions, dtype=np.float64).copy()
+        self.points, self.hint = self.sample(self.positions)
+
+
+@dataclass
+class Example:
+    """One training example: its name, parts and pose."""
+
+    name: str
+    parts: list
+    pose: Pose = field(default_factory=Pose)
+
+    def raw_points(self, replace: dict | None = None) -> np.ndarray:
+        """Concatenated unposed samples; ``replace`` maps part index -> trial points."""
+        replace = replace or {}
+        return np.concatenate([replace.get(j, part.points) for j, part in enumerate(self.parts)])
+
+
+class CorrespondenceState:
+    """All examples, the sampling grids, the area weights and the incrementally updated covariance.
+
+    Parameters
+    ----------
+    examples : list of Example
+    grids : list of (points, triangles)
+        One sampling grid per part: points u_k on the sphere and their triangulation.
+    objective : Objective
+        F as a function of the (rescaled) reduced covariance.
+    scaling : bool
+        Whether Procrustes alignment removes scale.
+    """
+
+    def __init__(self, examples: list, grids: list, objective: Objective | None = None,
+                 scaling: bool = True):
+        self.examples = examples
+        self.grids = grids
+        self.objective = objective
+        self.scaling = scaling
+        sizes = [len(points) for points, _ in grids]
+        self.part_slices = [slice(a, b) for a, b in zip(np.cumsum([0] + sizes[:-1]),
+                                                         np.cumsum(sizes))]
+        self.n_points = int(sum(sizes))
+        self.evaluations = 0
+        self.weights = np.full(self.n_points, 1.0 / self.n_points)
+        self.target_size = None
+        self.procrustes()
+
+    @property
+    def n_shapes(self) -> int:
+        return len(self.examples)
+
+    # ------------------------------------------------------------------ alignment and weights
+    def area_weights(self, mean: np.ndarray) -> np.ndarray:
+        """w_k: a third of the area, on the mean shape, of the triangles around point k (eq. 17)."""
+        weights = np.concatenate([triangle_vertex_areas(mean[s], triangles)
+                                  for s, (_, triangles) in zip(self.part_slices, self.grids)])
+        return weights / weights.sum()
+
+    def procrustes(self, rounds: int = 3):
+        """Weighted generalized Procrustes of the current samples; sets the poses (eq. 18)."""
+        raw = np.stack([e.raw_points() for e in self.examples])
+        weights = np.full(self.n_points, 1.0 / self.n_points)
+        for _ in range(rounds):
+            aligned, poses = generalized_procrustes(raw, weights, scaling=self.scaling,
+                                                    target_size=self.target_size)
+            weights = self.area_weights(aligned.mean(axis=0))
+        for example, pose in zip(self.examples, poses):
+            example.pose = pose
+        self.weights = weights
+        if self.target_size is None:
+            self.target_size = centroid_size(aligned.mean(axis=0), weights)
+        self.rebuild()
+
+    def rebuild(self, update_weights: bool = True):
+        """Fold the scale correction into the poses, recompute weights, X and K from scratch."""
+        shapes = np.stack([e.pose.apply(e.raw_points()) for e in self.examples])
+        if update_weights:
+            self.weights = self.area_weights(shapes.mean(axis=0))
+        mean = shapes.mean(axis=0)
+        centre = weighted_centroid(mean, self.weights)
+        correction = Pose(self.target_size / centroid_size(mean, self.weights), np.eye(3),
+                          np.zeros(3)).compose(Pose(1.0, np.eye(3), -centre))
+        for example in self.examples:
+            example.pose = correction.compose(example.pose)
+        self.shapes = np.stack([e.pose.apply(e.raw_points()) for e in self.examples])
+        self.reference = self.shapes.mean(axis=0)
+        self.sum_shapes = self.shapes.sum(axis=0)
+        centred = (self.shapes - self.reference) * np.sqrt(self.weights)[None, :, None]
+        flat = centred.reshape(self.n_shapes, -1)
+        self.gram = flat @ flat.T
+
+    # ------------------------------------------------------------------ objective
+    def _row(self, shape: np.ndarray) -> tuple[np.ndarray, float]:
+        d = (shape - self.reference) * self.weights[:, None]
+        row = np.einsum("ikd,kd->i", self.shapes - self.reference, d)
+        return row, float(np.sum((shape - self.reference) * d))
+
+    def covariance(self, i: int | None = None, shape: np.ndarray | None = None) -> np.ndarray:
+        """Reduced covariance D' (eq. 15), with shape i replaced by ``shape`` if given, rescaled so
+        that the mean keeps ``target_size``."""
+        gram = self.gram
+        total = self.sum_shapes
+        if i is not None:
+            gram = gram.copy()
+            row, diagonal = self._row(shape)
+            gram[i, :] = row
+            gram[:, i] = row
+            gram[i, i] = diagonal
+            total = total - self.shapes[i] + shape
+        n = self.n_shapes
+        row_mean = gram.mean(axis=1)
+        centred = gram - row_mean[:, None] - row_mean[None, :] + row_mean.mean()
+        factor = self.target_size / centroid_size(total / n, self.weights)
+        return centred * factor ** 2
+
+    def value(self, i: int | None = None, shape: np.ndarray | None = None) -> float:
+        """F of the current state, or with shape i replaced by ``shape``."""
+        self.evaluations += 1
+        return self.objective(self.covariance(i, shape))
+
+    def commit_shape(self, i: int):
+        """Record that example i's parts or pose changed: update X, K and the sums."""
+        shape = self.examples[i].pose.apply(self.examples[i].raw_points())
+        row, diagonal = self._row(shape)
+        self.gram[i, :] = row
+        self.gram[:, i] = row
+        self.gram[i, i] = diagonal
+        self.sum_shapes += shape - self.shapes[i]
+        self.shapes[i] = shape
+
+    # ------------------------------------------------------------------ views
+    def aligned_shapes(self) -> np.ndarray:
+        """(n_s, n_p, 3) shapes in the model frame, rescaled to ``target_size``."""
+        mean = self.sum_shapes / self.n_shapes
+        factor = self.target_size / centroid_size(mean, self.weights)
+        centre = weighted_centroid(mean, self.weights)
+        return (self.shapes - centre) * factor
+
+    def raw_shapes(self) -> np.ndarray:
+        """(n_s, n_p, 3) samples in each example's own physical coordinates."""
+        return np.stack([e.raw_points() for e in self.examples])
+
+    def positions(self) -> list:
+        """Current sample positions on the sphere, per example and part (for checkpoints)."""
+        return [[part.positions for part in e.parts] for e in self.examples]

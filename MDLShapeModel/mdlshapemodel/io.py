@@ -1,0 +1,213 @@
+"""Reading and writing files: label maps (SimpleITK), meshes (VTK), tables.
+
+Readers raise :class:`InputError` with a one-line reason; callers add the file name.
+"""
+
+from __future__ import annotations
+
+import csv
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".hdr", ".img", ".img.gz")
+MESH_SUFFIXES = (".vtk", ".vtp", ".stl", ".ply", ".obj")
+
+
+def suffix_of(path) -> str:
+    """The recognised (possibly double) suffix of a file name, lower case, or ''."""
+    name = Path(path).name.lower()
+    for suffix in IMAGE_SUFFIXES + MESH_SUFFIXES:
+        if name.endswith(suffix):
+            return suffix
+    return ""
+
+
+def case_name(path) -> str:
+    """The file name without its recognised suffix: the case's name in outputs."""
+    name = Path(path).name
+    suffix = suffix_of(path)
+    return name[: len(name) - len(suffix)] if suffix else Path(path).stem
+
+
+def is_image(path) -> bool:
+    return suffix_of(path) in IMAGE_SUFFIXES
+
+
+def is_mesh(path) -> bool:
+    return suffix_of(path) in MESH_SUFFIXES
+
+
+def find_inputs(paths) -> list[Path]:
+    """Expand folders into their supported files (sorted); keep files as given.
+
+    Raises :class:`InputError` for a path that does not exist.
+    """
+    found = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            found.extend(sorted(p for p in path.iterdir() if p.is_file() and suffix_of(p)))
+        elif path.exists():
+            found.append(path)
+        else:
+            raise InputError(f"{path}: no such file or folder")
+    return found
+
+
+@dataclass
+class LabelMap:
+    """A binary mask and its geometry (SimpleITK conventions: arrays are z, y, x)."""
+
+    mask: np.ndarray
+    spacing: tuple
+    origin: tuple
+    direction: tuple
+
+    @property
+    def voxel_size(self) -> float:
+        """Geometric mean of the spacing (mm)."""
+        return float(np.prod(self.spacing) ** (1.0 / 3.0))
+
+
+def read_label_map(path, labels=()) -> LabelMap:
+    """The union of ``labels`` (all non-zero labels when empty) of a label-map image."""
+    import SimpleITK as sitk
+
+    try:
+        image = sitk.ReadImage(str(path))
+    except RuntimeError as error:
+        first = str(error).strip().splitlines()
+        reason = next((line for line in first if "Exception" not in line and line.strip()), "")
+        raise InputError(f"not a readable image ({reason.strip() or 'unknown format'})") from None
+    if image.GetDimension() != 3:
+        raise InputError(f"expected a 3-D label map, got a {image.GetDimension()}-D image")
+    if image.GetNumberOfComponentsPerPixel() != 1:
+        raise InputError("expected a scalar label map, got a multi-component image")
+    array = sitk.GetArrayViewFromImage(image)
+    if not np.issubdtype(array.dtype, np.integer):
+        rounded = np.round(array)
+        if not np.allclose(array, rounded):
+            raise InputError("the image has non-integer values; expected a label map")
+        array = rounded.astype(np.int64)
+    present = np.unique(array)
+    present = present[present != 0]
+    if labels:
+        missing = [label for label in labels if label not in present]
+        if len(missing) == len(labels):
+            found = ", ".join(str(int(v)) for v in present[:20]) or "none"
+            raise InputError(f"label {', '.join(map(str, missing))} not present "
+                             f"(labels found: {found})")
+        mask = np.isin(array, labels)
+    else:
+        if len(present) == 0:
+            raise InputError("the label map is empty (no non-zero voxels)")
+        mask = array != 0
+    return LabelMap(np.ascontiguousarray(mask), image.GetSpacing(), image.GetOrigin(),
+                    image.GetDirection())
+
+
+def _reader_for(path):
+    import vtk
+
+    readers = {".vtk": vtk.vtkPolyDataReader, ".vtp": vtk.vtkXMLPolyDataReader,
+               ".stl": vtk.vtkSTLReader, ".ply": vtk.vtkPLYReader, ".obj": vtk.vtkOBJReader}
+    suffix = suffix_of(path)
+    if suffix not in readers:
+        raise InputError(f"unsupported mesh format {suffix or Path(path).suffix!r}")
+    return readers[suffix]()
+
+
+@contextmanager
+def captured_vtk_messages():
+    """Collect VTK's error and warning text instead of printing it; yields a callable that
+    returns the collected text."""
+    import vtk
+
+    window = vtk.vtkStringOutputWindow()
+    previous_window = vtk.vtkOutputWindow.GetInstance()
+    previous_verbosity = vtk.vtkLogger.GetCurrentVerbosityCutoff()
+    vtk.vtkOutputWindow.SetInstance(window)
+    vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
+    try:
+        yield window.GetOutput
+    finally:
+        vtk.vtkOutputWindow.SetInstance(previous_window)
+        vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.ConvertToVerbosity(previous_verbosity))
+
+
+def read_polydata(path):
+    """A vtkPolyData from any supported mesh file (quietly: errors become InputError)."""
+    if not Path(path).is_file():
+        raise InputError("no such file")
+    reader = _reader_for(path)
+    reader.SetFileName(str(path))
+    with captured_vtk_messages() as messages:
+        reader.Update()
+        text = messages().strip().splitlines()
+    polydata = reader.GetOutput()
+    if polydata is None or polydata.GetNumberOfPoints() == 0:
+        reason = next((line.split(": ", 1)[-1] for line in text if ": " in line
+                       and "line" not in line), "")
+        detail = f" ({reason.strip()[:120]})" if reason else ""
+        raise InputError(f"not a readable mesh or the mesh is empty{detail}")
+    return polydata
+
+
+def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) and triangles (m, 3) of a mesh file; polygons are triangulated."""
+    import vtk
+
+    from .surface import _polydata_to_arrays
+
+    polydata = read_polydata(path)
+    triangulate = vtk.vtkTriangleFilter()
+    triangulate.SetInputData(polydata)
+    triangulate.PassVertsOff()
+    triangulate.PassLinesOff()
+    triangulate.Update()
+    vertices, faces = _polydata_to_arrays(triangulate.GetOutput())
+    if len(faces) == 0:
+        raise InputError("the mesh has no triangles")
+    return vertices, faces
+
+
+def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
+                   point_data: dict | None = None, lines: np.ndarray | None = None):
+    """Write points with triangles (or lines) and optional point arrays to .vtp/.vtk/.stl/.ply."""
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk
+
+    from .surface import arrays_to_polydata
+
+    polydata = arrays_to_polydata(vertices, faces, lines)
+    for name, values in (point_data or {}).items():
+        array = numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
+        array.SetName(name)
+        polydata.GetPointData().AddArray(array)
+    suffix = suffix_of(path)
+    writers = {".vtp": vtk.vtkXMLPolyDataWriter, ".vtk": vtk.vtkPolyDataWriter,
+               ".stl": vtk.vtkSTLWriter, ".ply": vtk.vtkPLYWriter}
+    if suffix not in writers:
+        raise InputError(f"{path}: cannot write meshes of type {suffix!r}")
+    writer = writers[suffix]()
+    writer.SetFileName(str(path))
+    writer.SetInputData(polydata)
+    if not writer.Write():
+        raise InputError(f"{path}: could not be written")
+
+
+def write_csv(path, header, rows):
+    """Write a CSV table with a header row."""
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def read_csv(path) -> list[dict]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))

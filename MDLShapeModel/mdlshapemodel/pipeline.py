@@ -1,0 +1,350 @@
+"""build_model(): files -> surfaces -> sphere maps -> optimised correspondence -> model -> outputs.
+
+Per-case preprocessing runs in a process pool (``workers``). A case that cannot be used is
+*rejected* with a one-line reason (logged, and listed in ``rejected.csv``) and the build goes on.
+The optimisation state is checkpointed after every sweep, and an interrupted optimisation
+(Ctrl-C, a cancelling progress callback, or the time limit) still writes a model of the state
+reached.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from . import io, surface
+from .config import BuildConfig
+from .correspond import CorrespondenceState, Example, PartState
+from .errors import InputError, MDLShapeModelError
+from .evaluation import evaluate
+from .mdl import Objective
+from .model import ShapeModel
+from .sampling import sphere_grid
+from .sphere import SphereMap, align_parameterizations, sphere_map
+from .strategies import Cancelled, OptimisationSettings, Trace, optimise
+
+log = logging.getLogger("mdlshapemodel")
+
+
+class BuildError(MDLShapeModelError):
+    """No model can be built (e.g. fewer than 3 usable cases)."""
+
+
+@dataclass
+class PreparedCase:
+    """One input after preprocessing: its surface and bijective sphere map."""
+
+    name: str
+    path: str
+    map: SphereMap
+    voxel_size: float
+    notes: dict = field(default_factory=dict)
+
+
+@dataclass
+class Rejection:
+    name: str
+    path: str
+    reason: str
+
+
+def mask_components(mask: np.ndarray, min_fraction: float = 0.1) -> tuple[np.ndarray, str]:
+    """Fill cavities and keep the largest 26-connected component.
+
+    Raises :class:`SurfaceError` when another component has at least ``min_fraction`` of the
+    largest one's voxels (two objects, not one object with debris). Returns the mask and a note.
+    """
+    from .errors import SurfaceError
+
+    labels, count = ndimage.label(mask, structure=np.ones((3, 3, 3)))
+    notes = []
+    if count > 1:
+        sizes = np.bincount(labels.ravel())[1:]
+        order = np.argsort(sizes)[::-1]
+        if sizes[order[1]] >= min_fraction * sizes[order[0]]:
+            raise SurfaceError(f"{count} disjoint objects in the mask (voxels: "
+                               f"{', '.join(str(int(s)) for s in sizes[order[:4]])}); expected one")
+        mask = labels == order[0] + 1
+        notes.append(f"dropped {count - 1} small component(s) of {int(sizes[order[1:]].sum())} voxels")
+    filled = ndimage.binary_fill_holes(mask)
+    cavities = int(filled.sum() - mask.sum())
+    if cavities:
+        notes.append(f"filled {cavities} cavity voxels")
+    return filled, "; ".join(notes)
+
+
+def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
+    """Read one input, make its closed genus-0 surface and its bijective sphere map."""
+    name = io.case_name(path)
+    try:
+        notes = {}
+        if io.is_image(path):
+            label_map = io.read_label_map(path, config.labels)
+            mask, note = mask_components(label_map.mask)
+            if note:
+                notes["repair"] = note
+            vertices, faces, info = surface.mask_to_surface(
+                mask, label_map.spacing, label_map.origin, label_map.direction,
+                smoothing_sigma=config.smoothing_sigma,
+                max_smoothing_sigma=config.max_smoothing_sigma, edge_length=config.edge_length,
+                target_vertices=config.target_vertices)
+            notes.update(info)
+            voxel_size = label_map.voxel_size
+        elif io.is_mesh(path):
+            vertices, faces = io.read_mesh(path)
+            vertices, faces, voxel_size = clean_mesh(vertices, faces, config)
+        else:
+            raise InputError("not a label map or mesh (unknown file type)")
+        mapped = sphere_map(vertices, faces)
+        return PreparedCase(name, str(path), mapped, float(voxel_size), notes)
+    except MDLShapeModelError as error:
+        return Rejection(name, str(path), str(error))
+    except (ValueError, RuntimeError, MemoryError, OSError) as error:
+        return Rejection(name, str(path), f"{type(error).__name__}: {error}")
+
+
+def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: BuildConfig):
+    """Merge duplicate points, drop degenerate faces, check topology, decimate; voxel size."""
+    if not np.all(np.isfinite(vertices)):
+        raise surface.SurfaceError("the mesh has non-finite (NaN or infinite) coordinates")
+    vertices, faces = surface.merge_close_vertices(vertices, faces)
+    vertices, faces = surface.drop_degenerate_faces(vertices, faces)
+    surface.require_sphere_like(vertices, faces)
+    faces = surface.orient_outwards(vertices, faces)
+    if len(vertices) > config.target_vertices:
+        vertices, faces = surface.decimate(vertices, faces, config.target_vertices)
+    edges = surface.edges_of(faces)
+    mean_edge = float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
+    vertices, faces = surface.remesh(vertices, faces, mean_edge)
+    surface.require_sphere_like(vertices, faces)
+    return vertices, faces, config.voxel_size or mean_edge
+
+
+def preprocess(paths, config: BuildConfig, progress=None) -> tuple[list, list]:
+    """Prepare every case (in parallel); returns (prepared, rejected) in input order."""
+    paths = [str(p) for p in paths]
+    results = []
+    if config.workers > 1 and len(paths) > 1:
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=min(config.workers, len(paths)),
+                                 mp_context=context) as pool:
+            futures = [pool.submit(prepare_case, p, config) for p in paths]
+            for k, future in enumerate(futures):
+                results.append(future.result())
+                _report(progress, (k + 1) / len(paths), f"prepared {k + 1}/{len(paths)} cases")
+    else:
+        for k, p in enumerate(paths):
+            results.append(prepare_case(p, config))
+            _report(progress, (k + 1) / len(paths), f"prepared {k + 1}/{len(paths)} cases")
+    prepared = [r for r in results if isinstance(r, PreparedCase)]
+    rejected = [r for r in results if isinstance(r, Rejection)]
+    return prepared, rejected
+
+
+def _report(progress, fraction, message):
+    if progress is not None:
+        progress(fraction, message)
+
+
+def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
+                      triangles: np.ndarray) -> np.ndarray:
+    """Distance from each input-surface vertex to the corresponded mesh (points, triangles)."""
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    distance = vtk.vtkDistancePolyDataFilter()
+    distance.SetInputData(0, surface.arrays_to_polydata(vertices, faces))
+    distance.SetInputData(1, surface.arrays_to_polydata(points, triangles))
+    distance.SignedDistanceOff()
+    distance.ComputeSecondDistanceOff()
+    distance.Update()
+    return np.abs(vtk_to_numpy(distance.GetOutput().GetPointData().GetArray("Distance")))
+
+
+@dataclass
+class BuildResult:
+    """What a build produced and measured."""
+
+    output: Path
+    model: ShapeModel
+    metrics: dict
+    initial_objective: float
+    final_objective: float
+    cases: list
+    rejected: list
+    interrupted: bool = False
+
+
+def build_model(inputs, output, config: BuildConfig | None = None, progress=None) -> BuildResult:
+    """Build an optimised statistical shape model from label maps or meshes.
+
+    Parameters
+    ----------
+    inputs : list of paths
+        Label-map or mesh files, or folders of them.
+    output : path
+        Output folder (created); see the README for its layout.
+    config : BuildConfig
+    progress : callable(fraction or None, message), optional
+        May raise :class:`Cancelled` to stop the optimisation early; the model of the state
+        reached is still written.
+    """
+    config = (config or BuildConfig()).validate()
+    output = Path(output)
+    (output / "correspondence").mkdir(parents=True, exist_ok=True)
+    (output / "aligned").mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(output / "build.log", mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    log.addHandler(handler)
+    if log.level == logging.NOTSET or log.level > logging.INFO:
+        log.setLevel(logging.INFO)
+    try:
+        return _build(inputs, output, config, progress)
+    finally:
+        log.removeHandler(handler)
+        handler.close()
+
+
+def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
+    started = time.perf_counter()
+    (output / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    paths = io.find_inputs(inputs)
+    if not paths:
+        raise BuildError("no input files found (label maps: .nii/.nii.gz/.nrrd/.mha...; meshes: "
+                         ".vtk/.vtp/.stl/.ply/.obj)")
+    log.info("preprocessing %d inputs with %d workers", len(paths), config.workers)
+    prepared, rejected = preprocess(paths, config, progress)
+    names = [case.name for case in prepared]
+    duplicates = {n for n in names if names.count(n) > 1}
+    if duplicates:
+        raise BuildError(f"several inputs have the same case name: {', '.join(sorted(duplicates))}")
+    for rejection in rejected:
+        log.warning("rejected %s: %s", rejection.path, rejection.reason)
+    io.write_csv(output / "rejected.csv", ("case", "file", "reason"),
+                 [(r.name, r.path, r.reason) for r in rejected])
+    if rejected and config.strict:
+        raise BuildError(f"{len(rejected)} input(s) rejected and --strict is set")
+    if len(prepared) < 3:
+        raise BuildError(f"only {len(prepared)} usable case(s); at least 3 are needed")
+    log.info("prepared %d cases in %.1f s", len(prepared), time.perf_counter() - started)
+
+    maps = align_parameterizations([case.map for case in prepared])
+    grid_points, grid_triangles = sphere_grid(config.points)
+    examples = [Example(case.name, [PartState(m.vertices, m.faces, m.sphere, grid_points,
+                                              grid_triangles)])
+                for case, m in zip(prepared, maps)]
+    state = CorrespondenceState(examples, [(grid_points, grid_triangles)], scaling=config.scaling)
+
+    voxel = float(np.mean([case.voxel_size for case in prepared]))
+    aligned = state.aligned_shapes()
+    data_range = float(np.max(np.ptp(aligned.reshape(-1, 3), axis=0)))
+    fixed = Objective("fixed", data_range, delta=config.fixed_delta * voxel)
+    integrated = Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
+                           delta_max=config.delta_range[1] * voxel)
+    initial = integrated(state.covariance())
+    log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
+             state.n_shapes, state.n_points, voxel, data_range)
+
+    settings = OptimisationSettings(strategy=config.strategy, sigma_g=config.sigma_g,
+                                    max_amplitude=config.max_amplitude, max_time=config.max_time,
+                                    tolerance=config.tolerance)
+    trace = Trace()
+    rng = np.random.default_rng(config.seed)
+    interrupted = False
+
+    def checkpoint():
+        save_checkpoint(output / "checkpoint.npz", state)
+
+    try:
+        final = optimise(state, (fixed, integrated), settings, rng, trace, progress, checkpoint)
+    except (KeyboardInterrupt, Cancelled):
+        interrupted = True
+        log.warning("optimisation interrupted: writing the model of the state reached")
+        state.rebuild()
+        final = integrated(state.covariance())
+    state.rebuild()
+    final = integrated(state.covariance())
+    log.info("final objective %.4f after %.1f s, %d evaluations", final,
+             trace.rows[-1][0] if trace.rows else 0.0, state.evaluations)
+    checkpoint()
+    io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
+
+    result = write_outputs(output, state, prepared, rejected, config, initial, final, voxel,
+                           data_range, interrupted)
+    log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
+    return result
+
+
+def save_checkpoint(path: Path, state: CorrespondenceState):
+    """Sample positions on the sphere and poses of every example (enough to rebuild the state)."""
+    arrays = {}
+    for i, example in enumerate(state.examples):
+        for j, part in enumerate(example.parts):
+            arrays[f"positions_{i}_{j}"] = part.positions
+        arrays[f"pose_{i}"] = np.concatenate([[example.pose.scale], example.pose.rotation.ravel(),
+                                              example.pose.translation])
+    arrays["names"] = np.array([e.name for e in state.examples])
+    temporary = path.with_suffix(".tmp.npz")
+    np.savez(temporary, **arrays)
+    temporary.replace(path)
+
+
+def write_outputs(output: Path, state: CorrespondenceState, prepared: list, rejected: list,
+                  config: BuildConfig, initial: float, final: float, voxel: float,
+                  data_range: float, interrupted: bool) -> BuildResult:
+    """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html."""
+    from .report import write_report
+
+    triangles = np.concatenate([tri + s.start for s, (_, tri) in zip(state.part_slices,
+                                                                     state.grids)])
+    aligned = state.aligned_shapes()
+    raw = state.raw_shapes()
+    names = [e.name for e in state.examples]
+    model = ShapeModel.from_shapes(aligned, state.weights, names=names, triangles=triangles,
+                                   part_sizes=[len(p) for p, _ in state.grids],
+                                   objective=final, strategy=config.strategy)
+    model.save(output / "model.h5")
+    io.write_polydata(output / "mean.vtp", model.mean, triangles)
+    cases = []
+    for i, case in enumerate(prepared):
+        io.write_polydata(output / "correspondence" / f"{case.name}.vtp", raw[i], triangles)
+        io.write_polydata(output / "aligned" / f"{case.name}.vtp", aligned[i], triangles)
+        distances = surface_distances(case.map.vertices, case.map.faces, raw[i], triangles)
+        quality = prepared[i].map.quality
+        cases.append({"case": case.name, "file": case.path,
+                      "surface_vertices": int(len(case.map.vertices)),
+                      "mean_distance_mm": float(distances.mean()),
+                      "max_distance_mm": float(distances.max()),
+                      "mean_distance_voxels": float(distances.mean() / case.voxel_size),
+                      "sphere_flips": quality["flipped_triangles"],
+                      "sphere_mean_abs_log_area": quality["mean_abs_log_area_ratio"],
+                      "sphere_p95_abs_log_area": quality["p95_abs_log_area_ratio"],
+                      "kernels": int(sum(len(p.kernels) for p in state.examples[i].parts)),
+                      **{k: v for k, v in case.notes.items() if k in ("repair", "smoothing_sigma")}})
+    n_modes = model.n_modes
+    io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(n_modes)],
+                 [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
+    io.write_csv(output / "cases.csv", list(cases[0].keys()),
+                 [[c.get(k, "") for k in cases[0]] for c in cases])
+    quality = evaluate(aligned, state.weights, model.variances, config.evaluation_modes,
+                       config.specificity_samples, np.random.default_rng(config.seed))
+    metrics = {"objective": {"initial": initial, "final": final,
+                             "units": "nats (eq. 14, Delta averaged over delta_range)"},
+               "strategy": config.strategy, "n_shapes": state.n_shapes, "n_points": state.n_points,
+               "n_rejected": len(rejected), "voxel_size_mm": voxel, "data_range_mm": data_range,
+               "interrupted": interrupted, "evaluations": state.evaluations,
+               "variances": model.variances.tolist(), **quality,
+               "surface_distance_mm": {
+                   "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
+                   "max": float(np.max([c["max_distance_mm"] for c in cases]))}}
+    (output / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_report(output, metrics, cases, rejected)
+    return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted)

@@ -1,0 +1,191 @@
+"""Sampling grids on the sphere and evaluation of S_i(u) on a spherical triangulation.
+
+A surface with a bijective sphere map is a triangulation of the unit sphere whose vertices carry
+surface points. The value S(u) at a parameter point u is found by *point location* (which spherical
+triangle contains u) and barycentric interpolation of the surface points. We use the central
+projection: u lies in the cone of triangle (a, b, c) exactly when ``[a b c]^-1 u >= 0``; the
+normalised solution is the barycentric coordinate. Because the map is fold-free, the cones of the
+triangles partition space, so every u is found in exactly one triangle (up to shared edges).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import ConvexHull, cKDTree
+
+
+def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    """Icosahedron subdivided ``subdivisions`` times: 10 * 4**k + 2 unit vectors and their triangles.
+
+    Faces are counter-clockwise seen from outside.
+    """
+    t = (1.0 + np.sqrt(5.0)) / 2.0
+    vertices = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
+                (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    faces = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
+             (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
+             (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    points = np.array(vertices, dtype=np.float64)
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    triangles = np.array(faces, dtype=np.int64)
+    for _ in range(subdivisions):
+        edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]],
+                                        triangles[:, [2, 0]]]), axis=1)
+        unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        midpoints = points[unique[:, 0]] + points[unique[:, 1]]
+        midpoints /= np.linalg.norm(midpoints, axis=1, keepdims=True)
+        m = len(triangles)
+        mid = inverse.reshape(3, m).T + len(points)  # midpoint of edges (0,1), (1,2), (2,0)
+        a, b, c = triangles.T
+        ab, bc, ca = mid.T
+        triangles = np.concatenate([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
+                                    np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)])
+        points = np.concatenate([points, midpoints])
+    return points, triangles
+
+
+def fibonacci_sphere(n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n_points`` nearly uniform unit vectors (Fibonacci lattice) and their Delaunay triangles."""
+    k = np.arange(n_points) + 0.5
+    z = 1.0 - 2.0 * k / n_points
+    radius = np.sqrt(1.0 - z * z)
+    angle = np.pi * (1.0 + np.sqrt(5.0)) * k
+    points = np.stack([radius * np.cos(angle), radius * np.sin(angle), z], axis=1)
+    triangles = ConvexHull(points).simplices.astype(np.int64)
+    return points, orient_triangles(points, triangles)
+
+
+def orient_triangles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Reorder each triangle of a star-shaped triangulation to be counter-clockwise from outside."""
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    flipped = np.einsum("ij,ij->i", a, np.cross(b, c)) < 0
+    triangles = triangles.copy()
+    triangles[flipped] = triangles[flipped][:, [0, 2, 1]]
+    return triangles
+
+
+def sphere_grid(n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """The sampling grid {u_k}: an icosphere when ``n_points`` is 10 * 4**k + 2, else Fibonacci."""
+    if n_points < 12:
+        raise ValueError(f"at least 12 sample points are needed, got {n_points}")
+    k = np.log((n_points - 2) / 10.0) / np.log(4.0)
+    if (n_points - 2) % 10 == 0 and abs(k - round(k)) < 1e-9:
+        return icosphere(int(round(k)))
+    return fibonacci_sphere(n_points)
+
+
+class SphereLocator:
+    """Point location on a fold-free spherical triangulation.
+
+    Parameters
+    ----------
+    sphere : ndarray (n, 3)
+        Unit vectors: the sphere map of the surface vertices.
+    faces : ndarray (m, 3)
+        Triangles, counter-clockwise seen from outside, none flipped.
+    """
+
+    def __init__(self, sphere: np.ndarray, faces: np.ndarray):
+        self.sphere = np.asarray(sphere, dtype=np.float64)
+        self.faces = np.asarray(faces, dtype=np.int64)
+        a, b, c = (self.sphere[self.faces[:, k]] for k in range(3))
+        rows = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1)
+        det = np.einsum("ij,ij->i", a, rows[:, 0])
+        self.inverse = rows / det[:, None, None]          # [a b c]^-1, one 3x3 per face
+        self.tree = cKDTree(self.sphere)
+        counts = np.bincount(self.faces.ravel(), minlength=len(self.sphere))
+        order = np.argsort(self.faces.ravel(), kind="stable")
+        self.vertex_faces = np.full((len(self.sphere), counts.max()), -1, dtype=np.int64)
+        slot = np.arange(self.faces.size) - np.repeat(np.cumsum(counts) - counts, counts)
+        self.vertex_faces[np.repeat(np.arange(len(self.sphere)), counts), slot] = order // 3
+        self.neighbours = face_neighbours(self.faces)
+
+    def _coordinates(self, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+        return np.einsum("...ij,...j->...i", self.inverse[faces], points)
+
+    def locate(self, points: np.ndarray, hint: np.ndarray | None = None,
+               neighbours: int = 4, walk_steps: int = 6) -> tuple[np.ndarray, np.ndarray]:
+        """Triangle index and barycentric coordinates of each point.
+
+        ``hint`` (one face index per point, e.g. the previous location) starts a short walk over
+        neighbouring triangles, which makes relocating slightly moved points cheap; points not found
+        that way are located among the triangles around their nearest vertices.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        n = len(points)
+        face = np.full(n, -1, dtype=np.int64)
+        coords = np.zeros((n, 3))
+        todo = np.arange(n)
+        if hint is not None:
+            # walk from the hint towards the point: cross the edge opposite the most negative
+            # barycentric coordinate, a few steps at most
+            current = hint.copy()
+            for _ in range(walk_steps):
+                lam = self._coordinates(current[todo], points[todo])
+                worst = np.argmin(lam, axis=1)
+                inside = lam[np.arange(len(todo)), worst] >= -1e-12
+                done = todo[inside]
+                face[done], coords[done] = current[done], lam[inside]
+                todo = todo[~inside]
+                if not len(todo):
+                    break
+                current[todo] = self.neighbours[current[todo], worst[~inside]]
+        if len(todo):
+            k = min(neighbours, len(self.sphere))
+            _, nearest = self.tree.query(points[todo], k=k)
+            nearest = np.asarray(nearest).reshape(len(todo), k)
+            candidates = self.vertex_faces[nearest].reshape(len(todo), -1)
+            valid = candidates >= 0
+            safe = np.where(valid, candidates, 0)
+            lam = self._coordinates(safe, points[todo][:, None, :])
+            score = np.where(valid, lam.min(axis=2), -np.inf)
+            best = np.argmax(score, axis=1)
+            rows = np.arange(len(todo))
+            face[todo] = safe[rows, best]
+            coords[todo] = lam[rows, best]
+            missed = todo[score[rows, best] < -1e-9]
+            if len(missed):  # rare: fall back to all faces
+                for index in missed:
+                    lam_all = self._coordinates(np.arange(len(self.faces)), points[index][None, :])
+                    best_face = int(np.argmax(lam_all.min(axis=1)))
+                    face[index], coords[index] = best_face, lam_all[best_face]
+        coords = np.maximum(coords, 0.0)
+        coords /= coords.sum(axis=1, keepdims=True)
+        return face, coords
+
+    def interpolate(self, values: np.ndarray, face: np.ndarray, coords: np.ndarray) -> np.ndarray:
+        """Barycentric interpolation of per-vertex ``values`` at located points."""
+        return np.einsum("ij,ij...->i...", coords, values[self.faces[face]])
+
+    def evaluate(self, values: np.ndarray, points: np.ndarray, hint: np.ndarray | None = None):
+        """S(u): per-vertex ``values`` at parameter points; returns (values, faces)."""
+        face, coords = self.locate(points, hint)
+        return self.interpolate(values, face, coords), face
+
+
+def face_neighbours(faces: np.ndarray) -> np.ndarray:
+    """(m, 3): the face across the edge opposite corner j of each face (-1 on a boundary)."""
+    m = len(faces)
+    opposite = np.concatenate([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]])
+    owner = np.tile(np.arange(m), 3)
+    corner = np.repeat(np.arange(3), m)
+    key = np.sort(opposite, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, owner, corner = key[order], owner[order], corner[order]
+    same = np.all(key[1:] == key[:-1], axis=1)
+    result = np.full((m, 3), -1, dtype=np.int64)
+    first = np.flatnonzero(same)
+    result[owner[first], corner[first]] = owner[first + 1]
+    result[owner[first + 1], corner[first + 1]] = owner[first]
+    return result
+
+
+def triangle_vertex_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """One third of the summed area of the triangles around each vertex (eq. 17)."""
+    a, b, c = (points[..., triangles[:, k], :] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=-1)
+    result = np.zeros(points.shape[:-1])
+    for k in range(3):
+        np.add.at(result.T, triangles[:, k], area.T / 3.0)
+    return result

@@ -1,0 +1,34 @@
+"""Shared fixtures: a small real surface (ellipsoid with a bump) and its sphere map.
+
+Building the surface and its map takes a second or two, so both are computed once per session.
+"""
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture
+def rng():
+    """A fresh, seeded random generator for each test."""
+    return np.random.default_rng(20100401)
+
+
+@pytest.fixture(scope="session")
+def bump_surface():
+    """Closed genus-0 surface of an ellipsoid with a bump: (vertices, faces), about 1,000 vertices."""
+    from mdlshapemodel.demo import bump_ellipsoid_mask
+    from mdlshapemodel.surface import mask_to_surface
+
+    mask = bump_ellipsoid_mask(shape=(22, 26, 36), semi_axes=(12.0, 7.0, 5.5), bump_radius=4.0,
+                               bump_position=0.3)
+    vertices, faces, _ = mask_to_surface(mask)
+    return vertices, faces
+
+
+@pytest.fixture(scope="session")
+def bump_map(bump_surface):
+    """The :class:`SphereMap` of :func:`bump_surface`."""
+    from mdlshapemodel.sphere import sphere_map
+
+    vertices, faces = bump_surface
+    return sphere_map(vertices, faces)

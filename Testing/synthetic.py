@@ -1,0 +1,40 @@
+"""Small synthetic populations shared by the integration-style tests (cached per session)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from mdlshapemodel import surface
+from mdlshapemodel.correspond import CorrespondenceState, Example, PartState
+from mdlshapemodel.demo import bump_ellipsoid_mask
+from mdlshapemodel.sampling import sphere_grid
+from mdlshapemodel.sphere import align_parameterizations, sphere_map
+
+SMALL_SHAPE = (18, 20, 28)
+
+
+def small_mask(position: float, scale: float = 1.0) -> np.ndarray:
+    """A small ellipsoid with a bump at ``position`` in [-1, 1] along its long axis."""
+    return bump_ellipsoid_mask(shape=SMALL_SHAPE, semi_axes=(10.0, 6.0, 5.0),
+                               bump_position=position, bump_radius=3.5, scale=scale)
+
+
+@lru_cache(maxsize=None)
+def small_maps(n: int = 5) -> tuple:
+    """Aligned sphere maps of ``n`` small bumpy ellipsoids (about 300 vertices each)."""
+    maps = []
+    for k, position in enumerate(np.linspace(-0.6, 0.6, n)):
+        mask = small_mask(float(position), 1.0 + 0.03 * ((k % 3) - 1))
+        vertices, faces, _ = surface.mask_to_surface(mask, edge_length=1.5)
+        maps.append(sphere_map(vertices, faces))
+    return tuple(align_parameterizations(maps))
+
+
+def small_state(n: int = 5, points: int = 162) -> CorrespondenceState:
+    """A fresh correspondence state of the small population (no objective set)."""
+    grid, triangles = sphere_grid(points)
+    examples = [Example(f"case_{k}", [PartState(m.vertices, m.faces, m.sphere, grid, triangles)])
+                for k, m in enumerate(small_maps(n))]
+    return CorrespondenceState(examples, [(grid, triangles)])

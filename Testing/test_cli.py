@@ -1,0 +1,93 @@
+"""The real command line, run in a subprocess."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from synthetic import small_mask
+
+EXECUTABLE = [sys.executable, "-m", "mdlshapemodel.cli"]
+
+
+def run(*args, cwd=None):
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    return subprocess.run(EXECUTABLE + [str(a) for a in args], capture_output=True, text=True,
+                          cwd=cwd, env=env, timeout=600)
+
+
+def write_population(folder: Path, n: int = 4):
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, position in enumerate(np.linspace(-0.6, 0.6, n)):
+        # label 1 = the object, label 2 = a bump of another label, to exercise --label
+        mask = small_mask(float(position)).astype(np.uint8)
+        mask[:, :, :3] = np.where(mask[:, :, :3] > 0, 2, 0)
+        sitk.WriteImage(sitk.GetImageFromArray(mask), str(folder / f"s{k}.nii.gz"))
+    return folder
+
+
+def test_build_end_to_end_with_a_bad_input(tmp_path):
+    inputs = write_population(tmp_path / "in")
+    (inputs / "broken.vtk").write_text("# vtk DataFile Version 3.0\nnot really\n")
+    out = tmp_path / "out"
+    result = run("build", inputs, "-o", out, "--points", 162, "--max-time", 3, "--label", "1,2",
+                 "--workers", 1, "--specificity-samples", 200, "--evaluation-modes", 3)
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr
+    rejection_lines = [line for line in result.stderr.splitlines() if "broken.vtk" in line]
+    assert len(rejection_lines) == 1 and "rejected" in rejection_lines[0]
+    assert "objective (eq. 14)" in result.stdout
+    for name in ("model.h5", "mean.vtp", "scores.csv", "metrics.json", "convergence.csv",
+                 "report.html", "build.log", "rejected.csv"):
+        assert (out / name).is_file(), name
+    assert sorted(p.name for p in (out / "correspondence").iterdir()) == [
+        f"s{k}.vtp" for k in range(4)]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["n_shapes"] == 4 and metrics["n_rejected"] == 1
+
+
+def test_same_seed_gives_identical_models(tmp_path):
+    inputs = write_population(tmp_path / "in", 3)
+    outputs = []
+    for name in ("a", "b"):
+        result = run("build", inputs, "-o", tmp_path / name, "--points", 42, "--max-time", 2,
+                     "--workers", 1, "--seed", 3, "--specificity-samples", 100,
+                     "--evaluation-modes", 2, "--strategy", "one-at-a-time", "-q")
+        assert result.returncode == 0, result.stderr
+        outputs.append((tmp_path / name / "scores.csv").read_text())
+    # a time budget can end the runs at different sweeps, so compare only when both converged
+    trace_a = (tmp_path / "a" / "convergence.csv").read_text().splitlines()
+    trace_b = (tmp_path / "b" / "convergence.csv").read_text().splitlines()
+    rows_a = [line.split(",")[2:] for line in trace_a]
+    rows_b = [line.split(",")[2:] for line in trace_b]
+    common = min(len(rows_a), len(rows_b))
+    assert rows_a[:common] == rows_b[:common]   # same evaluations and objective values
+    if len(rows_a) == len(rows_b):
+        assert outputs[0] == outputs[1]
+
+
+def test_clear_errors_and_exit_codes(tmp_path):
+    missing = run("build", tmp_path / "nothing-here", "-o", tmp_path / "out")
+    assert missing.returncode == 2
+    assert "no such file" in missing.stderr and "Traceback" not in missing.stderr
+    inputs = write_population(tmp_path / "in", 2)
+    too_few = run("build", inputs, "-o", tmp_path / "out2", "--points", 42, "--workers", 1)
+    assert too_few.returncode == 2 and "at least 3" in too_few.stderr
+    bad_option = run("build", inputs, "-o", tmp_path / "out3", "--points", 5)
+    assert bad_option.returncode == 2 and "points" in bad_option.stderr
+    missing_label = run("build", inputs, "-o", tmp_path / "out4", "--label", "7", "--workers", 1)
+    assert missing_label.returncode == 2
+    assert "label 7 not present" in missing_label.stderr
+
+
+def test_demo_runs_and_reports(tmp_path):
+    out = tmp_path / "demo"
+    result = run("demo", "-o", out, "--subjects", 4, "--max-time", 2)
+    assert result.returncode == 0, result.stderr
+    assert "objective (eq. 14)" in result.stdout and str(out) in result.stdout
+    assert len(list((out / "inputs").glob("*.nii.gz"))) == 4
+    assert (out / "model.h5").is_file() and (out / "report.html").is_file()

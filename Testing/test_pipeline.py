@@ -1,0 +1,119 @@
+"""build_model() end to end on small synthetic label maps, with bad inputs mixed in."""
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import vtk
+from vtk.util.numpy_support import vtk_to_numpy
+
+from mdlshapemodel import BuildConfig, ShapeModel, build_model
+from mdlshapemodel.io import read_csv
+from mdlshapemodel.pipeline import BuildError
+
+from synthetic import small_mask
+
+
+def write_mask(path, mask, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)):
+    image = sitk.GetImageFromArray(mask.astype(np.uint8))
+    image.SetSpacing(spacing)
+    image.SetOrigin(origin)
+    sitk.WriteImage(image, str(path))
+    return path
+
+
+def read_vtp(path):
+    reader = vtk.vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    polydata = reader.GetOutput()
+    points = vtk_to_numpy(polydata.GetPoints().GetData())
+    cells = vtk_to_numpy(polydata.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+    return points, cells
+
+
+@pytest.fixture(scope="module")
+def population(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("labels")
+    paths = []
+    for k, position in enumerate(np.linspace(-0.6, 0.6, 4)):
+        origin = (10.0 * k, -5.0, 3.0)  # each case in its own physical place
+        paths.append(write_mask(folder / f"case_{k}.nii.gz", small_mask(float(position)),
+                                origin=origin))
+    write_mask(folder / "empty.nii.gz", np.zeros((10, 10, 10), bool))
+    (folder / "notes.nrrd").write_text("this is not an image")
+    return folder, paths
+
+
+@pytest.fixture(scope="module")
+def built(population, tmp_path_factory):
+    folder, _ = population
+    output = tmp_path_factory.mktemp("out")
+    config = BuildConfig(points=162, max_time=4.0, workers=2, specificity_samples=500,
+                         evaluation_modes=3)
+    return build_model([folder], output, config), output
+
+
+def test_bad_inputs_are_rejected_and_the_build_goes_on(built):
+    result, output = built
+    assert result.metrics["n_shapes"] == 4
+    rejected = {row["case"]: row["reason"] for row in read_csv(output / "rejected.csv")}
+    assert set(rejected) == {"empty", "notes"}
+    assert "empty" in rejected["empty"]
+    assert "not a readable image" in rejected["notes"]
+    log = (output / "build.log").read_text()
+    assert "rejected" in log and "notes.nrrd" in log
+
+
+def test_outputs_have_identical_connectivity_and_physical_placement(built, population):
+    result, output = built
+    _, paths = population
+    names = [f"case_{k}" for k in range(4)]
+    mean_points, mean_cells = read_vtp(output / "mean.vtp")
+    assert mean_points.shape == (162, 3)
+    for k, name in enumerate(names):
+        points, cells = read_vtp(output / "correspondence" / f"{name}.vtp")
+        aligned, aligned_cells = read_vtp(output / "aligned" / f"{name}.vtp")
+        assert np.array_equal(cells, mean_cells) and np.array_equal(aligned_cells, mean_cells)
+        # correspondence meshes overlay their image: centred near the mask's physical centre
+        image = sitk.ReadImage(str(paths[k]))
+        mask = sitk.GetArrayFromImage(image) > 0
+        centre_index = np.argwhere(mask).mean(axis=0)[::-1]
+        centre = np.array(image.TransformContinuousIndexToPhysicalPoint(centre_index.tolist()))
+        assert np.linalg.norm(points.mean(axis=0) - centre) < 1.5
+
+
+def test_model_file_scores_and_metrics_agree(built):
+    result, output = built
+    model = ShapeModel.load(output / "model.h5")
+    assert model.names == [f"case_{k}" for k in range(4)]
+    rows = read_csv(output / "scores.csv")
+    scores = np.array([[float(v) for k, v in row.items() if k != "case"] for row in rows])
+    np.testing.assert_allclose(scores, model.scores, rtol=1e-5, atol=1e-8)
+    aligned = np.stack([read_vtp(output / "aligned" / f"{n}.vtp")[0] for n in model.names])
+    np.testing.assert_allclose(model.instance(model.scores[1]), aligned[1], atol=1e-6)
+    metrics = json.loads((output / "metrics.json").read_text())
+    assert metrics["modes"] == [1, 2, 3]
+    for key in ("compactness", "generalization", "specificity"):
+        assert len(metrics[key]) == 3 and len(metrics[key + "_se"]) == 3
+    np.testing.assert_allclose(metrics["compactness"], np.cumsum(model.variances)[:3])
+    assert metrics["objective"]["final"] <= metrics["objective"]["initial"]
+    assert metrics["surface_distance_mm"]["mean"] < 0.5
+    convergence = read_csv(output / "convergence.csv")
+    assert float(convergence[-1]["objective"]) == pytest.approx(metrics["objective"]["final"])
+    assert (output / "report.html").read_text().count("data:image/png;base64") >= 2
+    assert (output / "checkpoint.npz").exists()
+
+
+def test_too_few_usable_cases_is_an_error(population, tmp_path):
+    _, paths = population
+    with pytest.raises(BuildError, match="at least 3"):
+        build_model(paths[:2], tmp_path / "out", BuildConfig(points=42, max_time=0, workers=1))
+
+
+def test_strict_turns_rejections_into_failure(population, tmp_path):
+    folder, _ = population
+    with pytest.raises(BuildError, match="strict"):
+        build_model([folder], tmp_path / "out",
+                    BuildConfig(points=42, max_time=0, workers=1, strict=True))

@@ -1,0 +1,218 @@
+"""Tests of the sphere sampling grids, spherical point location and interpolation."""
+
+import numpy as np
+import pytest
+
+from mdlshapemodel.sampling import (SphereLocator, fibonacci_sphere, icosphere, orient_triangles,
+                                    sphere_grid, triangle_vertex_areas)
+
+
+def orientation(points, faces):
+    a, b, c = (points[faces[:, k]] for k in range(3))
+    return np.einsum("ij,ij->i", a, np.cross(b, c))
+
+
+def undirected_edges(faces):
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return edges, np.unique(np.sort(edges, axis=1), axis=0)
+
+
+def random_unit_vectors(rng, n):
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def brute_force_barycentric(points, faces, queries):
+    """Solve [a b c] lam = q for every face and every query: (n_queries, n_faces, 3)."""
+    matrices = np.stack([points[faces[:, k]] for k in range(3)], axis=2)     # columns a, b, c
+    rhs = np.broadcast_to(queries[:, None, :, None], (len(queries), len(faces), 3, 1))
+    return np.linalg.solve(np.broadcast_to(matrices, rhs.shape[:2] + (3, 3)), rhs)[..., 0]
+
+
+@pytest.mark.parametrize("level", [0, 1, 2, 3, 4])
+def test_icosphere_counts_norms_orientation_and_euler(level):
+    points, faces = icosphere(level)
+    assert points.shape == (10 * 4 ** level + 2, 3)
+    assert faces.shape == (20 * 4 ** level, 3)
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), 1.0, atol=1e-14)
+    assert np.all(orientation(points, faces) > 0)                 # counter-clockwise from outside
+    directed, edges = undirected_edges(faces)
+    assert len(points) - len(edges) + len(faces) == 2              # Euler characteristic
+    # closed and consistently oriented: every directed edge appears once, its reverse once
+    assert len(np.unique(directed, axis=0)) == len(directed)
+    assert len(edges) * 2 == len(directed)
+    # no duplicated points; all points are used
+    assert len(np.unique(np.round(points, 12), axis=0)) == len(points)
+    assert np.array_equal(np.unique(faces), np.arange(len(points)))
+
+
+def test_icosphere_is_nearly_uniform():
+    points, faces = icosphere(3)
+    areas = triangle_vertex_areas(points, faces)
+    assert areas.max() / areas.min() < 1.6
+    # the flat triangles approximate the sphere's area 4 pi from below
+    assert 0.98 * 4 * np.pi < areas.sum() < 4 * np.pi
+
+
+def test_sphere_grid_picks_icosphere_or_fibonacci():
+    points, faces = sphere_grid(2562)
+    ico_points, ico_faces = icosphere(4)
+    np.testing.assert_array_equal(points, ico_points)
+    np.testing.assert_array_equal(faces, ico_faces)
+    assert len(sphere_grid(12)[0]) == 12
+    assert len(sphere_grid(642)[0]) == 642
+    points, faces = sphere_grid(1000)
+    assert points.shape == (1000, 3)
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), 1.0, atol=1e-12)
+    assert np.all(orientation(points, faces) > 0)
+    _, edges = undirected_edges(faces)
+    assert len(points) - len(edges) + len(faces) == 2
+    assert len(np.unique(np.round(points, 10), axis=0)) == 1000
+    with pytest.raises(ValueError):
+        sphere_grid(11)
+
+
+def test_fibonacci_sphere_is_nearly_uniform():
+    points, faces = fibonacci_sphere(500)
+    # the nearest-neighbour distance varies little over the sphere
+    from scipy.spatial import cKDTree
+
+    distances = cKDTree(points).query(points, k=2)[0][:, 1]
+    assert distances.max() / distances.min() < 1.6
+    np.testing.assert_allclose(points.mean(axis=0), 0.0, atol=1e-2)
+
+
+def test_orient_triangles_fixes_reversed_faces(rng):
+    points, faces = icosphere(2)
+    scrambled = faces.copy()
+    reverse = rng.random(len(faces)) < 0.5
+    scrambled[reverse] = scrambled[reverse][:, [2, 1, 0]]
+    fixed = orient_triangles(points, scrambled)
+    assert np.all(orientation(points, fixed) > 0)
+    np.testing.assert_array_equal(np.sort(fixed, axis=1), np.sort(faces, axis=1))
+
+
+@pytest.mark.parametrize("grid", ["icosphere", "fibonacci"])
+def test_locate_agrees_with_brute_force(rng, grid):
+    points, faces = icosphere(2) if grid == "icosphere" else fibonacci_sphere(300)
+    locator = SphereLocator(points, faces)
+    queries = random_unit_vectors(rng, 400)
+    face, coords = locator.locate(queries)
+    assert np.all(coords >= 0)
+    np.testing.assert_allclose(coords.sum(axis=1), 1.0, atol=1e-14)
+    lam = brute_force_barycentric(points, faces, queries)
+    containing = lam.min(axis=2) >= -1e-12
+    assert np.all(containing.sum(axis=1) >= 1)
+    assert np.all(containing[np.arange(len(queries)), face])
+    expected = lam[np.arange(len(queries)), face]
+    np.testing.assert_allclose(coords, expected / expected.sum(axis=1, keepdims=True), atol=1e-12)
+    # the query is a positive multiple of the barycentric combination of the triangle's corners
+    combination = np.einsum("ik,ikd->id", coords, points[faces[face]])
+    direction = combination / np.linalg.norm(combination, axis=1, keepdims=True)
+    np.testing.assert_allclose(direction, queries, atol=1e-12)
+
+
+def test_locate_on_a_warped_triangulation(rng):
+    """Point location on a strongly non-uniform (but fold-free) triangulation, as after warping."""
+    from mdlshapemodel.warps import apply_symmetric_theta
+
+    points, faces = icosphere(3)
+    warped = points
+    for centre in random_unit_vectors(rng, 4):
+        warped = apply_symmetric_theta(warped, centre, 1.0, 0.5)
+    assert np.all(orientation(warped, faces) > 0)
+    locator = SphereLocator(warped, faces)
+    queries = random_unit_vectors(rng, 300)
+    face, coords = locator.locate(queries)
+    lam = brute_force_barycentric(warped, faces, queries)
+    assert np.all(lam[np.arange(len(queries)), face].min(axis=1) >= -1e-12)
+    combination = np.einsum("ik,ikd->id", coords, warped[faces[face]])
+    np.testing.assert_allclose(combination / np.linalg.norm(combination, axis=1, keepdims=True),
+                               queries, atol=1e-12)
+
+
+def test_interpolation_at_the_vertices_is_exact(rng):
+    points, faces = icosphere(2)
+    locator = SphereLocator(points, faces)
+    values = rng.normal(size=(len(points), 3))
+    result, face = locator.evaluate(values, points)
+    np.testing.assert_allclose(result, values, atol=1e-12)
+    scalar, _ = locator.evaluate(values[:, 0], points)
+    np.testing.assert_allclose(scalar, values[:, 0], atol=1e-12)
+
+
+def test_interpolation_of_a_linear_field(rng):
+    """v -> A v + b at the vertices interpolates to A p' + b, p' = central projection of the query
+    onto the plane of its triangle."""
+    points, faces = fibonacci_sphere(200)
+    locator = SphereLocator(points, faces)
+    matrix, offset = rng.normal(size=(3, 3)), rng.normal(size=3)
+    values = points @ matrix.T + offset
+    queries = random_unit_vectors(rng, 300)
+    result, face = locator.evaluate(values, queries)
+    a, b, c = (points[faces[face, k]] for k in range(3))
+    normal = np.cross(b - a, c - a)
+    scale = np.einsum("ij,ij->i", normal, a) / np.einsum("ij,ij->i", normal, queries)
+    projected = queries * scale[:, None]
+    np.testing.assert_allclose(result, projected @ matrix.T + offset, atol=1e-12)
+
+
+def test_hints_do_not_change_the_answer(rng):
+    points, faces = icosphere(3)
+    locator = SphereLocator(points, faces)
+    queries = random_unit_vectors(rng, 500)
+    face, coords = locator.locate(queries)
+    for hint in (face, rng.integers(0, len(faces), size=len(queries)),
+                 np.where(rng.random(len(queries)) < 0.5, face, 0)):
+        hinted_face, hinted_coords = locator.locate(queries, hint=hint)
+        np.testing.assert_array_equal(hinted_face, face)
+        np.testing.assert_allclose(hinted_coords, coords, atol=1e-14)
+
+
+def test_locate_when_nearest_vertices_are_not_corners(rng):
+    """On a strongly warped triangulation the nearest vertex is often not a corner of the triangle
+    holding the query; location must still be right (with any number of neighbours tried)."""
+    from mdlshapemodel.warps import apply_symmetric_theta
+
+    points, faces = icosphere(2)
+    for centre in random_unit_vectors(np.random.default_rng(1), 5):
+        points = apply_symmetric_theta(points, centre, 1.0, 0.5)
+    assert np.all(orientation(points, faces) > 0)
+    queries = random_unit_vectors(rng, 1000)
+    lam = brute_force_barycentric(points, faces, queries)
+    truth = np.argmax(lam.min(axis=2), axis=1)
+    nearest = np.argmax(queries @ points.T, axis=1)
+    assert np.any(~np.any(faces[truth] == nearest[:, None], axis=1))   # the hard case occurs
+    locator = SphereLocator(points, faces)
+    for neighbours in (1, 4):
+        face, coords = locator.locate(queries, neighbours=neighbours)
+        assert np.all(lam[np.arange(len(queries)), face].min(axis=1) >= -1e-12)
+        combination = np.einsum("ik,ikd->id", coords, points[faces[face]])
+        np.testing.assert_allclose(combination / np.linalg.norm(combination, axis=1)[:, None],
+                                   queries, atol=1e-12)
+
+
+def test_triangle_vertex_areas_sum_to_the_total_area(rng):
+    points, faces = icosphere(2)
+    surface = points * rng.uniform(0.5, 3.0, size=3) + rng.normal(scale=0.05, size=points.shape)
+    # Heron's formula, independently of the cross product
+    a, b, c = (np.linalg.norm(surface[faces[:, i]] - surface[faces[:, j]], axis=1)
+               for i, j in ((0, 1), (1, 2), (2, 0)))
+    s = (a + b + c) / 2
+    total = np.sum(np.sqrt(s * (s - a) * (s - b) * (s - c)))
+    areas = triangle_vertex_areas(surface, faces)
+    assert areas.shape == (len(points),)
+    assert areas.sum() == pytest.approx(total, rel=1e-10)
+    assert np.all(areas > 0)
+
+
+def test_triangle_vertex_areas_single_triangle_and_batches(rng):
+    triangle = np.array([[0.0, 0, 0], [2, 0, 0], [0, 3, 0], [5, 5, 5]])   # last point unused
+    areas = triangle_vertex_areas(triangle, np.array([[0, 1, 2]]))
+    np.testing.assert_allclose(areas, [1.0, 1.0, 1.0, 0.0])
+    points, faces = icosphere(1)
+    batch = np.stack([points * s for s in (1.0, 2.0, 0.5)])
+    result = triangle_vertex_areas(batch, faces)
+    assert result.shape == (3, len(points))
+    np.testing.assert_allclose(result[1], 4 * result[0])
+    np.testing.assert_allclose(result[2], 0.25 * result[0])

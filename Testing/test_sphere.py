@@ -1,0 +1,264 @@
+"""Tests of bijective sphere maps and the alignment of parameterizations (METHOD.md section 5)."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mdlshapemodel.errors import SphereMapError
+from mdlshapemodel.sampling import SphereLocator, icosphere
+from mdlshapemodel.sphere import (SphereMap, align_parameterizations, check_bijective, distortion,
+                                  first_order_map, map_quality, minimise_distortion, orientation,
+                                  principal_axes, solid_angles, sphere_map)
+from mdlshapemodel.surface import mask_to_surface, topology
+from mdlshapemodel.warps import apply_symmetric_theta
+
+
+def determinants(sphere, faces):
+    """det[a, b, c] per face, written out independently of the library."""
+    a, b, c = (sphere[faces[:, k]] for k in range(3))
+    return (a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1])
+            - a[:, 1] * (b[:, 0] * c[:, 2] - b[:, 2] * c[:, 0])
+            + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]))
+
+
+def triangle_areas(points, faces):
+    a, b, c = (points[faces[:, k]] for k in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+def mean_abs_log_area_ratio(vertices, faces, sphere):
+    surface = triangle_areas(vertices, faces)
+    chord = triangle_areas(sphere, faces)
+    return float(np.mean(np.abs(np.log((chord / chord.sum()) / (surface / surface.sum())))))
+
+
+def distortion_energy(vertices, faces, x, area_weight=4.0):
+    """The energy minimise_distortion lowers, computed from Jacobians rather than cotangents.
+
+    Surface triangles are scaled to a total area of 4 pi (area A per triangle); J maps a surface
+    triangle linearly onto the chord triangle of ``x``; a = det[x0, x1, x2] / 2. The energy is
+    sum A |J|_F^2 (1 + (A / a)^2) + area_weight * sum (a + A^2 / a).
+    """
+    s0, s1, s2 = (vertices[faces[:, k]] for k in range(3))
+    area = triangle_areas(vertices, faces)
+    scale2 = 4 * np.pi / area.sum()
+    A = area * scale2
+    es = np.stack([s1 - s0, s2 - s0], axis=2)                 # (m, 3, 2)
+    g = np.einsum("mdi,mdj->mij", es, es) * scale2            # metric of the scaled surface
+    t0, t1, t2 = (x[faces[:, k]] for k in range(3))
+    et = np.stack([t1 - t0, t2 - t0], axis=2)
+    h = np.einsum("mdi,mdj->mij", et, et)
+    frobenius2 = np.einsum("mii->m", np.linalg.solve(g, h))   # |J|_F^2 = tr(G^-1 H)
+    a = 0.5 * determinants(x, faces)
+    return float(np.sum(A * frobenius2 * (1 + (A / a) ** 2)) + area_weight * np.sum(a + A * A / a))
+
+
+def sample(sphere_map_, grid):
+    """Surface points at the parameter values ``grid``."""
+    locator = SphereLocator(sphere_map_.sphere, sphere_map_.faces)
+    return locator.evaluate(sphere_map_.vertices, grid)[0]
+
+
+def check_map(result, vertices, faces):
+    assert np.all(determinants(result.sphere, faces) > 0)
+    assert result.quality["flipped_triangles"] == 0
+    assert check_bijective(result.sphere, faces) == 0
+    np.testing.assert_allclose(np.linalg.norm(result.sphere, axis=1), 1.0, atol=1e-12)
+    angles = solid_angles(result.sphere, faces)
+    assert np.all(angles > 0)
+    assert angles.sum() == pytest.approx(4 * np.pi, rel=1e-9)
+    distortion_value = mean_abs_log_area_ratio(vertices, faces, result.sphere)
+    assert distortion_value < 0.5
+    assert result.quality["mean_abs_log_area_ratio"] == pytest.approx(distortion_value, rel=1e-9)
+    np.testing.assert_array_equal(result.vertices, vertices)
+    np.testing.assert_array_equal(result.faces, faces)
+
+
+# --- sphere_map on real surfaces ---------------------------------------------------------------------
+
+def test_sphere_map_of_an_ellipsoid_with_a_bump(bump_surface, bump_map):
+    vertices, faces = bump_surface
+    assert topology(vertices, faces).is_sphere_like
+    check_map(bump_map, vertices, faces)
+    assert bump_map.quality["p95_abs_log_area_ratio"] < 1.0
+
+
+def test_sphere_map_of_a_dumbbell():
+    """Two balls joined by a thick cylinder: strongly non-convex."""
+    z, y, x = np.indices((24, 24, 50), dtype=float)
+    left = (x - 12) ** 2 + (y - 11.5) ** 2 + (z - 11.5) ** 2 <= 8 ** 2
+    right = (x - 37) ** 2 + (y - 11.5) ** 2 + (z - 11.5) ** 2 <= 8 ** 2
+    bar = ((y - 11.5) ** 2 + (z - 11.5) ** 2 <= 4 ** 2) & (x >= 12) & (x <= 37)
+    vertices, faces, _ = mask_to_surface(left | right | bar)
+    # the surface is not star-shaped: the central projection of the surface itself folds
+    centred = vertices - vertices.mean(axis=0)
+    radial = centred / np.linalg.norm(centred, axis=1, keepdims=True)
+    assert np.any(determinants(radial, faces) <= 0)
+    result = sphere_map(vertices, faces)
+    check_map(result, vertices, faces)
+
+
+# --- minimise_distortion -------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def warped_start(bump_surface, bump_map):
+    """A fold-free but badly distorted starting map: the good map warped by strong kernels."""
+    rng = np.random.default_rng(3)
+    sphere = bump_map.sphere
+    for _ in range(4):
+        sphere = apply_symmetric_theta(sphere, rng.normal(size=3), 0.8, 0.6)
+    assert np.all(determinants(sphere, bump_surface[1]) > 0)
+    return sphere
+
+
+def test_energy_of_the_test_matches_its_definition_on_the_identity():
+    """Sanity check of ``distortion_energy``: the unit icosphere mapped to itself has J = I on
+    each (rescaled) triangle, so |J|_F^2 = 2 up to the 4 pi rescaling."""
+    points, faces = icosphere(2)
+    energy = distortion_energy(points, faces, points, area_weight=0.0)
+    area = triangle_areas(points, faces)
+    scale2 = 4 * np.pi / area.sum()
+    a = 0.5 * determinants(points, faces)
+    expected = np.sum(area * scale2 * (2 / scale2) * (1 + (area * scale2 / a) ** 2))
+    assert energy == pytest.approx(expected, rel=1e-12)
+
+
+def test_minimise_distortion_never_increases_the_energy_nor_flips(bump_surface, warped_start):
+    vertices, faces = bump_surface
+    energies = []
+    for iterations in (0, 1, 2, 3, 5, 10, 30, 100):
+        result = minimise_distortion(vertices, faces, warped_start, max_iterations=iterations)
+        assert np.all(determinants(result, faces) > 0)
+        np.testing.assert_allclose(np.linalg.norm(result, axis=1), 1.0, atol=1e-12)
+        energies.append(distortion_energy(vertices, faces, result))
+    assert energies[0] == pytest.approx(distortion_energy(vertices, faces, warped_start))
+    assert np.all(np.diff(energies) <= 1e-9 * energies[0])
+    assert energies[-1] < 0.8 * energies[0]
+    final = minimise_distortion(vertices, faces, warped_start, max_iterations=100)
+    assert (mean_abs_log_area_ratio(vertices, faces, final)
+            < mean_abs_log_area_ratio(vertices, faces, warped_start))
+
+
+def test_minimise_distortion_rejects_a_folded_start(bump_surface, bump_map):
+    vertices, faces = bump_surface
+    folded = bump_map.sphere.copy()
+    i, j = faces[0, 0], faces[0, 1]
+    folded[[i, j]] = folded[[j, i]]
+    with pytest.raises(SphereMapError):
+        minimise_distortion(vertices, faces, folded, max_iterations=5)
+
+
+# --- checks ---------------------------------------------------------------------------------------------
+
+def test_check_bijective_detects_flips(bump_map):
+    faces = bump_map.faces
+    assert check_bijective(bump_map.sphere, faces) == 0
+    swapped = bump_map.sphere.copy()
+    i, j = faces[10, 0], faces[10, 1]                 # two neighbouring vertices
+    swapped[[i, j]] = swapped[[j, i]]
+    expected = int(np.sum(determinants(swapped, faces) <= 0))
+    assert expected > 0
+    assert check_bijective(swapped, faces) == expected
+    mirrored = bump_map.sphere * [1.0, 1.0, -1.0]
+    assert check_bijective(mirrored, faces) == len(faces)
+    quality = map_quality(bump_map.vertices, faces, swapped)
+    assert quality["flipped_triangles"] == expected
+
+
+def test_check_bijective_detects_a_double_cover():
+    """Every triangle positive but the sphere covered twice: not a bijection."""
+    points, faces = icosphere(1)
+    with pytest.raises(SphereMapError, match="covers the sphere"):
+        check_bijective(points, np.concatenate([faces, faces]))
+
+
+def test_solid_angles():
+    octant = np.eye(3)
+    np.testing.assert_allclose(solid_angles(octant, np.array([[0, 1, 2]])), [np.pi / 2])
+    np.testing.assert_allclose(solid_angles(octant, np.array([[0, 2, 1]])), [-np.pi / 2])
+    points, faces = icosphere(2)
+    assert solid_angles(points, faces).sum() == pytest.approx(4 * np.pi, rel=1e-12)
+    np.testing.assert_array_equal(orientation(points, faces) > 0, True)
+
+
+def test_distortion_is_zero_for_a_similar_map():
+    points, faces = icosphere(2)
+    np.testing.assert_allclose(distortion(points, faces, points), 0.0, atol=1e-12)
+    np.testing.assert_allclose(distortion(points * 7.0 + 3.0, faces, points), 0.0, atol=1e-12)
+    stretched = points * [3.0, 1.0, 1.0]
+    values = distortion(stretched, faces, points)
+    surface = triangle_areas(stretched, faces)
+    chord = triangle_areas(points, faces)
+    np.testing.assert_allclose(values, np.log(chord / chord.sum() / (surface / surface.sum())),
+                               atol=1e-12)
+
+
+# --- first-order maps and principal axes ---------------------------------------------------------------
+
+def test_first_order_map_recovers_an_affine_image_of_the_sphere(rng):
+    points, faces = icosphere(2)
+    matrix = rng.normal(size=(3, 3)) + 3 * np.eye(3)
+    centre = rng.normal(size=3) * 10
+    vertices = centre + points @ matrix.T
+    fitted_centre, fitted_matrix = first_order_map(vertices, faces, points)
+    np.testing.assert_allclose(fitted_centre, centre, atol=1e-10)
+    np.testing.assert_allclose(fitted_matrix, matrix, atol=1e-10)
+
+
+def test_principal_axes_of_a_rotated_ellipsoid(rng):
+    points, faces = icosphere(3)
+    rotation = Rotation.random(random_state=rng).as_matrix()
+    shift = rng.normal(size=3) * 5
+    vertices = (points * [5.0, 3.0, 1.5]) @ rotation.T + shift
+    centre, axes = principal_axes(vertices, faces)
+    np.testing.assert_allclose(centre, shift, atol=1e-10)        # the icosphere is symmetric
+    assert np.linalg.det(axes) == pytest.approx(1.0)
+    np.testing.assert_allclose(np.abs(axes.T @ rotation), np.eye(3), atol=1e-8)
+
+
+# --- alignment of parameterizations -----------------------------------------------------------------
+
+def test_align_parameterizations_undoes_a_parameter_rotation(bump_map, rng):
+    parameter_rotation = Rotation.random(random_state=rng).as_matrix()
+    rigid = Rotation.random(random_state=rng).as_matrix()
+    shift = rng.normal(size=3) * 20
+    moved = SphereMap(bump_map.vertices @ rigid.T + shift, bump_map.faces,
+                      bump_map.sphere @ parameter_rotation, dict(bump_map.quality))
+    before = moved.sphere.copy()
+    aligned = align_parameterizations([bump_map, moved])
+    np.testing.assert_array_equal(moved.sphere, before)          # inputs untouched
+    assert aligned[0].quality["parameter_rotation_degrees"] == pytest.approx(0.0, abs=1e-5)
+    np.testing.assert_allclose(aligned[0].sphere, bump_map.sphere, atol=1e-10)
+    angle = np.degrees(Rotation.from_matrix(parameter_rotation).magnitude())
+    assert aligned[1].quality["parameter_rotation_degrees"] == pytest.approx(angle, abs=1e-5)
+    np.testing.assert_allclose(aligned[1].sphere, bump_map.sphere, atol=1e-8)
+    # the same parameter values now give corresponding points (after undoing the rigid motion)
+    grid, _ = icosphere(3)
+    reference_points = sample(aligned[0], grid)
+    moved_points = (sample(aligned[1], grid) - shift) @ rigid
+    np.testing.assert_allclose(moved_points, reference_points, atol=1e-6)
+    unaligned = (sample(moved, grid) - shift) @ rigid
+    assert np.mean(np.linalg.norm(unaligned - reference_points, axis=1)) > 1.0
+
+
+def test_align_parameterizations_of_two_subjects(bump_map):
+    """A second subject (bump moved, 5% larger), mapped independently and with its parameter
+    sphere turned at random: after alignment the same parameters give nearby points, whatever
+    the turn was."""
+    from mdlshapemodel.demo import bump_ellipsoid_mask
+
+    mask = bump_ellipsoid_mask(shape=(22, 26, 36), semi_axes=(12.0, 7.0, 5.5), bump_radius=4.0,
+                               bump_position=0.45, scale=1.05)
+    other = sphere_map(*mask_to_surface(mask)[:2])
+    grid, _ = icosphere(3)
+    reference_points = sample(bump_map, grid)
+    results = []
+    for seed in range(3):
+        turn = Rotation.random(random_state=np.random.default_rng(seed)).as_matrix()
+        turned = SphereMap(other.vertices, other.faces, other.sphere @ turn, dict(other.quality))
+        aligned = align_parameterizations([bump_map, turned])
+        points = sample(aligned[1], grid)
+        results.append(points)
+        assert np.mean(np.linalg.norm(points - reference_points, axis=1)) < 1.5
+    for points in results[1:]:
+        np.testing.assert_allclose(points, results[0], atol=1e-6)

@@ -1,0 +1,345 @@
+"""Tests of surfaces: topology checks, label map -> mesh, cleaning (METHOD.md section 5)."""
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from mdlshapemodel.errors import SurfaceError
+from mdlshapemodel.sampling import icosphere
+from mdlshapemodel.surface import (arrays_to_polydata, compact, decimate, drop_degenerate_faces,
+                                   edges_of, face_areas, largest_component, mask_to_surface,
+                                   merge_close_vertices, orient_outwards, remesh,
+                                   require_sphere_like, signed_volume, topology)
+
+
+def torus(n_major=16, n_minor=9, major=3.0, minor=1.0):
+    """A consistently oriented triangulated torus (Euler characteristic 0)."""
+    u = np.linspace(0, 2 * np.pi, n_major, endpoint=False)
+    v = np.linspace(0, 2 * np.pi, n_minor, endpoint=False)
+    uu, vv = np.meshgrid(u, v, indexing="ij")
+    vertices = np.stack([(major + minor * np.cos(vv)) * np.cos(uu),
+                         (major + minor * np.cos(vv)) * np.sin(uu),
+                         minor * np.sin(vv)], axis=-1).reshape(-1, 3)
+    index = np.arange(n_major * n_minor).reshape(n_major, n_minor)
+    a = index
+    b = np.roll(index, -1, axis=0)
+    c = np.roll(np.roll(index, -1, axis=0), -1, axis=1)
+    d = np.roll(index, -1, axis=1)
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                            np.stack([a, c, d], -1).reshape(-1, 3)])
+    return vertices, faces
+
+
+def box(size=(1.0, 1.0, 1.0), offset=(0.0, 0.0, 0.0)):
+    """An axis-aligned box as 12 triangles, oriented outwards independently of the library."""
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    corners = corners * size + offset
+    faces = ConvexHull(corners).simplices.copy()
+    centre = corners.mean(axis=0)
+    for f in faces:
+        a, b, c = corners[f]
+        if np.cross(b - a, c - a) @ ((a + b + c) / 3 - centre) < 0:
+            f[[1, 2]] = f[[2, 1]]
+    return corners, faces
+
+
+def ball_mask(shape, spacing, origin, centre_index, radius):
+    """Voxels (z, y, x) whose physical centre lies in a ball; spacing and origin are (x, y, z)."""
+    z, y, x = np.indices(shape, dtype=float)
+    physical = [origin[k] + spacing[k] * i for k, i in enumerate((x, y, z))]
+    centre = np.asarray(origin) + np.asarray(spacing) * centre_index
+    return sum((p - c) ** 2 for p, c in zip(physical, centre)) <= radius ** 2
+
+
+# --- topology ----------------------------------------------------------------------------------------
+
+def test_icosphere_is_sphere_like():
+    vertices, faces = icosphere(2)
+    topo = topology(vertices, faces)
+    assert topo.is_sphere_like and topo.is_closed_manifold and topo.consistently_oriented
+    assert topo.euler_characteristic == 2
+    assert (topo.n_vertices, topo.n_faces, topo.n_edges) == (162, 320, 480)
+    assert topo.n_components == 1
+    assert topo.describe() == ""
+    assert require_sphere_like(vertices, faces).is_sphere_like
+
+
+def test_torus_has_genus_one():
+    vertices, faces = torus()
+    topo = topology(vertices, faces)
+    assert topo.euler_characteristic == 0
+    assert topo.is_closed_manifold and topo.consistently_oriented and topo.n_components == 1
+    assert not topo.is_sphere_like
+    assert "genus 1" in topo.describe()
+    with pytest.raises(SurfaceError, match="genus 1"):
+        require_sphere_like(vertices, faces)
+
+
+def test_mesh_with_a_hole():
+    vertices, faces = icosphere(2)
+    topo = topology(vertices, faces[1:])
+    assert topo.n_boundary_edges == 3
+    assert topo.euler_characteristic == 1
+    assert not topo.is_closed_manifold and not topo.is_sphere_like
+    assert "3 boundary edges" in topo.describe()
+    with pytest.raises(SurfaceError, match="boundary edges"):
+        require_sphere_like(vertices, faces[1:])
+
+
+def test_two_disjoint_spheres():
+    vertices, faces = icosphere(1)
+    both_vertices = np.concatenate([vertices, vertices + [5.0, 0, 0]])
+    both_faces = np.concatenate([faces, faces + len(vertices)])
+    topo = topology(both_vertices, both_faces)
+    assert topo.n_components == 2
+    assert topo.euler_characteristic == 4
+    assert topo.is_closed_manifold
+    assert "2 disconnected components" in topo.describe()
+    with pytest.raises(SurfaceError, match="2 disconnected components"):
+        require_sphere_like(both_vertices, both_faces)
+
+
+def test_three_triangles_sharing_an_edge_are_non_manifold():
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], float)
+    faces = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    topo = topology(vertices, faces)
+    assert topo.n_nonmanifold_edges == 1
+    assert topo.n_boundary_edges == 6
+    assert "non-manifold" in topo.describe()
+    # a fin glued to a closed sphere: one non-manifold edge, two boundary edges
+    sphere, sphere_faces = icosphere(1)
+    a, b = sphere_faces[0, :2]
+    fin_vertices = np.concatenate([sphere, [[3.0, 3.0, 3.0]]])
+    fin_faces = np.concatenate([sphere_faces, [[a, b, len(sphere)]]])
+    topo = topology(fin_vertices, fin_faces)
+    assert (topo.n_nonmanifold_edges, topo.n_boundary_edges) == (1, 2)
+    with pytest.raises(SurfaceError, match="non-manifold"):
+        require_sphere_like(fin_vertices, fin_faces)
+
+
+def test_inconsistent_orientation_is_detected():
+    vertices, faces = icosphere(1)
+    faces = faces.copy()
+    faces[3] = faces[3, ::-1]
+    topo = topology(vertices, faces)
+    assert topo.is_closed_manifold and topo.euler_characteristic == 2
+    assert not topo.consistently_oriented and not topo.is_sphere_like
+    assert "inconsistently oriented" in topo.describe()
+
+
+def test_unused_vertices_and_empty_meshes():
+    vertices, faces = icosphere(1)
+    extra = np.concatenate([vertices, [[9.0, 9.0, 9.0]]])
+    topo = topology(extra, faces)
+    assert topo.n_vertices == len(vertices) and topo.is_sphere_like
+    empty = topology(vertices, np.zeros((0, 3), dtype=int))
+    assert empty.n_faces == 0 and not empty.is_sphere_like
+    assert "empty" in empty.describe()
+
+
+def test_non_finite_coordinates_are_rejected():
+    vertices, faces = icosphere(1)
+    for bad in (np.nan, np.inf):
+        broken = vertices.copy()
+        broken[5, 1] = bad
+        with pytest.raises(SurfaceError, match="non-finite"):
+            require_sphere_like(broken, faces)
+
+
+def test_edges_of():
+    edges = edges_of(np.array([[0, 1, 2], [2, 1, 3]]))
+    np.testing.assert_array_equal(edges, [[0, 1], [2, 1], [1, 2], [1, 3], [2, 0], [3, 2]])
+
+
+# --- volumes and orientation ------------------------------------------------------------------------
+
+def test_signed_volume_of_boxes():
+    vertices, faces = box()
+    assert signed_volume(vertices, faces) == pytest.approx(1.0, abs=1e-14)
+    vertices, faces = box(size=(2.0, 3.0, 0.5), offset=(10.0, -4.0, 7.0))
+    assert signed_volume(vertices, faces) == pytest.approx(3.0, rel=1e-12)
+    assert signed_volume(vertices, faces[:, ::-1]) == pytest.approx(-3.0, rel=1e-12)
+    np.testing.assert_allclose(face_areas(vertices, faces).sum(), 2 * (6 + 1 + 1.5))
+
+
+def test_orient_outwards_flips_inside_out_meshes():
+    vertices, faces = icosphere(2)
+    vertices = vertices * 2.0 + [1.0, 2.0, 3.0]
+    inside_out = faces[:, [0, 2, 1]]
+    assert signed_volume(vertices, inside_out) < 0
+    fixed = orient_outwards(vertices, inside_out)
+    assert signed_volume(vertices, fixed) > 0
+    assert topology(vertices, fixed).consistently_oriented
+    # outward normals: each face normal points away from the centre
+    a, b, c = (vertices[fixed[:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)
+    assert np.all(np.einsum("ij,ij->i", normals, (a + b + c) / 3 - [1.0, 2.0, 3.0]) > 0)
+    np.testing.assert_array_equal(orient_outwards(vertices, faces), faces)
+
+
+# --- cleaning ---------------------------------------------------------------------------------------
+
+def test_merge_close_vertices_rebuilds_an_stl_soup():
+    points, faces = icosphere(2)
+    points = points * 30.0 + [100.0, -50.0, 20.0]
+    soup = points[faces].reshape(-1, 3)                  # every face has its own three vertices
+    soup_faces = np.arange(len(soup)).reshape(-1, 3)
+    assert not topology(soup, soup_faces).is_closed_manifold
+    vertices, merged = merge_close_vertices(soup, soup_faces)
+    assert len(vertices) == len(points)
+    np.testing.assert_array_equal(vertices[merged], soup[soup_faces])  # same triangles
+    assert topology(vertices, merged).is_sphere_like
+
+
+def test_merge_close_vertices_keeps_distinct_vertices():
+    points, faces = icosphere(2)
+    vertices, merged = merge_close_vertices(points, faces)
+    assert len(vertices) == len(points)
+    np.testing.assert_array_equal(vertices[merged], points[faces])
+
+
+def test_merge_close_vertices_merges_any_pair_closer_than_the_tolerance():
+    """Two vertices 1e-12 apart (tolerance: 1e-9 x bounding-box diagonal = 1.4e-9) must merge,
+    wherever they are; here they lie on both sides of a multiple of half the tolerance."""
+    cell = 1e-9 * np.sqrt(2.0)                    # tolerance times the bounding-box diagonal
+    x = (np.round(0.5 / cell) + 0.5) * cell - 0.4e-12
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0],
+                         [x, 0.0, 0.0], [x + 1e-12, 0.0, 0.0]])
+    faces = np.array([[0, 1, 2], [3, 2, 0], [4, 1, 2]])
+    assert np.linalg.norm(vertices[4] - vertices[3]) < 1e-3 * cell
+    merged_vertices, _ = merge_close_vertices(vertices, faces)
+    assert len(merged_vertices) == 4
+
+
+def test_drop_degenerate_faces_and_compact():
+    points, faces = icosphere(1)
+    extra = np.concatenate([points, [[0.1, 0.2, 0.3], [5.0, 5.0, 5.0], [6.0, 6.0, 6.0],
+                                     [7.0, 7.0, 7.0]]])
+    n = len(points)
+    bad = np.array([[0, 0, 1], [n, n, n], [n + 1, n + 2, n + 3]])   # repeated / collinear
+    vertices, cleaned = drop_degenerate_faces(extra, np.concatenate([faces, bad]))
+    assert len(cleaned) == len(faces) and len(vertices) == n
+    assert topology(vertices, cleaned).is_sphere_like
+    np.testing.assert_allclose(np.sort(face_areas(vertices, cleaned)),
+                               np.sort(face_areas(points, faces)))
+    sub_vertices, sub_faces = compact(extra, np.array([[n + 3, 2, n + 1]]))
+    np.testing.assert_array_equal(sub_faces, [[2, 0, 1]])
+    np.testing.assert_array_equal(sub_vertices, extra[[2, n + 1, n + 3]])
+
+
+def test_largest_component_keeps_the_bigger_sphere():
+    small, small_faces = icosphere(1)
+    big, big_faces = icosphere(2)
+    vertices = np.concatenate([small, big * 2 + 10.0])
+    faces = np.concatenate([small_faces, big_faces + len(small)])
+    kept_vertices, kept_faces = largest_component(vertices, faces)
+    assert len(kept_faces) == len(big_faces) and len(kept_vertices) == len(big)
+    np.testing.assert_allclose(kept_vertices.mean(axis=0), [10.0, 10.0, 10.0], atol=1e-12)
+    assert topology(kept_vertices, kept_faces).is_sphere_like
+
+
+def test_arrays_to_polydata():
+    vertices, faces = icosphere(1)
+    polydata = arrays_to_polydata(vertices, faces)
+    assert polydata.GetNumberOfPoints() == len(vertices)
+    assert polydata.GetNumberOfPolys() == len(faces)
+    cell = polydata.GetCell(7)
+    assert [cell.GetPointId(k) for k in range(3)] == list(faces[7])
+    np.testing.assert_allclose(polydata.GetPoint(4), vertices[4])
+    lines = arrays_to_polydata(vertices[:3], lines=np.array([[0, 1], [1, 2]]))
+    assert lines.GetNumberOfLines() == 2 and lines.GetNumberOfPolys() == 0
+
+
+def test_decimate_and_remesh_keep_a_sphere():
+    points, faces = icosphere(4)
+    points = points * 10.0
+    vertices, decimated = decimate(points, faces, 600)
+    assert 400 < len(vertices) < 800
+    assert topology(vertices, decimated).is_sphere_like
+    assert np.all(np.abs(np.linalg.norm(vertices, axis=1) - 10.0) < 0.3)
+    vertices, remeshed = remesh(*icosphere(2), edge_length=0.1)
+    assert topology(vertices, remeshed).is_sphere_like
+    edges = np.unique(np.sort(edges_of(remeshed), axis=1), axis=0)
+    lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    assert 0.06 < np.median(lengths) < 0.14
+    assert np.all(np.abs(np.linalg.norm(vertices, axis=1) - 1.0) < 0.05)
+
+
+# --- label map -> surface ------------------------------------------------------------------------------
+
+SPACING = (2.0, 1.0, 1.0)          # x, y, z (SimpleITK order); the array is (z, y, x)
+ORIGIN = (-30.0, 5.0, 12.0)
+CENTRE_INDEX = np.array([8.3, 14.6, 13.2])   # x, y, z voxel index of the ball centre
+RADIUS = 9.0
+
+
+@pytest.fixture(scope="module")
+def ball():
+    mask = ball_mask((30, 32, 18), SPACING, ORIGIN, CENTRE_INDEX, RADIUS)
+    vertices, faces, info = mask_to_surface(mask, spacing=SPACING, origin=ORIGIN)
+    return mask, vertices, faces, info
+
+
+def test_ball_mask_gives_a_round_sphere_like_surface(ball):
+    _, vertices, faces, info = ball
+    centre = np.asarray(ORIGIN) + np.asarray(SPACING) * CENTRE_INDEX
+    assert topology(vertices, faces).is_sphere_like
+    assert info["n_vertices"] == len(vertices) and info["smoothing_sigma"] == 1.0
+    radii = np.linalg.norm(vertices - centre, axis=1)
+    assert abs(radii.mean() - RADIUS) < 0.5
+    assert np.all(np.abs(radii - RADIUS) < 1.0)
+    np.testing.assert_allclose(vertices.mean(axis=0), centre, atol=0.25)
+    # round in physical space: the 2 mm voxels along x are taken into account
+    extent = np.ptp(vertices, axis=0)
+    assert np.ptp(extent) < 1.0
+    np.testing.assert_allclose(extent, 2 * RADIUS, atol=1.2)
+
+
+def test_ball_surface_is_outward_with_the_ball_volume(ball):
+    mask, vertices, faces, _ = ball
+    volume = signed_volume(vertices, faces)
+    assert volume > 0
+    assert volume == pytest.approx(4 / 3 * np.pi * RADIUS ** 3, rel=0.12)
+    assert volume == pytest.approx(mask.sum() * np.prod(SPACING), rel=0.12)
+
+
+@pytest.mark.parametrize("direction", [
+    (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0),     # rotation by 90 degrees about z
+    (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0),     # a reflection (left-handed image axes)
+])
+def test_direction_cosines(ball, direction):
+    mask = ball[0]
+    vertices, faces, _ = mask_to_surface(mask, spacing=SPACING, origin=ORIGIN, direction=direction)
+    matrix = np.reshape(direction, (3, 3))
+    centre = np.asarray(ORIGIN) + matrix @ (np.asarray(SPACING) * CENTRE_INDEX)
+    np.testing.assert_allclose(vertices.mean(axis=0), centre, atol=0.25)
+    radii = np.linalg.norm(vertices - centre, axis=1)
+    assert abs(radii.mean() - RADIUS) < 0.5
+    assert signed_volume(vertices, faces) > 0                    # still normals out
+    assert topology(vertices, faces).is_sphere_like
+
+
+def test_largest_of_two_balls_is_kept():
+    mask = (ball_mask((24, 24, 44), (1.0, 1.0, 1.0), (0, 0, 0), np.array([11.0, 11.5, 11.5]), 8.0)
+            | ball_mask((24, 24, 44), (1.0, 1.0, 1.0), (0, 0, 0), np.array([33.0, 11.5, 11.5]),
+                        5.0))
+    vertices, faces, _ = mask_to_surface(mask)
+    assert topology(vertices, faces).is_sphere_like
+    np.testing.assert_allclose(vertices.mean(axis=0), [11.0, 11.5, 11.5], atol=0.3)
+
+
+def test_empty_and_too_thin_masks_raise():
+    with pytest.raises(SurfaceError, match="empty"):
+        mask_to_surface(np.zeros((10, 10, 10), dtype=bool))
+    single = np.zeros((10, 10, 10), dtype=bool)
+    single[5, 5, 5] = True
+    with pytest.raises(SurfaceError):
+        mask_to_surface(single)
+
+
+def test_ring_mask_is_not_genus_zero():
+    z, y, x = np.indices((16, 36, 36), dtype=float)
+    major = np.hypot(x - 17.5, y - 17.5)
+    ring = (major - 11.0) ** 2 + (z - 7.5) ** 2 <= 4.0 ** 2
+    with pytest.raises(SurfaceError, match="genus 1"):
+        mask_to_surface(ring)
