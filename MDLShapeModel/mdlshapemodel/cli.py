@@ -40,6 +40,9 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
     group.add_argument("--fixed-delta", type=float, default=defaults.fixed_delta,
                        help="coding accuracy of the first phase (eq. 13), voxels "
                             "(default %(default)s)")
+    group.add_argument("--fixed-fraction", type=float, default=defaults.fixed_fraction,
+                       help="share of --max-time spent on the fixed-Delta phase before the full "
+                            "objective; 0 skips it (default %(default)s)")
     group.add_argument("--sigma-g", type=float, default=defaults.sigma_g,
                        help="width distribution of random kernels (default 1/32)")
     group.add_argument("--no-scaling", action="store_true",
@@ -73,6 +76,7 @@ def _config_from(args) -> BuildConfig:
                        strategy=args.strategy, scaling=not args.no_scaling,
                        delta_range=tuple(args.delta_range), fixed_delta=args.fixed_delta,
                        sigma_g=args.sigma_g, max_time=args.max_time, tolerance=args.tolerance,
+                       fixed_fraction=args.fixed_fraction,
                        seed=args.seed, evaluation_modes=args.evaluation_modes,
                        specificity_samples=args.specificity_samples, workers=args.workers,
                        strict=args.strict).validate()
@@ -97,14 +101,16 @@ def _summary(result) -> str:
     m = result.metrics
     lines = [f"model of {m['n_shapes']} cases written to {result.output}",
              f"  objective (eq. 14): {result.initial_objective:.3f} -> {result.final_objective:.3f}"
-             f" nats ({m['strategy']})",
-             f"  generalization G(1..3): " + ", ".join(f"{v:.3f}" for v in m["generalization"][:3])
-             + " mm^2",
-             f"  specificity    S(1..3): " + ", ".join(f"{v:.3f}" for v in m["specificity"][:3])
-             + " mm^2",
-             f"  surface fidelity: mean {m['surface_distance_mm']['mean']:.3f} mm, "
-             f"max {m['surface_distance_mm']['max']:.3f} mm",
-             f"  report: {result.output / 'report.html'}"]
+             f" nats ({m['strategy']})"]
+    for key, symbol in (("generalization", "G"), ("specificity", "S")):
+        shown = ", ".join(f"{v:.3f}" for v in m[key][:3])
+        if "baseline" in m:
+            shown += " (initial correspondence: " + ", ".join(
+                f"{v:.3f}" for v in m["baseline"][key][:3]) + ")"
+        lines.append(f"  {key:<14} {symbol}(1..3): {shown} mm^2")
+    lines += [f"  surface fidelity: mean {m['surface_distance_mm']['mean']:.3f} mm, "
+              f"max {m['surface_distance_mm']['max']:.3f} mm",
+              f"  report: {result.output / 'report.html'}"]
     if result.rejected:
         lines.append(f"  {len(result.rejected)} input(s) rejected: see {result.output / 'rejected.csv'}")
     return "\n".join(lines)
@@ -139,8 +145,9 @@ def main(argv=None) -> int:
 
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("mdlshapemodel: %(message)s"))
+    handler.setLevel(logging.WARNING if args.quiet else logging.INFO)
     log.addHandler(handler)
-    log.setLevel(logging.WARNING if args.quiet else logging.INFO)
+    log.setLevel(logging.INFO)
     try:
         if args.command == "build":
             return _run_build(args.inputs, args.output, _config_from(args))

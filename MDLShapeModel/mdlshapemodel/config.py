@@ -34,6 +34,7 @@ class BuildConfig:
     sigma_g: float = 1.0 / 32.0       # width distribution of random kernels (Table I)
     max_amplitude: float = 1.0        # upper bound of a kernel amplitude A
     max_time: float = 600.0           # seconds of optimisation
+    fixed_fraction: float = 0.5       # share of max_time for the fixed-Delta phase (0: none)
     tolerance: float = 0.01           # convergence: sweep gain below this fraction of total gain
     seed: int = 0
     # evaluation
@@ -65,6 +66,7 @@ class BuildConfig:
         need(self.sigma_g > 0, "sigma_g", "must be positive")
         need(self.max_amplitude > 0, "max_amplitude", "must be positive")
         need(self.max_time >= 0, "max_time", "must be >= 0")
+        need(0 <= self.fixed_fraction <= 1, "fixed_fraction", "must be between 0 and 1")
         need(0 < self.tolerance < 1, "tolerance", "must be between 0 and 1")
         need(self.evaluation_modes >= 1, "evaluation_modes", "must be at least 1")
         need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")

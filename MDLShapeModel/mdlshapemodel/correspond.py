@@ -246,6 +246,21 @@ class CorrespondenceState:
         """(n_s, n_p, 3) samples in each example's own physical coordinates."""
         return np.stack([e.raw_points() for e in self.examples])
 
+    def snapshot(self) -> list:
+        """Everything the optimisation changes: per example its pose and per part its positions,
+        located faces and kernels."""
+        return [(e.pose.copy(), [(p.positions.copy(), p.points.copy(), p.hint.copy(),
+                                  list(p.kernels)) for p in e.parts]) for e in self.examples]
+
+    def restore(self, snapshot: list):
+        """Return to a :meth:`snapshot`."""
+        for example, (pose, parts) in zip(self.examples, snapshot):
+            example.pose = pose.copy()
+            for part, (positions, points, hint, kernels) in zip(example.parts, parts):
+                part.positions, part.points, part.hint = positions.copy(), points.copy(), hint.copy()
+                part.kernels = list(kernels)
+        self.rebuild()
+
     def positions(self) -> list:
         """Current sample positions on the sphere, per example and part (for checkpoints)."""
         return [[part.positions for part in e.parts] for e in self.examples]

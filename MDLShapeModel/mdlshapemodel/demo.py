@@ -1,9 +1,9 @@
 """A small synthetic population for ``mdlshapemodel demo``.
 
-Each subject is an ellipsoid with a bump on its upper side; the bump slides along the long axis
-from subject to subject and the ellipsoid's size varies a little. Equal spacing on the sphere puts
-the bump at different parameter values in each subject (a poor, non-compact model); a good
-correspondence follows the bump.
+Each subject is an ellipsoid of varying thickness with a bump on its upper side whose size varies
+from subject to subject. An area-preserving parameterization gives a large bump more of the
+sphere than a small one, which shifts the parameterization of everything around it: equal spacing
+on the sphere then makes a less compact model than a correspondence that follows the bump.
 """
 
 from __future__ import annotations
@@ -36,12 +36,13 @@ def write_demo_population(folder, n_subjects: int = 12, seed: int = 0) -> list[P
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    positions = np.linspace(-0.8, 0.8, n_subjects)
-    rng.shuffle(positions)
+    radii = np.linspace(2.5, 7.5, n_subjects)
+    rng.shuffle(radii)
     paths = []
-    for k, position in enumerate(positions):
-        mask = bump_ellipsoid_mask(bump_position=float(position),
-                                   scale=float(1.0 + 0.05 * rng.standard_normal()))
+    for k, radius in enumerate(radii):
+        thickness = float(7.0 + 1.0 * rng.uniform(-1, 1))
+        mask = bump_ellipsoid_mask(semi_axes=(16.0, 9.0, thickness), bump_position=0.3,
+                                   bump_radius=float(radius))
         image = sitk.GetImageFromArray(mask.astype(np.uint8))
         image.SetSpacing((1.0, 1.0, 1.0))
         path = folder / f"subject_{k + 1:02d}.nii.gz"

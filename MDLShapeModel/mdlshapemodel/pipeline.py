@@ -253,8 +253,14 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
     log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
              state.n_shapes, state.n_points, voxel, data_range)
 
+    baseline = None
+    if config.strategy != "none":
+        log.info("evaluating the initial (equal-spacing) correspondence as the baseline")
+        baseline = {"objective": initial, **evaluate_state(state, config)}
+
     settings = OptimisationSettings(strategy=config.strategy, sigma_g=config.sigma_g,
                                     max_amplitude=config.max_amplitude, max_time=config.max_time,
+                                    fixed_fraction=config.fixed_fraction,
                                     tolerance=config.tolerance)
     trace = Trace()
     rng = np.random.default_rng(config.seed)
@@ -270,6 +276,9 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
         log.warning("optimisation interrupted: writing the model of the state reached")
         state.rebuild()
         final = integrated(state.covariance())
+    if trace.rows and trace.rows[-1][4] == "restored-initial":
+        log.warning("the optimisation did not lower the objective within --max-time "
+                    "(%.0f s): keeping the initial correspondence", config.max_time)
     state.rebuild()
     final = integrated(state.covariance())
     log.info("final objective %.4f after %.1f s, %d evaluations", final,
@@ -278,9 +287,17 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
     io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
 
     result = write_outputs(output, state, prepared, rejected, config, initial, final, voxel,
-                           data_range, interrupted)
+                           data_range, interrupted, baseline)
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
+
+
+def evaluate_state(state: CorrespondenceState, config: BuildConfig) -> dict:
+    """Compactness, generalization and specificity of the state's aligned shapes."""
+    aligned = state.aligned_shapes()
+    model = ShapeModel.from_shapes(aligned, state.weights)
+    return evaluate(aligned, state.weights, model.variances, config.evaluation_modes,
+                    config.specificity_samples, np.random.default_rng(config.seed))
 
 
 def save_checkpoint(path: Path, state: CorrespondenceState):
@@ -299,7 +316,8 @@ def save_checkpoint(path: Path, state: CorrespondenceState):
 
 def write_outputs(output: Path, state: CorrespondenceState, prepared: list, rejected: list,
                   config: BuildConfig, initial: float, final: float, voxel: float,
-                  data_range: float, interrupted: bool) -> BuildResult:
+                  data_range: float, interrupted: bool, baseline: dict | None = None
+                  ) -> BuildResult:
     """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html."""
     from .report import write_report
 
@@ -334,8 +352,7 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
     io.write_csv(output / "cases.csv", list(cases[0].keys()),
                  [[c.get(k, "") for k in cases[0]] for c in cases])
-    quality = evaluate(aligned, state.weights, model.variances, config.evaluation_modes,
-                       config.specificity_samples, np.random.default_rng(config.seed))
+    quality = evaluate_state(state, config)
     metrics = {"objective": {"initial": initial, "final": final,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
                "strategy": config.strategy, "n_shapes": state.n_shapes, "n_points": state.n_points,
@@ -345,6 +362,8 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))}}
+    if baseline is not None:
+        metrics["baseline"] = baseline
     (output / "metrics.json").write_text(json.dumps(metrics, indent=2))
     write_report(output, metrics, cases, rejected)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted)

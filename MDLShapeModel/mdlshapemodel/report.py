@@ -7,6 +7,8 @@ import html
 import io as _io
 from pathlib import Path
 
+import numpy as np
+
 from . import io
 
 
@@ -23,14 +25,20 @@ def _measure_plots(metrics: dict) -> str:
     import matplotlib.pyplot as plt
 
     figure, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    modes = metrics["modes"]
+    modes = np.asarray(metrics["modes"])
+    series = [(metrics, f"optimised ({metrics['strategy']})", 0.0)]
+    if "baseline" in metrics:
+        series.append((metrics["baseline"], "initial correspondence", 0.15))
     for axis, key, label in zip(axes, ("compactness", "generalization", "specificity"),
                                 ("Compactness C(M) [mm²]", "Generalization G(M) [mm²]",
                                  "Specificity S(M) [mm²]")):
-        axis.errorbar(modes, metrics[key], yerr=metrics[key + "_se"], marker="o", capsize=3)
+        for values, name, shift in series:
+            axis.errorbar(modes + shift, values[key], yerr=values[key + "_se"], marker="o",
+                          capsize=3, label=name)
         axis.set_xlabel("number of modes M")
         axis.set_title(label)
         axis.grid(alpha=0.3)
+    axes[0].legend()
     encoded = _figure_to_base64(figure)
     plt.close(figure)
     return encoded
@@ -82,6 +90,13 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list) -> Pa
              metrics["generalization"][k], metrics["generalization_se"][k],
              metrics["specificity"][k], metrics["specificity_se"][k])
             for k, m in enumerate(metrics["modes"])]
+    if "baseline" in metrics:
+        base = metrics["baseline"]
+        rows = [row + (base["generalization"][k], base["specificity"][k])
+                for k, row in enumerate(rows)]
+        header = ("M", "C(M)", "SE", "G(M)", "SE", "S(M)", "SE", "G(M) initial", "S(M) initial")
+    else:
+        header = ("M", "C(M)", "SE", "G(M)", "SE", "S(M)", "SE")
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>MDLShapeModel report</title>",
         "<style>body{font-family:sans-serif;margin:2em;max-width:1100px}table{border-collapse:"
@@ -94,7 +109,7 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list) -> Pa
         f"optimisation{' (interrupted)' if metrics['interrupted'] else ''}.</p>",
         "<h2>Model quality (area-weighted squared distances, ± 1 standard error)</h2>",
         f"<img src='data:image/png;base64,{measures}' alt='quality measures'>",
-        _table(("M", "C(M)", "SE", "G(M)", "SE", "S(M)", "SE"), rows),
+        _table(header, rows),
     ]
     if convergence:
         parts += ["<h2>Convergence</h2>",

@@ -5,7 +5,8 @@ Implemented here:
 - ``none``: keep the initial correspondence (the equal-spacing / SPHARM-like baseline);
 - ``one-at-a-time`` (III-D3): sweep the examples in random order; for each, draw a kernel position
   uniformly over the shape and a width from the positive half of N(0, sigma_G), and optimise that
-  kernel's amplitude (bounded Brent search, the paper's suggested 1-D alternative to the simplex);
+  kernel's amplitude (bounded Brent search over log10 A, the paper's suggested 1-D alternative to
+  the simplex);
 - ``one-at-a-time-pose`` (III-D4): as above, then optimise the example's pose (rotation, translation,
   scale) with the downhill simplex.
 
@@ -64,7 +65,8 @@ class OptimisationSettings:
 
 
 def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kernel,
-                        current: float, max_amplitude: float) -> float:
+                        current: float, max_amplitude: float, min_amplitude: float = 1e-7
+                        ) -> float:
     """Best amplitude for one kernel of part j of example i; commits it when F falls."""
     example = state.examples[i]
     part = example.parts[j]
@@ -79,10 +81,13 @@ def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kern
         return value
 
     upper = part.feasible_amplitude(kernel.center, kernel.omega, max_amplitude)
-    if upper <= 0.0:
+    if upper <= min_amplitude:
         return current
-    minimize_scalar(objective, bounds=(0.0, upper), method="bounded",
-                    options={"xatol": 1e-4 * max_amplitude, "maxiter": 25})
+    # Useful amplitudes span decades (a narrow kernel displaces every point by about
+    # A (pi - theta) / (1 + A)), so the search is over log10 A.
+    minimize_scalar(lambda t: objective(10.0 ** t), method="bounded",
+                    bounds=(np.log10(min_amplitude), np.log10(upper)),
+                    options={"xatol": 0.02, "maxiter": 25})
     best_value, trial, positions, points, hint = min(cache.values(), key=lambda item: item[0])
     if best_value < current and trial.amplitude > 0:
         part.commit(trial, positions, points, hint)
@@ -184,8 +189,22 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
     if settings.strategy not in STRATEGIES:
         raise ValueError(f"unknown strategy {settings.strategy!r}")
     with_pose = settings.strategy == "one-at-a-time-pose"
-    one_at_a_time(state, fixed, settings, rng, trace, "fixed",
-                  start + settings.fixed_fraction * settings.max_time, with_pose, progress,
-                  checkpoint)
-    return one_at_a_time(state, integrated, settings, rng, trace, "integrated",
-                         start + settings.max_time, with_pose, progress, checkpoint)
+    state.objective = integrated
+    initial_value = state.value()
+    initial = state.snapshot()
+    try:
+        if settings.fixed_fraction > 0:
+            one_at_a_time(state, fixed, settings, rng, trace, "fixed",
+                          start + settings.fixed_fraction * settings.max_time, with_pose,
+                          progress, checkpoint)
+        value = one_at_a_time(state, integrated, settings, rng, trace, "integrated",
+                              start + settings.max_time, with_pose, progress, checkpoint)
+    finally:
+        state.objective = integrated
+    if value > initial_value:
+        # The fixed-Delta phase optimises another function; with a short budget the full
+        # objective may end above its start. Never return a worse correspondence than the start.
+        state.restore(initial)
+        value = state.value()
+        trace.record(state, value, "restored-initial", trace.rows[-1][5] if trace.rows else 0)
+    return value

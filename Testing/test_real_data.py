@@ -1,0 +1,67 @@
+"""Integration tests on the shared real data (skipped when ../shared/data is absent)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from mdlshapemodel import BuildConfig, build_model
+from mdlshapemodel.io import read_csv
+from mdlshapemodel.pipeline import prepare_case
+from mdlshapemodel.sampling import sphere_grid
+from mdlshapemodel.sphere import orientation, solid_angles
+from mdlshapemodel.surface import topology
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+HIPPOCAMPI = DATA / "hippocampus" / "labels"
+
+pytestmark = pytest.mark.skipif(not HIPPOCAMPI.is_dir(),
+                                reason=f"shared hippocampus data not found at {HIPPOCAMPI}")
+
+
+def hippocampus(number: int) -> Path:
+    return HIPPOCAMPI / f"hippocampus_{number:03d}.nii.gz"
+
+
+@pytest.mark.parametrize("number", [1, 3, 4])
+def test_hippocampus_surface_and_sphere_map(number):
+    case = prepare_case(str(hippocampus(number)), BuildConfig(labels=[1, 2]))
+    assert not hasattr(case, "reason"), getattr(case, "reason", "")
+    mapped = case.map
+    assert topology(mapped.vertices, mapped.faces).is_sphere_like
+    assert np.all(orientation(mapped.sphere, mapped.faces) > 0)
+    assert np.sum(solid_angles(mapped.sphere, mapped.faces)) == pytest.approx(4 * np.pi, rel=1e-9)
+    assert mapped.quality["mean_abs_log_area_ratio"] <= 0.3
+    assert mapped.quality["p95_abs_log_area_ratio"] <= 1.0
+    # the surface lies on the label map's boundary: its bounding box matches the mask's (mm)
+    image = sitk.ReadImage(str(hippocampus(number)))
+    index = np.argwhere(sitk.GetArrayFromImage(image) > 0)[:, ::-1].astype(float)
+    voxels = np.array([image.TransformContinuousIndexToPhysicalPoint(p) for p in index])
+    np.testing.assert_allclose(mapped.vertices.min(axis=0), voxels.min(axis=0), atol=1.5)
+    np.testing.assert_allclose(mapped.vertices.max(axis=0), voxels.max(axis=0), atol=1.5)
+
+
+def test_single_label_and_missing_label():
+    one = prepare_case(str(hippocampus(1)), BuildConfig(labels=[2]))
+    both = prepare_case(str(hippocampus(1)), BuildConfig(labels=[1, 2]))
+    assert len(one.map.vertices) < len(both.map.vertices)
+    missing = prepare_case(str(hippocampus(1)), BuildConfig(labels=[3]))
+    assert "label 3 not present" in missing.reason and "1, 2" in missing.reason
+
+
+def test_small_hippocampus_build_is_faithful_and_fold_free(tmp_path):
+    inputs = [hippocampus(n) for n in (1, 3, 4, 6, 7)]
+    config = BuildConfig(labels=[1, 2], points=642, max_time=10, specificity_samples=500,
+                         evaluation_modes=3)
+    result = build_model(inputs, tmp_path, config)
+    assert result.metrics["n_shapes"] == 5
+    cases = read_csv(tmp_path / "cases.csv")
+    assert max(float(c["mean_distance_voxels"]) for c in cases) < 0.5
+    # every corresponded mesh is a homeomorphic image of the grid: no flipped triangle
+    _, triangles = sphere_grid(642)
+    state = np.load(tmp_path / "checkpoint.npz")
+    for i in range(5):
+        positions = state[f"positions_{i}_0"]
+        assert np.all(orientation(positions, triangles) > 0)
+    assert result.final_objective <= result.initial_objective

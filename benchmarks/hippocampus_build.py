@@ -1,0 +1,61 @@
+"""Build a model of the first N shared hippocampi with the real CLI and print what it measured.
+
+Prints wall time, the objective before and after optimisation, compactness / generalization /
+specificity (area-weighted mm^2, +- 1 standard error) of the optimised model and of its own initial
+(equal-spacing, = ``--strategy none``) correspondence for M = 1..10, how many standard errors apart
+they are, and the surface fidelity of the corresponded meshes.
+
+    python benchmarks/hippocampus_build.py --cases 40 --output /tmp/hippocampus40
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "hippocampus" / "labels"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", type=int, default=40)
+    parser.add_argument("--output", default="hippocampus-benchmark")
+    parser.add_argument("--data", default=str(DATA))
+    parser.add_argument("extra", nargs=argparse.REMAINDER,
+                        help="further build options after --, e.g. -- --max-time 300")
+    args = parser.parse_args()
+    inputs = sorted(Path(args.data).glob("*.nii.gz"))[: args.cases]
+    if not inputs:
+        print(f"no label maps in {args.data}", file=sys.stderr)
+        return 2
+    extra = [a for a in args.extra if a != "--"]
+    command = [sys.executable, "-m", "mdlshapemodel.cli", "build", *map(str, inputs),
+               "--label", "1,2", "-o", args.output, "-q", *extra]
+    start = time.perf_counter()
+    subprocess.run(command, check=True)
+    wall = time.perf_counter() - start
+    metrics = json.loads((Path(args.output) / "metrics.json").read_text())
+    base = metrics["baseline"]
+    print(f"\n{metrics['n_shapes']} hippocampi, {metrics['n_points']} points, strategy "
+          f"{metrics['strategy']}, {metrics['n_rejected']} rejected; wall time {wall:.0f} s")
+    print(f"objective (eq. 14): initial {metrics['objective']['initial']:.2f}, "
+          f"final {metrics['objective']['final']:.2f} nats")
+    for key in ("compactness", "generalization", "specificity"):
+        print(f"\n{key} [mm^2]   optimised          initial            (initial - optimised)/SE")
+        for k, m in enumerate(metrics["modes"]):
+            a, sa = metrics[key][k], metrics[key + "_se"][k]
+            b, sb = base[key][k], base[key + "_se"][k]
+            gap = (b - a) / max((sa * sa + sb * sb) ** 0.5, 1e-300)
+            print(f"  M={m:<3d}         {a:.4f} +- {sa:.4f}   {b:.4f} +- {sb:.4f}   {gap:+.2f}")
+    fidelity = metrics["surface_distance_mm"]
+    print(f"\nsurface -> corresponded mesh distance: mean {fidelity['mean']:.3f} mm, "
+          f"max {fidelity['max']:.3f} mm (voxel {metrics['voxel_size_mm']:.2f} mm)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
