@@ -1,5 +1,6 @@
 """Integration tests on the shared real data (skipped when ../shared/data is absent)."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,8 @@ from mdlshapemodel.sampling import sphere_grid
 from mdlshapemodel.sphere import orientation, solid_angles
 from mdlshapemodel.surface import topology
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(os.environ.get("MDLSHAPEMODEL_DATA",
+                          Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 HIPPOCAMPI = DATA / "hippocampus" / "labels"
 
 pytestmark = pytest.mark.skipif(not HIPPOCAMPI.is_dir(),

@@ -32,8 +32,13 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
                             "correspondence (default %(default)s)")
     group.add_argument("--max-time", type=float, default=defaults.max_time, metavar="SECONDS",
                        help="time budget of the optimisation (default %(default)s)")
+    group.add_argument("--max-sweeps", type=int, default=defaults.max_sweeps, metavar="N",
+                       help="at most N sweeps over the examples per phase; unlike --max-time, a "
+                            "budget that repeats exactly (default %(default)s)")
     group.add_argument("--seed", type=int, default=defaults.seed,
-                       help="random seed; the same seed gives the same model (default %(default)s)")
+                       help="random seed: the same seed and inputs give the same model bit for "
+                            "bit, unless --max-time cuts the runs at different points "
+                            "(default %(default)s)")
     group.add_argument("--delta-range", type=float, nargs=2, default=defaults.delta_range,
                        metavar=("MIN", "MAX"),
                        help="coding accuracy range of eq. 14 in voxels (default %(default)s)")
@@ -76,7 +81,7 @@ def _config_from(args) -> BuildConfig:
                        strategy=args.strategy, scaling=not args.no_scaling,
                        delta_range=tuple(args.delta_range), fixed_delta=args.fixed_delta,
                        sigma_g=args.sigma_g, max_time=args.max_time, tolerance=args.tolerance,
-                       fixed_fraction=args.fixed_fraction,
+                       fixed_fraction=args.fixed_fraction, max_sweeps=args.max_sweeps,
                        seed=args.seed, evaluation_modes=args.evaluation_modes,
                        specificity_samples=args.specificity_samples, workers=args.workers,
                        strict=args.strict).validate()

@@ -36,6 +36,7 @@ class BuildConfig:
     max_time: float = 600.0           # seconds of optimisation
     fixed_fraction: float = 0.5       # share of max_time for the fixed-Delta phase (0: none)
     tolerance: float = 0.01           # convergence: sweep gain below this fraction of total gain
+    max_sweeps: int = 10_000          # per phase; with a generous max_time, a repeatable budget
     seed: int = 0
     # evaluation
     evaluation_modes: int = 10
@@ -68,6 +69,7 @@ class BuildConfig:
         need(self.max_time >= 0, "max_time", "must be >= 0")
         need(0 <= self.fixed_fraction <= 1, "fixed_fraction", "must be between 0 and 1")
         need(0 < self.tolerance < 1, "tolerance", "must be between 0 and 1")
+        need(self.max_sweeps >= 1, "max_sweeps", "must be at least 1")
         need(self.evaluation_modes >= 1, "evaluation_modes", "must be at least 1")
         need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")
         need(self.workers >= 1, "workers", "must be at least 1")

@@ -261,7 +261,7 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
     settings = OptimisationSettings(strategy=config.strategy, sigma_g=config.sigma_g,
                                     max_amplitude=config.max_amplitude, max_time=config.max_time,
                                     fixed_fraction=config.fixed_fraction,
-                                    tolerance=config.tolerance)
+                                    tolerance=config.tolerance, max_sweeps=config.max_sweeps)
     trace = Trace()
     rng = np.random.default_rng(config.seed)
     interrupted = False
