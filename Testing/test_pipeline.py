@@ -117,3 +117,24 @@ def test_strict_turns_rejections_into_failure(population, tmp_path):
     with pytest.raises(BuildError, match="strict"):
         build_model([folder], tmp_path / "out",
                     BuildConfig(points=42, max_time=0, workers=1, strict=True))
+
+
+def test_cancelled_optimisation_still_writes_the_model(population, tmp_path):
+    from mdlshapemodel.strategies import Cancelled
+
+    folder, paths = population
+    calls = []
+
+    def progress(fraction, message):
+        if fraction is None:  # optimisation messages
+            calls.append(message)
+            if len(calls) == 3:
+                raise Cancelled()
+
+    config = BuildConfig(points=42, max_time=600, workers=1, specificity_samples=100,
+                         evaluation_modes=2)
+    result = build_model(paths, tmp_path / "out", config, progress=progress)
+    assert result.interrupted and len(calls) == 3
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["interrupted"] is True
+    assert ShapeModel.load(tmp_path / "out" / "model.h5").scores.shape[0] == 4

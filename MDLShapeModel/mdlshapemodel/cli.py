@@ -54,7 +54,7 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
                        help="keep size: Procrustes and pose use rotation and translation only")
     group.add_argument("--tolerance", type=float, default=defaults.tolerance,
                        help="convergence: stop when a sweep gains less than this fraction of the "
-                            "total gain, twice (default %(default)s)")
+                            "total gain, three times in a row (default %(default)s)")
     inputs = parser.add_argument_group("inputs and surfaces")
     inputs.add_argument("--label", type=_labels, action="extend", default=[], metavar="L",
                         help="label value(s) whose union is the object, e.g. --label 1,2 "

@@ -34,8 +34,8 @@ class BuildConfig:
     sigma_g: float = 1.0 / 32.0       # width distribution of random kernels (Table I)
     max_amplitude: float = 1.0        # upper bound of a kernel amplitude A
     max_time: float = 600.0           # seconds of optimisation
-    fixed_fraction: float = 0.5       # share of max_time for the fixed-Delta phase (0: none)
-    tolerance: float = 0.01           # convergence: sweep gain below this fraction of total gain
+    fixed_fraction: float = 0.7       # share of max_time for the fixed-Delta phase (0: none)
+    tolerance: float = 0.001          # convergence: sweep gain below this fraction of total gain
     max_sweeps: int = 10_000          # per phase; with a generous max_time, a repeatable budget
     seed: int = 0
     # evaluation

@@ -270,16 +270,14 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
         save_checkpoint(output / "checkpoint.npz", state)
 
     try:
-        final = optimise(state, (fixed, integrated), settings, rng, trace, progress, checkpoint)
+        optimise(state, (fixed, integrated), settings, rng, trace, progress, checkpoint)
     except (KeyboardInterrupt, Cancelled):
         interrupted = True
         log.warning("optimisation interrupted: writing the model of the state reached")
-        state.rebuild()
-        final = integrated(state.covariance())
     if trace.rows and trace.rows[-1][4] == "restored-initial":
         log.warning("the optimisation did not lower the objective within --max-time "
                     "(%.0f s): keeping the initial correspondence", config.max_time)
-    state.rebuild()
+    state.rebuild()  # also makes the state consistent after an interruption mid-step
     final = integrated(state.covariance())
     log.info("final objective %.4f after %.1f s, %d evaluations", final,
              trace.rows[-1][0] if trace.rows else 0.0, state.evaluations)

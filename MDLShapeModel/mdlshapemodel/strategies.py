@@ -57,9 +57,9 @@ class OptimisationSettings:
     sigma_g: float = 1.0 / 32.0
     max_amplitude: float = 1.0
     max_time: float = 600.0
-    fixed_fraction: float = 0.5
-    tolerance: float = 0.01
-    patience: int = 2
+    fixed_fraction: float = 0.7
+    tolerance: float = 0.001
+    patience: int = 3
     max_sweeps: int = 10_000
     pose_evaluations: int = 80
 
