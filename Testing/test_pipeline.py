@@ -39,8 +39,12 @@ def population(tmp_path_factory):
     paths = []
     for k, position in enumerate(np.linspace(-0.6, 0.6, 4)):
         origin = (10.0 * k, -5.0, 3.0)  # each case in its own physical place
-        paths.append(write_mask(folder / f"case_{k}.nii.gz", small_mask(float(position)),
-                                origin=origin))
+        mask = small_mask(float(position))
+        if k == 0:  # debris and a cavity, both repaired
+            mask[0:2, 0:2, 0:2] = True
+            centre = np.array(mask.shape) // 2
+            mask[tuple(slice(c - 1, c + 1) for c in centre)] = False
+        paths.append(write_mask(folder / f"case_{k}.nii.gz", mask, origin=origin))
     write_mask(folder / "empty.nii.gz", np.zeros((10, 10, 10), bool))
     (folder / "notes.nrrd").write_text("this is not an image")
     return folder, paths
@@ -64,6 +68,15 @@ def test_bad_inputs_are_rejected_and_the_build_goes_on(built):
     assert "not a readable image" in rejected["notes"]
     log = (output / "build.log").read_text()
     assert "rejected" in log and "notes.nrrd" in log
+
+
+def test_repairs_are_reported_per_case(built):
+    _, output = built
+    cases = {row["case"]: row for row in read_csv(output / "cases.csv")}
+    assert "dropped 1 small component(s) of 8 voxels" in cases["case_0"]["repair"]
+    assert "filled 8 cavity voxels" in cases["case_0"]["repair"]
+    assert cases["case_1"]["repair"] == ""
+    assert all(float(row["smoothing_sigma"]) >= 1.0 for row in cases.values())
 
 
 def test_outputs_have_identical_connectivity_and_physical_placement(built, population):

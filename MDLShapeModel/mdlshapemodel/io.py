@@ -161,7 +161,7 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) and triangles (m, 3) of a mesh file; polygons are triangulated."""
     import vtk
 
-    from .surface import _polydata_to_arrays
+    from .surface import polydata_to_arrays
 
     polydata = read_polydata(path)
     triangulate = vtk.vtkTriangleFilter()
@@ -169,7 +169,7 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     triangulate.PassVertsOff()
     triangulate.PassLinesOff()
     triangulate.Update()
-    vertices, faces = _polydata_to_arrays(triangulate.GetOutput())
+    vertices, faces = polydata_to_arrays(triangulate.GetOutput())
     if len(faces) == 0:
         raise InputError("the mesh has no triangles")
     return vertices, faces

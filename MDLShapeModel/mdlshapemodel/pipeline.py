@@ -344,7 +344,8 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                       "sphere_mean_abs_log_area": quality["mean_abs_log_area_ratio"],
                       "sphere_p95_abs_log_area": quality["p95_abs_log_area_ratio"],
                       "kernels": int(sum(len(p.kernels) for p in state.examples[i].parts)),
-                      **{k: v for k, v in case.notes.items() if k in ("repair", "smoothing_sigma")}})
+                      "smoothing_sigma": case.notes.get("smoothing_sigma", ""),
+                      "repair": case.notes.get("repair", "")})
     n_modes = model.n_modes
     io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(n_modes)],
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])

@@ -153,7 +153,8 @@ def require_sphere_like(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     return topo
 
 
-def _polydata_to_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
+def polydata_to_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
+    """Points (n, 3) and triangles (m, 3) of a vtkPolyData whose polygons are triangles."""
     from vtk.util.numpy_support import vtk_to_numpy
 
     if polydata.GetNumberOfPoints() == 0 or polydata.GetNumberOfPolys() == 0:
@@ -215,7 +216,7 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
         contour.ComputeNormalsOff()
         contour.ComputeGradientsOff()
         contour.Update()
-        vertices, faces = _polydata_to_arrays(contour.GetOutput())
+        vertices, faces = polydata_to_arrays(contour.GetOutput())
         if len(faces) == 0:
             raise SurfaceError("the mask is too thin to give a surface after smoothing")
         vertices, faces = merge_close_vertices(vertices, faces)
@@ -271,7 +272,7 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target_vertices: int
     decimator.SetTargetReduction(max(0.0, 1.0 - target_vertices / len(vertices)))
     decimator.VolumePreservationOn()
     decimator.Update()
-    new_vertices, new_faces = _polydata_to_arrays(decimator.GetOutput())
+    new_vertices, new_faces = polydata_to_arrays(decimator.GetOutput())
     new_vertices, new_faces = drop_degenerate_faces(new_vertices, new_faces)
     if topology(new_vertices, new_faces).is_sphere_like:
         return new_vertices, new_faces
