@@ -53,16 +53,17 @@ def _convergence_plot(path: Path) -> str | None:
     rows = io.read_csv(path) if path.exists() else []
     if len(rows) < 2:
         return None
-    figure, axis = plt.subplots(figsize=(6, 3.4))
-    for phase in ("fixed", "integrated"):
+    titles = {"fixed": "fixed-Delta objective (eq. 13)", "integrated": "objective (eq. 14)"}
+    phases = [p for p in titles if any(r["phase"] == p for r in rows)]
+    figure, axes = plt.subplots(1, len(phases), figsize=(5.5 * len(phases), 3.4), squeeze=False)
+    for axis, phase in zip(axes[0], phases):  # one panel per phase: their scales differ
         selected = [r for r in rows if r["phase"] == phase]
-        if selected:
-            axis.plot([float(r["wall_seconds"]) for r in selected],
-                      [float(r["objective"]) for r in selected], label=f"{phase} objective")
-    axis.set_xlabel("wall seconds")
-    axis.set_ylabel("F [nats]")
-    axis.legend()
-    axis.grid(alpha=0.3)
+        axis.plot([float(r["wall_seconds"]) for r in selected],
+                  [float(r["objective"]) for r in selected])
+        axis.set_title(titles[phase])
+        axis.set_xlabel("wall seconds")
+        axis.set_ylabel("F [nats]")
+        axis.grid(alpha=0.3)
     encoded = _figure_to_base64(figure)
     plt.close(figure)
     return encoded
