@@ -3,8 +3,15 @@
 Building the surface and its map takes a second or two, so both are computed once per session.
 """
 
+import os
+import tempfile
+
 import numpy as np
 import pytest
+
+# Every test session gets its own, empty preprocessing cache (also inherited by CLI subprocesses):
+# results never leak in from a user's cache or from an earlier run.
+os.environ["MDLSHAPEMODEL_CACHE"] = tempfile.mkdtemp(prefix="mdlshapemodel-test-cache-")
 
 
 @pytest.fixture

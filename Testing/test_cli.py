@@ -94,3 +94,18 @@ def test_demo_runs_and_reports(tmp_path):
     assert "objective (eq. 14)" in result.stdout and str(out) in result.stdout
     assert len(list((out / "inputs").glob("*.nii.gz"))) == 4
     assert (out / "model.h5").is_file() and (out / "report.html").is_file()
+
+
+def test_rebuild_reuses_preprocessing_and_no_cache_does_not(tmp_path):
+    inputs = write_population(tmp_path / "in", 3)
+    cache = tmp_path / "cache"
+    common = ["--points", 42, "--max-sweeps", 1, "--workers", 1, "--specificity-samples", 50,
+              "--evaluation-modes", 1, "--cache-dir", cache]
+    first = run("build", inputs, "-o", tmp_path / "a", *common)
+    second = run("build", inputs, "-o", tmp_path / "b", *common)
+    assert first.returncode == 0 and second.returncode == 0, second.stderr
+    assert "reused" not in first.stderr
+    assert "reused 3 of 3 preprocessed cases" in second.stderr
+    assert len(list(cache.glob("*.npz"))) == 3
+    third = run("build", inputs, "-o", tmp_path / "c", *common[:-2], "--no-cache")
+    assert third.returncode == 0 and "reused" not in third.stderr

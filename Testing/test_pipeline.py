@@ -151,3 +151,37 @@ def test_cancelled_optimisation_still_writes_the_model(population, tmp_path):
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["interrupted"] is True
     assert ShapeModel.load(tmp_path / "out" / "model.h5").scores.shape[0] == 4
+
+
+def test_preprocessing_cache_is_reused_only_for_identical_files_and_settings(population, tmp_path,
+                                                                            monkeypatch):
+    from mdlshapemodel.pipeline import preprocess
+
+    _, paths = population
+    cache = tmp_path / "cache"
+    config = BuildConfig(workers=1, cache_dir=str(cache))
+    first, _ = preprocess(paths[:2], config)
+    assert len(list(cache.glob("*.npz"))) == 2
+    stamps = {f: f.stat().st_mtime_ns for f in cache.glob("*.npz")}
+    again, _ = preprocess(paths[:2], config)
+    assert {f: f.stat().st_mtime_ns for f in cache.glob("*.npz")} == stamps  # nothing rewritten
+    for a, b in zip(first, again):
+        assert a.name == b.name and a.notes == b.notes and a.map.quality == b.map.quality
+        assert np.array_equal(a.map.sphere, b.map.sphere)
+        assert np.array_equal(a.map.faces, b.map.faces)
+    # another setting that changes the surface: new entries
+    preprocess(paths[:1], BuildConfig(workers=1, cache_dir=str(cache), smoothing_sigma=1.5))
+    assert len(list(cache.glob("*.npz"))) == 3
+    # a damaged entry is recomputed, not trusted
+    damaged = sorted(stamps)[0]
+    damaged.write_bytes(b"not an npz file")
+    recomputed, _ = preprocess(paths[:2], config)
+    assert [r.name for r in recomputed] == [r.name for r in first]
+    assert np.load(damaged)["sphere"].shape[1] == 3
+    # default place from the environment; switched off, nothing is stored there
+    default = tmp_path / "default"
+    monkeypatch.setenv("MDLSHAPEMODEL_CACHE", str(default))
+    preprocess(paths[:1], BuildConfig(workers=1, cache_dir=""))
+    assert not default.exists()
+    preprocess(paths[:1], BuildConfig(workers=1))
+    assert len(list(default.glob("*.npz"))) == 1

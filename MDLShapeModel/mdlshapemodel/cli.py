@@ -66,6 +66,11 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
     run = parser.add_argument_group("running and evaluation")
     run.add_argument("--workers", type=int, default=defaults.workers,
                      help="processes for per-case work (default: all cores, %(default)s)")
+    run.add_argument("--cache-dir", default=None, metavar="DIR",
+                     help="where preprocessed cases are kept for rebuilds (default: "
+                          "$MDLSHAPEMODEL_CACHE or ~/.cache/mdlshapemodel)")
+    run.add_argument("--no-cache", action="store_true",
+                     help="preprocess every case again and store nothing")
     run.add_argument("--strict", action="store_true", help="fail (exit 2) if any input is rejected")
     run.add_argument("--evaluation-modes", type=int, default=defaults.evaluation_modes,
                      help="measures are reported for M = 1..this (default %(default)s)")
@@ -84,6 +89,7 @@ def _config_from(args) -> BuildConfig:
                        fixed_fraction=args.fixed_fraction, max_sweeps=args.max_sweeps,
                        seed=args.seed, evaluation_modes=args.evaluation_modes,
                        specificity_samples=args.specificity_samples, workers=args.workers,
+                       cache_dir="" if args.no_cache else args.cache_dir,
                        strict=args.strict).validate()
 
 

@@ -43,6 +43,7 @@ class BuildConfig:
     specificity_samples: int = 10_000
     # running
     workers: int = field(default_factory=lambda: os.cpu_count() or 1)
+    cache_dir: str | None = None      # per-case preprocessing cache; None: default place, "": off
     strict: bool = False
 
     def validate(self) -> "BuildConfig":

@@ -9,9 +9,11 @@ reached.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import multiprocessing
+import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -111,6 +113,76 @@ def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
         return Rejection(name, str(path), f"{type(error).__name__}: {error}")
 
 
+CACHE_FORMAT = 1
+PREPROCESSING_FIELDS = ("labels", "voxel_size", "smoothing_sigma", "max_smoothing_sigma",
+                        "edge_length", "target_vertices")
+
+
+def default_cache_dir() -> Path:
+    """``$MDLSHAPEMODEL_CACHE``, else ``$XDG_CACHE_HOME/mdlshapemodel``, else ``~/.cache/...``."""
+    if os.environ.get("MDLSHAPEMODEL_CACHE"):
+        return Path(os.environ["MDLSHAPEMODEL_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "mdlshapemodel"
+
+
+def cache_key(path: str, config: BuildConfig) -> str:
+    """Hash of the file's bytes, the preprocessing settings and the package version."""
+    from . import __version__
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    settings = {name: getattr(config, name) for name in PREPROCESSING_FIELDS}
+    digest.update(json.dumps([CACHE_FORMAT, __version__, settings], sort_keys=True).encode())
+    return digest.hexdigest()
+
+
+def _load_cached(file: Path, name: str, path: str):
+    with np.load(file, allow_pickle=False) as data:
+        if "reason" in data:
+            return Rejection(name, path, str(data["reason"]))
+        quality = json.loads(str(data["quality"]))
+        notes = json.loads(str(data["notes"]))
+        mapped = SphereMap(data["vertices"], data["faces"], data["sphere"], quality)
+        return PreparedCase(name, path, mapped, float(data["voxel_size"]), notes)
+
+
+def _store_cached(file: Path, result):
+    file.parent.mkdir(parents=True, exist_ok=True)
+    temporary = file.with_name(file.name + f".{os.getpid()}.tmp.npz")
+    if isinstance(result, Rejection):
+        np.savez(temporary, reason=np.array(result.reason))
+    else:
+        np.savez(temporary, vertices=result.map.vertices, faces=result.map.faces,
+                 sphere=result.map.sphere, quality=np.array(json.dumps(result.map.quality)),
+                 notes=np.array(json.dumps(result.notes)), voxel_size=result.voxel_size)
+    temporary.replace(file)
+
+
+def prepare_case_cached(path: str, config: BuildConfig, cache_dir: str | None):
+    """:func:`prepare_case`, reusing the stored result of an identical file and settings.
+
+    Returns (result, whether it came from the cache). Unreadable cache entries are recomputed.
+    """
+    if cache_dir is None or not Path(path).is_file():
+        return prepare_case(path, config), False
+    name = io.case_name(path)
+    file = Path(cache_dir) / f"{cache_key(path, config)}.npz"
+    if file.exists():
+        try:
+            return _load_cached(file, name, str(path)), True
+        except (OSError, ValueError, KeyError):
+            pass
+    result = prepare_case(path, config)
+    try:
+        _store_cached(file, result)
+    except OSError as error:
+        log.warning("could not write the preprocessing cache %s: %s", file, error)
+    return result, False
+
+
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: BuildConfig):
     """Merge duplicate points, drop degenerate faces, check topology, decimate; voxel size."""
     if not np.all(np.isfinite(vertices)):
@@ -129,23 +201,29 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: BuildConfig):
 
 
 def preprocess(paths, config: BuildConfig, progress=None) -> tuple[list, list]:
-    """Prepare every case (in parallel); returns (prepared, rejected) in input order."""
+    """Prepare every case (in parallel, reusing cached results); (prepared, rejected) in input
+    order."""
     paths = [str(p) for p in paths]
+    cache_dir = None if config.cache_dir == "" else (config.cache_dir or str(default_cache_dir()))
     results = []
     if config.workers > 1 and len(paths) > 1:
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(max_workers=min(config.workers, len(paths)),
                                  mp_context=context) as pool:
-            futures = [pool.submit(prepare_case, p, config) for p in paths]
+            futures = [pool.submit(prepare_case_cached, p, config, cache_dir) for p in paths]
             for k, future in enumerate(futures):
                 results.append(future.result())
                 _report(progress, (k + 1) / len(paths), f"prepared {k + 1}/{len(paths)} cases")
     else:
         for k, p in enumerate(paths):
-            results.append(prepare_case(p, config))
+            results.append(prepare_case_cached(p, config, cache_dir))
             _report(progress, (k + 1) / len(paths), f"prepared {k + 1}/{len(paths)} cases")
-    prepared = [r for r in results if isinstance(r, PreparedCase)]
-    rejected = [r for r in results if isinstance(r, Rejection)]
+    reused = sum(hit for _, hit in results)
+    if reused:
+        log.info("reused %d of %d preprocessed cases from the cache %s", reused, len(paths),
+                 cache_dir)
+    prepared = [r for r, _ in results if isinstance(r, PreparedCase)]
+    rejected = [r for r, _ in results if isinstance(r, Rejection)]
     return prepared, rejected
 
 
