@@ -185,3 +185,33 @@ def test_preprocessing_cache_is_reused_only_for_identical_files_and_settings(pop
     assert not default.exists()
     preprocess(paths[:1], BuildConfig(workers=1))
     assert len(list(default.glob("*.npz"))) == 1
+
+
+def test_mirrored_inputs_are_modelled_with_their_other_side(tmp_path):
+    """A right-side copy of a left shape, mirrored on input, joins the model as that shape and
+    its corresponded mesh is written back on the right side, over its input."""
+    from mdlshapemodel import surface
+    from mdlshapemodel.io import write_polydata
+    from mdlshapemodel.pipeline import surface_distances
+
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    shapes = []
+    for k, position in enumerate((-0.5, 0.0, 0.5)):
+        vertices, faces, _ = surface.mask_to_surface(small_mask(position), edge_length=1.5)
+        write_polydata(folder / f"left_{k}.vtp", vertices, faces)
+        shapes.append((vertices, faces))
+    right = shapes[0][0] * np.array([-1.0, 1.0, 1.0]) + np.array([40.0, 0.0, 0.0])
+    write_polydata(folder / "right_0.vtp", right, shapes[0][1][:, [0, 2, 1]])
+    output = tmp_path / "out"
+    result = build_model([folder], output, BuildConfig(points=162, max_time=0, workers=1,
+                                                        mirror=["right_*"], voxel_size=1.0,
+                                                        specificity_samples=100,
+                                                        evaluation_modes=2))
+    cases = {row["case"]: row for row in read_csv(output / "cases.csv")}
+    assert cases["right_0"]["mirrored"] == "True" and cases["left_0"]["mirrored"] == "False"
+    points, triangles = read_vtp(output / "correspondence" / "right_0.vtp")
+    assert np.max(surface_distances(right, shapes[0][1], points, triangles)) < 1.0
+    aligned = {n: read_vtp(output / "aligned" / f"{n}.vtp")[0] for n in ("left_0", "right_0")}
+    assert np.mean(np.linalg.norm(aligned["left_0"] - aligned["right_0"], axis=1)) < 0.5
+    assert result.metrics["n_shapes"] == 4

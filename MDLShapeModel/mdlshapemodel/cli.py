@@ -59,6 +59,10 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
     inputs.add_argument("--label", type=_labels, action="extend", default=[], metavar="L",
                         help="label value(s) whose union is the object, e.g. --label 1,2 "
                              "(default: all non-zero)")
+    inputs.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
+                        help="reflect inputs whose file name matches PATTERN (x -> -x), e.g. "
+                             "--mirror '*_rfemur*' to model right and left sides together; "
+                             "repeatable")
     inputs.add_argument("--voxel-size", type=float, default=None,
                         help="mm per voxel for mesh inputs (default: their mean edge length)")
     inputs.add_argument("--smoothing", type=float, default=defaults.smoothing_sigma,
@@ -80,7 +84,7 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
 
 
 def _config_from(args) -> BuildConfig:
-    return BuildConfig(labels=args.label, voxel_size=args.voxel_size,
+    return BuildConfig(labels=args.label, voxel_size=args.voxel_size, mirror=args.mirror,
                        smoothing_sigma=args.smoothing,
                        max_smoothing_sigma=max(2.0, args.smoothing), points=args.points,
                        strategy=args.strategy, scaling=not args.no_scaling,

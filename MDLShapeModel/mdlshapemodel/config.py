@@ -20,6 +20,7 @@ class BuildConfig:
     # inputs
     labels: list = field(default_factory=list)   # label values whose union is the object; [] = all non-zero
     voxel_size: float | None = None   # mm per voxel for mesh inputs; default: their mean edge length
+    mirror: list = field(default_factory=list)  # file-name patterns of inputs to reflect (x -> -x)
     # surfaces and sphere maps
     smoothing_sigma: float = 1.0      # voxels: Gaussian blur of the mask before contouring
     max_smoothing_sigma: float = 2.0  # voxels: raised up to this when the surface is not genus 0

@@ -9,6 +9,7 @@ reached.
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import json
 import logging
@@ -105,6 +106,9 @@ def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
             vertices, faces, voxel_size = clean_mesh(vertices, faces, config)
         else:
             raise InputError("not a label map or mesh (unknown file type)")
+        if is_mirrored(path, config):
+            vertices, faces = mirror(vertices, faces)
+            notes["mirrored"] = True
         mapped = sphere_map(vertices, faces)
         return PreparedCase(name, str(path), mapped, float(voxel_size), notes)
     except MDLShapeModelError as error:
@@ -135,6 +139,7 @@ def cache_key(path: str, config: BuildConfig) -> str:
         for block in iter(lambda: handle.read(1 << 20), b""):
             digest.update(block)
     settings = {name: getattr(config, name) for name in PREPROCESSING_FIELDS}
+    settings["mirrored"] = is_mirrored(path, config)
     digest.update(json.dumps([CACHE_FORMAT, __version__, settings], sort_keys=True).encode())
     return digest.hexdigest()
 
@@ -181,6 +186,19 @@ def prepare_case_cached(path: str, config: BuildConfig, cache_dir: str | None):
     except OSError as error:
         log.warning("could not write the preprocessing cache %s: %s", file, error)
     return result, False
+
+
+def is_mirrored(path, config: BuildConfig) -> bool:
+    """Whether the file name matches one of the ``mirror`` patterns (shell-style, e.g. ``*_r*``)."""
+    name = Path(path).name
+    return any(fnmatch.fnmatch(name, pattern) for pattern in config.mirror)
+
+
+def mirror(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reflect x -> -x (left <-> right in RAS/LPS) keeping the normals outwards."""
+    mirrored = vertices.copy()
+    mirrored[:, 0] *= -1.0
+    return mirrored, faces[:, [0, 2, 1]].copy()
 
 
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: BuildConfig):
@@ -409,7 +427,9 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
     io.write_polydata(output / "mean.vtp", model.mean, triangles)
     cases = []
     for i, case in enumerate(prepared):
-        io.write_polydata(output / "correspondence" / f"{case.name}.vtp", raw[i], triangles)
+        # correspondence meshes overlay their input: mirrored cases are reflected back
+        physical = mirror(raw[i], triangles)[0] if case.notes.get("mirrored") else raw[i]
+        io.write_polydata(output / "correspondence" / f"{case.name}.vtp", physical, triangles)
         io.write_polydata(output / "aligned" / f"{case.name}.vtp", aligned[i], triangles)
         distances = surface_distances(case.map.vertices, case.map.faces, raw[i], triangles)
         quality = prepared[i].map.quality
@@ -423,7 +443,8 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                       "sphere_p95_abs_log_area": quality["p95_abs_log_area_ratio"],
                       "kernels": int(sum(len(p.kernels) for p in state.examples[i].parts)),
                       "smoothing_sigma": case.notes.get("smoothing_sigma", ""),
-                      "repair": case.notes.get("repair", "")})
+                      "repair": case.notes.get("repair", ""),
+                      "mirrored": bool(case.notes.get("mirrored", False))})
     n_modes = model.n_modes
     io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(n_modes)],
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
