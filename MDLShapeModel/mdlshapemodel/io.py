@@ -80,9 +80,14 @@ def read_label_map(path, labels=()) -> LabelMap:
     try:
         image = sitk.ReadImage(str(path))
     except RuntimeError as error:
-        first = str(error).strip().splitlines()
-        reason = next((line for line in first if "Exception" not in line and line.strip()), "")
-        raise InputError(f"not a readable image ({reason.strip() or 'unknown format'})") from None
+        text = str(error)
+        if "Unable to determine ImageIO reader" in text:
+            reason = "unknown format or corrupt file"
+        else:
+            lines = [line.strip() for line in text.splitlines() if line.strip()]
+            reason = next((line for line in lines if "Exception" not in line), "unknown error")
+            reason = reason.replace(str(path), "the file").replace("sitk::ERROR: ", "")[:160]
+        raise InputError(f"not a readable image ({reason})") from None
     if image.GetDimension() != 3:
         raise InputError(f"expected a 3-D label map, got a {image.GetDimension()}-D image")
     if image.GetNumberOfComponentsPerPixel() != 1:
@@ -95,6 +100,8 @@ def read_label_map(path, labels=()) -> LabelMap:
         array = rounded.astype(np.int64)
     present = np.unique(array)
     present = present[present != 0]
+    if len(present) == 0:
+        raise InputError("the label map is empty (no non-zero voxels)")
     if labels:
         missing = [label for label in labels if label not in present]
         if len(missing) == len(labels):
@@ -103,8 +110,6 @@ def read_label_map(path, labels=()) -> LabelMap:
                              f"(labels found: {found})")
         mask = np.isin(array, labels)
     else:
-        if len(present) == 0:
-            raise InputError("the label map is empty (no non-zero voxels)")
         mask = array != 0
     return LabelMap(np.ascontiguousarray(mask), image.GetSpacing(), image.GetOrigin(),
                     image.GetDirection())
