@@ -343,3 +343,26 @@ def test_ring_mask_is_not_genus_zero():
     ring = (major - 11.0) ** 2 + (z - 7.5) ** 2 <= 4.0 ** 2
     with pytest.raises(SurfaceError, match="genus 1"):
         mask_to_surface(ring)
+
+
+def test_slicer_method_smooths_the_binary_surface_and_repairs_handles():
+    """Slicer's conversion (flying edges on the binary mask + windowed sinc) keeps a box's size,
+    and a diagonal voxel contact (a handle) is repaired by blurring, which the info reports."""
+    from mdlshapemodel.surface import mask_to_surface, topology
+
+    box = np.zeros((24, 24, 24), bool)
+    box[6:18, 6:18, 6:18] = True
+    vertices, faces, info = mask_to_surface(box, method="slicer", smoothing_factor=0.5)
+    assert info["surface_method"] == "slicer" and info["smoothing_sigma"] == 0.0
+    extent = np.ptp(vertices, axis=0)
+    assert np.all(np.abs(extent - 12.0) < 1.0)        # 12 voxels: contour half-way to outside
+    # a ring: genus 1 without blurring; closing the hole needs a blur that the ladder reaches
+    ring = np.zeros((16, 30, 30), bool)
+    yy, xx = np.mgrid[:30, :30]
+    radius = np.hypot(yy - 14.5, xx - 14.5)
+    ring[5:11] = (radius < 9) & (radius > 2.2)
+    with pytest.raises(SurfaceError, match="genus 1"):
+        mask_to_surface(ring, method="slicer", max_smoothing_sigma=0.0)
+    vertices, faces, info = mask_to_surface(ring, method="slicer", max_smoothing_sigma=3.0)
+    assert topology(vertices, faces).is_sphere_like
+    assert info["smoothing_sigma"] > 0

@@ -80,6 +80,11 @@ def test_filters_reexecute_only_when_a_parameter_changes(pipeline):
     to_sphere.Update()
     assert (to_surface.executions, to_sphere.executions) == (runs[0] + 1, runs[1] + 2)
     assert to_surface.GetSmoothingSigma() == 1.5 and to_sphere.GetMaxIterations() == 200
+    to_surface.SetSurfaceMethod("slicer")
+    to_surface.SetSmoothingFactor(0.3)
+    to_sphere.Update()
+    assert (to_surface.executions, to_sphere.executions) == (runs[0] + 2, runs[1] + 3)
+    assert to_surface.GetOutput().GetNumberOfPoints() > 0 and to_surface.GetErrorText() == ""
 
 
 def test_direction_matrix_is_honoured():

@@ -65,8 +65,22 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
                              "repeatable")
     inputs.add_argument("--voxel-size", type=float, default=None,
                         help="mm per voxel for mesh inputs (default: their mean edge length)")
+    inputs.add_argument("--surface", choices=("gaussian", "slicer"), default=defaults.surface_method,
+                        help="label map -> surface: Gaussian blur + flying edges, or 3D Slicer's "
+                             "conversion (flying edges + windowed sinc); either blurs more when "
+                             "the surface is not genus 0 (default %(default)s)")
     inputs.add_argument("--smoothing", type=float, default=defaults.smoothing_sigma,
-                        help="Gaussian blur of masks before contouring, voxels (default %(default)s)")
+                        help="gaussian: blur of masks before contouring, voxels (default %(default)s)")
+    inputs.add_argument("--smoothing-factor", type=float, default=defaults.smoothing_factor,
+                        help="slicer: smoothing factor 0..1 of the windowed-sinc filter "
+                             "(default %(default)s)")
+    inputs.add_argument("--decimation", type=float, default=defaults.decimation,
+                        help="slicer: fraction of triangles removed before smoothing "
+                             "(default %(default)s)")
+    inputs.add_argument("--edge-length", type=float, default=defaults.edge_length,
+                        help="edge length of the remeshed surfaces, voxels (default %(default)s)")
+    inputs.add_argument("--target-vertices", type=int, default=defaults.target_vertices,
+                        help="meshes with more vertices are decimated (default %(default)s)")
     run = parser.add_argument_group("running and evaluation")
     run.add_argument("--workers", type=int, default=defaults.workers,
                      help="processes for per-case work (default: all cores, %(default)s)")
@@ -85,7 +99,9 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
 
 def _config_from(args) -> BuildConfig:
     return BuildConfig(labels=args.label, voxel_size=args.voxel_size, mirror=args.mirror,
-                       smoothing_sigma=args.smoothing,
+                       smoothing_sigma=args.smoothing, surface_method=args.surface,
+                       smoothing_factor=args.smoothing_factor, decimation=args.decimation,
+                       edge_length=args.edge_length, target_vertices=args.target_vertices,
                        max_smoothing_sigma=max(2.0, args.smoothing), points=args.points,
                        strategy=args.strategy, scaling=not args.no_scaling,
                        delta_range=tuple(args.delta_range), fixed_delta=args.fixed_delta,

@@ -22,6 +22,9 @@ class BuildConfig:
     voxel_size: float | None = None   # mm per voxel for mesh inputs; default: their mean edge length
     mirror: list = field(default_factory=list)  # file-name patterns of inputs to reflect (x -> -x)
     # surfaces and sphere maps
+    surface_method: str = "gaussian"  # "gaussian": blur + flying edges; "slicer": flying edges +
+    smoothing_factor: float = 0.5     #   windowed sinc (3D Slicer's conversion, this factor)
+    decimation: float = 0.0           # "slicer": fraction of triangles removed before smoothing
     smoothing_sigma: float = 1.0      # voxels: Gaussian blur of the mask before contouring
     max_smoothing_sigma: float = 2.0  # voxels: raised up to this when the surface is not genus 0
     edge_length: float = 1.0          # voxels: isotropic remeshing of label-map surfaces
@@ -56,6 +59,10 @@ class BuildConfig:
         need(all(isinstance(v, int) and v > 0 for v in self.labels), "labels",
              "label values must be positive integers")
         need(self.voxel_size is None or self.voxel_size > 0, "voxel_size", "must be positive")
+        need(self.surface_method in ("gaussian", "slicer"), "surface_method",
+             "must be 'gaussian' or 'slicer'")
+        need(0 <= self.smoothing_factor <= 1, "smoothing_factor", "must be between 0 and 1")
+        need(0 <= self.decimation < 1, "decimation", "must be in [0, 1)")
         need(self.smoothing_sigma >= 0, "smoothing_sigma", "must be >= 0")
         need(self.max_smoothing_sigma >= self.smoothing_sigma, "max_smoothing_sigma",
              "must be >= smoothing_sigma")

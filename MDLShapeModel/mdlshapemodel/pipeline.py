@@ -98,7 +98,8 @@ def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
                 mask, label_map.spacing, label_map.origin, label_map.direction,
                 smoothing_sigma=config.smoothing_sigma,
                 max_smoothing_sigma=config.max_smoothing_sigma, edge_length=config.edge_length,
-                target_vertices=config.target_vertices)
+                target_vertices=config.target_vertices, method=config.surface_method,
+                smoothing_factor=config.smoothing_factor, decimation=config.decimation)
             notes.update(info)
             voxel_size = label_map.voxel_size
         elif io.is_mesh(path):
@@ -118,8 +119,9 @@ def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
 
 
 CACHE_FORMAT = 1
-PREPROCESSING_FIELDS = ("labels", "voxel_size", "smoothing_sigma", "max_smoothing_sigma",
-                        "edge_length", "target_vertices")
+PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
+                        "smoothing_sigma", "max_smoothing_sigma", "edge_length",
+                        "target_vertices")
 
 
 def default_cache_dir() -> Path:

@@ -168,18 +168,73 @@ def polydata_to_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
     return vertices, connectivity.reshape(-1, 3).astype(np.int64)
 
 
+SURFACE_METHODS = ("gaussian", "slicer")
+
+
+def _contour(field: np.ndarray):
+    """Flying-edges isosurface at 0.5 of a (z, y, x) array, in voxel-index coordinates."""
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk
+
+    image = vtk.vtkImageData()
+    image.SetDimensions(field.shape[2], field.shape[1], field.shape[0])
+    image.GetPointData().SetScalars(numpy_to_vtk(field.ravel(), deep=True))
+    contour = vtk.vtkFlyingEdges3D()
+    contour.SetInputData(image)
+    contour.SetValue(0, 0.5)
+    contour.ComputeNormalsOff()
+    contour.ComputeGradientsOff()
+    contour.Update()
+    return contour.GetOutput()
+
+
+def slicer_smoothing(polydata, smoothing_factor: float, decimation: float = 0.0):
+    """3D Slicer's closed-surface post-processing: optional decimation (topology preserved), then
+    windowed-sinc smoothing with pass band 10^(-4 s) and 20 + 40 s iterations (s: smoothing factor,
+    Slicer's default 0.5)."""
+    import vtk
+
+    if decimation > 0:
+        decimator = vtk.vtkDecimatePro()
+        decimator.SetInputData(polydata)
+        decimator.SplittingOff()
+        decimator.PreserveTopologyOn()
+        decimator.SetMaximumError(1)
+        decimator.SetTargetReduction(decimation)
+        decimator.Update()
+        polydata = decimator.GetOutput()
+    if smoothing_factor <= 0:
+        return polydata
+    smoother = vtk.vtkWindowedSincPolyDataFilter()
+    smoother.SetInputData(polydata)
+    smoother.SetNumberOfIterations(int(20 + 40 * smoothing_factor))
+    smoother.SetPassBand(10.0 ** (-4.0 * smoothing_factor))
+    smoother.BoundarySmoothingOff()
+    smoother.FeatureEdgeSmoothingOff()
+    smoother.NonManifoldSmoothingOn()
+    smoother.NormalizeCoordinatesOn()
+    smoother.Update()
+    return smoother.GetOutput()
+
+
 def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
                     direction=None, smoothing_sigma: float = 1.0,
                     max_smoothing_sigma: float = 2.0, edge_length: float = 1.0,
-                    target_vertices: int = 20000) -> tuple[np.ndarray, np.ndarray, dict]:
+                    target_vertices: int = 20000, method: str = "gaussian",
+                    smoothing_factor: float = 0.5, decimation: float = 0.0
+                    ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Closed genus-0 surface of a binary mask, in physical coordinates.
 
-    The mask is blurred with a Gaussian of ``smoothing_sigma`` voxels and contoured at 0.5 with VTK's
-    flying edges; the largest component is kept. Diagonal voxel contacts make handles in raw masks, so
-    when the surface is not genus 0 the blur is raised in steps of 0.5 voxel up to
-    ``max_smoothing_sigma``. The surface is then remeshed isotropically (edges of about
-    ``edge_length`` voxels: flying edges leaves slivers that spoil sphere maps), and decimated when it
-    has more than ``target_vertices`` vertices.
+    ``method="gaussian"``: the mask is blurred with a Gaussian of ``smoothing_sigma`` voxels and
+    contoured at 0.5 with VTK's flying edges. ``method="slicer"``: 3D Slicer's closed-surface
+    conversion: the binary mask is contoured directly, then (optionally decimated and) smoothed
+    with a windowed-sinc filter (:func:`slicer_smoothing`). Both work in voxel space and keep the
+    largest component. Diagonal voxel contacts make handles in raw masks, so when the surface is
+    not genus 0 the mask is blurred (more): from ``smoothing_sigma`` (gaussian) or 1 voxel
+    (slicer) in steps of 0.5 voxel up to ``max_smoothing_sigma``; ``info["smoothing_sigma"]`` says
+    which blur was needed (0: none). The surface is then remeshed isotropically (edges of about
+    ``edge_length`` voxels: contouring leaves slivers that spoil sphere maps), decimated when it has
+    more than ``target_vertices`` vertices, and transformed to physical coordinates.
 
     Parameters
     ----------
@@ -193,43 +248,37 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     Returns
     -------
     vertices, faces, info
-        ``info`` says which smoothing was needed (``smoothing_sigma``) and the topology.
     """
-    import vtk
-    from vtk.util.numpy_support import numpy_to_vtk
-
+    if method not in SURFACE_METHODS:
+        raise SurfaceError(f"unknown surface method {method!r} (use {', '.join(SURFACE_METHODS)})")
     mask = np.asarray(mask) > 0
     if not mask.any():
         raise SurfaceError("the selected label is empty (no voxels)")
     pad = int(np.ceil(3 * max_smoothing_sigma)) + 2
     padded = np.pad(mask, pad).astype(np.float32)
-    sigma = float(smoothing_sigma)
-    last_reason = ""
-    while True:
-        blurred = ndimage.gaussian_filter(padded, sigma) if sigma > 0 else padded
-        image = vtk.vtkImageData()
-        image.SetDimensions(blurred.shape[2], blurred.shape[1], blurred.shape[0])
-        image.GetPointData().SetScalars(numpy_to_vtk(blurred.ravel(), deep=True))
-        contour = vtk.vtkFlyingEdges3D()
-        contour.SetInputData(image)
-        contour.SetValue(0, 0.5)
-        contour.ComputeNormalsOff()
-        contour.ComputeGradientsOff()
-        contour.Update()
-        vertices, faces = polydata_to_arrays(contour.GetOutput())
+    ladder = [float(smoothing_sigma) if method == "gaussian" else 0.0]
+    while ladder[-1] + 0.5 <= max_smoothing_sigma + 1e-9:
+        ladder.append(max(ladder[-1] + 0.5, 1.0))
+    reasons = []
+    for sigma in ladder:
+        field = ndimage.gaussian_filter(padded, sigma) if sigma > 0 else padded
+        polydata = _contour(field)
+        if method == "slicer":
+            polydata = slicer_smoothing(polydata, smoothing_factor, decimation)
+        vertices, faces = polydata_to_arrays(polydata)
         if len(faces) == 0:
-            raise SurfaceError("the mask is too thin to give a surface after smoothing")
+            reasons.append(f"blur {sigma:g}: no surface (the mask is too thin)")
+            continue
         vertices, faces = merge_close_vertices(vertices, faces)
         vertices, faces = drop_degenerate_faces(vertices, faces)
         vertices, faces = largest_component(vertices, faces)
         topo = topology(vertices, faces)
         if topo.is_sphere_like:
             break
-        last_reason = topo.describe()
-        sigma += 0.5
-        if sigma > max_smoothing_sigma + 1e-9:
-            raise SurfaceError(f"no genus-0 surface up to smoothing sigma {max_smoothing_sigma} voxels: "
-                               f"{last_reason}")
+        reasons.append(f"blur {sigma:g}: {topo.describe()}")
+    else:
+        raise SurfaceError(f"no genus-0 surface up to a blur of {max_smoothing_sigma:g} voxels ("
+                           + "; ".join(reasons[-2:]) + ")")
     vertices, faces = remesh(vertices, faces, edge_length)
     if len(vertices) > target_vertices:
         vertices, faces = decimate(vertices, faces, target_vertices)
@@ -239,8 +288,8 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     physical = np.asarray(origin, float) + (index * np.asarray(spacing, float)) @ matrix.T
     faces = orient_outwards(physical, faces)
     topo = require_sphere_like(physical, faces)
-    return physical, faces, {"smoothing_sigma": sigma, "n_vertices": topo.n_vertices,
-                             "n_faces": topo.n_faces}
+    return physical, faces, {"smoothing_sigma": float(sigma), "surface_method": method,
+                             "n_vertices": topo.n_vertices, "n_faces": topo.n_faces}
 
 
 def merge_close_vertices(vertices: np.ndarray, faces: np.ndarray,

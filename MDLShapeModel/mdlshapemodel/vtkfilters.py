@@ -60,7 +60,8 @@ class LabelMapToClosedSurface(_Filter):
     """Label map (vtkImageData with integer scalars) -> closed genus-0 surface (vtkPolyData).
 
     Parameters (Set/Get): ``Labels`` (tuple of label values whose union is the object; empty = all
-    non-zero), ``SmoothingSigma`` and ``MaxSmoothingSigma`` (voxels), ``EdgeLength`` (voxels, of the
+    non-zero), ``SurfaceMethod`` ("gaussian" or "slicer"), ``SmoothingFactor`` and ``Decimation``
+    (slicer), ``SmoothingSigma`` and ``MaxSmoothingSigma`` (voxels), ``EdgeLength`` (voxels, of the
     isotropic remeshing), ``TargetVertices``.
     """
 
@@ -72,6 +73,28 @@ class LabelMapToClosedSurface(_Filter):
         self._max_smoothing_sigma = 2.0
         self._edge_length = 1.0
         self._target_vertices = 20000
+        self._surface_method = "gaussian"
+        self._smoothing_factor = 0.5
+        self._decimation = 0.0
+
+    def SetSurfaceMethod(self, method: str):
+        """"gaussian" (blur + flying edges) or "slicer" (flying edges + windowed sinc)."""
+        self._set("_surface_method", str(method))
+
+    def GetSurfaceMethod(self) -> str:
+        return self._surface_method
+
+    def SetSmoothingFactor(self, value: float):
+        self._set("_smoothing_factor", float(value))
+
+    def GetSmoothingFactor(self) -> float:
+        return self._smoothing_factor
+
+    def SetDecimation(self, value: float):
+        self._set("_decimation", float(value))
+
+    def GetDecimation(self) -> float:
+        return self._decimation
 
     def SetLabels(self, labels):
         self._set("_labels", tuple(int(v) for v in labels))
@@ -133,7 +156,9 @@ class LabelMapToClosedSurface(_Filter):
                 mask, image.GetSpacing(), image.GetOrigin(), matrix,
                 smoothing_sigma=self._smoothing_sigma,
                 max_smoothing_sigma=max(self._max_smoothing_sigma, self._smoothing_sigma),
-                edge_length=self._edge_length, target_vertices=self._target_vertices)
+                edge_length=self._edge_length, target_vertices=self._target_vertices,
+                method=self._surface_method, smoothing_factor=self._smoothing_factor,
+                decimation=self._decimation)
         except MDLShapeModelError as error:
             return self._fail(error)
         output.ShallowCopy(surface.arrays_to_polydata(vertices, faces))
