@@ -7,7 +7,7 @@ Each case runs in a fresh worker process (so the peak resident memory is that ca
 about 0.2 GB of imported libraries; the baseline is printed).
 
     python benchmarks/preprocessing.py --workers 2
-    python benchmarks/preprocessing.py --hippocampi 10 --no-femurs
+    python benchmarks/preprocessing.py --hippocampi 10 --no-femurs --surface slicer
 """
 
 from __future__ import annotations
@@ -25,12 +25,13 @@ from pathlib import Path
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-def _measure(path: str, labels: list, mirror: list):
+def _measure(path: str, labels: list, mirror: list, method: str):
     from mdlshapemodel.config import BuildConfig
     from mdlshapemodel.pipeline import prepare_case
 
     start = time.perf_counter()
-    result = prepare_case(path, BuildConfig(labels=labels, mirror=mirror, cache_dir=""))
+    result = prepare_case(path, BuildConfig(labels=labels, mirror=mirror, cache_dir="",
+                                            surface_method=method))
     seconds = time.perf_counter() - start
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     if hasattr(result, "reason"):
@@ -47,12 +48,12 @@ def _baseline_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run(title: str, paths: list, labels: list, mirror: list, workers: int) -> None:
+def run(title: str, paths: list, labels: list, mirror: list, workers: int, method: str) -> None:
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=context, max_tasks_per_child=1) as pool:
         start = time.perf_counter()
         rows = list(pool.map(_measure, map(str, paths), [labels] * len(paths),
-                             [mirror] * len(paths)))
+                             [mirror] * len(paths), [method] * len(paths)))
         wall = time.perf_counter() - start
     good = [r for r in rows if "reason" not in r]
     bad = [r for r in rows if "reason" in r]
@@ -87,6 +88,7 @@ def run(title: str, paths: list, labels: list, mirror: list, workers: int) -> No
           f"of which the sphere map: median {statistics.median(sphere_seconds):.2f}, "
           f"max {max(sphere_seconds):.2f}")
     peaks = [r["peak_mb"] for r in rows]
+    peaks = [r["peak_mb"] for r in rows]
     print(f"   seconds per case: median {statistics.median(seconds):.2f}, max {max(seconds):.2f}"
           f" (sphere map alone: median {statistics.median([r['seconds'] for r in good]):.2f})"
           if sphere_seconds else "")
@@ -100,6 +102,8 @@ def main() -> int:
     parser.add_argument("--hippocampi", type=int, default=100)
     parser.add_argument("--no-femurs", action="store_true")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--surface", choices=("gaussian", "slicer"), default="gaussian",
+                        help="label map -> surface method")
     args = parser.parse_args()
     data = Path(args.data)
     hippocampi = sorted((data / "hippocampus" / "labels").glob("*.nii.gz"))[: args.hippocampi]
@@ -111,10 +115,11 @@ def main() -> int:
         print(f"import baseline of a worker: {pool.submit(_baseline_mb).result():.0f} MB")
     for title, labels in (("hippocampi, labels 1+2", [1, 2]), ("hippocampi, label 1", [1]),
                           ("hippocampi, label 2", [2])):
-        run(title, hippocampi, labels, [], args.workers)
+        run(f"{title} ({args.surface})", hippocampi, labels, [], args.workers, args.surface)
     femurs = sorted((data / "femurs").glob("*.stl"))
     if femurs and not args.no_femurs:
-        run("femurs (STL, right ones mirrored)", femurs, [], ["*_rfemur*"], args.workers)
+        run("femurs (STL, right ones mirrored)", femurs, [], ["*_rfemur*"], args.workers,
+            args.surface)
     return 0
 
 
