@@ -88,10 +88,6 @@ def run(title: str, paths: list, labels: list, mirror: list, workers: int, metho
           f"of which the sphere map: median {statistics.median(sphere_seconds):.2f}, "
           f"max {max(sphere_seconds):.2f}")
     peaks = [r["peak_mb"] for r in rows]
-    peaks = [r["peak_mb"] for r in rows]
-    print(f"   seconds per case: median {statistics.median(seconds):.2f}, max {max(seconds):.2f}"
-          f" (sphere map alone: median {statistics.median([r['seconds'] for r in good]):.2f})"
-          if sphere_seconds else "")
     print(f"   peak memory per case: median {statistics.median(peaks):.0f} MB, "
           f"max {max(peaks):.0f} MB")
 
