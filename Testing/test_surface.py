@@ -366,3 +366,34 @@ def test_slicer_method_smooths_the_binary_surface_and_repairs_handles():
     vertices, faces, info = mask_to_surface(ring, method="slicer", max_smoothing_sigma=3.0)
     assert topology(vertices, faces).is_sphere_like
     assert info["smoothing_sigma"] > 0
+
+
+def test_inconsistent_orientation_is_made_consistent():
+    from mdlshapemodel.surface import make_orientation_consistent, orient_outwards, topology
+
+    points, faces = icosphere(2)
+    rng = np.random.default_rng(3)
+    scrambled = faces.copy()
+    flipped = rng.choice(len(faces), 37, replace=False)
+    scrambled[flipped] = scrambled[flipped][:, [0, 2, 1]]
+    assert not topology(points, scrambled).consistently_oriented
+    repaired, count = make_orientation_consistent(points, scrambled)
+    assert count in (37, len(faces) - 37)
+    assert topology(points, repaired).is_sphere_like
+    assert np.array_equal(orient_outwards(points, repaired), faces)
+
+
+def test_mesh_with_scrambled_orientation_is_repaired_in_the_pipeline(tmp_path):
+    from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.io import write_polydata
+    from mdlshapemodel.pipeline import prepare_case
+
+    points, faces = icosphere(3)
+    points = points * np.array([20.0, 12.0, 9.0])
+    scrambled = faces.copy()
+    scrambled[::7] = scrambled[::7][:, [0, 2, 1]]
+    write_polydata(tmp_path / "scrambled.stl", points, scrambled)
+    case = prepare_case(str(tmp_path / "scrambled.stl"), BuildConfig(voxel_size=1.0))
+    assert not hasattr(case, "reason"), getattr(case, "reason", "")
+    assert "made the orientation of" in case.notes["repair"]
+    assert case.map.quality["flipped_triangles"] == 0

@@ -104,7 +104,9 @@ def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
             voxel_size = label_map.voxel_size
         elif io.is_mesh(path):
             vertices, faces = io.read_mesh(path)
-            vertices, faces, voxel_size = clean_mesh(vertices, faces, config)
+            vertices, faces, voxel_size, note = clean_mesh(vertices, faces, config)
+            if note:
+                notes["repair"] = note
         else:
             raise InputError("not a label map or mesh (unknown file type)")
         if is_mirrored(path, config):
@@ -204,11 +206,17 @@ def mirror(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: BuildConfig):
-    """Merge duplicate points, drop degenerate faces, check topology, decimate; voxel size."""
+    """Merge duplicate points, drop degenerate faces, make the orientation consistent, check the
+    topology, decimate and remesh; returns vertices, faces, voxel size and a repair note."""
     if not np.all(np.isfinite(vertices)):
         raise surface.SurfaceError("the mesh has non-finite (NaN or infinite) coordinates")
     vertices, faces = surface.merge_close_vertices(vertices, faces)
     vertices, faces = surface.drop_degenerate_faces(vertices, faces)
+    topo = surface.topology(vertices, faces)
+    note = ""
+    if topo.is_closed_manifold and topo.n_components == 1 and not topo.consistently_oriented:
+        faces, flipped = surface.make_orientation_consistent(vertices, faces)
+        note = f"made the orientation of {flipped} faces consistent"
     surface.require_sphere_like(vertices, faces)
     faces = surface.orient_outwards(vertices, faces)
     if len(vertices) > config.target_vertices:
@@ -217,7 +225,7 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: BuildConfig):
     mean_edge = float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
     vertices, faces = surface.remesh(vertices, faces, mean_edge)
     surface.require_sphere_like(vertices, faces)
-    return vertices, faces, config.voxel_size or mean_edge
+    return vertices, faces, config.voxel_size or mean_edge, note
 
 
 def preprocess(paths, config: BuildConfig, progress=None) -> tuple[list, list]:
@@ -443,6 +451,7 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                       "sphere_flips": quality["flipped_triangles"],
                       "sphere_mean_abs_log_area": quality["mean_abs_log_area_ratio"],
                       "sphere_p95_abs_log_area": quality["p95_abs_log_area_ratio"],
+                      "sphere_seconds": quality["seconds"],
                       "kernels": int(sum(len(p.kernels) for p in state.examples[i].parts)),
                       "smoothing_sigma": case.notes.get("smoothing_sigma", ""),
                       "repair": case.notes.get("repair", ""),

@@ -143,6 +143,46 @@ def orient_outwards(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return faces
 
 
+def make_orientation_consistent(vertices: np.ndarray, faces: np.ndarray
+                                ) -> tuple[np.ndarray, int]:
+    """Reorder faces so that neighbours agree in orientation (breadth-first over shared edges).
+
+    Returns the faces and how many were flipped. A non-orientable mesh keeps some disagreement,
+    which :func:`topology` still reports.
+    """
+    faces = np.asarray(faces, dtype=np.int64).copy()
+    m = len(faces)
+    if m == 0:
+        return faces, 0
+    directed = edges_of(faces)
+    key = np.sort(directed, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    pairs = np.flatnonzero(np.all(key[order][1:] == key[order][:-1], axis=1))
+    first, second = order[pairs] % m, order[pairs + 1] % m
+    # neighbours agree when they traverse their shared edge in opposite directions
+    same_direction = np.all(directed[order[pairs]] == directed[order[pairs + 1]], axis=1)
+    relation = sparse.coo_matrix((same_direction.astype(float) + 1.0, (first, second)),
+                                 shape=(m, m)).tocsr()
+    relation = relation + relation.T  # 1: consistent, 2: one of the two must flip
+    flip = np.zeros(m, dtype=bool)
+    seen = np.zeros(m, dtype=bool)
+    for root in range(m):
+        if seen[root]:
+            continue
+        seen[root] = True
+        queue = [root]
+        while queue:
+            face = queue.pop()
+            start, stop = relation.indptr[face], relation.indptr[face + 1]
+            for neighbour, kind in zip(relation.indices[start:stop], relation.data[start:stop]):
+                if not seen[neighbour]:
+                    seen[neighbour] = True
+                    flip[neighbour] = flip[face] ^ (kind == 2)
+                    queue.append(neighbour)
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    return faces, int(flip.sum())
+
+
 def require_sphere_like(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     """Raise :class:`SurfaceError` unless the mesh is one closed genus-0 component."""
     if not np.all(np.isfinite(vertices)):
