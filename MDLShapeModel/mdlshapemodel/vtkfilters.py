@@ -24,6 +24,21 @@ from .errors import MDLShapeModelError
 from .sphere import sphere_map
 
 
+def _accessors(attribute: str, cast):
+    """A VTK-style Set/Get method pair for ``attribute``; Set calls Modified() only on a change."""
+    def setter(self, value):
+        self._set(attribute, cast(value))
+
+    def getter(self):
+        return getattr(self, attribute)
+
+    return setter, getter
+
+
+def _labels(values) -> tuple:
+    return tuple(int(v) for v in values)
+
+
 class _Filter(VTKPythonAlgorithmBase):
     """Shared parameter handling: every parameter is set through :meth:`_set`."""
 
@@ -77,54 +92,14 @@ class LabelMapToClosedSurface(_Filter):
         self._smoothing_factor = 0.5
         self._decimation = 0.0
 
-    def SetSurfaceMethod(self, method: str):
-        """"gaussian" (blur + flying edges) or "slicer" (flying edges + windowed sinc)."""
-        self._set("_surface_method", str(method))
-
-    def GetSurfaceMethod(self) -> str:
-        return self._surface_method
-
-    def SetSmoothingFactor(self, value: float):
-        self._set("_smoothing_factor", float(value))
-
-    def GetSmoothingFactor(self) -> float:
-        return self._smoothing_factor
-
-    def SetDecimation(self, value: float):
-        self._set("_decimation", float(value))
-
-    def GetDecimation(self) -> float:
-        return self._decimation
-
-    def SetLabels(self, labels):
-        self._set("_labels", tuple(int(v) for v in labels))
-
-    def GetLabels(self):
-        return self._labels
-
-    def SetSmoothingSigma(self, value: float):
-        self._set("_smoothing_sigma", float(value))
-
-    def GetSmoothingSigma(self) -> float:
-        return self._smoothing_sigma
-
-    def SetMaxSmoothingSigma(self, value: float):
-        self._set("_max_smoothing_sigma", float(value))
-
-    def GetMaxSmoothingSigma(self) -> float:
-        return self._max_smoothing_sigma
-
-    def SetEdgeLength(self, value: float):
-        self._set("_edge_length", float(value))
-
-    def GetEdgeLength(self) -> float:
-        return self._edge_length
-
-    def SetTargetVertices(self, value: int):
-        self._set("_target_vertices", int(value))
-
-    def GetTargetVertices(self) -> int:
-        return self._target_vertices
+    SetSurfaceMethod, GetSurfaceMethod = _accessors("_surface_method", str)
+    SetSmoothingFactor, GetSmoothingFactor = _accessors("_smoothing_factor", float)
+    SetDecimation, GetDecimation = _accessors("_decimation", float)
+    SetLabels, GetLabels = _accessors("_labels", _labels)
+    SetSmoothingSigma, GetSmoothingSigma = _accessors("_smoothing_sigma", float)
+    SetMaxSmoothingSigma, GetMaxSmoothingSigma = _accessors("_max_smoothing_sigma", float)
+    SetEdgeLength, GetEdgeLength = _accessors("_edge_length", float)
+    SetTargetVertices, GetTargetVertices = _accessors("_target_vertices", int)
 
     def RequestData(self, request, in_info, out_info):
         from .pipeline import mask_components
@@ -180,17 +155,8 @@ class SurfaceToSphereMap(_Filter):
         self._area_weight = 4.0
         self._max_iterations = 3000
 
-    def SetAreaWeight(self, value: float):
-        self._set("_area_weight", float(value))
-
-    def GetAreaWeight(self) -> float:
-        return self._area_weight
-
-    def SetMaxIterations(self, value: int):
-        self._set("_max_iterations", int(value))
-
-    def GetMaxIterations(self) -> int:
-        return self._max_iterations
+    SetAreaWeight, GetAreaWeight = _accessors("_area_weight", float)
+    SetMaxIterations, GetMaxIterations = _accessors("_max_iterations", int)
 
     def GetSphereOutputPort(self):
         """The port of the sphere output (1)."""
