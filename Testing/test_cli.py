@@ -62,7 +62,6 @@ def test_same_seed_gives_identical_models(tmp_path):
     assert outputs["a"][0] == outputs["b"][0]      # scores, bit for bit
     a = np.load(tmp_path / "a" / "checkpoint.npz")
     b = np.load(tmp_path / "b" / "checkpoint.npz")
-    c = np.load(tmp_path / "c" / "checkpoint.npz")
     assert all(np.array_equal(a[k], b[k]) for k in a.files)
 
     def searched(name):  # evaluations and objective values of the trace, not its timings

@@ -260,7 +260,3 @@ class CorrespondenceState:
                 part.positions, part.points, part.hint = positions.copy(), points.copy(), hint.copy()
                 part.kernels = list(kernels)
         self.rebuild()
-
-    def positions(self) -> list:
-        """Current sample positions on the sphere, per example and part (for checkpoints)."""
-        return [[part.positions for part in e.parts] for e in self.examples]
