@@ -10,7 +10,7 @@ import os
 from dataclasses import asdict, dataclass, field, fields
 
 from .errors import ConfigError
-from .strategies import STRATEGIES
+from .strategies import STRATEGIES, OptimisationSettings
 
 
 @dataclass
@@ -31,16 +31,17 @@ class BuildConfig:
     target_vertices: int = 20000      # meshes with more vertices are decimated
     # correspondence
     points: int = 2562                # n_p: sample points per shape (icosphere when 10*4^k+2)
-    strategy: str = "one-at-a-time-pose"
+    # optimisation knobs: defaults are those of strategies.OptimisationSettings (one source)
+    strategy: str = OptimisationSettings.strategy
     scaling: bool = True              # Procrustes removes scale
     delta_range: tuple = (1e-4, 0.5)  # voxels: [Delta_min, Delta_max] of eq. 14 (Table I)
     fixed_delta: float = 0.1          # voxels: Delta of the first phase (eq. 13)
-    sigma_g: float = 1.0 / 32.0       # width distribution of random kernels (Table I)
-    max_amplitude: float = 1.0        # upper bound of a kernel amplitude A
-    max_time: float = 600.0           # seconds of optimisation
-    fixed_fraction: float = 0.7       # share of max_time for the fixed-Delta phase (0: none)
-    tolerance: float = 0.001          # convergence: sweep gain below this fraction of total gain
-    max_sweeps: int = 10_000          # per phase; with a generous max_time, a repeatable budget
+    sigma_g: float = OptimisationSettings.sigma_g              # kernel widths (Table I)
+    max_amplitude: float = OptimisationSettings.max_amplitude  # bound of a kernel amplitude A
+    max_time: float = OptimisationSettings.max_time            # seconds of optimisation
+    fixed_fraction: float = OptimisationSettings.fixed_fraction  # fixed-Delta share (0: none)
+    tolerance: float = OptimisationSettings.tolerance          # sweep gain / total gain to stop
+    max_sweeps: int = OptimisationSettings.max_sweeps          # per phase; a repeatable budget
     seed: int = 0
     # evaluation
     evaluation_modes: int = 10
