@@ -396,10 +396,13 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
     return result
 
 
-def evaluate_state(state: CorrespondenceState, config: BuildConfig) -> dict:
-    """Compactness, generalization and specificity of the state's aligned shapes."""
+def evaluate_state(state: CorrespondenceState, config: BuildConfig,
+                   model: ShapeModel | None = None) -> dict:
+    """Compactness, generalization and specificity of the state's aligned shapes (``model``: the
+    model of those shapes, when already built)."""
     aligned = state.aligned_shapes()
-    model = ShapeModel.from_shapes(aligned, state.weights)
+    if model is None:
+        model = ShapeModel.from_shapes(aligned, state.weights)
     return evaluate(aligned, state.weights, model.variances, config.evaluation_modes,
                     config.specificity_samples, np.random.default_rng(config.seed))
 
@@ -461,7 +464,7 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
     io.write_csv(output / "cases.csv", list(cases[0].keys()),
                  [[c.get(k, "") for k in cases[0]] for c in cases])
-    quality = evaluate_state(state, config)
+    quality = evaluate_state(state, config, model)
     metrics = {"objective": {"initial": initial, "final": final,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
                "strategy": config.strategy, "n_shapes": state.n_shapes, "n_points": state.n_points,
