@@ -108,3 +108,45 @@ def test_rebuild_reuses_preprocessing_and_no_cache_does_not(tmp_path):
     assert len(list(cache.glob("*.npz"))) == 3
     third = run("build", inputs, "-o", tmp_path / "c", *common[:-2], "--no-cache")
     assert third.returncode == 0 and "reused" not in third.stderr
+
+
+def test_cpd_build_compare_and_fit(tmp_path):
+    """A CPD-baseline build, a comparison of it with an MDL build, and a fit of a new case."""
+    inputs = write_population(tmp_path / "in", 5)
+    held_back = tmp_path / "new"
+    held_back.mkdir()
+    (inputs / "s2.nii.gz").rename(held_back / "s2.nii.gz")
+    common = ["--points", 162, "--workers", 2, "--specificity-samples", 200,
+              "--evaluation-modes", 2, "--surface-samples", 20, "-q"]
+    mdl = run("build", inputs, "-o", tmp_path / "mdl", "--max-sweeps", 1, "--baselines",
+              "none,cpd", *common)
+    assert mdl.returncode == 0, mdl.stderr
+    metrics = json.loads((tmp_path / "mdl" / "metrics.json").read_text())
+    assert set(metrics["baselines"]) == {"none", "cpd"}
+    assert "(cpd: " in mdl.stdout
+    assert len(metrics["generalization_surface_mm"]) == 2
+    cpd = run("build", inputs, "-o", tmp_path / "cpd", "--correspondence", "cpd", *common)
+    assert cpd.returncode == 0, cpd.stderr
+    assert json.loads((tmp_path / "cpd" / "metrics.json").read_text())["strategy"] == "cpd"
+    # the CPD build's measures equal the MDL build's CPD baseline (same cases, same seed)
+    cpd_metrics = json.loads((tmp_path / "cpd" / "metrics.json").read_text())
+    np.testing.assert_allclose(cpd_metrics["generalization"],
+                               metrics["baselines"]["cpd"]["generalization"], rtol=1e-6)
+
+    compared = run("compare", tmp_path / "mdl", tmp_path / "cpd", "-o", tmp_path / "cmp",
+                   "--modes", 2, "--samples", 300)
+    assert compared.returncode == 0, compared.stderr
+    assert "generalization" in compared.stdout and "4 shared cases" in compared.stdout
+    result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert set(result["models"]) == {"mdl (one-at-a-time-pose)", "cpd (cpd)"}
+    assert (tmp_path / "cmp" / "compare.html").is_file()
+
+    fitted = run("fit", tmp_path / "mdl", held_back, "-o", tmp_path / "fit", "--max-sweeps", 2)
+    assert fitted.returncode == 0, fitted.stderr
+    assert "s2: reconstruction error" in fitted.stdout
+    fit = json.loads((tmp_path / "fit" / "fit.json").read_text())["s2"]
+    errors = fit["reconstruction_squared_mm2"]
+    assert len(errors) == 4 and errors[-1] <= errors[0]
+    bad = run("fit", tmp_path / "nowhere", held_back, "-o", tmp_path / "fit2")
+    assert bad.returncode == 2 and "no such model file" in bad.stderr
+    assert "Traceback" not in bad.stderr

@@ -2,12 +2,17 @@
 
 The library works in the (n_s - 1)-dimensional model space; the tests recompute everything in full
 point space, (n_s, n_p, 3) arrays, with a PCA written here (eigen-decomposition of the Gram matrix).
+The surface-to-surface measures are recomputed with a brute-force point-to-triangle distance (every
+point against every triangle) written here; the library uses a VTK cell locator.
 """
 
 import numpy as np
 import pytest
 
-from mdlshapemodel.evaluation import compactness, evaluate, generalization, specificity
+from mdlshapemodel.evaluation import (SURFACE_GENERALIZATION_POINTS, SurfaceDistance, compactness,
+                                      evaluate, generalization, point_surface_distances,
+                                      specificity, surface_generalization, surface_specificity)
+from mdlshapemodel.sampling import sphere_grid
 
 
 def normalised_weights(rng, n_p):
@@ -99,6 +104,21 @@ def test_generalization_matches_brute_force(rng):
         np.testing.assert_allclose(result[key], mean, rtol=1e-9)
         np.testing.assert_allclose(result[key + "_se"], se, rtol=1e-7)
     assert np.all(np.diff(result["squared"]) <= 1e-12)        # more modes never reconstruct worse
+
+
+def test_generalization_per_case_errors(rng):
+    """Each left-out shape's errors: they are the brute-force ones, and their means are G(M)."""
+    shapes, weights = random_population(rng)
+    n_s = len(shapes)
+    result = generalization(shapes, weights, n_s - 1)
+    squared, distance = brute_force_generalization(shapes, weights, n_s - 1)
+    assert result["squared_per_case"].shape == result["distance_per_case"].shape == (n_s, n_s - 1)
+    np.testing.assert_allclose(result["squared_per_case"], squared, rtol=1e-9)
+    np.testing.assert_allclose(result["distance_per_case"], distance, rtol=1e-9)
+    np.testing.assert_allclose(result["squared_per_case"].mean(axis=0), result["squared"],
+                               rtol=1e-14)
+    np.testing.assert_allclose(result["distance_per_case"].mean(axis=0), result["distance"],
+                               rtol=1e-14)
 
 
 def test_generalization_with_all_modes_uses_only_the_left_out_models_modes(rng):
@@ -251,3 +271,329 @@ def test_evaluate_collects_everything(two_mode_population):
     np.testing.assert_allclose(report["generalization"][:3], g["squared"], rtol=1e-12)
     s = specificity(shapes, weights, n_s - 1, 300, np.random.default_rng(3))
     np.testing.assert_allclose(report["specificity_mm"], s["distance"], rtol=1e-12)
+
+
+# --- surface-to-surface measures ---------------------------------------------------------------------
+#
+# Shapes are radial functions on the sphere, r_i(u) = 1 + sum_j c_ij f_j(u), scaled by fixed semi-axes.
+# The corresponded shapes sample them on an icosphere (the correspondence grid); the true surfaces
+# sample them on the next finer icosphere, whose first vertices ARE the coarse grid's vertices, so
+# every corresponded point lies on its true surface. Points are linear in c: K functions give a
+# population with at most K modes.
+
+def brute_point_triangle(points, vertices, faces):
+    """Exact distance (n,) from each point to the nearest of all triangles (points x triangles).
+
+    Per triangle: the distance to its plane when the point projects inside, else the distance to
+    the nearest of its three edges (segments).
+    """
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    result = np.empty(len(points))
+    for start in range(0, len(points), 256):
+        p = points[start:start + 256, None, :]                         # (n, 1, 3) against (m, 3)
+        height = np.sum((p - a) * normal, axis=2)
+        foot = p - height[..., None] * normal
+        inside = np.ones(height.shape, dtype=bool)
+        for u, v in ((a, b), (b, c), (c, a)):        # the foot is left of every edge (seen along n)
+            inside &= np.sum(np.cross(v - u, foot - u) * normal, axis=2) >= 0
+        edge = np.full(height.shape, np.inf)
+        for u, v in ((a, b), (b, c), (c, a)):
+            t = np.clip(np.sum((p - u) * (v - u), axis=2) / np.sum((v - u) ** 2, axis=1), 0, 1)
+            edge = np.minimum(edge, np.linalg.norm(p - u - t[..., None] * (v - u), axis=2))
+        result[start:start + 256] = np.where(inside, np.abs(height), edge).min(axis=1)
+    return result
+
+
+def vertex_areas(vertices, faces):
+    """One third of the area of the triangles around each vertex."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    result = np.zeros(len(vertices))
+    for k in range(3):
+        np.add.at(result, faces[:, k], area / 3.0)
+    return result
+
+
+def brute_symmetric(points, triangles, weights, vertices, faces):
+    """(plain, area-weighted, (a) weighted, (b) weighted) symmetric surface distance, brute force."""
+    to_surface = brute_point_triangle(points, vertices, faces)         # (a) mesh points -> truth
+    from_surface = brute_point_triangle(vertices, points, triangles)   # (b) true vertices -> mesh
+    areas = vertex_areas(vertices, faces)
+    a_weighted = to_surface @ weights / weights.sum()
+    b_weighted = from_surface @ areas / areas.sum()
+    return np.array([0.5 * (to_surface.mean() + from_surface.mean()),
+                     0.5 * (a_weighted + b_weighted), a_weighted, b_weighted])
+
+
+def radial_population(rng, n_s, n_functions, coarse=162, fine=642, semi_axes=(12.0, 9.0, 7.0),
+                      amplitude=0.08):
+    """(shapes (n_s, coarse, 3), triangles, weights, true surfaces [(vertices, faces)] on the fine
+    icosphere)."""
+    directions, triangles = sphere_grid(coarse)
+    fine_directions, fine_faces = sphere_grid(fine)
+    assert np.allclose(fine_directions[:coarse], directions)          # the coarse vertices reappear
+    frequencies = rng.normal(size=(n_functions, 3)) * 1.5
+    phases = rng.uniform(0, 2 * np.pi, n_functions)
+    coefficients = rng.normal(size=(n_s, n_functions)) * amplitude
+
+    def sample(u, c):
+        return u * (1 + np.sin(u @ frequencies.T + phases) @ c)[:, None] * np.array(semi_axes)
+
+    shapes = np.stack([sample(directions, c) for c in coefficients])
+    surfaces = [(sample(fine_directions, c), fine_faces) for c in coefficients]
+    weights = vertex_areas(shapes.mean(axis=0), triangles)
+    return shapes, triangles, weights / weights.sum(), surfaces
+
+
+def test_brute_point_triangle_against_dense_sampling(rng):
+    """The reference distance itself: never above the distance to a dense sampling of the triangles,
+    and within its spacing."""
+    vertices = rng.normal(size=(5, 3)) * 3
+    faces = np.array([[0, 1, 2], [1, 3, 2], [2, 3, 4], [0, 4, 1]])
+    points = rng.normal(size=(60, 3)) * 4
+    exact = brute_point_triangle(points, vertices, faces)
+    n = 150
+    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    keep = i + j <= n
+    s, t = i[keep] / n, j[keep] / n
+    dense = np.concatenate([vertices[f[0]] + s[:, None] * (vertices[f[1]] - vertices[f[0]])
+                            + t[:, None] * (vertices[f[2]] - vertices[f[0]]) for f in faces])
+    sampled = np.min(np.linalg.norm(points[:, None] - dense[None], axis=2), axis=1)
+    longest = max(np.linalg.norm(vertices[f[k]] - vertices[f[(k + 1) % 3]])
+                  for f in faces for k in range(3))
+    assert np.all(exact <= sampled + 1e-12)
+    assert np.all(sampled - exact <= longest / n)
+
+
+def test_surface_distance_is_exact(rng):
+    """Points near, on, inside and far from a surface: the locator's distance is the brute force's."""
+    shapes, triangles, _, surfaces = radial_population(rng, 2, 3)
+    vertices, faces = surfaces[0]
+    near = shapes[1] + rng.normal(size=shapes[1].shape) * 0.5
+    points = np.concatenate([near, vertices[:20], 0.3 * near[:40], near[:40] * 3.0])
+    expected = brute_point_triangle(points, vertices, faces)
+    distance = SurfaceDistance(vertices, faces)
+    np.testing.assert_allclose(distance(points), expected, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(distance(points[:7]), expected[:7], rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(point_surface_distances(points, vertices, faces), expected,
+                               rtol=1e-10, atol=1e-10)
+    assert np.all(distance(vertices) < 1e-12)
+    with pytest.raises(ValueError):
+        SurfaceDistance(vertices, np.zeros((0, 3), dtype=int))
+    # moved to another shape (same faces): the locator follows
+    moved = surfaces[1][0] * 1.3 + 2.0
+    distance.move(moved)
+    np.testing.assert_allclose(distance(points), brute_point_triangle(points, moved, faces),
+                               rtol=1e-10, atol=1e-10)
+    with pytest.raises(ValueError):
+        distance.move(moved[:-1])
+
+
+def brute_force_surface_generalization(shapes, triangles, weights, surfaces, max_modes):
+    """(n_s, max_modes, 4) values of :func:`brute_symmetric` for each leave-one-out reconstruction."""
+    n_s = len(shapes)
+    values = np.zeros((n_s, max_modes, 4))
+    for i in range(n_s):
+        mean, modes, _ = pca(np.delete(shapes, i, axis=0), weights)
+        b = project(shapes[i], mean, modes, weights)
+        for m in range(1, max_modes + 1):
+            used = min(m, len(modes))
+            if used < m:                                  # no more modes: the same reconstruction
+                values[i, m - 1] = values[i, m - 2]
+                continue
+            rebuilt = mean + np.einsum("m,mkd->kd", b[:used], modes[:used])
+            values[i, m - 1] = brute_symmetric(rebuilt, triangles, weights, *surfaces[i])
+    return values
+
+
+def test_surface_generalization_matches_brute_force(rng):
+    shapes, triangles, weights, surfaces = radial_population(rng, 5, 8)
+    n_s = len(shapes)
+    result = surface_generalization(shapes, weights, triangles, surfaces, n_s - 1)
+    expected = brute_force_surface_generalization(shapes, triangles, weights, surfaces, n_s - 1)
+    for k, key in enumerate(("distance_per_case", "weighted_per_case", "to_surface_per_case",
+                             "from_surface_per_case")):
+        np.testing.assert_allclose(result[key], expected[..., k], rtol=1e-9, atol=1e-10)
+    for k, key in enumerate(("distance", "weighted")):
+        mean, se = mean_and_se(expected[..., k])
+        np.testing.assert_allclose(result[key], mean, rtol=1e-9)
+        np.testing.assert_allclose(result[key + "_se"], se, rtol=1e-7)
+    assert np.all(result["distance"] > 0.01)
+    # the last mode repeats: the model without shape i has n_s - 2 modes
+    np.testing.assert_array_equal(result["distance_per_case"][:, -1],
+                                  result["distance_per_case"][:, -2])
+
+
+def test_surface_distance_bounded_by_point_distance(rng):
+    """Every corresponded point lies on its (finer) true surface, so the distance of a reconstructed
+    point to the true surface is at most the distance to its corresponding point: direction (a) of
+    the surface measure never exceeds the point-to-point measure, case by case."""
+    shapes, triangles, weights, surfaces = radial_population(rng, 7, 8)
+    n_s = len(shapes)
+    on_surface = [brute_point_triangle(shape, *surface) for shape, surface in zip(shapes, surfaces)]
+    assert max(d.max() for d in on_surface) < 1e-12
+    surface = surface_generalization(shapes, weights, triangles, surfaces, n_s - 2)
+    point = generalization(shapes, weights, n_s - 2)
+    assert np.all(surface["to_surface_per_case"] <= point["distance_per_case"] * (1 + 1e-12))
+    assert np.all(surface["to_surface_per_case"] < point["distance_per_case"] * 0.99)
+    # the finer surfaces differ from the correspondence meshes: even the symmetric distance of a
+    # training shape's own mesh to its true surface is not zero
+    assert brute_symmetric(shapes[0], triangles, weights, *surfaces[0])[0] > 1e-3
+
+
+def test_surface_measures_on_a_population_with_two_modes(rng):
+    """True surfaces = the corresponded meshes, two modes: with M >= 2 a left-out shape is rebuilt
+    exactly (surface distance 0); with M = 1 it is not. Specificity samples do not change beyond
+    M = 2, and with uniform weights a sample's surface distance is at most the point-to-point one."""
+    shapes, triangles, _, _ = radial_population(rng, 8, 2, coarse=162)
+    n_s, n_p = shapes.shape[:2]
+    weights = np.full(n_p, 1.0 / n_p)
+    surfaces = [(shape, triangles) for shape in shapes]
+    g = surface_generalization(shapes, weights, triangles, surfaces, 4)
+    g_point = generalization(shapes, weights, 4)
+    assert g["distance"][0] > 0.1 * g_point["distance"][0] > 1e-3
+    assert g["weighted"][0] > 1e-3
+    assert np.all(g["distance"][1:] < 1e-9) and np.all(g["weighted"][1:] < 1e-9)
+    s = surface_specificity(shapes, weights, triangles, surfaces, 4, n_samples=40,
+                            rng=np.random.default_rng(4), max_points=None)
+    assert s["distance"][1] == s["distance"][2] == s["distance"][3]
+    assert np.all(s["distance"] > 1e-3)
+    # the same samples measured point to point: the nearest shape in model space is among the
+    # candidates, and (a) and (b) are each at most the mean distance of corresponding points (the
+    # surfaces' vertices are the corresponded points; uniform weights make that mean the mm measure)
+    s_point = specificity(shapes, weights, 4, 40, np.random.default_rng(4))
+    assert np.all(s["distance"] <= s_point["distance"] * (1 + 1e-12))
+    assert np.all(s["distance"] < 0.99 * s_point["distance"])
+
+
+def brute_force_surface_specificity(shapes, triangles, weights, surfaces, samples, candidates):
+    """Per-sample (plain, weighted) distance to the nearest of the ``candidates`` training shapes
+    nearest in point space, and that shape's index, for samples (N, n_p, 3)."""
+    plain, area = np.zeros(len(samples)), np.zeros(len(samples))
+    nearest = np.zeros(len(samples), dtype=int)
+    for s, sample in enumerate(samples):
+        order = np.argsort(weighted_sq(sample, shapes, weights), kind="stable")[:candidates]
+        values = [brute_symmetric(sample, triangles, weights, *surfaces[j]) for j in order]
+        best = int(np.argmin([v[0] for v in values]))
+        plain[s], area[s], nearest[s] = values[best][0], values[best][1], order[best]
+    return plain, area, nearest
+
+
+@pytest.mark.parametrize("candidates", [2, 5])
+def test_surface_specificity_matches_brute_force(rng, candidates):
+    """Exact mode (all points) against samples rebuilt here from the same standard normals.
+
+    Our PCA may give a mode the opposite sign, which changes a sample's surface distances: the
+    sign of mode 1 is the one that reproduces M = 1, then that of mode 2 the one for M = 2."""
+    shapes, triangles, weights, surfaces = radial_population(rng, 5, 2, coarse=42, fine=162)
+    n_samples, seed, max_modes = 16, 11, 3
+    result = surface_specificity(shapes, weights, triangles, surfaces, max_modes, n_samples,
+                                 np.random.default_rng(seed), candidates=candidates,
+                                 max_points=None)
+    mean, modes, variances = pca(shapes, weights)
+    assert len(modes) == 2
+    normal = np.random.default_rng(seed).standard_normal((n_samples, 2))
+    scores = normal * np.sqrt(variances)
+    for m in range(2):
+        errors = {}
+        for sign in (1.0, -1.0):
+            trial = scores.copy()
+            trial[:, m] *= sign
+            samples = mean + np.einsum("jm,mkd->jkd", trial[:, :m + 1], modes[:m + 1])
+            plain, area, nearest = brute_force_surface_specificity(
+                shapes, triangles, weights, surfaces, samples, candidates)
+            errors[sign] = max(np.abs(result["distance_per_sample"][:, m] - plain).max(),
+                               np.abs(result["weighted_per_sample"][:, m] - area).max())
+            if errors[sign] < 1e-9:
+                break
+        assert min(errors.values()) < 1e-9, errors
+        scores[:, m] *= min(errors, key=errors.get)
+        np.testing.assert_array_equal(result["nearest"][:, m], nearest)
+        for key, values in (("distance", plain), ("weighted", area)):
+            expected, se = mean_and_se(values)
+            np.testing.assert_allclose(result[key][m], expected, rtol=1e-9)
+            np.testing.assert_allclose(result[key + "_se"][m], se, rtol=1e-7)
+    for key in ("distance_per_sample", "weighted_per_sample", "nearest"):   # only two modes
+        np.testing.assert_array_equal(result[key][:, 2], result[key][:, 1])
+
+
+def test_surface_specificity_subsampling_agrees_with_all_points(rng):
+    """With ``max_points`` each distance is a Monte Carlo estimate over random points: on the same
+    samples it stays close to the exact one, per sample and on average."""
+    shapes, triangles, weights, surfaces = radial_population(rng, 6, 8)
+    exact = surface_specificity(shapes, weights, triangles, surfaces, 2, 60,
+                                np.random.default_rng(2), candidates=2, max_points=None)
+    estimate = surface_specificity(shapes, weights, triangles, surfaces, 2, 60,
+                                   np.random.default_rng(2), candidates=2, max_points=48)
+    difference = estimate["distance_per_sample"] - exact["distance_per_sample"]
+    assert np.all(np.abs(difference.mean(axis=0)) < 0.03 * exact["distance"])
+    assert np.all(np.sqrt(np.mean(difference ** 2, axis=0)) < 0.2 * exact["distance"])
+    again = surface_specificity(shapes, weights, triangles, surfaces, 2, 60,
+                                np.random.default_rng(2), candidates=2, max_points=48)
+    np.testing.assert_array_equal(again["distance"], estimate["distance"])
+
+
+def test_stratified_sampling_is_unbiased(rng):
+    """The strata partition the points; one random point per stratum, weighted by the stratum's
+    share, estimates the mean over all points without bias, with less noise than a random subset."""
+    from mdlshapemodel.evaluation import _means, _RandomSubset, _Strata
+
+    _, _, _, surfaces = radial_population(rng, 1, 4)
+    vertices = surfaces[0][0]
+    values = np.linalg.norm(vertices - vertices[0], axis=1)             # a smooth field
+    weights = rng.uniform(0.5, 2.0, len(vertices))
+    strata = _Strata(vertices, 40)
+    assert np.array_equal(np.sort(strata.order), np.arange(len(vertices)))
+    assert strata.counts.sum() == len(vertices) and len(strata.counts) == 40
+    np.testing.assert_allclose(strata.fraction.sum(), 1.0)
+    draws = [_means(values[i], f, weights[i]) for i, f in (strata.draw(rng) for _ in range(4000))]
+    plain, weighted = np.array(draws).T
+    assert abs(plain.mean() - values.mean()) < 4 * plain.std() / np.sqrt(len(plain))
+    assert abs(weighted.mean() - values @ weights / weights.sum()) < 0.01 * values.mean()
+    subset = _RandomSubset(len(vertices), 40)
+    random_plain = [_means(values[i], f, weights[i])[0]
+                    for i, f in (subset.draw(rng) for _ in range(4000))]
+    assert abs(np.mean(random_plain) - values.mean()) < 4 * np.std(random_plain) / np.sqrt(4000)
+    assert plain.std() < 0.5 * np.std(random_plain)
+
+
+def test_surface_generalization_with_random_subsets(rng):
+    """``max_points`` (uniform random subsets, for very large surfaces) estimates the exact values."""
+    shapes, triangles, weights, surfaces = radial_population(rng, 6, 8)
+    exact = surface_generalization(shapes, weights, triangles, surfaces, 4)
+    estimate = surface_generalization(shapes, weights, triangles, surfaces, 4, max_points=100,
+                                      rng=np.random.default_rng(1))
+    for key in ("distance_per_case", "weighted_per_case"):
+        np.testing.assert_allclose(estimate[key], exact[key], rtol=0.2)
+    np.testing.assert_allclose(estimate["distance"], exact["distance"], rtol=0.05)
+
+
+def test_evaluate_with_surfaces(rng):
+    shapes, triangles, weights, surfaces = radial_population(rng, 6, 8)
+    n_s = len(shapes)
+    variances = np.linalg.svd((shapes - shapes.mean(axis=0)).reshape(n_s, -1) *
+                              np.repeat(np.sqrt(weights), 3), compute_uv=False)[:n_s - 1] ** 2 / n_s
+    plain = evaluate(shapes, weights, variances, 3, 300, np.random.default_rng(5))
+    report = evaluate(shapes, weights, variances, 3, 300, np.random.default_rng(5),
+                      triangles=triangles, surfaces=surfaces, surface_samples=20)
+    for key, value in plain.items():                      # the point measures do not change
+        assert report[key] == value
+    surface_keys = ("generalization_surface_mm", "generalization_surface_mm_se",
+                    "specificity_surface_mm", "specificity_surface_mm_se")
+    assert not any(key in plain for key in surface_keys)
+    for key in surface_keys:
+        assert len(report[key]) == 3 and all(isinstance(v, float) for v in report[key])
+    assert report["specificity_surface_samples"] == 20
+    assert len(shapes[0]) <= SURFACE_GENERALIZATION_POINTS
+    g = surface_generalization(shapes, weights, triangles, surfaces, 3)
+    np.testing.assert_allclose(report["generalization_surface_mm"], g["distance"], rtol=1e-12)
+    # the surface samples are the first samples of the point measure, from the same generator
+    s = surface_specificity(shapes, weights, triangles, surfaces, 3, 20, np.random.default_rng(5))
+    np.testing.assert_allclose(report["specificity_surface_mm"], s["distance"], rtol=1e-12)
+    np.testing.assert_allclose(report["specificity_surface_mm_se"], s["distance_se"], rtol=1e-12)
+    with pytest.raises(ValueError):
+        evaluate(shapes, weights, variances, 3, 300, surfaces=surfaces)
+    with pytest.raises(ValueError):
+        surface_generalization(shapes, weights, triangles, surfaces[:-1], 3)

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from .config import BuildConfig
+from .config import BASELINES, CORRESPONDENCES, BuildConfig
 from .errors import MDLShapeModelError
 from .strategies import STRATEGIES
 
@@ -23,10 +23,27 @@ def _labels(text: str) -> list[int]:
     return values
 
 
+def _baselines(text: str) -> list[str]:
+    values = [v for v in text.replace(",", " ").split()]
+    unknown = [v for v in values if v not in BASELINES]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown baseline {unknown[0]!r}; choose from "
+                                         f"{', '.join(BASELINES)}")
+    return values
+
+
 def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
     group = parser.add_argument_group("correspondence")
     group.add_argument("--points", type=int, default=defaults.points,
                        help="sample points per shape (icosphere when 10*4^k+2; default %(default)s)")
+    group.add_argument("--correspondence", choices=CORRESPONDENCES, default=defaults.correspondence,
+                       help="'mdl': optimised by minimum description length; 'cpd': a template "
+                            "case registered onto every case by coherent point drift, the common "
+                            "alternative, for comparison (default %(default)s)")
+    group.add_argument("--baselines", type=_baselines, default=defaults.baselines, metavar="LIST",
+                       help="other correspondences evaluated on the same cases and shown in the "
+                            "report: comma-separated from none (the initial correspondence) and "
+                            "cpd; '' for no baseline (default none)")
     group.add_argument("--strategy", choices=STRATEGIES, default=defaults.strategy,
                        help="optimisation strategy; 'none' keeps the initial (equal-spacing) "
                             "correspondence (default %(default)s)")
@@ -94,6 +111,9 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
                      help="measures are reported for M = 1..this (default %(default)s)")
     run.add_argument("--specificity-samples", type=int, default=defaults.specificity_samples,
                      help="model samples for specificity (default %(default)s)")
+    run.add_argument("--surface-samples", type=int, default=defaults.surface_samples,
+                     help="model samples for specificity measured surface to surface; 0 leaves "
+                          "out the surface-to-surface measures (default %(default)s)")
     run.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
 
 
@@ -109,6 +129,8 @@ def _config_from(args) -> BuildConfig:
                        fixed_fraction=args.fixed_fraction, max_sweeps=args.max_sweeps,
                        seed=args.seed, evaluation_modes=args.evaluation_modes,
                        specificity_samples=args.specificity_samples, workers=args.workers,
+                       correspondence=args.correspondence, baselines=args.baselines,
+                       surface_samples=args.surface_samples,
                        cache_dir="" if args.no_cache else args.cache_dir,
                        strict=args.strict).validate()
 
@@ -135,9 +157,8 @@ def _summary(result) -> str:
              f" nats ({m['strategy']})"]
     for key, symbol in (("generalization", "G"), ("specificity", "S")):
         shown = ", ".join(f"{v:.3f}" for v in m[key][:3])
-        if "baseline" in m:
-            shown += " (initial correspondence: " + ", ".join(
-                f"{v:.3f}" for v in m["baseline"][key][:3]) + ")"
+        for name, values in m.get("baselines", {}).items():
+            shown += f" ({name}: " + ", ".join(f"{v:.3f}" for v in values[key][:3]) + ")"
         lines.append(f"  {key:<14} {symbol}(1..3): {shown} mm^2")
     lines += [f"  surface fidelity: mean {m['surface_distance_mm']['mean']:.3f} mm, "
               f"max {m['surface_distance_mm']['max']:.3f} mm",
@@ -153,6 +174,37 @@ def _run_build(inputs, output, config) -> int:
     result = build_model(inputs, output, config, progress=_Progress())
     print(_summary(result))
     return 0
+
+
+def _run_compare(args) -> int:
+    from .compare import compare_populations, load_population, summary_lines, write_comparison
+
+    populations = [load_population(path) for path in args.outputs]
+    labels = [p.label for p in populations]
+    for k, population in enumerate(populations):  # labels must be unique keys
+        if labels.count(population.label) > 1:
+            population.label = f"{population.label} #{k + 1}"
+    result = compare_populations(populations, args.modes, args.samples, args.seed)
+    page = write_comparison(result, args.output)
+    print("\n".join(summary_lines(result)))
+    print(f"comparison of {len(populations)} models on {result['n_cases']} shared cases: {page}")
+    return 0
+
+
+def _run_fit(args) -> int:
+    from .fitting import fit_cases
+
+    results, rejected = fit_cases(args.model, args.inputs, args.output, args.label,
+                                  args.max_time, args.max_sweeps, args.seed)
+    for name, path, reason in rejected:
+        log.warning("rejected %s: %s", path, reason)
+    for result in results:
+        print(f"{result.name}: reconstruction error with all modes "
+              f"{result.squared_error[-1]:.4f} mm^2 ({result.distance_error[-1]:.3f} mm mean), "
+              f"mean shape only {result.squared_error[0]:.4f} mm^2; objective "
+              f"{result.objective['initial']:.3f} -> {result.objective['final']:.3f}")
+    print(f"fitted {len(results)} case(s) to {args.model}: {Path(args.output) / 'fit.json'}")
+    return 0 if results else 2
 
 
 def main(argv=None) -> int:
@@ -172,6 +224,35 @@ def main(argv=None) -> int:
     demo.add_argument("--max-time", type=float, default=40.0, help="optimisation seconds (default 40)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("-q", "--quiet", action="store_true")
+    compare = commands.add_parser(
+        "compare", help="evaluate several models of the same cases side by side",
+        description="Evaluate models (build output folders) on the cases they share and say, for "
+                    "each number of modes, whether they differ by more than two standard errors "
+                    "(the first model is the reference). Writes compare.html/.csv/.json.")
+    compare.add_argument("outputs", nargs="+", help="build output folders (or their model.h5)")
+    compare.add_argument("-o", "--output", default="comparison", help="folder for the comparison "
+                         "(default %(default)s)")
+    compare.add_argument("--modes", type=int, default=defaults.evaluation_modes,
+                         help="M = 1..this (default %(default)s)")
+    compare.add_argument("--samples", type=int, default=defaults.specificity_samples,
+                         help="specificity samples (default %(default)s)")
+    compare.add_argument("--seed", type=int, default=0)
+    compare.add_argument("-q", "--quiet", action="store_true")
+    fit = commands.add_parser(
+        "fit", help="fit new cases to an existing model: correspondence, scores, reconstruction",
+        description="Find the correspondence of new cases against a model (optimising only each "
+                    "new case's reparameterization and pose, with the model's training shapes "
+                    "fixed) and write their scores and reconstructions.")
+    fit.add_argument("model", help="model.h5 or the build output folder holding it")
+    fit.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
+    fit.add_argument("-o", "--output", required=True, help="output folder")
+    fit.add_argument("--label", type=_labels, action="extend", default=[], metavar="L",
+                     help="label value(s) of the object (default: those the model was built with)")
+    fit.add_argument("--max-time", type=float, default=60.0, metavar="SECONDS",
+                     help="optimisation time per case (default %(default)s)")
+    fit.add_argument("--max-sweeps", type=int, default=10_000, metavar="N")
+    fit.add_argument("--seed", type=int, default=0)
+    fit.add_argument("-q", "--quiet", action="store_true")
     args = parser.parse_args(argv)
 
     handler = logging.StreamHandler(sys.stderr)
@@ -182,6 +263,10 @@ def main(argv=None) -> int:
     try:
         if args.command == "build":
             return _run_build(args.inputs, args.output, _config_from(args))
+        if args.command == "compare":
+            return _run_compare(args)
+        if args.command == "fit":
+            return _run_fit(args)
         if args.command == "demo":
             from .demo import write_demo_population
 

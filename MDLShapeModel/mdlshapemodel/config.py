@@ -13,6 +13,10 @@ from .errors import ConfigError
 from .strategies import STRATEGIES, OptimisationSettings
 
 
+CORRESPONDENCES = ("mdl", "cpd")
+BASELINES = ("none", "cpd")
+
+
 @dataclass
 class BuildConfig:
     """Settings of a model build. Lengths marked *voxels* are in voxels of the source images."""
@@ -30,6 +34,8 @@ class BuildConfig:
     edge_length: float = 1.0          # voxels: isotropic remeshing of label-map surfaces
     target_vertices: int = 20000      # meshes with more vertices are decimated
     # correspondence
+    correspondence: str = "mdl"       # "mdl": optimised by MDL; "cpd": CPD template registration
+    baselines: list = field(default_factory=lambda: ["none"])  # also evaluated on the same cases
     points: int = 2562                # n_p: sample points per shape (icosphere when 10*4^k+2)
     # optimisation knobs: defaults are those of strategies.OptimisationSettings (one source)
     strategy: str = OptimisationSettings.strategy
@@ -46,6 +52,7 @@ class BuildConfig:
     # evaluation
     evaluation_modes: int = 10
     specificity_samples: int = 10_000
+    surface_samples: int = 200        # specificity samples measured surface to surface (0: none)
     # running
     workers: int = field(default_factory=lambda: os.cpu_count() or 1)
     cache_dir: str | None = None      # per-case preprocessing cache; None: default place, "": off
@@ -69,6 +76,10 @@ class BuildConfig:
              "must be >= smoothing_sigma")
         need(self.edge_length > 0, "edge_length", "must be positive")
         need(self.target_vertices >= 100, "target_vertices", "must be at least 100")
+        need(self.correspondence in CORRESPONDENCES, "correspondence",
+             f"must be one of {', '.join(CORRESPONDENCES)}")
+        need(all(b in BASELINES for b in self.baselines), "baselines",
+             f"each must be one of {', '.join(BASELINES)}")
         need(self.points >= 12, "points", "must be at least 12")
         need(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
         need(len(self.delta_range) == 2 and 0 < self.delta_range[0] < self.delta_range[1],
@@ -82,6 +93,8 @@ class BuildConfig:
         need(self.max_sweeps >= 1, "max_sweeps", "must be at least 1")
         need(self.evaluation_modes >= 1, "evaluation_modes", "must be at least 1")
         need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")
+        need(self.surface_samples == 0 or self.surface_samples >= 2, "surface_samples",
+             "must be 0 (none) or at least 2")
         need(self.workers >= 1, "workers", "must be at least 1")
         return self
 

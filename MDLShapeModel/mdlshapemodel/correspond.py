@@ -122,6 +122,20 @@ class Example:
         return np.concatenate([replace.get(j, part.points) for j, part in enumerate(self.parts)])
 
 
+@dataclass
+class FixedExample:
+    """An example whose correspondence is given and kept (e.g. a model's training shapes when a
+    new case is fitted): it has no parts to reparameterize, only a pose."""
+
+    name: str
+    points: np.ndarray
+    pose: Pose = field(default_factory=Pose)
+    parts: list = field(default_factory=list)
+
+    def raw_points(self, replace: dict | None = None) -> np.ndarray:
+        return self.points
+
+
 class CorrespondenceState:
     """All examples, the sampling grids, the area weights and the incrementally updated covariance.
 
@@ -235,12 +249,25 @@ class CorrespondenceState:
         self.shapes[i] = shape
 
     # ------------------------------------------------------------------ views
+    def _model_frame(self) -> tuple[np.ndarray, float]:
+        mean = self.sum_shapes / self.n_shapes
+        return weighted_centroid(mean, self.weights), self.target_size / centroid_size(
+            mean, self.weights)
+
     def aligned_shapes(self) -> np.ndarray:
         """(n_s, n_p, 3) shapes in the model frame, rescaled to ``target_size``."""
-        mean = self.sum_shapes / self.n_shapes
-        factor = self.target_size / centroid_size(mean, self.weights)
-        centre = weighted_centroid(mean, self.weights)
+        centre, factor = self._model_frame()
         return (self.shapes - centre) * factor
+
+    def to_model_frame(self, i: int, points: np.ndarray) -> np.ndarray:
+        """Points in example i's own coordinates (e.g. its input surface) -> the model frame."""
+        centre, factor = self._model_frame()
+        return (self.examples[i].pose.apply(points) - centre) * factor
+
+    def triangles(self) -> np.ndarray:
+        """Connectivity of the concatenated sampling grids of all parts."""
+        return np.concatenate([triangles + s.start
+                               for s, (_, triangles) in zip(self.part_slices, self.grids)])
 
     def raw_shapes(self) -> np.ndarray:
         """(n_s, n_p, 3) samples in each example's own physical coordinates."""

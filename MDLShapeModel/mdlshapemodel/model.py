@@ -5,13 +5,69 @@ Shapes are (n_p, 3) arrays whose point k corresponds across examples. With the a
 variances are mean squared displacements (mm^2). Modes are orthonormal in that inner product and a
 shape is ``mean + sum_m b_m mode_m``; training scores have variance lambda_m (divisor n_s, as the
 eigenvalues of D' / n_s in the paper).
+
+The model file (``model.h5``)
+-----------------------------
+:meth:`ShapeModel.save` writes an HDF5 file in the Statismo file format (version 0.9), which
+Statismo (C++) and Scalismo (Scala) open as a shape model, plus one group of our own that they
+ignore. The layout is the Statismo file format (Luethi et al., "Statismo file format" document)
+as the reference implementation writes and reads it (statismo/statismo: ``StatismoIO.h`` and
+``StatisticalModel.hxx`` Save/Load, ``HDF5Utils.hxx``, ``ModelInfo.cxx``, ``itk``/
+``vtkStandardMeshRepresenter``; ``CommonTypes.h``: float32, row-major matrices) and as Scalismo
+reads it (unibas-gravis/scalismo ``io/statisticalmodel/StatismoIO.scala``, ``HDF5Reader.scala``:
+float32 arrays, int32 cells, ``/version/*`` int datasets). n = n_p points, m modes, s = n_s cases;
+vectors are point-interleaved (x1, y1, z1, x2, ...: ``MapPointIdToInternalIdx = 3 * id + d``)::
+
+    /version/majorVersion        int32 scalar dataset   0
+    /version/minorVersion        int32 scalar dataset   9
+    /representer                 group, fixed-length string attributes:
+        @name = "itkStandardMeshRepresenter", @version = "0.1",
+        @datasetType = "POLYGON_MESH" ("POINT_SET" when the model has no triangles)
+    /representer/points          float32 (3, n)   the mean shape, column i = point i
+    /representer/cells           int32   (3, t)   column j = triangle j (only with triangles)
+    /model/mean                  float32 (3n,)
+    /model/pcaBasis              float32 (3n, m)  orthonormal columns U (Euclidean)
+    /model/pcaVariance           float32 (m,)     descending
+    /model/noiseVariance         float32 scalar   0
+    /modelinfo/build-time        string dataset
+    /modelinfo/scores            float32 (m, s)   column i = Statismo coefficients of case i,
+                                 alpha = diag(pcaVariance)^(-1/2) U^T (x_i - mean); (1, 1) zero
+                                 when there are no cases (Statismo's "no scores" marker)
+    /modelinfo/modelBuilder-0/builderName, buildTime      string datasets
+    /modelinfo/modelBuilder-0/dataInfo/URI_<i>            string dataset: name of case i
+    /modelinfo/modelBuilder-0/parameters/<key>            string dataset: str(metadata[key])
+    /mdlshapemodel               our model, float64 and exact (ignored by Statismo/Scalismo):
+        @format = "mdlshapemodel", @format_version = 2
+        mean (n, 3), modes (m, n, 3), variances (m,), weights (n,), scores (s, m) float64;
+        names (s,) UTF-8 strings; part_sizes (parts,) int64; triangles (t, 3) and
+        parameters (n, 3) when set; metadata/<key> one scalar (or array) dataset per entry
+
+The Statismo groups hold the same Gaussian as the model: with V the (3n, m) flattened modes
+(orthonormal in the weighted inner product) the shape covariance is V diag(lambda) V^T; a thin QR
+V = Q R and the eigendecomposition R diag(lambda) R^T = E diag(lambda') E^T give the Euclidean
+basis U = Q E with variances lambda' (the same covariance, exactly, before float32 storage).
+
+:meth:`ShapeModel.load` reads the ``/mdlshapemodel`` group when present (bit-exact round trip), the
+first version of our own layout, or else any Statismo/Scalismo shape model (versions 0.8, 0.9, 1.x):
+uniform weights 1/n, modes sqrt(n) u_m, variances lambda_m / n (the same Gaussian).
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+
+from .errors import InputError
+
+NATIVE_GROUP = "mdlshapemodel"
+FORMAT_VERSION = 2
+STATISMO_VERSION = (0, 9)
+# the representer that Statismo's ITK mesh representer and Scalismo write
+REPRESENTER_NAME = "itkStandardMeshRepresenter"
+REPRESENTER_VERSION = "0.1"
 
 
 @dataclass
@@ -27,10 +83,12 @@ class ShapeModel:
     triangles: np.ndarray | None = None      # (m, 3) connectivity of the points (all parts)
     part_sizes: list = field(default_factory=list)
     metadata: dict = field(default_factory=dict)
+    parameters: np.ndarray | None = None     # (n_p, 3) sampling positions on the unit sphere
 
     @classmethod
     def from_shapes(cls, shapes: np.ndarray, weights: np.ndarray, names=None, triangles=None,
-                    part_sizes=None, relative_tolerance: float = 1e-10, **metadata):
+                    part_sizes=None, relative_tolerance: float = 1e-10, parameters=None,
+                    **metadata):
         """Area-weighted PCA of aligned shapes (n_s, n_p, 3)."""
         shapes = np.asarray(shapes, dtype=np.float64)
         n_s, n_p, _ = shapes.shape
@@ -44,7 +102,8 @@ class ShapeModel:
         scores = u[:, keep] * singular[keep]
         return cls(mean=mean, modes=modes, variances=variances[keep], weights=np.asarray(weights),
                    scores=scores, names=list(names or [f"case_{i}" for i in range(n_s)]),
-                   triangles=triangles, part_sizes=list(part_sizes or [n_p]), metadata=metadata)
+                   triangles=triangles, part_sizes=list(part_sizes or [n_p]), metadata=metadata,
+                   parameters=parameters)
 
     @property
     def n_modes(self) -> int:
@@ -60,33 +119,270 @@ class ShapeModel:
         modes = self.modes[:n_modes]
         return np.einsum("mkd,kd->m", modes, (shape - self.mean) * self.weights[:, None])
 
+    def euclidean_pca(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The model's Gaussian in a Euclidean-orthonormal basis, as Statismo stores it.
+
+        Returns ``(basis, variances, coefficients)``: basis U (3 n_p, n_modes) with orthonormal
+        columns (point-interleaved rows), variances lambda' descending with
+        U diag(lambda') U^T = V diag(lambda) V^T (V: the flattened modes), and the
+        (n_modes, n_modes) matrix T taking our scores b to Statismo's standardized coefficients,
+        alpha = T b = diag(lambda')^(-1/2) U^T (x - mean).
+        """
+        n_dims = self.mean.size
+        m = self.n_modes
+        if m == 0:
+            return np.zeros((n_dims, 0)), np.zeros(0), np.zeros((0, 0))
+        flat = np.asarray(self.modes, dtype=np.float64).reshape(m, n_dims).T     # V (3n, m)
+        q, r = np.linalg.qr(flat)
+        small = (r * np.asarray(self.variances, dtype=np.float64)) @ r.T     # R diag(lambda) R^T
+        values, vectors = np.linalg.eigh((small + small.T) / 2)
+        values, vectors = np.clip(values[::-1], 0.0, None), vectors[:, ::-1]
+        basis = q @ vectors
+        inverse_sd = np.divide(1.0, np.sqrt(values), out=np.zeros_like(values), where=values > 0)
+        return basis, values, inverse_sd[:, None] * (vectors.T @ r)
+
     def save(self, path):
-        """Write the model to an HDF5 file."""
+        """Write the model to an HDF5 file in the Statismo layout (see the module docstring)."""
         import h5py
 
+        keys = [_checked_key(key) for key in self.metadata]      # before the file is touched
+        basis, pca_variance, to_statismo = self.euclidean_pca()
+        coefficients = to_statismo @ np.asarray(self.scores, dtype=np.float64).T    # (m, n_s)
+        build_time = time.asctime()
         with h5py.File(path, "w") as f:
-            f.attrs["format"] = "mdlshapemodel"
-            f.attrs["format_version"] = 1
-            for key in ("mean", "modes", "variances", "weights", "scores"):
-                f.create_dataset(key, data=getattr(self, key))
+            version = f.create_group("version")
+            version.create_dataset("majorVersion", data=np.int32(STATISMO_VERSION[0]))
+            version.create_dataset("minorVersion", data=np.int32(STATISMO_VERSION[1]))
+
+            representer = f.create_group("representer")
+            _string_attribute(representer, "name", REPRESENTER_NAME)
+            _string_attribute(representer, "version", REPRESENTER_VERSION)
+            _string_attribute(representer, "datasetType",
+                              "POINT_SET" if self.triangles is None else "POLYGON_MESH")
+            representer.create_dataset("points", data=np.asarray(self.mean, np.float32).T)
             if self.triangles is not None:
-                f.create_dataset("triangles", data=self.triangles)
-            f.create_dataset("part_sizes", data=np.asarray(self.part_sizes, dtype=np.int64))
-            f.create_dataset("names", data=np.array(self.names, dtype=object),
+                representer.create_dataset("cells", data=np.asarray(self.triangles, np.int32).T)
+
+            model = f.create_group("model")
+            model.create_dataset("mean", data=np.asarray(self.mean, np.float32).ravel())
+            model.create_dataset("pcaBasis", data=basis.astype(np.float32))
+            model.create_dataset("pcaVariance", data=pca_variance.astype(np.float32))
+            model.create_dataset("noiseVariance", data=np.float32(0.0))
+
+            info = f.create_group("modelinfo")
+            _string_dataset(info, "build-time", build_time)
+            if coefficients.size:
+                info.create_dataset("scores", data=coefficients.astype(np.float32))
+            else:
+                info.create_dataset("scores", data=np.zeros((1, 1), np.float32))
+            builder = info.create_group("modelBuilder-0")
+            _string_dataset(builder, "builderName", "mdlshapemodel area-weighted PCA")
+            _string_dataset(builder, "buildTime", build_time)
+            data_info = builder.create_group("dataInfo")
+            for i, name in enumerate(self.names):
+                _string_dataset(data_info, f"URI_{i}", str(name))
+            parameters = builder.create_group("parameters")
+            for key, value in zip(keys, self.metadata.values()):
+                _string_dataset(parameters, key, str(value))
+
+            self._write_native(f.create_group(NATIVE_GROUP))
+
+    def _write_native(self, group):
+        """Every field exactly (float64 as given) in ``group``."""
+        import h5py
+
+        group.attrs["format"] = "mdlshapemodel"
+        group.attrs["format_version"] = FORMAT_VERSION
+        for key in ("mean", "modes", "variances", "weights", "scores"):
+            group.create_dataset(key, data=np.asarray(getattr(self, key)))
+        group.create_dataset("names", data=np.array([str(n) for n in self.names], dtype=object),
                              dtype=h5py.string_dtype())
-            for key, value in self.metadata.items():
-                f.attrs[key] = value
+        group.create_dataset("part_sizes", data=np.asarray(self.part_sizes, dtype=np.int64))
+        if self.triangles is not None:
+            group.create_dataset("triangles", data=np.asarray(self.triangles))
+        if self.parameters is not None:
+            group.create_dataset("parameters", data=np.asarray(self.parameters))
+        metadata = group.create_group("metadata", track_order=True)   # keeps the dict order
+        for key, value in self.metadata.items():
+            key = _checked_key(key)
+            if value is None:
+                metadata.create_dataset(key, data=h5py.Empty("f8"))
+            elif isinstance(value, str):
+                metadata.create_dataset(key, data=value, dtype=h5py.string_dtype())
+            else:
+                metadata.create_dataset(key, data=value)
 
     @classmethod
     def load(cls, path) -> "ShapeModel":
-        """Read a model written by :meth:`save`."""
+        """Read a model written by :meth:`save`, or a Statismo/Scalismo shape model file."""
         import h5py
 
-        with h5py.File(path, "r") as f:
-            names = [n.decode() if isinstance(n, bytes) else str(n) for n in f["names"][()]]
-            return cls(mean=f["mean"][()], modes=f["modes"][()], variances=f["variances"][()],
-                       weights=f["weights"][()], scores=f["scores"][()], names=names,
-                       triangles=f["triangles"][()] if "triangles" in f else None,
-                       part_sizes=[int(s) for s in f["part_sizes"][()]],
-                       metadata={k: v for k, v in f.attrs.items()
-                                 if k not in ("format", "format_version")})
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"{path}: no such model file")
+        try:
+            f = h5py.File(path, "r")
+        except OSError:
+            raise InputError(f"{path}: not an HDF5 file (expected a model.h5 written by "
+                             "mdlshapemodel, Statismo or Scalismo)") from None
+        with f:
+            try:
+                if isinstance(f.get(NATIVE_GROUP), h5py.Group):
+                    return cls._read_native(f[NATIVE_GROUP], f[NATIVE_GROUP]["metadata"].items())
+                if f.attrs.get("format") == "mdlshapemodel" and "modes" in f:   # first layout
+                    return cls._read_native(f, [(k, v) for k, v in f.attrs.items()
+                                                if k not in ("format", "format_version")])
+                if isinstance(f.get("model"), h5py.Group) and "representer" in f:
+                    return cls._read_statismo(f, path)
+            except (KeyError, ValueError, TypeError, IndexError, OSError) as error:
+                raise InputError(f"{path}: damaged or incomplete model file ({error})") from None
+            raise InputError(f"{path}: neither an mdlshapemodel model nor a Statismo/Scalismo "
+                             "model (no /mdlshapemodel group, no /model and /representer groups)")
+
+    @classmethod
+    def _read_native(cls, group, metadata_items) -> "ShapeModel":
+        metadata = {}
+        for key, item in metadata_items:
+            metadata[key] = _plain(item[()] if hasattr(item, "shape") else item)
+        return cls(mean=group["mean"][()], modes=group["modes"][()],
+                   variances=group["variances"][()], weights=group["weights"][()],
+                   scores=group["scores"][()], names=[_text(n) for n in group["names"][()]],
+                   triangles=group["triangles"][()] if "triangles" in group else None,
+                   part_sizes=[int(s) for s in group["part_sizes"][()]], metadata=metadata,
+                   parameters=group["parameters"][()] if "parameters" in group else None)
+
+    @classmethod
+    def _read_statismo(cls, f, path) -> "ShapeModel":
+        """A plain Statismo/Scalismo shape model: uniform weights, modes sqrt(n_p) u_m."""
+        major, minor = 0, 8          # Statismo: files without /version predate 0.9
+        if "version" in f:
+            major = _read_int(f["version"], "majorVersion")
+            minor = _read_int(f["version"], "minorVersion")
+        if not ((major, minor) in ((0, 8), (0, 9)) or major == 1):
+            raise InputError(f"{path}: unsupported Statismo file version {major}.{minor}")
+        mean = np.asarray(f["model/mean"][()], np.float64).ravel()
+        basis = np.asarray(f["model/pcaBasis"][()], np.float64)
+        variance = np.asarray(f["model/pcaVariance"][()], np.float64).ravel()
+        if mean.size % 3 or basis.ndim != 2 or basis.shape[0] != mean.size \
+                or basis.shape[1] != variance.size:
+            raise InputError(f"{path}: not a 3-D shape model (mean {mean.shape}, pcaBasis "
+                             f"{basis.shape}, pcaVariance {variance.shape})")
+        n_p, m = mean.size // 3, variance.size
+        if (major, minor) == (0, 8):            # stored U diag(sqrt(lambda))
+            sd = np.sqrt(np.clip(variance, 0.0, None))
+            basis = basis * np.divide(1.0, sd, out=np.zeros_like(sd), where=sd > 1e-8)
+        representer = f["representer"]
+        if "points" in representer and representer["points"].shape != (3, n_p):
+            raise InputError(f"{path}: representer points {representer['points'].shape} do not "
+                             f"match the {n_p} points of the mean")
+        triangles = None
+        if "cells" in representer and representer["cells"].shape[:1] == (3,):
+            triangles = np.asarray(representer["cells"][()], np.int64).T
+            if triangles.size and (triangles.min() < 0 or triangles.max() >= n_p):
+                raise InputError(f"{path}: representer cells index points outside 0..{n_p - 1}")
+
+        variances = variance / n_p
+        modes = np.sqrt(n_p) * basis.T.reshape(m, n_p, 3)
+        coefficients = None
+        info = f.get("modelinfo")
+        if info is not None and "scores" in info:
+            coefficients = np.asarray(info["scores"][()], np.float64)
+            if coefficients.shape == (1, 1) and coefficients[0, 0] == 0.0:
+                coefficients = None         # Statismo's marker for "no scores"
+            elif coefficients.ndim != 2 or coefficients.shape[0] != m:
+                raise InputError(f"{path}: modelinfo/scores {coefficients.shape} do not match "
+                                 f"the {m} modes")
+        if coefficients is None:
+            scores = np.zeros((0, m))
+        else:
+            scores = (coefficients * np.sqrt(np.clip(variances, 0.0, None))[:, None]).T
+        order = np.argsort(-variances, kind="stable")
+        metadata = {}
+        noise = _read_float(f["model"], "noiseVariance")
+        if noise:
+            metadata["statismo_noise_variance"] = noise
+        return cls(mean=mean.reshape(n_p, 3), modes=modes[order], variances=variances[order],
+                   weights=np.full(n_p, 1.0 / n_p), scores=scores[:, order],
+                   names=_statismo_names(info, len(scores)), triangles=triangles,
+                   part_sizes=[n_p], metadata=metadata)
+
+
+def _checked_key(key) -> str:
+    key = str(key)
+    if not key or "/" in key or key == ".":
+        raise ValueError(f"metadata key {key!r} cannot be an HDF5 name")
+    return key
+
+
+def _string_type(text: str):
+    """Statismo's string type: fixed length, null-terminated (UTF-8 when not ASCII)."""
+    import h5py
+
+    data = text.encode("utf-8")
+    string_type = h5py.h5t.C_S1.copy()
+    string_type.set_size(len(data) + 1)
+    string_type.set_strpad(h5py.h5t.STR_NULLTERM)
+    if not text.isascii():
+        string_type.set_cset(h5py.h5t.CSET_UTF8)
+    return np.array(data, dtype=f"S{len(data) + 1}"), string_type
+
+
+def _string_attribute(obj, name: str, text: str):
+    import h5py
+
+    data, string_type = _string_type(text)
+    attribute = h5py.h5a.create(obj.id, name.encode(), string_type,
+                                h5py.h5s.create(h5py.h5s.SCALAR))
+    attribute.write(data, mtype=string_type)
+
+
+def _string_dataset(group, name: str, text: str):
+    import h5py
+
+    data, string_type = _string_type(text)
+    dataset = h5py.h5d.create(group.id, name.encode(), string_type,
+                              h5py.h5s.create(h5py.h5s.SCALAR))
+    dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, data, mtype=string_type)
+
+
+def _text(value) -> str:
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+
+
+def _plain(value):
+    """A metadata value as stored: str, Python scalar, None or array."""
+    import h5py
+
+    if isinstance(value, h5py.Empty):
+        return None
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _read_int(group, name: str) -> int:
+    """An int stored as a dataset (Statismo, Scalismo) or, leniently, as an attribute."""
+    value = group[name][()] if name in group else group.attrs[name]
+    return int(np.asarray(value).ravel()[0])
+
+
+def _read_float(group, name: str) -> float:
+    if name not in group:
+        return 0.0
+    value = np.asarray(group[name][()], np.float64).ravel()
+    return float(value[0]) if value.size else 0.0
+
+
+def _statismo_names(info, n_s: int) -> list:
+    """Case names from modelinfo/modelBuilder-0/dataInfo/URI_<i>, else case_<i>."""
+    names = {}
+    builder = info.get("modelBuilder-0") if info is not None else None
+    data_info = builder.get("dataInfo") if builder is not None else None
+    for key, item in (data_info.items() if data_info is not None else []):
+        if key.startswith("URI_") and key[4:].isdigit() and hasattr(item, "shape"):
+            names[int(key[4:])] = _text(item[()])
+    if n_s and sorted(names) == list(range(n_s)):
+        return [names[i] for i in range(n_s)]
+    return [f"case_{i}" for i in range(n_s)]

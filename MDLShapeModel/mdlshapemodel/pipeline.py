@@ -9,6 +9,7 @@ reached.
 
 from __future__ import annotations
 
+import contextlib
 import fnmatch
 import hashlib
 import json
@@ -25,9 +26,9 @@ from scipy import ndimage
 
 from . import io, surface
 from .config import BuildConfig
-from .correspond import CorrespondenceState, Example, PartState
+from .correspond import CorrespondenceState, Example, FixedExample, PartState
 from .errors import InputError, MDLShapeModelError
-from .evaluation import evaluate
+from .evaluation import evaluate, point_surface_distances
 from .mdl import Objective
 from .model import ShapeModel
 from .sampling import sphere_grid
@@ -228,24 +229,50 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, config: BuildConfig):
     return vertices, faces, config.voxel_size or mean_edge, note
 
 
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def _one_blas_thread_per_worker():
+    """Worker processes started inside use one BLAS thread each (unless the user set one): with
+    a process per core, threaded BLAS in every worker oversubscribes the cores."""
+    added = [name for name in BLAS_THREAD_VARIABLES if name not in os.environ]
+    for name in added:
+        os.environ[name] = "1"
+    try:
+        yield
+    finally:
+        for name in added:
+            os.environ.pop(name, None)
+
+
+def map_cases(function, arguments: list, workers: int, progress=None, message: str = "cases"
+              ) -> list:
+    """``[function(*a) for a in arguments]``, in a spawn process pool when ``workers`` > 1 (results in
+    input order), reporting progress after each."""
+    results = []
+    if workers > 1 and len(arguments) > 1:
+        context = multiprocessing.get_context("spawn")
+        with _one_blas_thread_per_worker(), ProcessPoolExecutor(
+                max_workers=min(workers, len(arguments)), mp_context=context) as pool:
+            futures = [pool.submit(function, *a) for a in arguments]
+            for k, future in enumerate(futures):
+                results.append(future.result())
+                _report(progress, (k + 1) / len(arguments), f"{message} {k + 1}/{len(arguments)}")
+    else:
+        for k, a in enumerate(arguments):
+            results.append(function(*a))
+            _report(progress, (k + 1) / len(arguments), f"{message} {k + 1}/{len(arguments)}")
+    return results
+
+
 def preprocess(paths, config: BuildConfig, progress=None) -> tuple[list, list]:
     """Prepare every case (in parallel, reusing cached results); (prepared, rejected) in input
     order."""
     paths = [str(p) for p in paths]
     cache_dir = None if config.cache_dir == "" else (config.cache_dir or str(default_cache_dir()))
-    results = []
-    if config.workers > 1 and len(paths) > 1:
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=min(config.workers, len(paths)),
-                                 mp_context=context) as pool:
-            futures = [pool.submit(prepare_case_cached, p, config, cache_dir) for p in paths]
-            for k, future in enumerate(futures):
-                results.append(future.result())
-                _report(progress, (k + 1) / len(paths), f"prepared {k + 1}/{len(paths)} cases")
-    else:
-        for k, p in enumerate(paths):
-            results.append(prepare_case_cached(p, config, cache_dir))
-            _report(progress, (k + 1) / len(paths), f"prepared {k + 1}/{len(paths)} cases")
+    results = map_cases(prepare_case_cached, [(p, config, cache_dir) for p in paths],
+                        config.workers, progress, "prepared")
     reused = sum(hit for _, hit in results)
     if reused:
         log.info("reused %d of %d preprocessed cases from the cache %s", reused, len(paths),
@@ -263,16 +290,7 @@ def _report(progress, fraction, message):
 def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
                       triangles: np.ndarray) -> np.ndarray:
     """Distance from each input-surface vertex to the corresponded mesh (points, triangles)."""
-    import vtk
-    from vtk.util.numpy_support import vtk_to_numpy
-
-    distance = vtk.vtkDistancePolyDataFilter()
-    distance.SetInputData(0, surface.arrays_to_polydata(vertices, faces))
-    distance.SetInputData(1, surface.arrays_to_polydata(points, triangles))
-    distance.SignedDistanceOff()
-    distance.ComputeSecondDistanceOff()
-    distance.Update()
-    return np.abs(vtk_to_numpy(distance.GetOutput().GetPointData().GetArray("Distance")))
+    return point_surface_distances(vertices, points, triangles)
 
 
 @dataclass
@@ -359,52 +377,100 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
     log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
              state.n_shapes, state.n_points, voxel, data_range)
 
-    baseline = None
-    if config.strategy != "none":
-        log.info("evaluating the initial (equal-spacing) correspondence as the baseline")
-        baseline = {"objective": initial, **evaluate_state(state, config)}
+    baselines = {}
+    if "none" in config.baselines and (config.strategy != "none" or config.correspondence == "cpd"):
+        log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
+        baselines["none"] = {"objective": initial, **evaluate_state(state, config, prepared)}
+    cpd = None
+    if config.correspondence == "cpd" or "cpd" in config.baselines:
+        cpd, template = cpd_state(state, prepared, config, progress)
+        if config.correspondence != "cpd":
+            log.info("evaluating the CPD template correspondence as a baseline")
+            baselines["cpd"] = {"objective": integrated(cpd.covariance()), "template": template,
+                                **evaluate_state(cpd, config, prepared)}
 
-    settings = OptimisationSettings(strategy=config.strategy, sigma_g=config.sigma_g,
-                                    max_amplitude=config.max_amplitude, max_time=config.max_time,
-                                    fixed_fraction=config.fixed_fraction,
-                                    tolerance=config.tolerance, max_sweeps=config.max_sweeps)
     trace = Trace()
-    rng = np.random.default_rng(config.seed)
     interrupted = False
+    if config.correspondence == "cpd":
+        state = cpd
+        state.objective = integrated
+        initial = final = state.value()
+        trace.record(state, final, "integrated", 0)
+        log.info("CPD correspondence (template %s): objective %.4f", template, final)
+    else:
+        settings = OptimisationSettings(strategy=config.strategy, sigma_g=config.sigma_g,
+                                        max_amplitude=config.max_amplitude,
+                                        max_time=config.max_time,
+                                        fixed_fraction=config.fixed_fraction,
+                                        tolerance=config.tolerance, max_sweeps=config.max_sweeps)
 
-    def checkpoint():
-        save_checkpoint(output / "checkpoint.npz", state)
+        def checkpoint():
+            save_checkpoint(output / "checkpoint.npz", state)
 
-    try:
-        optimise(state, (fixed, integrated), settings, rng, trace, progress, checkpoint)
-    except (KeyboardInterrupt, Cancelled):
-        interrupted = True
-        log.warning("optimisation interrupted: writing the model of the state reached")
-    if trace.rows and trace.rows[-1][4] == "restored-initial":
-        log.warning("the optimisation did not lower the objective within --max-time "
-                    "(%.0f s): keeping the initial correspondence", config.max_time)
-    state.rebuild()  # also makes the state consistent after an interruption mid-step
-    final = integrated(state.covariance())
-    log.info("final objective %.4f after %.1f s, %d evaluations", final,
-             trace.rows[-1][0] if trace.rows else 0.0, state.evaluations)
-    checkpoint()
+        try:
+            optimise(state, (fixed, integrated), settings, np.random.default_rng(config.seed),
+                     trace, progress, checkpoint)
+        except (KeyboardInterrupt, Cancelled):
+            interrupted = True
+            log.warning("optimisation interrupted: writing the model of the state reached")
+        if trace.rows and trace.rows[-1][4] == "restored-initial":
+            log.warning("the optimisation did not lower the objective within --max-time "
+                        "(%.0f s): keeping the initial correspondence", config.max_time)
+        state.rebuild()  # also makes the state consistent after an interruption mid-step
+        final = integrated(state.covariance())
+        log.info("final objective %.4f after %.1f s, %d evaluations", final,
+                 trace.rows[-1][0] if trace.rows else 0.0, state.evaluations)
+        checkpoint()
     io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
 
     result = write_outputs(output, state, prepared, rejected, config, initial, final, voxel,
-                           data_range, interrupted, baseline)
+                           data_range, interrupted, baselines)
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
 
 
-def evaluate_state(state: CorrespondenceState, config: BuildConfig,
+def evaluate_state(state: CorrespondenceState, config: BuildConfig, prepared: list | None = None,
                    model: ShapeModel | None = None) -> dict:
     """Compactness, generalization and specificity of the state's aligned shapes (``model``: the
-    model of those shapes, when already built)."""
+    model of those shapes, when already built). With ``prepared`` (the cases, in the state's
+    order) and ``config.surface_samples`` > 0, also measured surface to surface."""
     aligned = state.aligned_shapes()
     if model is None:
         model = ShapeModel.from_shapes(aligned, state.weights)
+    surfaces = None
+    if prepared is not None and config.surface_samples > 0:
+        surfaces = [(state.to_model_frame(i, case.map.vertices), case.map.faces)
+                    for i, case in enumerate(prepared)]
     return evaluate(aligned, state.weights, model.variances, config.evaluation_modes,
-                    config.specificity_samples, np.random.default_rng(config.seed))
+                    config.specificity_samples, np.random.default_rng(config.seed),
+                    triangles=state.triangles(), surfaces=surfaces,
+                    surface_samples=config.surface_samples)
+
+
+def cpd_state(state: CorrespondenceState, prepared: list, config: BuildConfig, progress=None
+              ) -> tuple[CorrespondenceState, str]:
+    """The CPD template correspondence of the same cases (the peer baseline), and its template.
+
+    The template is the case whose initial correspondence is closest to the initial mean (the
+    medoid); its points are registered onto every other case's surface by coherent point drift
+    and projected onto it (:mod:`mdlshapemodel.registration`).
+    """
+    from .registration import cpd_correspondence
+
+    aligned = state.aligned_shapes()
+    distances = np.einsum("ikd,k->i", (aligned - aligned.mean(axis=0)) ** 2, state.weights)
+    template = int(np.argmin(distances))
+    points = state.examples[template].raw_points()
+    log.info("CPD baseline: registering the template %s onto %d cases",
+             state.examples[template].name, len(prepared) - 1)
+    others = [i for i in range(len(prepared)) if i != template]
+    registered = map_cases(cpd_correspondence,
+                           [(points, prepared[i].map.vertices, prepared[i].map.faces)
+                            for i in others], config.workers, progress, "CPD registered")
+    shapes = {template: points, **dict(zip(others, registered))}
+    examples = [FixedExample(case.name, shapes[i]) for i, case in enumerate(prepared)]
+    return (CorrespondenceState(examples, state.grids, scaling=config.scaling),
+            state.examples[template].name)
 
 
 def save_checkpoint(path: Path, state: CorrespondenceState):
@@ -423,21 +489,25 @@ def save_checkpoint(path: Path, state: CorrespondenceState):
 
 def write_outputs(output: Path, state: CorrespondenceState, prepared: list, rejected: list,
                   config: BuildConfig, initial: float, final: float, voxel: float,
-                  data_range: float, interrupted: bool, baseline: dict | None = None
+                  data_range: float, interrupted: bool, baselines: dict | None = None
                   ) -> BuildResult:
     """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html."""
     from .report import write_report
 
-    triangles = np.concatenate([tri + s.start for s, (_, tri) in zip(state.part_slices,
-                                                                     state.grids)])
+    triangles = state.triangles()
     aligned = state.aligned_shapes()
     raw = state.raw_shapes()
     names = [e.name for e in state.examples]
+    method = "cpd" if config.correspondence == "cpd" else config.strategy
     model = ShapeModel.from_shapes(aligned, state.weights, names=names, triangles=triangles,
                                    part_sizes=[len(p) for p, _ in state.grids],
-                                   objective=final, strategy=config.strategy)
+                                   objective=final, strategy=method, voxel_size_mm=voxel,
+                                   data_range_mm=data_range,
+                                   config=json.dumps(config.to_dict()))
+    model.parameters = np.concatenate([points for points, _ in state.grids])
     model.save(output / "model.h5")
     io.write_polydata(output / "mean.vtp", model.mean, triangles)
+    outlier = score_outliers(model)
     cases = []
     for i, case in enumerate(prepared):
         # correspondence meshes overlay their input: mirrored cases are reflected back
@@ -456,6 +526,8 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                       "sphere_p95_abs_log_area": quality["p95_abs_log_area_ratio"],
                       "sphere_seconds": quality["seconds"],
                       "kernels": int(sum(len(p.kernels) for p in state.examples[i].parts)),
+                      "mahalanobis": float(outlier["distance"][i]),
+                      "score_outlier": bool(outlier["outlier"][i]),
                       "smoothing_sigma": case.notes.get("smoothing_sigma", ""),
                       "repair": case.notes.get("repair", ""),
                       "mirrored": bool(case.notes.get("mirrored", False))})
@@ -464,18 +536,34 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
     io.write_csv(output / "cases.csv", list(cases[0].keys()),
                  [[c.get(k, "") for k in cases[0]] for c in cases])
-    quality = evaluate_state(state, config, model)
+    quality = evaluate_state(state, config, prepared, model)
     metrics = {"objective": {"initial": initial, "final": final,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
-               "strategy": config.strategy, "n_shapes": state.n_shapes, "n_points": state.n_points,
+               "strategy": method, "n_shapes": state.n_shapes, "n_points": state.n_points,
                "n_rejected": len(rejected), "voxel_size_mm": voxel, "data_range_mm": data_range,
                "interrupted": interrupted, "evaluations": state.evaluations,
                "variances": model.variances.tolist(), **quality,
+               "score_outliers": {"modes": outlier["modes"], "threshold": outlier["threshold"],
+                                  "cases": [n for n, o in zip(names, outlier["outlier"]) if o]},
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
-                   "max": float(np.max([c["max_distance_mm"] for c in cases]))}}
-    if baseline is not None:
-        metrics["baseline"] = baseline
+                   "max": float(np.max([c["max_distance_mm"] for c in cases]))},
+               "baselines": baselines or {}}
     (output / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    write_report(output, metrics, cases, rejected)
+    write_report(output, metrics, cases, rejected, model, aligned, names)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted)
+
+
+def score_outliers(model: ShapeModel, explained: float = 0.95, quantile: float = 0.99) -> dict:
+    """Mahalanobis distance of each training case over the modes that explain ``explained`` of
+    the variance, and whether its square exceeds the ``quantile`` of chi-square with that many
+    degrees of freedom."""
+    from scipy.stats import chi2
+
+    cumulative = np.cumsum(model.variances) / max(model.variances.sum(), 1e-300)
+    modes = int(min(np.searchsorted(cumulative, explained) + 1, model.n_modes))
+    squared = np.sum(model.scores[:, :modes] ** 2 / model.variances[:modes], axis=1)
+    threshold = float(np.sqrt(chi2.ppf(quantile, modes)))
+    distance = np.sqrt(squared)
+    return {"modes": modes, "threshold": threshold, "distance": distance,
+            "outlier": distance > threshold}

@@ -1,15 +1,40 @@
-"""report.html: a self-contained page with the model's quality measures and convergence."""
+"""report.html: one self-contained page per build (images embedded as base64 PNG).
+
+Sections: the quality measures with error bars against the baselines of the same cases, the
+convergence of the objective, the first modes rendered at -2, 0, +2 standard deviations (as the
+paper's Fig. 12-15), the correspondence as a colour map on a few cases (Fig. 22-23) and a per-case
+table (surface fidelity, sphere-map distortion, score outliers).
+"""
 
 from __future__ import annotations
 
 import base64
 import html
 import io as _io
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from . import io
+from .errors import MDLShapeModelError
+
+log = logging.getLogger("mdlshapemodel")
+
+BASELINE_NAMES = {"none": "initial correspondence (--strategy none)",
+                  "cpd": "CPD template registration"}
+STYLE = ("body{font-family:sans-serif;margin:2em;max-width:1150px}table{border-collapse:collapse;"
+         "margin:1em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}"
+         "th{background:#eee}td.flag{color:#b00;font-weight:bold}img{max-width:100%}")
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def _figure_to_base64(figure) -> str:
@@ -18,45 +43,40 @@ def _figure_to_base64(figure) -> str:
     return base64.b64encode(buffer.getvalue()).decode("ascii")
 
 
-def _measure_plots(metrics: dict) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    modes = np.asarray(metrics["modes"])
-    series = [(metrics, f"optimised ({metrics['strategy']})", 0.0)]
-    if "baseline" in metrics:
-        series.append((metrics["baseline"], "initial correspondence", 0.15))
-    for axis, key, label in zip(axes, ("compactness", "generalization", "specificity"),
-                                ("Compactness C(M) [mm²]", "Generalization G(M) [mm²]",
-                                 "Specificity S(M) [mm²]")):
-        for values, name, shift in series:
-            axis.errorbar(modes + shift, values[key], yerr=values[key + "_se"], marker="o",
-                          capsize=3, label=name)
+def measure_plot(series: list, keys=("compactness", "generalization", "specificity")) -> str:
+    """Base64 PNG: one panel per measure, one error-bar line per (values, label) in ``series``."""
+    plt = _pyplot()
+    titles = {"compactness": "Compactness C(M) [mm²]", "generalization": "Generalization G(M) [mm²]",
+              "specificity": "Specificity S(M) [mm²]",
+              "generalization_surface_mm": "Generalization, surface distance [mm]",
+              "specificity_surface_mm": "Specificity, surface distance [mm]"}
+    figure, axes = plt.subplots(1, len(keys), figsize=(4.4 * len(keys), 3.6), squeeze=False)
+    for axis, key in zip(axes[0], keys):
+        for index, (values, label) in enumerate(series):
+            if key not in values:
+                continue
+            modes = np.asarray(values["modes"]) + 0.12 * index
+            axis.errorbar(modes, values[key], yerr=values[key + "_se"], marker="o", ms=3,
+                          capsize=3, label=label)
         axis.set_xlabel("number of modes M")
-        axis.set_title(label)
+        axis.set_title(titles.get(key, key))
         axis.grid(alpha=0.3)
-    axes[0].legend()
+    axes[0][0].legend(fontsize=8)
     encoded = _figure_to_base64(figure)
     plt.close(figure)
     return encoded
 
 
-def _convergence_plot(path: Path) -> str | None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def convergence_plot(path: Path) -> str | None:
+    """Base64 PNG of convergence.csv, one panel per objective phase (their scales differ)."""
     rows = io.read_csv(path) if path.exists() else []
     if len(rows) < 2:
         return None
+    plt = _pyplot()
     titles = {"fixed": "fixed-Delta objective (eq. 13)", "integrated": "objective (eq. 14)"}
     phases = [p for p in titles if any(r["phase"] == p for r in rows)]
     figure, axes = plt.subplots(1, len(phases), figsize=(5.5 * len(phases), 3.4), squeeze=False)
-    for axis, phase in zip(axes[0], phases):  # one panel per phase: their scales differ
+    for axis, phase in zip(axes[0], phases):
         selected = [r for r in rows if r["phase"] == phase]
         axis.plot([float(r["wall_seconds"]) for r in selected],
                   [float(r["objective"]) for r in selected])
@@ -69,59 +89,137 @@ def _convergence_plot(path: Path) -> str | None:
     return encoded
 
 
-def _table(header, rows) -> str:
+def table(header, rows, flags=None) -> str:
+    """An HTML table; ``flags[i][j]`` true marks cell (i, j)."""
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>"
-                   for row in rows)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    body = []
+    for i, row in enumerate(rows):
+        cells = []
+        for j, value in enumerate(row):
+            flagged = flags is not None and flags[i][j]
+            cells.append(f"<td{' class=flag' if flagged else ''}>{html.escape(_fmt(value))}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
 
 
 def _fmt(value) -> str:
-    if isinstance(value, float):
+    if isinstance(value, (float, np.floating)):
         return f"{value:.4g}"
     return str(value)
 
 
-def write_report(output: Path, metrics: dict, cases: list, rejected: list) -> Path:
-    """Write ``output/report.html`` and return its path."""
-    measures = _measure_plots(metrics)
-    convergence = _convergence_plot(output / "convergence.csv")
+def html_page(title: str, body: list) -> str:
+    return "\n".join([f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>"
+                      f"{html.escape(title)}</title><style>{STYLE}</style></head><body>",
+                      *body, "</body></html>"])
+
+
+def _image(encoded: str, alt: str) -> str:
+    return f"<img src='data:image/png;base64,{encoded}' alt='{html.escape(alt)}'>"
+
+
+def _series(metrics: dict) -> list:
+    series = [(metrics, f"MDL ({metrics['strategy']})")]
+    for name, values in metrics.get("baselines", {}).items():
+        series.append((values, BASELINE_NAMES.get(name, name)))
+    return series
+
+
+def _measure_table(metrics: dict) -> str:
+    """Values ± SE per M; baselines' G and S with a flag where MDL differs by > 2 SE."""
+    baselines = metrics.get("baselines", {})
+    header = ["M", "C(M)", "G(M)", "S(M)"]
+    for name in baselines:
+        header += [f"G {name}", f"S {name}"]
+    rows, flags = [], []
+    for k, m in enumerate(metrics["modes"]):
+        row = [m] + [f"{metrics[key][k]:.4g} ± {metrics[key + '_se'][k]:.2g}"
+                     for key in ("compactness", "generalization", "specificity")]
+        flag = [False] * 4
+        for values in baselines.values():
+            for key in ("generalization", "specificity"):
+                difference = values[key][k] - metrics[key][k]
+                se = np.hypot(values[key + "_se"][k], metrics[key + "_se"][k])
+                mark = " (MDL better)" if difference > 2 * se else (
+                    " (MDL worse)" if difference < -2 * se else "")
+                row.append(f"{values[key][k]:.4g} ± {values[key + '_se'][k]:.2g}{mark}")
+                flag.append(difference < -2 * se)
+        rows.append(row)
+        flags.append(flag)
+    return table(header, rows, flags)
+
+
+def _renderings(model, shapes, names) -> list:
+    """The mode and correspondence images, or a note when offscreen rendering is unavailable."""
+    if model is None or model.triangles is None:
+        return []
+    from . import rendering
+
+    parts = []
+    try:
+        modes = base64.b64encode(rendering.render_modes(model)).decode("ascii")
+        parts += ["<h2>Modes of variation</h2>",
+                  "<p>Mean shape ± 2 standard deviations along the first modes; colour: "
+                  "displacement from the mean along its normal (mm).</p>",
+                  _image(modes, "modes of variation")]
+        if shapes is not None:
+            colours = base64.b64encode(rendering.render_correspondence(
+                shapes, model.triangles, names=names)).decode("ascii")
+            parts += ["<h2>Correspondence</h2>",
+                      "<p>The same colour marks corresponding points on every case.</p>",
+                      _image(colours, "correspondence colour map")]
+    except (MDLShapeModelError, RuntimeError) as error:
+        log.warning("report: no renderings (%s)", error)
+        parts.append(f"<p>Renderings left out: {html.escape(str(error))}</p>")
+    return parts
+
+
+def write_report(output: Path, metrics: dict, cases: list, rejected: list, model=None,
+                 shapes=None, names=None) -> Path:
+    """Write ``output/report.html`` and return its path.
+
+    ``model`` (ShapeModel) and ``shapes`` (aligned corresponded shapes, with ``names``) add the
+    mode and correspondence renderings.
+    """
     objective = metrics["objective"]
-    rows = [(m, metrics["compactness"][k], metrics["compactness_se"][k],
-             metrics["generalization"][k], metrics["generalization_se"][k],
-             metrics["specificity"][k], metrics["specificity_se"][k])
-            for k, m in enumerate(metrics["modes"])]
-    if "baseline" in metrics:
-        base = metrics["baseline"]
-        rows = [row + (base["generalization"][k], base["specificity"][k])
-                for k, row in enumerate(rows)]
-        header = ("M", "C(M)", "SE", "G(M)", "SE", "S(M)", "SE", "G(M) initial", "S(M) initial")
-    else:
-        header = ("M", "C(M)", "SE", "G(M)", "SE", "S(M)", "SE")
     parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>MDLShapeModel report</title>",
-        "<style>body{font-family:sans-serif;margin:2em;max-width:1100px}table{border-collapse:"
-        "collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}"
-        "th{background:#eee}</style></head><body>",
         "<h1>MDLShapeModel report</h1>",
-        f"<p>{metrics['n_shapes']} shapes, {metrics['n_points']} points each, strategy "
+        f"<p>{metrics['n_shapes']} shapes, {metrics['n_points']} points each, correspondence "
         f"<b>{html.escape(metrics['strategy'])}</b>; {metrics['n_rejected']} input(s) rejected. "
         f"Objective (eq. 14): {objective['initial']:.3f} before, {objective['final']:.3f} after "
         f"optimisation{' (interrupted)' if metrics['interrupted'] else ''}.</p>",
-        "<h2>Model quality (area-weighted squared distances, ± 1 standard error)</h2>",
-        f"<img src='data:image/png;base64,{measures}' alt='quality measures'>",
-        _table(header, rows),
     ]
+    baselines = metrics.get("baselines", {})
+    if baselines:
+        parts.append("<p>Objective of the baselines on the same cases: " + "; ".join(
+            f"{html.escape(BASELINE_NAMES.get(k, k))}: {v['objective']:.3f}"
+            for k, v in baselines.items()) + ".</p>")
+    parts += ["<h2>Model quality (area-weighted squared distances, ± 1 standard error)</h2>",
+              "<p>Lower is better for all three measures. A baseline value marked "
+              "'MDL better' exceeds the MDL model's by more than two standard errors of the "
+              "difference.</p>",
+              _image(measure_plot(_series(metrics)), "quality measures"),
+              _measure_table(metrics)]
+    if "generalization_surface_mm" in metrics:
+        parts += ["<h3>Measured surface to surface, against the true training surfaces</h3>",
+                  _image(measure_plot(_series(metrics), keys=("generalization_surface_mm",
+                                                              "specificity_surface_mm")),
+                         "surface-to-surface measures")]
+    convergence = convergence_plot(output / "convergence.csv")
     if convergence:
-        parts += ["<h2>Convergence</h2>",
-                  f"<img src='data:image/png;base64,{convergence}' alt='convergence'>"]
+        parts += ["<h2>Convergence</h2>", _image(convergence, "convergence")]
+    parts += _renderings(model, shapes, names)
     if cases:
         keys = list(cases[0].keys())
-        parts += ["<h2>Cases</h2>", _table(keys, [[c.get(k, "") for k in keys] for c in cases])]
+        flags = [[k == "score_outlier" and bool(c.get(k)) for k in keys] for c in cases]
+        parts += ["<h2>Cases</h2>",
+                  "<p>Fidelity: distance from the input surface to the corresponded mesh. Sphere "
+                  "map: flipped triangles and |ln area ratio|. Score outlier: Mahalanobis "
+                  "distance of the case's scores beyond the 99th percentile of chi-square.</p>",
+                  table(keys, [[c.get(k, "") for k in keys] for c in cases], flags)]
     if rejected:
         parts += ["<h2>Rejected inputs</h2>",
-                  _table(("case", "file", "reason"), [(r.name, r.path, r.reason) for r in rejected])]
-    parts.append("</body></html>")
+                  table(("case", "file", "reason"), [(r.name, r.path, r.reason) for r in rejected])]
     path = output / "report.html"
-    path.write_text("\n".join(parts))
+    path.write_text(html_page("MDLShapeModel report", parts))
     return path

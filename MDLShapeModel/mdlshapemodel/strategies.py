@@ -128,8 +128,10 @@ def _optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalu
 
 def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: OptimisationSettings,
                   rng: np.random.Generator, trace: Trace, phase: str, deadline: float,
-                  with_pose: bool, progress=None, checkpoint=None) -> float:
+                  with_pose: bool, progress=None, checkpoint=None, active=None) -> float:
     """Optimise one example at a time (III-D3/III-D4) until convergence or ``deadline``.
+
+    ``active``: indices of the examples to optimise (default all); the others stay as they are.
 
     Converged means: for ``patience`` consecutive sweeps, the sweep lowered F by less than
     ``tolerance`` times the total decrease of this phase so far.
@@ -140,9 +142,10 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
     start_value = value
     trace.record(state, value, phase, 0)
     quiet_sweeps = 0
+    active = np.arange(state.n_shapes) if active is None else np.asarray(active)
     for sweep in range(1, settings.max_sweeps + 1):
         before = value
-        for i in rng.permutation(state.n_shapes):
+        for i in rng.permutation(active):
             example = state.examples[i]
             for j in rng.permutation(len(example.parts)):
                 part = example.parts[j]
@@ -173,10 +176,12 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
 
 
 def optimise(state: CorrespondenceState, objectives: tuple, settings: OptimisationSettings,
-             rng: np.random.Generator, trace: Trace, progress=None, checkpoint=None) -> float:
+             rng: np.random.Generator, trace: Trace, progress=None, checkpoint=None,
+             active=None) -> float:
     """Run ``settings.strategy``: the fixed-Delta phase, then the full objective.
 
-    ``objectives`` is (fixed, integrated). Returns the final value of the full objective.
+    ``objectives`` is (fixed, integrated); ``active`` the indices of the examples to optimise
+    (default all). Returns the final value of the full objective.
     Raises :class:`Cancelled` (from ``progress``) with the state left consistent.
     """
     fixed, integrated = objectives
@@ -196,9 +201,9 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
         if settings.fixed_fraction > 0:
             one_at_a_time(state, fixed, settings, rng, trace, "fixed",
                           start + settings.fixed_fraction * settings.max_time, with_pose,
-                          progress, checkpoint)
+                          progress, checkpoint, active)
         value = one_at_a_time(state, integrated, settings, rng, trace, "integrated",
-                              start + settings.max_time, with_pose, progress, checkpoint)
+                              start + settings.max_time, with_pose, progress, checkpoint, active)
     finally:
         state.objective = integrated
     if value > initial_value:

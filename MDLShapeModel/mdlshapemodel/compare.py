@@ -1,0 +1,167 @@
+"""Side-by-side evaluation of several models of the same cases (``mdlshapemodel compare``).
+
+Every model is evaluated again on the cases all of them share, with the same number of modes, the
+same specificity samples and the same random seed, so that the measures are comparable. A
+difference between two models at M modes is called significant when it exceeds two standard errors
+of the difference, sqrt(SE_a^2 + SE_b^2) (the paper's criterion for its error bars, IV-B).
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import io
+from .errors import InputError
+from .evaluation import evaluate
+from .model import ShapeModel
+
+MEASURES = ("compactness", "generalization", "specificity")
+
+
+@dataclass
+class Population:
+    """The aligned training shapes of one model, by case name."""
+
+    label: str
+    names: list
+    shapes: np.ndarray
+    weights: np.ndarray
+
+
+def load_population(output, label: str | None = None) -> Population:
+    """Training shapes of a build's model (``OUT`` folder or its model.h5), in the model frame."""
+    path = Path(output)
+    folder = path if path.is_dir() else path.parent
+    file = path / "model.h5" if path.is_dir() else path
+    if not file.exists():
+        raise InputError(f"{output}: no model.h5 (not a build output folder)")
+    model = ShapeModel.load(file)
+    if label is None:
+        metrics = folder / "metrics.json"
+        strategy = model.metadata.get("strategy", "")
+        if metrics.exists():
+            strategy = json.loads(metrics.read_text()).get("strategy", strategy)
+        label = f"{folder.name} ({strategy})" if strategy else folder.name
+    shapes = model.mean[None] + np.tensordot(model.scores, model.modes, axes=1)
+    return Population(label, list(model.names), shapes, model.weights)
+
+
+def compare_populations(populations: list, max_modes: int = 10, n_samples: int = 10_000,
+                        seed: int = 0) -> dict:
+    """Evaluate every population on the cases they share; differences against the first.
+
+    Returns a JSON-ready dict: ``cases`` (shared), ``models`` (label -> measures as from
+    :func:`mdlshapemodel.evaluation.evaluate`) and ``differences`` (label -> measure -> per M:
+    difference to the first model, its standard error, and whether it exceeds two of them).
+    """
+    if not populations:
+        raise InputError("nothing to compare")
+    shared = [n for n in populations[0].names if all(n in p.names for p in populations[1:])]
+    if len(shared) < 3:
+        raise InputError(f"the models share only {len(shared)} case(s); at least 3 are needed")
+    models = {}
+    for population in populations:
+        index = [population.names.index(n) for n in shared]
+        shapes = population.shapes[index]
+        variances = ShapeModel.from_shapes(shapes, population.weights).variances
+        models[population.label] = evaluate(shapes, population.weights, variances, max_modes,
+                                            n_samples, np.random.default_rng(seed))
+    reference = populations[0].label
+    differences = {}
+    for label, values in models.items():
+        if label == reference:
+            continue
+        differences[label] = {}
+        for measure in MEASURES:
+            a = np.asarray(models[reference][measure])
+            b = np.asarray(values[measure])
+            se = np.hypot(np.asarray(models[reference][measure + "_se"]),
+                          np.asarray(values[measure + "_se"]))
+            differences[label][measure] = {"difference": (b - a).tolist(), "se": se.tolist(),
+                                           "significant": (np.abs(b - a) > 2 * se).tolist()}
+    return {"reference": reference, "cases": shared, "n_cases": len(shared),
+            "excluded_cases": {p.label: [n for n in p.names if n not in shared]
+                               for p in populations},
+            "models": models, "differences": differences}
+
+
+def _verdict(difference: float, significant: bool) -> str:
+    """Lower is better for all three measures (a compact model has little variance, IV-B)."""
+    if not significant:
+        return "same (within 2 SE)"
+    return "better" if difference < 0 else "worse"
+
+
+def comparison_rows(result: dict) -> list:
+    """Flat rows: measure, M, model, value, SE, difference to reference, its SE, verdict."""
+    rows = []
+    reference = result["reference"]
+    for measure in MEASURES:
+        for label, values in result["models"].items():
+            for k, m in enumerate(values["modes"]):
+                if label == reference:
+                    extra = ("", "", "reference")
+                else:
+                    d = result["differences"][label][measure]
+                    extra = (d["difference"][k], d["se"][k],
+                             _verdict(d["difference"][k], d["significant"][k]))
+                rows.append((measure, m, label, values[measure][k], values[measure + "_se"][k])
+                            + extra)
+    return rows
+
+
+ROW_HEADER = ("measure", "M", "model", "value_mm2", "se", "difference", "difference_se",
+              "verdict")
+
+
+def write_comparison(result: dict, destination) -> Path:
+    """compare.json, compare.csv and a self-contained compare.html with the plot."""
+    from .report import html_page, measure_plot, table
+
+    destination = Path(destination)
+    destination.mkdir(parents=True, exist_ok=True)
+    (destination / "compare.json").write_text(json.dumps(result, indent=2))
+    rows = comparison_rows(result)
+    io.write_csv(destination / "compare.csv", ROW_HEADER, rows)
+    series = [(values, label) for label, values in result["models"].items()]
+    plot = measure_plot(series)
+    body = [f"<h1>Comparison of {len(series)} models</h1>",
+            f"<p>{result['n_cases']} shared cases; differences are against "
+            f"<b>{html.escape(result['reference'])}</b> and called significant beyond two "
+            "standard errors of the difference. Lower is better for all three measures.</p>",
+            f"<img src='data:image/png;base64,{plot}' alt='measures'>"]
+    for measure in MEASURES:
+        body += [f"<h2>{measure}</h2>", table(ROW_HEADER[1:], [r[1:] for r in rows
+                                                               if r[0] == measure])]
+    excluded = {k: v for k, v in result["excluded_cases"].items() if v}
+    if excluded:
+        body.append("<h2>Cases left out (not in every model)</h2>")
+        body.append(table(("model", "cases"), [(k, ", ".join(v)) for k, v in excluded.items()]))
+    path = destination / "compare.html"
+    path.write_text(html_page("MDLShapeModel comparison", body))
+    return path
+
+
+def summary_lines(result: dict, max_rows: int = 10) -> list:
+    """A short text table per measure for the terminal."""
+    lines = []
+    labels = list(result["models"])
+    for measure in MEASURES[1:]:
+        lines.append(f"{measure} [mm^2 +- SE]; verdict against {result['reference']}")
+        for label in labels:
+            values = result["models"][label]
+            cells = []
+            for k in range(min(max_rows, len(values["modes"]))):
+                cell = f"{values[measure][k]:.3f}+-{values[measure + '_se'][k]:.3f}"
+                if label != result["reference"]:
+                    d = result["differences"][label][measure]
+                    cell += {True: "*", False: " "}[bool(d["significant"][k])]
+                cells.append(cell)
+            lines.append(f"  {label[:30]:<30} " + " ".join(cells))
+    lines.append("  (* : differs from the reference by more than 2 SE)")
+    return lines

@@ -1,0 +1,204 @@
+"""Fitting a new case to an existing model: its correspondence, pose, scores and reconstruction.
+
+The paper notes (III-D) that examples can be added to a model one at a time. ``fit_case`` does that
+for one new case without changing the model: the training shapes are the model's own
+(``mean + scores @ modes``, exact, since a model keeps every mode of its training set) and stay
+fixed; only the new case's reparameterization (symmetric theta kernels) and pose are optimised, to
+minimise the description length of the training set with the new case added (eq. 14). The
+corresponded case is then aligned to the model mean, projected onto the modes, and reconstructed.
+
+The new case goes through the same preprocessing as the model's training cases (the build's
+settings are stored in the model file), and its sphere map is aligned to the model's own
+parameterization: the mean mesh with the sampling grid as its sphere map.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import io
+from .config import BuildConfig
+from .correspond import CorrespondenceState, Example, FixedExample, PartState
+from .errors import InputError, MDLShapeModelError
+from .mdl import Objective
+from .model import ShapeModel
+from .pose import Pose, align
+from .sphere import SphereMap, align_parameterizations
+from .strategies import OptimisationSettings, Trace, optimise
+
+
+@dataclass
+class FitResult:
+    """A new case fitted to a model."""
+
+    name: str
+    path: str
+    corresponded: np.ndarray        # (n_p, 3) the case's points, its own physical coordinates
+    aligned: np.ndarray             # (n_p, 3) the same points in the model frame
+    to_model: Pose                  # physical -> model frame (a reflection first if mirrored)
+    scores: np.ndarray              # (n_modes,) b = projection onto the modes
+    squared_error: np.ndarray       # (n_modes + 1,) sum_k w_k |x_k - x'_k(M)|^2, M = 0..n_modes
+    distance_error: np.ndarray      # (n_modes + 1,) sum_k w_k |x_k - x'_k(M)|, mm
+    objective: dict = field(default_factory=dict)
+    notes: dict = field(default_factory=dict)
+    mirrored: bool = False
+
+    def reconstruction(self, model: ShapeModel, n_modes: int | None = None,
+                       physical: bool = True) -> np.ndarray:
+        """The model's reconstruction with the first ``n_modes`` modes (default all), in the
+        case's physical coordinates (default) or the model frame."""
+        shape = model.instance(self.scores[:n_modes])
+        if not physical:
+            return shape
+        return self.to_model.inverse().apply(shape)
+
+
+def load_model(path) -> tuple[ShapeModel, Path]:
+    """Read a model from a model.h5 file or a build's output folder."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "model.h5"
+    if not path.exists():
+        raise InputError(f"{path}: no such model file")
+    return ShapeModel.load(path), path
+
+
+def build_config_of(model: ShapeModel) -> BuildConfig:
+    """The build settings stored with the model (defaults when it has none)."""
+    text = model.metadata.get("config")
+    if not text:
+        return BuildConfig()
+    data = json.loads(text)
+    known = {key: value for key, value in data.items() if key in BuildConfig.__dataclass_fields__}
+    return BuildConfig.from_dict(known)
+
+
+def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_time: float = 60.0,
+             max_sweeps: int = 10_000, seed: int = 0, progress=None, prepared=None) -> FitResult:
+    """Find the correspondence of a new case against ``model`` and project it onto the modes.
+
+    Parameters
+    ----------
+    model : ShapeModel
+        A single-part model with its sampling grid (``model.parameters``).
+    path : path
+        Label map or mesh of the new case.
+    config : BuildConfig, optional
+        Preprocessing settings (default: the ones stored in the model).
+    max_time, max_sweeps : budget of the optimisation of the new case.
+    prepared : PreparedCase, optional
+        The case already preprocessed (``path`` is then only used for its name).
+    """
+    from .pipeline import PreparedCase, prepare_case
+
+    if model.parameters is None or model.triangles is None:
+        raise InputError("the model has no sampling grid (model.parameters) or no triangles; "
+                         "rebuild it with this version")
+    if len(model.part_sizes) != 1:
+        raise InputError("fitting a new case is implemented for single-part models only")
+    config = config or build_config_of(model)
+    case = prepared if prepared is not None else prepare_case(str(path), config)
+    if not isinstance(case, PreparedCase):
+        raise InputError(f"{path}: {case.reason}")
+    started = time.perf_counter()
+
+    # the model's parameterization: the mean mesh, sampled at the grid points
+    reference = SphereMap(model.mean, model.triangles, model.parameters)
+    new_map = align_parameterizations([reference, case.map])[1]
+    training = model.mean[None] + np.tensordot(model.scores, model.modes, axes=1)
+    examples = [FixedExample(name, shape) for name, shape in zip(model.names, training)]
+    examples.append(Example(case.name, [PartState(new_map.vertices, new_map.faces,
+                                                  new_map.sphere, model.parameters,
+                                                  model.triangles)]))
+    state = CorrespondenceState(examples, [(model.parameters, model.triangles)],
+                                scaling=config.scaling)
+
+    voxel = float(model.metadata.get("voxel_size_mm", case.voxel_size))
+    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
+    fixed = Objective("fixed", data_range, delta=config.fixed_delta * voxel)
+    integrated = Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
+                           delta_max=config.delta_range[1] * voxel)
+    initial = integrated(state.covariance())
+    settings = OptimisationSettings(strategy="one-at-a-time-pose", sigma_g=config.sigma_g,
+                                    max_amplitude=config.max_amplitude, max_time=max_time,
+                                    fixed_fraction=config.fixed_fraction,
+                                    tolerance=config.tolerance, max_sweeps=max_sweeps)
+    trace = Trace()
+    final = optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), trace,
+                     progress, active=[len(examples) - 1])
+
+    raw = examples[-1].raw_points()
+    to_model = align(raw, model.mean, model.weights, scaling=config.scaling)
+    aligned = to_model.apply(raw)
+    scores = model.project(aligned)
+    squared, distance = reconstruction_errors(model, aligned, scores)
+    mirrored = bool(case.notes.get("mirrored"))
+    physical = raw * np.array([-1.0, 1.0, 1.0]) if mirrored else raw
+    if mirrored:  # the pose acts on the mirrored copy: reflect points before it
+        to_model = to_model.compose(Pose(1.0, np.diag([-1.0, 1.0, 1.0]), np.zeros(3)))
+    return FitResult(case.name, str(case.path), physical, aligned, to_model, scores, squared,
+                     distance, {"initial": float(initial), "final": float(final),
+                                "evaluations": state.evaluations,
+                                "seconds": time.perf_counter() - started},
+                     dict(case.notes), mirrored)
+
+
+def reconstruction_errors(model: ShapeModel, aligned: np.ndarray, scores: np.ndarray):
+    """Weighted squared (mm^2) and mean point-to-point (mm) error of the reconstruction of an
+    aligned shape with M = 0..n_modes modes."""
+    squared, distance = [], []
+    for m in range(model.n_modes + 1):
+        residual = aligned - model.instance(scores[:m])
+        squared.append(float(model.weights @ np.sum(residual ** 2, axis=1)))
+        distance.append(float(model.weights @ np.linalg.norm(residual, axis=1)))
+    return np.array(squared), np.array(distance)
+
+
+def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
+              max_sweeps: int = 10_000, seed: int = 0, progress=None) -> tuple[list, list]:
+    """Fit every input to the model and write the results to ``output``.
+
+    Writes ``correspondence/<case>.vtp`` (the case's corresponded points, its own coordinates),
+    ``reconstruction/<case>.vtp`` (the model's reconstruction with all modes, same coordinates),
+    ``scores.csv``, ``fit.json`` (errors for M = 0..n_modes, objective) and ``rejected.csv``.
+    Returns (results, rejections as (name, path, reason)).
+    """
+    model, _ = load_model(model_path)
+    config = build_config_of(model)
+    if labels:
+        config.labels = list(labels)
+        config.validate()
+    output = Path(output)
+    for folder in ("correspondence", "reconstruction"):
+        (output / folder).mkdir(parents=True, exist_ok=True)
+    paths = io.find_inputs(inputs)
+    if not paths:
+        raise InputError("no input files found")
+    results, rejected = [], []
+    for path in paths:
+        try:
+            result = fit_case(model, path, config, max_time, max_sweeps, seed, progress)
+        except MDLShapeModelError as error:
+            reason = str(error).removeprefix(f"{path}: ")
+            rejected.append((io.case_name(path), str(path), reason))
+            continue
+        results.append(result)
+        io.write_polydata(output / "correspondence" / f"{result.name}.vtp", result.corresponded,
+                          model.triangles)
+        io.write_polydata(output / "reconstruction" / f"{result.name}.vtp",
+                          result.reconstruction(model), model.triangles)
+    io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(model.n_modes)],
+                 [[r.name] + [f"{v:.6g}" for v in r.scores] for r in results])
+    io.write_csv(output / "rejected.csv", ("case", "file", "reason"), rejected)
+    summary = {r.name: {"file": r.path, "modes": list(range(model.n_modes + 1)),
+                        "reconstruction_squared_mm2": r.squared_error.tolist(),
+                        "reconstruction_distance_mm": r.distance_error.tolist(),
+                        "mahalanobis": float(np.sqrt(np.sum(r.scores ** 2 / model.variances))),
+                        "objective": r.objective, "notes": r.notes} for r in results}
+    (output / "fit.json").write_text(json.dumps(summary, indent=2))
+    return results, rejected

@@ -1,0 +1,95 @@
+"""Side-by-side evaluation of models of the same cases."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mdlshapemodel.compare import (Population, compare_populations, comparison_rows,
+                                   load_population, write_comparison)
+from mdlshapemodel.errors import InputError
+from mdlshapemodel.evaluation import evaluate
+from mdlshapemodel.model import ShapeModel
+from mdlshapemodel.sampling import sphere_grid
+
+
+def two_mode_population(n=12, seed=0):
+    rng = np.random.default_rng(seed)
+    points, triangles = sphere_grid(162)
+    base = points * np.array([20.0, 10.0, 8.0])
+    first = np.zeros_like(base)
+    first[:, 0] = base[:, 0]
+    second = np.zeros_like(base)
+    second[:, 1] = base[:, 1]
+    scores = rng.standard_normal((n, 2)) * np.array([0.2, 0.1])
+    shapes = base + scores[:, 0, None, None] * first + scores[:, 1, None, None] * second
+    weights = np.full(len(points), 1.0 / len(points))
+    return shapes, weights, triangles
+
+
+def test_identical_models_never_differ():
+    shapes, weights, _ = two_mode_population()
+    names = [f"c{k}" for k in range(len(shapes))]
+    result = compare_populations([Population("a", names, shapes, weights),
+                                  Population("b", names, shapes, weights)], 4, 500)
+    for measure in ("compactness", "generalization", "specificity"):
+        d = result["differences"]["b"][measure]
+        np.testing.assert_allclose(d["difference"], 0.0, atol=1e-12)
+        assert not any(d["significant"])
+
+
+def test_a_noisier_correspondence_is_significantly_worse():
+    shapes, weights, _ = two_mode_population(n=15)
+    noisy = shapes + np.random.default_rng(1).normal(0, 0.6, shapes.shape)
+    names = [f"c{k}" for k in range(len(shapes))]
+    result = compare_populations([Population("clean", names, shapes, weights),
+                                  Population("noisy", names, noisy, weights)], 3, 2000)
+    g = result["differences"]["noisy"]["generalization"]
+    assert all(g["significant"]) and all(v > 0 for v in g["difference"])
+    verdicts = {(r[0], r[1]): r[7] for r in comparison_rows(result) if r[2] == "noisy"}
+    assert verdicts[("generalization", 2)] == "worse"
+    # the values equal an evaluation of each population on its own
+    alone = evaluate(noisy, weights, ShapeModel.from_shapes(noisy, weights).variances, 3, 2000,
+                     np.random.default_rng(0))
+    np.testing.assert_allclose(result["models"]["noisy"]["generalization"],
+                               alone["generalization"])
+
+
+def test_only_shared_cases_are_compared():
+    shapes, weights, _ = two_mode_population(n=10)
+    names = [f"c{k}" for k in range(10)]
+    # b lacks c0 and has its cases in another order
+    order = np.arange(9, 0, -1)
+    b = Population("b", [names[i] for i in order], shapes[order], weights)
+    result = compare_populations([Population("a", names, shapes, weights), b], 3, 300)
+    assert result["cases"] == names[1:]
+    assert result["excluded_cases"] == {"a": ["c0"], "b": []}
+    np.testing.assert_allclose(result["differences"]["b"]["generalization"]["difference"], 0.0,
+                               atol=1e-12)
+
+
+def test_too_few_shared_cases_is_an_error():
+    shapes, weights, _ = two_mode_population(n=5)
+    with pytest.raises(InputError, match="share only 2"):
+        compare_populations([Population("a", list("abcde"), shapes, weights),
+                             Population("b", list("abxyz"), shapes, weights)])
+
+
+def test_write_comparison_and_load_population(tmp_path):
+    shapes, weights, triangles = two_mode_population(n=8)
+    for name, population in (("one", shapes), ("two", shapes[::-1])):
+        folder = tmp_path / name
+        folder.mkdir()
+        ShapeModel.from_shapes(population, weights, names=[f"c{k}" for k in range(8)][
+            ::(1 if name == "one" else -1)], triangles=triangles, strategy="none").save(
+            folder / "model.h5")
+    populations = [load_population(tmp_path / "one"), load_population(tmp_path / "two")]
+    assert populations[0].label == "one (none)"
+    np.testing.assert_allclose(populations[0].shapes, shapes, atol=1e-9)
+    result = compare_populations(populations, 2, 200)
+    page = write_comparison(result, tmp_path / "cmp")
+    assert page.read_text().count("data:image/png;base64") == 1
+    assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["n_cases"] == 8
+    assert (tmp_path / "cmp" / "compare.csv").read_text().startswith("measure,M,model")
+    with pytest.raises(InputError, match="no model.h5"):
+        load_population(tmp_path / "cmp")

@@ -1,0 +1,115 @@
+"""Fitting new cases to a built model: correspondence, scores, reconstruction."""
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from mdlshapemodel import BuildConfig, build_model
+from mdlshapemodel.errors import InputError
+from mdlshapemodel.evaluation import generalization
+from mdlshapemodel.fitting import fit_case, fit_cases, load_model
+from mdlshapemodel.io import read_csv
+from mdlshapemodel.pipeline import prepare_case, surface_distances
+
+from synthetic import small_mask
+
+POSITIONS = np.linspace(-0.6, 0.6, 7)
+HELD_BACK = 3
+
+
+def write_case(folder, k, position, origin=(0.0, 0.0, 0.0)):
+    image = sitk.GetImageFromArray(small_mask(float(position)).astype(np.uint8))
+    image.SetOrigin(origin)
+    path = folder / f"case_{k}.nii.gz"
+    sitk.WriteImage(image, str(path))
+    return path
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    """A model of all 7 cases and one of the 6 others, with the held-back case's file."""
+    folder = tmp_path_factory.mktemp("labels")
+    paths = [write_case(folder, k, p, origin=(7.0 * k, 0.0, -3.0)) for k, p in enumerate(POSITIONS)]
+    config = BuildConfig(points=162, max_time=600, max_sweeps=2, workers=1,
+                         specificity_samples=200, evaluation_modes=3, surface_samples=0)
+    full = build_model(paths, tmp_path_factory.mktemp("full"), config)
+    others = [p for k, p in enumerate(paths) if k != HELD_BACK]
+    partial = build_model(others, tmp_path_factory.mktemp("partial"), config)
+    return full, partial, paths[HELD_BACK]
+
+
+@pytest.fixture(scope="module")
+def fitted(models):
+    _, partial, path = models
+    model, _ = load_model(partial.output)
+    return model, fit_case(model, path, max_time=600, max_sweeps=3)
+
+
+def test_reconstruction_error_falls_with_every_mode(fitted):
+    model, result = fitted
+    assert result.scores.shape == (model.n_modes,)
+    assert result.squared_error.shape == (model.n_modes + 1,)
+    assert np.all(np.diff(result.squared_error) <= 1e-12)
+    assert result.squared_error[-1] < 0.5 * result.squared_error[0]
+    # the projection is the weighted least-squares fit: the residual is orthogonal to the modes
+    residual = result.aligned - model.instance(result.scores)
+    inner = np.einsum("mkd,kd->m", model.modes, residual * model.weights[:, None])
+    np.testing.assert_allclose(inner, 0.0, atol=1e-9 * np.abs(result.scores).max())
+
+
+def test_fitted_points_lie_on_the_case_and_overlay_it(fitted, models):
+    model, result = fitted
+    _, _, path = models
+    case = prepare_case(str(path), BuildConfig())
+    distances = surface_distances(result.corresponded, model.triangles, case.map.vertices,
+                                  case.map.faces)
+    assert distances.max() < 0.2       # sampled on the case's own surface (mesh vs its vertices)
+    reconstruction = result.reconstruction(model)
+    assert np.linalg.norm(reconstruction.mean(axis=0) - case.map.vertices.mean(axis=0)) < 1.0
+    # the model frame and the case's frame are related by the stored pose
+    np.testing.assert_allclose(result.to_model.apply(result.corresponded), result.aligned,
+                               atol=1e-9)
+
+
+def test_optimising_the_new_case_lowers_the_objective(fitted):
+    _, result = fitted
+    assert result.objective["final"] <= result.objective["initial"]
+    assert result.objective["evaluations"] > 0
+
+
+def test_held_back_error_is_close_to_its_leave_one_out_error(models, fitted):
+    full, _, _ = models
+    model, result = fitted
+    # the held-back case's leave-one-out error in the model of all seven, M = 1..3
+    index = full.model.names.index(f"case_{HELD_BACK}")
+    shapes = full.model.mean[None] + np.tensordot(full.model.scores, full.model.modes, axes=1)
+    per_case = generalization(shapes, full.model.weights, 3)["squared_per_case"][index]
+    fitted_errors = result.squared_error[1:4]
+    assert np.all(fitted_errors < 3.0 * per_case + 0.05)
+    assert np.all(fitted_errors > per_case / 3.0 - 0.05)
+
+
+def test_fit_cases_writes_outputs_and_rejects_bad_inputs(models, tmp_path):
+    _, partial, path = models
+    bad = tmp_path / "bad.nii.gz"
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((8, 8, 8), np.uint8)), str(bad))
+    out = tmp_path / "fit"
+    results, rejected = fit_cases(partial.output, [path, bad], out, max_time=600, max_sweeps=1)
+    assert [r.name for r in results] == [f"case_{HELD_BACK}"]
+    assert [r[0] for r in rejected] == ["bad"] and "empty" in rejected[0][2]
+    summary = json.loads((out / "fit.json").read_text())
+    entry = summary[f"case_{HELD_BACK}"]
+    assert len(entry["reconstruction_squared_mm2"]) == results[0].squared_error.size
+    assert entry["mahalanobis"] > 0
+    rows = read_csv(out / "scores.csv")
+    assert rows[0]["case"] == f"case_{HELD_BACK}"
+    assert (out / "correspondence" / f"case_{HELD_BACK}.vtp").is_file()
+    assert (out / "reconstruction" / f"case_{HELD_BACK}.vtp").is_file()
+    assert read_csv(out / "rejected.csv")[0]["case"] == "bad"
+
+
+def test_missing_model_is_a_clear_error(tmp_path):
+    with pytest.raises(InputError, match="no such model file"):
+        load_model(tmp_path / "nothing")
