@@ -9,10 +9,11 @@ point against every triangle) written here; the library uses a VTK cell locator.
 import numpy as np
 import pytest
 
-from mdlshapemodel.evaluation import (SURFACE_GENERALIZATION_POINTS, SurfaceDistance, compactness,
-                                      evaluate, generalization, point_surface_distances,
-                                      specificity, surface_generalization, surface_specificity)
+from mdlshapemodel.evaluation import (SURFACE_GENERALIZATION_POINTS, compactness, evaluate,
+                                      generalization, specificity, surface_generalization,
+                                      surface_specificity)
 from mdlshapemodel.sampling import sphere_grid
+from mdlshapemodel.surface import SurfaceDistance, point_surface_distances
 
 
 def normalised_weights(rng, n_p):

@@ -28,7 +28,8 @@ from . import io, surface
 from .config import BuildConfig
 from .correspond import CorrespondenceState, Example, FixedExample, PartState
 from .errors import InputError, MDLShapeModelError
-from .evaluation import evaluate, point_surface_distances
+from .evaluation import evaluate
+from .surface import point_surface_distances
 from .mdl import Objective
 from .model import ShapeModel
 from .sampling import sphere_grid

@@ -73,6 +73,8 @@ import numpy as np
 from pycpd import DeformableRegistration, RigidRegistration
 from pycpd.emregistration import EMRegistration
 
+from .surface import SurfaceDistance
+
 #: Template and target points used to estimate the similarity transform (7 parameters).
 RIGID_POINTS = 1000
 #: Smallest sigma^2 (in units of the squared RMS radius): the single-precision E-step loses
@@ -313,37 +315,9 @@ def subsample_indices(n: int, max_points: int | None, seed: int = 0) -> np.ndarr
 
 def closest_points_on_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Closest point of a triangle mesh to each query point.
-
-    Uses VTK's ``vtkStaticCellLocator.FindClosestPoint``; VTK has no batched form of it, so the
-    queries run in a Python loop (about 10 microseconds per point).
-
-    Returns
-    -------
-    closest : ndarray (n, 3)
-    distance : ndarray (n,)
-    triangle : ndarray (n,) int
-        Index of the face that holds each closest point.
-    """
-    import vtk
-
-    from .surface import arrays_to_polydata
-
-    points = np.asarray(points, dtype=np.float64)
-    locator = vtk.vtkStaticCellLocator()
-    locator.SetDataSet(arrays_to_polydata(vertices, faces))
-    locator.BuildLocator()
-    closest = np.empty_like(points)
-    distance2 = np.empty(len(points))
-    triangle = np.empty(len(points), dtype=np.int64)
-    found = [0.0, 0.0, 0.0]
-    cell, sub, d2 = vtk.reference(0), vtk.reference(0), vtk.reference(0.0)
-    for k, point in enumerate(points.tolist()):
-        locator.FindClosestPoint(point, found, cell, sub, d2)
-        closest[k] = found
-        distance2[k] = d2.get()
-        triangle[k] = cell.get()
-    return closest, np.sqrt(distance2), triangle
+    """Closest point of a triangle mesh to each query point: (closest (n, 3), distance (n,),
+    index of the face holding it (n,)), by :class:`mdlshapemodel.surface.SurfaceDistance`."""
+    return SurfaceDistance(vertices, faces).closest(points)
 
 
 def _check_inputs(template_points, target_vertices, target_faces):

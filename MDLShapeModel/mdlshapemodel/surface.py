@@ -407,3 +407,83 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float, iteratio
     if topology(new_vertices, new_faces).is_sphere_like:
         return new_vertices, new_faces
     return vertices, faces
+
+
+class SurfaceDistance:
+    """Exact unsigned distances from points to one triangle mesh, with its locator built once.
+
+    The distance of a point is that to the closest point of the triangles (not to the nearest
+    vertex). A ``vtkStaticCellLocator`` is built at construction (about 1 ms for 5,000 triangles);
+    each query point then costs about 4-10 us (more the farther it is from the mesh), so build one
+    object per mesh and reuse it; :meth:`move` re-uses it for a mesh of the same connectivity.
+
+    Parameters
+    ----------
+    vertices : ndarray (n, 3)
+        Mesh vertices.
+    faces : ndarray (m, 3)
+        Triangles (vertex indices), m >= 1.
+
+    Examples
+    --------
+    ::
+
+        distance = SurfaceDistance(vertices, faces)
+        d = distance(points)                       # (k,) distances of points (k, 3)
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        from vtkmodules.vtkCommonDataModel import vtkStaticCellLocator
+
+        faces = np.asarray(faces)
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+            raise ValueError(f"need at least one triangle, got faces of shape {faces.shape}")
+        self._n_vertices = len(vertices)
+        self._polydata = arrays_to_polydata(np.asarray(vertices, dtype=np.float64), faces)
+        self._locator = vtkStaticCellLocator()
+        self._locator.SetDataSet(self._polydata)
+        self._locator.BuildLocator()
+
+    def move(self, vertices: np.ndarray):
+        """Give the mesh new vertex positions (same faces) and rebuild the locator.
+
+        Cheaper than a new object (the triangles are not converted again).
+        """
+        from vtkmodules.util.numpy_support import numpy_to_vtk
+
+        vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        if vertices.shape != (self._n_vertices, 3):
+            raise ValueError(f"need {self._n_vertices} vertices, got an array of {vertices.shape}")
+        self._polydata.GetPoints().SetData(numpy_to_vtk(vertices, deep=True))
+        self._polydata.Modified()
+        self._locator.ForceBuildLocator()
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """Distances (k,) from ``points`` (k, 3) to the mesh."""
+        return self.closest(points)[1]
+
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Closest mesh points (k, 3), distances (k,) and the faces holding them (k,)."""
+        from vtkmodules.vtkCommonCore import reference
+
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        found = np.empty_like(points)
+        squared = np.empty(len(points))
+        faces = np.empty(len(points), dtype=np.int64)
+        closest, cell, sub, d2 = [0.0, 0.0, 0.0], reference(0), reference(0), reference(0.0)
+        find = self._locator.FindClosestPoint
+        for k, point in enumerate(points.tolist()):
+            find(point, closest, cell, sub, d2)
+            found[k] = closest
+            squared[k] = d2.get()
+            faces[k] = cell.get()
+        return found, np.sqrt(squared), faces
+
+
+def point_surface_distances(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
+                            ) -> np.ndarray:
+    """Exact distance from each of ``points`` (k, 3) to the mesh (vertices, faces), (k,).
+
+    One-off convenience around :class:`SurfaceDistance`; reuse that class for many queries.
+    """
+    return SurfaceDistance(vertices, faces)(points)
