@@ -158,9 +158,9 @@ def summary_lines(result: dict, max_rows: int = 10) -> list:
             cells = []
             for k in range(min(max_rows, len(values["modes"]))):
                 cell = f"{values[measure][k]:.3f}+-{values[measure + '_se'][k]:.3f}"
-                if label != result["reference"]:
-                    d = result["differences"][label][measure]
-                    cell += {True: "*", False: " "}[bool(d["significant"][k])]
+                significant = (label != result["reference"] and
+                               result["differences"][label][measure]["significant"][k])
+                cell += "*" if significant else " "
                 cells.append(cell)
             lines.append(f"  {label[:30]:<30} " + " ".join(cells))
     lines.append("  (* : differs from the reference by more than 2 SE)")
