@@ -216,3 +216,32 @@ def test_triangle_vertex_areas_single_triangle_and_batches(rng):
     assert result.shape == (3, len(points))
     np.testing.assert_allclose(result[1], 4 * result[0])
     np.testing.assert_allclose(result[2], 0.25 * result[0])
+
+
+def test_jacobian_matches_finite_differences_along_the_sphere(rng):
+    points, faces = icosphere(3)
+    locator = SphereLocator(points, faces)
+    values = rng.normal(size=(len(points), 3))
+    queries = random_unit_vectors(rng, 200)
+    face, coords = locator.locate(queries)
+    # keep queries well inside their triangle so that a small step does not change face
+    inside = coords.min(axis=1) > 0.05
+    queries, face = queries[inside], face[inside]
+    jacobian = locator.jacobian(values, face, queries)
+    assert jacobian.shape == (len(queries), 3, 3)
+    step = 1e-6
+    for direction in random_unit_vectors(rng, 3):
+        tangent = direction - (queries @ direction)[:, None] * queries
+        moved = queries + step * tangent
+        moved /= np.linalg.norm(moved, axis=1, keepdims=True)
+        back = queries - step * tangent
+        back /= np.linalg.norm(back, axis=1, keepdims=True)
+        forward = locator.interpolate(values, face, locator._coordinates(face, moved) /
+                                      locator._coordinates(face, moved).sum(1, keepdims=True))
+        backward = locator.interpolate(values, face, locator._coordinates(face, back) /
+                                       locator._coordinates(face, back).sum(1, keepdims=True))
+        numeric = (forward - backward) / (2 * step)
+        analytic = np.einsum("ndk,nk->nd", jacobian, tangent)
+        np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-6)
+    # a radial motion of u does not move the sample
+    np.testing.assert_allclose(np.einsum("ndk,nk->nd", jacobian, queries), 0.0, atol=1e-10)

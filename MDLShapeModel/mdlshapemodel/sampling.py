@@ -158,6 +158,22 @@ class SphereLocator:
         """Barycentric interpolation of per-vertex ``values`` at located points."""
         return np.einsum("ij,ij...->i...", coords, values[self.faces[face]])
 
+    def jacobian(self, values: np.ndarray, face: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """dS/du at located points: (n, d, 3) for per-vertex ``values`` (v, d).
+
+        Inside face j with corners M = [a b c], the central-projection barycentrics are
+        b = lambda / s with lambda = M^-1 u and s = 1^T lambda, so
+        dS/du = V^T (I - b 1^T) M^-1 / s (V the corner values, 3 x d). Radial motions of u do not
+        change b, so only the tangential part of a displacement of u matters.
+        """
+        inverse = self.inverse[face]                                  # (n, 3, 3)
+        raw = np.einsum("nij,nj->ni", inverse, points)
+        total = raw.sum(axis=1)
+        coords = raw / total[:, None]
+        projector = np.eye(3)[None] - coords[:, :, None]               # (I - b 1^T)
+        db = np.einsum("nij,njk->nik", projector, inverse) / total[:, None, None]
+        return np.einsum("njd,njk->ndk", values[self.faces[face]], db)
+
     def evaluate(self, values: np.ndarray, points: np.ndarray, hint: np.ndarray | None = None):
         """S(u): per-vertex ``values`` at parameter points; returns (values, faces)."""
         face, coords = self.locate(points, hint)
