@@ -107,3 +107,111 @@ def test_random_surface_parameter_is_uniform_over_the_surface(state):
     expected = areas[centroids[:, 0] < median_x].sum() / areas.sum()
     observed = np.mean(points[:, 0] < median_x)
     assert observed == pytest.approx(expected, abs=0.04)
+
+
+# --- the gradient dF/dX ------------------------------------------------------------------------
+
+def objectives(state):
+    data_range = state.objective.data_range
+    return [state.objective, Objective("fixed", data_range, delta=0.1)]
+
+
+def trial_value(state, i, shape):
+    """F with example i's posed points replaced (no evaluation counted)."""
+    return state.objective(state.covariance(i, shape))
+
+
+def derivative_along(state, i, direction, shape=None, step=1e-5):
+    """Richardson-extrapolated central difference of F along ``direction`` on example i."""
+    base = state.shapes[i] if shape is None else shape
+    scale = step * np.abs(state.shapes).max()
+
+    def central(h):
+        return (trial_value(state, i, base + h * direction)
+                - trial_value(state, i, base - h * direction)) / (2 * h)
+    return (4 * central(scale) - central(2 * scale)) / 3
+
+
+def test_shape_gradient_matches_finite_differences(state):
+    rng = np.random.default_rng(7)
+    for objective in objectives(state):
+        state.objective = objective
+        value, grad = state.shape_gradient()
+        assert value == pytest.approx(state.value(), rel=1e-12)
+        assert grad.shape == state.shapes.shape
+        for i in (0, 2, 4):
+            direction = rng.normal(size=state.shapes[i].shape)       # all points of example i
+            numeric = derivative_along(state, i, direction)
+            assert np.sum(grad[i] * direction) == pytest.approx(numeric, rel=1e-6)
+            for _ in range(3):                                       # single coordinates
+                k, d = int(rng.integers(state.n_points)), int(rng.integers(3))
+                direction = np.zeros_like(state.shapes[i])
+                direction[k, d] = 1.0
+                numeric = derivative_along(state, i, direction)
+                assert grad[i, k, d] == pytest.approx(numeric, rel=1e-5,
+                                                      abs=1e-7 * np.abs(grad).max())
+
+
+def test_example_gradient_matches_shape_gradient_and_trial_shapes(state):
+    rng = np.random.default_rng(8)
+    for objective in objectives(state):
+        state.objective = objective
+        value, grad = state.shape_gradient()
+        for i in range(state.n_shapes):
+            value_i, grad_i = state.example_gradient(i)
+            assert value_i == pytest.approx(value, rel=1e-12)
+            np.testing.assert_allclose(grad_i, grad[i], atol=1e-12 * np.abs(grad).max())
+        # at a trial shape of example 3 (as value(i, shape) evaluates it)
+        trial = state.shapes[3] + rng.normal(scale=0.2, size=state.shapes[3].shape)
+        value_t, grad_t = state.example_gradient(3, trial)
+        assert value_t == pytest.approx(trial_value(state, 3, trial), rel=1e-12)
+        direction = rng.normal(size=trial.shape)
+        numeric = derivative_along(state, 3, direction, shape=trial)
+        assert np.sum(grad_t * direction) == pytest.approx(numeric, rel=1e-6)
+
+
+def test_shape_gradient_respects_the_invariances_of_f(state):
+    """F is unchanged by translating, rotating or scaling all examples together (centring, the
+    rotation invariance of D' and the rescaling to the target mean size): the gradient has no
+    component along those motions, although it is far from zero."""
+    for objective in objectives(state):
+        state.objective = objective
+        _, grad = state.shape_gradient()
+        points = state.shapes - state.shapes.mean(axis=(0, 1))
+        size = np.linalg.norm(grad) * np.linalg.norm(points)
+        assert np.linalg.norm(grad) > 1e-3
+        np.testing.assert_allclose(grad.sum(axis=(0, 1)), 0.0, atol=1e-12 * np.abs(grad).sum())
+        assert abs(np.sum(grad * points)) < 1e-12 * size                           # scale
+        np.testing.assert_allclose(np.cross(points, grad).sum(axis=(0, 1)), 0.0,
+                                   atol=1e-12 * size)                               # rotation
+
+
+
+def test_translating_one_example(state):
+    """dF/dt_i = 2 sum_j M_ij c_j (c_j: weighted centroid of example j, M = f^2 H Gd H): zero
+    while all examples share their weighted centroid (as after Procrustes), not otherwise."""
+    centroids = np.einsum("k,ikd->id", state.weights, state.shapes)
+    np.testing.assert_allclose(centroids - centroids[0], 0.0, atol=1e-7)   # Procrustes tolerance
+    _, grad = state.shape_gradient()
+    np.testing.assert_allclose(grad.sum(axis=1), 0.0, atol=1e-7 * np.abs(grad).sum())
+    shifted = state.shapes[1] + np.array([0.3, -0.2, 0.1])
+    _, grad_shifted = state.example_gradient(1, shifted)
+    translation = grad_shifted.sum(axis=0)
+    assert np.linalg.norm(translation) > 1e-3 * np.abs(grad_shifted).sum()
+    for d in range(3):
+        direction = np.zeros_like(shifted)
+        direction[:, d] = 1.0
+        numeric = derivative_along(state, 1, direction, shape=shifted)
+        assert translation[d] == pytest.approx(numeric, rel=1e-6)
+
+
+def test_scaling_term_of_the_gradient(state):
+    """Scaling every example by (1 + t) leaves F unchanged only because of the rescaling factor:
+    along that motion the data term and the scale term of the gradient cancel."""
+    state.objective = Objective("fixed", state.objective.data_range, delta=0.1)
+    _, grad = state.shape_gradient()
+    _, grad_cov = state.objective.gradient(state.covariance())
+    data = grad - state._scale_gradient(state.sum_shapes, grad_cov, state.covariance())[None]
+    along = np.sum(data * state.shapes)
+    assert abs(along) > 1e-3 * np.linalg.norm(data) * np.linalg.norm(state.shapes)
+    assert np.sum(grad * state.shapes) == pytest.approx(0.0, abs=1e-9 * abs(along))

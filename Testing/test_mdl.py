@@ -354,3 +354,174 @@ def test_unknown_variant_and_kind_raise():
         mode_costs(y, 0.1, 10.0, variant="thesis")
     with pytest.raises(ConfigError, match="objective"):
         Objective("average", 10.0)(np.eye(4))
+
+
+# --- the gradient dF/dD' ----------------------------------------------------------------------------
+
+def covariance_with_spectrum(rng, eigenvalues):
+    """A random symmetric matrix with the given eigenvalues (random orthonormal eigenvectors)."""
+    q, _ = np.linalg.qr(rng.normal(size=(len(eigenvalues), len(eigenvalues))))
+    return (q * eigenvalues) @ q.T
+
+
+def relative_margin(values, breaks):
+    """Smallest relative distance of any of ``values`` to any of ``breaks``."""
+    values, breaks = np.asarray(values, float), np.atleast_1d(np.asarray(breaks, float))
+    return float(np.min(np.abs(values[:, None] - breaks[None, :]) / np.abs(breaks[None, :])))
+
+
+def clear_of_breaks(objective, gram, margin=1e-2):
+    """Whether every mode is well inside one piece of F: no case switch, kink of delta, break of
+    the Delta integral, tie for the extreme coded value or near-repeated eigenvalue nearby."""
+    n_s = gram.shape[0]
+    variances, coded = coded_values_from_gram(gram)
+    sigma, ranges = np.sqrt(variances), np.ptp(coded, axis=0)
+    saturation = 1 / math.sqrt(12 / n_s)            # delta = sigma sqrt(12 / n_s) reaches 1
+    if objective.kind == "fixed":
+        checks = [(sigma, [2 * objective.delta, saturation]), (ranges, [objective.delta])]
+    else:
+        limits = [objective.delta_min, objective.delta_max]
+        checks = [(sigma / 2, limits + [saturation / 2]), (ranges, limits)]
+    if not all(relative_margin(v, b) > margin for v, b in checks):
+        return False
+    if np.min(-np.diff(variances)) < margin * variances[-1]:
+        return False
+    ordered = np.sort(coded, axis=0)
+    gaps = np.minimum(ordered[-1] - ordered[-2], ordered[1] - ordered[0])
+    return bool(np.all(gaps > margin * ranges))
+
+
+def spread_covariance(rng, objective, n_s, log_sigma):
+    """A covariance with n_s mode standard deviations spread over 10^log_sigma, clear of breaks."""
+    spacing = (log_sigma[1] - log_sigma[0]) / (n_s - 1)
+    for _ in range(1000):
+        exponents = np.linspace(*log_sigma, n_s) + rng.uniform(-0.3, 0.3, n_s) * spacing
+        gram = covariance_with_spectrum(rng, n_s * 10 ** (2 * exponents))
+        if clear_of_breaks(objective, gram):
+            return gram
+    raise AssertionError("no covariance clear of the breaks of F")
+
+
+def finite_difference_step(gram):
+    """1e-3 of the smallest eigenvalue or eigenvalue gap: F curves on that scale (log sigma,
+    eigenvectors turning), and eigh rounds every eigenvalue to ~eps |D'|, so a much smaller step
+    measures rounding (checked: the agreement is best between 1e-3 and 1e-2 of that scale)."""
+    eigenvalues = np.linalg.eigvalsh(gram)
+    return 1e-3 * min(eigenvalues[0], np.min(np.diff(eigenvalues)))
+
+
+def rounding_bound(value, grad, gram, step):
+    """Absolute error of a central difference from rounding: of F itself (~eps |F|) and of the
+    eigenvalues (~eps |D'|) times the steepest slope of F (~|G|). It limits the agreement in
+    directions with small derivatives."""
+    eps = np.finfo(float).eps
+    return 4 * eps * (abs(value) + np.linalg.norm(grad) * np.linalg.norm(gram, 2)) / step
+
+
+def directional_derivative(function, x, direction, step):
+    """Central differences at steps h and 2h, Richardson-extrapolated: truncation error O(h^4)."""
+    def central(h):
+        return (function(x + h * direction) - function(x - h * direction)) / (2 * h)
+    return (4 * central(step) - central(2 * step)) / 3
+
+
+def check_gradient_by_finite_differences(objective, gram, rng, directions=6, tol=1e-5):
+    value, grad = objective.gradient(gram)
+    assert value == pytest.approx(objective(gram), rel=1e-12)
+    np.testing.assert_allclose(grad, grad.T, atol=1e-12 * np.abs(grad).max())
+    n_s = gram.shape[0]
+    step = finite_difference_step(gram)
+    perturbations = []
+    for _ in range(directions):
+        p = rng.normal(size=(n_s, n_s))
+        perturbations.append(p + p.T)
+    for i, j in [(0, 0), (1, n_s - 1), (n_s - 1, n_s - 1)]:
+        p = np.zeros((n_s, n_s))
+        p[i, j] = p[j, i] = 1.0
+        perturbations.append(p)
+    for p in perturbations:
+        p = p / np.linalg.norm(p)
+        numeric = directional_derivative(objective, gram, p, step)
+        analytic = float(np.sum(grad * p))
+        bound = tol * abs(analytic) + rounding_bound(value, grad, gram, step)
+        assert abs(numeric - analytic) <= bound, (numeric, analytic, bound)
+
+
+@pytest.mark.parametrize("n_s", [5, 8, 12])
+@pytest.mark.parametrize("objective", [
+    Objective("fixed", 10.0, delta=0.1),
+    Objective("fixed", 10.0, delta=0.1, free_below_delta=False),
+    Objective("fixed", 10.0, delta=0.1, variant="reference"),
+    Objective("integrated", 10.0),
+    Objective("integrated", 10.0, delta_min=0.01, delta_max=0.3),
+], ids=["fixed", "fixed-no-case3", "fixed-reference", "integrated", "integrated-other"])
+def test_objective_gradient_matches_finite_differences(rng, objective, n_s):
+    """Modes from sigma = 3e-3 (case 3 of "fixed") to 2 (case 1 with delta = 1)."""
+    gram = spread_covariance(rng, objective, n_s, (-2.5, 0.3))
+    check_gradient_by_finite_differences(objective, gram, rng)
+
+
+@pytest.mark.parametrize("kind", ["fixed", "integrated"])
+def test_objective_gradient_with_small_modes(rng, kind):
+    """Every mode below sigma_min = 2 Delta but above Delta in range: case 2 throughout (fixed);
+    modes with ranges inside [Delta_min, Delta_max], whose upper limit moves (integrated)."""
+    objective = Objective(kind, 4.0, delta=0.02)
+    gram = spread_covariance(rng, objective, 10, (-1.9, -1.45))
+    variances, coded = coded_values_from_gram(gram)
+    if kind == "fixed":
+        assert np.all(np.sqrt(variances) < 0.04) and np.all(np.ptp(coded, axis=0) > 0.02)
+    else:
+        assert np.all(np.ptp(coded, axis=0) < objective.delta_max)
+    check_gradient_by_finite_differences(objective, gram, rng)
+
+
+def test_objective_gradient_along_pure_rotations_of_the_eigenvectors(rng):
+    """D' -> D' + t (A D' - D' A), A antisymmetric, keeps the eigenvalues to first order: the fixed
+    objective sees only eigenvalues (its gradient is flat there); the integrated one also sees the
+    ranges of the coded values, which do change: its analytic derivative must match."""
+    fixed = Objective("fixed", 10.0, delta=0.1)
+    integrated = Objective("integrated", 10.0)
+    gram = spread_covariance(rng, integrated, 8, (-2.5, -0.5))
+    a = rng.normal(size=(8, 8))
+    a = a - a.T
+    p = a @ gram - gram @ a
+    p /= np.linalg.norm(p)
+    _, grad = fixed.gradient(gram)
+    assert abs(np.sum(grad * p)) < 1e-10 * np.linalg.norm(grad)
+    _, grad = integrated.gradient(gram)
+    step = finite_difference_step(gram)
+    numeric = directional_derivative(integrated, gram, p, step)
+    bound = rounding_bound(integrated(gram), grad, gram, step)
+    assert abs(numeric) > 100 * bound
+    assert abs(np.sum(grad * p) - numeric) < 1e-5 * abs(numeric) + bound
+
+
+def test_objective_gradient_of_a_centred_rank_deficient_covariance(rng):
+    """A centred covariance (null vector 1, eigenvalue ~0 clipped): the gradient is finite and
+    matches finite differences along centred perturbations H P H."""
+    n_s = 9
+    x = centred_data(rng, n_s, 30) * np.logspace(-1.5, 0, 30)
+    gram = x @ x.T
+    h = np.eye(n_s) - 1.0 / n_s
+    for objective in (Objective("fixed", 10.0, delta=0.05), Objective("integrated", 10.0)):
+        value, grad = objective.gradient(gram)
+        assert np.all(np.isfinite(grad))
+        for _ in range(4):
+            p = rng.normal(size=(n_s, n_s))
+            p = h @ (p + p.T) @ h
+            p /= np.linalg.norm(p)
+            step = 1e-6 * np.linalg.eigvalsh(gram)[1]
+            numeric = (objective(gram + step * p) - objective(gram - step * p)) / (2 * step)
+            assert np.sum(grad * p) == pytest.approx(numeric, rel=1e-5, abs=1e-9 * value)
+
+
+def test_objective_gradient_of_repeated_eigenvalues_is_basis_independent(rng):
+    """Two equal mode variances: the gradient is the same whichever eigenvectors eigh returns.
+    (Without case 3, F depends on the eigenvalues only, so F(Q D' Q^T) = F(D') for rotations Q.)"""
+    objective = Objective("fixed", 10.0, delta=0.05, free_below_delta=False)
+    sigma = np.array([1.0, 0.5, 0.5, 0.2, 0.08, 0.03])
+    gram = covariance_with_spectrum(rng, 6 * sigma ** 2)
+    q = np.linalg.qr(rng.normal(size=(6, 6)))[0]
+    _, grad = objective.gradient(gram)
+    _, rotated = objective.gradient(q @ gram @ q.T)
+    np.testing.assert_allclose(q @ grad @ q.T, rotated, atol=1e-8 * np.abs(grad).max())

@@ -161,6 +161,7 @@ class CorrespondenceState:
                                                          np.cumsum(sizes))]
         self.n_points = int(sum(sizes))
         self.evaluations = 0
+        self.gradient_evaluations = 0
         self.weights = np.full(self.n_points, 1.0 / self.n_points)
         self.target_size = None
         self.procrustes()
@@ -237,6 +238,61 @@ class CorrespondenceState:
         """F of the current state, or with shape i replaced by ``shape``."""
         self.evaluations += 1
         return self.objective(self.covariance(i, shape))
+
+    def shape_gradient(self) -> tuple[float, np.ndarray]:
+        """F of the current state and G = dF/dX, (n_s, n_p, 3): the derivative with respect to
+        every example's posed points, with the area weights w held fixed (METHOD.md section 2).
+
+        F = F(D'), D' = f^2 H K H, f = target_size / cs(mean). With Gd = dF/dD' (symmetric,
+        :meth:`Objective.gradient`) and M = f^2 H Gd H,
+
+            dF/dx_ik = 2 w_k sum_j M_ij (x_jk - r_k) - (2 / n_s) <Gd, D'> w_k (xbar_k - c) / cs^2,
+
+        the second term from the rescaling (c, cs: weighted centroid and centroid size of the
+        mean xbar). Cost: one (n_s x n_s) by (n_s x 3 n_p) product, O(n_s^2 n_p).
+        """
+        value, grad_cov, covariance, multiplier = self._covariance_gradient(None, None)
+        # flat, contiguous element-wise products: broadcasting over a last axis of 3 is slow
+        flat = (self.shapes - self.reference).reshape(self.n_shapes, -1)
+        flat *= np.repeat(2.0 * self.weights, 3)
+        grad = multiplier @ flat
+        grad += self._scale_gradient(self.sum_shapes, grad_cov, covariance).reshape(1, -1)
+        return value, grad.reshape(self.shapes.shape)
+
+    def example_gradient(self, i: int, shape: np.ndarray | None = None
+                         ) -> tuple[float, np.ndarray]:
+        """F and dF/dX_i, (n_p, 3), for example i alone (its shape replaced by ``shape`` if
+        given, as in :meth:`covariance`). Cost O(n_s n_p) beyond the O(n_s^3) objective."""
+        value, grad_cov, covariance, multiplier = self._covariance_gradient(
+            None if shape is None else i, shape)
+        total = self.sum_shapes
+        row = np.tensordot(multiplier[i], self.shapes - self.reference, axes=1)
+        if shape is not None:
+            row += multiplier[i, i] * (shape - self.shapes[i])
+            total = total - self.shapes[i] + shape
+        data = 2.0 * row * self.weights[:, None]
+        return value, data + self._scale_gradient(total, grad_cov, covariance)
+
+    def _covariance_gradient(self, i, shape):
+        """F, dF/dD', D' and dF/dK = f^2 H (dF/dD') H at the current (or trial) state."""
+        self.gradient_evaluations += 1
+        covariance = self.covariance(i, shape)
+        value, grad_cov = self.objective.gradient(covariance)
+        total = self.sum_shapes if i is None else self.sum_shapes - self.shapes[i] + shape
+        factor = self.target_size / centroid_size(total / self.n_shapes, self.weights)
+        centred = grad_cov - grad_cov.mean(axis=1)[:, None]
+        centred = centred - centred.mean(axis=0)[None, :]
+        return value, grad_cov, covariance, centred * factor ** 2
+
+    def _scale_gradient(self, total, grad_cov, covariance) -> np.ndarray:
+        """(n_p, 3): the part of dF/dx_ik (the same for every example i) due to the rescaling
+        factor f = target_size / cs(mean): dF/df^2 = <Gd, D'> / f^2, d f^2 = -f^2 d cs^2 / cs^2,
+        d cs^2 / dx_ik = 2 w_k (xbar_k - c) / n_s."""
+        mean = total / self.n_shapes
+        offset = mean - weighted_centroid(mean, self.weights)
+        size_squared = centroid_size(mean, self.weights) ** 2
+        return (-2.0 / self.n_shapes * float(np.sum(grad_cov * covariance)) / size_squared
+                * self.weights[:, None] * offset)
 
     def commit_shape(self, i: int):
         """Record that example i's parts or pose changed: update X, K and the sums."""

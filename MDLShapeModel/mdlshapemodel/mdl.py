@@ -49,6 +49,31 @@ def _check_range(delta: float, data_range: float):
                           f"range {data_range:g} (sigma_max = R/2 must exceed sigma_min = 2 Delta)")
 
 
+def _cost_terms(sigma, sum_squares, n_s, delta, data_range):
+    """Pieces of the per-mode cost at coding accuracy ``delta`` (scalar, or one per mode):
+    the case-1 mask, L_param, the common data term, and the case-1 and (continuous) case-2 L_data."""
+    sigma_min = 2.0 * delta
+    sigma_max = data_range / 2.0
+    k = np.sqrt(12.0 / n_s)
+    case1 = sigma > sigma_min
+    sigma_used = np.where(case1, sigma, sigma_min)
+    small = np.minimum(1.0, sigma_used * k)  # the parameter precision delta
+    param = np.log((sigma_max - sigma_min) / small) + 1.0 + np.abs(np.log(small))
+    base = -n_s * np.log(delta) + 0.5 * n_s * np.log(2 * np.pi * sigma_used ** 2)
+    precision_term = n_s * small ** 2 / (12.0 * sigma_used ** 2)
+    data1 = base + 0.5 * n_s + precision_term
+    data2 = base + sum_squares / (2 * sigma_min ** 2) + precision_term
+    return case1, param, base, data1, data2
+
+
+def _case1_slope(sigma, n_s):
+    """d(L_param + L_data)/d sigma in case 1 (delta from sigma; Delta drops out):
+    (n_s - 2) / sigma while delta = sigma sqrt(12/n_s) < 1, else n_s / sigma - n_s / (6 sigma^3)."""
+    sigma = np.where(sigma > 1e-100, sigma, 1.0)   # never used there: avoids 1 / 0
+    return np.where(sigma * np.sqrt(12.0 / n_s) < 1.0, (n_s - 2.0) / sigma,
+                    n_s / sigma - n_s / (6.0 * sigma ** 3))
+
+
 def mode_costs(coded: np.ndarray, delta: float, data_range: float,
                variant: str = "continuous", free_below_delta: bool = True) -> np.ndarray:
     """Description length (nats) of each mode at coding accuracy ``delta``.
@@ -72,21 +97,11 @@ def mode_costs(coded: np.ndarray, delta: float, data_range: float,
     n_s = coded.shape[0]
     sigma, ranges, sum_squares = mode_statistics(coded)
     sigma_min = 2.0 * delta
-    sigma_max = data_range / 2.0
-    k = np.sqrt(12.0 / n_s)
-    case1 = sigma > sigma_min
-    sigma_used = np.where(case1, sigma, sigma_min)
-    small = np.minimum(1.0, sigma_used * k)  # the parameter precision delta
-    param = np.log((sigma_max - sigma_min) / small) + 1.0 + np.abs(np.log(small))
-    base = -n_s * np.log(delta) + 0.5 * n_s * np.log(2 * np.pi * sigma_used ** 2)
-    precision_term = n_s * small ** 2 / (12.0 * sigma_used ** 2)
-    data1 = base + 0.5 * n_s + precision_term
-    if variant == "continuous":
-        data2 = base + sum_squares / (2 * sigma_min ** 2) + precision_term
-    elif variant == "reference":
+    case1, param, base, data1, data2 = _cost_terms(sigma, sum_squares, n_s, delta, data_range)
+    if variant == "reference":
         quantised = delta * np.round(coded / delta)
         data2 = base + np.sum(quantised ** 2, axis=0) / (2 * sigma_min ** 2)
-    else:
+    elif variant != "continuous":
         raise ConfigError(f"variant: unknown MDL variant {variant!r}")
     cost = param + np.where(case1, data1, data2)
     return np.where(ranges < delta, 0.0, cost) if free_below_delta else cost
@@ -174,16 +189,59 @@ def _integrated_mode_costs(sigma, ranges, sum_squares, n_s, delta_min, delta_max
     return (cost1 + cost2 + cost3) / (delta_max - delta_min)
 
 
+def _integrated_mode_slopes(sigma, ranges, sum_squares, n_s, delta_min, delta_max, data_range):
+    """Partial derivatives of :func:`_integrated_mode_costs` with respect to sigma_m, S_m = sum_i
+    Y_im^2 and range_m (each treated as independent, as the code computes them).
+
+    The integrand is continuous at Delta = sigma_m / 2 and at the saturation of delta, so by Leibniz
+    the moving breakpoints there contribute nothing; it drops to 0 at Delta = range_m (case 3), so
+    the upper limit min(Delta_max, range_m) contributes the integrand's value just below range_m.
+    """
+    length = delta_max - delta_min
+    upper = np.minimum(delta_max, ranges)
+    switch = np.clip(sigma / 2.0, delta_min, None)
+    length1 = np.maximum(np.minimum(upper, switch) - delta_min, 0.0)
+    d_sigma = np.where(length1 > 0, length1 * _case1_slope(sigma, n_s), 0.0) / length
+    # case 2 on [switch, upper]: the integrand holds S / (8 Delta^2)
+    d_sum = np.where(upper > switch, (1.0 / switch - 1.0 / np.maximum(upper, switch)) / 8.0,
+                     0.0) / length
+    moving = (ranges > delta_min) & (ranges < delta_max)
+    at = np.where(moving, ranges, delta_max)
+    case1, param, _, data1, data2 = _cost_terms(sigma, sum_squares, n_s, at, data_range)
+    d_range = np.where(moving, param + np.where(case1, data1, data2), 0.0) / length
+    return d_sigma, d_sum, d_range
+
+
+def _fixed_mode_slopes(sigma, ranges, n_s, delta, variant, free_below_delta):
+    """Partial derivatives of :func:`mode_costs` with respect to sigma_m and S_m (range_m only
+    switches case 3 on and off: its derivative is 0 almost everywhere)."""
+    sigma_min = 2.0 * delta
+    case1 = sigma > sigma_min
+    d_sigma = np.where(case1, _case1_slope(sigma, n_s), 0.0)
+    # reference variant: the quantised Yhat are piecewise constant, so their derivative is 0 a.e.
+    slope2 = 1.0 / (2.0 * sigma_min ** 2) if variant == "continuous" else 0.0
+    d_sum = np.where(case1, 0.0, slope2)
+    if free_below_delta:
+        free = ranges < delta
+        d_sigma, d_sum = np.where(free, 0.0, d_sigma), np.where(free, 0.0, d_sum)
+    return d_sigma, d_sum, np.zeros_like(sigma)
+
+
 def coded_values_from_gram(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigen-decompose a centred (reduced) covariance D' (n_s, n_s).
 
     Returns the mode variances lambda_m = eigenvalue / n_s (descending) and the coded values
     Y = U sqrt(eigenvalue), (n_s, n_s), with (1/n_s) sum_i Y_im^2 = lambda_m.
     """
-    eigenvalues, vectors = np.linalg.eigh(gram)
-    eigenvalues = np.clip(eigenvalues[::-1], 0.0, None)
-    vectors = vectors[:, ::-1]
+    raw, vectors = _eigen(gram)
+    eigenvalues = np.clip(raw, 0.0, None)
     return eigenvalues / gram.shape[0], vectors * np.sqrt(eigenvalues)
+
+
+def _eigen(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (descending, unclipped) and unit eigenvectors (columns) of a symmetric matrix."""
+    eigenvalues, vectors = np.linalg.eigh(gram)
+    return eigenvalues[::-1], vectors[:, ::-1]
 
 
 @dataclass
@@ -205,6 +263,62 @@ class Objective:
     def __call__(self, gram: np.ndarray) -> float:
         _, coded = coded_values_from_gram(gram)
         return self.from_coded(coded)
+
+    def gradient(self, gram: np.ndarray) -> tuple[float, np.ndarray]:
+        """F(D') and its gradient G = dF/dD', a symmetric (n_s, n_s) matrix such that
+        dF = sum_ij G_ij dD'_ij for every symmetric perturbation dD'.
+
+        With D' = sum_m mu_m u_m u_m^T (eigh, unit u_m), the code sees mu_m only through
+        sigma_m = sqrt(mu_m / n_s), S_m = sum_i Y_im^2 = mu_m and range_m = sqrt(mu_m) ptp(u_m)
+        (Y_m = sqrt(mu_m) u_m). With d mu_m = u_m^T dD' u_m,
+
+            G = sum_m [dF/dsigma_m / (2 n_s sigma_m) + dF/dS_m + dF/drange_m ptp(u_m) / (2 sqrt(mu_m))]
+                      u_m u_m^T
+                + sum_m dF/drange_m sqrt(mu_m) sym(v_m u_m^T),
+            v_m = sum_{n != m} (u_{a n} - u_{b n}) / (mu_m - mu_n) u_n   (a, b: argmax, argmin of u_m),
+
+        the last line being the eigenvector derivative of the range, which only the "integrated"
+        kind needs (modes whose range lies inside [Delta_min, Delta_max] move the upper end of
+        their Delta integral). Modes with mu_m <= 0 (clipped to 0) get no gradient. Case 3 of
+        "fixed" is a step in range_m: its derivative is taken as 0 (F jumps where range_m = Delta).
+        The terms within a repeated eigenvalue sum to a well-defined matrix, except the
+        eigenvector term, whose 1 / (mu_m - mu_n) is dropped for exactly equal eigenvalues (F is
+        not differentiable there when a range term is active).
+        """
+        gram = np.asarray(gram, dtype=np.float64)
+        n_s = gram.shape[0]
+        raw, vectors = _eigen(gram)
+        mu = np.clip(raw, 0.0, None)
+        root = np.sqrt(mu)
+        coded = vectors * root
+        value = self.from_coded(coded)
+        sigma, ranges, sum_squares = mode_statistics(coded)
+        if self.kind == "fixed":
+            d_sigma, d_sum, d_range = _fixed_mode_slopes(sigma, ranges, n_s, self.delta,
+                                                         self.variant, self.free_below_delta)
+        else:
+            d_sigma, d_sum, d_range = _integrated_mode_slopes(
+                sigma, ranges, sum_squares, n_s, self.delta_min, self.delta_max, self.data_range)
+        positive = raw > 0
+        spread = np.ptp(vectors, axis=0)
+        safe_root = np.where(positive, root, 1.0)
+        safe_sigma = np.where(positive & (sigma > 0), sigma, 1.0)
+        slope = np.where(positive, d_sigma / (2.0 * n_s * safe_sigma) + d_sum
+                         + d_range * spread / (2.0 * safe_root), 0.0)
+        grad = (vectors * slope) @ vectors.T
+        active = np.flatnonzero(positive & (d_range != 0))
+        if active.size:
+            columns = vectors[:, active]
+            top, bottom = np.argmax(columns, axis=0), np.argmin(columns, axis=0)
+            difference = vectors[top, :] - vectors[bottom, :]       # (n_active, n_s)
+            gaps = raw[active][:, None] - raw[None, :]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                coefficients = np.where(gaps != 0, difference / gaps, 0.0)
+            coefficients[np.arange(active.size), active] = 0.0
+            directions = vectors @ coefficients.T                   # v_m, (n_s, n_active)
+            part = (directions * (d_range[active] * root[active])) @ columns.T
+            grad += 0.5 * (part + part.T)
+        return value, 0.5 * (grad + grad.T)
 
     def from_coded(self, coded: np.ndarray) -> float:
         if self.kind == "fixed":
