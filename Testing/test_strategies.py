@@ -1,18 +1,19 @@
-"""The one-example-at-a-time strategies (III-D3, III-D4): descent, repeatability, budget."""
+"""The optimisation strategies (III-D1 to III-D4): descent, repeatability, budget."""
 
 import time
 
 import numpy as np
 import pytest
 
-from mdlshapemodel.correspond import Kernel
+from mdlshapemodel.correspond import CorrespondenceState, Example, Kernel, PartState
 from mdlshapemodel.mdl import Objective
-from mdlshapemodel.sampling import sphere_grid
+from mdlshapemodel.sampling import icosphere, sphere_grid
 from mdlshapemodel.sphere import orientation
-from mdlshapemodel.strategies import (OptimisationSettings, Trace, _optimise_amplitude,
-                                      _optimise_pose, optimise)
+from mdlshapemodel.strategies import (STRATEGIES, Cancelled, OptimisationSettings, Trace,
+                                      _optimise_amplitude, _optimise_pose, _population_value,
+                                      multiresolution_levels, optimise)
 
-from synthetic import small_state
+from synthetic import small_maps, small_state
 
 
 def objectives(state):
@@ -123,3 +124,200 @@ def test_a_budget_too_short_to_help_keeps_the_initial_correspondence():
         final = optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), Trace())
         assert final <= start + 1e-9
         assert state.value() == pytest.approx(final, rel=1e-9)
+
+
+# ------------------------------------------------------------------------------------------------
+# The simplex strategies: multiresolution (III-D1) and stochastic multiscale (III-D2)
+
+SIMPLEX = {"multiresolution": dict(max_sweeps=1, simplex_evaluations=400, simplex_step=0.1),
+           "multiscale": dict(max_sweeps=4)}
+
+
+def run_simplex(strategy, seed=0, state=None, fixed_fraction=0.5, active=None, **options):
+    state = small_state() if state is None else state
+    settings = OptimisationSettings(strategy=strategy, max_time=1e6,
+                                    fixed_fraction=fixed_fraction,
+                                    **{**SIMPLEX[strategy], **options})
+    trace = Trace()
+    start = objectives(state)[1](state.covariance())
+    final = optimise(state, objectives(state), settings, np.random.default_rng(seed), trace,
+                     active=active)
+    return state, trace, start, final
+
+
+def two_part_state():
+    """Examples of two parts each (two of the small surfaces, the second shifted), 162 + 42 points."""
+    maps = small_maps(5)
+    grids = [sphere_grid(162), sphere_grid(42)]
+    examples = []
+    for k in range(4):
+        a, b = maps[k], maps[(k + 2) % 5]
+        parts = [PartState(a.vertices, a.faces, a.sphere, *grids[0]),
+                 PartState(b.vertices + [25.0, 0.0, 0.0], b.faces, b.sphere, *grids[1])]
+        examples.append(Example(f"case_{k}", parts))
+    return CorrespondenceState(examples, grids)
+
+
+def assert_unfolded(state):
+    for example in state.examples:
+        for part in example.parts:
+            assert np.all(orientation(part.positions, part.grid_triangles) > 0)
+
+
+def assert_steps_never_increase(trace):
+    """Per phase: a start row, then per level/iteration (step row, row after the rebuild).
+
+    A step never raises F; only the rebuild (new area weights on the new mean) may move it a little.
+    """
+    for phase in {row[4] for row in trace.rows}:
+        values = [row[3] for row in trace.rows if row[4] == phase]
+        assert len(values) % 2 == 1
+        for k in range(1, len(values), 2):
+            assert values[k] <= values[k - 1]
+        sweeps = [row[5] for row in trace.rows if row[4] == phase]
+        assert sweeps == [0] + [s for s in range(1, len(values) // 2 + 1) for _ in range(2)]
+
+
+def test_new_strategies_are_selectable():
+    assert "multiresolution" in STRATEGIES and "multiscale" in STRATEGIES
+
+
+def test_unknown_strategy_is_rejected_with_a_clear_error():
+    state = small_state()
+    settings = OptimisationSettings(strategy="simulated-annealing")
+    with pytest.raises(ValueError, match="unknown strategy 'simulated-annealing'.*multiscale"):
+        optimise(state, objectives(state), settings, np.random.default_rng(0), Trace())
+
+
+def test_population_value_matches_the_incremental_covariance():
+    state = small_state()
+    _, integrated = objectives(state)
+    state.objective = integrated
+    assert _population_value(state, state.shapes.copy()) == pytest.approx(state.value(), rel=1e-9)
+    part = state.examples[2].parts[0]
+    positions, points, _ = part.propose_kernel(Kernel(part.random_surface_parameter(
+        np.random.default_rng(0)), 0.2, 0.3))
+    shape = state.examples[2].pose.apply(points)
+    shapes = state.shapes.copy()
+    shapes[2] = shape
+    before = state.evaluations
+    assert _population_value(state, shapes) == pytest.approx(state.value(2, shape), rel=1e-9)
+    assert state.evaluations == before + 2
+
+
+def test_multiresolution_levels_halve_the_width_and_fill_in_between():
+    levels = multiresolution_levels(0.25, 3)
+    assert [omega for omega, _ in levels] == [0.25, 0.125, 0.0625]
+    assert [len(centres) for _, centres in levels] == [12, 30, 120]
+    everything = np.concatenate([centres for _, centres in levels])
+    assert np.allclose(everything, icosphere(2)[0])
+    # the level-1 kernels sit halfway between neighbouring level-0 kernels
+    first, second = levels[0][1], levels[1][1]
+    nearest = np.sort(np.arccos(np.clip(second @ first.T, -1, 1)), axis=1)[:, :2]
+    assert np.allclose(nearest[:, 0], nearest[:, 1])
+
+
+@pytest.mark.parametrize("strategy", ["multiresolution", "multiscale"])
+def test_simplex_strategies_lower_the_objective_and_keep_grids_unfolded(strategy):
+    started = time.perf_counter()
+    state, trace, start, final = run_simplex(strategy, fixed_fraction=0.0)
+    assert final < start - 1e-6
+    assert {row[4] for row in trace.rows} == {"integrated"}
+    assert state.value() == pytest.approx(final, rel=1e-9)
+    assert_unfolded(state)
+    assert_steps_never_increase(trace)
+    assert sum(len(p.kernels) for e in state.examples for p in e.parts) > 0
+    columns = np.array([row[:3] for row in trace.rows])
+    assert np.all(np.diff(columns, axis=0) >= 0)
+    assert time.perf_counter() - started < 20.0
+
+
+def test_multiresolution_places_kernels_of_the_level_widths_on_the_lattice():
+    state, trace, _, _ = run_simplex("multiresolution", fixed_fraction=0.0, max_sweeps=2,
+                                     simplex_evaluations=200)
+    levels = multiresolution_levels(0.25, 2)
+    lattice = {(omega, tuple(np.round(c, 12))) for omega, centres in levels for c in centres}
+    kernels = [k for e in state.examples for p in e.parts for k in p.kernels]
+    assert kernels
+    for kernel in kernels:
+        assert (kernel.omega, tuple(np.round(kernel.center, 12))) in lattice
+        assert kernel.amplitude > 0
+    assert max(row[5] for row in trace.rows) == 2
+
+
+@pytest.mark.parametrize("strategy", ["multiresolution", "multiscale"])
+def test_simplex_strategies_are_reproducible_for_a_seed(strategy):
+    a, _, _, final_a = run_simplex(strategy, seed=5, fixed_fraction=0.0, max_sweeps=2,
+                                   simplex_evaluations=60)
+    b, _, _, final_b = run_simplex(strategy, seed=5, fixed_fraction=0.0, max_sweeps=2,
+                                   simplex_evaluations=60)
+    assert final_a == final_b
+    for ea, eb in zip(a.examples, b.examples):
+        assert np.array_equal(ea.parts[0].positions, eb.parts[0].positions)
+    if strategy == "multiscale":  # the kernels are random: another seed, other kernels
+        c, _, _, _ = run_simplex(strategy, seed=6, fixed_fraction=0.0, max_sweeps=2,
+                                 simplex_evaluations=60)
+        assert any(not np.array_equal(ea.parts[0].positions, ec.parts[0].positions)
+                   for ea, ec in zip(a.examples, c.examples))
+
+
+@pytest.mark.parametrize("strategy", ["multiresolution", "multiscale"])
+def test_simplex_strategies_respect_active(strategy):
+    state = small_state()
+    grid, _ = sphere_grid(162)
+    state, _, start, final = run_simplex(strategy, state=state, active=[1, 3], fixed_fraction=0.0,
+                                         simplex_evaluations=400)
+    assert final <= start
+    for i, example in enumerate(state.examples):
+        if i in (1, 3):
+            continue
+        assert np.array_equal(example.parts[0].positions, grid)
+        assert example.parts[0].kernels == []
+    assert any(state.examples[i].parts[0].kernels for i in (1, 3))
+
+
+@pytest.mark.parametrize("strategy", ["multiresolution", "multiscale"])
+def test_simplex_strategies_optimise_every_part_of_multi_part_examples(strategy):
+    state = two_part_state()
+    state, trace, start, final = run_simplex(strategy, state=state, fixed_fraction=0.0,
+                                             simplex_evaluations=300)
+    assert final < start
+    assert_unfolded(state)
+    assert_steps_never_increase(trace)
+    for j in range(2):
+        assert any(e.parts[j].kernels for e in state.examples)
+    assert state.value() == pytest.approx(final, rel=1e-9)
+
+
+@pytest.mark.parametrize("strategy", ["multiresolution", "multiscale"])
+def test_simplex_strategies_honour_deadline_progress_and_checkpoint(strategy):
+    state = small_state()
+    calls, saved = [], []
+
+    def progress(fraction, message):
+        calls.append(message)
+
+    settings = OptimisationSettings(strategy=strategy, max_time=1.5, fixed_fraction=0.5)
+    started = time.perf_counter()
+    trace = Trace()
+    final = optimise(state, objectives(state), settings, np.random.default_rng(0), trace,
+                     progress, lambda: saved.append(state.value()))
+    # the simplex stops at the deadline itself; only the rebuild after it remains
+    assert time.perf_counter() - started < 1.5 + 3.0
+    assert calls and saved
+    assert {"fixed", "integrated"} <= {row[4] for row in trace.rows}
+    assert_steps_never_increase(Trace(rows=[r for r in trace.rows if r[4] != "restored-initial"]))
+    assert state.value() == pytest.approx(final, rel=1e-9)
+    assert_unfolded(state)
+
+    def cancel(fraction, message):
+        raise Cancelled
+
+    state = small_state()
+    before = [e.parts[0].positions.copy() for e in state.examples]
+    with pytest.raises(Cancelled):
+        optimise(state, objectives(state), OptimisationSettings(strategy=strategy, max_time=1e6),
+                 np.random.default_rng(0), Trace(), cancel)
+    # cancelled during the first simplex: nothing was committed
+    for example, positions in zip(state.examples, before):
+        assert np.array_equal(example.parts[0].positions, positions)

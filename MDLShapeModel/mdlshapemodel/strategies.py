@@ -8,7 +8,23 @@ Implemented here:
   kernel's amplitude (bounded Brent search over log10 A, the paper's suggested 1-D alternative to
   the simplex);
 - ``one-at-a-time-pose`` (III-D4): as above, then optimise the example's pose (rotation, translation,
-  scale) with the downhill simplex.
+  scale) with the downhill simplex;
+- ``multiresolution`` (III-D1): level k = 0, 1, ... places kernels of width omega_1 / 2**k
+  (omega_1 = 0.25, Table I) at the vertices of a coarse icosphere (12 at level 0, then the 30, 120,
+  480, ... vertices that the next subdivision adds halfway between the earlier ones), the same
+  positions in every active example and part; the amplitudes of one level, for all examples at
+  once, are optimised by the downhill simplex and then fixed;
+- ``multiscale`` (III-D2): each iteration draws one kernel per active example and part (position
+  uniform over the surface by area, width from the positive half of N(0, sigma_G)) and optimises
+  their amplitudes together by the downhill simplex; accepted kernels are fixed.
+
+In the simplex strategies a trial amplitude is clipped into [0, A_max(kernel)], A_max being the
+largest amplitude that flips no sampling-grid triangle when the kernel alone is applied to the
+positions at the start of the level/iteration (``PartState.feasible_amplitude``); a trial whose
+*composed* kernels still flip a grid triangle scores +inf (so every accepted warp is a
+homeomorphism on the grid). The kernels of one level are composed in a fixed order (the order of
+their centres). F of a trial is computed from the full covariance of the trial shapes
+(:func:`_population_value`), since all examples change at once.
 
 Each runs in two phases (III-B): the fixed-Delta objective (eq. 13) first, then the full objective
 (eq. 14), each until convergence or its share of the time budget.
@@ -24,10 +40,11 @@ from scipy.optimize import minimize, minimize_scalar
 
 from .correspond import CorrespondenceState, Kernel
 from .mdl import Objective
-from .pose import Pose, pose_from_parameters, weighted_centroid
-from .warps import random_width
+from .pose import Pose, centroid_size, pose_from_parameters, weighted_centroid
+from .sampling import icosphere
+from .warps import apply_symmetric_theta, random_width
 
-STRATEGIES = ("none", "one-at-a-time", "one-at-a-time-pose")
+STRATEGIES = ("none", "one-at-a-time", "one-at-a-time-pose", "multiresolution", "multiscale")
 
 
 class Cancelled(Exception):
@@ -62,6 +79,11 @@ class OptimisationSettings:
     patience: int = 3
     max_sweeps: int = 10_000
     pose_evaluations: int = 80
+    # the simplex strategies (III-D1, III-D2)
+    omega_1: float = 0.25          # multiresolution: width of the level-0 kernels (Table I)
+    max_levels: int = 4            # multiresolution: levels per phase (12, 30, 120, 480 kernels)
+    simplex_step: float = 0.25     # initial simplex edge, as a fraction of each kernel's A_max
+    simplex_evaluations: int = 0   # evaluations per simplex run; 0: 200 x its parameters
 
 
 def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kernel,
@@ -174,6 +196,237 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
             break
     return value
 
+# ------------------------------------------------------------------------------------------------
+# The simplex strategies (III-D1, III-D2): many kernels, of all examples, optimised together
+
+
+def _population_value(state: CorrespondenceState, shapes: np.ndarray) -> float:
+    """F of the population with *every* shape replaced by ``shapes`` (n_s, n_p, 3).
+
+    The same reduced covariance as :meth:`CorrespondenceState.covariance` (weighted Gram matrix about
+    the state's reference, double-centred, rescaled so that the mean keeps ``target_size``), but
+    computed from scratch: O(n_s^2 n_p), as several rows change at once.
+    """
+    centred = (shapes - state.reference) * np.sqrt(state.weights)[None, :, None]
+    flat = centred.reshape(len(shapes), -1)
+    gram = flat @ flat.T
+    row_mean = gram.mean(axis=1)
+    covariance = gram - row_mean[:, None] - row_mean[None, :] + row_mean.mean()
+    factor = state.target_size / centroid_size(shapes.sum(axis=0) / len(shapes), state.weights)
+    state.evaluations += 1
+    return state.objective(covariance * factor ** 2)
+
+
+@dataclass
+class _Block:
+    """The new kernels of part j of example i (composed in this order) and their amplitude bounds."""
+
+    i: int
+    j: int
+    centers: list
+    omegas: list
+    upper: np.ndarray
+
+
+class _OutOfTime(Exception):
+    pass
+
+
+def _block(state: CorrespondenceState, i: int, j: int, centers, omegas,
+           max_amplitude: float, min_amplitude: float = 1e-7) -> _Block | None:
+    """The kernels of part j of example i whose feasible amplitude is not negligible (None if none)."""
+    part = state.examples[i].parts[j]
+    upper = np.array([part.feasible_amplitude(c, w, max_amplitude) for c, w in zip(centers, omegas)])
+    keep = upper > min_amplitude
+    if not np.any(keep):
+        return None
+    return _Block(i, j, [c for c, k in zip(centers, keep) if k],
+                  [float(w) for w, k in zip(omegas, keep) if k], upper[keep])
+
+
+def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: float,
+                         settings: OptimisationSettings, deadline: float, progress=None,
+                         label: str = "") -> float:
+    """Downhill simplex over the amplitudes of all ``blocks`` at once; commits when F falls.
+
+    Trial amplitudes are clipped into [0, A_max] per kernel; a trial whose composed kernels flip a
+    grid triangle of its part scores +inf. Stops at the simplex's own tolerance, after
+    ``settings.simplex_evaluations`` evaluations (0: 200 per parameter) or at ``deadline``; the best
+    trial seen is kept. Returns the new value of F.
+    """
+    if not blocks:
+        return current
+    upper = np.concatenate([b.upper for b in blocks])
+    offsets = np.cumsum([0] + [len(b.upper) for b in blocks])
+    by_example: dict = {}
+    for k, b in enumerate(blocks):
+        by_example.setdefault(b.i, []).append(k)
+    best = {"value": current, "trial": None}
+    count = [0]
+
+    def trial_of(x: np.ndarray):
+        amplitudes = np.clip(x, 0.0, upper)
+        shapes = state.shapes.copy()
+        parts = []
+        for i, ks in by_example.items():
+            example = state.examples[i]
+            replace = {}
+            for k in ks:
+                b = blocks[k]
+                part = example.parts[b.j]
+                kernels = [Kernel(c, w, float(a)) for c, w, a in
+                           zip(b.centers, b.omegas, amplitudes[offsets[k]:offsets[k + 1]]) if a > 0]
+                if not kernels:
+                    continue
+                positions = part.positions
+                for kernel in kernels:
+                    positions = apply_symmetric_theta(positions, kernel.center, kernel.amplitude,
+                                                      kernel.omega)
+                if part.folds(positions):
+                    return None, None
+                points, hint = part.sample(positions)
+                replace[b.j] = points
+                parts.append((i, part, kernels, positions, points, hint))
+            if replace:
+                shapes[i] = example.pose.apply(example.raw_points(replace))
+        return shapes, parts
+
+    def objective(x: np.ndarray) -> float:
+        shapes, parts = trial_of(x)
+        if shapes is None:
+            return np.inf
+        value = _population_value(state, shapes)
+        if value < best["value"]:
+            best["value"], best["trial"] = value, parts
+        count[0] += 1
+        if progress is not None and count[0] % 100 == 0:
+            progress(None, f"{label}, {count[0]} evaluations, F = {best['value']:.3f}")
+        if time.perf_counter() > deadline:
+            raise _OutOfTime
+        return value
+
+    n = len(upper)
+    simplex = np.vstack([np.zeros(n), np.diag(settings.simplex_step * upper)])
+    max_evaluations = settings.simplex_evaluations or 200 * n
+    try:
+        minimize(objective, np.zeros(n), method="Nelder-Mead",
+                 options={"initial_simplex": simplex, "maxfev": max_evaluations,
+                          "xatol": 1e-4 * settings.max_amplitude, "fatol": 1e-6})
+    except _OutOfTime:
+        pass
+    if best["trial"] is None:
+        return current
+    touched = set()
+    for i, part, kernels, positions, points, hint in best["trial"]:
+        part.kernels.extend(kernels[:-1])
+        part.commit(kernels[-1], positions, points, hint)
+        touched.add(i)
+    for i in sorted(touched):
+        state.commit_shape(i)
+    return best["value"]
+
+
+def _active_parts(state: CorrespondenceState, active) -> list:
+    active = range(state.n_shapes) if active is None else sorted(int(i) for i in active)
+    return [(i, j) for i in active for j in range(len(state.examples[i].parts))]
+
+
+def _end_of_iteration(state: CorrespondenceState, trace: Trace, phase: str, sweep: int,
+                      checkpoint) -> float:
+    """New area weights on the new mean and fresh sums, as between the sweeps of one_at_a_time."""
+    state.rebuild()
+    value = state.value()
+    trace.record(state, value, phase, sweep)
+    if checkpoint is not None:
+        checkpoint()
+    return value
+
+
+def multiresolution_levels(omega_1: float, levels: int) -> list:
+    """[(omega, centres)] of III-D1: level k has kernels of width omega_1 / 2**k at the vertices that
+    the k-th subdivision of the icosahedron adds (level 0: its 12 vertices), i.e. halfway between
+    the kernels of the earlier levels."""
+    result = []
+    previous = 0
+    for k in range(levels):
+        points, _ = icosphere(k)
+        result.append((omega_1 / 2.0 ** k, points[previous:]))
+        previous = len(points)
+    return result
+
+
+def multiresolution(state: CorrespondenceState, objective: Objective,
+                    settings: OptimisationSettings, trace: Trace, phase: str, deadline: float,
+                    progress=None, checkpoint=None, active=None) -> float:
+    """III-D1: one downhill simplex per level over the amplitudes of that level's kernels in all
+    active examples and parts; the level's amplitudes are then fixed. Stops after
+    ``min(max_levels, max_sweeps)`` levels or at ``deadline`` (the ``sweep`` of the trace is the
+    level, from 1)."""
+    state.objective = objective
+    state.rebuild()
+    value = state.value()
+    trace.record(state, value, phase, 0)
+    parts = _active_parts(state, active)
+    levels = multiresolution_levels(settings.omega_1, min(settings.max_levels, settings.max_sweeps))
+    for level, (omega, centers) in enumerate(levels, start=1):
+        blocks = [_block(state, i, j, centers, [omega] * len(centers), settings.max_amplitude)
+                  for i, j in parts]
+        blocks = [b for b in blocks if b is not None]
+        label = f"{phase}: level {level} ({sum(len(b.upper) for b in blocks)} kernels, " \
+                f"omega = {omega:g})"
+        value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label)
+        trace.record(state, value, phase, level)
+        if progress is not None:
+            progress(None, f"{label}: F = {value:.3f}")
+        value = _end_of_iteration(state, trace, phase, level, checkpoint)
+        if time.perf_counter() > deadline:
+            break
+    return value
+
+
+def multiscale(state: CorrespondenceState, objective: Objective, settings: OptimisationSettings,
+               rng: np.random.Generator, trace: Trace, phase: str, deadline: float,
+               progress=None, checkpoint=None, active=None) -> float:
+    """III-D2: each iteration draws one kernel per active example and part (centre uniform over the
+    surface by area, width from the positive half of N(0, sigma_G)) and optimises their amplitudes
+    together by the downhill simplex; accepted kernels are fixed.
+
+    Converged as in :func:`one_at_a_time`, an iteration playing the part of a sweep: for
+    ``patience`` consecutive iterations, the gain was below ``tolerance`` times the total gain of
+    this phase; or ``max_sweeps`` iterations, or ``deadline``.
+    """
+    state.objective = objective
+    state.rebuild()
+    value = state.value()
+    start_value = value
+    trace.record(state, value, phase, 0)
+    parts = _active_parts(state, active)
+    quiet = 0
+    for iteration in range(1, settings.max_sweeps + 1):
+        before = value
+        blocks = []
+        for i, j in parts:
+            part = state.examples[i].parts[j]
+            center = part.random_surface_parameter(rng)
+            omega = random_width(rng, settings.sigma_g)
+            block = _block(state, i, j, [center], [omega], settings.max_amplitude)
+            if block is not None:
+                blocks.append(block)
+        label = f"{phase}: iteration {iteration}"
+        value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label)
+        trace.record(state, value, phase, iteration)
+        if progress is not None:
+            progress(None, f"{label}, F = {value:.3f}")
+        value = _end_of_iteration(state, trace, phase, iteration, checkpoint)
+        if time.perf_counter() > deadline:
+            break
+        gained = before - value
+        total = start_value - value
+        quiet = quiet + 1 if gained <= settings.tolerance * max(total, 1e-12) else 0
+        if quiet >= settings.patience:
+            break
+    return value
+
 
 def optimise(state: CorrespondenceState, objectives: tuple, settings: OptimisationSettings,
              rng: np.random.Generator, trace: Trace, progress=None, checkpoint=None,
@@ -204,18 +457,27 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         trace.record(state, value, "integrated", 0)
         return value
     if settings.strategy not in STRATEGIES:
-        raise ValueError(f"unknown strategy {settings.strategy!r}")
-    with_pose = settings.strategy == "one-at-a-time-pose"
+        raise ValueError(f"unknown strategy {settings.strategy!r}; "
+                         f"choose one of {', '.join(STRATEGIES)}")
+
+    def phase(objective, name, deadline):
+        if settings.strategy == "multiresolution":
+            return multiresolution(state, objective, settings, trace, name, deadline, progress,
+                                   checkpoint, active)
+        if settings.strategy == "multiscale":
+            return multiscale(state, objective, settings, rng, trace, name, deadline, progress,
+                              checkpoint, active)
+        return one_at_a_time(state, objective, settings, rng, trace, name, deadline,
+                             settings.strategy == "one-at-a-time-pose", progress, checkpoint,
+                             active)
+
     state.objective = integrated
     initial_value = state.value()
     initial = state.snapshot()
     try:
         if settings.fixed_fraction > 0:
-            one_at_a_time(state, fixed, settings, rng, trace, "fixed",
-                          start + settings.fixed_fraction * settings.max_time, with_pose,
-                          progress, checkpoint, active)
-        value = one_at_a_time(state, integrated, settings, rng, trace, "integrated",
-                              start + settings.max_time, with_pose, progress, checkpoint, active)
+            phase(fixed, "fixed", start + settings.fixed_fraction * settings.max_time)
+        value = phase(integrated, "integrated", start + settings.max_time)
     finally:
         state.objective = integrated
     if value > initial_value:
