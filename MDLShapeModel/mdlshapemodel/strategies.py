@@ -44,7 +44,8 @@ from .pose import Pose, centroid_size, pose_from_parameters, weighted_centroid
 from .sampling import icosphere
 from .warps import apply_symmetric_theta, random_width
 
-STRATEGIES = ("none", "one-at-a-time", "one-at-a-time-pose", "multiresolution", "multiscale")
+STRATEGIES = ("none", "one-at-a-time", "one-at-a-time-pose", "multiresolution", "multiscale",
+              "fast")
 
 
 class Cancelled(Exception):
@@ -464,6 +465,11 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         if settings.strategy == "multiresolution":
             return multiresolution(state, objective, settings, trace, name, deadline, progress,
                                    checkpoint, active)
+        if settings.strategy == "fast":
+            from .fast import optimise_fast
+
+            return optimise_fast(state, objective, settings, trace, name, deadline, progress,
+                                 checkpoint, active)
         if settings.strategy == "multiscale":
             return multiscale(state, objective, settings, rng, trace, name, deadline, progress,
                               checkpoint, active)
