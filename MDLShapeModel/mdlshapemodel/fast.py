@@ -20,6 +20,7 @@ from scipy.optimize import minimize
 from .correspond import CorrespondenceState
 from .fields import FieldBasis
 from .pose import Pose, rotation_from_vector, weighted_centroid
+from .strategies import stalled
 
 
 def gradient_at(state: CorrespondenceState, shapes: np.ndarray) -> tuple[float, np.ndarray]:
@@ -208,6 +209,6 @@ def optimise_fast(state: CorrespondenceState, objective, settings, trace,
                 checkpoint()
             if time.perf_counter() > deadline:
                 return value
-            if before - value <= settings.tolerance * max(start_value - value, 1e-12):
+            if stalled(before, value, start_value, settings):
                 break   # this level has stopped paying: go finer
     return value

@@ -87,6 +87,12 @@ class OptimisationSettings:
     simplex_evaluations: int = 0   # evaluations per simplex run; 0: 200 x its parameters
 
 
+def stalled(before: float, value: float, start_value: float, settings: OptimisationSettings
+            ) -> bool:
+    """Whether the last sweep gained less than ``tolerance`` times the phase's total gain."""
+    return before - value <= settings.tolerance * max(start_value - value, 1e-12)
+
+
 def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kernel,
                         current: float, max_amplitude: float, min_amplitude: float = 1e-7
                         ) -> float:
@@ -190,9 +196,7 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
             checkpoint()
         if time.perf_counter() > deadline:
             break
-        gained = before - value
-        total = start_value - value
-        quiet_sweeps = quiet_sweeps + 1 if gained <= settings.tolerance * max(total, 1e-12) else 0
+        quiet_sweeps = quiet_sweeps + 1 if stalled(before, value, start_value, settings) else 0
         if quiet_sweeps >= settings.patience:
             break
     return value
@@ -421,9 +425,7 @@ def multiscale(state: CorrespondenceState, objective: Objective, settings: Optim
         value = _end_of_iteration(state, trace, phase, iteration, checkpoint)
         if time.perf_counter() > deadline:
             break
-        gained = before - value
-        total = start_value - value
-        quiet = quiet + 1 if gained <= settings.tolerance * max(total, 1e-12) else 0
+        quiet = quiet + 1 if stalled(before, value, start_value, settings) else 0
         if quiet >= settings.patience:
             break
     return value
