@@ -245,3 +245,15 @@ def test_jacobian_matches_finite_differences_along_the_sphere(rng):
         np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-6)
     # a radial motion of u does not move the sample
     np.testing.assert_allclose(np.einsum("ndk,nk->nd", jacobian, queries), 0.0, atol=1e-10)
+
+
+def test_jacobian_transpose_product_equals_the_jacobian(rng):
+    points, faces = icosphere(2)
+    locator = SphereLocator(points, faces)
+    values = rng.normal(size=(len(points), 3))
+    queries = random_unit_vectors(rng, 100)
+    face, _ = locator.locate(queries)
+    gradient = rng.normal(size=(100, 3))
+    expected = np.einsum("ndk,nd->nk", locator.jacobian(values, face, queries), gradient)
+    np.testing.assert_allclose(locator.jacobian_transpose(values, face, queries, gradient),
+                               expected, rtol=1e-10, atol=1e-12)

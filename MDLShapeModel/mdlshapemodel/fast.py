@@ -117,8 +117,7 @@ class _Round:
             for j, (positions, points, hint, c) in enumerate(parts):
                 part = self.state.examples[i].parts[j]
                 rows = self.state.part_slices[j]
-                jacobian = part.locator.jacobian(part.vertices, hint, positions)
-                du = np.einsum("kdl,kd->kl", jacobian, dy[rows])
+                du = part.locator.jacobian_transpose(part.vertices, hint, positions, dy[rows])
                 result[self.slices[i, j]] = self.bases[i, j].coefficient_gradient(c, du).ravel()
             # pose parameters about the centroid: X = e^s R(w) (X0 - c) + c + size * t
             p = x[self.slices[i, "pose"]]

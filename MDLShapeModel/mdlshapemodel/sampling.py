@@ -174,6 +174,17 @@ class SphereLocator:
         db = np.einsum("nij,njk->nik", projector, inverse) / total[:, None, None]
         return np.einsum("njd,njk->ndk", values[self.faces[face]], db)
 
+    def jacobian_transpose(self, values: np.ndarray, face: np.ndarray, points: np.ndarray,
+                           gradient: np.ndarray) -> np.ndarray:
+        """(dS/du)^T g at located points, (n, 3), without forming dS/du (see :meth:`jacobian`):
+        M^-T (I - 1 b^T) V g / s."""
+        inverse = self.inverse[face]
+        raw = (inverse * points[:, None, :]).sum(axis=2)
+        total = raw.sum(axis=1)
+        corner = (values[self.faces[face]] * gradient[:, None, :]).sum(axis=2)   # V g: (n, 3)
+        corner -= ((raw * corner).sum(axis=1) / total)[:, None]                   # (I - 1 b^T)
+        return (inverse * corner[:, :, None]).sum(axis=1) / total[:, None]
+
     def evaluate(self, values: np.ndarray, points: np.ndarray, hint: np.ndarray | None = None):
         """S(u): per-vertex ``values`` at parameter points; returns (values, faces)."""
         face, coords = self.locate(points, hint)
