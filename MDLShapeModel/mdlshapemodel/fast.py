@@ -20,7 +20,7 @@ from scipy.optimize import minimize
 from .correspond import CorrespondenceState
 from .fields import FieldBasis
 from .pose import Pose, rotation_from_vector, weighted_centroid
-from .strategies import stalled
+from .strategies import stalled, start_phase
 
 
 def gradient_at(state: CorrespondenceState, shapes: np.ndarray) -> tuple[float, np.ndarray]:
@@ -144,8 +144,8 @@ class _Round:
 
 
 def optimise_round(state: CorrespondenceState, objective, active, level: int,
-                   max_iterations: int = 30, support: float = 2.0) -> tuple[float, int]:
-    """One L-BFGS-B round at one field level; returns (F after, objective evaluations)."""
+                   max_iterations: int = 30, support: float = 2.0) -> float:
+    """One L-BFGS-B round at one field level; returns F after it."""
     state.objective = objective
     round_ = _Round(state, active, level, support)
     cache = {}
@@ -174,7 +174,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
         round_.commit(trials)
     else:
         state.rebuild()
-    return float(state.value()), state.evaluations
+    return float(state.value())
 
 
 def _folds(state: CorrespondenceState, trials) -> bool:
@@ -190,17 +190,13 @@ def optimise_fast(state: CorrespondenceState, objective, settings, trace,
                   levels=(0, 1, 2, 3), rounds_per_level: int = 3) -> float:
     """Coarse-to-fine rounds until the gain stalls (``settings.tolerance``) or ``deadline``."""
     active = range(state.n_shapes) if active is None else active
-    state.objective = objective
-    state.rebuild()
-    value = state.value()
-    start_value = value
-    trace.record(state, value, phase, 0)
+    value = start_value = start_phase(state, objective, trace, phase)
     sweep = 0
     for level in levels:
         for _ in range(rounds_per_level):
             sweep += 1
             before = value
-            value, _ = optimise_round(state, objective, active, level)
+            value = optimise_round(state, objective, active, level)
             trace.record(state, value, phase, sweep)
             if progress is not None:
                 progress(None, f"{phase}: level {level}, round {sweep}, F = {value:.3f}")

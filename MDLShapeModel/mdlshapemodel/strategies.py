@@ -165,11 +165,7 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
     Converged means: for ``patience`` consecutive sweeps, the sweep lowered F by less than
     ``tolerance`` times the total decrease of this phase so far.
     """
-    state.objective = objective
-    state.rebuild()
-    value = state.value()
-    start_value = value
-    trace.record(state, value, phase, 0)
+    value = start_value = start_phase(state, objective, trace, phase)
     quiet_sweeps = 0
     active = np.arange(state.n_shapes) if active is None else np.asarray(active)
     for sweep in range(1, settings.max_sweeps + 1):
@@ -336,9 +332,23 @@ def _active_parts(state: CorrespondenceState, active) -> list:
     return [(i, j) for i in active for j in range(len(state.examples[i].parts))]
 
 
+def start_phase(state: CorrespondenceState, objective: Objective, trace: Trace, phase: str
+                ) -> float:
+    """Set the phase's objective, rebuild the state, record and return the starting F."""
+    state.objective = objective
+    state.rebuild()
+    value = state.value()
+    trace.record(state, value, phase, 0)
+    return value
+
+
 def _end_of_iteration(state: CorrespondenceState, trace: Trace, phase: str, sweep: int,
-                      checkpoint) -> float:
-    """New area weights on the new mean and fresh sums, as between the sweeps of one_at_a_time."""
+                      value: float, label: str, progress, checkpoint) -> float:
+    """Record the step's F, report it, then new area weights on the new mean and fresh sums (as
+    between the sweeps of one_at_a_time); returns F after the rebuild."""
+    trace.record(state, value, phase, sweep)
+    if progress is not None:
+        progress(None, f"{label}: F = {value:.3f}")
     state.rebuild()
     value = state.value()
     trace.record(state, value, phase, sweep)
@@ -367,10 +377,7 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
     active examples and parts; the level's amplitudes are then fixed. Stops after
     ``min(max_levels, max_sweeps)`` levels or at ``deadline`` (the ``sweep`` of the trace is the
     level, from 1)."""
-    state.objective = objective
-    state.rebuild()
-    value = state.value()
-    trace.record(state, value, phase, 0)
+    value = start_phase(state, objective, trace, phase)
     parts = _active_parts(state, active)
     levels = multiresolution_levels(settings.omega_1, min(settings.max_levels, settings.max_sweeps))
     for level, (omega, centers) in enumerate(levels, start=1):
@@ -380,10 +387,7 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
         label = f"{phase}: level {level} ({sum(len(b.upper) for b in blocks)} kernels, " \
                 f"omega = {omega:g})"
         value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label)
-        trace.record(state, value, phase, level)
-        if progress is not None:
-            progress(None, f"{label}: F = {value:.3f}")
-        value = _end_of_iteration(state, trace, phase, level, checkpoint)
+        value = _end_of_iteration(state, trace, phase, level, value, label, progress, checkpoint)
         if time.perf_counter() > deadline:
             break
     return value
@@ -400,11 +404,7 @@ def multiscale(state: CorrespondenceState, objective: Objective, settings: Optim
     ``patience`` consecutive iterations, the gain was below ``tolerance`` times the total gain of
     this phase; or ``max_sweeps`` iterations, or ``deadline``.
     """
-    state.objective = objective
-    state.rebuild()
-    value = state.value()
-    start_value = value
-    trace.record(state, value, phase, 0)
+    value = start_value = start_phase(state, objective, trace, phase)
     parts = _active_parts(state, active)
     quiet = 0
     for iteration in range(1, settings.max_sweeps + 1):
@@ -419,10 +419,8 @@ def multiscale(state: CorrespondenceState, objective: Objective, settings: Optim
                 blocks.append(block)
         label = f"{phase}: iteration {iteration}"
         value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label)
-        trace.record(state, value, phase, iteration)
-        if progress is not None:
-            progress(None, f"{label}, F = {value:.3f}")
-        value = _end_of_iteration(state, trace, phase, iteration, checkpoint)
+        value = _end_of_iteration(state, trace, phase, iteration, value, label, progress,
+                                  checkpoint)
         if time.perf_counter() > deadline:
             break
         quiet = quiet + 1 if stalled(before, value, start_value, settings) else 0
