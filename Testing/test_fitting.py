@@ -84,7 +84,7 @@ def test_held_back_error_is_close_to_its_leave_one_out_error(models, fitted):
     model, result = fitted
     # the held-back case's leave-one-out error in the model of all seven, M = 1..3
     index = full.model.names.index(f"case_{HELD_BACK}")
-    shapes = full.model.mean[None] + np.tensordot(full.model.scores, full.model.modes, axes=1)
+    shapes = full.model.instance(full.model.scores)
     per_case = generalization(shapes, full.model.weights, 3)["squared_per_case"][index]
     fitted_errors = result.squared_error[1:4]
     assert np.all(fitted_errors < 3.0 * per_case + 0.05)

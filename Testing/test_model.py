@@ -82,6 +82,11 @@ def test_project_inverts_instance(rng):
     # the instance is mean + sum_m b_m mode_m
     expected = model.mean + sum(bm * mode for bm, mode in zip(b, model.modes))
     np.testing.assert_allclose(model.instance(b), expected, atol=1e-12)
+    # a batch of score vectors gives one shape each; the training scores give the training shapes
+    batch = model.instance(np.stack([b, 0.5 * b]))
+    np.testing.assert_allclose(batch[0], expected, atol=1e-12)
+    np.testing.assert_allclose(batch[1], model.instance(0.5 * b), atol=1e-12)
+    np.testing.assert_allclose(model.instance(model.scores), shapes, atol=1e-9)
 
 
 def test_projection_is_the_weighted_least_squares_fit(rng):

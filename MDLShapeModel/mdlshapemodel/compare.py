@@ -47,7 +47,7 @@ def load_population(output, label: str | None = None) -> Population:
         if metrics.exists():
             strategy = json.loads(metrics.read_text()).get("strategy", strategy)
         label = f"{folder.name} ({strategy})" if strategy else folder.name
-    shapes = model.mean[None] + np.tensordot(model.scores, model.modes, axes=1)
+    shapes = model.instance(model.scores)
     return Population(label, list(model.names), shapes, model.weights)
 
 

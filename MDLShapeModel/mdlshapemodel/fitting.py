@@ -110,7 +110,7 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     # the model's parameterization: the mean mesh, sampled at the grid points
     reference = SphereMap(model.mean, model.triangles, model.parameters)
     new_map = align_parameterizations([reference, case.map])[1]
-    training = model.mean[None] + np.tensordot(model.scores, model.modes, axes=1)
+    training = model.instance(model.scores)
     examples = [FixedExample(name, shape) for name, shape in zip(model.names, training)]
     examples.append(Example(case.name, [PartState(new_map.vertices, new_map.faces,
                                                   new_map.sphere, model.parameters,

@@ -110,9 +110,10 @@ class ShapeModel:
         return len(self.variances)
 
     def instance(self, scores: np.ndarray) -> np.ndarray:
-        """Shape for the first len(scores) mode scores."""
+        """Shape for scores on the first modes: (m,) -> (n_p, 3); a batch (k, m) -> (k, n_p, 3)
+        (e.g. ``instance(model.scores)`` gives back the training shapes)."""
         scores = np.asarray(scores, dtype=np.float64)
-        return self.mean + np.tensordot(scores, self.modes[:len(scores)], axes=1)
+        return self.mean + np.tensordot(scores, self.modes[:scores.shape[-1]], axes=1)
 
     def project(self, shape: np.ndarray, n_modes: int | None = None) -> np.ndarray:
         """Scores of a corresponded, aligned shape (weighted least squares = projection)."""
