@@ -46,7 +46,6 @@ class FitResult:
     distance_error: np.ndarray      # (n_modes + 1,) sum_k w_k |x_k - x'_k(M)|, mm
     objective: dict = field(default_factory=dict)
     notes: dict = field(default_factory=dict)
-    mirrored: bool = False
 
     def reconstruction(self, model: ShapeModel, n_modes: int | None = None,
                        physical: bool = True) -> np.ndarray:
@@ -137,15 +136,16 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     aligned = to_model.apply(raw)
     scores = model.project(aligned)
     squared, distance = reconstruction_errors(model, aligned, scores)
-    mirrored = bool(case.notes.get("mirrored"))
-    physical = raw * np.array([-1.0, 1.0, 1.0]) if mirrored else raw
-    if mirrored:  # the pose acts on the mirrored copy: reflect points before it
-        to_model = to_model.compose(Pose(1.0, np.diag([-1.0, 1.0, 1.0]), np.zeros(3)))
+    physical = raw
+    if case.notes.get("mirrored"):  # the pose acts on the mirrored copy: reflect points first
+        reflection = Pose(1.0, np.diag([-1.0, 1.0, 1.0]), np.zeros(3))
+        physical = reflection.apply(raw)
+        to_model = to_model.compose(reflection)
     return FitResult(case.name, str(case.path), physical, aligned, to_model, scores, squared,
                      distance, {"initial": float(initial), "final": float(final),
                                 "evaluations": state.evaluations,
                                 "seconds": time.perf_counter() - started},
-                     dict(case.notes), mirrored)
+                     dict(case.notes))
 
 
 def reconstruction_errors(model: ShapeModel, aligned: np.ndarray, scores: np.ndarray):
