@@ -215,3 +215,23 @@ def test_scaling_term_of_the_gradient(state):
     along = np.sum(data * state.shapes)
     assert abs(along) > 1e-3 * np.linalg.norm(data) * np.linalg.norm(state.shapes)
     assert np.sum(grad * state.shapes) == pytest.approx(0.0, abs=1e-9 * abs(along))
+
+
+def test_trial_shapes_replace_every_shape_and_restore_the_state():
+    state = small_state()
+    state.objective = Objective("fixed", 30.0, delta=0.1)
+    before = state.value()
+    gram = state.gram.copy()
+    trial = state.shapes * 1.1 + 0.3
+    trial[2] = state.shapes[2]
+    with state.trial_shapes(trial):
+        replaced = state.value()
+    np.testing.assert_array_equal(state.gram, gram)
+    assert state.value() == before
+    one = state.shapes.copy()  # one shape replaced: the same F as the incremental covariance
+    one[1] = trial[1]
+    with state.trial_shapes(one):
+        assert state.value() == pytest.approx(state.objective(state.covariance()), rel=1e-12)
+        full = state.value()
+    assert full == pytest.approx(state.value(1, trial[1]), rel=1e-9)
+    assert replaced != before

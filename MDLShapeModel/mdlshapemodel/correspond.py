@@ -16,6 +16,7 @@ Procrustes alignment (``target_size``); the rescaling is folded into the poses a
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -293,6 +294,20 @@ class CorrespondenceState:
         size_squared = centroid_size(mean, self.weights) ** 2
         return (-2.0 / self.n_shapes * float(np.sum(grad_cov * covariance)) / size_squared
                 * self.weights[:, None] * offset)
+
+    @contextlib.contextmanager
+    def trial_shapes(self, shapes: np.ndarray):
+        """Within the block, :meth:`value`, :meth:`covariance` and :meth:`shape_gradient` see
+        *every* example's shape replaced by ``shapes`` (n_s, n_p, 3): the Gram matrix is rebuilt
+        from scratch about the same reference, O(n_s^2 n_p). The state is restored afterwards."""
+        saved = self.shapes, self.sum_shapes, self.gram
+        centred = ((shapes - self.reference) * np.sqrt(self.weights)[None, :, None]).reshape(
+            len(shapes), -1)
+        self.shapes, self.sum_shapes, self.gram = shapes, shapes.sum(axis=0), centred @ centred.T
+        try:
+            yield self
+        finally:
+            self.shapes, self.sum_shapes, self.gram = saved
 
     def commit_shape(self, i: int):
         """Record that example i's parts or pose changed: update X, K and the sums."""

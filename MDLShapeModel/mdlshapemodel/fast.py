@@ -25,14 +25,8 @@ from .strategies import stalled, start_phase
 
 def gradient_at(state: CorrespondenceState, shapes: np.ndarray) -> tuple[float, np.ndarray]:
     """F and dF/dX (n_s, n_p, 3) for trial shapes of every example (the state is unchanged)."""
-    saved = state.shapes, state.sum_shapes, state.gram
-    centred = ((shapes - state.reference) * np.sqrt(state.weights)[None, :, None]).reshape(
-        len(shapes), -1)
-    state.shapes, state.sum_shapes, state.gram = shapes, shapes.sum(axis=0), centred @ centred.T
-    try:
+    with state.trial_shapes(shapes):
         return state.shape_gradient()
-    finally:
-        state.shapes, state.sum_shapes, state.gram = saved
 
 
 def _cross_matrix(v: np.ndarray) -> np.ndarray:

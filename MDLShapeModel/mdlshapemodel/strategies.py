@@ -40,7 +40,7 @@ from scipy.optimize import minimize, minimize_scalar
 
 from .correspond import CorrespondenceState, Kernel
 from .mdl import Objective
-from .pose import Pose, centroid_size, pose_from_parameters, weighted_centroid
+from .pose import Pose, pose_from_parameters, weighted_centroid
 from .sampling import icosphere
 from .warps import apply_symmetric_theta, random_width
 
@@ -202,20 +202,9 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
 
 
 def _population_value(state: CorrespondenceState, shapes: np.ndarray) -> float:
-    """F of the population with *every* shape replaced by ``shapes`` (n_s, n_p, 3).
-
-    The same reduced covariance as :meth:`CorrespondenceState.covariance` (weighted Gram matrix about
-    the state's reference, double-centred, rescaled so that the mean keeps ``target_size``), but
-    computed from scratch: O(n_s^2 n_p), as several rows change at once.
-    """
-    centred = (shapes - state.reference) * np.sqrt(state.weights)[None, :, None]
-    flat = centred.reshape(len(shapes), -1)
-    gram = flat @ flat.T
-    row_mean = gram.mean(axis=1)
-    covariance = gram - row_mean[:, None] - row_mean[None, :] + row_mean.mean()
-    factor = state.target_size / centroid_size(shapes.sum(axis=0) / len(shapes), state.weights)
-    state.evaluations += 1
-    return state.objective(covariance * factor ** 2)
+    """F of the population with *every* shape replaced by ``shapes`` (n_s, n_p, 3)."""
+    with state.trial_shapes(shapes):
+        return state.value()
 
 
 @dataclass
