@@ -27,6 +27,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
+from . import hotloops
 from .sampling import icosphere
 
 #: max |g'(d)| of the Wendland C^2 function on [0, 1] (at d = 1/4: 20 d (1 - d)^3 = 135/64)
@@ -60,15 +61,15 @@ class FieldBasis:
     def __post_init__(self):
         self.centres = np.asarray(self.centres, dtype=np.float64)
         self.points = np.asarray(self.points, dtype=np.float64)
-        tree = cKDTree(self.centres)
-        pairs = tree.query_ball_point(self.points, self.radius)
-        rows = np.repeat(np.arange(len(self.points)), [len(p) for p in pairs])
-        cols = np.concatenate([np.asarray(p, dtype=np.int64) for p in pairs]) if len(rows) else \
-            np.zeros(0, dtype=np.int64)
+        # the bumps reaching each point, found per centre (few centres, many points)
+        pairs = cKDTree(self.points).query_ball_point(self.centres, self.radius)
+        cols = np.repeat(np.arange(len(self.centres)), [len(p) for p in pairs])
+        rows = np.concatenate([np.asarray(p, dtype=np.int64) for p in pairs])
         distance = np.linalg.norm(self.points[rows] - self.centres[cols], axis=1) / self.radius
         #: sparse (n, n_c) matrix of bump values g_j(u_k)
         self.weights = sparse.csr_matrix((wendland(distance), (rows, cols)),
                                          shape=(len(self.points), len(self.centres)))
+        self.weights.sort_indices()
         self.overlap = int(np.max(np.diff(self.weights.indptr))) if len(rows) else 0
 
     @classmethod
@@ -101,8 +102,12 @@ class FieldBasis:
 
     def apply(self, coefficients: np.ndarray) -> np.ndarray:
         """phi(u_k) = (u_k + v_k) / |u_k + v_k|."""
-        moved = self.points + self.displacement(coefficients)
-        return moved / np.linalg.norm(moved, axis=1, keepdims=True)
+        return self._moved(coefficients)[0]
+
+    def _moved(self, coefficients: np.ndarray):
+        w = self.weights
+        return hotloops.field_apply(w.indptr, w.indices, w.data, self.points,
+                                    np.ascontiguousarray(coefficients, dtype=np.float64))
 
     def coefficient_gradient(self, coefficients: np.ndarray, position_gradient: np.ndarray
                              ) -> np.ndarray:
@@ -111,10 +116,8 @@ class FieldBasis:
         phi = m / |m| with m = u + (I - u u^T) W c: dphi/dm = (I - phi phi^T) / |m|, and
         dm/dc_j = g_j(u) (I - u u^T).
         """
-        moved = self.points + self.displacement(coefficients)
-        norm = np.linalg.norm(moved, axis=1)
-        phi = moved / norm[:, None]
-        g = position_gradient - np.einsum("kd,kd->k", position_gradient, phi)[:, None] * phi
-        g = g / norm[:, None]
-        g = g - np.einsum("kd,kd->k", g, self.points)[:, None] * self.points
-        return self.weights.T @ g
+        phi, norms = self._moved(coefficients)
+        w = self.weights
+        return hotloops.field_gradient(w.indptr, w.indices, w.data, self.points, phi, norms,
+                                       np.ascontiguousarray(position_gradient, dtype=np.float64),
+                                       self.n_centres)

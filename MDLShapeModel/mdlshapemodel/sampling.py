@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
+from . import hotloops
+
 
 def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     """Icosahedron subdivided ``subdivisions`` times: 10 * 4**k + 2 unit vectors and their triangles.
@@ -120,17 +122,10 @@ class SphereLocator:
         if hint is not None:
             # walk from the hint towards the point: cross the edge opposite the most negative
             # barycentric coordinate, a few steps at most
-            current = hint.copy()
-            for _ in range(walk_steps):
-                lam = self._coordinates(current[todo], points[todo])
-                worst = np.argmin(lam, axis=1)
-                inside = lam[np.arange(len(todo)), worst] >= -1e-12
-                done = todo[inside]
-                face[done], coords[done] = current[done], lam[inside]
-                todo = todo[~inside]
-                if not len(todo):
-                    break
-                current[todo] = self.neighbours[current[todo], worst[~inside]]
+            found = np.zeros(n, dtype=np.bool_)
+            hotloops.walk(self.inverse, self.neighbours, points, np.asarray(hint, dtype=np.int64),
+                          walk_steps, -1e-12, face, coords, found)
+            todo = np.flatnonzero(~found)
         if len(todo):
             k = min(neighbours, len(self.sphere))
             _, nearest = self.tree.query(points[todo], k=k)
@@ -143,19 +138,21 @@ class SphereLocator:
             best = np.argmax(score, axis=1)
             rows = np.arange(len(todo))
             face[todo] = safe[rows, best]
-            coords[todo] = lam[rows, best]
+            chosen = np.maximum(lam[rows, best], 0.0)
+            coords[todo] = chosen / chosen.sum(axis=1, keepdims=True)
             missed = todo[score[rows, best] < -1e-9]
             if len(missed):  # rare: fall back to all faces
                 for index in missed:
                     lam_all = self._coordinates(np.arange(len(self.faces)), points[index][None, :])
                     best_face = int(np.argmax(lam_all.min(axis=1)))
-                    face[index], coords[index] = best_face, lam_all[best_face]
-        coords = np.maximum(coords, 0.0)
-        coords /= coords.sum(axis=1, keepdims=True)
+                    lam = np.maximum(lam_all[best_face], 0.0)
+                    face[index], coords[index] = best_face, lam / lam.sum()
         return face, coords
 
     def interpolate(self, values: np.ndarray, face: np.ndarray, coords: np.ndarray) -> np.ndarray:
         """Barycentric interpolation of per-vertex ``values`` at located points."""
+        if values.ndim == 2:
+            return hotloops.interpolate(values, self.faces, face, coords)
         return np.einsum("ij,ij...->i...", coords, values[self.faces[face]])
 
     def jacobian(self, values: np.ndarray, face: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -178,12 +175,7 @@ class SphereLocator:
                            gradient: np.ndarray) -> np.ndarray:
         """(dS/du)^T g at located points, (n, 3), without forming dS/du (see :meth:`jacobian`):
         M^-T (I - 1 b^T) V g / s."""
-        inverse = self.inverse[face]
-        raw = (inverse * points[:, None, :]).sum(axis=2)
-        total = raw.sum(axis=1)
-        corner = (values[self.faces[face]] * gradient[:, None, :]).sum(axis=2)   # V g: (n, 3)
-        corner -= ((raw * corner).sum(axis=1) / total)[:, None]                   # (I - 1 b^T)
-        return (inverse * corner[:, :, None]).sum(axis=1) / total[:, None]
+        return hotloops.jacobian_transpose(self.inverse, self.faces, values, face, points, gradient)
 
     def evaluate(self, values: np.ndarray, points: np.ndarray, hint: np.ndarray | None = None):
         """S(u): per-vertex ``values`` at parameter points; returns (values, faces)."""
