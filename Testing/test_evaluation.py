@@ -12,6 +12,7 @@ import pytest
 from mdlshapemodel.evaluation import (SURFACE_GENERALIZATION_POINTS, compactness, evaluate,
                                       generalization, specificity, surface_generalization,
                                       surface_specificity)
+from mdlshapemodel.pipeline import helper_pool
 from mdlshapemodel.sampling import sphere_grid
 from mdlshapemodel.surface import SurfaceDistance, point_surface_distances
 
@@ -598,3 +599,27 @@ def test_evaluate_with_surfaces(rng):
         evaluate(shapes, weights, variances, 3, 300, surfaces=surfaces)
     with pytest.raises(ValueError):
         surface_generalization(shapes, weights, triangles, surfaces[:-1], 3)
+    # with a process pool doing the surface generalization meanwhile: the same numbers
+    with helper_pool(2) as pool:
+        pooled = evaluate(shapes, weights, variances, 3, 300, np.random.default_rng(5),
+                          triangles=triangles, surfaces=surfaces, surface_samples=20, pool=pool)
+    assert pooled == report
+
+
+def test_surface_closest_points_lie_on_their_faces(rng):
+    """closest(): the point is on the returned triangle, at the returned distance, and far
+    points (which need more candidate vertices than the first search) are exact too."""
+    shapes, triangles, _, surfaces = radial_population(rng, 2, 3)
+    vertices, faces = surfaces[0]
+    points = np.concatenate([shapes[1] + rng.normal(size=shapes[1].shape) * 0.5,
+                             rng.normal(size=(30, 3)) * 50.0])
+    found, distance, holder = SurfaceDistance(vertices, faces).closest(points)
+    np.testing.assert_allclose(distance, np.linalg.norm(points - found, axis=1), atol=1e-12)
+    np.testing.assert_allclose(distance, brute_point_triangle(points, vertices, faces),
+                               rtol=1e-10, atol=1e-10)
+    a, b, c = (vertices[faces[holder, k]] for k in range(3))
+    normal = np.cross(b - a, c - a)
+    # on the triangle's plane, and inside it (non-negative barycentric coordinates)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", found - a, normal), 0.0, atol=1e-8)
+    for p, q, r in ((a, b, c), (b, c, a), (c, a, b)):
+        assert np.all(np.einsum("ij,ij->i", np.cross(q - p, found - p), normal) >= -1e-8)

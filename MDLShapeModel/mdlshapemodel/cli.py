@@ -50,11 +50,12 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
     group.add_argument("--max-time", type=float, default=defaults.max_time, metavar="SECONDS",
                        help="time budget of the optimisation (default %(default)s)")
     group.add_argument("--max-sweeps", type=int, default=defaults.max_sweeps, metavar="N",
-                       help="at most N sweeps over the examples per phase; unlike --max-time, a "
-                            "budget that repeats exactly (default %(default)s)")
+                       help="at most N sweeps over the examples (fast: rounds) per phase; unlike "
+                            "--max-time, a budget that repeats exactly (default %(default)s)")
     group.add_argument("--seed", type=int, default=defaults.seed,
-                       help="random seed: the same seed and inputs give the same model bit for "
-                            "bit, unless --max-time cuts the runs at different points "
+                       help="random seed of the paper's strategies (fast draws no random "
+                            "numbers): the same seed and inputs give the same model bit for bit, "
+                            "unless --max-time cuts the runs at different points "
                             "(default %(default)s)")
     group.add_argument("--delta-range", type=float, nargs=2, default=defaults.delta_range,
                        metavar=("MIN", "MAX"),

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import hotloops
 from .surface import SurfaceDistance
 
 #: :func:`evaluate` measures surface generalization on at most this many points per side (exact
@@ -30,26 +31,26 @@ SURFACE_GENERALIZATION_POINTS = 5000
 
 
 def _model_space(shapes: np.ndarray, weights: np.ndarray):
-    """Coordinates of the centred, weighted shapes in an orthonormal basis of their span."""
+    """Coordinates of the centred, weighted shapes in an orthonormal basis of their span, and the
+    map from model-space differences back to point displacements (r, 3 n_p)."""
     n_s, n_p, _ = shapes.shape
     root = np.sqrt(weights)
     z = ((shapes - shapes.mean(axis=0)) * root[None, :, None]).reshape(n_s, -1)
     u, singular, vt = np.linalg.svd(z, full_matrices=False)
     keep = singular > 1e-10 * max(singular.max(initial=0.0), 1e-300)
     coordinates = u[:, keep] * singular[keep]
-    return coordinates, vt[keep], np.repeat(root, 3)
+    return coordinates, vt[keep] / np.repeat(root, 3)
 
 
-def _displacements(difference: np.ndarray, basis: np.ndarray, root: np.ndarray) -> np.ndarray:
+def _displacements(difference: np.ndarray, to_points: np.ndarray) -> np.ndarray:
     """Point displacements (k, n_p, 3) of model-space differences (k, r)."""
-    return ((difference @ basis) / root).reshape(len(difference), -1, 3)
+    return (difference @ to_points).reshape(len(difference), -1, 3)
 
 
-def _point_distances(difference: np.ndarray, basis: np.ndarray, root: np.ndarray,
-                     weights: np.ndarray) -> np.ndarray:
+def _point_distances(difference: np.ndarray, to_points: np.ndarray, weights: np.ndarray
+                     ) -> np.ndarray:
     """Area-weighted mean point-to-point distance of model-space differences (k, r) -> (k,)."""
-    per_point = np.linalg.norm(_displacements(difference, basis, root), axis=2)
-    return per_point @ weights
+    return hotloops.weighted_point_norms(difference @ to_points, weights)
 
 
 def compactness(variances: np.ndarray, n_shapes: int, max_modes: int):
@@ -90,13 +91,13 @@ def generalization(shapes: np.ndarray, weights: np.ndarray, max_modes: int):
     ``squared_per_case`` and ``distance_per_case`` (n_s, max_modes), whose means over the shapes
     are ``squared`` and ``distance``.
     """
-    coordinates, basis, root = _model_space(shapes, weights)
+    coordinates, to_points = _model_space(shapes, weights)
     n_s = len(coordinates)
     squared = np.zeros((n_s, max_modes))
     distance = np.zeros((n_s, max_modes))
     for i, residuals, _ in _leave_one_out(coordinates, max_modes):
         squared[i] = np.sum(residuals ** 2, axis=1)
-        distance[i] = _point_distances(residuals, basis, root, weights)
+        distance[i] = _point_distances(residuals, to_points, weights)
     result = _mean_and_error(squared, distance, n_s)
     result["squared_per_case"] = squared
     result["distance_per_case"] = distance
@@ -104,14 +105,14 @@ def generalization(shapes: np.ndarray, weights: np.ndarray, max_modes: int):
 
 
 def specificity(shapes: np.ndarray, weights: np.ndarray, max_modes: int, n_samples: int = 10_000,
-                rng: np.random.Generator | None = None, chunk: int = 2000):
+                rng: np.random.Generator | None = None, chunk: int = 256):
     """Specificity S(M): distance of model samples to their nearest training shape (eq. 22-23).
 
     Samples have scores b_m ~ N(0, lambda_m) on the first M modes (lambda_m the model variances,
     divisor n_s). Returns the same dict as :func:`generalization`.
     """
     rng = np.random.default_rng(0) if rng is None else rng
-    coordinates, basis, root = _model_space(shapes, weights)
+    coordinates, to_points = _model_space(shapes, weights)
     n_s, rank = coordinates.shape
     # the model-space coordinates are principal component scores: axis m has variance lambda_m
     sd = np.sqrt(np.sum(coordinates ** 2, axis=0) / n_s)
@@ -130,7 +131,7 @@ def specificity(shapes: np.ndarray, weights: np.ndarray, max_modes: int, n_sampl
             nearest = np.argmin(d2, axis=1)
             difference = sample - coordinates[nearest]
             squared[start:stop, m - 1] = np.sum(difference ** 2, axis=1)
-            distance[start:stop, m - 1] = _point_distances(difference, basis, root, weights)
+            distance[start:stop, m - 1] = _point_distances(difference, to_points, weights)
     return _mean_and_error(squared, distance, n_samples)
 
 
@@ -291,7 +292,7 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     shapes = np.asarray(shapes, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
-    coordinates, basis, root = _model_space(shapes, weights)
+    coordinates, to_points = _model_space(shapes, weights)
     n_s = len(coordinates)
     true = _true_surfaces(surfaces, n_s)
     points_sampler = _sampler(shapes[0], max_points, stratified=False)
@@ -299,7 +300,7 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     values = np.zeros((4, n_s, max_modes))
     mesh = None
     for i, residuals, used in _leave_one_out(coordinates, max_modes):
-        rebuilt = shapes[i] - _displacements(residuals, basis, root)
+        rebuilt = shapes[i] - _displacements(residuals, to_points)
         for m in range(max_modes):
             if m > 0 and used[m] == used[m - 1]:        # the same reconstruction as with m modes
                 values[:, i, m] = values[:, i, m - 1]
@@ -378,7 +379,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
     shapes = np.asarray(shapes, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
-    coordinates, basis, root = _model_space(shapes, weights)
+    coordinates, to_points = _model_space(shapes, weights)
     n_s, rank = coordinates.shape
     # exactly as specificity(): axis m of the model-space coordinates has variance lambda_m
     sd = np.sqrt(np.sum(coordinates ** 2, axis=0) / n_s)
@@ -405,7 +406,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
               + train_sq[None, :])
         order = np.argsort(d2, axis=1, kind="stable")[:, :candidates]
         for s in range(n_samples):
-            points = mean + _displacements(sample[s:s + 1], basis, root)[0]
+            points = mean + _displacements(sample[s:s + 1], to_points)[0]
             if mesh is None:
                 mesh = SurfaceDistance(points, triangles)
             else:
@@ -427,7 +428,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
 def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max_modes: int = 10,
              n_samples: int = 10_000, rng: np.random.Generator | None = None,
              triangles: np.ndarray | None = None, surfaces=None,
-             surface_samples: int = 1000) -> dict:
+             surface_samples: int = 1000, pool=None) -> dict:
     """Compactness, generalization and specificity for M = 1..max_modes, as JSON-ready lists.
 
     Parameters
@@ -456,6 +457,9 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         ``specificity_surface_samples``.
     surface_samples : int
         Specificity samples per M measured surface to surface.
+    pool : concurrent.futures.Executor, optional
+        Where to measure the surface generalization meanwhile (e.g. a process on another core);
+        the results are the same.
 
     Returns
     -------
@@ -472,6 +476,13 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         raise ValueError("surface measures need the triangles of the corresponded points")
     rng = np.random.default_rng(0) if rng is None else rng
     surface_rng = copy.deepcopy(rng)            # the surface samples repeat the first point samples
+    g_surface = None
+    if surfaces is not None:
+        # the longest part: started first, elsewhere when there is a pool
+        arguments = (shapes, weights, triangles, surfaces, max_modes,
+                     SURFACE_GENERALIZATION_POINTS)
+        g_surface = pool.submit(surface_generalization, *arguments) if pool is not None else \
+            surface_generalization(*arguments)
     c, c_se = compactness(variances, n_s, max_modes)
     g = generalization(shapes, weights, max_modes)
     s = specificity(shapes, weights, max_modes, n_samples, rng)
@@ -484,10 +495,10 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         as_list[name + "_mm_se"] = result["distance_se"].tolist()
     as_list["specificity_samples"] = int(n_samples)
     if surfaces is not None:
-        g_surface = surface_generalization(shapes, weights, triangles, surfaces, max_modes,
-                                           max_points=SURFACE_GENERALIZATION_POINTS)
         s_surface = surface_specificity(shapes, weights, triangles, surfaces, max_modes,
                                         surface_samples, surface_rng)
+        if pool is not None:
+            g_surface = g_surface.result()
         for name, result in (("generalization", g_surface), ("specificity", s_surface)):
             as_list[name + "_surface_mm"] = result["distance"].tolist()
             as_list[name + "_surface_mm_se"] = result["distance_se"].tolist()

@@ -137,14 +137,24 @@ class _Round:
         self.state.rebuild()
 
 
+class _OutOfTime(Exception):
+    pass
+
+
 def optimise_round(state: CorrespondenceState, objective, active, level: int,
-                   max_iterations: int = 30, support: float = 2.0) -> float:
-    """One L-BFGS-B round at one field level; returns F after it."""
+                   max_iterations: int = 30, support: float = 2.0,
+                   deadline: float = float("inf")) -> float:
+    """One L-BFGS-B round at one field level; returns F after it.
+
+    At ``deadline`` the round stops and keeps the best point it has evaluated.
+    """
     state.objective = objective
     round_ = _Round(state, active, level, support)
     cache = {}
 
     def fun(x):
+        if "best" in cache and time.perf_counter() > deadline:
+            raise _OutOfTime
         trials = round_.trial(x)
         value, shape_gradient = gradient_at(state, round_.shapes(trials))
         state.evaluations += 1
@@ -154,8 +164,11 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
         return value, round_.gradient(x, trials, shape_gradient)
 
     start_value = fun(np.zeros(round_.size))[0]
-    minimize(fun, np.zeros(round_.size), jac=True, method="L-BFGS-B", bounds=round_.bounds,
-             options={"maxiter": max_iterations, "ftol": 1e-9, "gtol": 1e-10})
+    try:
+        minimize(fun, np.zeros(round_.size), jac=True, method="L-BFGS-B", bounds=round_.bounds,
+                 options={"maxiter": max_iterations, "ftol": 1e-9, "gtol": 1e-10})
+    except _OutOfTime:
+        pass
     value, x, trials = cache["best"]
     for _ in range(4):
         # the bounds make every field a homeomorphism of the sphere; a grid triangle can still
@@ -163,7 +176,9 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
         if value >= start_value or not _folds(state, trials):
             break
         x = 0.5 * x
-        value, trials = fun(x)[0], cache["last"][2]
+        trials = round_.trial(x)
+        value = gradient_at(state, round_.shapes(trials))[0]
+        state.evaluations += 1
     if value < start_value and not _folds(state, trials):
         round_.commit(trials)
     else:
@@ -182,7 +197,9 @@ def _folds(state: CorrespondenceState, trials) -> bool:
 def optimise_fast(state: CorrespondenceState, objective, settings, trace,
                   phase: str, deadline: float, progress=None, checkpoint=None, active=None,
                   levels=(0, 1, 2, 3), rounds_per_level: int = 3) -> float:
-    """Coarse-to-fine rounds until the gain stalls (``settings.tolerance``) or ``deadline``."""
+    """Coarse-to-fine rounds until the gain stalls (``settings.tolerance``), ``deadline`` or
+    ``settings.max_sweeps`` rounds. At each level, rounds go on until one gains less than the
+    tolerance (then the next level starts), at most ``rounds_per_level``."""
     active = range(state.n_shapes) if active is None else active
     value = start_value = start_phase(state, objective, trace, phase)
     sweep = 0
@@ -190,13 +207,13 @@ def optimise_fast(state: CorrespondenceState, objective, settings, trace,
         for _ in range(rounds_per_level):
             sweep += 1
             before = value
-            value = optimise_round(state, objective, active, level)
+            value = optimise_round(state, objective, active, level, deadline=deadline)
             trace.record(state, value, phase, sweep)
             if progress is not None:
                 progress(None, f"{phase}: level {level}, round {sweep}, F = {value:.3f}")
             if checkpoint is not None:
                 checkpoint()
-            if time.perf_counter() > deadline:
+            if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
                 return value
             if stalled(before, value, start_value, settings):
                 break   # this level has stopped paying: go finer

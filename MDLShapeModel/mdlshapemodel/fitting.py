@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,11 +25,11 @@ from . import io
 from .config import BuildConfig
 from .correspond import CorrespondenceState, Example, FixedExample, PartState
 from .errors import InputError, MDLShapeModelError
-from .mdl import Objective
 from .model import ShapeModel
 from .pose import Pose, align
 from .sphere import SphereMap, align_parameterizations
-from .strategies import OptimisationSettings, Trace, optimise
+from .pipeline import PreparedCase, objectives, optimisation_settings, prepare_case
+from .strategies import Trace, optimise
 
 
 @dataclass
@@ -93,8 +93,6 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     prepared : PreparedCase, optional
         The case already preprocessed (``path`` is then only used for its name).
     """
-    from .pipeline import PreparedCase, prepare_case
-
     if model.parameters is None or model.triangles is None:
         raise InputError("the model has no sampling grid (model.parameters) or no triangles; "
                          "rebuild it with this version")
@@ -119,14 +117,10 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
 
     voxel = float(model.metadata.get("voxel_size_mm", case.voxel_size))
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    fixed = Objective("fixed", data_range, delta=config.fixed_delta * voxel)
-    integrated = Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
-                           delta_max=config.delta_range[1] * voxel)
+    fixed, integrated = objectives(config, voxel, data_range)
     initial = integrated(state.covariance())
-    settings = OptimisationSettings(strategy="one-at-a-time-pose", sigma_g=config.sigma_g,
-                                    max_amplitude=config.max_amplitude, max_time=max_time,
-                                    fixed_fraction=config.fixed_fraction,
-                                    tolerance=config.tolerance, max_sweeps=max_sweeps)
+    settings = optimisation_settings(replace(config, strategy="one-at-a-time-pose",
+                                             max_time=max_time, max_sweeps=max_sweeps))
     trace = Trace()
     final = optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), trace,
                      progress, active=[len(examples) - 1])

@@ -135,3 +135,19 @@ def field_gradient(indptr, indices, data, points, phi, norms, position_gradient,
             result[j, 1] += w * gy
             result[j, 2] += w * gz
     return result
+
+
+@njit(cache=True, nogil=True)
+def weighted_point_norms(displacements, weights):
+    """sum_p weights[p] |d_p| for each row of point displacements (k, 3 n_p) -> (k,)."""
+    k = displacements.shape[0]
+    result = np.zeros(k)
+    for i in range(k):
+        total = 0.0
+        for p in range(weights.shape[0]):
+            x = displacements[i, 3 * p]
+            y = displacements[i, 3 * p + 1]
+            z = displacements[i, 3 * p + 2]
+            total += weights[p] * np.sqrt(x * x + y * y + z * z)
+        result[i] = total
+    return result

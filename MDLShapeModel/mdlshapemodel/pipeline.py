@@ -17,7 +17,7 @@ import logging
 import multiprocessing
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -247,6 +247,18 @@ def _one_blas_thread_per_worker():
             os.environ.pop(name, None)
 
 
+@contextlib.contextmanager
+def helper_pool(workers: int):
+    """One spawn worker process for work that overlaps the main process's (evaluating baselines
+    during the optimisation, which uses one core); None when ``workers`` <= 1."""
+    if workers <= 1:
+        yield None
+        return
+    with _one_blas_thread_per_worker(), ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        yield pool
+
+
 def map_cases(function, arguments: list, workers: int, progress=None, message: str = "cases"
               ) -> list:
     """``[function(*a) for a in arguments]``, in a spawn process pool when ``workers`` > 1 (results in
@@ -361,80 +373,122 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
         raise BuildError(f"only {len(prepared)} usable case(s); at least 3 are needed")
     log.info("prepared %d cases in %.1f s", len(prepared), time.perf_counter() - started)
 
+    state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)
+    initial = integrated(state.covariance())
+    log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
+             state.n_shapes, state.n_points, voxel, data_range)
+
+    with helper_pool(config.workers) as pool:
+        pending = {}   # baseline -> (objective and notes, its evaluation: running or done)
+        if "none" in config.baselines and (config.strategy != "none"
+                                           or config.correspondence == "cpd"):
+            log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
+            pending["none"] = ({"objective": initial},
+                               evaluate_state(state, config, prepared, pool=pool))
+        cpd = None
+        if config.correspondence == "cpd" or "cpd" in config.baselines:
+            cpd, template = cpd_state(state, prepared, config, progress)
+            if config.correspondence != "cpd":
+                log.info("evaluating the CPD template correspondence as a baseline")
+                pending["cpd"] = ({"objective": integrated(cpd.covariance()),
+                                   "template": template},
+                                  evaluate_state(cpd, config, prepared, pool=pool))
+
+        trace = Trace()
+        interrupted = False
+        if config.correspondence == "cpd":
+            state = cpd
+            state.objective = integrated
+            initial = final = state.value()
+            trace.record(state, final, "integrated", 0)
+            log.info("CPD correspondence (template %s): objective %.4f", template, final)
+        else:
+            settings = optimisation_settings(config)
+
+            def checkpoint():
+                save_checkpoint(output / "checkpoint.npz", state)
+
+            try:
+                optimise(state, (fixed, integrated), settings, np.random.default_rng(config.seed),
+                         trace, progress, checkpoint)
+            except (KeyboardInterrupt, Cancelled):
+                interrupted = True
+                log.warning("optimisation interrupted: writing the model of the state reached")
+            if trace.rows and trace.rows[-1][4] == "restored-initial":
+                log.warning("the optimisation did not lower the objective within --max-time "
+                            "(%.0f s): keeping the initial correspondence", config.max_time)
+            state.rebuild()  # also makes the state consistent after an interruption mid-step
+            final = integrated(state.covariance())
+            log.info("final objective %.4f after %.1f s, %d evaluations", final,
+                     trace.rows[-1][0] if trace.rows else 0.0, state.evaluations)
+            checkpoint()
+        io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
+        baselines = {name: {**notes, **_outcome(evaluation)}
+                     for name, (notes, evaluation) in pending.items()}
+
+        result = write_outputs(output, state, prepared, rejected, config, initial, final,
+                               voxel, data_range, interrupted, baselines, pool)
+    log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
+    return result
+
+
+def _outcome(evaluation):
+    """The result of an evaluation that may have run in the helper pool; one interrupted there
+    (Ctrl-C reaches the worker too) or lost with it is done again here."""
+    if not isinstance(evaluation, Future):
+        return evaluation
+    try:
+        return evaluation.result()
+    except BaseException as error:     # noqa: B036 - KeyboardInterrupt from the worker included
+        log.warning("a baseline evaluation in the helper process failed (%s); evaluating here",
+                    type(error).__name__)
+        function, arguments = evaluation.retry
+        return function(*arguments)
+
+
+def initial_state(prepared: list, config: BuildConfig):
+    """The initial correspondence of prepared cases and the two objectives.
+
+    The sphere maps are aligned across the population and sampled at ``config.points``; the
+    objectives' Delta follow the mean voxel size. Returns (state, (fixed, integrated), voxel size,
+    data range of the aligned shapes).
+    """
     maps = align_parameterizations([case.map for case in prepared])
     grid_points, grid_triangles = sphere_grid(config.points)
     examples = [Example(case.name, [PartState(m.vertices, m.faces, m.sphere, grid_points,
                                               grid_triangles)])
                 for case, m in zip(prepared, maps)]
     state = CorrespondenceState(examples, [(grid_points, grid_triangles)], scaling=config.scaling)
-
     voxel = float(np.mean([case.voxel_size for case in prepared]))
-    aligned = state.aligned_shapes()
-    data_range = float(np.max(np.ptp(aligned.reshape(-1, 3), axis=0)))
-    fixed = Objective("fixed", data_range, delta=config.fixed_delta * voxel)
-    integrated = Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
-                           delta_max=config.delta_range[1] * voxel)
-    initial = integrated(state.covariance())
-    log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
-             state.n_shapes, state.n_points, voxel, data_range)
+    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
+    return state, objectives(config, voxel, data_range), voxel, data_range
 
-    baselines = {}
-    if "none" in config.baselines and (config.strategy != "none" or config.correspondence == "cpd"):
-        log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
-        baselines["none"] = {"objective": initial, **evaluate_state(state, config, prepared)}
-    cpd = None
-    if config.correspondence == "cpd" or "cpd" in config.baselines:
-        cpd, template = cpd_state(state, prepared, config, progress)
-        if config.correspondence != "cpd":
-            log.info("evaluating the CPD template correspondence as a baseline")
-            baselines["cpd"] = {"objective": integrated(cpd.covariance()), "template": template,
-                                **evaluate_state(cpd, config, prepared)}
 
-    trace = Trace()
-    interrupted = False
-    if config.correspondence == "cpd":
-        state = cpd
-        state.objective = integrated
-        initial = final = state.value()
-        trace.record(state, final, "integrated", 0)
-        log.info("CPD correspondence (template %s): objective %.4f", template, final)
-    else:
-        settings = OptimisationSettings(strategy=config.strategy, sigma_g=config.sigma_g,
-                                        max_amplitude=config.max_amplitude,
-                                        max_time=config.max_time,
-                                        fixed_fraction=config.fixed_fraction,
-                                        tolerance=config.tolerance, max_sweeps=config.max_sweeps)
+def objectives(config: BuildConfig, voxel: float, data_range: float) -> tuple:
+    """(fixed-Delta objective eq. 13, full objective eq. 14) with Delta in units of ``voxel``."""
+    return (Objective("fixed", data_range, delta=config.fixed_delta * voxel),
+            Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
+                      delta_max=config.delta_range[1] * voxel))
 
-        def checkpoint():
-            save_checkpoint(output / "checkpoint.npz", state)
 
-        try:
-            optimise(state, (fixed, integrated), settings, np.random.default_rng(config.seed),
-                     trace, progress, checkpoint)
-        except (KeyboardInterrupt, Cancelled):
-            interrupted = True
-            log.warning("optimisation interrupted: writing the model of the state reached")
-        if trace.rows and trace.rows[-1][4] == "restored-initial":
-            log.warning("the optimisation did not lower the objective within --max-time "
-                        "(%.0f s): keeping the initial correspondence", config.max_time)
-        state.rebuild()  # also makes the state consistent after an interruption mid-step
-        final = integrated(state.covariance())
-        log.info("final objective %.4f after %.1f s, %d evaluations", final,
-                 trace.rows[-1][0] if trace.rows else 0.0, state.evaluations)
-        checkpoint()
-    io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
-
-    result = write_outputs(output, state, prepared, rejected, config, initial, final, voxel,
-                           data_range, interrupted, baselines)
-    log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
-    return result
+def optimisation_settings(config: BuildConfig) -> OptimisationSettings:
+    """The optimiser's settings from the build configuration."""
+    return OptimisationSettings(strategy=config.strategy, sigma_g=config.sigma_g,
+                                max_amplitude=config.max_amplitude, max_time=config.max_time,
+                                fixed_fraction=config.fixed_fraction,
+                                tolerance=config.tolerance, max_sweeps=config.max_sweeps)
 
 
 def evaluate_state(state: CorrespondenceState, config: BuildConfig, prepared: list | None = None,
-                   model: ShapeModel | None = None) -> dict:
+                   model: ShapeModel | None = None, pool=None, background: bool = True):
     """Compactness, generalization and specificity of the state's aligned shapes (``model``: the
     model of those shapes, when already built). With ``prepared`` (the cases, in the state's
-    order) and ``config.surface_samples`` > 0, also measured surface to surface."""
+    order) and ``config.surface_samples`` > 0, also measured surface to surface.
+
+    With a ``pool`` (see :func:`helper_pool`): ``background`` runs the whole evaluation there and
+    returns its future (the state may change meanwhile: it gets copies); otherwise only a part
+    runs there and the result is returned when all is done.
+    """
     aligned = state.aligned_shapes()
     if model is None:
         model = ShapeModel.from_shapes(aligned, state.weights)
@@ -442,10 +496,14 @@ def evaluate_state(state: CorrespondenceState, config: BuildConfig, prepared: li
     if prepared is not None and config.surface_samples > 0:
         surfaces = [(state.to_model_frame(i, case.map.vertices), case.map.faces)
                     for i, case in enumerate(prepared)]
-    return evaluate(aligned, state.weights, model.variances, config.evaluation_modes,
-                    config.specificity_samples, np.random.default_rng(config.seed),
-                    triangles=state.triangles(), surfaces=surfaces,
-                    surface_samples=config.surface_samples)
+    arguments = (aligned, state.weights.copy(), model.variances, config.evaluation_modes,
+                 config.specificity_samples, np.random.default_rng(config.seed),
+                 state.triangles().copy(), surfaces, config.surface_samples)
+    if pool is not None and background:
+        future = pool.submit(evaluate, *arguments)
+        future.retry = (evaluate, arguments)
+        return future
+    return evaluate(*arguments, pool=pool)
 
 
 def cpd_state(state: CorrespondenceState, prepared: list, config: BuildConfig, progress=None
@@ -490,8 +548,8 @@ def save_checkpoint(path: Path, state: CorrespondenceState):
 
 def write_outputs(output: Path, state: CorrespondenceState, prepared: list, rejected: list,
                   config: BuildConfig, initial: float, final: float, voxel: float,
-                  data_range: float, interrupted: bool, baselines: dict | None = None
-                  ) -> BuildResult:
+                  data_range: float, interrupted: bool, baselines: dict | None = None,
+                  pool=None) -> BuildResult:
     """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html."""
     from .report import write_report
 
@@ -537,7 +595,7 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
     io.write_csv(output / "cases.csv", list(cases[0].keys()),
                  [[c.get(k, "") for k in cases[0]] for c in cases])
-    quality = evaluate_state(state, config, prepared, model)
+    quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
     metrics = {"objective": {"initial": initial, "final": final,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
                "strategy": method, "n_shapes": state.n_shapes, "n_points": state.n_points,

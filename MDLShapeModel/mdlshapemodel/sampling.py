@@ -96,11 +96,7 @@ class SphereLocator:
         det = np.einsum("ij,ij->i", a, rows[:, 0])
         self.inverse = rows / det[:, None, None]          # [a b c]^-1, one 3x3 per face
         self.tree = cKDTree(self.sphere)
-        counts = np.bincount(self.faces.ravel(), minlength=len(self.sphere))
-        order = np.argsort(self.faces.ravel(), kind="stable")
-        self.vertex_faces = np.full((len(self.sphere), counts.max()), -1, dtype=np.int64)
-        slot = np.arange(self.faces.size) - np.repeat(np.cumsum(counts) - counts, counts)
-        self.vertex_faces[np.repeat(np.arange(len(self.sphere)), counts), slot] = order // 3
+        self.vertex_faces = vertex_face_table(self.faces, len(self.sphere))
         self.neighbours = face_neighbours(self.faces)
 
     def _coordinates(self, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -181,6 +177,16 @@ class SphereLocator:
         """S(u): per-vertex ``values`` at parameter points; returns (values, faces)."""
         face, coords = self.locate(points, hint)
         return self.interpolate(values, face, coords), face
+
+
+def vertex_face_table(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(n_vertices, max degree): the faces around each vertex, padded with -1."""
+    counts = np.bincount(faces.ravel(), minlength=n_vertices)
+    order = np.argsort(faces.ravel(), kind="stable")
+    table = np.full((n_vertices, max(int(counts.max(initial=0)), 1)), -1, dtype=np.int64)
+    slot = np.arange(faces.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    table[np.repeat(np.arange(n_vertices), counts), slot] = order // 3
+    return table
 
 
 def face_neighbours(faces: np.ndarray) -> np.ndarray:

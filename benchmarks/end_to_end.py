@@ -1,0 +1,159 @@
+"""Label maps -> model and report with the real CLI: wall time by stage and peak memory, for
+several population sizes.
+
+For each N in ``--cases`` the first N shared hippocampus label maps (labels 1+2) are built with
+``mdlshapemodel build`` (default settings unless given after ``--``) in a subprocess, with an empty
+preprocessing cache (``--cold``, the default; ``--warm`` reuses ``--cache-dir``). The resident
+memory of the build and all its worker processes is sampled every 0.1 s; the peak of their *sum*
+is reported, and that of the largest single process. Stage times come from the build's log:
+preprocessing, optimisation (and its time to convergence from convergence.csv), and the rest
+(evaluation of the model and baselines, renderings, report, files). The optimisation time per
+shape shows whether it grows linearly with N.
+
+    python benchmarks/end_to_end.py --cases 20 40 80 --output /tmp/e2e
+    python benchmarks/end_to_end.py --cases 82 --output /tmp/e2e82
+    python benchmarks/end_to_end.py --cases 100 --output /tmp/e2e100
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from datetime import datetime
+from pathlib import Path
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "hippocampus" / "labels"
+
+
+def _children(pid: int) -> list:
+    found = []
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as file:
+                found += [int(c) for c in file.read().split()]
+    except OSError:
+        pass
+    return found
+
+
+def _rss_mb(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/status") as file:
+            for line in file:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
+class MemoryWatch(threading.Thread):
+    """Peak summed RSS of a process tree, and of its largest process (sampled)."""
+
+    def __init__(self, pid: int, interval: float = 0.1):
+        super().__init__(daemon=True)
+        self.pid, self.interval = pid, interval
+        self.peak_total = self.peak_single = 0.0
+        self.done = threading.Event()
+
+    def run(self):
+        while not self.done.is_set():
+            pids, queue = [], [self.pid]
+            while queue:
+                pid = queue.pop()
+                pids.append(pid)
+                queue += _children(pid)
+            sizes = [_rss_mb(p) for p in pids]
+            self.peak_total = max(self.peak_total, sum(sizes))
+            self.peak_single = max(self.peak_single, max(sizes, default=0.0))
+            self.done.wait(self.interval)
+
+
+def _stamp(line: str) -> float:
+    return datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+
+
+def stages(log: Path) -> dict:
+    """Seconds of preprocessing, optimisation and the rest, from a build.log."""
+    lines = log.read_text().splitlines()
+    first = _stamp(lines[0])
+    marks = {}
+    for line in lines:
+        if re.search(r"prepared \d+ cases in", line):
+            marks["prepared"] = _stamp(line)
+        elif "final objective" in line or "CPD correspondence (template" in line:
+            marks["optimised"] = _stamp(line)
+        elif "initial objective" in line:
+            marks["initial"] = _stamp(line)
+        elif "outputs written" in line:
+            marks["written"] = _stamp(line)
+    return {"preprocessing": marks["prepared"] - first,
+            "before optimisation (baselines)": marks.get("optimised", marks["written"]) -
+            marks["prepared"],
+            "total logged": marks["written"] - first}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", type=int, nargs="+", default=[20, 40, 80])
+    parser.add_argument("--data", default=str(DATA))
+    parser.add_argument("--output", default="end-to-end-benchmark")
+    parser.add_argument("--warm", action="store_true",
+                        help="reuse the preprocessing cache (default: an empty one per build)")
+    parser.add_argument("extra", nargs=argparse.REMAINDER, help="build options after --")
+    args = parser.parse_args()
+    extra = [a for a in args.extra if a != "--"]
+    inputs = sorted(Path(args.data).glob("*.nii.gz"))
+    rows = []
+    for n in args.cases:
+        if n > len(inputs):
+            print(f"only {len(inputs)} label maps in {args.data}", file=sys.stderr)
+            return 2
+        output = Path(args.output) / f"n{n}"
+        with tempfile.TemporaryDirectory() as cache:
+            command = [sys.executable, "-m", "mdlshapemodel.cli", "build",
+                       *map(str, inputs[:n]), "--label", "1,2", "-o", str(output), "-q",
+                       *([] if args.warm else ["--cache-dir", cache]), *extra]
+            start = time.perf_counter()
+            process = subprocess.Popen(command)
+            watch = MemoryWatch(process.pid)
+            watch.start()
+            code = process.wait()
+            wall = time.perf_counter() - start
+            watch.done.set()
+            watch.join()
+        if code != 0:
+            print(f"build of {n} cases failed (exit code {code})", file=sys.stderr)
+            return 1
+        metrics = json.loads((output / "metrics.json").read_text())
+        with open(output / "convergence.csv") as file:
+            trace = list(csv.DictReader(file))
+        optimisation = float(trace[-1]["wall_seconds"]) if trace else 0.0
+        times = stages(output / "build.log")
+        rows.append((n, wall, times["preprocessing"], optimisation,
+                     wall - times["preprocessing"] - optimisation, watch.peak_total,
+                     watch.peak_single, metrics["objective"]["initial"],
+                     metrics["objective"]["final"], metrics["strategy"], metrics["n_points"]))
+        print(f"n_s={n}: {wall:.0f} s wall, peak {watch.peak_total:.0f} MB", flush=True)
+    print(f"\n{'n_s':>4} {'points':>6} {'strategy':<20} {'wall s':>7} {'prep s':>7} {'opt s':>7} "
+          f"{'opt s/shape':>11} {'rest s':>7} {'peak MB (all)':>13} {'(largest)':>9} "
+          f"{'eq.14 initial':>13} {'final':>8}")
+    for n, wall, prep, opt, rest, total, single, initial, final, strategy, points in rows:
+        print(f"{n:>4} {points:>6} {strategy:<20} {wall:>7.0f} {prep:>7.0f} {opt:>7.0f} "
+              f"{opt / n:>11.2f} {rest:>7.0f} {total:>13.0f} {single:>9.0f} {initial:>13.2f} "
+              f"{final:>8.2f}")
+    print("\nprep: preprocessing (cold cache unless --warm); opt: optimisation to convergence or "
+          "--max-time; rest: baselines, evaluation, renderings, report and files.")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
