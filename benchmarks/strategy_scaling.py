@@ -3,7 +3,7 @@
 For every training-set size n_s (``--sizes``, the paper's 3-D sizes 15, 25, 35 by default) and trial
 k (``--trials``), draw n_s label maps (labels 1+2) at random from the pool of usable shared
 hippocampi with a seed of its own, and run every strategy (``--strategies``) on that training set
-with an optimiser seed of its own, for a fixed budget (``--budget`` seconds). The convergence trace
+with an optimiser seed of its own, for a fixed budget (``--budget`` CPU seconds). The convergence trace
 of every run is written to ``OUTPUT/traces/``. Then, with :func:`mdlshapemodel.convergence.scaling_study`,
 compute alpha of eq. (19) of each strategy at each n_s relative to the reference (III-D4,
 one-at-a-time with pose, at the smallest n_s, as the paper), with 100 bootstrap resamples of trial
@@ -11,10 +11,10 @@ pairs for the standard errors, and the gradient d alpha / d n_s (weighted least 
 once with "time" = CPU seconds of the optimising process and once with "time" = number of
 objective evaluations. ``--analyse-only`` redoes the analysis from the stored traces.
 
-    PYTHONPATH=MDLShapeModel python benchmarks/strategy_scaling.py --budget 75 --jobs 2 \\
-        --output strategy-scaling
-    PYTHONPATH=MDLShapeModel python benchmarks/strategy_scaling.py --output strategy-scaling \\
-        --analyse-only
+    PYTHONPATH=MDLShapeModel python benchmarks/strategy_scaling.py --budget 20 --points 642 \\
+        --jobs 2 --max-wall 240 --output benchmarks/results/strategy_scaling
+    PYTHONPATH=MDLShapeModel python benchmarks/strategy_scaling.py --analyse-only \\
+        --output benchmarks/results/strategy_scaling
 
 Choices (and why)
 -----------------
@@ -41,11 +41,14 @@ Normalising the objective across n_s
 Time
     ``cpu_seconds`` of the trace (process CPU time since the start of the optimisation; BLAS runs
     single-threaded inside ``strategies.optimise``), and ``evaluations`` (one evaluation of F, for
-    one trial shape of one example or for a whole trial population alike). The budget itself is a
-    wall-clock deadline (the library's), so on a busy machine a run gets less CPU than
-    ``--budget``; the analysis only uses the time range where all trials of a strategy are
-    defined (:func:`mdlshapemodel.convergence.common_grid`), so this costs range, not bias. The
-    convergence test is switched off (``tolerance = 0``): every run uses its whole budget.
+    one trial shape of one example or for a whole trial population alike). Times count from the
+    first row of the run. The budget is in CPU seconds (checked by the progress callback after
+    every example or every 100 simplex evaluations), so a busy machine makes runs longer, not
+    shorter; ``--max-wall`` caps the wall time. The convergence test is switched off
+    (``tolerance = 0``): every run uses its whole budget. Rows are recorded at every improvement
+    inside a step (``OptimisationSettings.trace_improvements``) and the mean curves are averaged
+    on a log-spaced grid (``--spacing log``), so that alpha can be measured even when one
+    strategy is hundreds of times slower than the reference.
 
 Trials
     Trial k at n_s uses the same training set and optimiser seed for every strategy (strategies
