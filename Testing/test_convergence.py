@@ -156,6 +156,49 @@ def test_mean_curve_and_common_grid():
         common_grid([(np.array([0.0, 1.0]), np.ones(2)), (np.array([2.0, 3.0]), np.ones(2))])
 
 
+def test_log_spaced_common_grid():
+    curves = [(np.array([0.0, 1.0, 10.0, 100.0]), np.ones(4)),
+              (np.array([0.0, 2.0, 50.0]), np.ones(3))]
+    grid = common_grid(curves, n=5, spacing="log")
+    assert grid[0] == 0.0 and grid[1] == 2.0 and grid[-1] == pytest.approx(50.0)
+    ratios = grid[2:] / grid[1:-1]
+    np.testing.assert_allclose(ratios, ratios[0])
+    assert common_grid(curves, n=5, spacing="log", hold_last=True)[-1] == pytest.approx(100.0)
+    with pytest.raises(ValueError, match="non-negative"):
+        common_grid([(np.array([-1.0, 1.0]), np.ones(2))], spacing="log")
+    with pytest.raises(ValueError, match="spacing"):
+        common_grid(curves, spacing="quadratic")
+    with pytest.raises(ValueError, match="more than their first step"):
+        common_grid([(np.array([0.0, 5.0]), np.ones(2)), (np.array([0.0, 1.0, 3.0]), np.ones(3))],
+                    spacing="log")
+
+
+def finely_sampled_trials(rng, n, slowdown, end, a=0.0, b=1.0, noise=0.1, spread=0.1):
+    """Trials of a strategy ``slowdown`` times slower than f_B, sampled evenly in log t."""
+    trials = []
+    for _ in range(n):
+        t = np.concatenate([[0.0], np.geomspace(1e-3 * slowdown, end, 800)])
+        speed = math.exp(rng.normal(0.0, spread))
+        trials.append((t, a + b * f_b(speed * t / slowdown) + rng.normal(0.0, noise, t.size)))
+    return trials
+
+
+def test_log_grid_measures_a_strategy_hundreds_of_times_slower():
+    """B is 200 times slower than A and its run covers only A's first 25 time units (A's curve
+    runs to 2000): a regular grid over A's run has two points there and the fit is pinned far
+    from the truth; a log-spaced grid resolves A's early curve and recovers alpha = 200."""
+    rng = np.random.default_rng(4)
+    trials_a = finely_sampled_trials(rng, 6, 1.0, 2000.0)
+    trials_b = finely_sampled_trials(rng, 6, 200.0, 5000.0, a=7.0, b=2.0)
+    log = compare_strategies(trials_a, trials_b, n_bootstrap=40, rng=0, spacing="log",
+                             n_grid=300)
+    assert abs(log["alpha"] - 200.0) < 3 * log["alpha_se"]
+    assert log["alpha_se"] < 0.1 * 200.0
+    assert log["b"] == pytest.approx(0.5, rel=0.05)
+    linear = compare_strategies(trials_a, trials_b, n_bootstrap=5, rng=0, n_grid=200)
+    assert abs(linear["alpha"] - 200.0) > 50.0
+
+
 # ----------------------------------------------------------------------------------------------
 # bootstrap over trials
 

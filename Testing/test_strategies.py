@@ -373,3 +373,40 @@ def test_fast_round_gradient_matches_finite_differences():
         minus[k] -= step
         numeric = (value(plus) - value(minus)) / (2 * step)
         assert analytic[k] == pytest.approx(numeric, rel=2e-3, abs=1e-4)
+
+
+@pytest.mark.parametrize("strategy", ["one-at-a-time", "one-at-a-time-pose", "multiscale",
+                                      "multiresolution"])
+def test_trace_improvements_adds_rows_without_changing_the_optimisation(strategy):
+    """With trace_improvements every trial that beats the best F so far gets a row: more rows,
+    each step's rows non-increasing down to the value the step commits, and the same result."""
+    options = dict(max_sweeps=2, pose_evaluations=20, simplex_evaluations=60, max_time=1e6,
+                   fixed_fraction=0.0)
+    if strategy == "multiresolution":
+        options.update(SIMPLEX["multiresolution"])
+    results = []
+    for fine in (False, True):
+        state = small_state()
+        settings = OptimisationSettings(strategy=strategy, trace_improvements=fine, **options)
+        trace = Trace()
+        final = optimise(state, objectives(state), settings, np.random.default_rng(3), trace)
+        results.append((state, trace, final))
+    (coarse_state, coarse, coarse_final), (fine_state, fine, fine_final) = results
+    assert fine_final == coarse_final
+    for a, b in zip(coarse_state.examples, fine_state.examples):
+        assert np.array_equal(a.parts[0].positions, b.parts[0].positions)
+    assert fine_state.evaluations == coarse_state.evaluations
+    assert len(fine.rows) > len(coarse.rows)
+    # the coarse rows are a subsequence of the fine ones (same values, same evaluation counts)
+    fine_keys = [(r[2], r[3], r[4], r[5]) for r in fine.rows]
+    position = 0
+    for row in coarse.rows:
+        position = fine_keys.index((row[2], row[3], row[4], row[5]), position) + 1
+    # between coarse rows the extra rows only go down: each is a new best of its step
+    columns = np.array([r[:4] for r in fine.rows])
+    assert np.all(np.diff(columns[:, :3], axis=0) >= 0)
+    coarse_keys = {(r[2], r[3]) for r in coarse.rows}
+    extra = [k for k, r in enumerate(fine.rows) if (r[2], r[3]) not in coarse_keys]
+    assert extra
+    for k in extra:
+        assert fine.rows[k][3] < fine.rows[k - 1][3]

@@ -60,6 +60,11 @@ Standard error (:func:`compare_strategies`)
     for both, for trials that correspond (same training set and seed). The grid (``n_grid``
     points, regular in t) must resolve the fast early part of the curves: too coarse a grid
     biases alpha through the linear interpolation of convex curves.
+    ``spacing="log"`` makes the grid geometric instead (:func:`common_grid`): a time scaling
+    then shifts the grid along itself, so a strategy hundreds of times slower than the reference
+    still overlaps many grid points of the reference's early curve, and every decade of time
+    weighs alike in the fit. It needs curves sampled finely at early times (e.g. traces with
+    ``OptimisationSettings.trace_improvements``).
 
 Scaling study (:func:`scaling_study`, :func:`scaling_gradient`)
     alpha of each strategy at each n_s relative to one reference (the paper: III-D4 at
@@ -129,8 +134,11 @@ def _interpolate(times, values, at, kind):
     return out
 
 
-def common_grid(curves, n=200, hold_last=False):
-    """Regular time grid over the range where every curve is defined.
+SPACINGS = ("linear", "log")
+
+
+def common_grid(curves, n=200, hold_last=False, spacing="linear"):
+    """Time grid over the range where every curve is defined, regular in t or in log t.
 
     Parameters
     ----------
@@ -141,14 +149,21 @@ def common_grid(curves, n=200, hold_last=False):
     hold_last : bool
         If true, a curve counts as defined after its last sample (held at its final value: the
         run stopped there because it converged), so the grid ends at the latest last sample.
+    spacing : {"linear", "log"}
+        "linear": regular in t. "log": the start, then ``n - 1`` points regular in log t from
+        the latest *second* sample time of the curves (no grid point falls inside the first
+        step of any trial) to the end; needs non-negative times.
 
     Returns
     -------
     grid : ndarray, shape (n,)
-        ``linspace(max_k t_k,first, min_k t_k,last)`` (``max_k t_k,last`` with ``hold_last``).
+        ``linspace(max_k t_k,first, min_k t_k,last)`` (``max_k t_k,last`` with ``hold_last``),
+        or with ``spacing="log"``: ``[max_k t_k,first, geomspace(max_k t_k,second, end, n - 1)]``.
     """
     if n < 2:
         raise ValueError("the grid needs at least two points")
+    if spacing not in SPACINGS:
+        raise ValueError(f"spacing must be one of {SPACINGS}, not {spacing!r}")
     checked = [_as_curve(t, v, f"trial {k}") for k, (t, v) in enumerate(curves)]
     if not checked:
         raise ValueError("no curves")
@@ -156,7 +171,15 @@ def common_grid(curves, n=200, hold_last=False):
     end = (max if hold_last else min)(t[-1] for t, _ in checked)
     if not end > start:
         raise ValueError("the curves share no time range")
-    return np.linspace(start, end, int(n))
+    if spacing == "linear":
+        return np.linspace(start, end, int(n))
+    if start < 0:
+        raise ValueError("a log-spaced grid needs non-negative times")
+    low = max(start, max(t[1] for t, _ in checked))
+    if not end > low or n < 3:
+        raise ValueError("a log-spaced grid needs at least three points and curves that share "
+                         "more than their first step")
+    return np.concatenate([[start], np.geomspace(low, end, int(n) - 1)])
 
 
 def mean_curve(curves, grid, kind="linear", hold_last=False):
@@ -345,8 +368,8 @@ def fit_alpha(times_a, values_a, times_b, values_b, bounds=(1e-3, 1e3), *, kind=
 
 
 def compare_strategies(trials_a, trials_b, n_bootstrap=100, rng=None, *, paired=False,
-                       n_grid=200, kind="linear", hold_last=False, bounds=(1e-3, 1e3),
-                       min_points=5, criterion="relative"):
+                       n_grid=200, spacing="linear", kind="linear", hold_last=False,
+                       bounds=(1e-3, 1e3), min_points=5, criterion="relative"):
     """alpha of eq. (19) between the mean curves of two strategies, with a bootstrap SE.
 
     Parameters
@@ -363,6 +386,8 @@ def compare_strategies(trials_a, trials_b, n_bootstrap=100, rng=None, *, paired=
     n_grid : int
         Points of each strategy's time grid (:func:`common_grid`), on which its trials are
         averaged.
+    spacing : {"linear", "log"}
+        Grid regular in t or in log t (:func:`common_grid`, module docstring).
     kind, hold_last
         See :func:`mean_curve`.
     bounds, min_points, criterion
@@ -382,8 +407,8 @@ def compare_strategies(trials_a, trials_b, n_bootstrap=100, rng=None, *, paired=
     if paired and len(trials_a) != len(trials_b):
         raise ValueError(f"paired trials need equal counts, got {len(trials_a)} and "
                          f"{len(trials_b)}")
-    grid_a = common_grid(trials_a, n_grid, hold_last)
-    grid_b = common_grid(trials_b, n_grid, hold_last)
+    grid_a = common_grid(trials_a, n_grid, hold_last, spacing)
+    grid_b = common_grid(trials_b, n_grid, hold_last, spacing)
     values_a = _trial_matrix(trials_a, grid_a, kind, hold_last)
     values_b = _trial_matrix(trials_b, grid_b, kind, hold_last)
     options = dict(bounds=bounds, kind=kind, min_points=min_points, criterion=criterion)

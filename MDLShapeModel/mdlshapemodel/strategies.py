@@ -28,6 +28,14 @@ their centres). F of a trial is computed from the full covariance of the trial s
 
 Each runs in two phases (III-B): the fixed-Delta objective (eq. 13) first, then the full objective
 (eq. 14), each until convergence or its share of the time budget.
+
+The trace has a row at the start of each phase and after each example (one-at-a-time) or
+level/iteration (simplex strategies), plus the row after each rebuild. With
+``OptimisationSettings.trace_improvements`` it also has a row whenever a trial inside a step (the
+amplitude search, the pose simplex, the amplitude simplex) beats the best F so far, i.e. the value
+that the step would commit if stopped there: convergence curves at the resolution of single
+evaluations, which eq. (19) needs when one strategy is hundreds of times slower than another
+(:mod:`mdlshapemodel.convergence`). Recording does not change the optimisation.
 """
 
 from __future__ import annotations
@@ -85,6 +93,9 @@ class OptimisationSettings:
     max_levels: int = 4            # multiresolution: levels per phase (12, 30, 120, 480 kernels)
     simplex_step: float = 0.25     # initial simplex edge, as a fraction of each kernel's A_max
     simplex_evaluations: int = 0   # evaluations per simplex run; 0: 200 x its parameters
+    # trace a row whenever a trial inside a step beats the best F so far (not only after each
+    # example / iteration): convergence curves at the resolution of single evaluations
+    trace_improvements: bool = False
 
 
 def stalled(before: float, value: float, start_value: float, settings: OptimisationSettings
@@ -93,13 +104,29 @@ def stalled(before: float, value: float, start_value: float, settings: Optimisat
     return before - value <= settings.tolerance * max(start_value - value, 1e-12)
 
 
+def _improvements(current: float, report):
+    """Wrap ``report(value)`` (or None) to be called only when a trial beats the best so far."""
+    if report is None:
+        return lambda value: None
+    best = [current]
+
+    def seen(value: float):
+        if value < best[0]:
+            best[0] = value
+            report(value)
+    return seen
+
+
 def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kernel,
-                        current: float, max_amplitude: float, min_amplitude: float = 1e-7
-                        ) -> float:
-    """Best amplitude for one kernel of part j of example i; commits it when F falls."""
+                        current: float, max_amplitude: float, min_amplitude: float = 1e-7,
+                        improved=None) -> float:
+    """Best amplitude for one kernel of part j of example i; commits it when F falls.
+
+    ``improved(value)``, if given, is called whenever a trial beats the best F so far."""
     example = state.examples[i]
     part = example.parts[j]
     cache = {}
+    seen = _improvements(current, improved)
 
     def objective(amplitude: float) -> float:
         trial = Kernel(kernel.center, kernel.omega, float(amplitude))
@@ -107,6 +134,7 @@ def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kern
         shape = example.pose.apply(example.raw_points({j: points}))
         value = state.value(i, shape)
         cache[float(amplitude)] = (value, trial, positions, points, hint)
+        seen(value)
         return value
 
     upper = part.feasible_amplitude(kernel.center, kernel.omega, max_amplitude)
@@ -125,9 +153,11 @@ def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kern
     return current
 
 
-def _optimise_pose(state: CorrespondenceState, i: int, current: float, max_evaluations: int
-                   ) -> float:
-    """Downhill simplex over example i's pose (rotation about its centroid, translation, scale)."""
+def _optimise_pose(state: CorrespondenceState, i: int, current: float, max_evaluations: int,
+                   improved=None) -> float:
+    """Downhill simplex over example i's pose (rotation about its centroid, translation, scale).
+
+    ``improved`` as in :func:`_optimise_amplitude`."""
     example = state.examples[i]
     raw = example.raw_points()
     base = example.pose
@@ -140,8 +170,12 @@ def _optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalu
         about = Pose(1.0, np.eye(3), centre).compose(delta).compose(Pose(1.0, np.eye(3), -centre))
         return about.compose(base)
 
+    seen = _improvements(current, improved)
+
     def objective(parameters: np.ndarray) -> float:
-        return state.value(i, pose_of(parameters).apply(raw))
+        value = state.value(i, pose_of(parameters).apply(raw))
+        seen(value)
+        return value
 
     step = np.array([0.02, 0.02, 0.02, 0.02 * size, 0.02 * size, 0.02 * size, 0.01])
     simplex = np.vstack([np.zeros(7), np.diag(step)])
@@ -153,6 +187,14 @@ def _optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalu
         state.commit_shape(i)
         return float(result.fun)
     return current
+
+
+def _recorder(state: CorrespondenceState, trace: Trace, phase: str, sweep: int,
+              settings: OptimisationSettings):
+    """``improved(value)`` recording a trace row, if ``settings.trace_improvements``; else None."""
+    if not settings.trace_improvements:
+        return None
+    return lambda value: trace.record(state, value, phase, sweep)
 
 
 def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: OptimisationSettings,
@@ -170,15 +212,17 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
     active = np.arange(state.n_shapes) if active is None else np.asarray(active)
     for sweep in range(1, settings.max_sweeps + 1):
         before = value
+        improved = _recorder(state, trace, phase, sweep, settings)
         for i in rng.permutation(active):
             example = state.examples[i]
             for j in rng.permutation(len(example.parts)):
                 part = example.parts[j]
                 kernel = Kernel(part.random_surface_parameter(rng),
                                 random_width(rng, settings.sigma_g), 0.0)
-                value = _optimise_amplitude(state, i, j, kernel, value, settings.max_amplitude)
+                value = _optimise_amplitude(state, i, j, kernel, value, settings.max_amplitude,
+                                            improved=improved)
             if with_pose:
-                value = _optimise_pose(state, i, value, settings.pose_evaluations)
+                value = _optimise_pose(state, i, value, settings.pose_evaluations, improved)
             trace.record(state, value, phase, sweep)
             if progress is not None:
                 progress(None, f"{phase}: sweep {sweep}, F = {value:.3f}")
@@ -236,8 +280,10 @@ def _block(state: CorrespondenceState, i: int, j: int, centers, omegas,
 
 def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: float,
                          settings: OptimisationSettings, deadline: float, progress=None,
-                         label: str = "") -> float:
+                         label: str = "", improved=None) -> float:
     """Downhill simplex over the amplitudes of all ``blocks`` at once; commits when F falls.
+
+    ``improved`` as in :func:`_optimise_amplitude`.
 
     Trial amplitudes are clipped into [0, A_max] per kernel; a trial whose composed kernels flip a
     grid triangle of its part scores +inf. Stops at the simplex's own tolerance, after
@@ -288,6 +334,8 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
         value = _population_value(state, shapes)
         if value < best["value"]:
             best["value"], best["trial"] = value, parts
+            if improved is not None:
+                improved(value)
         count[0] += 1
         if progress is not None and count[0] % 100 == 0:
             progress(None, f"{label}, {count[0]} evaluations, F = {best['value']:.3f}")
@@ -375,7 +423,8 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
         blocks = [b for b in blocks if b is not None]
         label = f"{phase}: level {level} ({sum(len(b.upper) for b in blocks)} kernels, " \
                 f"omega = {omega:g})"
-        value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label)
+        value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label,
+                                     _recorder(state, trace, phase, level, settings))
         value = _end_of_iteration(state, trace, phase, level, value, label, progress, checkpoint)
         if time.perf_counter() > deadline:
             break
@@ -407,7 +456,8 @@ def multiscale(state: CorrespondenceState, objective: Objective, settings: Optim
             if block is not None:
                 blocks.append(block)
         label = f"{phase}: iteration {iteration}"
-        value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label)
+        value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label,
+                                     _recorder(state, trace, phase, iteration, settings))
         value = _end_of_iteration(state, trace, phase, iteration, value, label, progress,
                                   checkpoint)
         if time.perf_counter() > deadline:
