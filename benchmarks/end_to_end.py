@@ -5,8 +5,8 @@ For each N in ``--cases`` the first N shared hippocampus label maps (labels 1+2)
 ``mdlshapemodel build`` (default settings unless given after ``--``) in a subprocess, with an empty
 preprocessing cache (``--cold``, the default; ``--warm`` reuses ``--cache-dir``). The resident
 memory of the build and all its worker processes is sampled every 0.1 s; the peak of their *sum*
-is reported, and that of the largest single process. Stage times come from the build's log:
-preprocessing, optimisation (and its time to convergence from convergence.csv), and the rest
+is reported, and that of the largest single process. Stage times: preprocessing (from the
+build's log), optimisation (to convergence or the budget, from convergence.csv), and the rest
 (evaluation of the model and baselines, renderings, report, files). The optimisation time per
 shape shows whether it grows linearly with N.
 
@@ -81,24 +81,13 @@ def _stamp(line: str) -> float:
     return datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
 
 
-def stages(log: Path) -> dict:
-    """Seconds of preprocessing, optimisation and the rest, from a build.log."""
+def preprocessing_seconds(log: Path) -> float:
+    """Seconds from the start of a build to the end of its preprocessing, from its build.log."""
     lines = log.read_text().splitlines()
-    first = _stamp(lines[0])
-    marks = {}
     for line in lines:
         if re.search(r"prepared \d+ cases in", line):
-            marks["prepared"] = _stamp(line)
-        elif "final objective" in line or "CPD correspondence (template" in line:
-            marks["optimised"] = _stamp(line)
-        elif "initial objective" in line:
-            marks["initial"] = _stamp(line)
-        elif "outputs written" in line:
-            marks["written"] = _stamp(line)
-    return {"preprocessing": marks["prepared"] - first,
-            "before optimisation (baselines)": marks.get("optimised", marks["written"]) -
-            marks["prepared"],
-            "total logged": marks["written"] - first}
+            return _stamp(line) - _stamp(lines[0])
+    raise ValueError(f"{log}: no preprocessing line")
 
 
 def main() -> int:
@@ -137,9 +126,8 @@ def main() -> int:
         with open(output / "convergence.csv") as file:
             trace = list(csv.DictReader(file))
         optimisation = float(trace[-1]["wall_seconds"]) if trace else 0.0
-        times = stages(output / "build.log")
-        rows.append((n, wall, times["preprocessing"], optimisation,
-                     wall - times["preprocessing"] - optimisation, watch.peak_total,
+        prep = preprocessing_seconds(output / "build.log")
+        rows.append((n, wall, prep, optimisation, wall - prep - optimisation, watch.peak_total,
                      watch.peak_single, metrics["objective"]["initial"],
                      metrics["objective"]["final"], metrics["strategy"], metrics["n_points"]))
         print(f"n_s={n}: {wall:.0f} s wall, peak {watch.peak_total:.0f} MB", flush=True)

@@ -8,7 +8,10 @@ fixed-Delta phase (whose own objective is eq. 13). The target is the eq.-14 valu
 strategy 4 (one example at a time with pose, III-D4) ends at within the budget. For each strategy
 the table gives the wall and CPU seconds and objective evaluations at which eq. 14 first reaches
 the target (linear interpolation between records), and the speed-up: strategy 4's time to reach its
-own final value divided by the strategy's. Traces go to ``OUTPUT/<strategy>.csv``.
+own final value divided by the strategy's. Traces go to ``OUTPUT/<strategy>.csv``. Then the model
+of each strategy's final correspondence is evaluated (compactness, generalization, specificity with
+10,000 samples, M = 1..10, area-weighted mm^2) and compared with strategy 4's: differences are
+given in standard errors of the difference, sqrt(SE_a^2 + SE_b^2).
 
     python benchmarks/strategies.py --cases 40 --budget 600 --jobs 2 --output /tmp/strategies40
 
@@ -31,11 +34,14 @@ ORDER = (REFERENCE, "one-at-a-time", "multiscale", "multiresolution", "fast")
 COLUMNS = ("wall_seconds", "cpu_seconds", "evaluations", "objective", "phase", "sweep", "eq14")
 
 
-def run(strategy: str, paths: list, budget: float, seed: int) -> list:
-    """One strategy from the initial correspondence; its trace rows with eq. 14 appended."""
+def run(strategy: str, paths: list, budget: float, seed: int) -> tuple:
+    """One strategy from the initial correspondence: its trace rows with eq. 14 appended, and the
+    quality measures of its final model."""
     import numpy as np
 
     from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.evaluation import evaluate
+    from mdlshapemodel.model import ShapeModel
     from mdlshapemodel.pipeline import initial_state, optimisation_settings, preprocess
     from mdlshapemodel.strategies import Trace, optimise
 
@@ -58,7 +64,11 @@ def run(strategy: str, paths: list, budget: float, seed: int) -> list:
     trace = Eq14Trace()
     trace.record(state, integrated(state.covariance()), "start", 0)
     optimise(state, objectives, optimisation_settings(config), np.random.default_rng(seed), trace)
-    return trace.rows
+    state.rebuild()
+    aligned = state.aligned_shapes()
+    model = ShapeModel.from_shapes(aligned, state.weights)
+    return trace.rows, evaluate(aligned, state.weights, model.variances, 10, 10_000,
+                                np.random.default_rng(0))
 
 
 def time_to_reach(rows: list, target: float, column: int) -> float:
@@ -103,11 +113,11 @@ def main() -> int:
     print(f"{len(prepared)} cases prepared ({len(rejected)} rejected) in "
           f"{time.perf_counter() - started:.0f} s; budget {args.budget:.0f} s per strategy, "
           f"{args.jobs} at once", flush=True)
-    traces = {}
+    traces, quality = {}, {}
     with ProcessPoolExecutor(args.jobs) as pool:
         futures = {s: pool.submit(run, s, paths, args.budget, args.seed) for s in strategies}
         for strategy, future in futures.items():
-            traces[strategy] = future.result()
+            traces[strategy], quality[strategy] = future.result()
             with open(output / f"{strategy}.csv", "w", newline="") as file:
                 writer = csv.writer(file)
                 writer.writerow(COLUMNS)
@@ -130,6 +140,18 @@ def main() -> int:
         print(f"{strategy:<20} {min(r[-1] for r in rows):>11.2f} {shown[0]:>8} {shown[1]:>8} "
               f"{shown[2]:>11} {ratios[0]:>15.2f} {ratios[1]:>7.2f} {ratios[2]:>13.2f}")
     print("\n'-': never reached the target within the budget (speed-up 0).")
+    for measure in ("compactness", "generalization", "specificity"):
+        print(f"\n{measure} [mm^2 +- SE] at M = 1, 2, 3, 5, 10; (strategy - strategy 4) / SE of the "
+              "difference in brackets")
+        reference = quality[REFERENCE]
+        for strategy in strategies:
+            q = quality[strategy]
+            cells = []
+            for m in (m for m in (0, 1, 2, 4, 9) if m < len(q[measure])):
+                gap = (q[measure][m] - reference[measure][m]) / max(
+                    math.hypot(q[measure + "_se"][m], reference[measure + "_se"][m]), 1e-300)
+                cells.append(f"{q[measure][m]:.3f}+-{q[measure + '_se'][m]:.3f} ({gap:+.1f})")
+            print(f"  {strategy:<20} " + "  ".join(cells))
     return 0
 
 
