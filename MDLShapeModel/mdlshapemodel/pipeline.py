@@ -403,7 +403,8 @@ def _build(inputs, output: Path, config: BuildConfig, progress) -> BuildResult:
                                         max_amplitude=config.max_amplitude,
                                         max_time=config.max_time,
                                         fixed_fraction=config.fixed_fraction,
-                                        tolerance=config.tolerance, max_sweeps=config.max_sweeps)
+                                        tolerance=config.tolerance, max_sweeps=config.max_sweeps,
+                                        warps=tuple(config.warps))
 
         def checkpoint():
             save_checkpoint(output / "checkpoint.npz", state)
