@@ -6,7 +6,10 @@ Implemented here:
 - ``one-at-a-time`` (III-D3): sweep the examples in random order; for each, draw a kernel position
   uniformly over the shape and a width from the positive half of N(0, sigma_G), and optimise that
   kernel's amplitude (bounded Brent search over log10 A, the paper's suggested 1-D alternative to
-  the simplex);
+  the simplex); with ``warps`` beyond ``symmetric``, each step first draws the kind of warp
+  uniformly: the Appendix's asymmetric theta map or shear/twist, or a global rotation of the
+  parameter sphere, its free parameter(s) optimised by 1-D bounded searches
+  (:func:`_optimise_warp`);
 - ``one-at-a-time-pose`` (III-D4): as above, then optimise the example's pose (rotation, translation,
   scale) with the downhill simplex;
 - ``multiresolution`` (III-D1): level k = 0, 1, ... places kernels of width omega_1 / 2**k
@@ -223,7 +226,7 @@ def _optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, curren
             return current
         _search_warp(state, i, j, lambda a: changed(base, amplitude=a),
                      (np.log10(min_amplitude), np.log10(upper)), True, 0.02, 25, found)
-        value, best, _ = min(found, key=lambda item: item[0])
+        value, best, _ = min(found, key=lambda item: item[0], default=(np.inf, None, None))
         if value < current:
             _search_warp(state, i, j, lambda d: changed(best, psi0=best.psi0 + d),
                          (-np.pi, np.pi), False, 0.02, 15, found)
