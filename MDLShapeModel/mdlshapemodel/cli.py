@@ -10,7 +10,7 @@ from pathlib import Path
 
 from .config import BASELINES, CORRESPONDENCES, BuildConfig
 from .errors import MDLShapeModelError
-from .strategies import STRATEGIES
+from .strategies import STRATEGIES, WARPS
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -32,6 +32,15 @@ def _baselines(text: str) -> list[str]:
     return values
 
 
+def _warps(text: str) -> list[str]:
+    values = [v for v in text.replace(",", " ").split()]
+    unknown = [v for v in values if v not in WARPS]
+    if unknown or not values:
+        problem = f"unknown warp kind {unknown[0]!r}" if unknown else "no warp kind given"
+        raise argparse.ArgumentTypeError(f"{problem}; choose from {', '.join(WARPS)}")
+    return values
+
+
 def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
     group = parser.add_argument_group("correspondence")
     group.add_argument("--points", type=int, default=defaults.points,
@@ -47,6 +56,12 @@ def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
     group.add_argument("--strategy", choices=STRATEGIES, default=defaults.strategy,
                        help="optimisation strategy; 'none' keeps the initial (equal-spacing) "
                             "correspondence (default %(default)s)")
+    group.add_argument("--warps", type=_warps, default=defaults.warps, metavar="LIST",
+                       help="one-at-a-time strategies: the warps each step draws from, uniformly, "
+                            "comma-separated from symmetric (the paper's theta kernel), asymmetric "
+                            "and shear (the Appendix's asymmetric theta and shear/twist maps) and "
+                            "rotation (a global rotation of the parameter sphere) "
+                            "(default symmetric)")
     group.add_argument("--max-time", type=float, default=defaults.max_time, metavar="SECONDS",
                        help="time budget of the optimisation (default %(default)s)")
     group.add_argument("--max-sweeps", type=int, default=defaults.max_sweeps, metavar="N",
@@ -124,7 +139,7 @@ def _config_from(args) -> BuildConfig:
                        smoothing_factor=args.smoothing_factor, decimation=args.decimation,
                        edge_length=args.edge_length, target_vertices=args.target_vertices,
                        max_smoothing_sigma=max(2.0, args.smoothing), points=args.points,
-                       strategy=args.strategy, scaling=not args.no_scaling,
+                       strategy=args.strategy, warps=args.warps, scaling=not args.no_scaling,
                        delta_range=tuple(args.delta_range), fixed_delta=args.fixed_delta,
                        sigma_g=args.sigma_g, max_time=args.max_time, tolerance=args.tolerance,
                        fixed_fraction=args.fixed_fraction, max_sweeps=args.max_sweeps,

@@ -10,7 +10,7 @@ import os
 from dataclasses import asdict, dataclass, field, fields
 
 from .errors import ConfigError
-from .strategies import STRATEGIES, OptimisationSettings
+from .strategies import STRATEGIES, WARP_STRATEGIES, WARPS, OptimisationSettings
 
 
 CORRESPONDENCES = ("mdl", "cpd")
@@ -40,6 +40,9 @@ class BuildConfig:
     # optimisation: our gradient strategy by default (the paper's four remain selectable); the
     # other defaults are those of strategies.OptimisationSettings (one source)
     strategy: str = "fast"
+    # one-at-a-time strategies: warp kinds each step draws from (uniformly), of symmetric,
+    # asymmetric, shear, rotation; ["symmetric"] is the paper's strategy
+    warps: list = field(default_factory=lambda: list(OptimisationSettings.warps))
     scaling: bool = True              # Procrustes removes scale
     delta_range: tuple = (1e-4, 0.5)  # voxels: [Delta_min, Delta_max] of eq. 14 (Table I)
     fixed_delta: float = 0.1          # voxels: Delta of the first phase (eq. 13)
@@ -83,6 +86,11 @@ class BuildConfig:
              f"each must be one of {', '.join(BASELINES)}")
         need(self.points >= 12, "points", "must be at least 12")
         need(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
+        need(isinstance(self.warps, (list, tuple)) and len(self.warps) > 0
+             and all(w in WARPS for w in self.warps) and len(set(self.warps)) == len(self.warps),
+             "warps", f"must be distinct kinds from {', '.join(WARPS)}")
+        need(list(self.warps) == ["symmetric"] or self.strategy in WARP_STRATEGIES, "warps",
+             f"kinds other than symmetric need the strategy {' or '.join(WARP_STRATEGIES)}")
         need(len(self.delta_range) == 2 and 0 < self.delta_range[0] < self.delta_range[1],
              "delta_range", "must be two numbers 0 < min < max")
         need(self.fixed_delta > 0, "fixed_delta", "must be positive")

@@ -82,12 +82,22 @@ class PartState:
     def feasible_amplitude(self, center: np.ndarray, omega: float, upper: float,
                            steps: int = 12) -> float:
         """Largest amplitude in [0, upper] (to 2**-steps relative) that flips no grid triangle."""
-        if not self.folds(apply_symmetric_theta(self.positions, center, upper, omega)):
+        return self.feasible_parameter(
+            lambda amplitude: apply_symmetric_theta(self.positions, center, amplitude, omega),
+            upper, steps)
+
+    def feasible_parameter(self, move, upper: float, steps: int = 12) -> float:
+        """Largest t in [0, upper] (to 2**-steps relative) such that ``move(t)``, the current
+        positions moved by a warp of parameter t (``move(0)``: unmoved), flips no grid triangle.
+
+        Bisection: assumes the unfolded t form an interval containing 0, as they do for a warp
+        whose distortion grows with |t| (an amplitude, a twist angle)."""
+        if not self.folds(move(upper)):
             return upper
         low, high = 0.0, upper
         for _ in range(steps):
             middle = 0.5 * (low + high)
-            if self.folds(apply_symmetric_theta(self.positions, center, middle, omega)):
+            if self.folds(move(middle)):
                 high = middle
             else:
                 low = middle
@@ -100,7 +110,18 @@ class PartState:
         points, hint = self.sample(positions)
         return positions, points, hint
 
-    def commit(self, kernel: Kernel, positions, points, hint):
+    def propose_warp(self, warp):
+        """Positions, points and hint after applying any warp of :mod:`warps` (``warp.apply``) to
+        the current positions (not committed); None when it flips a grid triangle."""
+        positions = warp.apply(self.positions)
+        if self.folds(positions):
+            return None
+        points, hint = self.sample(positions)
+        return positions, points, hint
+
+    def commit(self, kernel, positions, points, hint):
+        """Accept a warp: ``kernel`` is a :class:`Kernel` or a warp of :mod:`warps` (kept in
+        ``kernels``, the list of accepted warps, in order)."""
         self.kernels.append(kernel)
         self.positions, self.points, self.hint = positions, points, hint
 

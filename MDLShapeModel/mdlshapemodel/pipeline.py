@@ -476,7 +476,8 @@ def optimisation_settings(config: BuildConfig) -> OptimisationSettings:
     return OptimisationSettings(strategy=config.strategy, sigma_g=config.sigma_g,
                                 max_amplitude=config.max_amplitude, max_time=config.max_time,
                                 fixed_fraction=config.fixed_fraction,
-                                tolerance=config.tolerance, max_sweeps=config.max_sweeps)
+                                tolerance=config.tolerance, max_sweeps=config.max_sweeps,
+                                warps=tuple(config.warps))
 
 
 def evaluate_state(state: CorrespondenceState, config: BuildConfig, prepared: list | None = None,

@@ -6,7 +6,10 @@ Implemented here:
 - ``one-at-a-time`` (III-D3): sweep the examples in random order; for each, draw a kernel position
   uniformly over the shape and a width from the positive half of N(0, sigma_G), and optimise that
   kernel's amplitude (bounded Brent search over log10 A, the paper's suggested 1-D alternative to
-  the simplex);
+  the simplex); with ``warps`` beyond ``symmetric``, each step first draws the kind of warp
+  uniformly: the Appendix's asymmetric theta map or shear/twist, or a global rotation of the
+  parameter sphere, its free parameter(s) optimised by 1-D bounded searches
+  (:func:`_optimise_warp`);
 - ``one-at-a-time-pose`` (III-D4): as above, then optimise the example's pose (rotation, translation,
   scale) with the downhill simplex;
 - ``multiresolution`` (III-D1): level k = 0, 1, ... places kernels of width omega_1 / 2**k
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from dataclasses import replace as changed
 
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
@@ -50,10 +54,15 @@ from .correspond import CorrespondenceState, Kernel
 from .mdl import Objective
 from .pose import Pose, pose_from_parameters, weighted_centroid
 from .sampling import icosphere
-from .warps import apply_symmetric_theta, random_width
+from .warps import (Rotation, apply_symmetric_theta, random_asymmetric_theta, random_shear_twist,
+                    random_unit_vector, random_width)
 
 STRATEGIES = ("none", "one-at-a-time", "one-at-a-time-pose", "multiresolution", "multiscale",
               "fast")
+# Warp kinds a one-at-a-time step can draw: the symmetric theta kernel (III-A), the Appendix's
+# asymmetric theta transformation and shear/twist, and a global rotation of the parameter sphere.
+WARPS = ("symmetric", "asymmetric", "shear", "rotation")
+WARP_STRATEGIES = ("one-at-a-time", "one-at-a-time-pose")
 
 
 class Cancelled(Exception):
@@ -96,6 +105,10 @@ class OptimisationSettings:
     # trace a row whenever a trial inside a step beats the best F so far (not only after each
     # example / iteration): convergence curves at the resolution of single evaluations
     trace_improvements: bool = False
+    # the one-at-a-time strategies: warp kinds drawn (uniformly) per step, see _optimise_warp
+    warps: tuple = ("symmetric",)
+    max_angle: float = np.pi / 4   # largest rotation, and peak shear/twist angle, of one step
+    shear_sigma: float = 0.25      # shear/twist band widths c: positive half of N(0, this)
 
 
 def stalled(before: float, value: float, start_value: float, settings: OptimisationSettings
@@ -153,6 +166,134 @@ def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kern
     return current
 
 
+def _search_warp(state: CorrespondenceState, i: int, j: int, warp_of, bounds: tuple,
+                 log_scale: bool, xatol: float, maxiter: int, found: list):
+    """Bounded Brent search of F over one parameter t of a warp of part j of example i.
+
+    ``warp_of(t)`` is the warp at parameter t (10**t when ``log_scale``); every trial that flips a
+    grid triangle scores +inf and is never kept. Each unfolded trial is appended to ``found`` as
+    (F, warp, (positions, points, hint)). Nothing is committed.
+    """
+    example = state.examples[i]
+    part = example.parts[j]
+
+    def objective(t: float) -> float:
+        warp = warp_of(10.0 ** t if log_scale else float(t))
+        proposal = part.propose_warp(warp)
+        if proposal is None:
+            return np.inf
+        value = state.value(i, example.pose.apply(example.raw_points({j: proposal[1]})))
+        found.append((value, warp, proposal))
+        return value
+
+    minimize_scalar(objective, method="bounded", bounds=bounds,
+                    options={"xatol": xatol, "maxiter": maxiter})
+
+
+def _commit_best(state: CorrespondenceState, i: int, j: int, found: list, current: float
+                 ) -> float:
+    """Commit the best trial of ``found`` when it lowers F; return the new F."""
+    if not found:
+        return current
+    value, warp, proposal = min(found, key=lambda item: item[0])
+    if value < current:
+        state.examples[i].parts[j].commit(warp, *proposal)
+        state.commit_shape(i)
+        return value
+    return current
+
+
+def _signed_bounds(part, move, cap: float, min_parameter: float) -> tuple | None:
+    """[-low, high]: the unfolded range of a signed warp parameter within [-cap, cap], from one
+    bisection per sign (:meth:`PartState.feasible_parameter`); None when both sides are negligible."""
+    high = part.feasible_parameter(move, cap)
+    low = part.feasible_parameter(lambda t: move(-t), cap)
+    if max(low, high) <= min_parameter:
+        return None
+    return -low, high
+
+
+def _optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, current: float,
+                   settings: OptimisationSettings, rng: np.random.Generator,
+                   min_amplitude: float = 1e-7, improved=None) -> float:
+    """One step of the one-at-a-time strategies on part j of example i with a warp of ``kind``.
+
+    - ``symmetric``: a random kernel (centre uniform over the surface, omega from sigma_G), its
+      amplitude optimised by :func:`_optimise_amplitude`, as in the paper;
+    - ``asymmetric`` (Appendix eq. 27-29): centre and omega drawn as for the symmetric kernel,
+      psi0 uniform, b log-uniform on [0.1, 2] (:func:`warps.random_asymmetric_theta`); A0 >= 0 is
+      searched over log10 A0 up to the amplitude whose peak A(psi0) = ``max_amplitude`` (or less,
+      so that no grid triangle flips); if that lowers F, psi0 is then searched over +-pi at the
+      best A0;
+    - ``shear`` (Appendix eq. 30-31): axis point uniform over the surface, band centre theta0 with
+      cos theta0 uniform, band width c from the positive half of N(0, ``shear_sigma``); the signed
+      amplitude B is searched (linearly) over the range in which the peak twist angle is at most
+      ``max_angle`` and no grid triangle flips;
+    - ``rotation``: a global rotation of the part's parameter sphere about a random axis (uniform
+      on the sphere), its signed angle searched over [-max_angle, max_angle]. One axis per step:
+      over the steps the random axes cover all three angles.
+
+    Every trial that flips a grid triangle is rejected; the best trial is committed only if it
+    lowers F. Returns the new F.
+    """
+    part = state.examples[i].parts[j]
+    positions = part.positions
+    if kind == "symmetric":
+        kernel = Kernel(part.random_surface_parameter(rng), random_width(rng, settings.sigma_g),
+                        0.0)
+        return _optimise_amplitude(state, i, j, kernel, current, settings.max_amplitude,
+                                   min_amplitude, improved)
+    found: list = []
+    if kind == "asymmetric":
+        base = random_asymmetric_theta(rng, settings.sigma_g,
+                                       center=part.random_surface_parameter(rng))
+        cap = settings.max_amplitude * np.sinh(base.b) / 2.0   # peak amplitude = max_amplitude
+        upper = part.feasible_parameter(
+            lambda a: changed(base, amplitude=a).apply(positions), cap)
+        if upper <= min_amplitude:
+            return current
+        _search_warp(state, i, j, lambda a: changed(base, amplitude=a),
+                     (np.log10(min_amplitude), np.log10(upper)), True, 0.02, 25, found)
+        value, best, _ = min(found, key=lambda item: item[0], default=(np.inf, None, None))
+        if value < current:
+            _search_warp(state, i, j, lambda d: changed(best, psi0=best.psi0 + d),
+                         (-np.pi, np.pi), False, 0.02, 15, found)
+    elif kind == "shear":
+        base = random_shear_twist(rng, settings.shear_sigma,
+                                  center=part.random_surface_parameter(rng))
+        # peak twist angle B / (2 pi tanh(c / 2)) at most max_angle
+        cap = settings.max_angle * 2.0 * np.pi * np.tanh(base.width / 2.0)
+        bounds = _signed_bounds(part, lambda b: changed(base, amplitude=b).apply(positions), cap,
+                                min_amplitude * cap)
+        if bounds is None:
+            return current
+        _search_warp(state, i, j, lambda b: changed(base, amplitude=b), bounds, False,
+                     1e-3 * (bounds[1] - bounds[0]), 25, found)
+    elif kind == "rotation":
+        axis = random_unit_vector(rng)
+        bounds = _signed_bounds(part, lambda t: Rotation(axis * t).apply(positions),
+                                settings.max_angle, min_amplitude * settings.max_angle)
+        if bounds is None:
+            return current
+        _search_warp(state, i, j, lambda t: Rotation(axis * t), bounds, False,
+                     1e-3 * (bounds[1] - bounds[0]), 25, found)
+    else:
+        raise ValueError(f"unknown warp kind {kind!r}; choose from {', '.join(WARPS)}")
+    return _commit_best(state, i, j, found, current)
+
+
+def warp_counts(state: CorrespondenceState) -> dict:
+    """How many warps of each kind were accepted, over every example and part."""
+    names = {"symmetric_theta": "symmetric", "asymmetric_theta": "asymmetric",
+             "shear_twist": "shear", "rotation": "rotation"}
+    counts = dict.fromkeys(WARPS, 0)
+    for example in state.examples:
+        for part in example.parts:
+            for warp in part.kernels:
+                counts[names[warp.kind] if hasattr(warp, "kind") else "symmetric"] += 1
+    return counts
+
+
 def _optimise_pose(state: CorrespondenceState, i: int, current: float, max_evaluations: int,
                    improved=None) -> float:
     """Downhill simplex over example i's pose (rotation about its centroid, translation, scale).
@@ -207,6 +348,10 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
     Converged means: for ``patience`` consecutive sweeps, the sweep lowered F by less than
     ``tolerance`` times the total decrease of this phase so far.
     """
+    kinds = tuple(settings.warps)
+    unknown = [kind for kind in kinds if kind not in WARPS]
+    if not kinds or unknown:
+        raise ValueError(f"warps: {list(kinds)!r} must be one or more of {', '.join(WARPS)}")
     value = start_value = start_phase(state, objective, trace, phase)
     quiet_sweeps = 0
     active = np.arange(state.n_shapes) if active is None else np.asarray(active)
@@ -216,11 +361,11 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
         for i in rng.permutation(active):
             example = state.examples[i]
             for j in rng.permutation(len(example.parts)):
-                part = example.parts[j]
-                kernel = Kernel(part.random_surface_parameter(rng),
-                                random_width(rng, settings.sigma_g), 0.0)
-                value = _optimise_amplitude(state, i, j, kernel, value, settings.max_amplitude,
-                                            improved=improved)
+                # with the symmetric kernel alone, no draw of the kind (the paper's strategy,
+                # and the same random stream as before warps could be chosen)
+                kind = kinds[0] if len(kinds) == 1 else kinds[int(rng.integers(len(kinds)))]
+                value = _optimise_warp(state, i, j, kind, value, settings, rng,
+                                       improved=improved)
             if with_pose:
                 value = _optimise_pose(state, i, value, settings.pose_evaluations, improved)
             trace.record(state, value, phase, sweep)
