@@ -13,6 +13,7 @@ a finer level (coarse to fine), until the objective stops falling or the time is
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import minimize
@@ -201,6 +202,12 @@ def optimise_fast(state: CorrespondenceState, objective, settings, trace,
     ``settings.max_sweeps`` rounds. At each level, rounds go on until one gains less than the
     tolerance (then the next level starts), at most ``rounds_per_level``."""
     active = range(state.n_shapes) if active is None else active
+    if objective.kind == "fixed" and objective.free_below_delta:
+        # Case 3 of the fixed-Delta cost (a mode spanning less than Delta is free) is a step of
+        # about n_s ln(8 pi) / 2 nats in the mode's range: a quasi-Newton line search that crosses
+        # it fails (seen with 82 hippocampi, where the smallest modes reach Delta). The paper's
+        # eq. 13 codes every mode, continuously: this phase minimises that.
+        objective = replace(objective, free_below_delta=False)
     value = start_value = start_phase(state, objective, trace, phase)
     sweep = 0
     for level in levels:
