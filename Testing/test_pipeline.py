@@ -172,6 +172,14 @@ def test_preprocessing_cache_is_reused_only_for_identical_files_and_settings(pop
     # another setting that changes the surface: new entries
     preprocess(paths[:1], BuildConfig(workers=1, cache_dir=str(cache), smoothing_sigma=1.5))
     assert len(list(cache.glob("*.npz"))) == 3
+    # a new preprocessing algorithm does not reuse the old entries
+    from mdlshapemodel import pipeline
+
+    key = pipeline.cache_key(paths[0], config)
+    monkeypatch.setattr(pipeline, "PREPROCESSING_VERSION", pipeline.PREPROCESSING_VERSION + 1)
+    assert pipeline.cache_key(paths[0], config) != key
+    monkeypatch.undo()
+    assert pipeline.cache_key(paths[0], config) == key
     # a damaged entry is recomputed, not trusted
     damaged = sorted(stamps)[0]
     damaged.write_bytes(b"not an npz file")

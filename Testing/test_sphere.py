@@ -139,6 +139,49 @@ def test_minimise_distortion_never_increases_the_energy_nor_flips(bump_surface, 
             < mean_abs_log_area_ratio(vertices, faces, warped_start))
 
 
+def test_compiled_energy_matches_its_definition(bump_surface, warped_start, bump_map):
+    """The single-pass (compiled) energy equals the Jacobian form of the test, and is infinite
+    as soon as one triangle is flipped."""
+    from mdlshapemodel.sphere import _DistortionEnergy
+
+    vertices, faces = bump_surface
+    for area_weight in (0.0, 4.0):
+        energy_of = _DistortionEnergy(vertices, faces, area_weight)
+        for x in (warped_start, bump_map.sphere):
+            energy, grad = energy_of(x)
+            assert energy == pytest.approx(distortion_energy(vertices, faces, x, area_weight),
+                                           rel=1e-10)
+            assert energy_of(x, gradient=False) == (energy, None)
+            assert grad.shape == x.shape
+    folded = bump_map.sphere.copy()
+    i, j = faces[0, 0], faces[0, 1]
+    folded[[i, j]] = folded[[j, i]]
+    assert energy_of(folded) == (np.inf, None)
+
+
+def test_energy_gradient_matches_finite_differences(bump_surface, warped_start, rng):
+    from mdlshapemodel.sphere import _DistortionEnergy
+
+    vertices, faces = bump_surface
+    energy_of = _DistortionEnergy(vertices, faces, 4.0)
+    _, grad = energy_of(warped_start)
+    step = 1e-6
+    # single coordinates, including the vertex with the largest gradient
+    worst = np.unravel_index(np.argmax(np.abs(grad)), grad.shape)
+    for index in [worst] + [(int(rng.integers(len(vertices))), int(rng.integers(3)))
+                            for _ in range(5)]:
+        e = np.zeros_like(warped_start)
+        e[index] = step
+        numeric = (energy_of(warped_start + e, gradient=False)[0]
+                   - energy_of(warped_start - e, gradient=False)[0]) / (2 * step)
+        assert grad[index] == pytest.approx(numeric, rel=1e-5, abs=1e-6 * np.abs(grad).max())
+    # a random direction moving every vertex
+    direction = rng.normal(size=warped_start.shape) * 1e-3
+    numeric = (energy_of(warped_start + direction * 1e-3, gradient=False)[0]
+               - energy_of(warped_start - direction * 1e-3, gradient=False)[0]) / 2e-3
+    assert np.sum(grad * direction) == pytest.approx(numeric, rel=1e-6)
+
+
 def test_minimise_distortion_rejects_a_folded_start(bump_surface, bump_map):
     vertices, faces = bump_surface
     folded = bump_map.sphere.copy()
