@@ -98,6 +98,62 @@ def test_sphere_map_of_a_dumbbell():
     check_map(result, vertices, faces)
 
 
+# --- Moebius balancing ---------------------------------------------------------------------------------
+
+def test_mobius_is_an_orientation_preserving_bijection_of_the_sphere():
+    from mdlshapemodel.sphere import mobius
+
+    points, faces = icosphere(3)
+    centre = np.array([0.3, -0.5, 0.2])
+    moved = mobius(points, centre)
+    np.testing.assert_allclose(np.linalg.norm(moved, axis=1), 1.0, atol=1e-12)
+    assert np.all(determinants(moved, faces) > 0)
+    assert check_bijective(moved, faces) == 0
+    np.testing.assert_allclose(mobius(moved, -centre), points, atol=1e-12)
+    np.testing.assert_allclose(mobius(points, np.zeros(3)), points, atol=1e-15)
+    # conformal, not area-preserving: a strong one distorts the areas
+    assert np.max(np.abs(distortion(points, faces, moved))) > 1.0
+
+
+def test_balance_objective_gradient_matches_finite_differences(bump_surface, bump_map):
+    from mdlshapemodel.sphere import _balance_objective
+
+    vertices, faces = bump_surface
+    area = triangle_areas(vertices, faces)
+    target = np.log(area / area.sum())
+    for v in (np.zeros(3), np.array([0.4, -0.3, 0.8]), np.array([-2.0, 0.5, 0.1])):
+        value, grad = _balance_objective(v, bump_map.sphere, faces, target, 0.01)
+        chord = triangle_areas(mobius_of(bump_map.sphere, v), faces)
+        expected = np.mean(np.sqrt(np.log(chord / chord.sum() / np.exp(target)) ** 2 + 1e-4))
+        assert value == pytest.approx(expected, rel=1e-10)
+        numeric = [(_balance_objective(v + e, bump_map.sphere, faces, target, 0.01)[0]
+                    - _balance_objective(v - e, bump_map.sphere, faces, target, 0.01)[0]) / 2e-6
+                   for e in np.eye(3) * 1e-6]
+        np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-8)
+
+
+def mobius_of(points, v):
+    from mdlshapemodel.sphere import mobius
+
+    return mobius(points, v / np.sqrt(1 + v @ v))
+
+
+def test_balance_area_undoes_a_moebius_distortion(bump_surface, bump_map):
+    from mdlshapemodel.sphere import balance_area, mobius
+
+    vertices, faces = bump_surface
+    good = mean_abs_log_area_ratio(vertices, faces, bump_map.sphere)
+    distorted = mobius(bump_map.sphere, np.array([0.5, 0.2, -0.3]))
+    assert mean_abs_log_area_ratio(vertices, faces, distorted) > good + 0.5
+    balanced = balance_area(vertices, faces, distorted)
+    assert np.all(determinants(balanced, faces) > 0)
+    assert mean_abs_log_area_ratio(vertices, faces, balanced) < good + 1e-3
+    # already balanced: (almost) unchanged
+    again = balance_area(vertices, faces, balanced)
+    assert (mean_abs_log_area_ratio(vertices, faces, again)
+            <= mean_abs_log_area_ratio(vertices, faces, balanced) + 1e-9)
+
+
 # --- minimise_distortion -------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

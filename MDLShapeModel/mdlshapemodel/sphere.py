@@ -4,7 +4,8 @@ The map is built in three steps:
 
 1. a spherical conformal map (FLASH, via ``lapy``), or the spherical Tutte map when the conformal
    map breaks down on badly shaped or strongly elongated surfaces; both are fold-free;
-2. a Moebius transformation that balances the area distortion (``lapy``);
+2. the Moebius transformation with the least mean |ln area ratio| (:func:`balance_area`, BFGS over
+   the 3-parameter family of Moebius maps modulo rotations, with the analytic gradient);
 3. a fold-free minimisation of a distortion energy that is infinite for collapsed triangles: the
    symmetric Dirichlet energy (angles and areas) plus an area term ``A (r + 1/r)``, where ``r`` is the
    ratio of sphere area to (normalised) surface area of a triangle. The minimiser is a Riemannian
@@ -79,29 +80,115 @@ def map_quality(vertices, faces, sphere, seconds: float = float("nan")) -> dict:
             "seconds": float(seconds)}
 
 
+def mobius(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """A Moebius transformation of the unit sphere, given by a point ``centre`` of the open ball.
+
+    phi_c(x) = (1 - |c|^2) (x - c) / |x - c|^2 - c: a conformal, orientation-preserving bijection
+    of the sphere that spreads the points near c apart and crowds those opposite; c = 0 is the
+    identity and phi_-c is its inverse. Every Moebius transformation of the sphere is one of these
+    followed by a rotation.
+    """
+    d = points - centre
+    return (1.0 - centre @ centre) * d / np.einsum("ij,ij->i", d, d)[:, None] - centre
+
+
+def _balance_objective(v, points, faces, target_log_share, smoothing):
+    """Smoothed mean |ln area ratio| after :func:`mobius` with centre v / sqrt(1 + |v|^2).
+
+    Returns the value and its analytic gradient with respect to ``v``.
+    """
+    scale = np.sqrt(1.0 + v @ v)
+    centre = v / scale
+    d = points - centre
+    dd = np.einsum("ij,ij->i", d, d)
+    factor = 1.0 - centre @ centre
+    y = factor * d / dd[:, None] - centre
+    p0, p1, p2 = y[faces[:, 0]], y[faces[:, 1]], y[faces[:, 2]]
+    normal = _cross(p1 - p0, p2 - p0)
+    twice_area = np.sqrt(np.einsum("ij,ij->i", normal, normal))
+    twice_area = np.maximum(twice_area, 1e-300)
+    log_ratio = np.log(twice_area) - np.log(twice_area.sum()) - target_log_share
+    smooth = np.sqrt(log_ratio * log_ratio + smoothing * smoothing)
+    m = len(faces)
+    value = float(smooth.mean())
+    # d value / d(twice_area_t)
+    h = log_ratio / smooth / m
+    d_area = h / twice_area - h.sum() / twice_area.sum()
+    unit = normal * (d_area / twice_area)[:, None]
+    # d|n| / dp0 = (p1 - p2) x n/|n|, and cyclically
+    g_y = np.zeros_like(y)
+    for k, (q1, q2) in enumerate(((p1, p2), (p2, p0), (p0, p1))):
+        contribution = _cross(q1 - q2, unit)
+        for axis in range(3):
+            g_y[:, axis] += np.bincount(faces[:, k], contribution[:, axis], minlength=len(y))
+    # chain through y = factor d / dd - c with d = x - c:
+    # dy/dc^T g = -2 c (d.g)/dd - factor (g - 2 d (d.g)/dd) / dd - g
+    dg = np.einsum("ij,ij->i", d, g_y) / dd
+    g_c = (-2.0 * centre * dg.sum() - factor * ((g_y / dd[:, None]).sum(axis=0)
+           - 2.0 * (d * (dg / dd)[:, None]).sum(axis=0)) - g_y.sum(axis=0))
+    # centre = v / scale: dc/dv = I / scale - v v^T / scale^3 (symmetric)
+    g_v = g_c / scale - v * (v @ g_c) / scale ** 3
+    return value, g_v
+
+
+def _cross(u: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of two (m, 3) arrays (faster than np.cross for small m)."""
+    out = np.empty_like(u)
+    out[:, 0] = u[:, 1] * w[:, 2] - u[:, 2] * w[:, 1]
+    out[:, 1] = u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2]
+    out[:, 2] = u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
+    return out
+
+
+def balance_area(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
+                 smoothing: float = 0.01) -> np.ndarray:
+    """The Moebius transformation of a sphere map with the least mean |ln area ratio|.
+
+    Minimises the mean over triangles of sqrt(ln(r)^2 + smoothing^2), r = chord-triangle area share
+    / surface area share, over the 3-parameter family :func:`mobius` (rotations do not change the
+    areas), by BFGS with the analytic gradient.
+    """
+    from scipy.optimize import minimize
+
+    faces = np.asarray(faces, dtype=np.int64)
+    surface_area = np.maximum(face_areas(vertices, faces), 1e-300)
+    target = np.log(surface_area / surface_area.sum())
+    result = minimize(_balance_objective, np.zeros(3), jac=True, method="BFGS",
+                      args=(sphere, faces, target, smoothing), options={"gtol": 1e-6})
+    v = result.x
+    return mobius(sphere, v / np.sqrt(1.0 + v @ v))
+
+
 def _initial_map(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Fold-free initial map: conformal when it works, Tutte otherwise; Moebius-balanced."""
     import logging
 
     from lapy import TriaMesh
-    from lapy.conformal import (mobius_area_correction_spherical, spherical_conformal_map,
-                                spherical_tutte_map)
+    from lapy.conformal import spherical_conformal_map, spherical_tutte_map
 
     logging.getLogger("lapy").setLevel(logging.ERROR)
     mesh = TriaMesh(vertices, faces)
-    candidates = []
-    try:
-        candidates.append(spherical_conformal_map(mesh))
-    except (ValueError, FloatingPointError, ArithmeticError, np.linalg.LinAlgError):
-        pass
-    candidates.append(spherical_tutte_map(mesh, bigtri=int(np.argmax(face_areas(vertices, faces)))))
-    for sphere in candidates:
-        sphere = sphere / np.linalg.norm(sphere, axis=1, keepdims=True)
+
+    def conformal():
+        try:
+            return spherical_conformal_map(mesh)
+        except (ValueError, FloatingPointError, ArithmeticError, np.linalg.LinAlgError):
+            return None
+
+    def tutte():
+        return spherical_tutte_map(mesh, bigtri=int(np.argmax(face_areas(vertices, faces))))
+
+    for candidate in (conformal, tutte):  # the Tutte map only when the conformal one fails
+        sphere = candidate()
+        if sphere is None:
+            continue
+        with np.errstate(all="ignore"):
+            sphere = sphere / np.linalg.norm(sphere, axis=1, keepdims=True)
         if not np.all(np.isfinite(sphere)) or np.any(orientation(sphere, faces) <= 0):
             continue
         try:
             with np.errstate(all="ignore"):
-                balanced, _ = mobius_area_correction_spherical(mesh, sphere)
+                balanced = balance_area(vertices, faces, sphere)
             balanced = balanced / np.linalg.norm(balanced, axis=1, keepdims=True)
             if np.all(np.isfinite(balanced)) and np.all(orientation(balanced, faces) > 0):
                 sphere = balanced
