@@ -111,7 +111,10 @@ def test_model_file_scores_and_metrics_agree(built):
     for key in ("compactness", "generalization", "specificity"):
         assert len(metrics[key]) == 3 and len(metrics[key + "_se"]) == 3
     np.testing.assert_allclose(metrics["compactness"], np.cumsum(model.variances)[:3])
-    assert metrics["objective"]["final"] <= metrics["objective"]["initial"]
+    # not above the start; when the short budget ends with the initial correspondence restored,
+    # the final value is the initial one recomputed, equal only up to rounding
+    initial = metrics["objective"]["initial"]
+    assert metrics["objective"]["final"] <= initial + 1e-12 * abs(initial)
     assert metrics["surface_distance_mm"]["mean"] < 0.5
     convergence = read_csv(output / "convergence.csv")
     assert float(convergence[-1]["objective"]) == pytest.approx(metrics["objective"]["final"])
@@ -172,6 +175,14 @@ def test_preprocessing_cache_is_reused_only_for_identical_files_and_settings(pop
     # another setting that changes the surface: new entries
     preprocess(paths[:1], BuildConfig(workers=1, cache_dir=str(cache), smoothing_sigma=1.5))
     assert len(list(cache.glob("*.npz"))) == 3
+    # a new preprocessing algorithm does not reuse the old entries
+    from mdlshapemodel import pipeline
+
+    key = pipeline.cache_key(paths[0], config)
+    monkeypatch.setattr(pipeline, "PREPROCESSING_VERSION", pipeline.PREPROCESSING_VERSION + 1)
+    assert pipeline.cache_key(paths[0], config) != key
+    monkeypatch.undo()
+    assert pipeline.cache_key(paths[0], config) == key
     # a damaged entry is recomputed, not trusted
     damaged = sorted(stamps)[0]
     damaged.write_bytes(b"not an npz file")

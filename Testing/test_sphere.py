@@ -98,6 +98,62 @@ def test_sphere_map_of_a_dumbbell():
     check_map(result, vertices, faces)
 
 
+# --- Moebius balancing ---------------------------------------------------------------------------------
+
+def test_mobius_is_an_orientation_preserving_bijection_of_the_sphere():
+    from mdlshapemodel.sphere import mobius
+
+    points, faces = icosphere(3)
+    centre = np.array([0.3, -0.5, 0.2])
+    moved = mobius(points, centre)
+    np.testing.assert_allclose(np.linalg.norm(moved, axis=1), 1.0, atol=1e-12)
+    assert np.all(determinants(moved, faces) > 0)
+    assert check_bijective(moved, faces) == 0
+    np.testing.assert_allclose(mobius(moved, -centre), points, atol=1e-12)
+    np.testing.assert_allclose(mobius(points, np.zeros(3)), points, atol=1e-15)
+    # conformal, not area-preserving: a strong one distorts the areas
+    assert np.max(np.abs(distortion(points, faces, moved))) > 1.0
+
+
+def test_balance_objective_gradient_matches_finite_differences(bump_surface, bump_map):
+    from mdlshapemodel.sphere import _balance_objective
+
+    vertices, faces = bump_surface
+    area = triangle_areas(vertices, faces)
+    target = np.log(area / area.sum())
+    for v in (np.zeros(3), np.array([0.4, -0.3, 0.8]), np.array([-2.0, 0.5, 0.1])):
+        value, grad = _balance_objective(v, bump_map.sphere, faces, target, 0.01)
+        chord = triangle_areas(mobius_of(bump_map.sphere, v), faces)
+        expected = np.mean(np.sqrt(np.log(chord / chord.sum() / np.exp(target)) ** 2 + 1e-4))
+        assert value == pytest.approx(expected, rel=1e-10)
+        numeric = [(_balance_objective(v + e, bump_map.sphere, faces, target, 0.01)[0]
+                    - _balance_objective(v - e, bump_map.sphere, faces, target, 0.01)[0]) / 2e-6
+                   for e in np.eye(3) * 1e-6]
+        np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-8)
+
+
+def mobius_of(points, v):
+    from mdlshapemodel.sphere import mobius
+
+    return mobius(points, v / np.sqrt(1 + v @ v))
+
+
+def test_balance_area_undoes_a_moebius_distortion(bump_surface, bump_map):
+    from mdlshapemodel.sphere import balance_area, mobius
+
+    vertices, faces = bump_surface
+    good = mean_abs_log_area_ratio(vertices, faces, bump_map.sphere)
+    distorted = mobius(bump_map.sphere, np.array([0.5, 0.2, -0.3]))
+    assert mean_abs_log_area_ratio(vertices, faces, distorted) > good + 0.5
+    balanced = balance_area(vertices, faces, distorted)
+    assert np.all(determinants(balanced, faces) > 0)
+    assert mean_abs_log_area_ratio(vertices, faces, balanced) < good + 1e-3
+    # already balanced: (almost) unchanged
+    again = balance_area(vertices, faces, balanced)
+    assert (mean_abs_log_area_ratio(vertices, faces, again)
+            <= mean_abs_log_area_ratio(vertices, faces, balanced) + 1e-9)
+
+
 # --- minimise_distortion -------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -137,6 +193,49 @@ def test_minimise_distortion_never_increases_the_energy_nor_flips(bump_surface, 
     final = minimise_distortion(vertices, faces, warped_start, max_iterations=100)
     assert (mean_abs_log_area_ratio(vertices, faces, final)
             < mean_abs_log_area_ratio(vertices, faces, warped_start))
+
+
+def test_compiled_energy_matches_its_definition(bump_surface, warped_start, bump_map):
+    """The single-pass (compiled) energy equals the Jacobian form of the test, and is infinite
+    as soon as one triangle is flipped."""
+    from mdlshapemodel.sphere import _DistortionEnergy
+
+    vertices, faces = bump_surface
+    for area_weight in (0.0, 4.0):
+        energy_of = _DistortionEnergy(vertices, faces, area_weight)
+        for x in (warped_start, bump_map.sphere):
+            energy, grad = energy_of(x)
+            assert energy == pytest.approx(distortion_energy(vertices, faces, x, area_weight),
+                                           rel=1e-10)
+            assert energy_of(x, gradient=False) == (energy, None)
+            assert grad.shape == x.shape
+    folded = bump_map.sphere.copy()
+    i, j = faces[0, 0], faces[0, 1]
+    folded[[i, j]] = folded[[j, i]]
+    assert energy_of(folded) == (np.inf, None)
+
+
+def test_energy_gradient_matches_finite_differences(bump_surface, warped_start, rng):
+    from mdlshapemodel.sphere import _DistortionEnergy
+
+    vertices, faces = bump_surface
+    energy_of = _DistortionEnergy(vertices, faces, 4.0)
+    _, grad = energy_of(warped_start)
+    step = 1e-6
+    # single coordinates, including the vertex with the largest gradient
+    worst = np.unravel_index(np.argmax(np.abs(grad)), grad.shape)
+    for index in [worst] + [(int(rng.integers(len(vertices))), int(rng.integers(3)))
+                            for _ in range(5)]:
+        e = np.zeros_like(warped_start)
+        e[index] = step
+        numeric = (energy_of(warped_start + e, gradient=False)[0]
+                   - energy_of(warped_start - e, gradient=False)[0]) / (2 * step)
+        assert grad[index] == pytest.approx(numeric, rel=1e-5, abs=1e-6 * np.abs(grad).max())
+    # a random direction moving every vertex
+    direction = rng.normal(size=warped_start.shape) * 1e-3
+    numeric = (energy_of(warped_start + direction * 1e-3, gradient=False)[0]
+               - energy_of(warped_start - direction * 1e-3, gradient=False)[0]) / 2e-3
+    assert np.sum(grad * direction) == pytest.approx(numeric, rel=1e-6)
 
 
 def test_minimise_distortion_rejects_a_folded_start(bump_surface, bump_map):

@@ -8,6 +8,7 @@ about 0.2 GB of imported libraries; the baseline is printed).
 
     python benchmarks/preprocessing.py --workers 2
     python benchmarks/preprocessing.py --hippocampi 10 --no-femurs --surface slicer
+    python benchmarks/preprocessing.py --no-femurs --union-only
 """
 
 from __future__ import annotations
@@ -97,6 +98,8 @@ def main() -> int:
     parser.add_argument("--data", default=str(DATA))
     parser.add_argument("--hippocampi", type=int, default=100)
     parser.add_argument("--no-femurs", action="store_true")
+    parser.add_argument("--union-only", action="store_true",
+                        help="hippocampi: only the union of labels 1 and 2, not each label alone")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--surface", choices=("gaussian", "slicer"), default="gaussian",
                         help="label map -> surface method")
@@ -109,8 +112,9 @@ def main() -> int:
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(1, mp_context=context) as pool:
         print(f"import baseline of a worker: {pool.submit(_baseline_mb).result():.0f} MB")
-    for title, labels in (("hippocampi, labels 1+2", [1, 2]), ("hippocampi, label 1", [1]),
-                          ("hippocampi, label 2", [2])):
+    populations = [("hippocampi, labels 1+2", [1, 2]), ("hippocampi, label 1", [1]),
+                   ("hippocampi, label 2", [2])]
+    for title, labels in populations[:1] if args.union_only else populations:
         run(f"{title} ({args.surface})", hippocampi, labels, [], args.workers, args.surface)
     femurs = sorted((data / "femurs").glob("*.stl"))
     if femurs and not args.no_femurs:

@@ -123,6 +123,10 @@ def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
 
 
 CACHE_FORMAT = 1
+# Version of the preprocessing algorithm (surface extraction and sphere map): raise it whenever a
+# change alters the surfaces or maps, so that entries made by the old algorithm are not reused.
+# 2: compiled distortion minimisation and our own Moebius balancing (maps differ in rounding).
+PREPROCESSING_VERSION = 2
 PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
                         "smoothing_sigma", "max_smoothing_sigma", "edge_length",
                         "target_vertices")
@@ -137,7 +141,7 @@ def default_cache_dir() -> Path:
 
 
 def cache_key(path: str, config: BuildConfig) -> str:
-    """Hash of the file's bytes, the preprocessing settings and the package version."""
+    """Hash of the file's bytes, the preprocessing settings, algorithm and package versions."""
     from . import __version__
 
     digest = hashlib.sha256()
@@ -146,7 +150,7 @@ def cache_key(path: str, config: BuildConfig) -> str:
             digest.update(block)
     settings = {name: getattr(config, name) for name in PREPROCESSING_FIELDS}
     settings["mirrored"] = is_mirrored(path, config)
-    digest.update(json.dumps([CACHE_FORMAT, __version__, settings], sort_keys=True).encode())
+    digest.update(json.dumps([CACHE_FORMAT, PREPROCESSING_VERSION, __version__, settings], sort_keys=True).encode())
     return digest.hexdigest()
 
 

@@ -21,7 +21,7 @@ from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 
 from . import surface
 from .errors import MDLShapeModelError
-from .sphere import sphere_map
+from .sphere import MAX_ITERATIONS, sphere_map
 
 
 def _accessors(attribute: str, cast):
@@ -153,7 +153,7 @@ class SurfaceToSphereMap(_Filter):
         super().__init__(nInputPorts=1, inputType="vtkPolyData", nOutputPorts=2,
                          outputType="vtkPolyData")
         self._area_weight = 4.0
-        self._max_iterations = 3000
+        self._max_iterations = MAX_ITERATIONS
 
     SetAreaWeight, GetAreaWeight = _accessors("_area_weight", float)
     SetMaxIterations, GetMaxIterations = _accessors("_max_iterations", int)
