@@ -71,8 +71,10 @@ class _Round:
         self.bounds = bounds
         self.scale_of_length = state.target_size
         self.base_raw = {i: state.examples[i].raw_points() for i in self.active}
-        self.centres = {i: weighted_centroid(state.examples[i].pose.apply(self.base_raw[i]),
-                                             state.weights) for i in self.active}
+        posed = {i: state.examples[i].pose.apply(self.base_raw[i]) for i in self.active}
+        self.centres = {i: weighted_centroid(posed[i], state.weights) for i in self.active}
+        # the points about their centre at the start of the round, for the pose gradient
+        self.about_centre = {i: posed[i] - self.centres[i] for i in self.active}
 
     def trial(self, x: np.ndarray):
         """Per active example: sampled points of its parts (with located faces and positions) and
@@ -83,9 +85,9 @@ class _Round:
             parts = []
             for j, part in enumerate(example.parts):
                 c = x[self.slices[i, j]].reshape(-1, 3)
-                positions = self.bases[i, j].apply(c)
+                positions, norms = self.bases[i, j].map(c)
                 points, hint = part.sample(positions)
-                parts.append((positions, points, hint, c))
+                parts.append((positions, points, hint, norms))
             trials[i] = (parts, self.pose_of(i, x[self.slices[i, "pose"]]))
         return trials
 
@@ -109,22 +111,26 @@ class _Round:
             g = shape_gradient[i]
             # through the pose x = pose(y): dF/dy = s R^T g
             dy = pose.scale * g @ pose.rotation
-            for j, (positions, points, hint, c) in enumerate(parts):
+            for j, (positions, points, hint, norms) in enumerate(parts):
                 part = self.state.examples[i].parts[j]
                 rows = self.state.part_slices[j]
                 du = part.locator.jacobian_transpose(part.vertices, hint, positions, dy[rows])
-                result[self.slices[i, j]] = self.bases[i, j].coefficient_gradient(c, du).ravel()
-            # pose parameters about the centroid: X = e^s R(w) (X0 - c) + c + size * t
+                c = x[self.slices[i, j]].reshape(-1, 3)
+                result[self.slices[i, j]] = self.bases[i, j].coefficient_gradient(
+                    c, du, (positions, norms)).ravel()
+            # pose parameters about the centroid: X = e^s R(w) (X0 - c) + c + size * t; with
+            # v_k = X0_k - c and N = sum_k g_k v_k^T (3 x 3), every term is a contraction of N:
+            # sum_k v_k x (R^T g_k) = axial part of R^T N, sum_k g_k . R v_k = <R, N>
             p = x[self.slices[i, "pose"]]
-            base = self.state.examples[i].pose.apply(self.base_raw[i]) - self.centres[i]
             rotation = rotation_from_vector(p[:3])
             scale = float(np.exp(p[6]))
-            rotated = base @ rotation.T
-            moment = np.sum(np.cross(base, g @ rotation), axis=0)   # sum_k v_k x (R^T g_k)
+            n = g.T @ self.about_centre[i]
+            m = rotation.T @ n
+            moment = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
             pose_gradient = np.empty(7)
             pose_gradient[:3] = scale * right_jacobian(p[:3]).T @ moment
             pose_gradient[3:6] = g.sum(axis=0) * self.scale_of_length
-            pose_gradient[6] = scale * np.sum(g * rotated)
+            pose_gradient[6] = scale * np.sum(rotation * n)
             result[self.slices[i, "pose"]] = pose_gradient
         return result
 

@@ -102,21 +102,23 @@ class FieldBasis:
 
     def apply(self, coefficients: np.ndarray) -> np.ndarray:
         """phi(u_k) = (u_k + v_k) / |u_k + v_k|."""
-        return self._moved(coefficients)[0]
+        return self.map(coefficients)[0]
 
-    def _moved(self, coefficients: np.ndarray):
+    def map(self, coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """phi(u_k) (n, 3) and |u_k + v_k| (n,), which :meth:`coefficient_gradient` can reuse."""
         w = self.weights
         return hotloops.field_apply(w.indptr, w.indices, w.data, self.points,
                                     np.ascontiguousarray(coefficients, dtype=np.float64))
 
-    def coefficient_gradient(self, coefficients: np.ndarray, position_gradient: np.ndarray
-                             ) -> np.ndarray:
-        """Chain rule: dF/dc (n_c, 3) from dF/dphi(u_k) (n, 3).
+    def coefficient_gradient(self, coefficients: np.ndarray, position_gradient: np.ndarray,
+                             mapped: tuple | None = None) -> np.ndarray:
+        """Chain rule: dF/dc (n_c, 3) from dF/dphi(u_k) (n, 3); ``mapped``: :meth:`map` of the
+        same coefficients, when already computed.
 
         phi = m / |m| with m = u + (I - u u^T) W c: dphi/dm = (I - phi phi^T) / |m|, and
         dm/dc_j = g_j(u) (I - u u^T).
         """
-        phi, norms = self._moved(coefficients)
+        phi, norms = self.map(coefficients) if mapped is None else mapped
         w = self.weights
         return hotloops.field_gradient(w.indptr, w.indices, w.data, self.points, phi, norms,
                                        np.ascontiguousarray(position_gradient, dtype=np.float64),
