@@ -15,7 +15,9 @@ given in standard errors of the difference, sqrt(SE_a^2 + SE_b^2).
 
     python benchmarks/strategies.py --cases 40 --budget 600 --jobs 2 --output /tmp/strategies40
 
-Run it on an otherwise idle machine: with two jobs each strategy has one core.
+Run it on an otherwise idle machine: with two jobs each strategy has one core. ``--reference
+OUTPUT/one-at-a-time-pose.csv`` reuses strategy 4's trace of an earlier run on the same cases and
+machine instead of running it again (its model is then not compared).
 """
 
 from __future__ import annotations
@@ -94,6 +96,7 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", default="strategies-benchmark")
+    parser.add_argument("--reference", help="strategy 4's trace (CSV) from an earlier run")
     args = parser.parse_args()
     paths = [str(p) for p in sorted(Path(args.data).glob("*.nii.gz"))[: args.cases]]
     if not paths:
@@ -102,6 +105,12 @@ def main() -> int:
     strategies = [s for s in args.strategies.split(",") if s]
     if REFERENCE not in strategies:
         strategies.insert(0, REFERENCE)
+    traces, quality = {}, {}
+    if args.reference:
+        with open(args.reference, newline="") as file:
+            rows = list(csv.reader(file))[1:]
+        traces[REFERENCE] = [(float(r[0]), float(r[1]), int(r[2]), float(r[3]), r[4], int(r[5]),
+                              float(r[6])) for r in rows]
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
 
@@ -113,9 +122,9 @@ def main() -> int:
     print(f"{len(prepared)} cases prepared ({len(rejected)} rejected) in "
           f"{time.perf_counter() - started:.0f} s; budget {args.budget:.0f} s per strategy, "
           f"{args.jobs} at once", flush=True)
-    traces, quality = {}, {}
     with ProcessPoolExecutor(args.jobs) as pool:
-        futures = {s: pool.submit(run, s, paths, args.budget, args.seed) for s in strategies}
+        futures = {s: pool.submit(run, s, paths, args.budget, args.seed) for s in strategies
+                   if s not in traces}
         for strategy, future in futures.items():
             traces[strategy], quality[strategy] = future.result()
             with open(output / f"{strategy}.csv", "w", newline="") as file:
@@ -143,12 +152,12 @@ def main() -> int:
     for measure in ("compactness", "generalization", "specificity"):
         print(f"\n{measure} [mm^2 +- SE] at M = 1, 2, 3, 5, 10; (strategy - strategy 4) / SE of the "
               "difference in brackets")
-        reference = quality[REFERENCE]
-        for strategy in strategies:
+        reference = quality.get(REFERENCE)
+        for strategy in quality:
             q = quality[strategy]
             cells = []
             for m in (m for m in (0, 1, 2, 4, 9) if m < len(q[measure])):
-                gap = (q[measure][m] - reference[measure][m]) / max(
+                gap = math.nan if reference is None else (q[measure][m] - reference[measure][m]) / max(
                     math.hypot(q[measure + "_se"][m], reference[measure + "_se"][m]), 1e-300)
                 cells.append(f"{q[measure][m]:.3f}+-{q[measure + '_se'][m]:.3f} ({gap:+.1f})")
             print(f"  {strategy:<20} " + "  ".join(cells))
