@@ -32,26 +32,12 @@ _prepared = None  # the preprocessed cases, shared with the worker processes (fo
 
 
 def initial_state(prepared, points: int):
-    """The state, objectives and voxel size exactly as the build pipeline sets them up."""
+    """The state and objectives exactly as the build pipeline sets them up."""
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.correspond import CorrespondenceState, Example, PartState
-    from mdlshapemodel.mdl import Objective
-    from mdlshapemodel.sampling import sphere_grid
-    from mdlshapemodel.sphere import align_parameterizations
+    from mdlshapemodel.pipeline import initial_state as pipeline_state
 
-    config = BuildConfig()
-    maps = align_parameterizations([case.map for case in prepared])
-    grid, triangles = sphere_grid(points)
-    state = CorrespondenceState([Example(c.name, [PartState(m.vertices, m.faces, m.sphere, grid,
-                                                            triangles)])
-                                 for c, m in zip(prepared, maps)], [(grid, triangles)],
-                                scaling=config.scaling)
-    voxel = float(np.mean([case.voxel_size for case in prepared]))
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    fixed = Objective("fixed", data_range, delta=config.fixed_delta * voxel)
-    integrated = Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
-                           delta_max=config.delta_range[1] * voxel)
-    return state, (fixed, integrated)
+    state, objectives, _, _ = pipeline_state(prepared, BuildConfig(points=points))
+    return state, objectives
 
 
 def run(job: tuple) -> dict:

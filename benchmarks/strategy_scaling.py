@@ -172,27 +172,14 @@ def initial_state(paths, points: int):
     """Correspondence state of the cases as ``mdlshapemodel build`` sets it up (from the cache)
     and the two objectives (eq. 13, eq. 14) with the default Delta settings (Table I)."""
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.correspond import CorrespondenceState, Example, PartState
-    from mdlshapemodel.mdl import Objective
+    from mdlshapemodel.pipeline import initial_state as pipeline_state
     from mdlshapemodel.pipeline import preprocess
-    from mdlshapemodel.sampling import sphere_grid
-    from mdlshapemodel.sphere import align_parameterizations
 
     config = BuildConfig(labels=[1, 2], workers=1, points=points)
     prepared, rejected = preprocess(paths, config)
     if rejected:
         raise RuntimeError(f"rejected: {[r.name for r in rejected]}")
-    maps = align_parameterizations([case.map for case in prepared])
-    grid, triangles = sphere_grid(config.points)
-    state = CorrespondenceState([Example(c.name, [PartState(m.vertices, m.faces, m.sphere, grid,
-                                                            triangles)])
-                                 for c, m in zip(prepared, maps)], [(grid, triangles)],
-                                scaling=config.scaling)
-    voxel = float(np.mean([case.voxel_size for case in prepared]))
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    fixed = Objective("fixed", data_range, delta=config.fixed_delta * voxel)
-    integrated = Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
-                           delta_max=config.delta_range[1] * voxel)
+    state, (fixed, integrated), _, _ = pipeline_state(prepared, config)
     return state, fixed, integrated
 
 
