@@ -177,16 +177,18 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
     except _OutOfTime:
         pass
     value, x, trials = cache["best"]
+    # the bounds make every field a homeomorphism of the sphere; a grid triangle can still turn
+    # over where a bump is narrow for the grid: then take a shorter step
+    folded = value < start_value and _folds(state, trials)
     for _ in range(4):
-        # the bounds make every field a homeomorphism of the sphere; a grid triangle can still
-        # turn over where a bump is narrow for the grid: then take a shorter step
-        if value >= start_value or not _folds(state, trials):
+        if not folded:
             break
         x = 0.5 * x
         trials = round_.trial(x)
         value = gradient_at(state, round_.shapes(trials))[0]
         state.evaluations += 1
-    if value < start_value and not _folds(state, trials):
+        folded = value < start_value and _folds(state, trials)
+    if value < start_value and not folded:
         round_.commit(trials)
     else:
         state.rebuild()

@@ -1,12 +1,16 @@
-"""Compiled inner loops (numba) of point location and barycentric evaluation on the sphere.
+"""Compiled inner loops (numba): point location and barycentric evaluation on the sphere, the
+displacement fields, and weighted point distances.
 
 The optimisers evaluate S_i(phi(u_k)) for thousands of sample points per example and objective
 evaluation; in numpy each step gathers per-point 3 x 3 matrices and corner values into temporary
 arrays. These loops do the same arithmetic point by point without temporaries. They are compiled
 on first use and cached on disk (``cache=True``), so later processes load them in milliseconds.
 
-Each function here is the compiled twin of a documented numpy expression in
-:mod:`mdlshapemodel.sampling`; the tests compare the two.
+Each function here computes a documented formula that the tests check against plain numpy:
+the walk against the barycentric coordinates it reports, ``interpolate`` against an einsum,
+``jacobian_transpose`` against ``SphereLocator.jacobian``, ``field_apply`` against
+``FieldBasis.displacement``, ``field_gradient`` against finite differences and
+``weighted_point_norms`` through the generalization distances.
 """
 
 from __future__ import annotations

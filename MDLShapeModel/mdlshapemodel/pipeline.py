@@ -150,7 +150,8 @@ def cache_key(path: str, config: BuildConfig) -> str:
             digest.update(block)
     settings = {name: getattr(config, name) for name in PREPROCESSING_FIELDS}
     settings["mirrored"] = is_mirrored(path, config)
-    digest.update(json.dumps([CACHE_FORMAT, PREPROCESSING_VERSION, __version__, settings], sort_keys=True).encode())
+    digest.update(json.dumps([CACHE_FORMAT, PREPROCESSING_VERSION, __version__, settings],
+                             sort_keys=True).encode())
     return digest.hexdigest()
 
 

@@ -134,15 +134,13 @@ class SphereLocator:
             best = np.argmax(score, axis=1)
             rows = np.arange(len(todo))
             face[todo] = safe[rows, best]
-            chosen = np.maximum(lam[rows, best], 0.0)
-            coords[todo] = chosen / chosen.sum(axis=1, keepdims=True)
+            coords[todo] = _clamped(lam[rows, best])
             missed = todo[score[rows, best] < -1e-9]
             if len(missed):  # rare: fall back to all faces
                 for index in missed:
                     lam_all = self._coordinates(np.arange(len(self.faces)), points[index][None, :])
                     best_face = int(np.argmax(lam_all.min(axis=1)))
-                    lam = np.maximum(lam_all[best_face], 0.0)
-                    face[index], coords[index] = best_face, lam / lam.sum()
+                    face[index], coords[index] = best_face, _clamped(lam_all[best_face])
         return face, coords
 
     def interpolate(self, values: np.ndarray, face: np.ndarray, coords: np.ndarray) -> np.ndarray:
@@ -177,6 +175,13 @@ class SphereLocator:
         """S(u): per-vertex ``values`` at parameter points; returns (values, faces)."""
         face, coords = self.locate(points, hint)
         return self.interpolate(values, face, coords), face
+
+
+def _clamped(lam: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates from central-projection ones (last axis): negative rounding
+    clamped to 0, normalised to sum 1 (as the compiled walk does)."""
+    lam = np.maximum(lam, 0.0)
+    return lam / lam.sum(axis=-1, keepdims=True)
 
 
 def vertex_face_table(faces: np.ndarray, n_vertices: int) -> np.ndarray:

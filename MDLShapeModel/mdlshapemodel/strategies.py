@@ -373,12 +373,7 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
                 progress(None, f"{phase}: sweep {sweep}, F = {value:.3f}")
             if time.perf_counter() > deadline:
                 break
-        # new sweep: area weights on the new mean, fresh sums (no drift)
-        state.rebuild()
-        value = state.value()
-        trace.record(state, value, phase, sweep)
-        if checkpoint is not None:
-            checkpoint()
+        value = _rebuilt(state, trace, phase, sweep, checkpoint)
         if time.perf_counter() > deadline:
             break
         quiet_sweeps = quiet_sweeps + 1 if stalled(before, value, start_value, settings) else 0
@@ -526,11 +521,18 @@ def start_phase(state: CorrespondenceState, objective: Objective, trace: Trace, 
 
 def _end_of_iteration(state: CorrespondenceState, trace: Trace, phase: str, sweep: int,
                       value: float, label: str, progress, checkpoint) -> float:
-    """Record the step's F, report it, then new area weights on the new mean and fresh sums (as
-    between the sweeps of one_at_a_time); returns F after the rebuild."""
+    """Record the step's F, report it, then :func:`_rebuilt` (as between the sweeps of
+    one_at_a_time); returns F after the rebuild."""
     trace.record(state, value, phase, sweep)
     if progress is not None:
         progress(None, f"{label}: F = {value:.3f}")
+    return _rebuilt(state, trace, phase, sweep, checkpoint)
+
+
+def _rebuilt(state: CorrespondenceState, trace: Trace, phase: str, sweep: int, checkpoint
+             ) -> float:
+    """Between sweeps / iterations: area weights on the new mean and fresh sums (no drift), F
+    recorded, the state checkpointed; returns F after the rebuild."""
     state.rebuild()
     value = state.value()
     trace.record(state, value, phase, sweep)
