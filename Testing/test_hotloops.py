@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from mdlshapemodel import hotloops
-from mdlshapemodel.fields import FieldBasis
+from mdlshapemodel.fields import FieldBasis, wendland
+from mdlshapemodel.pose import Pose, rotation_from_vector
 from mdlshapemodel.sampling import SphereLocator, icosphere
 
 
@@ -57,3 +58,80 @@ def test_field_apply_matches_the_formula(rng):
                                       basis.weights.data, points, c)
     np.testing.assert_allclose(norms, np.linalg.norm(moved, axis=1), atol=1e-12)
     np.testing.assert_allclose(phi, moved / norms[:, None], atol=1e-12)
+
+
+def test_bump_matrix_holds_every_bump_within_reach(rng):
+    points, centres = _unit(rng, 300), _unit(rng, 40)
+    radius = 0.5
+    indptr, indices, data = hotloops.bump_matrix(points, centres, radius)
+    dense = np.zeros((300, 40))
+    for k in range(300):
+        row = indices[indptr[k]:indptr[k + 1]]
+        assert np.all(np.diff(row) > 0)                  # sorted, no repeats
+        dense[k, row] = data[indptr[k]:indptr[k + 1]]
+    distance = np.linalg.norm(points[:, None] - centres[None], axis=2) / radius
+    np.testing.assert_allclose(dense, wendland(distance), atol=1e-12)
+    assert indptr[-1] == np.count_nonzero(distance < 1.0)
+
+
+def test_apply_poses_matches_pose_apply(rng):
+    shapes = rng.normal(size=(4, 50, 3))
+    poses = [Pose(float(rng.uniform(0.5, 2)), rotation_from_vector(rng.normal(size=3)),
+                  rng.normal(size=3)) for _ in range(4)]
+    result = hotloops.apply_poses(shapes, np.array([p.scale for p in poses]),
+                                  np.array([p.rotation for p in poses]),
+                                  np.array([p.translation for p in poses]))
+    for a, pose in enumerate(poses):
+        np.testing.assert_allclose(result[a], pose.apply(shapes[a]), atol=1e-12)
+
+
+def _field_sample(locator, values, basis, c, hint, steps=8):
+    n = len(basis.points)
+    out = dict(phi=np.empty((n, 3)), norms=np.empty(n), face=np.full(n, -1),
+               sampled=np.empty((n, 3)), jac=np.empty((n, 3, 3)), found=np.empty(n, dtype=bool))
+    w = basis.weights
+    hotloops.field_sample(w.indptr, w.indices, w.data, basis.points, c, locator.inverse,
+                          locator.neighbours, locator.faces, values, hint, steps, out["phi"],
+                          out["norms"], out["face"], out["sampled"], out["jac"], out["found"])
+    return out
+
+
+def test_field_sample_is_the_field_map_then_locate_interpolate_and_jacobian(locator, rng):
+    """One fused pass equals its parts: the field map, point location, interpolation and dS/du."""
+    values = rng.normal(size=(len(locator.sphere), 3))
+    points = _unit(rng, 400)
+    basis = FieldBasis.icosphere_level(1, points)
+    c = 0.8 * basis.max_coefficient() * _unit(rng, basis.n_centres)
+    hint, _ = locator.locate(points)                     # where the unmoved points are
+    out = _field_sample(locator, values, basis, c, hint)
+    assert out["found"].all()
+    phi, norms = basis.map(c)
+    np.testing.assert_allclose(out["phi"], phi, atol=1e-14)
+    np.testing.assert_allclose(out["norms"], norms, atol=1e-14)
+    face, coords = locator.locate(phi)
+    np.testing.assert_array_equal(out["face"], face)
+    np.testing.assert_allclose(out["sampled"], locator.interpolate(values, face, coords),
+                               atol=1e-12)
+    np.testing.assert_allclose(out["jac"], locator.jacobian(values, face, phi), atol=1e-10)
+    # from far hints with a single step most points are not reached, and are reported
+    far = _field_sample(locator, values, basis, c, rng.integers(0, len(locator.faces), 400), 1)
+    assert 0 < (~far["found"]).sum()
+    reached = far["found"]
+    np.testing.assert_array_equal(far["face"][reached], face[reached])
+
+
+def test_field_sample_gradient_chains_pose_surface_and_field(locator, rng):
+    """dF/dc for X = s R S(phi(u)) + t: (dS/du)^T s R^T g, then the field's chain rule."""
+    values = rng.normal(size=(len(locator.sphere), 3))
+    points = _unit(rng, 400)
+    basis = FieldBasis.icosphere_level(1, points)
+    c = 0.5 * basis.max_coefficient() * _unit(rng, basis.n_centres)
+    out = _field_sample(locator, values, basis, c, locator.locate(points)[0])
+    scale, rotation = 1.7, rotation_from_vector(np.array([0.3, -0.2, 0.9]))
+    g = rng.normal(size=(400, 3))
+    w = basis.weights
+    result = hotloops.field_sample_gradient(w.indptr, w.indices, w.data, points, out["phi"],
+                                            out["norms"], out["jac"], scale, rotation, g,
+                                            basis.n_centres)
+    du = np.einsum("kde,kd->ke", out["jac"], scale * g @ rotation)
+    np.testing.assert_allclose(result, basis.coefficient_gradient(c, du), atol=1e-12)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from mdlshapemodel.sampling import (SphereLocator, fibonacci_sphere, icosphere, orient_triangles,
-                                    sphere_grid, triangle_vertex_areas)
+from mdlshapemodel.sampling import (SphereLocator, fibonacci_sphere, grid_order, icosphere,
+                                    orient_triangles, sphere_grid, triangle_vertex_areas)
 
 
 def orientation(points, faces):
@@ -247,13 +247,30 @@ def test_jacobian_matches_finite_differences_along_the_sphere(rng):
     np.testing.assert_allclose(np.einsum("ndk,nk->nd", jacobian, queries), 0.0, atol=1e-10)
 
 
-def test_jacobian_transpose_product_equals_the_jacobian(rng):
-    points, faces = icosphere(2)
-    locator = SphereLocator(points, faces)
-    values = rng.normal(size=(len(points), 3))
-    queries = random_unit_vectors(rng, 100)
-    face, _ = locator.locate(queries)
-    gradient = rng.normal(size=(100, 3))
-    expected = np.einsum("ndk,nd->nk", locator.jacobian(values, face, queries), gradient)
-    np.testing.assert_allclose(locator.jacobian_transpose(values, face, queries, gradient),
-                               expected, rtol=1e-10, atol=1e-12)
+def test_grid_order_renumbers_the_same_triangulation_in_grid_order(rng):
+    """The renumbered mesh has the same triangles (as point triples, same orientation), and its
+    faces come in the order of the grid point nearest to each."""
+    points, triangles = icosphere(3)
+    permutation = rng.permutation(len(points))               # a mesh numbered at random
+    sphere = points[permutation]
+    new_index = np.argsort(permutation)
+    faces = new_index[triangles][rng.permutation(len(triangles))]
+    grid, _ = icosphere(2)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    grid = grid @ q.T                                        # no ties between grid points
+    order, renumbered = grid_order(sphere, faces, grid)
+    assert sorted(order) == list(range(len(sphere)))
+    moved = sphere[order]
+
+    def point_triples(points, faces):
+        corners = points[faces]                                # rotate each to its smallest corner
+        first = np.argmin(corners[:, :, 0], axis=1)
+        rolled = np.stack([np.roll(c, -f, axis=0) for c, f in zip(corners, first)])
+        return rolled[np.lexsort(rolled.reshape(len(rolled), -1).T[::-1])]
+
+    np.testing.assert_array_equal(point_triples(moved, renumbered), point_triples(sphere, faces))
+    assert np.all(orientation(moved, renumbered) > 0)
+    nearest = np.argmax(moved[renumbered].sum(axis=1) @ grid.T, axis=1)
+    assert np.all(np.diff(nearest) >= 0)
+    # vertices are numbered by first use: the first face uses 0, 1, 2
+    assert sorted(renumbered[0]) == [0, 1, 2]

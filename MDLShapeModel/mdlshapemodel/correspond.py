@@ -23,7 +23,7 @@ import numpy as np
 
 from .mdl import Objective
 from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
-from .sampling import SphereLocator, triangle_vertex_areas
+from .sampling import SphereLocator, grid_order, triangle_vertex_areas
 from .sphere import orientation
 from .surface import face_areas
 from .warps import apply_symmetric_theta
@@ -43,9 +43,11 @@ class PartState:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
                  grid: np.ndarray, grid_triangles: np.ndarray):
-        self.vertices = np.asarray(vertices, dtype=np.float64)
-        self.faces = np.asarray(faces, dtype=np.int64)
-        self.sphere = np.asarray(sphere, dtype=np.float64)
+        # the mesh renumbered in the order the grid visits it (same surface, faster sampling)
+        order, self.faces = grid_order(np.asarray(sphere, dtype=np.float64),
+                                       np.asarray(faces, dtype=np.int64), grid)
+        self.vertices = np.asarray(vertices, dtype=np.float64)[order]
+        self.sphere = np.asarray(sphere, dtype=np.float64)[order]
         self.locator = SphereLocator(self.sphere, self.faces)
         areas = face_areas(self.vertices, self.faces)
         self.cumulative_area = np.cumsum(areas) / areas.sum()

@@ -16,11 +16,12 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy.optimize import minimize
+from scipy.optimize import Bounds, minimize
 
+from . import hotloops
 from .correspond import CorrespondenceState
 from .fields import FieldBasis
-from .pose import Pose, rotation_from_vector, weighted_centroid
+from .pose import Pose, weighted_centroid
 from .strategies import stalled, start_phase
 
 
@@ -30,117 +31,166 @@ def gradient_at(state: CorrespondenceState, shapes: np.ndarray) -> tuple[float, 
         return state.shape_gradient()
 
 
-def _cross_matrix(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+def _cross_matrices(vectors: np.ndarray) -> np.ndarray:
+    """[v]x for each row of (n, 3)."""
+    k = np.zeros((len(vectors), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -vectors[:, 2], vectors[:, 1], -vectors[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = vectors[:, 2], -vectors[:, 1], vectors[:, 0]
+    return k
 
 
-def right_jacobian(rotation_vector: np.ndarray) -> np.ndarray:
-    """J_r(w) of SO(3): d(R(w) v)/dw = -R(w) [v]x J_r(w)."""
-    angle = float(np.linalg.norm(rotation_vector))
-    k = _cross_matrix(rotation_vector)
-    if angle < 1e-8:
-        return np.eye(3) - 0.5 * k
-    return (np.eye(3) - (1 - np.cos(angle)) / angle ** 2 * k
-            + (angle - np.sin(angle)) / angle ** 3 * k @ k)
+def rotations_and_jacobians(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For rotation vectors w (n, 3): R(w) = I + sin(a)/a K + (1 - cos a)/a^2 K^2 (Rodrigues) and
+    the right Jacobian of SO(3), J_r(w) = I - (1 - cos a)/a^2 K + (a - sin a)/a^3 K^2, with
+    K = [w]x and a = |w|; d(R(w) v)/dw = -R(w) [v]x J_r(w). Series near a = 0."""
+    angle = np.linalg.norm(vectors, axis=1)
+    small = angle < 1e-4
+    a = np.where(small, 1.0, angle)
+    a2 = angle ** 2
+    sin_a = np.where(small, 1.0 - a2 / 6.0, np.sin(a) / a)
+    cos_a = np.where(small, 0.5 - a2 / 24.0, (1.0 - np.cos(a)) / a ** 2)
+    cubic = np.where(small, 1.0 / 6.0 - a2 / 120.0, (a - np.sin(a)) / a ** 3)
+    k = _cross_matrices(vectors)
+    k2 = k @ k
+    eye = np.eye(3)[None]
+    rotations = eye + sin_a[:, None, None] * k + cos_a[:, None, None] * k2
+    jacobians = eye - cos_a[:, None, None] * k + cubic[:, None, None] * k2
+    return rotations, jacobians
+
+
+class _Block:
+    """One part of one active example in a round: its field basis and where its coefficients and
+    points are."""
+
+    def __init__(self, row: int, example: int, part, rows: slice, basis: FieldBasis,
+                 coefficients: slice):
+        self.row, self.example, self.part, self.rows = row, example, part, rows
+        self.basis, self.coefficients = basis, coefficients
+        self.hint = part.hint           # the faces last located: the next walk starts there
 
 
 class _Round:
-    """The parameters of one round and the map from them to F and dF/dparameters."""
+    """The parameters of one round and the map from them to F and dF/dparameters.
+
+    x holds, per active example, the field coefficients of each part (3 per bump) and 7 pose
+    parameters: a rotation vector w and a log scale sigma about the example's centroid c at the
+    start of the round, and a translation t in units of the shape size L:
+    X = e^sigma R(w) (P(y) - c) + c + L t, with P the example's pose and y its unposed samples.
+    """
 
     def __init__(self, state: CorrespondenceState, active, level: int, support: float):
         self.state = state
-        self.active = list(active)
-        self.bases = {}     # (i, j) -> FieldBasis on the part's current positions
-        self.slices = {}
+        self.active = np.array(list(active), dtype=np.int64)
+        self.blocks = []
         offset = 0
-        bounds = []
-        for i in self.active:
+        limits = []         # the bound of each parameter's absolute value
+        pose_slices = []
+        for row, i in enumerate(self.active):
             for j, part in enumerate(state.examples[i].parts):
                 basis = FieldBasis.icosphere_level(level, part.positions, support)
-                self.bases[i, j] = basis
                 size = 3 * basis.n_centres
-                self.slices[i, j] = slice(offset, offset + size)
+                self.blocks.append(_Block(row, i, part, state.part_slices[j], basis,
+                                          slice(offset, offset + size)))
                 offset += size
-                limit = basis.max_coefficient() / np.sqrt(3.0)
-                bounds += [(-limit, limit)] * size
-            # pose: rotation vector (3), translation (3, in units of the shape size), log scale
-            self.slices[i, "pose"] = slice(offset, offset + 7)
+                limits.append(np.full(size, basis.max_coefficient() / np.sqrt(3.0)))
+            pose_slices.append(np.arange(offset, offset + 7))
             offset += 7
-            bounds += [(-0.5, 0.5)] * 3 + [(None, None)] * 3 + [(-0.2, 0.2)]
+            limits.append([0.5, 0.5, 0.5, np.inf, np.inf, np.inf, 0.2])
         self.size = offset
-        self.bounds = bounds
+        limit = np.concatenate(limits)
+        self.bounds = Bounds(-limit, limit)
+        self.pose_index = np.array(pose_slices).reshape(-1, 7)
         self.scale_of_length = state.target_size
-        self.base_raw = {i: state.examples[i].raw_points() for i in self.active}
-        posed = {i: state.examples[i].pose.apply(self.base_raw[i]) for i in self.active}
-        self.centres = {i: weighted_centroid(posed[i], state.weights) for i in self.active}
-        # the points about their centre at the start of the round, for the pose gradient
-        self.about_centre = {i: posed[i] - self.centres[i] for i in self.active}
+        poses = [state.examples[i].pose for i in self.active]
+        self.scale0 = np.array([p.scale for p in poses])
+        self.rotation0 = np.array([p.rotation for p in poses]).reshape(-1, 3, 3)
+        self.translation0 = np.array([p.translation for p in poses]).reshape(-1, 3)
+        self.centres = np.array([weighted_centroid(state.shapes[i], state.weights)
+                                 for i in self.active]).reshape(-1, 3)
 
-    def trial(self, x: np.ndarray):
-        """Per active example: sampled points of its parts (with located faces and positions) and
-        its pose, for parameters x."""
-        trials = {}
-        for i in self.active:
-            example = self.state.examples[i]
-            parts = []
-            for j, part in enumerate(example.parts):
-                c = x[self.slices[i, j]].reshape(-1, 3)
-                positions, norms = self.bases[i, j].map(c)
-                points, hint = part.sample(positions)
-                parts.append((positions, points, hint, norms))
-            trials[i] = (parts, self.pose_of(i, x[self.slices[i, "pose"]]))
-        return trials
-
-    def pose_of(self, i: int, p: np.ndarray) -> Pose:
-        centre = self.centres[i]
-        delta = Pose(float(np.exp(p[6])), rotation_from_vector(p[:3]),
-                     p[3:6] * self.scale_of_length)
-        about = Pose(1.0, np.eye(3), centre).compose(delta).compose(Pose(1.0, np.eye(3), -centre))
-        return about.compose(self.state.examples[i].pose)
-
-    def shapes(self, trials) -> np.ndarray:
+    def trial(self, x: np.ndarray) -> dict:
+        """Everything that parameters x give: see :meth:`gradient` and :meth:`commit`."""
+        n_p = self.state.n_points
+        raw = np.empty((len(self.active), n_p, 3))
+        located = []
+        for block in self.blocks:
+            part, basis = block.part, block.basis
+            n = len(basis.points)
+            phi, norms = np.empty((n, 3)), np.empty(n)
+            face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
+            found = np.empty(n, dtype=np.bool_)
+            sampled = raw[block.row, block.rows]
+            w = basis.weights
+            hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
+                                  x[block.coefficients].reshape(-1, 3), part.locator.inverse,
+                                  part.locator.neighbours, part.faces, part.vertices, block.hint,
+                                  8, phi, norms, face, sampled, jac, found)
+            missed = np.flatnonzero(~found)
+            if len(missed):     # walked too far: locate these among the faces near them
+                face[missed], coords = part.locator.locate(phi[missed])
+                sampled[missed] = part.locator.interpolate(part.vertices, face[missed], coords)
+                jac[missed] = part.locator.jacobian(part.vertices, face[missed], phi[missed])
+            block.hint = face
+            located.append((phi, norms, face, jac))
+        p = x[self.pose_index]
+        rotation, jacobian = rotations_and_jacobians(p[:, :3])
+        scale = np.exp(p[:, 6])
+        # about the centre: v = P(y) - c; X = e^sigma R(w) v + c + L t
+        about = hotloops.apply_poses(raw, self.scale0, self.rotation0,
+                                     self.translation0 - self.centres)
+        posed = hotloops.apply_poses(about, scale, rotation,
+                                     self.centres + self.scale_of_length * p[:, 3:6])
         shapes = self.state.shapes.copy()
-        for i, (parts, pose) in trials.items():
-            shapes[i] = pose.apply(np.concatenate([points for _, points, _, _ in parts]))
-        return shapes
+        shapes[self.active] = posed
+        return dict(located=located, raw=raw, about=about, rotation=rotation,
+                    jacobian=jacobian, scale=scale, shapes=shapes, pose=p)
 
-    def gradient(self, x: np.ndarray, trials, shape_gradient: np.ndarray) -> np.ndarray:
+    def gradient(self, trial: dict, shape_gradient: np.ndarray) -> np.ndarray:
         """dF/dx from dF/dX (n_s, n_p, 3)."""
         result = np.zeros(self.size)
-        for i, (parts, pose) in trials.items():
-            g = shape_gradient[i]
-            # through the pose x = pose(y): dF/dy = s R^T g
-            dy = pose.scale * g @ pose.rotation
-            for j, (positions, points, hint, norms) in enumerate(parts):
-                part = self.state.examples[i].parts[j]
-                rows = self.state.part_slices[j]
-                du = part.locator.jacobian_transpose(part.vertices, hint, positions, dy[rows])
-                c = x[self.slices[i, j]].reshape(-1, 3)
-                result[self.slices[i, j]] = self.bases[i, j].coefficient_gradient(
-                    c, du, (positions, norms)).ravel()
-            # pose parameters about the centroid: X = e^s R(w) (X0 - c) + c + size * t; with
-            # v_k = X0_k - c and N = sum_k g_k v_k^T (3 x 3), every term is a contraction of N:
-            # sum_k v_k x (R^T g_k) = axial part of R^T N, sum_k g_k . R v_k = <R, N>
-            p = x[self.slices[i, "pose"]]
-            rotation = rotation_from_vector(p[:3])
-            scale = float(np.exp(p[6]))
-            n = g.T @ self.about_centre[i]
-            m = rotation.T @ n
-            moment = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-            pose_gradient = np.empty(7)
-            pose_gradient[:3] = scale * right_jacobian(p[:3]).T @ moment
-            pose_gradient[3:6] = g.sum(axis=0) * self.scale_of_length
-            pose_gradient[6] = scale * np.sum(rotation * n)
-            result[self.slices[i, "pose"]] = pose_gradient
+        g = shape_gradient[self.active]
+        rotation, scale = trial["rotation"], trial["scale"]
+        # the samples y of example i are posed by scale e^sigma s0 and rotation R(w) R0
+        total_scale = scale * self.scale0
+        total_rotation = rotation @ self.rotation0
+        for block, (phi, norms, face, jac) in zip(self.blocks, trial["located"]):
+            w = block.basis.weights
+            result[block.coefficients] = hotloops.field_sample_gradient(
+                w.indptr, w.indices, w.data, block.basis.points, phi, norms, jac,
+                total_scale[block.row], total_rotation[block.row], g[block.row, block.rows],
+                block.basis.n_centres).ravel()
+        # the pose: with N = sum_k g_k v_k^T (3 x 3) every term is a contraction of N:
+        # sum_k v_k x (R^T g_k) = axial part of R^T N, sum_k g_k . R v_k = <R, N>
+        n = g.transpose(0, 2, 1) @ trial["about"]
+        m = rotation.transpose(0, 2, 1) @ n
+        moment = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0],
+                           m[:, 1, 0] - m[:, 0, 1]], axis=1)
+        pose = np.empty((len(self.active), 7))
+        pose[:, :3] = scale[:, None] * np.einsum("aij,ai->aj", trial["jacobian"], moment)
+        pose[:, 3:6] = g.sum(axis=1) * self.scale_of_length
+        pose[:, 6] = scale * np.einsum("aij,aij->a", rotation, n)
+        result[self.pose_index] = pose
         return result
 
-    def commit(self, trials):
+    def folds(self, trial: dict) -> bool:
+        return any(block.part.folds(phi) for block, (phi, _, _, _) in
+                   zip(self.blocks, trial["located"]))
+
+    def commit(self, trial: dict):
         """Compose the round's maps into the sample positions and poses."""
-        for i, (parts, pose) in trials.items():
+        for block, (phi, _, face, _) in zip(self.blocks, trial["located"]):
+            part = block.part
+            part.positions, part.hint = phi, face
+            part.points = trial["raw"][block.row, block.rows].copy()
+        rotation, scale, p = trial["rotation"], trial["scale"], trial["pose"]
+        for row, i in enumerate(self.active):
+            centre = self.centres[row]
+            delta = Pose(float(scale[row]), rotation[row],
+                         p[row, 3:6] * self.scale_of_length)
+            about = Pose(1.0, np.eye(3), centre).compose(delta).compose(
+                Pose(1.0, np.eye(3), -centre))
             example = self.state.examples[i]
-            for part, (positions, points, hint, _) in zip(example.parts, parts):
-                part.positions, part.points, part.hint = positions, points, hint
-            example.pose = pose
+            example.pose = about.compose(example.pose)
         self.state.rebuild()
 
 
@@ -162,13 +212,12 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
     def fun(x):
         if "best" in cache and time.perf_counter() > deadline:
             raise _OutOfTime
-        trials = round_.trial(x)
-        value, shape_gradient = gradient_at(state, round_.shapes(trials))
+        trial = round_.trial(x)
+        value, shape_gradient = gradient_at(state, trial["shapes"])
         state.evaluations += 1
-        cache["last"] = (value, x.copy(), trials)
         if "best" not in cache or value < cache["best"][0]:
-            cache["best"] = (value, x.copy(), trials)
-        return value, round_.gradient(x, trials, shape_gradient)
+            cache["best"] = (value, x.copy(), trial)
+        return value, round_.gradient(trial, shape_gradient)
 
     start_value = fun(np.zeros(round_.size))[0]
     try:
@@ -176,31 +225,23 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
                  options={"maxiter": max_iterations, "ftol": 1e-9, "gtol": 1e-10})
     except _OutOfTime:
         pass
-    value, x, trials = cache["best"]
+    value, x, trial = cache["best"]
     # the bounds make every field a homeomorphism of the sphere; a grid triangle can still turn
     # over where a bump is narrow for the grid: then take a shorter step
-    folded = value < start_value and _folds(state, trials)
+    folded = value < start_value and round_.folds(trial)
     for _ in range(4):
         if not folded:
             break
         x = 0.5 * x
-        trials = round_.trial(x)
-        value = gradient_at(state, round_.shapes(trials))[0]
+        trial = round_.trial(x)
+        value = gradient_at(state, trial["shapes"])[0]
         state.evaluations += 1
-        folded = value < start_value and _folds(state, trials)
+        folded = value < start_value and round_.folds(trial)
     if value < start_value and not folded:
-        round_.commit(trials)
+        round_.commit(trial)
     else:
         state.rebuild()
     return float(state.value())
-
-
-def _folds(state: CorrespondenceState, trials) -> bool:
-    for i, (parts, _) in trials.items():
-        for part, (positions, _, _, _) in zip(state.examples[i].parts, parts):
-            if part.folds(positions):
-                return True
-    return False
 
 
 def optimise_fast(state: CorrespondenceState, objective, settings, trace,

@@ -21,11 +21,11 @@ The bump is Wendland's C^2 function g(d) = (1 - d)^4 (4 d + 1) for d < 1, 0 beyo
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
-from scipy.spatial import cKDTree
 
 from . import hotloops
 from .sampling import icosphere
@@ -38,6 +38,17 @@ def wendland(d: np.ndarray) -> np.ndarray:
     """g(d) = (1 - d)^4 (4 d + 1) on [0, 1), 0 beyond."""
     d = np.asarray(d, dtype=np.float64)
     return np.where(d < 1.0, (1.0 - d) ** 4 * (4.0 * d + 1.0), 0.0)
+
+
+@functools.lru_cache(maxsize=None)
+def _icosphere_centres(level: int) -> tuple[np.ndarray, float]:
+    """The vertices of the ``level``-times subdivided icosahedron (read-only) and its mean edge
+    length (a round builds one basis per example at the same level)."""
+    centres, triangles = icosphere(level)
+    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    edge = float(np.mean(np.linalg.norm(centres[edges[:, 0]] - centres[edges[:, 1]], axis=1)))
+    centres.flags.writeable = False
+    return centres, edge
 
 
 @dataclass
@@ -61,24 +72,18 @@ class FieldBasis:
     def __post_init__(self):
         self.centres = np.asarray(self.centres, dtype=np.float64)
         self.points = np.asarray(self.points, dtype=np.float64)
-        # the bumps reaching each point, found per centre (few centres, many points)
-        pairs = cKDTree(self.points).query_ball_point(self.centres, self.radius)
-        cols = np.repeat(np.arange(len(self.centres)), [len(p) for p in pairs])
-        rows = np.concatenate([np.asarray(p, dtype=np.int64) for p in pairs])
-        distance = np.linalg.norm(self.points[rows] - self.centres[cols], axis=1) / self.radius
-        #: sparse (n, n_c) matrix of bump values g_j(u_k)
-        self.weights = sparse.csr_matrix((wendland(distance), (rows, cols)),
+        indptr, indices, data = hotloops.bump_matrix(self.points, self.centres, self.radius)
+        #: sparse (n, n_c) matrix of bump values g_j(u_k), columns sorted in each row
+        self.weights = sparse.csr_matrix((data, indices, indptr),
                                          shape=(len(self.points), len(self.centres)))
-        self.weights.sort_indices()
-        self.overlap = int(np.max(np.diff(self.weights.indptr))) if len(rows) else 0
+        rows = np.diff(indptr)
+        self.overlap = int(rows.max(initial=0))
 
     @classmethod
     def icosphere_level(cls, level: int, points: np.ndarray, support: float = 2.0) -> "FieldBasis":
         """Bumps at the vertices of the ``level``-times subdivided icosahedron, each reaching
         ``support`` times the mean edge length."""
-        centres, triangles = icosphere(level)
-        edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
-        edge = float(np.mean(np.linalg.norm(centres[edges[:, 0]] - centres[edges[:, 1]], axis=1)))
+        centres, edge = _icosphere_centres(level)
         return cls(centres, support * edge, points)
 
     @property

@@ -1,5 +1,5 @@
 """Compiled inner loops (numba): point location and barycentric evaluation on the sphere, the
-displacement fields, and weighted point distances.
+displacement fields and their chain rule, poses, and weighted point distances.
 
 The optimisers evaluate S_i(phi(u_k)) for thousands of sample points per example and objective
 evaluation; in numpy each step gathers per-point 3 x 3 matrices and corner values into temporary
@@ -8,9 +8,15 @@ on first use and cached on disk (``cache=True``), so later processes load them i
 
 Each function here computes a documented formula that the tests check against plain numpy:
 the walk against the barycentric coordinates it reports, ``interpolate`` against an einsum,
-``jacobian_transpose`` against ``SphereLocator.jacobian``, ``field_apply`` against
-``FieldBasis.displacement``, ``field_gradient`` against finite differences and
-``weighted_point_norms`` through the generalization distances.
+``field_apply`` against ``FieldBasis.displacement``, ``field_gradient`` against finite
+differences, ``bump_matrix`` against the Wendland function of all distances, ``field_sample``
+against ``field_apply`` + ``SphereLocator.locate`` / ``interpolate`` / ``jacobian``,
+``field_sample_gradient`` against ``FieldBasis.coefficient_gradient`` of the chained gradient,
+``apply_poses`` against ``Pose.apply`` and ``weighted_point_norms`` through the generalization
+distances.
+
+The fast strategy's evaluation is ``field_sample`` per part, ``apply_poses``, the objective, then
+``field_sample_gradient`` per part: every per-point step of the chain rule in two passes.
 """
 
 from __future__ import annotations
@@ -19,36 +25,44 @@ import numpy as np
 from numba import njit
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _walk_point(inverse, neighbours, x, y, z, start, steps, tolerance, lam):
+    """From face ``start`` walk towards the point (x, y, z) across the edge opposite the most
+    negative central-projection coordinate (M^-1 u), at most ``steps`` faces. Returns the face
+    reached and whether the point lies in it (all coordinates >= ``tolerance``); ``lam`` holds
+    that face's coordinates M^-1 u."""
+    current = start
+    for _ in range(steps):
+        m = inverse[current]
+        for i in range(3):
+            lam[i] = m[i, 0] * x + m[i, 1] * y + m[i, 2] * z
+        worst = 0
+        if lam[1] < lam[worst]:
+            worst = 1
+        if lam[2] < lam[worst]:
+            worst = 2
+        if lam[worst] >= tolerance:
+            return current, True
+        following = neighbours[current, worst]
+        if following < 0:
+            break
+        current = following
+    return current, False
+
+
 @njit(cache=True, nogil=True)
 def walk(inverse, neighbours, points, hint, steps, tolerance, face, coords, found):
-    """From face ``hint[k]`` walk towards ``points[k]`` across the edge opposite the most negative
-    central-projection coordinate (M^-1 u), at most ``steps`` faces; for the points reached, fills
+    """``_walk_point`` from face ``hint[k]`` to each ``points[k]``; for the points reached, fills
     ``face``, ``coords`` (barycentric: clamped at 0 and normalised to sum 1) and ``found``."""
+    lam = np.empty(3)
     for k in range(points.shape[0]):
-        current = hint[k]
-        x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        found[k] = False
-        for _ in range(steps):
-            m = inverse[current]
-            l0 = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z
-            l1 = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z
-            l2 = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z
-            worst, value = 0, l0
-            if l1 < value:
-                worst, value = 1, l1
-            if l2 < value:
-                worst, value = 2, l2
-            if value >= tolerance:
-                l0, l1, l2 = max(l0, 0.0), max(l1, 0.0), max(l2, 0.0)
-                total = l0 + l1 + l2
-                face[k] = current
-                coords[k, 0], coords[k, 1], coords[k, 2] = l0 / total, l1 / total, l2 / total
-                found[k] = True
-                break
-            following = neighbours[current, worst]
-            if following < 0:
-                break
-            current = following
+        current, found[k] = _walk_point(inverse, neighbours, points[k, 0], points[k, 1],
+                                        points[k, 2], hint[k], steps, tolerance, lam)
+        if found[k]:
+            l0, l1, l2 = max(lam[0], 0.0), max(lam[1], 0.0), max(lam[2], 0.0)
+            total = l0 + l1 + l2
+            face[k] = current
+            coords[k, 0], coords[k, 1], coords[k, 2] = l0 / total, l1 / total, l2 / total
 
 
 @njit(cache=True, nogil=True)
@@ -64,34 +78,23 @@ def interpolate(values, faces, face, coords):
     return result
 
 
-@njit(cache=True, nogil=True)
-def jacobian_transpose(inverse, faces, values, face, points, gradient):
-    """(dS/du)^T g per point: M^-T (I - 1 b^T) V g / s, with lambda = M^-1 u, s = 1^T lambda,
-    b = lambda / s and V the face's corner values (see ``SphereLocator.jacobian``)."""
-    n = face.shape[0]
-    result = np.empty((n, 3))
-    corner = np.empty(3)
-    raw = np.empty(3)
-    for k in range(n):
-        f = face[k]
-        m = inverse[f]
-        total = 0.0
-        for i in range(3):
-            raw[i] = m[i, 0] * points[k, 0] + m[i, 1] * points[k, 1] + m[i, 2] * points[k, 2]
-            total += raw[i]
-        projected = 0.0
-        for i in range(3):
-            v = faces[f, i]
-            corner[i] = (values[v, 0] * gradient[k, 0] + values[v, 1] * gradient[k, 1]
-                         + values[v, 2] * gradient[k, 2])
-            projected += raw[i] * corner[i]
-        projected /= total
-        for i in range(3):
-            corner[i] -= projected
-        for j in range(3):
-            result[k, j] = (m[0, j] * corner[0] + m[1, j] * corner[1]
-                            + m[2, j] * corner[2]) / total
-    return result
+@njit(cache=True, nogil=True, inline="always")
+def _field_point(indptr, indices, data, points, coefficients, k, phi, norms):
+    """phi[k] and norms[k] of ``field_apply``."""
+    r0 = r1 = r2 = 0.0
+    for t in range(indptr[k], indptr[k + 1]):
+        j, w = indices[t], data[t]
+        r0 += w * coefficients[j, 0]
+        r1 += w * coefficients[j, 1]
+        r2 += w * coefficients[j, 2]
+    ux, uy, uz = points[k, 0], points[k, 1], points[k, 2]
+    normal = r0 * ux + r1 * uy + r2 * uz
+    mx = ux + r0 - normal * ux
+    my = uy + r1 - normal * uy
+    mz = uz + r2 - normal * uz
+    norm = np.sqrt(mx * mx + my * my + mz * mz)
+    norms[k] = norm
+    phi[k, 0], phi[k, 1], phi[k, 2] = mx / norm, my / norm, mz / norm
 
 
 @njit(cache=True, nogil=True)
@@ -101,22 +104,8 @@ def field_apply(indptr, indices, data, points, coefficients):
     n = points.shape[0]
     phi = np.empty((n, 3))
     norms = np.empty(n)
-    raw = np.empty(3)
     for k in range(n):
-        raw[0] = raw[1] = raw[2] = 0.0
-        for t in range(indptr[k], indptr[k + 1]):
-            j, w = indices[t], data[t]
-            raw[0] += w * coefficients[j, 0]
-            raw[1] += w * coefficients[j, 1]
-            raw[2] += w * coefficients[j, 2]
-        ux, uy, uz = points[k, 0], points[k, 1], points[k, 2]
-        normal = raw[0] * ux + raw[1] * uy + raw[2] * uz
-        mx = ux + raw[0] - normal * ux
-        my = uy + raw[1] - normal * uy
-        mz = uz + raw[2] - normal * uz
-        norm = np.sqrt(mx * mx + my * my + mz * mz)
-        norms[k] = norm
-        phi[k, 0], phi[k, 1], phi[k, 2] = mx / norm, my / norm, mz / norm
+        _field_point(indptr, indices, data, points, coefficients, k, phi, norms)
     return phi, norms
 
 
@@ -154,4 +143,103 @@ def weighted_point_norms(displacements, weights):
             z = displacements[i, 3 * p + 2]
             total += weights[p] * np.sqrt(x * x + y * y + z * z)
         result[i] = total
+    return result
+
+
+@njit(cache=True, nogil=True)
+def bump_matrix(points, centres, radius):
+    """The CSR arrays (indptr, indices, data) of the (n, n_c) matrix of Wendland bumps
+    g(|u_k - P_j| / r) at unit vectors u_k, centres P_j (unit), support radius r (chord): every
+    pair within r, columns in increasing order. Brute force over the centres, with the test
+    |u - P|^2 = 2 - 2 u.P < r^2 on the dot product."""
+    n, m = points.shape[0], centres.shape[0]
+    threshold = 1.0 - 0.5 * radius * radius
+    counts = np.zeros(n + 1, dtype=np.int64)
+    for k in range(n):
+        x, y, z = points[k, 0], points[k, 1], points[k, 2]
+        for j in range(m):
+            if x * centres[j, 0] + y * centres[j, 1] + z * centres[j, 2] > threshold:
+                counts[k + 1] += 1
+    indptr = np.cumsum(counts)
+    indices = np.empty(indptr[n], dtype=np.int64)
+    data = np.empty(indptr[n])
+    for k in range(n):
+        t = indptr[k]
+        x, y, z = points[k, 0], points[k, 1], points[k, 2]
+        for j in range(m):
+            if x * centres[j, 0] + y * centres[j, 1] + z * centres[j, 2] > threshold:
+                dx, dy, dz = x - centres[j, 0], y - centres[j, 1], z - centres[j, 2]
+                d = np.sqrt(dx * dx + dy * dy + dz * dz) / radius
+                indices[t] = j
+                data[t] = (1.0 - d) ** 4 * (4.0 * d + 1.0) if d < 1.0 else 0.0
+                t += 1
+    return indptr, indices, data
+
+
+@njit(cache=True, nogil=True)
+def field_sample(indptr, indices, data, points, coefficients, inverse, neighbours, faces,
+                 values, hint, steps, phi, norms, face, sampled, jac, found):
+    """One pass per point of what a gradient step needs: the field map phi(u_k) and |m| (as
+    ``field_apply``), the face containing phi(u_k) by a walk from ``hint[k]`` (as ``walk``), the
+    surface point S(phi(u_k)) (as ``interpolate``) and dS/du there, jac[k, d, e] = dS_d/du_e
+    (as ``SphereLocator.jacobian``), into the given arrays. ``found[k]`` is False where the walk
+    did not reach the point within ``steps`` faces (then only phi and norms are set)."""
+    lam = np.empty(3)
+    for k in range(points.shape[0]):
+        _field_point(indptr, indices, data, points, coefficients, k, phi, norms)
+        current, reached = _walk_point(inverse, neighbours, phi[k, 0], phi[k, 1], phi[k, 2],
+                                       hint[k], steps, -1e-12, lam)
+        found[k] = reached
+        if not reached:
+            continue
+        face[k] = current
+        m = inverse[current]
+        total = lam[0] + lam[1] + lam[2]
+        clamped = max(lam[0], 0.0) + max(lam[1], 0.0) + max(lam[2], 0.0)
+        for d in range(3):
+            sampled[k, d] = 0.0
+            for e in range(3):
+                jac[k, d, e] = 0.0
+        for i in range(3):
+            v = faces[current, i]
+            weight = max(lam[i], 0.0) / clamped
+            b = lam[i] / total
+            for d in range(3):
+                sampled[k, d] += weight * values[v, d]
+            # dS/du = V^T (I - b 1^T) M^-1 / s: corner i contributes V_i (M^-1[i] - b_i colsum)
+            for e in range(3):
+                row = (m[i, e] - b * (m[0, e] + m[1, e] + m[2, e])) / total
+                for d in range(3):
+                    jac[k, d, e] += values[v, d] * row
+
+
+@njit(cache=True, nogil=True)
+def field_sample_gradient(indptr, indices, data, points, phi, norms, jac, scale, rotation,
+                          shape_gradient, n_centres):
+    """dF/dc (n_c, 3) of one part's field from dF/dX of its posed points X = scale R S(phi) + t:
+    per point dF/dS = scale R^T g, dF/dphi = (dS/du)^T dF/dS (``jac`` of ``field_sample``),
+    then the chain rule of ``field_gradient``."""
+    du = np.empty((points.shape[0], 3))
+    for k in range(points.shape[0]):
+        g0, g1, g2 = shape_gradient[k, 0], shape_gradient[k, 1], shape_gradient[k, 2]
+        s0 = scale * (rotation[0, 0] * g0 + rotation[1, 0] * g1 + rotation[2, 0] * g2)
+        s1 = scale * (rotation[0, 1] * g0 + rotation[1, 1] * g1 + rotation[2, 1] * g2)
+        s2 = scale * (rotation[0, 2] * g0 + rotation[1, 2] * g1 + rotation[2, 2] * g2)
+        for e in range(3):
+            du[k, e] = jac[k, 0, e] * s0 + jac[k, 1, e] * s1 + jac[k, 2, e] * s2
+    return field_gradient(indptr, indices, data, points, phi, norms, du, n_centres)
+
+
+@njit(cache=True, nogil=True)
+def apply_poses(points, scale, rotation, translation):
+    """scale[a] R[a] x + t[a] for every point x of every shape a: (n_a, n, 3) -> (n_a, n, 3)."""
+    result = np.empty(points.shape)
+    for a in range(points.shape[0]):
+        r = rotation[a] * scale[a]
+        t0, t1, t2 = translation[a, 0], translation[a, 1], translation[a, 2]
+        for k in range(points.shape[1]):
+            x, y, z = points[a, k, 0], points[a, k, 1], points[a, k, 2]
+            result[a, k, 0] = r[0, 0] * x + r[0, 1] * y + r[0, 2] * z + t0
+            result[a, k, 1] = r[1, 0] * x + r[1, 1] * y + r[1, 2] * z + t1
+            result[a, k, 2] = r[2, 0] * x + r[2, 1] * y + r[2, 2] * z + t2
     return result
