@@ -10,20 +10,23 @@ the table gives the wall and CPU seconds and objective evaluations at which eq. 
 the target (linear interpolation between records), and the speed-up: strategy 4's time to reach its
 own final value divided by the strategy's. Traces go to ``OUTPUT/<strategy>.csv``. Then the model
 of each strategy's final correspondence is evaluated (compactness, generalization, specificity with
-10,000 samples, M = 1..10, area-weighted mm^2) and compared with strategy 4's: differences are
-given in standard errors of the difference, sqrt(SE_a^2 + SE_b^2).
+10,000 samples, M = 1..10, area-weighted mm^2; saved to ``OUTPUT/<strategy>.json``) and compared
+with strategy 4's: differences are given in standard errors of the difference,
+sqrt(SE_a^2 + SE_b^2).
 
     python benchmarks/strategies.py --cases 40 --budget 600 --jobs 2 --output /tmp/strategies40
 
 Run it on an otherwise idle machine: with two jobs each strategy has one core. ``--reference
 OUTPUT/one-at-a-time-pose.csv`` reuses strategy 4's trace of an earlier run on the same cases and
-machine instead of running it again (its model is then not compared).
+machine instead of running it again (its model is compared when ``one-at-a-time-pose.json`` lies
+beside it).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import sys
 import time
@@ -111,6 +114,9 @@ def main() -> int:
             rows = list(csv.reader(file))[1:]
         traces[REFERENCE] = [(float(r[0]), float(r[1]), int(r[2]), float(r[3]), r[4], int(r[5]),
                               float(r[6])) for r in rows]
+        measures = Path(args.reference).with_suffix(".json")
+        if measures.exists():
+            quality[REFERENCE] = json.loads(measures.read_text())
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
 
@@ -131,6 +137,8 @@ def main() -> int:
                 writer = csv.writer(file)
                 writer.writerow(COLUMNS)
                 writer.writerows(traces[strategy])
+            (output / f"{strategy}.json").write_text(json.dumps(
+                {k: [float(v) for v in values] for k, values in quality[strategy].items()}))
             print(f"  {strategy}: eq. 14 {traces[strategy][0][-1]:.2f} -> "
                   f"{min(r[-1] for r in traces[strategy]):.2f}", flush=True)
 
