@@ -137,8 +137,7 @@ def main() -> int:
                 writer = csv.writer(file)
                 writer.writerow(COLUMNS)
                 writer.writerows(traces[strategy])
-            (output / f"{strategy}.json").write_text(json.dumps(
-                {k: [float(v) for v in values] for k, values in quality[strategy].items()}))
+            (output / f"{strategy}.json").write_text(json.dumps(quality[strategy]))
             print(f"  {strategy}: eq. 14 {traces[strategy][0][-1]:.2f} -> "
                   f"{min(r[-1] for r in traces[strategy]):.2f}", flush=True)
 

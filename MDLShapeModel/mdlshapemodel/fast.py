@@ -59,12 +59,11 @@ def rotations_and_jacobians(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 class _Block:
-    """One part of one active example in a round: its field basis and where its coefficients and
-    points are."""
+    """One part of one active example in a round: its field basis and where its coefficients
+    (in x) and points (``row`` of the active examples, ``rows`` of the shape vector) are."""
 
-    def __init__(self, row: int, example: int, part, rows: slice, basis: FieldBasis,
-                 coefficients: slice):
-        self.row, self.example, self.part, self.rows = row, example, part, rows
+    def __init__(self, row: int, part, rows: slice, basis: FieldBasis, coefficients: slice):
+        self.row, self.part, self.rows = row, part, rows
         self.basis, self.coefficients = basis, coefficients
         self.hint = part.hint           # the faces last located: the next walk starts there
 
@@ -89,7 +88,7 @@ class _Round:
             for j, part in enumerate(state.examples[i].parts):
                 basis = FieldBasis.icosphere_level(level, part.positions, support)
                 size = 3 * basis.n_centres
-                self.blocks.append(_Block(row, i, part, state.part_slices[j], basis,
+                self.blocks.append(_Block(row, part, state.part_slices[j], basis,
                                           slice(offset, offset + size)))
                 offset += size
                 limits.append(np.full(size, basis.max_coefficient() / np.sqrt(3.0)))
