@@ -143,12 +143,14 @@ def test_cpd_build_compare_and_fit(tmp_path):
     assert set(result["models"]) == {"mdl (fast)", "cpd (cpd)"}
     assert (tmp_path / "cmp" / "compare.html").is_file()
 
-    fitted = run("fit", tmp_path / "mdl", held_back, "-o", tmp_path / "fit", "--max-sweeps", 2)
+    fitted = run("fit", tmp_path / "mdl", held_back, "-o", tmp_path / "fit", "--max-sweeps", 2,
+                 "--strategy", "one-at-a-time-pose")
     assert fitted.returncode == 0, fitted.stderr
     assert "s2: reconstruction error" in fitted.stdout
     fit = json.loads((tmp_path / "fit" / "fit.json").read_text())["s2"]
     errors = fit["reconstruction_squared_mm2"]
     assert len(errors) == 4 and errors[-1] <= errors[0]
+    assert fit["objective"]["strategy"] == "one-at-a-time-pose"
     bad = run("fit", tmp_path / "nowhere", held_back, "-o", tmp_path / "fit2")
     assert bad.returncode == 2 and "no such model file" in bad.stderr
     assert "Traceback" not in bad.stderr

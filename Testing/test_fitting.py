@@ -75,8 +75,21 @@ def test_fitted_points_lie_on_the_case_and_overlay_it(fitted, models):
 
 def test_optimising_the_new_case_lowers_the_objective(fitted):
     _, result = fitted
-    assert result.objective["final"] <= result.objective["initial"]
+    assert result.objective["final"] < result.objective["initial"]
     assert result.objective["evaluations"] > 0
+    assert result.objective["strategy"] == "fast"           # the model's own build strategy
+
+
+def test_fit_with_another_strategy(fitted, models):
+    """The paper's strategy 4 on the same case: it moves the case's samples by theta kernels
+    and also lowers the objective from the same start."""
+    _, _, path = models
+    model, by_default = fitted
+    result = fit_case(model, path, max_time=600, max_sweeps=2, strategy="one-at-a-time-pose")
+    assert result.objective["strategy"] == "one-at-a-time-pose"
+    assert result.objective["initial"] == pytest.approx(by_default.objective["initial"])
+    assert result.objective["final"] < result.objective["initial"]
+    assert not np.allclose(result.corresponded, by_default.corresponded)
 
 
 def test_held_back_error_is_close_to_its_leave_one_out_error(models, fitted):

@@ -211,7 +211,8 @@ def _run_fit(args) -> int:
     from .fitting import fit_cases
 
     results, rejected = fit_cases(args.model, args.inputs, args.output, args.label,
-                                  args.max_time, args.max_sweeps, args.seed)
+                                  args.max_time, args.max_sweeps, args.seed,
+                                  strategy=args.strategy)
     for name, path, reason in rejected:
         log.warning("rejected %s: %s", path, reason)
     for result in results:
@@ -267,6 +268,8 @@ def main(argv=None) -> int:
     fit.add_argument("--max-time", type=float, default=60.0, metavar="SECONDS",
                      help="optimisation time per case (default %(default)s)")
     fit.add_argument("--max-sweeps", type=int, default=10_000, metavar="N")
+    fit.add_argument("--strategy", choices=[s for s in STRATEGIES if s != "none"],
+                     help="optimisation strategy for the new cases (default: the model's own)")
     fit.add_argument("--seed", type=int, default=0)
     fit.add_argument("-q", "--quiet", action="store_true")
     args = parser.parse_args(argv)

@@ -3,9 +3,10 @@
 The paper notes (III-D) that examples can be added to a model one at a time. ``fit_case`` does that
 for one new case without changing the model: the training shapes are the model's own
 (``mean + scores @ modes``, exact, since a model keeps every mode of its training set) and stay
-fixed; only the new case's reparameterization (symmetric theta kernels) and pose are optimised, to
-minimise the description length of the training set with the new case added (eq. 14). The
-corresponded case is then aligned to the model mean, projected onto the modes, and reconstructed.
+fixed; only the new case's reparameterization and pose are optimised (by the model's build strategy
+unless told otherwise), to minimise the description length of the training set with the new case
+added (eq. 14). The corresponded case is then aligned to the model mean, projected onto the modes,
+and reconstructed.
 
 The new case goes through the same preprocessing as the model's training cases (the build's
 settings are stored in the model file), and its sphere map is aligned to the model's own
@@ -78,7 +79,8 @@ def build_config_of(model: ShapeModel) -> BuildConfig:
 
 
 def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_time: float = 60.0,
-             max_sweeps: int = 10_000, seed: int = 0, progress=None, prepared=None) -> FitResult:
+             max_sweeps: int = 10_000, seed: int = 0, progress=None, prepared=None,
+             strategy: str | None = None) -> FitResult:
     """Find the correspondence of a new case against ``model`` and project it onto the modes.
 
     Parameters
@@ -92,6 +94,8 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     max_time, max_sweeps : budget of the optimisation of the new case.
     prepared : PreparedCase, optional
         The case already preprocessed (``path`` is then only used for its name).
+    strategy : str, optional
+        Optimisation strategy for the new case (default: the model's build strategy).
     """
     if model.parameters is None or model.triangles is None:
         raise InputError("the model has no sampling grid (model.parameters) or no triangles; "
@@ -119,7 +123,7 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
     fixed, integrated = objectives(config, voxel, data_range)
     initial = integrated(state.covariance())
-    settings = optimisation_settings(replace(config, strategy="one-at-a-time-pose",
+    settings = optimisation_settings(replace(config, strategy=strategy or config.strategy,
                                              max_time=max_time, max_sweeps=max_sweeps))
     trace = Trace()
     final = optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), trace,
@@ -138,7 +142,8 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     return FitResult(case.name, str(case.path), physical, aligned, to_model, scores, squared,
                      distance, {"initial": float(initial), "final": float(final),
                                 "evaluations": state.evaluations,
-                                "seconds": time.perf_counter() - started},
+                                "seconds": time.perf_counter() - started,
+                                "strategy": settings.strategy},
                      dict(case.notes))
 
 
@@ -154,7 +159,8 @@ def reconstruction_errors(model: ShapeModel, aligned: np.ndarray, scores: np.nda
 
 
 def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
-              max_sweeps: int = 10_000, seed: int = 0, progress=None) -> tuple[list, list]:
+              max_sweeps: int = 10_000, seed: int = 0, progress=None,
+              strategy: str | None = None) -> tuple[list, list]:
     """Fit every input to the model and write the results to ``output``.
 
     Writes ``correspondence/<case>.vtp`` (the case's corresponded points, its own coordinates),
@@ -176,7 +182,8 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
     results, rejected = [], []
     for path in paths:
         try:
-            result = fit_case(model, path, config, max_time, max_sweeps, seed, progress)
+            result = fit_case(model, path, config, max_time, max_sweeps, seed, progress,
+                              strategy=strategy)
         except MDLShapeModelError as error:
             reason = str(error).removeprefix(f"{path}: ")
             rejected.append((io.case_name(path), str(path), reason))
