@@ -82,14 +82,16 @@ def test_all_kinds_together_are_each_drawn_and_the_pose_strategy_works_with_them
     assert unfolded(state)
 
 
+def stepping(kind):
+    """A small state on eq. 14, its F, a generator and settings drawing only ``kind``."""
+    state = small_state()
+    state.objective = objectives(state)[1]
+    return state, state.value(), np.random.default_rng(3), OptimisationSettings(warps=(kind,))
+
+
 @pytest.mark.parametrize("kind", WARPS)
 def test_a_step_never_raises_f_and_leaves_the_state_consistent(kind):
-    state = small_state()
-    _, integrated = objectives(state)
-    state.objective = integrated
-    value = state.value()
-    rng = np.random.default_rng(3)
-    settings = OptimisationSettings(warps=(kind,))
+    state, value, rng, settings = stepping(kind)
     for step in range(3 * state.n_shapes):
         i = step % state.n_shapes
         new = _optimise_warp(state, i, 0, kind, value, settings, rng)
@@ -97,6 +99,26 @@ def test_a_step_never_raises_f_and_leaves_the_state_consistent(kind):
         assert state.value() == pytest.approx(new, rel=1e-9)  # the state holds what was returned
         value = new
     assert unfolded(state)
+
+
+@pytest.mark.parametrize("kind", WARPS)
+def test_each_kind_reports_its_improvements_down_to_the_committed_value(kind):
+    """``improved`` hears every trial that beats the best F so far, of every warp kind, ending at
+    the value the step commits; a step that commits nothing reports nothing."""
+    state, value, rng, settings = stepping(kind)
+    accepted = 0
+    for step in range(3 * state.n_shapes):
+        heard = []
+        new = _optimise_warp(state, step % state.n_shapes, 0, kind, value, settings, rng,
+                             improved=heard.append)
+        if new < value:
+            accepted += 1
+            assert heard and heard[-1] == new
+            assert np.all(np.diff([value] + heard) < 0)
+        else:
+            assert heard == []
+        value = new
+    assert accepted > 0
 
 
 def test_warps_that_would_fold_the_grid_are_never_accepted():

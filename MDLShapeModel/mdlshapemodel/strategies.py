@@ -167,12 +167,13 @@ def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kern
 
 
 def _search_warp(state: CorrespondenceState, i: int, j: int, warp_of, bounds: tuple,
-                 log_scale: bool, xatol: float, maxiter: int, found: list):
+                 log_scale: bool, xatol: float, maxiter: int, found: list, seen=None):
     """Bounded Brent search of F over one parameter t of a warp of part j of example i.
 
     ``warp_of(t)`` is the warp at parameter t (10**t when ``log_scale``); every trial that flips a
     grid triangle scores +inf and is never kept. Each unfolded trial is appended to ``found`` as
-    (F, warp, (positions, points, hint)). Nothing is committed.
+    (F, warp, (positions, points, hint)) and passed to ``seen(F)`` (:func:`_improvements`), if
+    given. Nothing is committed.
     """
     example = state.examples[i]
     part = example.parts[j]
@@ -184,6 +185,8 @@ def _search_warp(state: CorrespondenceState, i: int, j: int, warp_of, bounds: tu
             return np.inf
         value = state.value(i, example.pose.apply(example.raw_points({j: proposal[1]})))
         found.append((value, warp, proposal))
+        if seen is not None:
+            seen(value)
         return value
 
     minimize_scalar(objective, method="bounded", bounds=bounds,
@@ -244,6 +247,7 @@ def _optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, curren
         return _optimise_amplitude(state, i, j, kernel, current, settings.max_amplitude,
                                    min_amplitude, improved)
     found: list = []
+    seen = _improvements(current, improved)
     if kind == "asymmetric":
         base = random_asymmetric_theta(rng, settings.sigma_g,
                                        center=part.random_surface_parameter(rng))
@@ -253,11 +257,11 @@ def _optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, curren
         if upper <= min_amplitude:
             return current
         _search_warp(state, i, j, lambda a: changed(base, amplitude=a),
-                     (np.log10(min_amplitude), np.log10(upper)), True, 0.02, 25, found)
+                     (np.log10(min_amplitude), np.log10(upper)), True, 0.02, 25, found, seen)
         value, best, _ = min(found, key=lambda item: item[0], default=(np.inf, None, None))
         if value < current:
             _search_warp(state, i, j, lambda d: changed(best, psi0=best.psi0 + d),
-                         (-np.pi, np.pi), False, 0.02, 15, found)
+                         (-np.pi, np.pi), False, 0.02, 15, found, seen)
     elif kind == "shear":
         base = random_shear_twist(rng, settings.shear_sigma,
                                   center=part.random_surface_parameter(rng))
@@ -268,7 +272,7 @@ def _optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, curren
         if bounds is None:
             return current
         _search_warp(state, i, j, lambda b: changed(base, amplitude=b), bounds, False,
-                     1e-3 * (bounds[1] - bounds[0]), 25, found)
+                     1e-3 * (bounds[1] - bounds[0]), 25, found, seen)
     elif kind == "rotation":
         axis = random_unit_vector(rng)
         bounds = _signed_bounds(part, lambda t: Rotation(axis * t).apply(positions),
@@ -276,7 +280,7 @@ def _optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, curren
         if bounds is None:
             return current
         _search_warp(state, i, j, lambda t: Rotation(axis * t), bounds, False,
-                     1e-3 * (bounds[1] - bounds[0]), 25, found)
+                     1e-3 * (bounds[1] - bounds[0]), 25, found, seen)
     else:
         raise ValueError(f"unknown warp kind {kind!r}; choose from {', '.join(WARPS)}")
     return _commit_best(state, i, j, found, current)
