@@ -44,8 +44,12 @@ Time
     one trial shape of one example or for a whole trial population alike). Times count from the
     first row of the run. The budget is in CPU seconds (checked by the progress callback after
     every example or every 100 simplex evaluations), so a busy machine makes runs longer, not
-    shorter; ``--max-wall`` caps the wall time. The convergence test is switched off
-    (``tolerance = 0``): every run uses its whole budget. Rows are recorded at every improvement
+    shorter; ``--max-wall`` caps the wall time. The convergence test asks for no relative gain
+    (``tolerance = 0``): a run ends before its budget only when its strategy has stopped gaining
+    altogether (three sweeps without any decrease of F; fast: the end of its finest level). Such
+    a run has converged, and its curve is held at its final value up to the end of the longest
+    run (``hold_last`` of :func:`~mdlshapemodel.convergence.compare_strategies`); the table
+    counts these runs, and the runs cut by the wall-clock cap, which are held too. Rows are recorded at every improvement
     inside a step (``OptimisationSettings.trace_improvements``) and the mean curves are averaged
     on a log-spaced grid (``--spacing log``), so that alpha can be measured even when one
     strategy is hundreds of times slower than the reference.
@@ -62,11 +66,18 @@ Multiresolution (III-D1)
     out of the alpha table, as in the paper (V-A): its curve has another shape (it stalls once
     the number of simplex parameters doubles), so eq. (19) does not describe it.
 
+Fast (ours)
+    ``--strategies fast`` runs the default strategy too, on the same training sets; its alpha
+    against the same reference is added to the table (no paper value). Its curve has a row per
+    round (coarse-to-fine L-BFGS-B rounds), not per kernel.
+
 Output folder
     ``plan.json`` (arguments, pool, every job's cases and seed); ``traces/<strategy>_ns<n>_t<k>.csv``
     (``convergence.csv`` format) with ``.json`` next to it (cases, seed, budget, final F, CPU
-    seconds, evaluations, n_p); ``alphas.csv`` (time, strategy, n_s, alpha, SE, a, b) and
-    ``results.json`` (everything, including the bootstrap alphas and the gradients);
+    seconds, evaluations, n_p). A later run into the same folder with the same budget, points,
+    objective and seed adds its jobs (other strategies, sizes or trials) to ``plan.json`` and runs
+    only those, so the analysis covers both. ``alphas.csv`` (time, strategy, n_s, alpha, SE, a,
+    b) and ``results.json`` (everything, including the bootstrap alphas and the gradients);
     ``table.txt`` (what is printed).
 """
 
@@ -89,11 +100,13 @@ REFERENCE = "one-at-a-time-pose"
 BOUNDS = (1e-3, 1e5)                # search range of alpha
 DUPLICATES = ("hippocampus_011",)   # identical to hippocampus_010 (data README)
 TIMES = (("cpu_seconds", "CPU time"), ("evaluations", "evaluations"))
+EXTRA = ("multiresolution", "fast")   # can be run; multiresolution is left out of the table
 PAPER_TABLE_III = {"multiscale": (47.5163, 2.4037), "one-at-a-time": (0.3276, 0.2722),
                    "one-at-a-time-pose": (0.3106, 0.2758)}
 LABELS = {"multiscale": "Multiscale (III-D2)", "one-at-a-time": "One-at-a-time (III-D3)",
           "one-at-a-time-pose": "Including pose (III-D4)", "multiresolution":
-          "Multiresolution (III-D1)"}
+          "Multiresolution (III-D1)", "fast": "Fast (ours, default)"}
+ANALYSED = STRATEGIES + ("fast",)
 
 
 def parse_args(argv=None):
@@ -104,7 +117,7 @@ def parse_args(argv=None):
     parser.add_argument("--sizes", type=int, nargs="+", default=[15, 25, 35], help="n_s values")
     parser.add_argument("--trials", type=int, default=3, help="trials per n_s")
     parser.add_argument("--strategies", nargs="+", default=list(STRATEGIES),
-                        choices=list(STRATEGIES) + ["multiresolution"])
+                        choices=list(STRATEGIES) + list(EXTRA))
     parser.add_argument("--budget", type=float, default=60.0,
                         help="CPU seconds of optimisation per run")
     parser.add_argument("--max-wall", type=float, default=0.0,
@@ -160,6 +173,23 @@ def plan_jobs(pool: list, sizes, trials: int, strategies, seed: int) -> list:
     return jobs
 
 
+def merged_plan(old: dict, new: dict) -> dict:
+    """The plan of an output folder extended by the jobs of a new run with the same settings."""
+    same = ("budget", "max_wall", "objective", "points", "seed")
+    differ = [k for k in same if old["args"][k] != new["args"][k]]
+    if differ:
+        raise SystemExit(f"the output folder holds a study with other settings ({', '.join(differ)}"
+                         f"): use another --output")
+    key = lambda job: (job["strategy"], job["n_s"], job["trial"])  # noqa: E731
+    known = {key(job) for job in old["jobs"]}
+    args = dict(old["args"])
+    for name in ("strategies", "sizes"):
+        args[name] = sorted(set(old["args"][name]) | set(new["args"][name]))
+    args["trials"] = max(old["args"]["trials"], new["args"]["trials"])
+    return {"args": args, "pool": old["pool"],
+            "jobs": old["jobs"] + [job for job in new["jobs"] if key(job) not in known]}
+
+
 def trace_path(output: Path, job: dict) -> Path:
     return output / "traces" / f"{job['strategy']}_ns{job['n_s']}_t{job['trial']}.csv"
 
@@ -206,7 +236,10 @@ def run_job(job: dict, budget: float, max_wall: float, objective: str, points: i
     try:
         optimise(state, (fixed, chosen), settings, np.random.default_rng(job["seed"]), trace,
                  progress=out_of_cpu)
-        stopped = "wall-clock cap"
+        # back before the budget: either the wall-clock cap or the strategy's own end (three
+        # sweeps without any gain; fast: its last level)
+        capped = trace.rows[-1][0] >= max_wall
+        stopped = "wall-clock cap" if capped else "converged"
     except Cancelled:
         stopped = "CPU budget"
     io.write_csv(path, Trace.HEADER, trace.rows)
@@ -276,11 +309,11 @@ def analyse(output: Path, plan: dict, n_bootstrap: int, n_grid: int, spacing: st
             raise SystemExit(f"no {REFERENCE} traces in {output}: nothing to compare with")
         smallest = min(runs[REFERENCE])
         reference = runs[REFERENCE][smallest]
-        compared = {s: runs[s] for s in STRATEGIES if s in runs}
+        compared = {s: runs[s] for s in ANALYSED if s in runs}
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
             study = scaling_study(reference, compared, n_bootstrap=n_bootstrap, rng=args["seed"],
-                                  spacing=spacing, n_grid=n_grid, bounds=BOUNDS)
+                                  spacing=spacing, n_grid=n_grid, bounds=BOUNDS, hold_last=True)
         results[time_column] = {
             "reference": {"strategy": REFERENCE, "n_s": smallest, "trials": len(reference)},
             "grid": {"spacing": spacing, "points": n_grid, "bootstrap": n_bootstrap},
@@ -292,16 +325,30 @@ def analyse(output: Path, plan: dict, n_bootstrap: int, n_grid: int, spacing: st
     return results
 
 
-def run_summary(output: Path, jobs: list) -> dict:
-    """Per strategy and n_s: mean initial and final F, CPU seconds and evaluations of the runs."""
+def how_stopped(info: dict, max_wall: float) -> str:
+    """"CPU budget", "wall-clock cap" or "converged" (the strategy ended before either)."""
+    if info["cpu_seconds"] >= info["budget"]:
+        return "CPU budget"
+    return "wall-clock cap" if info["wall_seconds"] >= max_wall else "converged"
+
+
+def run_summary(output: Path, plan: dict) -> dict:
+    """Per strategy and n_s: mean initial and final F, CPU seconds and evaluations of the runs,
+    and how many runs ended by converging and by the wall-clock cap."""
+    args = plan["args"]
+    max_wall = args["max_wall"] or 10 * args["budget"]
     summary: dict = {}
-    for job in jobs:
+    for job in plan["jobs"]:
         info_file = trace_path(output, job).with_suffix(".json")
         if info_file.exists():
             info = json.loads(info_file.read_text())
             entry = summary.setdefault(job["strategy"], {}).setdefault(str(job["n_s"]), [])
-            entry.append([info[k] for k in ("initial", "final", "cpu_seconds", "evaluations")])
-    return {s: {n: np.mean(rows, axis=0).tolist() for n, rows in by_size.items()}
+            stopped = how_stopped(info, max_wall)
+            entry.append([info[k] for k in ("initial", "final", "cpu_seconds", "evaluations")]
+                         + [stopped == "converged", stopped == "wall-clock cap"])
+    return {s: {n: np.mean(rows, axis=0).tolist()[:4]
+                + np.sum(rows, axis=0).astype(int).tolist()[4:] + [len(rows)]
+                for n, rows in by_size.items()}
             for s, by_size in summary.items()}
 
 
@@ -317,14 +364,13 @@ def table(results: dict, summary: dict, plan: dict) -> str:
              f"{cpu['grid']['spacing']} time grid of {cpu['grid']['points']} points",
              "",
              f"{'strategy':<26}{'CPU time':>20}{'evaluations':>20}   paper 3-D (CPU / eval.)"]
-    for s in STRATEGIES:
+    for s in ANALYSED:
         if s not in cpu["strategies"]:
             continue
         a, b = cpu["strategies"][s], evaluations["strategies"][s]
-        paper = PAPER_TABLE_III[s]
+        paper = "%g / %g" % PAPER_TABLE_III[s] if s in PAPER_TABLE_III else "-"
         lines.append(f"{LABELS[s]:<26}{a['gradient']:>11.3f} +- {a['gradient_se']:<6.3f}"
-                     f"{b['gradient']:>11.3f} +- {b['gradient_se']:<6.3f}"
-                     f"   {paper[0]:g} / {paper[1]:g}")
+                     f"{b['gradient']:>11.3f} +- {b['gradient_se']:<6.3f}   {paper}")
     for time_column, title in TIMES:
         part = results[time_column]
         sizes = sorted({int(n) for s in part["strategies"].values() for n in s["n_shapes"]})
@@ -336,12 +382,15 @@ def table(results: dict, summary: dict, plan: dict) -> str:
             cells = {int(n): f"{al:.3g} +- {se:.2g}" for n, al, se in
                      zip(entry["n_shapes"], entry["alpha"], entry["alpha_se"])}
             lines.append(f"{LABELS[s]:<26}" + "".join(f"{cells.get(n, '-'):>20}" for n in sizes))
-    lines += ["", "runs (means over trials): F initial -> final, CPU s, evaluations"]
+    lines += ["", "runs (means over trials): F initial -> final, CPU s, evaluations; runs that "
+              "converged before the budget (held at their final F)"]
     for s, by_size in summary.items():
-        for n, (first, last, seconds, count) in sorted(by_size.items(), key=lambda x: int(x[0])):
+        for n, (first, last, seconds, count, converged, capped, runs) in sorted(
+                by_size.items(), key=lambda x: int(x[0])):
             lines.append(f"{LABELS.get(s, s):<26} n_s = {n:<3} F {first:9.1f} -> {last:9.1f} "
                          f"({100 * (first - last) / abs(first):4.1f} %), {seconds:5.1f} s, "
-                         f"{count:8.0f} evaluations")
+                         f"{count:8.0f} evaluations, {converged} of {runs} converged"
+                         + (f", {capped} cut by the wall-clock cap" if capped else ""))
     return "\n".join(lines)
 
 
@@ -377,11 +426,13 @@ def main(argv=None) -> int:
             return 2
         jobs = plan_jobs(pool, args.sizes, args.trials, args.strategies, args.seed)
         plan = {"args": vars(args), "pool": pool, "jobs": jobs}
+        if plan_file.exists():  # more strategies, sizes or trials for the same study
+            plan = merged_plan(json.loads(plan_file.read_text()), plan)
         output.mkdir(parents=True, exist_ok=True)
         plan_file.write_text(json.dumps(plan, indent=1))
         run_all(jobs, args, output)
     results = analyse(output, plan, args.bootstrap, args.grid, args.spacing)
-    summary = run_summary(output, plan["jobs"])
+    summary = run_summary(output, plan)
     text = table(results, summary, plan)
     write_results(output, results, summary, text)
     print(text)
