@@ -78,3 +78,17 @@ def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
     strict = run("build", folder, "-o", tmp_path / "strict", "--label", 1, "--points", 42,
                  "--workers", 2, "--strict")
     assert strict.returncode == 2 and "strict" in strict.stderr
+
+
+def test_a_missing_label_map_is_a_rejection_that_says_so(tmp_path):
+    """Through the Python API (the CLI checks paths before), a file that is not there is a
+    rejection with a plain reason, not SimpleITK's message."""
+    from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.pipeline import prepare_case
+
+    missing = tmp_path / "gone.nii.gz"
+    result = prepare_case(str(missing), BuildConfig())
+    assert result.name == "gone"
+    assert "no such file" in result.reason
+    write_image(missing, small_mask(0.0))
+    assert not hasattr(prepare_case(str(missing), BuildConfig(cache_dir="")), "reason")

@@ -77,6 +77,8 @@ def read_label_map(path, labels=()) -> LabelMap:
     """The union of ``labels`` (all non-zero labels when empty) of a label-map image."""
     import SimpleITK as sitk
 
+    if not Path(path).is_file():
+        raise InputError("no such file")
     try:
         image = sitk.ReadImage(str(path))
     except RuntimeError as error:
