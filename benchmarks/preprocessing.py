@@ -9,6 +9,7 @@ about 0.2 GB of imported libraries; the baseline is printed).
     python benchmarks/preprocessing.py --workers 2
     python benchmarks/preprocessing.py --hippocampi 10 --no-femurs --surface slicer
     python benchmarks/preprocessing.py --no-femurs --union-only
+    python benchmarks/preprocessing.py --hippocampi 0          # the femurs only
 """
 
 from __future__ import annotations
@@ -96,7 +97,8 @@ def run(title: str, paths: list, labels: list, mirror: list, workers: int, metho
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=str(DATA))
-    parser.add_argument("--hippocampi", type=int, default=100)
+    parser.add_argument("--hippocampi", type=int, default=100,
+                        help="the first N hippocampus label maps (0: none, the femurs only)")
     parser.add_argument("--no-femurs", action="store_true")
     parser.add_argument("--union-only", action="store_true",
                         help="hippocampi: only the union of labels 1 and 2, not each label alone")
@@ -106,18 +108,20 @@ def main() -> int:
     args = parser.parse_args()
     data = Path(args.data)
     hippocampi = sorted((data / "hippocampus" / "labels").glob("*.nii.gz"))[: args.hippocampi]
-    if not hippocampi:
-        print(f"no hippocampus label maps under {data}", file=sys.stderr)
+    femurs = [] if args.no_femurs else sorted((data / "femurs").glob("*.stl"))
+    if not hippocampi and not femurs:
+        print(f"no hippocampus label maps or femurs to prepare under {data}", file=sys.stderr)
         return 2
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(1, mp_context=context) as pool:
         print(f"import baseline of a worker: {pool.submit(_baseline_mb).result():.0f} MB")
     populations = [("hippocampi, labels 1+2", [1, 2]), ("hippocampi, label 1", [1]),
                    ("hippocampi, label 2", [2])]
+    if not hippocampi:
+        populations = []
     for title, labels in populations[:1] if args.union_only else populations:
         run(f"{title} ({args.surface})", hippocampi, labels, [], args.workers, args.surface)
-    femurs = sorted((data / "femurs").glob("*.stl"))
-    if femurs and not args.no_femurs:
+    if femurs:
         run("femurs (STL, right ones mirrored)", femurs, [], ["*_rfemur*"], args.workers,
             args.surface)
     return 0
