@@ -54,10 +54,10 @@ Time
     gained 0-1.6 nats more). Only fast ends early, after its finest level: it has
     converged, and its curve is held at its final value up to the end of the longest run
     (``hold_last`` of :func:`~mdlshapemodel.convergence.compare_strategies`); the table counts
-    such runs, and the runs cut by the wall-clock cap, which are held too. Rows are recorded at every improvement
-    inside a step (``OptimisationSettings.trace_improvements``) and the mean curves are averaged
-    on a log-spaced grid (``--spacing log``), so that alpha can be measured even when one
-    strategy is hundreds of times slower than the reference.
+    such runs, and the runs cut by the wall-clock cap, which are held too. Rows are recorded at
+    every improvement inside a step (``OptimisationSettings.trace_improvements``) and the mean
+    curves are averaged on a log-spaced grid (``--spacing log``), so that alpha can be measured
+    even when one strategy is hundreds of times slower than the reference.
 
 Trials
     Trial k at n_s uses the same training set and optimiser seed for every strategy (strategies
@@ -241,8 +241,7 @@ def run_job(job: dict, budget: float, max_wall: float, objective: str, points: i
     try:
         optimise(state, (fixed, chosen), settings, np.random.default_rng(job["seed"]), trace,
                  progress=out_of_cpu)
-        # back before the budget: either the wall-clock cap or the strategy's own end (three
-        # sweeps without any gain; fast: its last level)
+        # back before the budget: the wall-clock cap, or fast's own end (after its finest level)
         capped = trace.rows[-1][0] >= max_wall
         stopped = "wall-clock cap" if capped else "converged"
     except Cancelled:
@@ -330,22 +329,25 @@ def analyse(output: Path, plan: dict, n_bootstrap: int, n_grid: int, spacing: st
     return results
 
 
-def run_summary(output: Path, plan: dict) -> dict:
+def run_summary(output: Path, jobs: list) -> dict:
     """Per strategy and n_s: mean initial and final F, CPU seconds and evaluations of the runs,
-    and how many runs ended by converging and by the wall-clock cap."""
-    summary: dict = {}
-    for job in plan["jobs"]:
+    then how many runs converged, how many the wall-clock cap cut, and how many there are."""
+    infos: dict = {}
+    for job in jobs:
         info_file = trace_path(output, job).with_suffix(".json")
         if info_file.exists():
-            info = json.loads(info_file.read_text())
-            entry = summary.setdefault(job["strategy"], {}).setdefault(str(job["n_s"]), [])
-            stopped = info["stopped"]      # "CPU budget", "converged" or "wall-clock cap"
-            entry.append([info[k] for k in ("initial", "final", "cpu_seconds", "evaluations")]
-                         + [stopped == "converged", stopped == "wall-clock cap"])
-    return {s: {n: np.mean(rows, axis=0).tolist()[:4]
-                + np.sum(rows, axis=0).astype(int).tolist()[4:] + [len(rows)]
-                for n, rows in by_size.items()}
-            for s, by_size in summary.items()}
+            infos.setdefault(job["strategy"], {}).setdefault(str(job["n_s"]), []).append(
+                json.loads(info_file.read_text()))
+    summary: dict = {}
+    for strategy, by_size in infos.items():
+        for n, runs in by_size.items():
+            means = np.mean([[info[k] for k in ("initial", "final", "cpu_seconds", "evaluations")]
+                             for info in runs], axis=0).tolist()
+            # "stopped": "CPU budget", "converged" or "wall-clock cap" (run_job)
+            counts = [sum(info["stopped"] == end for info in runs)
+                      for end in ("converged", "wall-clock cap")]
+            summary.setdefault(strategy, {})[n] = means + counts + [len(runs)]
+    return summary
 
 
 def table(results: dict, summary: dict, plan: dict) -> str:
@@ -428,7 +430,7 @@ def main(argv=None) -> int:
         plan_file.write_text(json.dumps(plan, indent=1))
         run_all(jobs, args, output)
     results = analyse(output, plan, args.bootstrap, args.grid, args.spacing)
-    summary = run_summary(output, plan)
+    summary = run_summary(output, plan["jobs"])
     text = table(results, summary, plan)
     write_results(output, results, summary, text)
     print(text)
