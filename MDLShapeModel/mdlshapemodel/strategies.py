@@ -167,13 +167,13 @@ def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kern
 
 
 def _search_warp(state: CorrespondenceState, i: int, j: int, warp_of, bounds: tuple,
-                 log_scale: bool, xatol: float, maxiter: int, found: list, seen=None):
+                 log_scale: bool, xatol: float, maxiter: int, found: list, seen):
     """Bounded Brent search of F over one parameter t of a warp of part j of example i.
 
     ``warp_of(t)`` is the warp at parameter t (10**t when ``log_scale``); every trial that flips a
     grid triangle scores +inf and is never kept. Each unfolded trial is appended to ``found`` as
-    (F, warp, (positions, points, hint)) and passed to ``seen(F)`` (:func:`_improvements`), if
-    given. Nothing is committed.
+    (F, warp, (positions, points, hint)) and passed to ``seen(F)`` (:func:`_improvements`).
+    Nothing is committed.
     """
     example = state.examples[i]
     part = example.parts[j]
@@ -185,8 +185,7 @@ def _search_warp(state: CorrespondenceState, i: int, j: int, warp_of, bounds: tu
             return np.inf
         value = state.value(i, example.pose.apply(example.raw_points({j: proposal[1]})))
         found.append((value, warp, proposal))
-        if seen is not None:
-            seen(value)
+        seen(value)
         return value
 
     minimize_scalar(objective, method="bounded", bounds=bounds,
