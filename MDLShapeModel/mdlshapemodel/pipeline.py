@@ -88,8 +88,20 @@ def mask_components(mask: np.ndarray, min_fraction: float = 0.1) -> tuple[np.nda
 
 def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
     """Read one input, make its closed genus-0 surface and its bijective sphere map."""
+    from threadpoolctl import threadpool_limits
+
     name = io.case_name(path)
     try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            return _prepare(path, name, config)
+    except MDLShapeModelError as error:
+        return Rejection(name, str(path), str(error))
+    except (ValueError, RuntimeError, MemoryError, OSError) as error:
+        return Rejection(name, str(path), f"{type(error).__name__}: {error}")
+
+
+def _prepare(path, name: str, config: BuildConfig) -> PreparedCase:
+    if True:
         notes = {}
         if io.is_image(path):
             label_map = io.read_label_map(path, config.labels)
@@ -116,17 +128,14 @@ def prepare_case(path: str, config: BuildConfig) -> PreparedCase | Rejection:
             notes["mirrored"] = True
         mapped = sphere_map(vertices, faces)
         return PreparedCase(name, str(path), mapped, float(voxel_size), notes)
-    except MDLShapeModelError as error:
-        return Rejection(name, str(path), str(error))
-    except (ValueError, RuntimeError, MemoryError, OSError) as error:
-        return Rejection(name, str(path), f"{type(error).__name__}: {error}")
 
 
 CACHE_FORMAT = 1
 # Version of the preprocessing algorithm (surface extraction and sphere map): raise it whenever a
 # change alters the surfaces or maps, so that entries made by the old algorithm are not reused.
 # 2: compiled distortion minimisation and our own Moebius balancing (maps differ in rounding).
-PREPROCESSING_VERSION = 2
+# 3: a deterministic isotropic remesher (gpytoolbox's) and one BLAS thread while preparing.
+PREPROCESSING_VERSION = 3
 PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
                         "smoothing_sigma", "max_smoothing_sigma", "edge_length",
                         "target_vertices")

@@ -392,18 +392,24 @@ def arrays_to_polydata(vertices: np.ndarray, faces: np.ndarray | None = None,
 
 def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float, iterations: int = 5
            ) -> tuple[np.ndarray, np.ndarray]:
-    """Isotropic remeshing (pymeshlab) to edges of about ``edge_length``; keeps the input when
-    the result is not sphere-like."""
-    import pymeshlab
+    """Isotropic remeshing to edges of about ``edge_length``; keeps the input when the result is
+    not sphere-like.
 
-    meshset = pymeshlab.MeshSet()
-    meshset.add_mesh(pymeshlab.Mesh(vertices, faces))
-    meshset.meshing_isotropic_explicit_remeshing(iterations=iterations,
-                                                 targetlen=pymeshlab.PureValue(edge_length))
-    mesh = meshset.current_mesh()
-    new_vertices = np.asarray(mesh.vertex_matrix(), dtype=np.float64)
-    new_faces = np.asarray(mesh.face_matrix(), dtype=np.int64)
-    new_vertices, new_faces = drop_degenerate_faces(new_vertices, new_faces)
+    Botsch and Kobbelt's remesher (split long edges, collapse short ones, flip towards valence 6,
+    tangential relaxation, projection onto the input surface), as compiled in gpytoolbox. Its
+    output depends only on its input arrays (index-ordered data structures, no random numbers),
+    so the same surface is remeshed bit for bit alike in any process or environment; the remesher
+    used before (pymeshlab's) gave, for the same input, meshes that differed from one
+    installation to another.
+    """
+    from gpytoolbox import remesh_botsch
+
+    new_vertices, new_faces = remesh_botsch(
+        np.ascontiguousarray(vertices, dtype=np.float64),
+        np.ascontiguousarray(faces, dtype=np.int32), i=iterations, h=float(edge_length),
+        project=True)
+    new_vertices, new_faces = drop_degenerate_faces(np.asarray(new_vertices, dtype=np.float64),
+                                                    np.asarray(new_faces, dtype=np.int64))
     if topology(new_vertices, new_faces).is_sphere_like:
         return new_vertices, new_faces
     return vertices, faces
