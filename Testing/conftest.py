@@ -24,7 +24,7 @@ def rng():
 def bump_surface():
     """Closed genus-0 surface of an ellipsoid with a bump: (vertices, faces), about 1,000 vertices."""
     from mdlshapemodel.demo import bump_ellipsoid_mask
-    from mdlshapemodel.surface import mask_to_surface
+    from mdlshapemodel.prepare.surface import mask_to_surface
 
     mask = bump_ellipsoid_mask(shape=(22, 26, 36), semi_axes=(12.0, 7.0, 5.5), bump_radius=4.0,
                                bump_position=0.3)
@@ -35,7 +35,7 @@ def bump_surface():
 @pytest.fixture(scope="session")
 def bump_map(bump_surface):
     """The :class:`SphereMap` of :func:`bump_surface`."""
-    from mdlshapemodel.sphere import sphere_map
+    from mdlshapemodel.prepare.sphere import sphere_map
 
     vertices, faces = bump_surface
     return sphere_map(vertices, faces)

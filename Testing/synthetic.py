@@ -6,11 +6,11 @@ from functools import lru_cache
 
 import numpy as np
 
-from mdlshapemodel import surface
-from mdlshapemodel.correspond import CorrespondenceState, Example, PartState
+from mdlshapemodel.prepare import surface
+from mdlshapemodel.correspondence.state import CorrespondenceState, Example, PartState
 from mdlshapemodel.demo import bump_ellipsoid_mask
-from mdlshapemodel.sampling import sphere_grid
-from mdlshapemodel.sphere import align_parameterizations, sphere_map
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.prepare.sphere import align_parameterizations, sphere_map
 
 SMALL_SHAPE = (18, 20, 28)
 

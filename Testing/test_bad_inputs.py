@@ -3,8 +3,8 @@
 import numpy as np
 import SimpleITK as sitk
 
-from mdlshapemodel.io import read_csv, write_polydata
-from mdlshapemodel.sampling import icosphere
+from mdlshapemodel.prepare.io import read_csv, write_polydata
+from mdlshapemodel.correspondence.sampling import icosphere
 
 from synthetic import small_mask
 from test_cli import run
@@ -84,7 +84,7 @@ def test_a_missing_label_map_is_a_rejection_that_says_so(tmp_path):
     """Through the Python API (the CLI checks paths before), a file that is not there is a
     rejection with a plain reason, not SimpleITK's message."""
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.pipeline import prepare_case
+    from mdlshapemodel.prepare import prepare_case
 
     missing = tmp_path / "gone.nii.gz"
     result = prepare_case(str(missing), BuildConfig())

@@ -5,12 +5,12 @@ import json
 import numpy as np
 import pytest
 
-from mdlshapemodel.compare import (Population, compare_populations, comparison_rows,
+from mdlshapemodel.report.compare import (Population, compare_populations, comparison_rows,
                                    load_population, write_comparison)
 from mdlshapemodel.errors import InputError
-from mdlshapemodel.evaluation import evaluate
-from mdlshapemodel.model import ShapeModel
-from mdlshapemodel.sampling import sphere_grid
+from mdlshapemodel.model.evaluation import evaluate
+from mdlshapemodel.model.shape_model import ShapeModel
+from mdlshapemodel.correspondence.sampling import sphere_grid
 
 
 def two_mode_population(n=12, seed=0):

@@ -6,11 +6,11 @@ import warnings
 import numpy as np
 import pytest
 
-from mdlshapemodel import io
-from mdlshapemodel.convergence import (common_grid, compare_strategies, fit_alpha, mean_curve,
+from mdlshapemodel.prepare import io
+from mdlshapemodel.model.convergence import (common_grid, compare_strategies, fit_alpha, mean_curve,
                                        read_trace, scaling_gradient, scaling_study, trace_curve)
 from mdlshapemodel.errors import InputError
-from mdlshapemodel.strategies import Trace
+from mdlshapemodel.correspondence.trace import Trace
 
 
 def f_b(t, tau=20.0):

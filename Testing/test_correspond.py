@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from mdlshapemodel.correspond import Kernel
-from mdlshapemodel.mdl import Objective
-from mdlshapemodel.pose import Pose, centroid_size, rotation_from_vector
-from mdlshapemodel.sampling import sphere_grid
-from mdlshapemodel.sphere import orientation
+from mdlshapemodel.correspondence.state import Kernel
+from mdlshapemodel.correspondence.objective import Objective
+from mdlshapemodel.correspondence.pose import Pose, centroid_size, rotation_from_vector
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.prepare.sphere import orientation
 
 from synthetic import small_state
 
@@ -94,12 +94,12 @@ def test_random_surface_parameter_is_uniform_over_the_surface(state):
     """Kernel centres are drawn by surface area: their surface points cover both halves evenly."""
     part = state.examples[0].parts[0]
     rng = np.random.default_rng(0)
-    from mdlshapemodel.sampling import SphereLocator
+    from mdlshapemodel.correspondence.sampling import SphereLocator
 
     locator = SphereLocator(part.sphere, part.faces)
     centres = np.array([part.random_surface_parameter(rng) for _ in range(2000)])
     points, _ = locator.evaluate(part.vertices, centres)
-    from mdlshapemodel.surface import face_areas
+    from mdlshapemodel.prepare.surface import face_areas
 
     areas = face_areas(part.vertices, part.faces)
     centroids = part.vertices[part.faces].mean(axis=1)

@@ -9,12 +9,12 @@ point against every triangle) written here; the library uses a VTK cell locator.
 import numpy as np
 import pytest
 
-from mdlshapemodel.evaluation import (SURFACE_GENERALIZATION_POINTS, compactness, evaluate,
+from mdlshapemodel.model.evaluation import (SURFACE_GENERALIZATION_POINTS, compactness, evaluate,
                                       generalization, specificity, surface_generalization,
                                       surface_specificity)
-from mdlshapemodel.pipeline import helper_pool
-from mdlshapemodel.sampling import sphere_grid
-from mdlshapemodel.surface import SurfaceDistance, point_surface_distances
+from mdlshapemodel.parallel import process_pool
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.prepare.surface import SurfaceDistance, point_surface_distances
 
 
 def normalised_weights(rng, n_p):
@@ -235,7 +235,7 @@ def two_mode_population(rng):
 
 
 def test_two_mode_population(two_mode_population):
-    from mdlshapemodel.model import ShapeModel
+    from mdlshapemodel.model.shape_model import ShapeModel
 
     shapes, weights = two_mode_population
     n_s = len(shapes)
@@ -254,7 +254,7 @@ def test_two_mode_population(two_mode_population):
 
 
 def test_evaluate_collects_everything(two_mode_population):
-    from mdlshapemodel.model import ShapeModel
+    from mdlshapemodel.model.shape_model import ShapeModel
 
     shapes, weights = two_mode_population
     n_s = len(shapes)
@@ -540,7 +540,7 @@ def test_surface_specificity_subsampling_agrees_with_all_points(rng):
 def test_stratified_sampling_is_unbiased(rng):
     """The strata partition the points; one random point per stratum, weighted by the stratum's
     share, estimates the mean over all points without bias, with less noise than a random subset."""
-    from mdlshapemodel.evaluation import _means, _RandomSubset, _Strata
+    from mdlshapemodel.model.evaluation import _means, _RandomSubset, _Strata
 
     _, _, _, surfaces = radial_population(rng, 1, 4)
     vertices = surfaces[0][0]
@@ -600,7 +600,7 @@ def test_evaluate_with_surfaces(rng):
     with pytest.raises(ValueError):
         surface_generalization(shapes, weights, triangles, surfaces[:-1], 3)
     # with a process pool doing the surface generalization meanwhile: the same numbers
-    with helper_pool(2) as pool:
+    with process_pool(2) as pool:
         pooled = evaluate(shapes, weights, variances, 3, 300, np.random.default_rng(5),
                           triangles=triangles, surfaces=surfaces, surface_samples=20, pool=pool)
     assert pooled == report

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from mdlshapemodel.fields import FieldBasis, wendland
-from mdlshapemodel.sampling import sphere_grid
-from mdlshapemodel.sphere import orientation
+from mdlshapemodel.correspondence.fields import FieldBasis, wendland
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.prepare.sphere import orientation
 
 
 @pytest.fixture

@@ -8,10 +8,11 @@ import SimpleITK as sitk
 
 from mdlshapemodel import BuildConfig, build_model
 from mdlshapemodel.errors import InputError
-from mdlshapemodel.evaluation import generalization
-from mdlshapemodel.fitting import fit_case, fit_cases, load_model
-from mdlshapemodel.io import read_csv
-from mdlshapemodel.pipeline import prepare_case, surface_distances
+from mdlshapemodel.model.evaluation import generalization
+from mdlshapemodel.model.fitting import fit_case, fit_cases, load_model
+from mdlshapemodel.prepare.io import read_csv
+from mdlshapemodel.prepare import prepare_case
+from mdlshapemodel.prepare.surface import point_surface_distances
 
 from synthetic import small_mask
 
@@ -63,7 +64,7 @@ def test_fitted_points_lie_on_the_case_and_overlay_it(fitted, models):
     model, result = fitted
     _, _, path = models
     case = prepare_case(str(path), BuildConfig())
-    distances = surface_distances(result.corresponded, model.triangles, case.map.vertices,
+    distances = point_surface_distances(result.corresponded, case.map.vertices,
                                   case.map.faces)
     assert distances.max() < 0.2       # sampled on the case's own surface (mesh vs its vertices)
     reconstruction = result.reconstruction(model)

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from mdlshapemodel import hotloops
-from mdlshapemodel.fields import FieldBasis, wendland
-from mdlshapemodel.pose import Pose, rotation_from_vector
-from mdlshapemodel.sampling import SphereLocator, icosphere
+from mdlshapemodel.correspondence import hotloops
+from mdlshapemodel.correspondence.fields import FieldBasis, wendland
+from mdlshapemodel.correspondence.pose import Pose, rotation_from_vector
+from mdlshapemodel.correspondence.sampling import SphereLocator, icosphere
 
 
 @pytest.fixture

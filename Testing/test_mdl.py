@@ -7,7 +7,7 @@ import pytest
 from scipy import integrate
 
 from mdlshapemodel.errors import ConfigError
-from mdlshapemodel.mdl import (Objective, coded_values_from_gram, description_length,
+from mdlshapemodel.correspondence.objective import (Objective, coded_values_from_gram, description_length,
                                integrated_description_length, mode_costs)
 
 LN2PI = math.log(2 * math.pi)

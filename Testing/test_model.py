@@ -2,7 +2,7 @@
 
 The model file follows the Statismo file format (groups /version, /representer, /model,
 /modelinfo) as Statismo and Scalismo write and read it; the readers and writers below are
-written from that format, with plain h5py, independently of mdlshapemodel.model.
+written from that format, with plain h5py, independently of mdlshapemodel.model.shape_model.
 """
 
 import h5py
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mdlshapemodel.errors import InputError
-from mdlshapemodel.model import ShapeModel
+from mdlshapemodel.model.shape_model import ShapeModel
 
 
 def random_population(rng, n_s=8, n_p=30):

@@ -9,8 +9,8 @@ import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig, ShapeModel, build_model
-from mdlshapemodel.io import read_csv
-from mdlshapemodel.pipeline import BuildError
+from mdlshapemodel.prepare.io import read_csv
+from mdlshapemodel.errors import BuildError
 
 from synthetic import small_mask
 
@@ -136,7 +136,7 @@ def test_strict_turns_rejections_into_failure(population, tmp_path):
 
 
 def test_cancelled_optimisation_still_writes_the_model(population, tmp_path):
-    from mdlshapemodel.strategies import Cancelled
+    from mdlshapemodel import Cancelled
 
     folder, paths = population
     calls = []
@@ -158,7 +158,7 @@ def test_cancelled_optimisation_still_writes_the_model(population, tmp_path):
 
 def test_preprocessing_cache_is_reused_only_for_identical_files_and_settings(population, tmp_path,
                                                                             monkeypatch):
-    from mdlshapemodel.pipeline import preprocess
+    from mdlshapemodel.prepare import preprocess
 
     _, paths = population
     cache = tmp_path / "cache"
@@ -169,20 +169,20 @@ def test_preprocessing_cache_is_reused_only_for_identical_files_and_settings(pop
     again, _ = preprocess(paths[:2], config)
     assert {f: f.stat().st_mtime_ns for f in cache.glob("*.npz")} == stamps  # nothing rewritten
     for a, b in zip(first, again):
-        assert a.name == b.name and a.notes == b.notes and a.map.quality == b.map.quality
+        assert a.name == b.name and a.record() == b.record() and a.map.quality == b.map.quality
         assert np.array_equal(a.map.sphere, b.map.sphere)
         assert np.array_equal(a.map.faces, b.map.faces)
     # another setting that changes the surface: new entries
     preprocess(paths[:1], BuildConfig(workers=1, cache_dir=str(cache), smoothing_sigma=1.5))
     assert len(list(cache.glob("*.npz"))) == 3
     # a new preprocessing algorithm does not reuse the old entries
-    from mdlshapemodel import pipeline
+    from mdlshapemodel.prepare import cache as preprocessing_cache
 
-    key = pipeline.cache_key(paths[0], config)
-    monkeypatch.setattr(pipeline, "PREPROCESSING_VERSION", pipeline.PREPROCESSING_VERSION + 1)
-    assert pipeline.cache_key(paths[0], config) != key
+    key = preprocessing_cache.cache_key(paths[0], config)
+    monkeypatch.setattr(preprocessing_cache, "PREPROCESSING_VERSION", preprocessing_cache.PREPROCESSING_VERSION + 1)
+    assert preprocessing_cache.cache_key(paths[0], config) != key
     monkeypatch.undo()
-    assert pipeline.cache_key(paths[0], config) == key
+    assert preprocessing_cache.cache_key(paths[0], config) == key
     # a damaged entry is recomputed, not trusted
     damaged = sorted(stamps)[0]
     damaged.write_bytes(b"not an npz file")
@@ -201,9 +201,9 @@ def test_preprocessing_cache_is_reused_only_for_identical_files_and_settings(pop
 def test_mirrored_inputs_are_modelled_with_their_other_side(tmp_path):
     """A right-side copy of a left shape, mirrored on input, joins the model as that shape and
     its corresponded mesh is written back on the right side, over its input."""
-    from mdlshapemodel import surface
-    from mdlshapemodel.io import write_polydata
-    from mdlshapemodel.pipeline import surface_distances
+    from mdlshapemodel.prepare import surface
+    from mdlshapemodel.prepare.io import write_polydata
+    from mdlshapemodel.prepare.surface import point_surface_distances
 
     folder = tmp_path / "meshes"
     folder.mkdir()
@@ -222,7 +222,7 @@ def test_mirrored_inputs_are_modelled_with_their_other_side(tmp_path):
     cases = {row["case"]: row for row in read_csv(output / "cases.csv")}
     assert cases["right_0"]["mirrored"] == "True" and cases["left_0"]["mirrored"] == "False"
     points, triangles = read_vtp(output / "correspondence" / "right_0.vtp")
-    assert np.max(surface_distances(right, shapes[0][1], points, triangles)) < 1.0
+    assert np.max(point_surface_distances(right, points, triangles)) < 1.0
     aligned = {n: read_vtp(output / "aligned" / f"{n}.vtp")[0] for n in ("left_0", "right_0")}
     assert np.mean(np.linalg.norm(aligned["left_0"] - aligned["right_0"], axis=1)) < 0.5
     assert result.metrics["n_shapes"] == 4

@@ -8,11 +8,11 @@ import pytest
 import SimpleITK as sitk
 
 from mdlshapemodel import BuildConfig, build_model
-from mdlshapemodel.io import read_csv
-from mdlshapemodel.pipeline import prepare_case
-from mdlshapemodel.sampling import sphere_grid
-from mdlshapemodel.sphere import orientation, solid_angles
-from mdlshapemodel.surface import topology
+from mdlshapemodel.prepare.io import read_csv
+from mdlshapemodel.prepare import prepare_case
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.prepare.sphere import orientation, solid_angles
+from mdlshapemodel.prepare.surface import topology
 
 DATA = Path(os.environ.get("MDLSHAPEMODEL_DATA",
                           Path(__file__).resolve().parents[1].parent / "shared" / "data"))

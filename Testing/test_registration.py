@@ -9,11 +9,11 @@ import pytest
 from pycpd import DeformableRegistration, RigidRegistration
 from scipy.spatial import cKDTree
 
-from mdlshapemodel.registration import (CPDResult, _Deformable, _Rigid, closest_points_on_surface,
+from mdlshapemodel.correspondence.cpd import (CPDResult, _Deformable, _Rigid, closest_points_on_surface,
                                         cpd_case, cpd_correspondence, cpd_registration,
                                         gaussian_kernel, initial_sigma2, low_rank_eigen,
                                         subsample_indices)
-from mdlshapemodel.sampling import icosphere
+from mdlshapemodel.correspondence.sampling import icosphere
 
 SEMI_AXES = np.array([20.0, 12.0, 8.0])
 
@@ -37,7 +37,7 @@ def implicit_distance(vertices, faces, points):
     """|distance| to the mesh by VTK's implicit distance (independent of the cell locator)."""
     import vtk
 
-    from mdlshapemodel.surface import arrays_to_polydata
+    from mdlshapemodel.prepare.surface import arrays_to_polydata
 
     function = vtk.vtkImplicitPolyDataDistance()
     function.SetInput(arrays_to_polydata(vertices, faces))

@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mdlshapemodel import rendering
+from mdlshapemodel.report import rendering
 from mdlshapemodel.errors import MDLShapeModelError
-from mdlshapemodel.model import ShapeModel
-from mdlshapemodel.rendering import RenderingError, grid_layout
-from mdlshapemodel.sampling import sphere_grid, triangle_vertex_areas
+from mdlshapemodel.model.shape_model import ShapeModel
+from mdlshapemodel.report.rendering import RenderingError, grid_layout
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.prepare.surface import triangle_vertex_areas
 
 PACKAGE_ROOT = str(Path(rendering.__file__).resolve().parents[1])
 SIZE = (160, 140)
@@ -250,9 +251,9 @@ def run_without_display(code: str, **environment) -> subprocess.CompletedProcess
 
 PROGRAM = """
     import numpy as np
-    from mdlshapemodel import rendering
+    from mdlshapemodel.report import rendering
     from mdlshapemodel.errors import MDLShapeModelError
-    from mdlshapemodel.sampling import sphere_grid
+    from mdlshapemodel.correspondence.sampling import sphere_grid
     grid, triangles = sphere_grid(162)
     try:
         png = rendering.render_correspondence(np.stack([grid, 2 * grid]), triangles)

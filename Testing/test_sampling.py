@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from mdlshapemodel.sampling import (SphereLocator, fibonacci_sphere, grid_order, icosphere,
-                                    orient_triangles, sphere_grid, triangle_vertex_areas)
+from mdlshapemodel.correspondence.sampling import (SphereLocator, fibonacci_sphere, grid_order, icosphere,
+                                    orient_triangles, sphere_grid)
+from mdlshapemodel.prepare.surface import triangle_vertex_areas
 
 
 def orientation(points, faces):
@@ -114,7 +115,7 @@ def test_locate_agrees_with_brute_force(rng, grid):
 
 def test_locate_on_a_warped_triangulation(rng):
     """Point location on a strongly non-uniform (but fold-free) triangulation, as after warping."""
-    from mdlshapemodel.warps import apply_symmetric_theta
+    from mdlshapemodel.correspondence.warps import apply_symmetric_theta
 
     points, faces = icosphere(3)
     warped = points
@@ -172,7 +173,7 @@ def test_hints_do_not_change_the_answer(rng):
 def test_locate_when_nearest_vertices_are_not_corners(rng):
     """On a strongly warped triangulation the nearest vertex is often not a corner of the triangle
     holding the query; location must still be right (with any number of neighbours tried)."""
-    from mdlshapemodel.warps import apply_symmetric_theta
+    from mdlshapemodel.correspondence.warps import apply_symmetric_theta
 
     points, faces = icosphere(2)
     for centre in random_unit_vectors(np.random.default_rng(1), 5):

@@ -5,12 +5,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mdlshapemodel.errors import SphereMapError
-from mdlshapemodel.sampling import SphereLocator, icosphere
-from mdlshapemodel.sphere import (SphereMap, align_parameterizations, check_bijective, distortion,
+from mdlshapemodel.correspondence.sampling import SphereLocator, icosphere
+from mdlshapemodel.prepare.sphere import (SphereMap, align_parameterizations, check_bijective, distortion,
                                   first_order_map, map_quality, minimise_distortion, orientation,
                                   principal_axes, solid_angles, sphere_map)
-from mdlshapemodel.surface import mask_to_surface, topology
-from mdlshapemodel.warps import apply_symmetric_theta
+from mdlshapemodel.prepare.surface import mask_to_surface, topology
+from mdlshapemodel.correspondence.warps import apply_symmetric_theta
 
 
 def determinants(sphere, faces):
@@ -101,7 +101,7 @@ def test_sphere_map_of_a_dumbbell():
 # --- Moebius balancing ---------------------------------------------------------------------------------
 
 def test_mobius_is_an_orientation_preserving_bijection_of_the_sphere():
-    from mdlshapemodel.sphere import mobius
+    from mdlshapemodel.prepare.sphere import mobius
 
     points, faces = icosphere(3)
     centre = np.array([0.3, -0.5, 0.2])
@@ -116,7 +116,7 @@ def test_mobius_is_an_orientation_preserving_bijection_of_the_sphere():
 
 
 def test_balance_objective_gradient_matches_finite_differences(bump_surface, bump_map):
-    from mdlshapemodel.sphere import _balance_objective
+    from mdlshapemodel.prepare.sphere import _balance_objective
 
     vertices, faces = bump_surface
     area = triangle_areas(vertices, faces)
@@ -133,13 +133,13 @@ def test_balance_objective_gradient_matches_finite_differences(bump_surface, bum
 
 
 def mobius_of(points, v):
-    from mdlshapemodel.sphere import mobius
+    from mdlshapemodel.prepare.sphere import mobius
 
     return mobius(points, v / np.sqrt(1 + v @ v))
 
 
 def test_balance_area_undoes_a_moebius_distortion(bump_surface, bump_map):
-    from mdlshapemodel.sphere import balance_area, mobius
+    from mdlshapemodel.prepare.sphere import balance_area, mobius
 
     vertices, faces = bump_surface
     good = mean_abs_log_area_ratio(vertices, faces, bump_map.sphere)
@@ -198,7 +198,7 @@ def test_minimise_distortion_never_increases_the_energy_nor_flips(bump_surface, 
 def test_compiled_energy_matches_its_definition(bump_surface, warped_start, bump_map):
     """The single-pass (compiled) energy equals the Jacobian form of the test, and is infinite
     as soon as one triangle is flipped."""
-    from mdlshapemodel.sphere import _DistortionEnergy
+    from mdlshapemodel.prepare.sphere import _DistortionEnergy
 
     vertices, faces = bump_surface
     for area_weight in (0.0, 4.0):
@@ -216,7 +216,7 @@ def test_compiled_energy_matches_its_definition(bump_surface, warped_start, bump
 
 
 def test_energy_gradient_matches_finite_differences(bump_surface, warped_start, rng):
-    from mdlshapemodel.sphere import _DistortionEnergy
+    from mdlshapemodel.prepare.sphere import _DistortionEnergy
 
     vertices, faces = bump_surface
     energy_of = _DistortionEnergy(vertices, faces, 4.0)

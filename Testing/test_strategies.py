@@ -5,13 +5,18 @@ import time
 import numpy as np
 import pytest
 
-from mdlshapemodel.correspond import CorrespondenceState, Example, Kernel, PartState
-from mdlshapemodel.mdl import Objective
-from mdlshapemodel.sampling import icosphere, sphere_grid
-from mdlshapemodel.sphere import orientation
-from mdlshapemodel.strategies import (STRATEGIES, Cancelled, OptimisationSettings, Trace,
-                                      _optimise_amplitude, _optimise_pose, _population_value,
-                                      multiresolution_levels, optimise)
+from mdlshapemodel.correspondence.state import CorrespondenceState, Example, Kernel, PartState
+from mdlshapemodel.correspondence.objective import Objective
+from mdlshapemodel.correspondence.sampling import icosphere, sphere_grid
+from mdlshapemodel.prepare.sphere import orientation
+from mdlshapemodel.config import STRATEGIES, OptimisationSettings
+from mdlshapemodel.correspondence.strategies import optimise
+from mdlshapemodel.correspondence.strategies.one_at_a_time import (_optimise_amplitude,
+                                                                    _optimise_pose)
+from mdlshapemodel.correspondence.strategies.simplex import (_population_value,
+                                                             multiresolution_levels)
+from mdlshapemodel.correspondence.trace import Trace
+from mdlshapemodel.errors import Cancelled
 
 from synthetic import small_maps, small_state
 
@@ -65,9 +70,11 @@ def test_optimisation_lowers_the_objective_and_keeps_grids_unfolded():
 
 
 def test_same_seed_same_result_bit_for_bit():
-    a, _, final_a = run("one-at-a-time", seed=7)
-    b, _, final_b = run("one-at-a-time", seed=7)
-    c, _, _ = run("one-at-a-time", seed=8)
+    # eq. 14 alone: two sweeps of the fixed-Delta phase can leave eq. 14 above its start on these
+    # small shapes, and then both seeds end restored to the initial correspondence
+    a, _, final_a = run("one-at-a-time", seed=7, fixed_fraction=0.0)
+    b, _, final_b = run("one-at-a-time", seed=7, fixed_fraction=0.0)
+    c, _, _ = run("one-at-a-time", seed=8, fixed_fraction=0.0)
     assert final_a == final_b
     for ea, eb in zip(a.examples, b.examples):
         assert np.array_equal(ea.parts[0].positions, eb.parts[0].positions)
@@ -129,7 +136,7 @@ def test_a_budget_too_short_to_help_keeps_the_initial_correspondence():
 # ------------------------------------------------------------------------------------------------
 # The simplex strategies: multiresolution (III-D1) and stochastic multiscale (III-D2)
 
-SIMPLEX = {"multiresolution": dict(max_sweeps=1, simplex_evaluations=400, simplex_step=0.1),
+SIMPLEX = {"multiresolution": dict(max_sweeps=1, simplex_evaluations=400, simplex_step=0.3),
            "multiscale": dict(max_sweeps=4)}
 
 
@@ -281,8 +288,10 @@ def test_simplex_strategies_respect_active(strategy):
 @pytest.mark.parametrize("strategy", ["multiresolution", "multiscale"])
 def test_simplex_strategies_optimise_every_part_of_multi_part_examples(strategy):
     state = two_part_state()
+    # multiresolution: 24 level-0 amplitudes per example, all examples in one simplex
+    evaluations = 1000 if strategy == "multiresolution" else 300
     state, trace, start, final = run_simplex(strategy, state=state, fixed_fraction=0.0,
-                                             simplex_evaluations=300)
+                                             simplex_evaluations=evaluations)
     assert final < start
     assert_unfolded(state)
     assert_steps_never_increase(trace)
@@ -354,7 +363,7 @@ def test_fast_strategy_is_deterministic_and_respects_active():
 
 
 def test_fast_round_gradient_matches_finite_differences():
-    from mdlshapemodel.fast import _Round, gradient_at
+    from mdlshapemodel.correspondence.strategies.fast import _Round, gradient_at
 
     state = small_state()
     state.objective = objectives(state)[1]
@@ -422,7 +431,7 @@ def test_fast_fixed_phase_codes_every_mode():
     that objective's values."""
     from dataclasses import replace
 
-    from mdlshapemodel.fast import optimise_fast
+    from mdlshapemodel.correspondence.strategies.fast import optimise_fast
 
     state = small_state()
     fixed, _ = objectives(state)
@@ -434,7 +443,7 @@ def test_fast_fixed_phase_codes_every_mode():
     assert start > coded_free                     # some modes are free under case 3
     trace = Trace()
     settings = OptimisationSettings(strategy="fast", max_sweeps=2)
-    final = optimise_fast(state, fixed, settings, trace, "fixed", time.perf_counter() + 1e6)
+    final = optimise_fast(state, fixed, settings, None, trace, "fixed", time.perf_counter() + 1e6)
     assert trace.rows[0][3] == pytest.approx(start, rel=1e-12)
     assert final == pytest.approx(continuous(state.covariance()), rel=1e-9)
     assert final < start

@@ -5,8 +5,8 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from mdlshapemodel.errors import SurfaceError
-from mdlshapemodel.sampling import icosphere
-from mdlshapemodel.surface import (arrays_to_polydata, compact, decimate, drop_degenerate_faces,
+from mdlshapemodel.correspondence.sampling import icosphere
+from mdlshapemodel.prepare.surface import (arrays_to_polydata, compact, decimate, drop_degenerate_faces,
                                    edges_of, face_areas, largest_component, mask_to_surface,
                                    merge_close_vertices, orient_outwards, remesh,
                                    require_sphere_like, signed_volume, topology)
@@ -348,7 +348,7 @@ def test_ring_mask_is_not_genus_zero():
 def test_slicer_method_smooths_the_binary_surface_and_repairs_handles():
     """Slicer's conversion (flying edges on the binary mask + windowed sinc) keeps a box's size,
     and a diagonal voxel contact (a handle) is repaired by blurring, which the info reports."""
-    from mdlshapemodel.surface import mask_to_surface, topology
+    from mdlshapemodel.prepare.surface import mask_to_surface, topology
 
     box = np.zeros((24, 24, 24), bool)
     box[6:18, 6:18, 6:18] = True
@@ -369,7 +369,7 @@ def test_slicer_method_smooths_the_binary_surface_and_repairs_handles():
 
 
 def test_inconsistent_orientation_is_made_consistent():
-    from mdlshapemodel.surface import make_orientation_consistent, orient_outwards, topology
+    from mdlshapemodel.prepare.surface import make_orientation_consistent, orient_outwards, topology
 
     points, faces = icosphere(2)
     rng = np.random.default_rng(3)
@@ -385,8 +385,8 @@ def test_inconsistent_orientation_is_made_consistent():
 
 def test_mesh_with_scrambled_orientation_is_repaired_in_the_pipeline(tmp_path):
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.io import write_polydata
-    from mdlshapemodel.pipeline import prepare_case
+    from mdlshapemodel.prepare.io import write_polydata
+    from mdlshapemodel.prepare import prepare_case
 
     points, faces = icosphere(3)
     points = points * np.array([20.0, 12.0, 9.0])
@@ -395,5 +395,5 @@ def test_mesh_with_scrambled_orientation_is_repaired_in_the_pipeline(tmp_path):
     write_polydata(tmp_path / "scrambled.stl", points, scrambled)
     case = prepare_case(str(tmp_path / "scrambled.stl"), BuildConfig(voxel_size=1.0))
     assert not hasattr(case, "reason"), getattr(case, "reason", "")
-    assert "made the orientation of" in case.notes["repair"]
+    assert "made the orientation of" in case.repair
     assert case.map.quality["flipped_triangles"] == 0

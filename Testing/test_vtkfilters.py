@@ -5,8 +5,8 @@ import pytest
 import vtk
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 
-from mdlshapemodel import surface
-from mdlshapemodel.sphere import orientation
+from mdlshapemodel.prepare import surface
+from mdlshapemodel.prepare.sphere import orientation
 from mdlshapemodel.vtkfilters import LabelMapToClosedSurface, SurfaceToSphereMap
 
 from synthetic import small_mask

@@ -6,22 +6,23 @@ import sys
 import numpy as np
 import pytest
 
-from mdlshapemodel import cli, strategies
+from mdlshapemodel import cli
+from mdlshapemodel.correspondence.strategies import one_at_a_time
 from mdlshapemodel.config import BuildConfig
-from mdlshapemodel.correspond import Kernel
+from mdlshapemodel.correspondence.state import Kernel
 from mdlshapemodel.errors import ConfigError
-from mdlshapemodel.sphere import orientation
-from mdlshapemodel.strategies import (WARPS, OptimisationSettings, Trace, _optimise_warp, optimise,
-                                      warp_counts)
-
-optimise_warp = _optimise_warp
-from mdlshapemodel.warps import ShearTwist, apply_symmetric_theta
+from mdlshapemodel.prepare.sphere import orientation
+from mdlshapemodel.config import WARPS, OptimisationSettings
+from mdlshapemodel.correspondence.strategies import optimise
+from mdlshapemodel.correspondence.strategies.one_at_a_time import optimise_warp, warp_counts
+from mdlshapemodel.correspondence.trace import Trace
+from mdlshapemodel.correspondence.warps import ShearTwist, apply_symmetric_theta
 
 from synthetic import small_state
 
 
 def objectives(state):
-    from mdlshapemodel.mdl import Objective
+    from mdlshapemodel.correspondence.objective import Objective
 
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
     return (Objective("fixed", data_range, delta=0.1),
@@ -73,7 +74,7 @@ def test_all_kinds_together_are_each_drawn_and_the_pose_strategy_works_with_them
         drawn.append(kind)
         return optimise_warp(state, i, j, kind, *args, **kwargs)
 
-    monkeypatch.setattr(strategies, "_optimise_warp", recording)
+    monkeypatch.setattr(one_at_a_time, "optimise_warp", recording)
     state, trace, final = run(WARPS, seed=1, sweeps=3, strategy="one-at-a-time-pose")
     # one draw per example and sweep, every kind among them (each has probability 1/4 per step)
     assert len(drawn) == 3 * state.n_shapes and set(drawn) == set(WARPS), drawn
@@ -94,7 +95,7 @@ def test_a_step_never_raises_f_and_leaves_the_state_consistent(kind):
     state, value, rng, settings = stepping(kind)
     for step in range(3 * state.n_shapes):
         i = step % state.n_shapes
-        new = _optimise_warp(state, i, 0, kind, value, settings, rng)
+        new = optimise_warp(state, i, 0, kind, value, settings, rng)
         assert new <= value
         assert state.value() == pytest.approx(new, rel=1e-9)  # the state holds what was returned
         value = new
@@ -109,7 +110,7 @@ def test_each_kind_reports_its_improvements_down_to_the_committed_value(kind):
     accepted = 0
     for step in range(3 * state.n_shapes):
         heard = []
-        new = _optimise_warp(state, step % state.n_shapes, 0, kind, value, settings, rng,
+        new = optimise_warp(state, step % state.n_shapes, 0, kind, value, settings, rng,
                              improved=heard.append)
         if new < value:
             accepted += 1

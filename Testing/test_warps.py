@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from mdlshapemodel.sampling import icosphere
-from mdlshapemodel.warps import (apply_symmetric_theta, minimum_amplitude, random_unit_vector,
+from mdlshapemodel.correspondence.sampling import icosphere
+from mdlshapemodel.correspondence.warps import (apply_symmetric_theta, minimum_amplitude, random_unit_vector,
                                  random_width, symmetric_theta, symmetric_theta_derivative)
 
 AMPLITUDES = [0.0, 0.1, 0.5, 1.0, 3.0, 10.0]
@@ -176,10 +176,10 @@ def test_random_helpers(rng):
 # ------------------------------------------------------------------------------------------------
 # Appendix transformations (asymmetric theta, shear/twist), global rotation and the common interface
 
-from mdlshapemodel.pose import rotation_from_vector  # noqa: E402
-from mdlshapemodel.sampling import sphere_grid  # noqa: E402
-from mdlshapemodel.sphere import orientation as sphere_orientation, solid_angles  # noqa: E402
-from mdlshapemodel.warps import (WARP_KINDS, AsymmetricTheta, Rotation, ShearTwist,  # noqa: E402
+from mdlshapemodel.correspondence.pose import rotation_from_vector  # noqa: E402
+from mdlshapemodel.correspondence.sampling import sphere_grid  # noqa: E402
+from mdlshapemodel.prepare.sphere import orientation as sphere_orientation, solid_angles  # noqa: E402
+from mdlshapemodel.correspondence.warps import (WARP_KINDS, AsymmetricTheta, Rotation, ShearTwist,  # noqa: E402
                                  SymmetricTheta, apply_asymmetric_theta,
                                  apply_psi_modulated_theta, apply_rotation, apply_shear_twist,
                                  apply_warp, apply_warps, asymmetric_amplitude, asymmetric_theta,

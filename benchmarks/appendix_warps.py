@@ -34,7 +34,7 @@ _prepared = None  # the preprocessed cases, shared with the worker processes (fo
 def initial_state(prepared, points: int):
     """The state and objectives exactly as the build pipeline sets them up."""
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.pipeline import initial_state as pipeline_state
+    from mdlshapemodel.correspondence.state import initial_state as pipeline_state
 
     state, objectives, _, _ = pipeline_state(prepared, BuildConfig(points=points))
     return state, objectives
@@ -42,7 +42,10 @@ def initial_state(prepared, points: int):
 
 def run(job: tuple) -> dict:
     """One optimisation: (warps, seed, sweeps, points) -> final objective, CPU s, evaluations."""
-    from mdlshapemodel.strategies import OptimisationSettings, Trace, optimise, warp_counts
+    from mdlshapemodel.config import OptimisationSettings
+    from mdlshapemodel.correspondence.strategies import optimise
+    from mdlshapemodel.correspondence.strategies.one_at_a_time import warp_counts
+    from mdlshapemodel.correspondence.trace import Trace
 
     warps, seed, sweeps, points = job
     state, objectives = initial_state(_prepared, points)
@@ -68,7 +71,7 @@ def mean_se(values) -> tuple[float, float]:
 def main() -> int:
     global _prepared
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.pipeline import preprocess
+    from mdlshapemodel.prepare import preprocess
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=20)

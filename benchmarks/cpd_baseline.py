@@ -1,4 +1,4 @@
-"""Time the CPD template correspondence (mdlshapemodel.registration) on the shared hippocampi.
+"""Time the CPD template correspondence (mdlshapemodel.correspondence.cpd) on the shared hippocampi.
 
 The template is the 2,562-point equal-spacing correspondence of the first case (its sphere map
 sampled on ``sphere_grid(points)``); it is registered onto each of the next cases. Prints, per case
@@ -46,11 +46,12 @@ def folded_fraction(points, triangles, vertices, faces, located) -> float:
 
 def main() -> int:
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.correspond import PartState
-    from mdlshapemodel.pipeline import (PreparedCase, default_cache_dir, prepare_case_cached,
-                                        surface_distances)
-    from mdlshapemodel.registration import cpd_registration
-    from mdlshapemodel.sampling import sphere_grid
+    from mdlshapemodel.correspondence.state import PartState
+    from mdlshapemodel.prepare import PreparedCase
+    from mdlshapemodel.prepare.cache import default_cache_dir, prepare_case_cached
+    from mdlshapemodel.prepare.surface import point_surface_distances
+    from mdlshapemodel.correspondence.cpd import cpd_registration
+    from mdlshapemodel.correspondence.sampling import sphere_grid
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=8, help="template + (cases - 1) targets")
@@ -105,7 +106,7 @@ def main() -> int:
         for case in cases[1:]:
             result = cpd_registration(template, case.map.vertices, case.map.faces, **options)
             fit = result.fit_distance
-            fidelity = surface_distances(case.map.vertices, case.map.faces, result.points,
+            fidelity = point_surface_distances(case.map.vertices, result.points,
                                          grid_triangles)
             folded = 100 * folded_fraction(result.points, grid_triangles, case.map.vertices,
                                            case.map.faces, result.triangles)

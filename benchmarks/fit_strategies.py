@@ -34,8 +34,8 @@ def main() -> int:
     args = parser.parse_args()
 
     from mdlshapemodel import BuildConfig, build_model
-    from mdlshapemodel.fitting import build_config_of, fit_case, load_model
-    from mdlshapemodel.pipeline import prepare_case
+    from mdlshapemodel.model.fitting import build_config_of, fit_case, load_model
+    from mdlshapemodel.prepare import prepare_case
 
     paths = sorted(Path(args.data).glob("*.nii.gz"))
     if len(paths) < args.cases + args.held_out:

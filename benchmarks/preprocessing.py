@@ -29,7 +29,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 def _measure(path: str, labels: list, mirror: list, method: str):
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.pipeline import prepare_case
+    from mdlshapemodel.prepare import prepare_case
 
     start = time.perf_counter()
     result = prepare_case(path, BuildConfig(labels=labels, mirror=mirror, cache_dir="",
@@ -40,12 +40,12 @@ def _measure(path: str, labels: list, mirror: list, method: str):
         return {"case": result.name, "reason": result.reason, "total_seconds": seconds,
                 "peak_mb": peak_mb}
     return {"case": result.name, "total_seconds": seconds, "peak_mb": peak_mb,
-            "vertices": len(result.map.vertices), "notes": result.notes,
+            "vertices": len(result.map.vertices), "notes": result.record(),
             "sphere_seconds": result.map.quality["seconds"], **result.map.quality}
 
 
 def _baseline_mb():
-    import mdlshapemodel.pipeline  # noqa: F401  (imports VTK, SimpleITK, pymeshlab, lapy)
+    import mdlshapemodel.build  # noqa: F401  (imports VTK, SimpleITK, pymeshlab, lapy)
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 

@@ -45,10 +45,12 @@ def run(strategy: str, paths: list, budget: float, seed: int) -> tuple:
     import numpy as np
 
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.evaluation import evaluate
-    from mdlshapemodel.model import ShapeModel
-    from mdlshapemodel.pipeline import initial_state, optimisation_settings, preprocess
-    from mdlshapemodel.strategies import Trace, optimise
+    from mdlshapemodel.model.evaluation import evaluate
+    from mdlshapemodel.model.shape_model import ShapeModel
+    from mdlshapemodel.correspondence.state import initial_state
+    from mdlshapemodel.correspondence.strategies import optimise
+    from mdlshapemodel.correspondence.trace import Trace
+    from mdlshapemodel.prepare import preprocess
 
     config = BuildConfig(labels=[1, 2], strategy=strategy, max_time=budget, seed=seed, workers=1)
     prepared, _ = preprocess(paths, config)
@@ -68,7 +70,7 @@ def run(strategy: str, paths: list, budget: float, seed: int) -> tuple:
 
     trace = Eq14Trace()
     trace.record(state, integrated(state.covariance()), "start", 0)
-    optimise(state, objectives, optimisation_settings(config), np.random.default_rng(seed), trace)
+    optimise(state, objectives, config.optimisation_settings(), np.random.default_rng(seed), trace)
     state.rebuild()
     aligned = state.aligned_shapes()
     model = ShapeModel.from_shapes(aligned, state.weights)
@@ -121,7 +123,7 @@ def main() -> int:
     output.mkdir(parents=True, exist_ok=True)
 
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.pipeline import preprocess
+    from mdlshapemodel.prepare import preprocess
 
     started = time.perf_counter()
     prepared, rejected = preprocess(paths, BuildConfig(labels=[1, 2], workers=args.jobs))

@@ -4,7 +4,7 @@ For every training-set size n_s (``--sizes``, the paper's 3-D sizes 15, 25, 35 b
 k (``--trials``), draw n_s label maps (labels 1+2) at random from the pool of usable shared
 hippocampi with a seed of its own, and run every strategy (``--strategies``) on that training set
 with an optimiser seed of its own, for a fixed budget (``--budget`` CPU seconds). The convergence trace
-of every run is written to ``OUTPUT/traces/``. Then, with :func:`mdlshapemodel.convergence.scaling_study`,
+of every run is written to ``OUTPUT/traces/``. Then, with :func:`mdlshapemodel.model.convergence.scaling_study`,
 compute alpha of eq. (19) of each strategy at each n_s relative to the reference (III-D4,
 one-at-a-time with pose, at the smallest n_s, as the paper), with 100 bootstrap resamples of trial
 pairs for the standard errors, and the gradient d alpha / d n_s (weighted least squares, +- SE),
@@ -53,7 +53,7 @@ Time
     spacing of 642 samples, and it is close to stalling there (run on to 150 s, those runs
     gained 0-1.6 nats more). Only fast ends early, after its finest level: it has
     converged, and its curve is held at its final value up to the end of the longest run
-    (``hold_last`` of :func:`~mdlshapemodel.convergence.compare_strategies`); the table counts
+    (``hold_last`` of :func:`~mdlshapemodel.model.convergence.compare_strategies`); the table counts
     such runs, and the runs cut by the wall-clock cap, which are held too. Rows are recorded at
     every improvement inside a step (``OptimisationSettings.trace_improvements``) and the mean
     curves are averaged on a log-spaced grid (``--spacing log``), so that alpha can be measured
@@ -151,8 +151,8 @@ def parse_args(argv=None):
 def usable_pool(data: Path, workers: int) -> list:
     """Sorted paths of the pool: the label maps that preprocessing accepts, minus duplicates."""
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.io import case_name
-    from mdlshapemodel.pipeline import preprocess
+    from mdlshapemodel.prepare.io import case_name
+    from mdlshapemodel.prepare import preprocess
 
     paths = [p for p in sorted(data.glob("*.nii.gz")) if case_name(p) not in DUPLICATES]
     prepared, rejected = preprocess(paths, BuildConfig(labels=[1, 2], workers=workers))
@@ -207,8 +207,8 @@ def initial_state(paths, points: int):
     """Correspondence state of the cases as ``mdlshapemodel build`` sets it up (from the cache)
     and the two objectives (eq. 13, eq. 14) with the default Delta settings (Table I)."""
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.pipeline import initial_state as pipeline_state
-    from mdlshapemodel.pipeline import preprocess
+    from mdlshapemodel.correspondence.state import initial_state as pipeline_state
+    from mdlshapemodel.prepare import preprocess
 
     config = BuildConfig(labels=[1, 2], workers=1, points=points)
     prepared, rejected = preprocess(paths, config)
@@ -221,8 +221,11 @@ def initial_state(paths, points: int):
 def run_job(job: dict, budget: float, max_wall: float, objective: str, points: int,
             path: str) -> dict:
     """Optimise one training set with one strategy for ``budget`` CPU seconds; write its trace."""
-    from mdlshapemodel import io
-    from mdlshapemodel.strategies import Cancelled, OptimisationSettings, Trace, optimise
+    from mdlshapemodel.prepare import io
+    from mdlshapemodel.config import OptimisationSettings
+    from mdlshapemodel.correspondence.strategies import optimise
+    from mdlshapemodel.correspondence.trace import Trace
+    from mdlshapemodel.errors import Cancelled
 
     state, fixed, integrated = initial_state(job["cases"], points)
     chosen = integrated if objective == "integrated" else fixed
@@ -289,7 +292,7 @@ def curves(output: Path, jobs: list, time_column: str, phase: str) -> dict:
 
     Times count from the run's first row (the start of the phase): eq. (19) scales time about 0.
     """
-    from mdlshapemodel.convergence import read_trace
+    from mdlshapemodel.model.convergence import read_trace
 
     runs: dict = {}
     for job in jobs:
@@ -303,7 +306,7 @@ def curves(output: Path, jobs: list, time_column: str, phase: str) -> dict:
 
 def analyse(output: Path, plan: dict, n_bootstrap: int, n_grid: int, spacing: str) -> dict:
     """alpha of every strategy and n_s against the reference, and d alpha / d n_s, per time."""
-    from mdlshapemodel.convergence import scaling_study
+    from mdlshapemodel.model.convergence import scaling_study
 
     jobs, args = plan["jobs"], plan["args"]
     results = {}

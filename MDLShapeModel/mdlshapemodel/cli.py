@@ -8,9 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from .config import BASELINES, CORRESPONDENCES, BuildConfig
+from .config import BASELINES, CORRESPONDENCES, STRATEGIES, WARPS, BuildConfig
 from .errors import MDLShapeModelError
-from .strategies import STRATEGIES, WARPS
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -185,7 +184,7 @@ def _summary(result) -> str:
 
 
 def _run_build(inputs, output, config) -> int:
-    from .pipeline import build_model
+    from .build import build_model
 
     result = build_model(inputs, output, config, progress=_Progress())
     print(_summary(result))
@@ -193,7 +192,8 @@ def _run_build(inputs, output, config) -> int:
 
 
 def _run_compare(args) -> int:
-    from .compare import compare_populations, load_population, summary_lines, write_comparison
+    from .report.compare import (compare_populations, load_population, summary_lines,
+                                 write_comparison)
 
     populations = [load_population(path) for path in args.outputs]
     labels = [p.label for p in populations]
@@ -208,7 +208,7 @@ def _run_compare(args) -> int:
 
 
 def _run_fit(args) -> int:
-    from .fitting import fit_cases
+    from .model.fitting import fit_cases
 
     results, rejected = fit_cases(args.model, args.inputs, args.output, args.label,
                                   args.max_time, args.max_sweeps, args.seed,

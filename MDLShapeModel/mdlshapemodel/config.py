@@ -1,20 +1,58 @@
 """One configuration object for every knob, with the paper's defaults (Table I).
 
 The command line, the VTK filters and the Slicer panel all fill a :class:`BuildConfig`; ``validate``
-names the field at fault.
+names the field at fault. This module is a leaf: it imports nothing heavier than the standard
+library, so a panel that only fills a configuration loads neither VTK, numba nor the optimiser.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import asdict, dataclass, field, fields
 
 from .errors import ConfigError
-from .strategies import STRATEGIES, WARP_STRATEGIES, WARPS, OptimisationSettings
 
-
+# Names of the optimisation strategies (section III-D; ``fast`` is ours, ``none`` keeps the initial
+# correspondence). The functions are registered under these names in
+# ``mdlshapemodel.correspondence.strategies``; a test checks that both lists agree.
+STRATEGIES = ("none", "one-at-a-time", "one-at-a-time-pose", "multiresolution", "multiscale",
+              "fast")
+# Warp kinds a one-at-a-time step can draw: the symmetric theta kernel (III-A), the Appendix's
+# asymmetric theta transformation and shear/twist, and a global rotation of the parameter sphere.
+WARPS = ("symmetric", "asymmetric", "shear", "rotation")
+WARP_STRATEGIES = ("one-at-a-time", "one-at-a-time-pose")
 CORRESPONDENCES = ("mdl", "cpd")
 BASELINES = ("none", "cpd")
+SURFACE_METHODS = ("gaussian", "slicer")
+
+
+@dataclass
+class OptimisationSettings:
+    """The optimiser's knobs (filled from the build configuration by
+    :meth:`BuildConfig.optimisation_settings`)."""
+
+    strategy: str = "one-at-a-time-pose"
+    sigma_g: float = 1.0 / 32.0
+    max_amplitude: float = 1.0
+    max_time: float = 600.0
+    fixed_fraction: float = 0.7
+    tolerance: float = 0.001
+    patience: int = 3
+    max_sweeps: int = 10_000
+    pose_evaluations: int = 80
+    # the simplex strategies (III-D1, III-D2)
+    omega_1: float = 0.25          # multiresolution: width of the level-0 kernels (Table I)
+    max_levels: int = 4            # multiresolution: levels per phase (12, 30, 120, 480 kernels)
+    simplex_step: float = 0.25     # initial simplex edge, as a fraction of each kernel's A_max
+    simplex_evaluations: int = 0   # evaluations per simplex run; 0: 200 x its parameters
+    # trace a row whenever a trial inside a step beats the best F so far (not only after each
+    # example / iteration): convergence curves at the resolution of single evaluations
+    trace_improvements: bool = False
+    # the one-at-a-time strategies: warp kinds drawn (uniformly) per step
+    warps: tuple = ("symmetric",)
+    max_angle: float = math.pi / 4  # largest rotation, and peak shear/twist angle, of one step
+    shear_sigma: float = 0.25      # shear/twist band widths c: positive half of N(0, this)
 
 
 @dataclass
@@ -71,8 +109,8 @@ class BuildConfig:
         need(all(isinstance(v, int) and v > 0 for v in self.labels), "labels",
              "label values must be positive integers")
         need(self.voxel_size is None or self.voxel_size > 0, "voxel_size", "must be positive")
-        need(self.surface_method in ("gaussian", "slicer"), "surface_method",
-             "must be 'gaussian' or 'slicer'")
+        need(self.surface_method in SURFACE_METHODS, "surface_method",
+             f"must be one of {', '.join(SURFACE_METHODS)}")
         need(0 <= self.smoothing_factor <= 1, "smoothing_factor", "must be between 0 and 1")
         need(0 <= self.decimation < 1, "decimation", "must be in [0, 1)")
         need(self.smoothing_sigma >= 0, "smoothing_sigma", "must be >= 0")
@@ -106,6 +144,14 @@ class BuildConfig:
              "must be 0 (none) or at least 2")
         need(self.workers >= 1, "workers", "must be at least 1")
         return self
+
+    def optimisation_settings(self) -> OptimisationSettings:
+        """The optimiser's settings of this build."""
+        return OptimisationSettings(strategy=self.strategy, sigma_g=self.sigma_g,
+                                    max_amplitude=self.max_amplitude, max_time=self.max_time,
+                                    fixed_fraction=self.fixed_fraction,
+                                    tolerance=self.tolerance, max_sweeps=self.max_sweeps,
+                                    warps=tuple(self.warps))
 
     def to_dict(self) -> dict:
         data = asdict(self)

@@ -19,3 +19,19 @@ class SphereMapError(MDLShapeModelError):
 
 class ConfigError(MDLShapeModelError):
     """A configuration value is out of range; the message names the field."""
+
+
+class BuildError(MDLShapeModelError):
+    """No model can be built (e.g. fewer than 3 usable cases)."""
+
+
+class InternalError(MDLShapeModelError):
+    """A bug in this package met while working on an input: not a problem of the input.
+
+    The message names the input and says that it is a bug; the traceback goes to the build log.
+    """
+
+
+class Cancelled(Exception):
+    """Raised by (or on behalf of) a progress callback to stop a long operation; the state reached
+    so far is kept and, in a build, its model written."""

@@ -19,9 +19,9 @@ import vtk
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 
-from . import surface
 from .errors import MDLShapeModelError
-from .sphere import MAX_ITERATIONS, sphere_map
+from .prepare import surface
+from .prepare.sphere import MAX_ITERATIONS, sphere_map
 
 
 def _accessors(attribute: str, cast):
@@ -102,8 +102,6 @@ class LabelMapToClosedSurface(_Filter):
     SetTargetVertices, GetTargetVertices = _accessors("_target_vertices", int)
 
     def RequestData(self, request, in_info, out_info):
-        from .pipeline import mask_components
-
         self.executions += 1
         self._error_text = ""
         image = vtk.vtkImageData.GetData(in_info[0])
@@ -123,7 +121,7 @@ class LabelMapToClosedSurface(_Filter):
                 mask = labels != 0
                 if not mask.any():
                     raise MDLShapeModelError("the label map is empty (no non-zero voxels)")
-            mask, _ = mask_components(mask)
+            mask, _ = surface.mask_components(mask)
             direction = vtk.vtkMatrix3x3()
             direction.DeepCopy(image.GetDirectionMatrix())
             matrix = [direction.GetElement(r, c) for r in range(3) for c in range(3)]

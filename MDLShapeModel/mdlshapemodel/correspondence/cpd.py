@@ -66,14 +66,22 @@ multi-threaded OpenBLAS on a busy machine made the same registration 3-6 times s
 
 from __future__ import annotations
 
+import logging
 import time
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
 from pycpd import DeformableRegistration, RigidRegistration
 from pycpd.emregistration import EMRegistration
 
-from .surface import SurfaceDistance
+from ..config import BuildConfig
+from ..parallel import executor_for, map_cases
+from ..prepare.surface import SurfaceDistance
+from ..progress import Progress
+from .state import CorrespondenceState, FixedExample
+
+log = logging.getLogger("mdlshapemodel")
 
 #: Template and target points used to estimate the similarity transform (7 parameters).
 RIGID_POINTS = 1000
@@ -495,3 +503,30 @@ def cpd_case(arguments: tuple) -> CPDResult:
     template, vertices, faces, *rest = arguments
     options = dict(rest[0]) if rest and rest[0] else {}
     return cpd_registration(template, vertices, faces, **options)
+
+
+def cpd_state(state: CorrespondenceState, prepared: list, config: BuildConfig,
+              executor: Executor | None = None, progress: Progress | None = None
+              ) -> tuple[CorrespondenceState, str]:
+    """The CPD template correspondence of the same cases (the peer baseline), and its template.
+
+    The template is the case whose initial correspondence is closest to the initial mean (the
+    medoid); its points are registered onto every other case's surface by coherent point drift
+    and projected onto it (:func:`cpd_correspondence`), on ``executor`` (default: a process
+    pool of ``config.workers``).
+    """
+    aligned = state.aligned_shapes()
+    distances = np.einsum("ikd,k->i", (aligned - aligned.mean(axis=0)) ** 2, state.weights)
+    template = int(np.argmin(distances))
+    points = state.examples[template].raw_points()
+    log.info("CPD baseline: registering the template %s onto %d cases",
+             state.examples[template].name, len(prepared) - 1)
+    others = [i for i in range(len(prepared)) if i != template]
+    with executor_for(config.workers, executor) as pool:
+        registered = map_cases(cpd_correspondence,
+                               [(points, prepared[i].map.vertices, prepared[i].map.faces)
+                                for i in others], pool, progress, "CPD registered")
+    shapes = {template: points, **dict(zip(others, registered))}
+    examples = [FixedExample(case.name, shapes[i]) for i, case in enumerate(prepared)]
+    return (CorrespondenceState(examples, state.grids, scaling=config.scaling),
+            state.examples[template].name)

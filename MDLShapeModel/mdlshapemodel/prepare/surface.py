@@ -13,7 +13,8 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from .errors import SurfaceError
+from ..config import SURFACE_METHODS
+from ..errors import SurfaceError
 
 
 @dataclass
@@ -102,6 +103,16 @@ def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area of every triangle."""
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+def triangle_vertex_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """One third of the summed area of the triangles around each vertex (eq. 17)."""
+    a, b, c = (points[..., triangles[:, k], :] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=-1)
+    result = np.zeros(points.shape[:-1])
+    for k in range(3):
+        np.add.at(result.T, triangles[:, k], area.T / 3.0)
+    return result
 
 
 def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -208,7 +219,6 @@ def polydata_to_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
     return vertices, connectivity.reshape(-1, 3).astype(np.int64)
 
 
-SURFACE_METHODS = ("gaussian", "slicer")
 
 
 def _contour(field: np.ndarray):
@@ -493,3 +503,61 @@ def point_surface_distances(points: np.ndarray, vertices: np.ndarray, faces: np.
     One-off convenience around :class:`SurfaceDistance`; reuse that class for many queries.
     """
     return SurfaceDistance(vertices, faces)(points)
+
+
+def mask_components(mask: np.ndarray, min_fraction: float = 0.1) -> tuple[np.ndarray, str]:
+    """Fill cavities and keep the largest 26-connected component.
+
+    Raises :class:`SurfaceError` when another component has at least ``min_fraction`` of the
+    largest one's voxels (two objects, not one object with debris). Returns the mask and a note.
+    """
+    labels, count = ndimage.label(mask, structure=np.ones((3, 3, 3)))
+    notes = []
+    if count > 1:
+        sizes = np.bincount(labels.ravel())[1:]
+        order = np.argsort(sizes)[::-1]
+        if sizes[order[1]] >= min_fraction * sizes[order[0]]:
+            raise SurfaceError(f"{count} disjoint objects in the mask (voxels: "
+                               f"{', '.join(str(int(s)) for s in sizes[order[:4]])}); expected one")
+        mask = labels == order[0] + 1
+        notes.append(f"dropped {count - 1} small component(s) of {int(sizes[order[1:]].sum())} voxels")
+    filled = ndimage.binary_fill_holes(mask)
+    cavities = int(filled.sum() - mask.sum())
+    if cavities:
+        notes.append(f"filled {cavities} cavity voxels")
+    return filled, "; ".join(notes)
+
+
+def mirror(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reflect x -> -x (left <-> right in RAS/LPS) keeping the normals outwards."""
+    mirrored = vertices.copy()
+    mirrored[:, 0] *= -1.0
+    return mirrored, faces[:, [0, 2, 1]].copy()
+
+
+def clean_mesh(vertices: np.ndarray, faces: np.ndarray, target_vertices: int
+               ) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """Merge duplicate points, drop degenerate faces, make the orientation consistent, check the
+    topology, decimate above ``target_vertices`` and remesh at the mean edge length.
+
+    Returns vertices, faces, the mean edge length before remeshing (the default voxel size of a
+    mesh input) and a repair note ('' when nothing was repaired).
+    """
+    if not np.all(np.isfinite(vertices)):
+        raise SurfaceError("the mesh has non-finite (NaN or infinite) coordinates")
+    vertices, faces = merge_close_vertices(vertices, faces)
+    vertices, faces = drop_degenerate_faces(vertices, faces)
+    topo = topology(vertices, faces)
+    note = ""
+    if topo.is_closed_manifold and topo.n_components == 1 and not topo.consistently_oriented:
+        faces, flipped = make_orientation_consistent(vertices, faces)
+        note = f"made the orientation of {flipped} faces consistent"
+    require_sphere_like(vertices, faces)
+    faces = orient_outwards(vertices, faces)
+    if len(vertices) > target_vertices:
+        vertices, faces = decimate(vertices, faces, target_vertices)
+    edges = edges_of(faces)
+    mean_edge = float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
+    vertices, faces = remesh(vertices, faces, mean_edge)
+    require_sphere_like(vertices, faces)
+    return vertices, faces, mean_edge, note

@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import hotloops
-from .surface import SurfaceDistance
+from ..correspondence import hotloops
+from ..prepare.surface import SurfaceDistance
+from .shape_model import ShapeModel
 
 #: :func:`evaluate` measures surface generalization on at most this many points per side (exact
 #: for the usual 2,562 correspondence points and surfaces of up to 5,000 vertices; larger true
@@ -145,7 +146,7 @@ class _TrueSurface:
     """A true training surface: its locator, vertices and vertex areas (eq. 17 on its mesh)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        from .sampling import triangle_vertex_areas
+        from ..prepare.surface import triangle_vertex_areas
 
         self.vertices = np.asarray(vertices, dtype=np.float64)
         faces = np.asarray(faces, dtype=np.int64)
@@ -504,3 +505,30 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
             as_list[name + "_surface_mm_se"] = result["distance_se"].tolist()
         as_list["specificity_surface_samples"] = int(surface_samples)
     return as_list
+
+
+def evaluate_state(state, config, prepared: list | None = None,
+                   model: ShapeModel | None = None, pool=None, background: bool = True):
+    """Compactness, generalization and specificity of the state's aligned shapes (``model``: the
+    model of those shapes, when already built). With ``prepared`` (the cases, in the state's
+    order) and ``config.surface_samples`` > 0, also measured surface to surface.
+
+    With a ``pool`` (any ``concurrent.futures.Executor``): ``background`` runs the whole evaluation there and
+    returns its future (the state may change meanwhile: it gets copies); otherwise only a part
+    runs there and the result is returned when all is done.
+    """
+    aligned = state.aligned_shapes()
+    if model is None:
+        model = ShapeModel.from_shapes(aligned, state.weights)
+    surfaces = None
+    if prepared is not None and config.surface_samples > 0:
+        surfaces = [(state.to_model_frame(i, case.map.vertices), case.map.faces)
+                    for i, case in enumerate(prepared)]
+    arguments = (aligned, state.weights.copy(), model.variances, config.evaluation_modes,
+                 config.specificity_samples, np.random.default_rng(config.seed),
+                 state.triangles().copy(), surfaces, config.surface_samples)
+    if pool is not None and background:
+        future = pool.submit(evaluate, *arguments)
+        future.retry = (evaluate, arguments)
+        return future
+    return evaluate(*arguments, pool=pool)

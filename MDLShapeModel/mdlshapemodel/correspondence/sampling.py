@@ -226,13 +226,3 @@ def face_neighbours(faces: np.ndarray) -> np.ndarray:
     result[owner[first], corner[first]] = owner[first + 1]
     result[owner[first + 1], corner[first + 1]] = owner[first]
     return result
-
-
-def triangle_vertex_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """One third of the summed area of the triangles around each vertex (eq. 17)."""
-    a, b, c = (points[..., triangles[:, k], :] for k in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=-1)
-    result = np.zeros(points.shape[:-1])
-    for k in range(3):
-        np.add.at(result.T, triangles[:, k], area.T / 3.0)
-    return result

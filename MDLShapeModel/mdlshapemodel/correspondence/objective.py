@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 def mode_statistics(coded: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -328,3 +328,10 @@ class Objective:
             return integrated_description_length(coded, self.delta_min, self.delta_max,
                                                  self.data_range)
         raise ConfigError(f"objective: unknown kind {self.kind!r}")
+
+
+def objectives(config, voxel: float, data_range: float) -> tuple:
+    """(fixed-Delta objective eq. 13, full objective eq. 14) with Delta in units of ``voxel``."""
+    return (Objective("fixed", data_range, delta=config.fixed_delta * voxel),
+            Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
+                      delta_max=config.delta_range[1] * voxel))

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import io
-from .errors import InputError
-from .evaluation import evaluate
-from .model import ShapeModel
+from ..errors import InputError
+from ..model.evaluation import evaluate
+from ..model.shape_model import ShapeModel
+from ..prepare import io
 
 MEASURES = ("compactness", "generalization", "specificity")
 
@@ -121,7 +121,7 @@ ROW_HEADER = ("measure", "M", "model", "value_mm2", "se", "difference", "differe
 
 def write_comparison(result: dict, destination) -> Path:
     """compare.json, compare.csv and a self-contained compare.html with the plot."""
-    from .report import html_page, measure_plot, table
+    from .html import html_page, measure_plot, table
 
     destination = Path(destination)
     destination.mkdir(parents=True, exist_ok=True)

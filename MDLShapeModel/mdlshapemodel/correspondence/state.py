@@ -21,11 +21,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .mdl import Objective
+from ..config import BuildConfig
+from ..prepare.sphere import align_parameterizations, orientation
+from ..prepare.surface import face_areas, triangle_vertex_areas
+from .objective import Objective, objectives
 from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
-from .sampling import SphereLocator, grid_order, triangle_vertex_areas
-from .sphere import orientation
-from .surface import face_areas
+from .sampling import SphereLocator, grid_order, sphere_grid
 from .warps import apply_symmetric_theta
 
 
@@ -381,3 +382,21 @@ class CorrespondenceState:
                 part.positions, part.points, part.hint = positions.copy(), points.copy(), hint.copy()
                 part.kernels = list(kernels)
         self.rebuild()
+
+
+def initial_state(prepared: list, config: BuildConfig):
+    """The initial correspondence of prepared cases and the two objectives.
+
+    The sphere maps are aligned across the population and sampled at ``config.points``; the
+    objectives' Delta follow the mean voxel size. Returns (state, (fixed, integrated), voxel size,
+    data range of the aligned shapes).
+    """
+    maps = align_parameterizations([case.map for case in prepared])
+    grid_points, grid_triangles = sphere_grid(config.points)
+    examples = [Example(case.name, [PartState(m.vertices, m.faces, m.sphere, grid_points,
+                                              grid_triangles)])
+                for case, m in zip(prepared, maps)]
+    state = CorrespondenceState(examples, [(grid_points, grid_triangles)], scaling=config.scaling)
+    voxel = float(np.mean([case.voxel_size for case in prepared]))
+    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
+    return state, objectives(config, voxel, data_range), voxel, data_range

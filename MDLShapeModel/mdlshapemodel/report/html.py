@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import io
-from .errors import MDLShapeModelError
+from ..errors import MDLShapeModelError
+from ..prepare import io
 
 log = logging.getLogger("mdlshapemodel")
 

@@ -86,9 +86,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from . import io
-from .errors import InputError
-from .strategies import Trace
+from ..correspondence.trace import Trace
+from ..errors import InputError
+from ..prepare import io
 
 TIME_COLUMNS = ("wall_seconds", "cpu_seconds", "evaluations")
 KINDS = ("linear", "step")

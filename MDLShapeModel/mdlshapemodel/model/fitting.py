@@ -22,15 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-from . import io
-from .config import BuildConfig
-from .correspond import CorrespondenceState, Example, FixedExample, PartState
-from .errors import InputError, MDLShapeModelError
-from .model import ShapeModel
-from .pose import Pose, align
-from .sphere import SphereMap, align_parameterizations
-from .pipeline import PreparedCase, objectives, optimisation_settings, prepare_case
-from .strategies import Trace, optimise
+from ..config import BuildConfig
+from ..correspondence.objective import objectives
+from ..correspondence.pose import Pose, align
+from ..correspondence.state import CorrespondenceState, Example, FixedExample, PartState
+from ..correspondence.strategies import optimise
+from ..correspondence.trace import Trace
+from ..errors import InputError, MDLShapeModelError
+from ..prepare import PreparedCase, io, prepare_case
+from ..prepare.sphere import SphereMap, align_parameterizations
+from .shape_model import ShapeModel
 
 
 @dataclass
@@ -46,7 +47,7 @@ class FitResult:
     squared_error: np.ndarray       # (n_modes + 1,) sum_k w_k |x_k - x'_k(M)|^2, M = 0..n_modes
     distance_error: np.ndarray      # (n_modes + 1,) sum_k w_k |x_k - x'_k(M)|, mm
     objective: dict = field(default_factory=dict)
-    notes: dict = field(default_factory=dict)
+    notes: dict = field(default_factory=dict)   # the preparation facts (PreparedCase.record)
 
     def reconstruction(self, model: ShapeModel, n_modes: int | None = None,
                        physical: bool = True) -> np.ndarray:
@@ -123,8 +124,8 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
     fixed, integrated = objectives(config, voxel, data_range)
     initial = integrated(state.covariance())
-    settings = optimisation_settings(replace(config, strategy=strategy or config.strategy,
-                                             max_time=max_time, max_sweeps=max_sweeps))
+    settings = replace(config, strategy=strategy or config.strategy, max_time=max_time,
+                       max_sweeps=max_sweeps).optimisation_settings()
     trace = Trace()
     final = optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), trace,
                      progress, active=[len(examples) - 1])
@@ -135,7 +136,7 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     scores = model.project(aligned)
     squared, distance = reconstruction_errors(model, aligned, scores)
     physical = raw
-    if case.notes.get("mirrored"):  # the pose acts on the mirrored copy: reflect points first
+    if case.mirrored:  # the pose acts on the mirrored copy: reflect points first
         reflection = Pose(1.0, np.diag([-1.0, 1.0, 1.0]), np.zeros(3))
         physical = reflection.apply(raw)
         to_model = to_model.compose(reflection)
@@ -144,7 +145,7 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
                                 "evaluations": state.evaluations,
                                 "seconds": time.perf_counter() - started,
                                 "strategy": settings.strategy},
-                     dict(case.notes))
+                     case.record())
 
 
 def reconstruction_errors(model: ShapeModel, aligned: np.ndarray, scores: np.ndarray):

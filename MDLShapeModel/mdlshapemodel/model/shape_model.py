@@ -60,7 +60,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 NATIVE_GROUP = "mdlshapemodel"
 FORMAT_VERSION = 2
@@ -387,3 +387,18 @@ def _statismo_names(info, n_s: int) -> list:
     if n_s and sorted(names) == list(range(n_s)):
         return [names[i] for i in range(n_s)]
     return [f"case_{i}" for i in range(n_s)]
+
+
+def score_outliers(model: ShapeModel, explained: float = 0.95, quantile: float = 0.99) -> dict:
+    """Mahalanobis distance of each training case over the modes that explain ``explained`` of
+    the variance, and whether its square exceeds the ``quantile`` of chi-square with that many
+    degrees of freedom."""
+    from scipy.stats import chi2
+
+    cumulative = np.cumsum(model.variances) / max(model.variances.sum(), 1e-300)
+    modes = int(min(np.searchsorted(cumulative, explained) + 1, model.n_modes))
+    squared = np.sum(model.scores[:, :modes] ** 2 / model.variances[:modes], axis=1)
+    threshold = float(np.sqrt(chi2.ppf(quantile, modes)))
+    distance = np.sqrt(squared)
+    return {"modes": modes, "threshold": threshold, "distance": distance,
+            "outlier": distance > threshold}

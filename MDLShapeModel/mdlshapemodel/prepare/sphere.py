@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import SphereMapError
+from ..errors import SphereMapError
 from .surface import face_areas
 
 
@@ -238,7 +238,7 @@ class _DistortionEnergy:
     def __call__(self, x: np.ndarray, gradient: bool = True):
         x = np.ascontiguousarray(x, dtype=np.float64)
         grad = np.empty_like(x) if gradient else self._no_gradient
-        from .distortion_kernels import distortion_energy
+        from .sphere_kernels import distortion_energy
 
         energy = distortion_energy(x, self.faces, self.cot, self.area, self.area_weight, grad)
         if not np.isfinite(energy):
@@ -257,7 +257,7 @@ def minimise_distortion(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndar
     when the energy fell by less than ``tolerance`` (relative) per iteration over the last 20,
     when no step lowers the energy, or after ``max_iterations``.
     """
-    from .distortion_kernels import lbfgs
+    from .sphere_kernels import lbfgs
 
     energy_of = _DistortionEnergy(vertices, faces, area_weight)
     x = np.array(sphere, dtype=np.float64, order="C")
@@ -313,7 +313,7 @@ def first_order_map(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray
     Returns the centre c (3,) and the 3x3 matrix M; M maps directions of the parameter sphere to
     directions of the shape (the first-order ellipsoid of SPHARM).
     """
-    from .sampling import triangle_vertex_areas
+    from .surface import triangle_vertex_areas
 
     weights = triangle_vertex_areas(vertices, faces)
     design = np.hstack([np.ones((len(sphere), 1)), sphere])
@@ -324,7 +324,7 @@ def first_order_map(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray
 
 def principal_axes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Area-weighted centroid and principal axes (columns, descending variance, det +1)."""
-    from .sampling import triangle_vertex_areas
+    from .surface import triangle_vertex_areas
 
     weights = triangle_vertex_areas(vertices, faces)
     weights = weights / weights.sum()

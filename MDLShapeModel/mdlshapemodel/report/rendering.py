@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import MDLShapeModelError
-from .io import captured_vtk_messages
-from .surface import arrays_to_polydata, signed_volume
+from ..errors import MDLShapeModelError
+from ..prepare.io import captured_vtk_messages
+from ..prepare.surface import arrays_to_polydata, signed_volume
 
 BACKGROUND = (1.0, 1.0, 1.0)
 DISPLACEMENT_COLORMAP = "coolwarm"      # diverging (Moreland), light grey at 0

@@ -18,11 +18,11 @@ from dataclasses import replace
 import numpy as np
 from scipy.optimize import Bounds, minimize
 
-from . import hotloops
-from .correspond import CorrespondenceState
-from .fields import FieldBasis
-from .pose import Pose, weighted_centroid
-from .strategies import stalled, start_phase
+from .. import hotloops
+from ..state import CorrespondenceState
+from ..fields import FieldBasis
+from ..pose import Pose, weighted_centroid
+from .base import stalled, start_phase
 
 
 def gradient_at(state: CorrespondenceState, shapes: np.ndarray) -> tuple[float, np.ndarray]:
@@ -58,7 +58,7 @@ def rotations_and_jacobians(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return rotations, jacobians
 
 
-class _Block:
+class _FieldBlock:
     """One part of one active example in a round: its field basis and where its coefficients
     (in x) and points (``row`` of the active examples, ``rows`` of the shape vector) are."""
 
@@ -88,7 +88,7 @@ class _Round:
             for j, part in enumerate(state.examples[i].parts):
                 basis = FieldBasis.icosphere_level(level, part.positions, support)
                 size = 3 * basis.n_centres
-                self.blocks.append(_Block(row, part, state.part_slices[j], basis,
+                self.blocks.append(_FieldBlock(row, part, state.part_slices[j], basis,
                                           slice(offset, offset + size)))
                 offset += size
                 limits.append(np.full(size, basis.max_coefficient() / np.sqrt(3.0)))
@@ -193,7 +193,7 @@ class _Round:
         self.state.rebuild()
 
 
-class _OutOfTime(Exception):
+class _RoundOutOfTime(Exception):
     pass
 
 
@@ -210,7 +210,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
 
     def fun(x):
         if "best" in cache and time.perf_counter() > deadline:
-            raise _OutOfTime
+            raise _RoundOutOfTime
         trial = round_.trial(x)
         value, shape_gradient = gradient_at(state, trial["shapes"])
         state.evaluations += 1
@@ -222,7 +222,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
     try:
         minimize(fun, np.zeros(round_.size), jac=True, method="L-BFGS-B", bounds=round_.bounds,
                  options={"maxiter": max_iterations, "ftol": 1e-9, "gtol": 1e-10})
-    except _OutOfTime:
+    except _RoundOutOfTime:
         pass
     value, x, trial = cache["best"]
     # the bounds make every field a homeomorphism of the sphere; a grid triangle can still turn
@@ -243,7 +243,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
     return float(state.value())
 
 
-def optimise_fast(state: CorrespondenceState, objective, settings, trace,
+def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
                   phase: str, deadline: float, progress=None, checkpoint=None, active=None,
                   levels=(0, 1, 2, 3), rounds_per_level: int = 3) -> float:
     """Coarse-to-fine rounds until the gain stalls (``settings.tolerance``), ``deadline`` or

@@ -1,0 +1,188 @@
+"""build_model(): files -> prepared cases -> correspondence -> optimisation -> model -> outputs.
+
+Orchestration only: each stage is a room of its own (:mod:`.prepare`, :mod:`.correspondence`,
+:mod:`.model`, :mod:`.outputs`, :mod:`.report`). Per-case work runs on one executor for the whole
+build (a process pool of ``config.workers`` by default, or the caller's). A case that cannot be
+used is *rejected* with a one-line reason (logged, and listed in ``rejected.csv``) and the build
+goes on; a bug stops the build with a message that names the case (traceback in build.log). The
+optimisation state is checkpointed after every sweep or round, and an interrupted optimisation
+(Ctrl-C, a cancelling progress callback, or the time limit) still writes a model of the state
+reached.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+import traceback
+from concurrent.futures import BrokenExecutor, CancelledError, Executor, Future
+from pathlib import Path
+
+import numpy as np
+
+from .config import BuildConfig
+from .correspondence.cpd import cpd_state
+from .correspondence.state import initial_state
+from .correspondence.strategies import optimise
+from .correspondence.trace import RESTORED_INITIAL, Trace
+from .errors import BuildError, Cancelled, InternalError
+from .model.evaluation import evaluate_state
+from .outputs import BuildResult, save_checkpoint, write_outputs
+from .parallel import executor_for
+from .prepare import io, preprocess
+from .progress import Progress
+
+log = logging.getLogger("mdlshapemodel")
+
+__all__ = ["BuildError", "BuildResult", "build_model"]
+
+
+def build_model(inputs, output, config: BuildConfig | None = None,
+                progress: Progress | None = None, executor: Executor | None = None
+                ) -> BuildResult:
+    """Build an optimised statistical shape model from label maps or meshes.
+
+    Parameters
+    ----------
+    inputs : list of paths
+        Label-map or mesh files, or folders of them.
+    output : path
+        Output folder (created); see the README for its layout.
+    config : BuildConfig, optional
+        Every setting; the defaults are the paper's (Table I) and ours (the ``fast`` strategy).
+    progress : callable(fraction or None, message), optional
+        See :mod:`mdlshapemodel.progress`. Cancelling (returning False or raising
+        :class:`Cancelled`) during the optimisation stops it early; the model of the state reached
+        is still written.
+    executor : concurrent.futures.Executor, optional
+        Runs the per-case work (preprocessing, CPD registrations, evaluations); default: a pool
+        of ``config.workers`` processes (none when 1). The caller's executor is not shut down.
+
+    Returns
+    -------
+    BuildResult
+
+    Examples
+    --------
+    ::
+
+        from mdlshapemodel import BuildConfig, build_model
+        result = build_model(["labels/"], "out", BuildConfig(labels=[1, 2]))
+        result.final_objective, result.metrics["generalization"]
+    """
+    config = (config or BuildConfig()).validate()
+    output = Path(output)
+    (output / "correspondence").mkdir(parents=True, exist_ok=True)
+    (output / "aligned").mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(output / "build.log", mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    log.addHandler(handler)
+    if log.level == logging.NOTSET or log.level > logging.INFO:
+        log.setLevel(logging.INFO)
+    try:
+        with executor_for(config.workers, executor) as pool:
+            return _build(inputs, output, config, progress, pool)
+    except InternalError as error:
+        # the user sees the one-line message; the traceback (a worker's too) goes to build.log
+        handler.stream.write("".join(traceback.format_exception(error)))
+        raise
+    finally:
+        log.removeHandler(handler)
+        handler.close()
+
+
+def _build(inputs, output: Path, config: BuildConfig, progress, pool) -> BuildResult:
+    started = time.perf_counter()
+    (output / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    paths = io.find_inputs(inputs)
+    if not paths:
+        raise BuildError("no input files found (label maps: .nii/.nii.gz/.nrrd/.mha...; meshes: "
+                         ".vtk/.vtp/.stl/.ply/.obj)")
+    log.info("preprocessing %d inputs with %d workers", len(paths), config.workers)
+    prepared, rejected = preprocess(paths, config, pool, progress)
+    names = [case.name for case in prepared]
+    duplicates = {n for n in names if names.count(n) > 1}
+    if duplicates:
+        raise BuildError(f"several inputs have the same case name: {', '.join(sorted(duplicates))}")
+    for rejection in rejected:
+        log.warning("rejected %s: %s", rejection.path, rejection.reason)
+    io.write_csv(output / "rejected.csv", ("case", "file", "reason"),
+                 [(r.name, r.path, r.reason) for r in rejected])
+    if rejected and config.strict:
+        raise BuildError(f"{len(rejected)} input(s) rejected and --strict is set")
+    if len(prepared) < 3:
+        raise BuildError(f"only {len(prepared)} usable case(s); at least 3 are needed")
+    log.info("prepared %d cases in %.1f s", len(prepared), time.perf_counter() - started)
+
+    state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)
+    initial = integrated(state.covariance())
+    log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
+             state.n_shapes, state.n_points, voxel, data_range)
+
+    pending = {}   # baseline -> (objective and notes, its evaluation: running or done)
+    if "none" in config.baselines and (config.strategy != "none"
+                                       or config.correspondence == "cpd"):
+        log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
+        pending["none"] = ({"objective": initial},
+                           evaluate_state(state, config, prepared, pool=pool))
+    cpd = None
+    if config.correspondence == "cpd" or "cpd" in config.baselines:
+        cpd, template = cpd_state(state, prepared, config, pool, progress)
+        if config.correspondence != "cpd":
+            log.info("evaluating the CPD template correspondence as a baseline")
+            pending["cpd"] = ({"objective": integrated(cpd.covariance()),
+                               "template": template},
+                              evaluate_state(cpd, config, prepared, pool=pool))
+
+    trace = Trace()
+    interrupted = False
+    if config.correspondence == "cpd":
+        state = cpd
+        state.objective = integrated
+        initial = final = state.value()
+        trace.record(state, final, "integrated", 0)
+        log.info("CPD correspondence (template %s): objective %.4f", template, final)
+    else:
+        settings = config.optimisation_settings()
+
+        def checkpoint():
+            save_checkpoint(output / "checkpoint.npz", state)
+
+        try:
+            optimise(state, (fixed, integrated), settings, np.random.default_rng(config.seed),
+                     trace, progress, checkpoint)
+        except (KeyboardInterrupt, Cancelled):
+            interrupted = True
+            log.warning("optimisation interrupted: writing the model of the state reached")
+        if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
+            log.warning("the optimisation did not lower the objective within --max-time "
+                        "(%.0f s): keeping the initial correspondence", config.max_time)
+        state.rebuild()  # also makes the state consistent after an interruption mid-step
+        final = integrated(state.covariance())
+        log.info("final objective %.4f after %.1f s, %d evaluations", final,
+                 trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
+        checkpoint()
+    io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
+    baselines = {name: {**notes, **_outcome(evaluation)}
+                 for name, (notes, evaluation) in pending.items()}
+
+    result = write_outputs(output, state, prepared, rejected, config, initial, final,
+                           voxel, data_range, interrupted, baselines, pool)
+    log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
+    return result
+
+
+def _outcome(evaluation):
+    """The result of an evaluation that may have run on the executor; one interrupted there
+    (Ctrl-C reaches the worker processes too), cancelled, or lost with a broken pool is done again
+    here. Any other exception is a bug and propagates."""
+    if not isinstance(evaluation, Future):
+        return evaluation
+    try:
+        return evaluation.result()
+    except (KeyboardInterrupt, CancelledError, BrokenExecutor) as error:
+        log.warning("a baseline evaluation on the executor did not finish (%s); evaluating here",
+                    type(error).__name__)
+        function, arguments = evaluation.retry
+        return function(*arguments)

@@ -1,0 +1,112 @@
+"""The files of a build's output folder: model.h5, mean.vtp, correspondence/, aligned/, the
+tables, metrics.json, the checkpoint, and (through :mod:`.report`) report.html."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import BuildConfig
+from .correspondence.state import CorrespondenceState
+from .model.evaluation import evaluate_state
+from .model.shape_model import ShapeModel, score_outliers
+from .prepare import io
+from .prepare.surface import mirror, point_surface_distances
+from .report.html import write_report
+
+
+@dataclass
+class BuildResult:
+    """What a build produced and measured."""
+
+    output: Path
+    model: ShapeModel
+    metrics: dict
+    initial_objective: float
+    final_objective: float
+    cases: list
+    rejected: list
+    interrupted: bool = False
+
+
+def save_checkpoint(path: Path, state: CorrespondenceState):
+    """Sample positions on the sphere and poses of every example (enough to rebuild the state)."""
+    arrays = {}
+    for i, example in enumerate(state.examples):
+        for j, part in enumerate(example.parts):
+            arrays[f"positions_{i}_{j}"] = part.positions
+        arrays[f"pose_{i}"] = np.concatenate([[example.pose.scale], example.pose.rotation.ravel(),
+                                              example.pose.translation])
+    arrays["names"] = np.array([e.name for e in state.examples])
+    temporary = path.with_suffix(".tmp.npz")
+    np.savez(temporary, **arrays)
+    temporary.replace(path)
+
+
+def write_outputs(output: Path, state: CorrespondenceState, prepared: list, rejected: list,
+                  config: BuildConfig, initial: float, final: float, voxel: float,
+                  data_range: float, interrupted: bool, baselines: dict | None = None,
+                  pool=None) -> BuildResult:
+    """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html."""
+    triangles = state.triangles()
+    aligned = state.aligned_shapes()
+    raw = state.raw_shapes()
+    names = [e.name for e in state.examples]
+    method = "cpd" if config.correspondence == "cpd" else config.strategy
+    model = ShapeModel.from_shapes(aligned, state.weights, names=names, triangles=triangles,
+                                   part_sizes=[len(p) for p, _ in state.grids],
+                                   objective=final, strategy=method, voxel_size_mm=voxel,
+                                   data_range_mm=data_range,
+                                   config=json.dumps(config.to_dict()))
+    model.parameters = np.concatenate([points for points, _ in state.grids])
+    model.save(output / "model.h5")
+    io.write_polydata(output / "mean.vtp", model.mean, triangles)
+    outlier = score_outliers(model)
+    cases = []
+    for i, case in enumerate(prepared):
+        # correspondence meshes overlay their input: mirrored cases are reflected back
+        physical = mirror(raw[i], triangles)[0] if case.mirrored else raw[i]
+        io.write_polydata(output / "correspondence" / f"{case.name}.vtp", physical, triangles)
+        io.write_polydata(output / "aligned" / f"{case.name}.vtp", aligned[i], triangles)
+        # from each input-surface vertex to the corresponded mesh
+        distances = point_surface_distances(case.map.vertices, raw[i], triangles)
+        quality = prepared[i].map.quality
+        cases.append({"case": case.name, "file": case.path,
+                      "surface_vertices": int(len(case.map.vertices)),
+                      "mean_distance_mm": float(distances.mean()),
+                      "max_distance_mm": float(distances.max()),
+                      "mean_distance_voxels": float(distances.mean() / case.voxel_size),
+                      "sphere_flips": quality["flipped_triangles"],
+                      "sphere_mean_abs_log_area": quality["mean_abs_log_area_ratio"],
+                      "sphere_p95_abs_log_area": quality["p95_abs_log_area_ratio"],
+                      "sphere_seconds": quality["seconds"],
+                      "kernels": int(sum(len(p.kernels) for p in state.examples[i].parts)),
+                      "mahalanobis": float(outlier["distance"][i]),
+                      "score_outlier": bool(outlier["outlier"][i]),
+                      "smoothing_sigma": ("" if case.smoothing_sigma is None
+                                          else case.smoothing_sigma),
+                      "repair": case.repair, "mirrored": case.mirrored})
+    n_modes = model.n_modes
+    io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(n_modes)],
+                 [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
+    io.write_csv(output / "cases.csv", list(cases[0].keys()),
+                 [[c.get(k, "") for k in cases[0]] for c in cases])
+    quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
+    metrics = {"objective": {"initial": initial, "final": final,
+                             "units": "nats (eq. 14, Delta averaged over delta_range)"},
+               "strategy": method, "n_shapes": state.n_shapes, "n_points": state.n_points,
+               "n_rejected": len(rejected), "voxel_size_mm": voxel, "data_range_mm": data_range,
+               "interrupted": interrupted, "evaluations": state.evaluations,
+               "variances": model.variances.tolist(), **quality,
+               "score_outliers": {"modes": outlier["modes"], "threshold": outlier["threshold"],
+                                  "cases": [n for n, o in zip(names, outlier["outlier"]) if o]},
+               "surface_distance_mm": {
+                   "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
+                   "max": float(np.max([c["max_distance_mm"] for c in cases]))},
+               "baselines": baselines or {}}
+    (output / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_report(output, metrics, cases, rejected, model, aligned, names)
+    return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted)

@@ -1,0 +1,48 @@
+"""Many inputs -> prepared cases, on an executor, through the cache; bugs named, not hidden."""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import Executor
+
+from ..config import BuildConfig
+from ..errors import InternalError
+from ..parallel import executor_for, map_cases
+from ..progress import Progress
+from .cache import cache_dir_of, prepare_case_cached
+from .case import PreparedCase, Rejection
+
+log = logging.getLogger("mdlshapemodel")
+
+
+def _prepare_or_bug(path: str, config: BuildConfig, cache_dir: str | None):
+    """:func:`cache.prepare_case_cached`, with a bug turned into an :class:`InternalError` that
+    names the input (run in worker processes too; the traceback travels with the error)."""
+    try:
+        return prepare_case_cached(path, config, cache_dir)
+    except Exception as error:
+        raise InternalError(f"{path}: a bug in mdlshapemodel while preparing this input "
+                            f"({type(error).__name__}: {error}); the traceback is in the log; "
+                            "please report it") from error
+
+
+def preprocess(paths, config: BuildConfig, executor: Executor | None = None,
+               progress: Progress | None = None) -> tuple[list, list]:
+    """Prepare every case on ``executor`` (default: a process pool of ``config.workers``, none
+    when 1; see :mod:`mdlshapemodel.parallel`), reusing cached results (:mod:`.cache`).
+
+    Returns (prepared, rejected), each in input order. Raises :class:`InternalError` (naming the
+    case) when preparing an input meets a bug rather than a problem of the input.
+    """
+    paths = [str(p) for p in paths]
+    cache_dir = cache_dir_of(config)
+    with executor_for(config.workers, executor) as pool:
+        results = map_cases(_prepare_or_bug, [(p, config, cache_dir) for p in paths], pool,
+                            progress, "prepared")
+    reused = sum(hit for _, hit in results)
+    if reused:
+        log.info("reused %d of %d preprocessed cases from the cache %s", reused, len(paths),
+                 cache_dir)
+    prepared = [r for r, _ in results if isinstance(r, PreparedCase)]
+    rejected = [r for r, _ in results if isinstance(r, Rejection)]
+    return prepared, rejected

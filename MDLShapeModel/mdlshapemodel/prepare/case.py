@@ -1,0 +1,139 @@
+"""One input file -> one prepared case: its closed genus-0 surface and bijective sphere map.
+
+:func:`prepare_case` is the single code path from a file to a prepared case, used by ``build``,
+``fit`` and (for the steps after reading) the VTK filters. An input that cannot be used is
+*rejected* with a one-line reason; only problems of the input are rejections (our own input errors,
+I/O errors, running out of memory). Any other exception is a bug in this package: it propagates,
+and :func:`~mdlshapemodel.prepare.batch.preprocess` stops with an
+:class:`~mdlshapemodel.errors.InternalError` that names the case.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import BuildConfig
+from ..errors import InputError, MDLShapeModelError
+from . import io, surface
+from .sphere import SphereMap, sphere_map
+
+@dataclass
+class PreparedCase:
+    """One input after preprocessing: its surface and bijective sphere map, and what was done."""
+
+    name: str
+    path: str
+    map: SphereMap
+    voxel_size: float                     # mm per voxel (mesh inputs: see BuildConfig.voxel_size)
+    mirrored: bool = False                # reflected x -> -x (BuildConfig.mirror)
+    repair: str = ""                      # what was repaired in the input ('' when nothing)
+    smoothing_sigma: float | None = None  # label maps: the blur that gave a genus-0 surface
+
+    def record(self) -> dict:
+        """The preprocessing facts as a JSON-ready dict (cache entries, cases.csv)."""
+        return {"mirrored": self.mirrored, "repair": self.repair,
+                "smoothing_sigma": self.smoothing_sigma}
+
+
+@dataclass
+class Rejection:
+    """An input that cannot be used, and why (one line)."""
+
+    name: str
+    path: str
+    reason: str
+
+
+def is_mirrored(path, config: BuildConfig) -> bool:
+    """Whether the file name matches one of the ``mirror`` patterns (shell-style, e.g. ``*_r*``)."""
+    name = Path(path).name
+    return any(fnmatch.fnmatch(name, pattern) for pattern in config.mirror)
+
+
+def surface_of_mask(mask: np.ndarray, spacing, origin, direction, config: BuildConfig
+                    ) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """The closed genus-0 surface of a binary mask with the build's settings: cavities filled and
+    debris dropped (:func:`surface.mask_components`), then :func:`surface.mask_to_surface`.
+    Returns vertices, faces (physical coordinates), the blur that was needed and a repair note."""
+    mask, note = surface.mask_components(mask)
+    vertices, faces, info = surface.mask_to_surface(
+        mask, spacing, origin, direction, smoothing_sigma=config.smoothing_sigma,
+        max_smoothing_sigma=config.max_smoothing_sigma, edge_length=config.edge_length,
+        target_vertices=config.target_vertices, method=config.surface_method,
+        smoothing_factor=config.smoothing_factor, decimation=config.decimation)
+    return vertices, faces, info["smoothing_sigma"], note
+
+
+def prepare_surface(vertices: np.ndarray, faces: np.ndarray, name: str, path: str,
+                    voxel_size: float | None, config: BuildConfig, mirrored: bool = False,
+                    repair: str = "", smoothing_sigma: float | None = None) -> PreparedCase:
+    """A prepared case from a closed genus-0 surface: mirrored if asked, then sphere-mapped.
+
+    ``voxel_size`` None: the surface is a mesh input, cleaned and remeshed first
+    (:func:`surface.clean_mesh`) and given ``config.voxel_size`` or its mean edge length.
+    """
+    if voxel_size is None:
+        vertices, faces, mean_edge, note = surface.clean_mesh(vertices, faces,
+                                                              config.target_vertices)
+        repair = "; ".join(filter(None, [repair, note]))
+        voxel_size = config.voxel_size or mean_edge
+    if mirrored:
+        vertices, faces = surface.mirror(vertices, faces)
+    return PreparedCase(name, str(path), sphere_map(vertices, faces), float(voxel_size),
+                        mirrored=mirrored, repair=repair, smoothing_sigma=smoothing_sigma)
+
+
+def _prepare(path, config: BuildConfig) -> PreparedCase:
+    name = io.case_name(path)
+    mirrored = is_mirrored(path, config)
+    if io.is_image(path):
+        label_map = io.read_label_map(path, config.labels)
+        vertices, faces, sigma, note = surface_of_mask(
+            label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
+        return prepare_surface(vertices, faces, name, path, label_map.voxel_size, config,
+                               mirrored, note, sigma)
+    if io.is_mesh(path):
+        vertices, faces = io.read_mesh(path)
+        return prepare_surface(vertices, faces, name, path, None, config, mirrored)
+    raise InputError("not a label map or mesh (unknown file type)")
+
+
+def prepare_case(path, config: BuildConfig) -> PreparedCase | Rejection:
+    """Read one input and make its closed genus-0 surface and bijective sphere map.
+
+    Parameters
+    ----------
+    path : str or Path
+        A label map (the union of ``config.labels``) or a closed triangle mesh.
+    config : BuildConfig
+        The preprocessing settings (surface, remeshing, mirroring).
+
+    Returns
+    -------
+    PreparedCase or Rejection
+        A rejection when the input cannot be used (its reason in one line). A bug in this package
+        raises instead.
+
+    Examples
+    --------
+    >>> from mdlshapemodel import BuildConfig
+    >>> from mdlshapemodel.prepare import prepare_case
+    >>> prepare_case("missing.nii.gz", BuildConfig()).reason
+    'no such file'
+    """
+    from threadpoolctl import threadpool_limits
+
+    try:
+        # one BLAS thread: the same arithmetic in a worker and in the main process
+        with threadpool_limits(limits=1, user_api="blas"):
+            return _prepare(path, config)
+    except MDLShapeModelError as error:
+        return Rejection(io.case_name(path), str(path), str(error))
+    except OSError as error:
+        return Rejection(io.case_name(path), str(path), f"could not be read ({error})")
+    except MemoryError:
+        return Rejection(io.case_name(path), str(path), "not enough memory to prepare it")

@@ -1,0 +1,154 @@
+"""The house: data flows one way between the rooms, no import circles, light leaves.
+
+Stages, upstream first: the leaves (config, errors, progress, parallel, version), prepare,
+correspondence, model, report, the build (build, outputs), the faces (cli, vtkfilters, demo, and
+the package front door, whose heavy names load on first use). A module may import
+its own stage and the stages upstream of it, never one downstream.
+"""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import mdlshapemodel
+
+PACKAGE = Path(mdlshapemodel.__file__).parent
+STAGES = [
+    {"config", "errors", "progress", "parallel", "version"},
+    {"prepare"},
+    {"correspondence"},
+    {"model"},
+    {"report"},
+    {"build", "outputs"},
+    {"cli", "vtkfilters", "demo", "__init__"},
+]
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE).with_suffix("").parts)
+    return ".".join(parts)
+
+
+def stage_of(module: str) -> int:
+    room = module.split(".")[0]
+    for k, rooms in enumerate(STAGES):
+        if room in rooms:
+            return k
+    raise AssertionError(f"module {module} is in no stage of the architecture")
+
+
+def package_imports(path: Path) -> set:
+    """The package modules a file imports (relative imports resolved; every import, also those
+    inside functions)."""
+    module = module_name(path)
+    package = module.split(".")[:-1] if path.name != "__init__.py" else module.split(".")[:-1]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level == 0:
+                if node.module and node.module.startswith("mdlshapemodel."):
+                    base = node.module.split(".")[1:]
+                else:
+                    continue
+            else:
+                base = package[:len(package) - (node.level - 1)] + (
+                    node.module.split(".") if node.module else [])
+            for alias in node.names:
+                candidate = base + [alias.name]
+                if resolve(candidate):
+                    found.add(".".join(candidate))
+                elif base:
+                    found.add(".".join(base))
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("mdlshapemodel."):
+                    found.add(alias.name.split(".", 1)[1])
+    return {name for name in found if resolve(name.split("."))}
+
+
+def resolve(parts) -> Path | None:
+    target = PACKAGE.joinpath(*parts)
+    if target.with_suffix(".py").is_file():
+        return target.with_suffix(".py")
+    if (target / "__init__.py").is_file():
+        return target / "__init__.py"
+    return None
+
+
+def graph() -> dict:
+    modules = {}
+    for path in PACKAGE.rglob("*.py"):
+        name = module_name(path)
+        modules[name] = {m if not m.endswith("__init__") else m for m in package_imports(path)}
+    return modules
+
+
+def test_no_room_imports_one_downstream_of_it():
+    upward = []
+    for module, imports in graph().items():
+        for imported in imports:
+            if stage_of(imported) > stage_of(module):
+                upward.append(f"{module} -> {imported}")
+    assert not upward, "imports against the data flow: " + ", ".join(sorted(upward))
+
+
+def test_the_package_has_no_import_circle():
+    edges = graph()
+
+    def canonical(name):
+        return name[: -len(".__init__")] if name.endswith(".__init__") else name
+
+    adjacency = {canonical(m): {canonical(i) for i in imports} - {canonical(m)}
+                 for m, imports in edges.items()}
+    # a package's __init__ importing its own submodules is not a circle
+    for module in adjacency:
+        adjacency[module] = {i for i in adjacency[module] if not i.startswith(module + ".")}
+    state = {}
+    path = []
+
+    def visit(node):
+        state[node] = "open"
+        path.append(node)
+        for nxt in sorted(adjacency.get(node, ())):
+            if state.get(nxt) == "open":
+                cycle = path[path.index(nxt):] + [nxt]
+                raise AssertionError("import circle: " + " -> ".join(cycle))
+            if nxt not in state:
+                visit(nxt)
+        path.pop()
+        state[node] = "done"
+
+    for node in sorted(adjacency):
+        if node not in state:
+            visit(node)
+
+
+def test_the_checker_sees_an_upward_import(tmp_path):
+    # the parser must resolve relative imports, or the two tests above would pass vacuously
+    imports = package_imports(PACKAGE / "build.py")
+    assert "outputs" in imports and "prepare" in imports
+    assert any(name.startswith("correspondence.strategies") for name in imports)
+    assert stage_of("cli") > stage_of("build") > stage_of("model.evaluation")
+
+
+@pytest.mark.parametrize("module", ["mdlshapemodel.config", "mdlshapemodel.progress",
+                                    "mdlshapemodel.errors"])
+def test_leaves_import_neither_numba_nor_vtk_nor_the_optimiser(module):
+    code = (f"import sys, {module}, mdlshapemodel; mdlshapemodel.BuildConfig().validate(); "
+            "heavy = [m for m in ('numba', 'vtk', 'vtkmodules', 'scipy', 'SimpleITK', "
+            "'mdlshapemodel.correspondence', 'mdlshapemodel.prepare') if m in sys.modules]; "
+            "print(','.join(heavy))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            check=True)
+    assert result.stdout.strip() == ""
+
+
+def test_every_strategy_name_has_a_registered_phase():
+    from mdlshapemodel.config import STRATEGIES
+    from mdlshapemodel.correspondence.strategies import KEEP_INITIAL, PHASES
+
+    assert set(PHASES) | {KEEP_INITIAL} == set(STRATEGIES)
+    assert KEEP_INITIAL not in PHASES
