@@ -92,3 +92,33 @@ def test_a_missing_label_map_is_a_rejection_that_says_so(tmp_path):
     assert "no such file" in result.reason
     write_image(missing, small_mask(0.0))
     assert not hasattr(prepare_case(str(missing), BuildConfig(cache_dir="")), "reason")
+
+
+def test_a_bug_while_preparing_stops_the_build_naming_the_case(tmp_path, monkeypatch):
+    """Only problems of the input are rejections: an exception of our own code (here a
+    ZeroDivisionError planted in the sphere map) stops the build with a message that says it is a
+    bug and names the case, and the traceback goes to build.log."""
+    import pytest
+
+    from mdlshapemodel import BuildConfig, InternalError, build_model
+    from mdlshapemodel.prepare import case as preparation, prepare_case
+
+    folder = tmp_path / "inputs"
+    folder.mkdir()
+    for k, position in enumerate((-0.5, 0.0, 0.5)):
+        write_image(folder / f"case_{k}.nii.gz", small_mask(position))
+
+    def broken_sphere_map(vertices, faces):
+        raise ZeroDivisionError("planted")
+
+    monkeypatch.setattr(preparation, "sphere_map", broken_sphere_map)
+    with pytest.raises(ZeroDivisionError):
+        prepare_case(str(folder / "case_0.nii.gz"), BuildConfig(cache_dir=""))
+    output = tmp_path / "out"
+    with pytest.raises(InternalError) as raised:
+        build_model([folder], output, BuildConfig(workers=1, cache_dir="", points=42))
+    message = str(raised.value)
+    assert "case_0.nii.gz" in message and "bug" in message and "ZeroDivisionError" in message
+    log = (output / "build.log").read_text()
+    assert "Traceback" in log and "broken_sphere_map" in log
+    assert not (output / "model.h5").exists()

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mdlshapemodel.correspondence.state import Kernel
+from mdlshapemodel.correspondence.warps import SymmetricTheta
 from mdlshapemodel.correspondence.objective import Objective
 from mdlshapemodel.correspondence.pose import Pose, centroid_size, rotation_from_vector
 from mdlshapemodel.correspondence.sampling import sphere_grid
@@ -54,8 +54,8 @@ def test_commits_keep_incremental_gram_exact(state):
         example = state.examples[i]
         if step % 2:
             part = example.parts[0]
-            kernel = Kernel(part.random_surface_parameter(rng), 0.3, 0.2)
-            part.commit(kernel, *part.propose_kernel(kernel))
+            kernel = SymmetricTheta(part.random_surface_parameter(rng), 0.2, 0.3)
+            part.commit(kernel, *part.propose(kernel, check_folds=False))
         else:
             example.pose = Pose(1.05, rotation_from_vector([0.05, -0.02, 0.03]),
                                 np.array([0.5, 0.0, -0.2])).compose(example.pose)
@@ -84,8 +84,8 @@ def test_kernels_keep_sample_grid_a_homeomorphism(state):
         for _ in range(30):
             centre, omega = part.random_surface_parameter(rng), float(rng.uniform(0.005, 2.0))
             amplitude = part.feasible_amplitude(centre, omega, float(rng.uniform(0.0, 1.0)))
-            kernel = Kernel(centre, omega, amplitude)
-            part.commit(kernel, *part.propose_kernel(kernel))
+            kernel = SymmetricTheta(centre, amplitude, omega)
+            part.commit(kernel, *part.propose(kernel, check_folds=False))
         assert np.all(orientation(part.positions, triangles) > 0)
         np.testing.assert_allclose(np.linalg.norm(part.positions, axis=1), 1.0, atol=1e-12)
 

@@ -5,7 +5,8 @@ import time
 import numpy as np
 import pytest
 
-from mdlshapemodel.correspondence.state import CorrespondenceState, Example, Kernel, PartState
+from mdlshapemodel.correspondence.state import CorrespondenceState, Example, PartState
+from mdlshapemodel.correspondence.warps import SymmetricTheta
 from mdlshapemodel.correspondence.objective import Objective
 from mdlshapemodel.correspondence.sampling import icosphere, sphere_grid
 from mdlshapemodel.prepare.sphere import orientation
@@ -44,7 +45,7 @@ def test_amplitude_and_pose_steps_never_increase_the_objective():
     rng = np.random.default_rng(2)
     for i in range(state.n_shapes):
         part = state.examples[i].parts[0]
-        kernel = Kernel(part.random_surface_parameter(rng), 0.2, 0.0)
+        kernel = SymmetricTheta(part.random_surface_parameter(rng), 0.0, 0.2)
         new = _optimise_amplitude(state, i, 0, kernel, value, 1.0)
         assert new <= value
         assert state.value() == pytest.approx(new, rel=1e-9)  # the state holds what was returned
@@ -63,7 +64,7 @@ def test_optimisation_lowers_the_objective_and_keeps_grids_unfolded():
     _, triangles = sphere_grid(162)
     for example in state.examples:
         assert np.all(orientation(example.parts[0].positions, triangles) > 0)
-    assert any(len(e.parts[0].kernels) for e in state.examples)
+    assert any(len(e.parts[0].warps) for e in state.examples)
     # trace columns are monotone in time and evaluations
     columns = np.array([row[:3] for row in trace.rows])
     assert np.all(np.diff(columns, axis=0) >= 0)
@@ -109,15 +110,15 @@ def test_snapshot_and_restore_return_the_exact_state():
     rng = np.random.default_rng(4)
     for i in range(state.n_shapes):
         part = state.examples[i].parts[0]
-        kernel = Kernel(part.random_surface_parameter(rng), 0.5, 0.3)
-        part.commit(kernel, *part.propose_kernel(kernel))
+        kernel = SymmetricTheta(part.random_surface_parameter(rng), 0.3, 0.5)
+        part.commit(kernel, *part.propose(kernel, check_folds=False))
         state.commit_shape(i)
     assert state.value() != pytest.approx(before, rel=1e-9)
     state.restore(saved)
     assert state.value() == pytest.approx(before, rel=1e-9)
     for example, expected in zip(state.examples, positions):
         assert np.array_equal(example.parts[0].positions, expected)
-        assert example.parts[0].kernels == []
+        assert example.parts[0].warps == []
 
 
 def test_a_budget_too_short_to_help_keeps_the_initial_correspondence():
@@ -202,8 +203,8 @@ def test_population_value_matches_the_incremental_covariance():
     state.objective = integrated
     assert _population_value(state, state.shapes.copy()) == pytest.approx(state.value(), rel=1e-9)
     part = state.examples[2].parts[0]
-    positions, points, _ = part.propose_kernel(Kernel(part.random_surface_parameter(
-        np.random.default_rng(0)), 0.2, 0.3))
+    positions, points, _ = part.propose(SymmetricTheta(part.random_surface_parameter(
+        np.random.default_rng(0)), 0.3, 0.2), check_folds=False)
     shape = state.examples[2].pose.apply(points)
     shapes = state.shapes.copy()
     shapes[2] = shape
@@ -233,7 +234,7 @@ def test_simplex_strategies_lower_the_objective_and_keep_grids_unfolded(strategy
     assert state.value() == pytest.approx(final, rel=1e-9)
     assert_unfolded(state)
     assert_steps_never_increase(trace)
-    assert sum(len(p.kernels) for e in state.examples for p in e.parts) > 0
+    assert sum(len(p.warps) for e in state.examples for p in e.parts) > 0
     columns = np.array([row[:3] for row in trace.rows])
     assert np.all(np.diff(columns, axis=0) >= 0)
     assert time.perf_counter() - started < 20.0
@@ -246,7 +247,7 @@ def test_multiresolution_places_kernels_of_the_level_widths_on_the_lattice():
                                      simplex_evaluations=400)
     levels = multiresolution_levels(0.25, 2)
     lattice = {(omega, tuple(np.round(c, 12))) for omega, centres in levels for c in centres}
-    kernels = [k for e in state.examples for p in e.parts for k in p.kernels]
+    kernels = [k for e in state.examples for p in e.parts for k in p.warps]
     assert kernels
     for kernel in kernels:
         assert (kernel.omega, tuple(np.round(kernel.center, 12))) in lattice
@@ -281,8 +282,8 @@ def test_simplex_strategies_respect_active(strategy):
         if i in (1, 3):
             continue
         assert np.array_equal(example.parts[0].positions, grid)
-        assert example.parts[0].kernels == []
-    assert any(state.examples[i].parts[0].kernels for i in (1, 3))
+        assert example.parts[0].warps == []
+    assert any(state.examples[i].parts[0].warps for i in (1, 3))
 
 
 @pytest.mark.parametrize("strategy", ["multiresolution", "multiscale"])
@@ -296,7 +297,7 @@ def test_simplex_strategies_optimise_every_part_of_multi_part_examples(strategy)
     assert_unfolded(state)
     assert_steps_never_increase(trace)
     for j in range(2):
-        assert any(e.parts[j].kernels for e in state.examples)
+        assert any(e.parts[j].warps for e in state.examples)
     assert state.value() == pytest.approx(final, rel=1e-9)
 
 
@@ -373,10 +374,10 @@ def test_fast_round_gradient_matches_finite_differences():
     x = rng.uniform(-0.3, 0.3, round_.size) * np.where(np.isfinite(upper), upper, 0.05)
 
     def value(x):
-        return gradient_at(state, round_.trial(x)["shapes"])[0]
+        return gradient_at(state, round_.trial(x).shapes)[0]
 
     trial = round_.trial(x)
-    analytic = round_.gradient(trial, gradient_at(state, trial["shapes"])[1])
+    analytic = round_.gradient(trial, gradient_at(state, trial.shapes)[1])
     # some field coefficients and every pose parameter (these act on the moved samples)
     chosen = np.concatenate([rng.choice(round_.size, 10, replace=False), round_.pose_index.ravel()])
     for k in chosen:

@@ -9,7 +9,6 @@ import pytest
 from mdlshapemodel import cli
 from mdlshapemodel.correspondence.strategies import one_at_a_time
 from mdlshapemodel.config import BuildConfig
-from mdlshapemodel.correspondence.state import Kernel
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.prepare.sphere import orientation
 from mdlshapemodel.config import WARPS, OptimisationSettings
@@ -35,8 +34,6 @@ def unfolded(state) -> bool:
 
 
 def replay(warp, positions):
-    if isinstance(warp, Kernel):
-        return apply_symmetric_theta(positions, warp.center, warp.amplitude, warp.omega)
     return warp.apply(positions)
 
 
@@ -62,7 +59,7 @@ def test_each_kind_alone_is_used_lowers_the_objective_and_never_folds(kind):
     grid, _ = state.grids[0]
     for example in state.examples:
         positions = grid
-        for warp in example.parts[0].kernels:
+        for warp in example.parts[0].warps:
             positions = replay(warp, positions)
         np.testing.assert_allclose(positions, example.parts[0].positions, atol=1e-12)
 
@@ -132,7 +129,7 @@ def test_warps_that_would_fold_the_grid_are_never_accepted():
     width = 0.01
     folding = ShearTwist(axis, np.pi / 2 * 2 * np.pi * np.tanh(width / 2), width, theta0)
     assert part.folds(folding.apply(part.positions))
-    assert part.propose_warp(folding) is None
+    assert part.propose(folding) is None
     # with such bands and large angles allowed, every accepted shear still leaves the grid unfolded
     state, _, _ = run(("shear",), seed=2, sweeps=2, shear_sigma=0.005, max_angle=3.0)
     assert unfolded(state)

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from mdlshapemodel.correspondence.fields import FieldBasis
 from mdlshapemodel.correspondence.sampling import icosphere
 from mdlshapemodel.correspondence.warps import (apply_symmetric_theta, minimum_amplitude, random_unit_vector,
                                  random_width, symmetric_theta, symmetric_theta_derivative)
@@ -545,7 +546,12 @@ def test_apply_warp_by_name_matches_the_functions(rng):
         apply_shear_twist(points, centre, -2.0, 0.3, 1.0), atol=1e-15)
     np.testing.assert_allclose(apply_warp(points, "rotation", {"rotation_vector": [0.1, 0.2, 0.3]}),
                                apply_rotation(points, [0.1, 0.2, 0.3]), atol=0)
-    assert set(WARP_KINDS) == {"symmetric_theta", "asymmetric_theta", "shear_twist", "rotation"}
+    coefficients = rng.normal(size=(12, 3)) * 1e-3
+    np.testing.assert_allclose(
+        apply_warp(points, "field", {"level": 0, "support": 2.0, "coefficients": coefficients}),
+        FieldBasis.icosphere_level(0, points, 2.0).apply(coefficients), atol=0)
+    assert set(WARP_KINDS) == {"symmetric_theta", "asymmetric_theta", "shear_twist", "rotation",
+                               "field"}
     with pytest.raises(ValueError):
         apply_warp(points, "bogus", {})
     # parameters() rebuild the same warp

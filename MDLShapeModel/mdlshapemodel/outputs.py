@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import BuildConfig
-from .correspondence.state import CorrespondenceState
+from .correspondence.state import CorrespondenceState, state_record
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel, score_outliers
 from .prepare import io
@@ -33,17 +33,28 @@ class BuildResult:
 
 
 def save_checkpoint(path: Path, state: CorrespondenceState):
-    """Sample positions on the sphere and poses of every example (enough to rebuild the state)."""
-    arrays = {}
-    for i, example in enumerate(state.examples):
-        for j, part in enumerate(example.parts):
-            arrays[f"positions_{i}_{j}"] = part.positions
-        arrays[f"pose_{i}"] = np.concatenate([[example.pose.scale], example.pose.rotation.ravel(),
-                                              example.pose.translation])
-    arrays["names"] = np.array([e.name for e in state.examples])
-    temporary = path.with_suffix(".tmp.npz")
-    np.savez(temporary, **arrays)
+    """The state's correspondence (:func:`~.correspondence.state.state_record`: every accepted
+    warp, every pose, the area weights), written to a temporary name and renamed into place."""
+    temporary = path.with_name(path.name + ".tmp.npz")
+    np.savez(temporary, **state_record(state))
     temporary.replace(path)
+
+
+def load_checkpoint(path: Path) -> dict:
+    """The arrays of a checkpoint written by :func:`save_checkpoint`, for
+    :func:`~.correspondence.state.replay_record`."""
+    with np.load(path, allow_pickle=False) as data:
+        return {name: data[name] for name in data.files}
+
+
+def warp_summary(example) -> str:
+    """What an example's reparameterization is made of, e.g. ``field:9`` or
+    ``symmetric_theta:12 rotation:3`` ('' for the initial correspondence)."""
+    counts = {}
+    for part in getattr(example, "parts", []):
+        for kind, count in part.warp_counts().items():
+            counts[kind] = counts.get(kind, 0) + count
+    return " ".join(f"{kind}:{count}" for kind, count in counts.items() if count)
 
 
 def write_outputs(output: Path, state: CorrespondenceState, prepared: list, rejected: list,
@@ -83,7 +94,9 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
                       "sphere_mean_abs_log_area": quality["mean_abs_log_area_ratio"],
                       "sphere_p95_abs_log_area": quality["p95_abs_log_area_ratio"],
                       "sphere_seconds": quality["seconds"],
-                      "kernels": int(sum(len(p.kernels) for p in state.examples[i].parts)),
+                      "warps": int(sum(len(p.warps) for p in getattr(state.examples[i], "parts",
+                                                                      []))),
+                      "warp_kinds": warp_summary(state.examples[i]),
                       "mahalanobis": float(outlier["distance"][i]),
                       "score_outlier": bool(outlier["outlier"][i]),
                       "smoothing_sigma": ("" if case.smoothing_sigma is None

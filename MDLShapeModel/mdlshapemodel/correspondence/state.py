@@ -27,16 +27,7 @@ from ..prepare.surface import face_areas, triangle_vertex_areas
 from .objective import Objective, objectives
 from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from .sampling import SphereLocator, grid_order, sphere_grid
-from .warps import apply_symmetric_theta
-
-
-@dataclass
-class Kernel:
-    """One accepted symmetric theta transformation."""
-
-    center: np.ndarray
-    omega: float
-    amplitude: float
+from .warps import WARP_KINDS, Warp, apply_symmetric_theta, apply_warps
 
 
 class PartState:
@@ -52,8 +43,10 @@ class PartState:
         self.locator = SphereLocator(self.sphere, self.faces)
         areas = face_areas(self.vertices, self.faces)
         self.cumulative_area = np.cumsum(areas) / areas.sum()
-        self.kernels: list[Kernel] = []
-        self.positions = np.asarray(grid, dtype=np.float64).copy()
+        #: every accepted warp, in order: ``apply_warps(grid, warps)`` gives ``positions``
+        self.warps: list[Warp] = []
+        self.grid = np.asarray(grid, dtype=np.float64)
+        self.positions = self.grid.copy()
         self.grid_triangles = np.asarray(grid_triangles, dtype=np.int64)
         self.hint = None
         self.points, self.hint = self.sample(self.positions)
@@ -106,31 +99,32 @@ class PartState:
                 low = middle
         return low
 
-    def propose_kernel(self, kernel: Kernel):
-        """Positions, points and hint after applying one more kernel (not committed)."""
-        positions = apply_symmetric_theta(self.positions, kernel.center, kernel.amplitude,
-                                          kernel.omega)
-        points, hint = self.sample(positions)
-        return positions, points, hint
-
-    def propose_warp(self, warp):
-        """Positions, points and hint after applying any warp of :mod:`warps` (``warp.apply``) to
-        the current positions (not committed); None when it flips a grid triangle."""
+    def propose(self, warp: Warp, check_folds: bool = True):
+        """Positions, points and hint after applying one more warp to the current positions (not
+        committed); None when ``check_folds`` and it flips a grid triangle."""
         positions = warp.apply(self.positions)
-        if self.folds(positions):
+        if check_folds and self.folds(positions):
             return None
         points, hint = self.sample(positions)
         return positions, points, hint
 
-    def commit(self, kernel, positions, points, hint):
-        """Accept a warp: ``kernel`` is a :class:`Kernel` or a warp of :mod:`warps` (kept in
-        ``kernels``, the list of accepted warps, in order)."""
-        self.kernels.append(kernel)
+    def commit(self, warp: Warp, positions, points, hint):
+        """Accept a warp (recorded in ``warps``) and the positions, points and hint it gave."""
+        self.warps.append(warp)
         self.positions, self.points, self.hint = positions, points, hint
 
-    def set_positions(self, positions: np.ndarray):
-        self.positions = np.asarray(positions, dtype=np.float64).copy()
+    def replay(self, warps: list):
+        """Set the reparameterization to ``warps`` applied to the grid (a recorded state)."""
+        self.warps = list(warps)
+        self.positions = apply_warps(self.grid, self.warps)
         self.points, self.hint = self.sample(self.positions)
+
+    def warp_counts(self) -> dict:
+        """How many accepted warps of each kind (a key of ``warps.WARP_KINDS``) make its map."""
+        counts = dict.fromkeys(WARP_KINDS, 0)
+        for warp in self.warps:
+            counts[warp.kind] += 1
+        return counts
 
 
 @dataclass
@@ -228,6 +222,10 @@ class CorrespondenceState:
                           np.zeros(3)).compose(Pose(1.0, np.eye(3), -centre))
         for example in self.examples:
             example.pose = correction.compose(example.pose)
+        self.refresh()
+
+    def refresh(self):
+        """X, its reference and K from the current poses, samples and weights (no correction)."""
         self.shapes = np.stack([e.pose.apply(e.raw_points()) for e in self.examples])
         self.reference = self.shapes.mean(axis=0)
         self.sum_shapes = self.shapes.sum(axis=0)
@@ -370,17 +368,17 @@ class CorrespondenceState:
 
     def snapshot(self) -> list:
         """Everything the optimisation changes: per example its pose and per part its positions,
-        located faces and kernels."""
+        located faces and warps."""
         return [(e.pose.copy(), [(p.positions.copy(), p.points.copy(), p.hint.copy(),
-                                  list(p.kernels)) for p in e.parts]) for e in self.examples]
+                                  list(p.warps)) for p in e.parts]) for e in self.examples]
 
     def restore(self, snapshot: list):
         """Return to a :meth:`snapshot`."""
         for example, (pose, parts) in zip(self.examples, snapshot):
             example.pose = pose.copy()
-            for part, (positions, points, hint, kernels) in zip(example.parts, parts):
+            for part, (positions, points, hint, warps) in zip(example.parts, parts):
                 part.positions, part.points, part.hint = positions.copy(), points.copy(), hint.copy()
-                part.kernels = list(kernels)
+                part.warps = list(warps)
         self.rebuild()
 
 
@@ -400,3 +398,49 @@ def initial_state(prepared: list, config: BuildConfig):
     voxel = float(np.mean([case.voxel_size for case in prepared]))
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
     return state, objectives(config, voxel, data_range), voxel, data_range
+
+
+def state_record(state: CorrespondenceState) -> dict:
+    """The state's correspondence as named arrays: per example its pose, per part its accepted
+    warps (kinds, parameter vectors) and the sample positions they give. With the same prepared
+    cases and settings, :func:`replay_record` rebuilds the state from it bit for bit."""
+    arrays = {"names": np.array([e.name for e in state.examples]), "weights": state.weights,
+              "target_size": np.array(state.target_size)}
+    for i, example in enumerate(state.examples):
+        arrays[f"pose_{i}"] = np.concatenate([[example.pose.scale],
+                                              example.pose.rotation.ravel(),
+                                              example.pose.translation])
+        for j, part in enumerate(getattr(example, "parts", [])):
+            vectors = [warp.to_vector() for warp in part.warps]
+            arrays[f"positions_{i}_{j}"] = part.positions
+            arrays[f"warp_kinds_{i}_{j}"] = np.array([w.kind for w in part.warps], dtype=str)
+            arrays[f"warp_sizes_{i}_{j}"] = np.array([len(v) for v in vectors], dtype=np.int64)
+            arrays[f"warp_values_{i}_{j}"] = (np.concatenate(vectors) if vectors
+                                              else np.zeros(0))
+    return arrays
+
+
+def replay_record(state: CorrespondenceState, arrays) -> None:
+    """Give ``state`` (the initial state of the same cases and settings) the correspondence of a
+    :func:`state_record`: every part's warps re-applied to the grid, every pose set. Raises
+    ValueError when the record is of other cases or other sample points."""
+    names = [str(n) for n in arrays["names"]]
+    if names != [e.name for e in state.examples]:
+        raise ValueError("the record is of other cases")
+    for i, example in enumerate(state.examples):
+        pose = np.asarray(arrays[f"pose_{i}"], dtype=np.float64)
+        example.pose = Pose(float(pose[0]), pose[1:10].reshape(3, 3), pose[10:13])
+        for j, part in enumerate(getattr(example, "parts", [])):
+            kinds = [str(k) for k in arrays[f"warp_kinds_{i}_{j}"]]
+            ends = np.cumsum(arrays[f"warp_sizes_{i}_{j}"])
+            values = np.asarray(arrays[f"warp_values_{i}_{j}"], dtype=np.float64)
+            warps = [WARP_KINDS[kind].from_vector(values[end - size:end])
+                     for kind, end, size in zip(kinds, ends, arrays[f"warp_sizes_{i}_{j}"])]
+            if len(arrays[f"positions_{i}_{j}"]) != len(part.grid):
+                raise ValueError("the record has another number of sample points")
+            part.replay(warps)
+    if len(arrays["weights"]) != state.n_points:
+        raise ValueError("the record has another number of sample points")
+    state.weights = np.asarray(arrays["weights"], dtype=np.float64).copy()
+    state.target_size = float(arrays["target_size"])
+    state.refresh()

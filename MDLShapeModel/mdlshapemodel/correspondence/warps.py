@@ -18,10 +18,14 @@ Polar coordinates about P: theta = angle from P; psi = angle around P, measured 
 from the projection of a ``reference_direction`` (psi = 0), counter-clockwise seen from outside at P
 (right-handed about P).
 
-For uniform use by a strategy every kind also exists as a small dataclass (:class:`SymmetricTheta`,
-:class:`AsymmetricTheta`, :class:`ShearTwist`, :class:`Rotation`) with ``apply(points)``,
-``inverse(points)``, ``parameters()``, ``bounds()`` and ``is_valid()``; :func:`apply_warp` applies a
-kind by name, :func:`apply_warps` / :func:`invert_warps` a sequence. Random draws in the style of
+Every kind is one small dataclass, the ONE representation of a warp that every strategy uses and
+the optimisation state records (``PartState.warps``): :class:`SymmetricTheta` (the paper's kernel),
+:class:`AsymmetricTheta`, :class:`ShearTwist`, :class:`Rotation`, and :class:`FieldWarp` (a smooth
+tangent displacement field, :mod:`.fields`, one per round of the ``fast`` strategy). Each has
+``apply(points)``, ``parameters()``, ``bounds()``, ``is_valid()``, ``to_vector()`` and
+``from_vector()`` (an exact round trip through one float array, for checkpoints), and all but the
+field ``inverse(points)``; :func:`apply_warp` applies a kind by name, :func:`apply_warps` /
+:func:`invert_warps` a sequence. Random draws in the style of
 :func:`random_width` are :func:`random_symmetric_theta`, :func:`random_asymmetric_theta`,
 :func:`random_shear_twist` and :func:`random_rotation`.
 """
@@ -33,6 +37,7 @@ from typing import Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 
+from .fields import FieldBasis
 from .pose import rotation_from_vector
 
 
@@ -96,10 +101,14 @@ def random_width(rng: np.random.Generator, sigma_g: float) -> float:
 
 
 def _unit(vector, name: str) -> np.ndarray:
+    """The unit vector along ``vector``; a vector that is unit to rounding (within 4 ulp) is kept
+    as given, so that a warp built from a drawn point applies exactly as that point."""
     v = np.asarray(vector, dtype=np.float64).reshape(3)
     norm = float(np.linalg.norm(v))
     if not np.isfinite(norm) or norm < 1e-12:
         raise ValueError(f"{name} must be a finite, non-zero 3-vector, got {v}")
+    if abs(norm - 1.0) <= 4.0 * np.finfo(np.float64).eps:
+        return v.copy()
     return v / norm
 
 
@@ -371,17 +380,46 @@ def apply_rotation(points: np.ndarray, rotation_vector: np.ndarray,
 # A common interface
 
 
-class _Warp:
+class Warp:
     """Shared behaviour of the warp dataclasses.
 
     ``apply(points)`` and ``inverse(points)`` map arrays (n, 3) of unit vectors; ``parameters()`` is
     a dict of the constructor arguments (``make_warp(kind, parameters)`` rebuilds the warp);
     ``bounds()`` maps each bounded scalar parameter to the open interval (low, high) that keeps the
     map a homeomorphism given the other parameters; ``is_valid()`` checks them (and finiteness).
-    Vector parameters are checked (and unit-normalised) on construction.
+    Vector parameters are checked (and unit-normalised) on construction. ``to_vector()`` and
+    ``from_vector()`` store and restore the parameters exactly (no normalisation on the way back).
     """
 
     kind: ClassVar[str]
+    #: the length of each parameter in :meth:`to_vector` (scalars 1; -1: the rest, at most once)
+    _sizes: ClassVar[dict] = {}
+
+    def to_vector(self) -> np.ndarray:
+        """Every parameter, in field order, as one float64 array."""
+        return np.concatenate([np.ravel(np.asarray(getattr(self, f.name), dtype=np.float64))
+                               for f in fields(self)])
+
+    @classmethod
+    def from_vector(cls, vector: np.ndarray) -> "Warp":
+        """The warp whose :meth:`to_vector` is ``vector``, bit for bit."""
+        vector = np.asarray(vector, dtype=np.float64)
+        names = [f.name for f in fields(cls)]
+        sizes = [cls._sizes.get(name, 1) for name in names]
+        if -1 in sizes:
+            sizes[sizes.index(-1)] = len(vector) - (sum(sizes) + 1)
+        if min(sizes) < 0 or sum(sizes) != len(vector):
+            raise ValueError(f"{cls.__name__}: a parameter vector of {len(vector)} values does "
+                             f"not fit its fields {names}")
+        values, start = {}, 0
+        for name, size in zip(names, sizes):
+            chunk = vector[start:start + size]
+            values[name] = chunk.copy() if cls._sizes.get(name, 1) != 1 else float(chunk[0])
+            start += size
+        warp = object.__new__(cls)          # the stored values exactly: no __post_init__
+        for name, value in values.items():
+            object.__setattr__(warp, name, value)
+        return warp
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         raise NotImplementedError
@@ -403,13 +441,14 @@ class _Warp:
 
 
 @dataclass(frozen=True, eq=False)
-class SymmetricTheta(_Warp):
+class SymmetricTheta(Warp):
     """The symmetric theta map (eq. 10) about ``center``, see :func:`apply_symmetric_theta`."""
 
     center: np.ndarray
     amplitude: float
     omega: float
     kind: ClassVar[str] = "symmetric_theta"
+    _sizes: ClassVar[dict] = {"center": 3}
 
     def __post_init__(self):
         object.__setattr__(self, "center", _unit(self.center, "center"))
@@ -429,7 +468,7 @@ class SymmetricTheta(_Warp):
 
 
 @dataclass(frozen=True, eq=False)
-class AsymmetricTheta(_Warp):
+class AsymmetricTheta(Warp):
     """Asymmetric theta transformation (Appendix eq. 27-29): see :func:`apply_asymmetric_theta`."""
 
     center: np.ndarray
@@ -439,6 +478,7 @@ class AsymmetricTheta(_Warp):
     psi0: float
     b: float
     kind: ClassVar[str] = "asymmetric_theta"
+    _sizes: ClassVar[dict] = {"center": 3, "reference_direction": 3}
 
     def __post_init__(self):
         p, e1, _ = polar_frame(self.center, self.reference_direction)
@@ -459,7 +499,7 @@ class AsymmetricTheta(_Warp):
 
 
 @dataclass(frozen=True, eq=False)
-class ShearTwist(_Warp):
+class ShearTwist(Warp):
     """Shear/twist about the axis through ``center`` (eq. 30-31): see :func:`apply_shear_twist`.
 
     Every amplitude and theta0 is allowed; only the width must be positive.
@@ -470,6 +510,7 @@ class ShearTwist(_Warp):
     width: float
     theta0: float
     kind: ClassVar[str] = "shear_twist"
+    _sizes: ClassVar[dict] = {"center": 3}
 
     def __post_init__(self):
         object.__setattr__(self, "center", _unit(self.center, "center"))
@@ -486,11 +527,12 @@ class ShearTwist(_Warp):
 
 
 @dataclass(frozen=True, eq=False)
-class Rotation(_Warp):
+class Rotation(Warp):
     """Global rotation of the parameter sphere by ``rotation_vector`` (axis * angle); no bounds."""
 
     rotation_vector: np.ndarray
     kind: ClassVar[str] = "rotation"
+    _sizes: ClassVar[dict] = {"rotation_vector": 3}
 
     def __post_init__(self):
         vector = np.asarray(self.rotation_vector, dtype=np.float64).reshape(3).copy()
@@ -503,8 +545,42 @@ class Rotation(_Warp):
         return apply_rotation(points, self.rotation_vector, inverse=True)
 
 
+@dataclass(frozen=True, eq=False)
+class FieldWarp(Warp):
+    """A smooth tangent displacement field (:mod:`.fields`): bumps at the vertices of the
+    ``level``-times subdivided icosahedron, each reaching ``support`` mean edge lengths, with
+    vector coefficients (n_c, 3); u -> (u + v(u)) / |u + v(u)|. A homeomorphism while the
+    coefficients stay within :meth:`FieldBasis.max_coefficient` (the fast strategy's bounds). Its
+    inverse has no closed form: ``inverse`` is not available."""
+
+    level: int
+    support: float
+    coefficients: np.ndarray
+    kind: ClassVar[str] = "field"
+    _sizes: ClassVar[dict] = {"coefficients": -1}
+
+    def __post_init__(self):
+        object.__setattr__(self, "level", int(self.level))
+        object.__setattr__(self, "coefficients",
+                           np.asarray(self.coefficients, dtype=np.float64).reshape(-1, 3))
+
+    @classmethod
+    def from_vector(cls, vector):
+        warp = super().from_vector(vector)
+        object.__setattr__(warp, "level", int(warp.level))
+        object.__setattr__(warp, "coefficients", warp.coefficients.reshape(-1, 3))
+        return warp
+
+    def apply(self, points):
+        basis = FieldBasis.icosphere_level(self.level, points, self.support)
+        return basis.apply(self.coefficients)
+
+    def inverse(self, points):
+        raise NotImplementedError("a displacement field has no closed-form inverse")
+
+
 WARP_KINDS: dict[str, type] = {cls.kind: cls for cls in
-                               (SymmetricTheta, AsymmetricTheta, ShearTwist, Rotation)}
+                               (SymmetricTheta, AsymmetricTheta, ShearTwist, Rotation, FieldWarp)}
 
 
 def make_warp(kind: str, parameters: Mapping):

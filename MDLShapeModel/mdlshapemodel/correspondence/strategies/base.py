@@ -4,6 +4,7 @@ and recording the trace."""
 from __future__ import annotations
 
 from ...config import OptimisationSettings
+from ...progress import report
 from ..objective import Objective
 from ..state import CorrespondenceState
 from ..trace import Trace
@@ -56,8 +57,7 @@ def end_of_iteration(state: CorrespondenceState, trace: Trace, phase: str, sweep
     """Record the step's F, report it, then :func:`rebuilt` (as between the sweeps of
     one_at_a_time); returns F after the rebuild."""
     trace.record(state, value, phase, sweep)
-    if progress is not None:
-        progress(None, f"{label}: F = {value:.3f}")
+    report(progress, None, f"{label}: F = {value:.3f}")
     return rebuilt(state, trace, phase, sweep, checkpoint)
 
 

@@ -13,15 +13,17 @@ a finer level (coarse to fine), until the objective stops falling or the time is
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import Bounds, minimize
 
+from ...progress import report
 from .. import hotloops
 from ..state import CorrespondenceState
 from ..fields import FieldBasis
 from ..pose import Pose, weighted_centroid
+from ..warps import FieldWarp
 from .base import stalled, start_phase
 
 
@@ -68,6 +70,21 @@ class _FieldBlock:
         self.hint = part.hint           # the faces last located: the next walk starts there
 
 
+@dataclass
+class _Trial:
+    """What the parameters x of a round give (see :meth:`_Round.trial`)."""
+
+    x: np.ndarray             # the parameters
+    located: list             # per block: phi (n, 3), |m| (n,), faces (n,), dS/du (n, 3, 3)
+    raw: np.ndarray           # (n_active, n_p, 3) the unposed samples
+    about: np.ndarray         # the samples posed as at the start, centred on their centroid
+    rotation: np.ndarray      # (n_active, 3, 3) R(w)
+    jacobian: np.ndarray      # (n_active, 3, 3) J_r(w)
+    scale: np.ndarray         # (n_active,) e^sigma
+    shapes: np.ndarray        # (n_s, n_p, 3) every example's shape, the active ones moved
+    pose: np.ndarray          # (n_active, 7) the pose parameters of x
+
+
 class _Round:
     """The parameters of one round and the map from them to F and dF/dparameters.
 
@@ -79,6 +96,7 @@ class _Round:
 
     def __init__(self, state: CorrespondenceState, active, level: int, support: float):
         self.state = state
+        self.level, self.support = level, support
         self.active = np.array(list(active), dtype=np.int64)
         self.blocks = []
         offset = 0
@@ -107,7 +125,7 @@ class _Round:
         self.centres = np.array([weighted_centroid(state.shapes[i], state.weights)
                                  for i in self.active]).reshape(-1, 3)
 
-    def trial(self, x: np.ndarray) -> dict:
+    def trial(self, x: np.ndarray) -> _Trial:
         """Everything that parameters x give: see :meth:`gradient` and :meth:`commit`."""
         n_p = self.state.n_points
         raw = np.empty((len(self.active), n_p, 3))
@@ -141,18 +159,18 @@ class _Round:
                                      self.centres + self.scale_of_length * p[:, 3:6])
         shapes = self.state.shapes.copy()
         shapes[self.active] = posed
-        return dict(located=located, raw=raw, about=about, rotation=rotation,
-                    jacobian=jacobian, scale=scale, shapes=shapes, pose=p)
+        return _Trial(x=np.array(x, copy=True), located=located, raw=raw, about=about, rotation=rotation,
+                      jacobian=jacobian, scale=scale, shapes=shapes, pose=p)
 
-    def gradient(self, trial: dict, shape_gradient: np.ndarray) -> np.ndarray:
+    def gradient(self, trial: _Trial, shape_gradient: np.ndarray) -> np.ndarray:
         """dF/dx from dF/dX (n_s, n_p, 3)."""
         result = np.zeros(self.size)
         g = shape_gradient[self.active]
-        rotation, scale = trial["rotation"], trial["scale"]
+        rotation, scale = trial.rotation, trial.scale
         # the samples y of example i are posed by scale e^sigma s0 and rotation R(w) R0
         total_scale = scale * self.scale0
         total_rotation = rotation @ self.rotation0
-        for block, (phi, norms, face, jac) in zip(self.blocks, trial["located"]):
+        for block, (phi, norms, face, jac) in zip(self.blocks, trial.located):
             w = block.basis.weights
             result[block.coefficients] = hotloops.field_sample_gradient(
                 w.indptr, w.indices, w.data, block.basis.points, phi, norms, jac,
@@ -160,28 +178,30 @@ class _Round:
                 block.basis.n_centres).ravel()
         # the pose: with N = sum_k g_k v_k^T (3 x 3) every term is a contraction of N:
         # sum_k v_k x (R^T g_k) = axial part of R^T N, sum_k g_k . R v_k = <R, N>
-        n = g.transpose(0, 2, 1) @ trial["about"]
+        n = g.transpose(0, 2, 1) @ trial.about
         m = rotation.transpose(0, 2, 1) @ n
         moment = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0],
                            m[:, 1, 0] - m[:, 0, 1]], axis=1)
         pose = np.empty((len(self.active), 7))
-        pose[:, :3] = scale[:, None] * np.einsum("aij,ai->aj", trial["jacobian"], moment)
+        pose[:, :3] = scale[:, None] * np.einsum("aij,ai->aj", trial.jacobian, moment)
         pose[:, 3:6] = g.sum(axis=1) * self.scale_of_length
         pose[:, 6] = scale * np.einsum("aij,aij->a", rotation, n)
         result[self.pose_index] = pose
         return result
 
-    def folds(self, trial: dict) -> bool:
+    def folds(self, trial: _Trial) -> bool:
         return any(block.part.folds(phi) for block, (phi, _, _, _) in
-                   zip(self.blocks, trial["located"]))
+                   zip(self.blocks, trial.located))
 
-    def commit(self, trial: dict):
-        """Compose the round's maps into the sample positions and poses."""
-        for block, (phi, _, face, _) in zip(self.blocks, trial["located"]):
-            part = block.part
-            part.positions, part.hint = phi, face
-            part.points = trial["raw"][block.row, block.rows].copy()
-        rotation, scale, p = trial["rotation"], trial["scale"], trial["pose"]
+    def commit(self, trial: _Trial):
+        """Compose the round's maps into the sample positions (each recorded as a
+        :class:`FieldWarp`, which re-applied to the positions at the start of the round gives
+        the same positions bit for bit) and the poses."""
+        for block, (phi, _, face, _) in zip(self.blocks, trial.located):
+            warp = FieldWarp(self.level, self.support,
+                             trial.x[block.coefficients].reshape(-1, 3).copy())
+            block.part.commit(warp, phi, trial.raw[block.row, block.rows].copy(), face)
+        rotation, scale, p = trial.rotation, trial.scale, trial.pose
         for row, i in enumerate(self.active):
             centre = self.centres[row]
             delta = Pose(float(scale[row]), rotation[row],
@@ -212,7 +232,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
         if "best" in cache and time.perf_counter() > deadline:
             raise _RoundOutOfTime
         trial = round_.trial(x)
-        value, shape_gradient = gradient_at(state, trial["shapes"])
+        value, shape_gradient = gradient_at(state, trial.shapes)
         state.evaluations += 1
         if "best" not in cache or value < cache["best"][0]:
             cache["best"] = (value, x.copy(), trial)
@@ -233,7 +253,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
             break
         x = 0.5 * x
         trial = round_.trial(x)
-        value = gradient_at(state, trial["shapes"])[0]
+        value = gradient_at(state, trial.shapes)[0]
         state.evaluations += 1
         folded = value < start_value and round_.folds(trial)
     if value < start_value and not folded:
@@ -264,8 +284,7 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
             before = value
             value = optimise_round(state, objective, active, level, deadline=deadline)
             trace.record(state, value, phase, sweep)
-            if progress is not None:
-                progress(None, f"{phase}: level {level}, round {sweep}, F = {value:.3f}")
+            report(progress, None, f"{phase}: level {level}, round {sweep}, F = {value:.3f}")
             if checkpoint is not None:
                 checkpoint()
             if time.perf_counter() > deadline or sweep >= settings.max_sweeps:

@@ -16,16 +16,22 @@ import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
 from ...config import WARPS, OptimisationSettings
+from ...progress import report
 from ..objective import Objective
 from ..pose import Pose, pose_from_parameters, weighted_centroid
-from ..state import CorrespondenceState, Kernel
+from ..state import CorrespondenceState
 from ..trace import Trace
-from ..warps import (Rotation, random_asymmetric_theta, random_shear_twist, random_unit_vector,
+from ..warps import (AsymmetricTheta, Rotation, ShearTwist, SymmetricTheta,
+                     random_asymmetric_theta, random_shear_twist, random_unit_vector,
                      random_width)
 from .base import improvements, rebuilt, recorder, start_phase, stalled
 
+#: the warp kind (warps.WARP_KINDS) that each ``--warps`` option draws
+KIND_OF_OPTION = {"symmetric": SymmetricTheta.kind, "asymmetric": AsymmetricTheta.kind,
+                  "shear": ShearTwist.kind, "rotation": Rotation.kind}
 
-def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kernel,
+
+def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: SymmetricTheta,
                         current: float, max_amplitude: float, min_amplitude: float = 1e-7,
                         improved=None) -> float:
     """Best amplitude for one kernel of part j of example i; commits it when F falls.
@@ -37,8 +43,8 @@ def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Kern
     seen = improvements(current, improved)
 
     def objective(amplitude: float) -> float:
-        trial = Kernel(kernel.center, kernel.omega, float(amplitude))
-        positions, points, hint = part.propose_kernel(trial)
+        trial = changed(kernel, amplitude=float(amplitude))
+        positions, points, hint = part.propose(trial, check_folds=False)
         shape = example.pose.apply(example.raw_points({j: points}))
         value = state.value(i, shape)
         cache[float(amplitude)] = (value, trial, positions, points, hint)
@@ -75,7 +81,7 @@ def _search_warp(state: CorrespondenceState, i: int, j: int, warp_of, bounds: tu
 
     def objective(t: float) -> float:
         warp = warp_of(10.0 ** t if log_scale else float(t))
-        proposal = part.propose_warp(warp)
+        proposal = part.propose(warp)
         if proposal is None:
             return np.inf
         value = state.value(i, example.pose.apply(example.raw_points({j: proposal[1]})))
@@ -136,8 +142,8 @@ def optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, current
     part = state.examples[i].parts[j]
     positions = part.positions
     if kind == "symmetric":
-        kernel = Kernel(part.random_surface_parameter(rng), random_width(rng, settings.sigma_g),
-                        0.0)
+        kernel = SymmetricTheta(part.random_surface_parameter(rng), 0.0,
+                                random_width(rng, settings.sigma_g))
         return _optimise_amplitude(state, i, j, kernel, current, settings.max_amplitude,
                                    min_amplitude, improved)
     found: list = []
@@ -181,14 +187,15 @@ def optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, current
 
 
 def warp_counts(state: CorrespondenceState) -> dict:
-    """How many warps of each kind were accepted, over every example and part."""
-    names = {"symmetric_theta": "symmetric", "asymmetric_theta": "asymmetric",
-             "shear_twist": "shear", "rotation": "rotation"}
+    """How many warps of each ``--warps`` kind (config.WARPS) were accepted, over every example
+    and part."""
     counts = dict.fromkeys(WARPS, 0)
     for example in state.examples:
         for part in example.parts:
-            for warp in part.kernels:
-                counts[names[warp.kind] if hasattr(warp, "kind") else "symmetric"] += 1
+            for kind, count in part.warp_counts().items():
+                if kind in KIND_OF_OPTION.values():
+                    option = next(o for o, k in KIND_OF_OPTION.items() if k == kind)
+                    counts[option] += count
     return counts
 
 
@@ -260,8 +267,7 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
             if with_pose:
                 value = _optimise_pose(state, i, value, settings.pose_evaluations, improved)
             trace.record(state, value, phase, sweep)
-            if progress is not None:
-                progress(None, f"{phase}: sweep {sweep}, F = {value:.3f}")
+            report(progress, None, f"{phase}: sweep {sweep}, F = {value:.3f}")
             if time.perf_counter() > deadline:
                 break
         value = rebuilt(state, trace, phase, sweep, checkpoint)

@@ -18,11 +18,12 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ...config import OptimisationSettings
+from ...progress import report
 from ..objective import Objective
 from ..sampling import icosphere
-from ..state import CorrespondenceState, Kernel
+from ..state import CorrespondenceState
 from ..trace import Trace
-from ..warps import apply_symmetric_theta, random_width
+from ..warps import SymmetricTheta, random_width
 from .base import active_parts, end_of_iteration, recorder, start_phase, stalled
 
 
@@ -91,14 +92,13 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
             for k in ks:
                 b = blocks[k]
                 part = example.parts[b.j]
-                kernels = [Kernel(c, w, float(a)) for c, w, a in
+                kernels = [SymmetricTheta(c, float(a), w) for c, w, a in
                            zip(b.centers, b.omegas, amplitudes[offsets[k]:offsets[k + 1]]) if a > 0]
                 if not kernels:
                     continue
                 positions = part.positions
                 for kernel in kernels:
-                    positions = apply_symmetric_theta(positions, kernel.center, kernel.amplitude,
-                                                      kernel.omega)
+                    positions = kernel.apply(positions)
                 if part.folds(positions):
                     return None, None
                 points, hint = part.sample(positions)
@@ -118,8 +118,8 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
             if improved is not None:
                 improved(value)
         count[0] += 1
-        if progress is not None and count[0] % 100 == 0:
-            progress(None, f"{label}, {count[0]} evaluations, F = {best['value']:.3f}")
+        if count[0] % 100 == 0:
+            report(progress, None, f"{label}, {count[0]} evaluations, F = {best['value']:.3f}")
         if time.perf_counter() > deadline:
             raise _SimplexOutOfTime
         return value
@@ -137,7 +137,7 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
         return current
     touched = set()
     for i, part, kernels, positions, points, hint in best["trial"]:
-        part.kernels.extend(kernels[:-1])
+        part.warps.extend(kernels[:-1])
         part.commit(kernels[-1], positions, points, hint)
         touched.add(i)
     for i in sorted(touched):

@@ -1,0 +1,99 @@
+"""The state records every accepted reparameterization, for every strategy, and a record (the
+build's checkpoint) re-applied to a fresh state gives the same correspondence bit for bit."""
+
+import time
+
+import numpy as np
+import pytest
+
+from mdlshapemodel.config import OptimisationSettings
+from mdlshapemodel.correspondence.objective import Objective
+from mdlshapemodel.correspondence.state import replay_record, state_record
+from mdlshapemodel.correspondence.strategies import optimise
+from mdlshapemodel.correspondence.trace import Trace
+from mdlshapemodel.correspondence.warps import (WARP_KINDS, AsymmetricTheta, FieldWarp, Rotation,
+                                                ShearTwist, SymmetricTheta, apply_warps)
+from mdlshapemodel.outputs import load_checkpoint, save_checkpoint, warp_summary
+
+from synthetic import small_state
+
+STRATEGY_KINDS = {
+    "fast": {"field"},
+    "one-at-a-time-pose": {"symmetric_theta", "asymmetric_theta", "shear_twist", "rotation"},
+    "multiresolution": {"symmetric_theta"},
+    "multiscale": {"symmetric_theta"},
+}
+
+
+def objectives(state):
+    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
+    return (Objective("fixed", data_range, delta=0.1),
+            Objective("integrated", data_range, delta_min=1e-4, delta_max=0.5))
+
+
+def optimised(strategy):
+    state = small_state()
+    options = dict(max_time=1e6, max_sweeps=3, fixed_fraction=0.0, pose_evaluations=20,
+                   simplex_evaluations=300, simplex_step=0.3)
+    if strategy == "one-at-a-time-pose":
+        options["warps"] = ("symmetric", "asymmetric", "shear", "rotation")
+    settings = OptimisationSettings(strategy=strategy, **options)
+    final = optimise(state, objectives(state), settings, np.random.default_rng(4), Trace())
+    return state, final
+
+
+@pytest.mark.parametrize("strategy", sorted(STRATEGY_KINDS))
+def test_every_strategy_records_the_warps_that_make_its_positions(strategy):
+    state, final = optimised(strategy)
+    kinds = {w.kind for e in state.examples for p in e.parts for w in p.warps}
+    assert kinds and kinds <= STRATEGY_KINDS[strategy]
+    for example in state.examples:
+        for part in example.parts:
+            # the recorded warps, applied to the grid, are the sample positions bit for bit
+            assert np.array_equal(apply_warps(part.grid, part.warps), part.positions)
+        summary = warp_summary(example)
+        assert summary == " ".join(f"{k}:{n}" for k, n in example.parts[0].warp_counts().items()
+                                   if n)
+
+
+@pytest.mark.parametrize("strategy", ["fast", "one-at-a-time-pose"])
+def test_a_checkpoint_replayed_on_a_fresh_state_is_the_same_state(strategy, tmp_path):
+    state, final = optimised(strategy)
+    path = tmp_path / "checkpoint.npz"
+    save_checkpoint(path, state)
+    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.npz"]   # no temporary left
+    fresh = small_state()
+    fresh.objective = state.objective
+    before = fresh.value()
+    replay_record(fresh, load_checkpoint(path))
+    assert fresh.value() == state.value() == final != before
+    assert np.array_equal(fresh.shapes, state.shapes)
+    assert np.array_equal(fresh.gram, state.gram)
+    for a, b in zip(state.examples, fresh.examples):
+        assert np.array_equal(a.pose.rotation, b.pose.rotation) and a.pose.scale == b.pose.scale
+        assert np.array_equal(a.parts[0].positions, b.parts[0].positions)
+
+
+def test_a_record_of_other_cases_is_refused():
+    state, _ = optimised("fast")
+    record = state_record(state)
+    record["names"] = np.array(["x"] * state.n_shapes)
+    with pytest.raises(ValueError, match="other cases"):
+        replay_record(small_state(), record)
+
+
+def test_every_warp_kind_round_trips_through_its_vector_exactly(rng):
+    center = rng.normal(size=3)
+    warps = [SymmetricTheta(center, 0.4, 0.3),
+             AsymmetricTheta(center, rng.normal(size=3), 0.5, 0.2, 1.0, 0.7),
+             ShearTwist(center, 0.8, 0.4, 1.2), Rotation(rng.normal(size=3) * 0.3),
+             FieldWarp(1, 2.0, rng.normal(size=(42, 3)) * 1e-3)]
+    assert {w.kind for w in warps} == set(WARP_KINDS)
+    points = rng.normal(size=(50, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    for warp in warps:
+        again = type(warp).from_vector(warp.to_vector())
+        assert np.array_equal(again.to_vector(), warp.to_vector())
+        assert np.array_equal(again.apply(points), warp.apply(points))
+    with pytest.raises(ValueError):
+        SymmetricTheta.from_vector(np.zeros(4))
