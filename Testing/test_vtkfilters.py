@@ -1,12 +1,17 @@
 """The VTK filters in real VTK pipelines."""
 
+import inspect
+
 import numpy as np
 import pytest
+import SimpleITK as sitk
 import vtk
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 
-from mdlshapemodel.prepare import surface
-from mdlshapemodel.prepare.sphere import orientation
+from mdlshapemodel import BuildConfig
+from mdlshapemodel.prepare import prepare_case, surface
+from mdlshapemodel.prepare.io import write_polydata
+from mdlshapemodel.prepare.sphere import orientation, sphere_map
 from mdlshapemodel.vtkfilters import LabelMapToClosedSurface, SurfaceToSphereMap
 
 from synthetic import small_mask
@@ -115,3 +120,127 @@ def test_failures_leave_an_empty_output_and_a_message():
     to_sphere.Update()
     assert to_sphere.GetOutput(0).GetNumberOfPoints() == 0
     assert "genus 1" in to_sphere.GetErrorText()
+
+
+def field_value(polydata, name):
+    array = polydata.GetFieldData().GetAbstractArray(name)
+    return array.GetValue(0) if isinstance(array, vtk.vtkStringArray) else array.GetTuple1(0)
+
+
+def assert_same_preparation(to_sphere, case):
+    """The filter's outputs are bit for bit the prepared case of build."""
+    assert to_sphere.GetErrorText() == "" and not hasattr(case, "reason"), case
+    vertices, faces = arrays(to_sphere.GetOutput(0))
+    sphere = vtk_to_numpy(to_sphere.GetOutput(0).GetPointData().GetArray("SphereCoordinates"))
+    assert np.array_equal(vertices, case.map.vertices)
+    assert np.array_equal(faces, case.map.faces)
+    assert np.array_equal(sphere, case.map.sphere)
+    assert np.array_equal(arrays(to_sphere.GetOutput(1))[0], case.map.sphere)
+    assert field_value(to_sphere.GetOutput(0), "VoxelSize") == case.voxel_size
+    assert field_value(to_sphere.GetOutput(0), "Repair") == case.repair
+
+
+def messy_mesh(vertices, faces):
+    """The mesh as a file might hold it: the first 40 triangles as a soup of their own (duplicate
+    points), every 7th triangle turned over, and two degenerate triangles."""
+    vertices, faces = vertices.copy(), faces.copy()
+    soup = faces[:40].copy()
+    faces[:40] = len(vertices) + np.arange(120).reshape(40, 3)
+    vertices = np.concatenate([vertices, vertices[soup.ravel()]])
+    faces[::7] = faces[::7][:, [0, 2, 1]]
+    degenerate = np.array([[faces[100, 0], faces[100, 0], faces[100, 1]],
+                           [faces[200, 0], faces[200, 1], faces[200, 1]]])
+    return vertices, np.concatenate([faces, degenerate])
+
+
+def test_surface_to_sphere_map_prepares_a_mesh_file_as_build_does(tmp_path, bump_surface):
+    vertices, faces = messy_mesh(*bump_surface)
+    path = tmp_path / "case_r.vtk"
+    write_polydata(path, vertices, faces)
+    reader = vtk.vtkPolyDataReader()
+    reader.SetFileName(str(path))
+    to_sphere = SurfaceToSphereMap()
+    to_sphere.SetInputConnection(reader.GetOutputPort())
+    progress = []
+    to_sphere.AddObserver("ProgressEvent", lambda caller, _: progress.append(caller.GetProgress()))
+    to_sphere.Update()
+    case = prepare_case(path, BuildConfig())
+    assert_same_preparation(to_sphere, case)
+    assert progress[0] == 0.0 and progress[-1] == 1.0
+    # the cleaning happened: duplicates merged, orientation repaired, remeshed
+    assert "made the orientation of" in case.repair
+    assert len(case.map.vertices) != len(bump_surface[0])
+    assert np.mean(case.map.vertices[:, 0]) > 0
+    # mirrored (build: the file name matches a mirror pattern) and decimated
+    to_sphere.MirroredOn()
+    to_sphere.SetTargetVertices(500)
+    to_sphere.Update()
+    mirrored = prepare_case(path, BuildConfig(mirror=["*_r.*"], target_vertices=500))
+    assert mirrored.mirrored and to_sphere.GetMirrored()
+    assert_same_preparation(to_sphere, mirrored)
+    assert np.mean(mirrored.map.vertices[:, 0]) < 0
+    assert len(mirrored.map.vertices) < len(case.map.vertices)
+    assert to_sphere.executions == 2
+
+
+def test_label_map_pipeline_prepares_a_label_map_file_as_build_does(tmp_path):
+    labels = small_mask(0.3).astype(np.uint8) * 2
+    image = sitk.GetImageFromArray(labels)
+    image.SetSpacing((1.5, 1.0, 1.0))
+    image.SetOrigin((5.0, -3.0, 2.0))
+    path = tmp_path / "labels.mha"
+    sitk.WriteImage(image, str(path))
+    reader = vtk.vtkMetaImageReader()
+    reader.SetFileName(str(path))
+    to_surface = LabelMapToClosedSurface()
+    to_surface.SetInputConnection(reader.GetOutputPort())
+    to_surface.SetLabels([2, 9])         # 9 is absent: fine, as in build, while 2 is present
+    to_sphere = SurfaceToSphereMap()
+    to_sphere.SetInputConnection(to_surface.GetOutputPort())
+    to_sphere.Update()
+    case = prepare_case(path, BuildConfig(labels=[2, 9]))
+    assert_same_preparation(to_sphere, case)
+    assert field_value(to_surface.GetOutput(), "SmoothingSigma") == case.smoothing_sigma
+    assert case.voxel_size == pytest.approx(1.5 ** (1 / 3))
+
+
+def test_filters_start_at_the_build_defaults():
+    defaults = BuildConfig()
+    to_surface, to_sphere = LabelMapToClosedSurface(), SurfaceToSphereMap()
+    assert to_surface.GetLabels() == tuple(defaults.labels)
+    assert to_surface.GetSurfaceMethod() == defaults.surface_method
+    assert to_surface.GetSmoothingFactor() == defaults.smoothing_factor
+    assert to_surface.GetDecimation() == defaults.decimation
+    assert to_surface.GetSmoothingSigma() == defaults.smoothing_sigma
+    assert to_surface.GetMaxSmoothingSigma() == defaults.max_smoothing_sigma
+    assert to_surface.GetEdgeLength() == defaults.edge_length
+    assert to_surface.GetTargetVertices() == defaults.target_vertices
+    assert to_sphere.GetTargetVertices() == defaults.target_vertices
+    assert to_sphere.GetVoxelSize() == defaults.voxel_size
+    assert not to_sphere.GetMirrored() and not defaults.mirror
+    assert to_surface.GetConfig() == defaults and to_sphere.GetConfig() == defaults
+    mapping = inspect.signature(sphere_map).parameters
+    assert to_sphere.GetAreaWeight() == mapping["area_weight"].default
+    assert to_sphere.GetMaxIterations() == mapping["max_iterations"].default
+    contouring = inspect.signature(surface.mask_to_surface).parameters
+    for name, field in (("smoothing_sigma", "smoothing_sigma"),
+                        ("max_smoothing_sigma", "max_smoothing_sigma"),
+                        ("edge_length", "edge_length"), ("target_vertices", "target_vertices"),
+                        ("method", "surface_method"), ("smoothing_factor", "smoothing_factor"),
+                        ("decimation", "decimation")):
+        assert contouring[name].default == getattr(defaults, field), name
+
+
+def test_a_missing_label_gives_the_message_of_build(tmp_path):
+    path = tmp_path / "other_label.mha"
+    sitk.WriteImage(sitk.GetImageFromArray(small_mask(0.0).astype(np.uint8) * 5), str(path))
+    reader = vtk.vtkMetaImageReader()
+    reader.SetFileName(str(path))
+    to_surface = LabelMapToClosedSurface()
+    to_surface.SetInputConnection(reader.GetOutputPort())
+    to_surface.SetLabels([1, 3])
+    to_surface.Update()
+    rejection = prepare_case(path, BuildConfig(labels=[1, 3]))
+    assert to_surface.GetErrorText() == rejection.reason
+    assert rejection.reason == "label 1, 3 not present (labels found: 5)"
+    assert to_surface.GetOutput().GetNumberOfPoints() == 0

@@ -2,26 +2,44 @@
 
 - :class:`LabelMapToClosedSurface`: vtkImageData (a label map) -> vtkPolyData, the closed genus-0
   surface of the selected labels in world coordinates (the image's origin, spacing and direction);
-- :class:`SurfaceToSphereMap`: vtkPolyData (a closed genus-0 triangle mesh) -> output 0, the same
-  surface with the point-data array ``SphereCoordinates`` (its bijective map onto the unit sphere) and
-  the map's quality in field data; output 1, the sphere itself (same triangles).
+- :class:`SurfaceToSphereMap`: vtkPolyData (a closed genus-0 triangle mesh) -> output 0, the
+  prepared surface with the point-data array ``SphereCoordinates`` (its bijective map onto the
+  unit sphere) and the map's quality in field data; output 1, the sphere itself (same triangles).
 
-Both follow VTK's conventions: ``SetInputConnection``/``GetOutputPort``, Set/Get methods that call
-``Modified()`` only when a value changes, so the filter re-executes only when an input or a parameter
-changed. Failures (an empty label, a surface that is not a sphere) are reported through VTK's error
-output and leave the output empty; the message is also kept in ``GetErrorText()``.
+They take the steps of ``build`` and ``fit`` (:mod:`mdlshapemodel.prepare.case`), not copies of
+them: the label selection of :func:`~mdlshapemodel.prepare.io.select_labels`, the surface of
+:func:`~mdlshapemodel.prepare.case.surface_of_mask`, and the cleaning, mirroring and sphere map
+of :func:`~mdlshapemodel.prepare.case.prepare_surface`; their parameters start at the defaults
+of :class:`~mdlshapemodel.config.BuildConfig`. A mesh file read by a VTK reader and passed
+through :class:`SurfaceToSphereMap` is therefore prepared bit for bit as ``build`` prepares it,
+and so is a label map passed through both filters when the reader gives the image the geometry
+SimpleITK reads (``vtkNIFTIImageReader`` keeps a NIfTI file's orientation in its q-form matrix,
+not in the image).
+
+Both follow VTK's conventions: ``SetInputConnection``/``GetOutputPort``, Set/Get methods that
+call ``Modified()`` only when a value changes, so the filter re-executes only when an input or a
+parameter changed, and progress reported through ``UpdateProgress`` (``ProgressEvent``).
+Failures (a missing label, a surface that is not a sphere, a bad parameter) are reported through
+VTK's error output and leave the output empty; the message, the same line that ``build`` gives,
+is kept in ``GetErrorText()``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import vtk
-from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtk.util.numpy_support import numpy_to_vtk
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 
+from .config import BuildConfig
 from .errors import MDLShapeModelError
-from .prepare import surface
-from .prepare.sphere import MAX_ITERATIONS, sphere_map
+from .prepare import io, surface
+from .prepare.case import prepare_surface, surface_of_mask
+from .prepare.sphere import AREA_WEIGHT, MAX_ITERATIONS
+
+# Field data that marks a surface made from a label map (LabelMapToClosedSurface), so that
+# SurfaceToSphereMap prepares it as build prepares label maps (not cleaned and remeshed again).
+VOXEL_SIZE = "VoxelSize"
 
 
 def _accessors(attribute: str, cast):
@@ -35,8 +53,44 @@ def _accessors(attribute: str, cast):
     return setter, getter
 
 
+def _switches(attribute: str):
+    """VTK-style On/Off methods of a boolean parameter."""
+    def on(self):
+        self._set(attribute, True)
+
+    def off(self):
+        self._set(attribute, False)
+
+    return on, off
+
+
 def _labels(values) -> tuple:
     return tuple(int(v) for v in values)
+
+
+def _optional_float(value) -> float | None:
+    return None if value is None else float(value)
+
+
+def _add_field(polydata, name: str, value):
+    """Add a one-value field-data array (a number, or a string as a vtkStringArray)."""
+    if isinstance(value, str):
+        array = vtk.vtkStringArray()
+        array.InsertNextValue(value)
+    else:
+        array = numpy_to_vtk(np.array([value], dtype=np.float64), deep=True)
+    array.SetName(name)
+    polydata.GetFieldData().AddArray(array)
+
+
+def _field(polydata, name: str):
+    """The first value of a field-data array, or None when there is none."""
+    array = polydata.GetFieldData().GetAbstractArray(name) if polydata is not None else None
+    if array is None or array.GetNumberOfValues() == 0:
+        return None
+    if isinstance(array, vtk.vtkStringArray):
+        return array.GetValue(0)
+    return float(array.GetTuple1(0))
 
 
 class _Filter(VTKPythonAlgorithmBase):
@@ -68,29 +122,41 @@ class _Filter(VTKPythonAlgorithmBase):
         self._error_text = str(error)
         vtk.vtkOutputWindow.GetInstance().DisplayErrorText(
             f"{type(self).__name__}: {self._error_text}\n")
+        self.UpdateProgress(1.0)
         return 1
 
 
 class LabelMapToClosedSurface(_Filter):
     """Label map (vtkImageData with integer scalars) -> closed genus-0 surface (vtkPolyData).
 
-    Parameters (Set/Get): ``Labels`` (tuple of label values whose union is the object; empty = all
-    non-zero), ``SurfaceMethod`` ("gaussian" or "slicer"), ``SmoothingFactor`` and ``Decimation``
-    (slicer), ``SmoothingSigma`` and ``MaxSmoothingSigma`` (voxels), ``EdgeLength`` (voxels, of the
-    isotropic remeshing), ``TargetVertices``.
+    The steps of ``build`` for a label map: the union of the labels
+    (:func:`~mdlshapemodel.prepare.io.select_labels`, with build's messages), cavities filled and
+    debris dropped, contoured, remeshed and placed in world coordinates
+    (:func:`~mdlshapemodel.prepare.case.surface_of_mask`).
+
+    Parameters (Set/Get), with the defaults of :class:`~mdlshapemodel.config.BuildConfig`:
+    ``Labels`` (tuple of label values whose union is the object; empty = all non-zero),
+    ``SurfaceMethod`` ("gaussian" or "slicer"), ``SmoothingFactor`` and ``Decimation`` (slicer),
+    ``SmoothingSigma`` and ``MaxSmoothingSigma`` (voxels; the latter is raised to the former when
+    smaller), ``EdgeLength`` (voxels, of the isotropic remeshing), ``TargetVertices``.
+
+    The output's field data: ``VoxelSize`` (mm, the geometric mean of the spacing; it also tells
+    :class:`SurfaceToSphereMap` that the surface comes from a label map), ``SmoothingSigma`` (the
+    blur that gave a genus-0 surface) and ``Repair`` (what was repaired in the mask, or '').
     """
 
     def __init__(self):
         super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1,
                          outputType="vtkPolyData")
-        self._labels = ()
-        self._smoothing_sigma = 1.0
-        self._max_smoothing_sigma = 2.0
-        self._edge_length = 1.0
-        self._target_vertices = 20000
-        self._surface_method = "gaussian"
-        self._smoothing_factor = 0.5
-        self._decimation = 0.0
+        defaults = BuildConfig()
+        self._labels = _labels(defaults.labels)
+        self._surface_method = defaults.surface_method
+        self._smoothing_factor = defaults.smoothing_factor
+        self._decimation = defaults.decimation
+        self._smoothing_sigma = defaults.smoothing_sigma
+        self._max_smoothing_sigma = defaults.max_smoothing_sigma
+        self._edge_length = defaults.edge_length
+        self._target_vertices = defaults.target_vertices
 
     SetSurfaceMethod, GetSurfaceMethod = _accessors("_surface_method", str)
     SetSmoothingFactor, GetSmoothingFactor = _accessors("_smoothing_factor", float)
@@ -101,60 +167,85 @@ class LabelMapToClosedSurface(_Filter):
     SetEdgeLength, GetEdgeLength = _accessors("_edge_length", float)
     SetTargetVertices, GetTargetVertices = _accessors("_target_vertices", int)
 
+    def GetConfig(self) -> BuildConfig:
+        """The build configuration that these parameters amount to (validated: a bad value
+        raises :class:`~mdlshapemodel.errors.ConfigError` naming the field)."""
+        return BuildConfig(labels=list(self._labels), surface_method=self._surface_method,
+                           smoothing_factor=self._smoothing_factor, decimation=self._decimation,
+                           smoothing_sigma=self._smoothing_sigma,
+                           max_smoothing_sigma=max(self._max_smoothing_sigma,
+                                                   self._smoothing_sigma),
+                           edge_length=self._edge_length,
+                           target_vertices=self._target_vertices).validate()
+
     def RequestData(self, request, in_info, out_info):
         self.executions += 1
         self._error_text = ""
+        self.UpdateProgress(0.0)
         image = vtk.vtkImageData.GetData(in_info[0])
         output = vtk.vtkPolyData.GetData(out_info)
         try:
-            scalars = image.GetPointData().GetScalars() if image is not None else None
-            if scalars is None:
-                raise MDLShapeModelError("the input image has no scalars")
-            nx, ny, nz = image.GetDimensions()
-            labels = vtk_to_numpy(scalars).reshape(nz, ny, nx)
-            if self._labels:
-                mask = np.isin(labels, self._labels)
-                if not mask.any():
-                    raise MDLShapeModelError(f"label {', '.join(map(str, self._labels))} not "
-                                             "present in the image")
-            else:
-                mask = labels != 0
-                if not mask.any():
-                    raise MDLShapeModelError("the label map is empty (no non-zero voxels)")
-            mask, _ = surface.mask_components(mask)
-            direction = vtk.vtkMatrix3x3()
-            direction.DeepCopy(image.GetDirectionMatrix())
-            matrix = [direction.GetElement(r, c) for r in range(3) for c in range(3)]
-            vertices, faces, _ = surface.mask_to_surface(
-                mask, image.GetSpacing(), image.GetOrigin(), matrix,
-                smoothing_sigma=self._smoothing_sigma,
-                max_smoothing_sigma=max(self._max_smoothing_sigma, self._smoothing_sigma),
-                edge_length=self._edge_length, target_vertices=self._target_vertices,
-                method=self._surface_method, smoothing_factor=self._smoothing_factor,
-                decimation=self._decimation)
+            config = self.GetConfig()
+            label_map = io.label_map_of_image_data(image, config.labels)
+            self.UpdateProgress(0.1)
+            vertices, faces, sigma, note = surface_of_mask(
+                label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
         except MDLShapeModelError as error:
             return self._fail(error)
-        output.ShallowCopy(surface.arrays_to_polydata(vertices, faces))
+        result = surface.arrays_to_polydata(vertices, faces)
+        _add_field(result, VOXEL_SIZE, label_map.voxel_size)
+        _add_field(result, "SmoothingSigma", sigma)
+        _add_field(result, "Repair", note)
+        output.ShallowCopy(result)
+        self.UpdateProgress(1.0)
         return 1
 
 
 class SurfaceToSphereMap(_Filter):
-    """Closed genus-0 surface -> the same surface with its bijective sphere map.
+    """Closed genus-0 surface -> the prepared surface with its bijective sphere map.
 
-    Output 0: the input surface (cleaned to triangles) with point data ``SphereCoordinates`` (3
-    components, unit vectors) and field data ``FlippedTriangles``, ``MeanAbsLogAreaRatio``,
-    ``P95AbsLogAreaRatio``. Output 1: the unit sphere with the same triangles.
-    Parameters (Set/Get): ``AreaWeight``, ``MaxIterations``.
+    The steps of ``build`` after reading (:func:`~mdlshapemodel.prepare.case.prepare_surface`):
+    a mesh is cleaned as build cleans mesh files (duplicate points merged, degenerate faces
+    dropped, orientation made consistent, decimated above ``TargetVertices``, remeshed at its
+    mean edge length); a surface from :class:`LabelMapToClosedSurface` (field data
+    ``VoxelSize``) is only checked, as build treats label maps. Then it is mirrored (x -> -x) when
+    ``Mirrored`` is on, and mapped onto the sphere.
+
+    Output 0: the prepared surface with point data ``SphereCoordinates`` (3 components, unit
+    vectors) and field data ``FlippedTriangles``, ``MeanAbsLogAreaRatio``,
+    ``P95AbsLogAreaRatio``, ``VoxelSize`` (mm per voxel: the input's ``VoxelSize`` when it is a
+    label-map surface, else the ``VoxelSize`` parameter, else the mesh's mean edge length before
+    remeshing) and ``Repair`` (what was repaired, or ''). Output 1: the unit sphere with the same
+    triangles.
+
+    Parameters (Set/Get), with the defaults of :class:`~mdlshapemodel.config.BuildConfig`:
+    ``TargetVertices``, ``VoxelSize`` (mm per voxel of mesh inputs; None: their mean edge
+    length), ``Mirrored`` (also ``MirroredOn``/``MirroredOff``; build mirrors the files whose
+    names match ``BuildConfig.mirror``, a pipeline says it here); and those of
+    :func:`~mdlshapemodel.prepare.sphere.sphere_map`: ``AreaWeight``, ``MaxIterations``.
     """
 
     def __init__(self):
         super().__init__(nInputPorts=1, inputType="vtkPolyData", nOutputPorts=2,
                          outputType="vtkPolyData")
-        self._area_weight = 4.0
+        defaults = BuildConfig()
+        self._target_vertices = defaults.target_vertices
+        self._voxel_size = defaults.voxel_size
+        self._mirrored = False  # build's default: BuildConfig.mirror matches no file name
+        self._area_weight = AREA_WEIGHT
         self._max_iterations = MAX_ITERATIONS
 
+    SetTargetVertices, GetTargetVertices = _accessors("_target_vertices", int)
+    SetVoxelSize, GetVoxelSize = _accessors("_voxel_size", _optional_float)
+    SetMirrored, GetMirrored = _accessors("_mirrored", bool)
+    MirroredOn, MirroredOff = _switches("_mirrored")
     SetAreaWeight, GetAreaWeight = _accessors("_area_weight", float)
     SetMaxIterations, GetMaxIterations = _accessors("_max_iterations", int)
+
+    def GetConfig(self) -> BuildConfig:
+        """The build configuration that these parameters amount to (validated)."""
+        return BuildConfig(target_vertices=self._target_vertices,
+                           voxel_size=self._voxel_size).validate()
 
     def GetSphereOutputPort(self):
         """The port of the sphere output (1)."""
@@ -163,20 +254,24 @@ class SurfaceToSphereMap(_Filter):
     def RequestData(self, request, in_info, out_info):
         self.executions += 1
         self._error_text = ""
+        self.UpdateProgress(0.0)
         polydata = vtk.vtkPolyData.GetData(in_info[0])
         surface_output = vtk.vtkPolyData.GetData(out_info.GetInformationObject(0))
         sphere_output = vtk.vtkPolyData.GetData(out_info.GetInformationObject(1))
         try:
-            triangles = vtk.vtkTriangleFilter()
-            triangles.SetInputData(polydata)
-            triangles.Update()
-            vertices, faces = surface.polydata_to_arrays(triangles.GetOutput())
-            surface.require_sphere_like(vertices, faces)
-            faces = surface.orient_outwards(vertices, faces)
-            mapped = sphere_map(vertices, faces, area_weight=self._area_weight,
-                                max_iterations=self._max_iterations)
+            config = self.GetConfig()
+            vertices, faces = io.mesh_arrays(polydata)
+            voxel_size = _field(polydata, VOXEL_SIZE)  # None: a mesh, cleaned as build does
+            facts = {}
+            if voxel_size is not None:
+                facts = {"repair": str(_field(polydata, "Repair") or ""),
+                         "smoothing_sigma": _field(polydata, "SmoothingSigma")}
+            case = prepare_surface(vertices, faces, "", "", voxel_size, config,
+                                   mirrored=self._mirrored, area_weight=self._area_weight,
+                                   max_iterations=self._max_iterations, **facts)
         except MDLShapeModelError as error:
             return self._fail(error)
+        mapped = case.map
         result = surface.arrays_to_polydata(mapped.vertices, mapped.faces)
         coordinates = numpy_to_vtk(np.ascontiguousarray(mapped.sphere), deep=True)
         coordinates.SetName("SphereCoordinates")
@@ -184,9 +279,10 @@ class SurfaceToSphereMap(_Filter):
         for name, key in (("FlippedTriangles", "flipped_triangles"),
                           ("MeanAbsLogAreaRatio", "mean_abs_log_area_ratio"),
                           ("P95AbsLogAreaRatio", "p95_abs_log_area_ratio")):
-            array = numpy_to_vtk(np.array([mapped.quality[key]], dtype=np.float64), deep=True)
-            array.SetName(name)
-            result.GetFieldData().AddArray(array)
+            _add_field(result, name, mapped.quality[key])
+        _add_field(result, VOXEL_SIZE, case.voxel_size)
+        _add_field(result, "Repair", case.repair)
         surface_output.ShallowCopy(result)
         sphere_output.ShallowCopy(surface.arrays_to_polydata(mapped.sphere, mapped.faces))
+        self.UpdateProgress(1.0)
         return 1

@@ -11,6 +11,7 @@ and :func:`~mdlshapemodel.prepare.batch.preprocess` stops with an
 from __future__ import annotations
 
 import fnmatch
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +20,8 @@ import numpy as np
 from ..config import BuildConfig
 from ..errors import InputError, MDLShapeModelError
 from . import io, surface
-from .sphere import SphereMap, sphere_map
+from .sphere import AREA_WEIGHT, MAX_ITERATIONS, SphereMap, sphere_map
+
 
 @dataclass
 class PreparedCase:
@@ -54,37 +56,59 @@ def is_mirrored(path, config: BuildConfig) -> bool:
     return any(fnmatch.fnmatch(name, pattern) for pattern in config.mirror)
 
 
+@contextmanager
+def one_blas_thread():
+    """One BLAS thread while preparing a case: the same arithmetic, bit for bit, in a worker
+    process, in the main process and in a VTK pipeline."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
 def surface_of_mask(mask: np.ndarray, spacing, origin, direction, config: BuildConfig
                     ) -> tuple[np.ndarray, np.ndarray, float, str]:
     """The closed genus-0 surface of a binary mask with the build's settings: cavities filled and
     debris dropped (:func:`surface.mask_components`), then :func:`surface.mask_to_surface`.
     Returns vertices, faces (physical coordinates), the blur that was needed and a repair note."""
-    mask, note = surface.mask_components(mask)
-    vertices, faces, info = surface.mask_to_surface(
-        mask, spacing, origin, direction, smoothing_sigma=config.smoothing_sigma,
-        max_smoothing_sigma=config.max_smoothing_sigma, edge_length=config.edge_length,
-        target_vertices=config.target_vertices, method=config.surface_method,
-        smoothing_factor=config.smoothing_factor, decimation=config.decimation)
+    with one_blas_thread():
+        mask, note = surface.mask_components(mask)
+        vertices, faces, info = surface.mask_to_surface(
+            mask, spacing, origin, direction, smoothing_sigma=config.smoothing_sigma,
+            max_smoothing_sigma=config.max_smoothing_sigma, edge_length=config.edge_length,
+            target_vertices=config.target_vertices, method=config.surface_method,
+            smoothing_factor=config.smoothing_factor, decimation=config.decimation)
     return vertices, faces, info["smoothing_sigma"], note
 
 
 def prepare_surface(vertices: np.ndarray, faces: np.ndarray, name: str, path: str,
                     voxel_size: float | None, config: BuildConfig, mirrored: bool = False,
-                    repair: str = "", smoothing_sigma: float | None = None) -> PreparedCase:
+                    repair: str = "", smoothing_sigma: float | None = None,
+                    area_weight: float = AREA_WEIGHT, max_iterations: int = MAX_ITERATIONS
+                    ) -> PreparedCase:
     """A prepared case from a closed genus-0 surface: mirrored if asked, then sphere-mapped.
 
     ``voxel_size`` None: the surface is a mesh input, cleaned and remeshed first
-    (:func:`surface.clean_mesh`) and given ``config.voxel_size`` or its mean edge length.
+    (:func:`surface.clean_mesh`, above ``config.target_vertices`` decimated) and given
+    ``config.voxel_size`` or its mean edge length. Otherwise it is a surface of a label map
+    (:func:`surface_of_mask`), only checked and oriented outwards. ``area_weight`` and
+    ``max_iterations`` are passed to :func:`~.sphere.sphere_map`.
     """
-    if voxel_size is None:
-        vertices, faces, mean_edge, note = surface.clean_mesh(vertices, faces,
-                                                              config.target_vertices)
-        repair = "; ".join(filter(None, [repair, note]))
-        voxel_size = config.voxel_size or mean_edge
-    if mirrored:
-        vertices, faces = surface.mirror(vertices, faces)
-    return PreparedCase(name, str(path), sphere_map(vertices, faces), float(voxel_size),
-                        mirrored=mirrored, repair=repair, smoothing_sigma=smoothing_sigma)
+    with one_blas_thread():
+        if voxel_size is None:
+            vertices, faces, mean_edge, note = surface.clean_mesh(vertices, faces,
+                                                                  config.target_vertices)
+            repair = "; ".join(filter(None, [repair, note]))
+            voxel_size = config.voxel_size or mean_edge
+        else:
+            surface.require_sphere_like(vertices, faces)
+            faces = surface.orient_outwards(vertices, faces)
+        if mirrored:
+            vertices, faces = surface.mirror(vertices, faces)
+        mapped = sphere_map(vertices, faces, area_weight=area_weight,
+                            max_iterations=max_iterations)
+    return PreparedCase(name, str(path), mapped, float(voxel_size), mirrored=mirrored,
+                        repair=repair, smoothing_sigma=smoothing_sigma)
 
 
 def _prepare(path, config: BuildConfig) -> PreparedCase:
@@ -125,12 +149,8 @@ def prepare_case(path, config: BuildConfig) -> PreparedCase | Rejection:
     >>> prepare_case("missing.nii.gz", BuildConfig()).reason
     'no such file'
     """
-    from threadpoolctl import threadpool_limits
-
     try:
-        # one BLAS thread: the same arithmetic in a worker and in the main process
-        with threadpool_limits(limits=1, user_api="blas"):
-            return _prepare(path, config)
+        return _prepare(path, config)
     except MDLShapeModelError as error:
         return Rejection(io.case_name(path), str(path), str(error))
     except OSError as error:

@@ -73,8 +73,56 @@ class LabelMap:
         return float(np.prod(self.spacing) ** (1.0 / 3.0))
 
 
+def _require_scalar(components: int):
+    """A label map has one value per voxel (SimpleITK images and vtkImageData alike)."""
+    if components != 1:
+        raise InputError("expected a scalar label map, got a multi-component image")
+
+
+def select_labels(array: np.ndarray, labels=()) -> np.ndarray:
+    """The mask of the union of ``labels`` in a label array (all non-zero labels when empty).
+
+    The one rule of label selection, for files (:func:`read_label_map`) and VTK images
+    (:func:`label_map_of_image_data`) alike. Labels that are absent are ignored as long as one
+    of them is present.
+
+    Raises
+    ------
+    InputError
+        When the array has non-integer values, no non-zero value, or none of ``labels`` (the
+        message lists the labels found).
+
+    Examples
+    --------
+    >>> select_labels(np.array([0, 1, 2, 2]), [2, 3]).tolist()
+    [False, False, True, True]
+    >>> select_labels(np.array([0, 1, 5]), [7])
+    Traceback (most recent call last):
+    ...
+    mdlshapemodel.errors.InputError: label 7 not present (labels found: 1, 5)
+    """
+    array = np.asarray(array)
+    if not np.issubdtype(array.dtype, np.integer):
+        rounded = np.round(array)
+        if not np.allclose(array, rounded):
+            raise InputError("the image has non-integer values; expected a label map")
+        array = rounded.astype(np.int64)
+    present = np.unique(array)
+    present = present[present != 0]
+    if len(present) == 0:
+        raise InputError("the label map is empty (no non-zero voxels)")
+    if labels:
+        if not np.isin(labels, present).any():
+            found = ", ".join(str(int(v)) for v in present[:20])
+            raise InputError(f"label {', '.join(str(int(v)) for v in labels)} not present "
+                             f"(labels found: {found})")
+        return np.isin(array, labels)
+    return array != 0
+
+
 def read_label_map(path, labels=()) -> LabelMap:
-    """The union of ``labels`` (all non-zero labels when empty) of a label-map image."""
+    """The union of ``labels`` (all non-zero labels when empty) of a label-map image file
+    (:func:`select_labels`)."""
     import SimpleITK as sitk
 
     if not Path(path).is_file():
@@ -92,29 +140,28 @@ def read_label_map(path, labels=()) -> LabelMap:
         raise InputError(f"not a readable image ({reason})") from None
     if image.GetDimension() != 3:
         raise InputError(f"expected a 3-D label map, got a {image.GetDimension()}-D image")
-    if image.GetNumberOfComponentsPerPixel() != 1:
-        raise InputError("expected a scalar label map, got a multi-component image")
-    array = sitk.GetArrayViewFromImage(image)
-    if not np.issubdtype(array.dtype, np.integer):
-        rounded = np.round(array)
-        if not np.allclose(array, rounded):
-            raise InputError("the image has non-integer values; expected a label map")
-        array = rounded.astype(np.int64)
-    present = np.unique(array)
-    present = present[present != 0]
-    if len(present) == 0:
-        raise InputError("the label map is empty (no non-zero voxels)")
-    if labels:
-        missing = [label for label in labels if label not in present]
-        if len(missing) == len(labels):
-            found = ", ".join(str(int(v)) for v in present[:20]) or "none"
-            raise InputError(f"label {', '.join(map(str, missing))} not present "
-                             f"(labels found: {found})")
-        mask = np.isin(array, labels)
-    else:
-        mask = array != 0
+    _require_scalar(image.GetNumberOfComponentsPerPixel())
+    mask = select_labels(sitk.GetArrayViewFromImage(image), labels)
     return LabelMap(np.ascontiguousarray(mask), image.GetSpacing(), image.GetOrigin(),
                     image.GetDirection())
+
+
+def label_map_of_image_data(image, labels=()) -> LabelMap:
+    """The union of ``labels`` (all non-zero labels when empty) of a label map held in a
+    vtkImageData, with the same rules and messages as :func:`read_label_map`; the geometry is
+    the image's origin, spacing and direction matrix."""
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    scalars = image.GetPointData().GetScalars() if image is not None else None
+    if scalars is None or scalars.GetNumberOfTuples() == 0:
+        raise InputError("the input image has no scalars")
+    nx, ny, nz = image.GetDimensions()
+    _require_scalar(scalars.GetNumberOfComponents())
+    mask = select_labels(vtk_to_numpy(scalars).reshape(nz, ny, nx), labels)
+    matrix = image.GetDirectionMatrix()
+    direction = tuple(matrix.GetElement(r, c) for r in range(3) for c in range(3))
+    return LabelMap(np.ascontiguousarray(mask), tuple(image.GetSpacing()),
+                    tuple(image.GetOrigin()), direction)
 
 
 def _reader_for(path):
@@ -165,12 +212,19 @@ def read_polydata(path):
 
 
 def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (n, 3) and triangles (m, 3) of a mesh file; polygons are triangulated."""
+    """Vertices (n, 3) and triangles (m, 3) of a mesh file (:func:`mesh_arrays`)."""
+    return mesh_arrays(read_polydata(path))
+
+
+def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) and triangles (m, 3) of a vtkPolyData; polygons are triangulated, vertex
+    and line cells ignored. Raises :class:`InputError` when there is no triangle."""
     import vtk
 
     from .surface import polydata_to_arrays
 
-    polydata = read_polydata(path)
+    if polydata is None or polydata.GetNumberOfPoints() == 0:
+        raise InputError("the mesh is empty")
     triangulate = vtk.vtkTriangleFilter()
     triangulate.SetInputData(polydata)
     triangulate.PassVertsOff()

@@ -13,7 +13,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from ..config import SURFACE_METHODS
+from ..config import SURFACE_METHODS, BuildConfig
 from ..errors import SurfaceError
 
 
@@ -268,10 +268,13 @@ def slicer_smoothing(polydata, smoothing_factor: float, decimation: float = 0.0)
 
 
 def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
-                    direction=None, smoothing_sigma: float = 1.0,
-                    max_smoothing_sigma: float = 2.0, edge_length: float = 1.0,
-                    target_vertices: int = 20000, method: str = "gaussian",
-                    smoothing_factor: float = 0.5, decimation: float = 0.0
+                    direction=None, smoothing_sigma: float = BuildConfig.smoothing_sigma,
+                    max_smoothing_sigma: float = BuildConfig.max_smoothing_sigma,
+                    edge_length: float = BuildConfig.edge_length,
+                    target_vertices: int = BuildConfig.target_vertices,
+                    method: str = BuildConfig.surface_method,
+                    smoothing_factor: float = BuildConfig.smoothing_factor,
+                    decimation: float = BuildConfig.decimation
                     ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Closed genus-0 surface of a binary mask, in physical coordinates.
 
@@ -284,7 +287,8 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     (slicer) in steps of 0.5 voxel up to ``max_smoothing_sigma``; ``info["smoothing_sigma"]`` says
     which blur was needed (0: none). The surface is then remeshed isotropically (edges of about
     ``edge_length`` voxels: contouring leaves slivers that spoil sphere maps), decimated when it has
-    more than ``target_vertices`` vertices, and transformed to physical coordinates.
+    more than ``target_vertices`` vertices, and transformed to physical coordinates. The defaults
+    are those of :class:`~mdlshapemodel.config.BuildConfig`.
 
     Parameters
     ----------
