@@ -540,22 +540,22 @@ def test_surface_specificity_subsampling_agrees_with_all_points(rng):
 def test_stratified_sampling_is_unbiased(rng):
     """The strata partition the points; one random point per stratum, weighted by the stratum's
     share, estimates the mean over all points without bias, with less noise than a random subset."""
-    from mdlshapemodel.model.evaluation import _means, _RandomSubset, _Strata
+    from mdlshapemodel.model.evaluation import weighted_means, RandomPoints, StratifiedPoints
 
     _, _, _, surfaces = radial_population(rng, 1, 4)
     vertices = surfaces[0][0]
     values = np.linalg.norm(vertices - vertices[0], axis=1)             # a smooth field
     weights = rng.uniform(0.5, 2.0, len(vertices))
-    strata = _Strata(vertices, 40)
+    strata = StratifiedPoints(vertices, 40)
     assert np.array_equal(np.sort(strata.order), np.arange(len(vertices)))
     assert strata.counts.sum() == len(vertices) and len(strata.counts) == 40
     np.testing.assert_allclose(strata.fraction.sum(), 1.0)
-    draws = [_means(values[i], f, weights[i]) for i, f in (strata.draw(rng) for _ in range(4000))]
+    draws = [weighted_means(values[i], f, weights[i]) for i, f in (strata.draw(rng) for _ in range(4000))]
     plain, weighted = np.array(draws).T
     assert abs(plain.mean() - values.mean()) < 4 * plain.std() / np.sqrt(len(plain))
     assert abs(weighted.mean() - values @ weights / weights.sum()) < 0.01 * values.mean()
-    subset = _RandomSubset(len(vertices), 40)
-    random_plain = [_means(values[i], f, weights[i])[0]
+    subset = RandomPoints(len(vertices), 40)
+    random_plain = [weighted_means(values[i], f, weights[i])[0]
                     for i, f in (subset.draw(rng) for _ in range(4000))]
     assert abs(np.mean(random_plain) - values.mean()) < 4 * np.std(random_plain) / np.sqrt(4000)
     assert plain.std() < 0.5 * np.std(random_plain)

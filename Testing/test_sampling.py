@@ -237,10 +237,10 @@ def test_jacobian_matches_finite_differences_along_the_sphere(rng):
         moved /= np.linalg.norm(moved, axis=1, keepdims=True)
         back = queries - step * tangent
         back /= np.linalg.norm(back, axis=1, keepdims=True)
-        forward = locator.interpolate(values, face, locator._coordinates(face, moved) /
-                                      locator._coordinates(face, moved).sum(1, keepdims=True))
-        backward = locator.interpolate(values, face, locator._coordinates(face, back) /
-                                       locator._coordinates(face, back).sum(1, keepdims=True))
+        forward = locator.interpolate(values, face, locator.coordinates(face, moved) /
+                                      locator.coordinates(face, moved).sum(1, keepdims=True))
+        backward = locator.interpolate(values, face, locator.coordinates(face, back) /
+                                       locator.coordinates(face, back).sum(1, keepdims=True))
         numeric = (forward - backward) / (2 * step)
         analytic = np.einsum("ndk,nk->nd", jacobian, tangent)
         np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-6)

@@ -116,18 +116,18 @@ def test_mobius_is_an_orientation_preserving_bijection_of_the_sphere():
 
 
 def test_balance_objective_gradient_matches_finite_differences(bump_surface, bump_map):
-    from mdlshapemodel.prepare.sphere import _balance_objective
+    from mdlshapemodel.prepare.sphere import balance_objective
 
     vertices, faces = bump_surface
     area = triangle_areas(vertices, faces)
     target = np.log(area / area.sum())
     for v in (np.zeros(3), np.array([0.4, -0.3, 0.8]), np.array([-2.0, 0.5, 0.1])):
-        value, grad = _balance_objective(v, bump_map.sphere, faces, target, 0.01)
+        value, grad = balance_objective(v, bump_map.sphere, faces, target, 0.01)
         chord = triangle_areas(mobius_of(bump_map.sphere, v), faces)
         expected = np.mean(np.sqrt(np.log(chord / chord.sum() / np.exp(target)) ** 2 + 1e-4))
         assert value == pytest.approx(expected, rel=1e-10)
-        numeric = [(_balance_objective(v + e, bump_map.sphere, faces, target, 0.01)[0]
-                    - _balance_objective(v - e, bump_map.sphere, faces, target, 0.01)[0]) / 2e-6
+        numeric = [(balance_objective(v + e, bump_map.sphere, faces, target, 0.01)[0]
+                    - balance_objective(v - e, bump_map.sphere, faces, target, 0.01)[0]) / 2e-6
                    for e in np.eye(3) * 1e-6]
         np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-8)
 
@@ -198,11 +198,11 @@ def test_minimise_distortion_never_increases_the_energy_nor_flips(bump_surface, 
 def test_compiled_energy_matches_its_definition(bump_surface, warped_start, bump_map):
     """The single-pass (compiled) energy equals the Jacobian form of the test, and is infinite
     as soon as one triangle is flipped."""
-    from mdlshapemodel.prepare.sphere import _DistortionEnergy
+    from mdlshapemodel.prepare.sphere import DistortionEnergy
 
     vertices, faces = bump_surface
     for area_weight in (0.0, 4.0):
-        energy_of = _DistortionEnergy(vertices, faces, area_weight)
+        energy_of = DistortionEnergy(vertices, faces, area_weight)
         for x in (warped_start, bump_map.sphere):
             energy, grad = energy_of(x)
             assert energy == pytest.approx(distortion_energy(vertices, faces, x, area_weight),
@@ -216,10 +216,10 @@ def test_compiled_energy_matches_its_definition(bump_surface, warped_start, bump
 
 
 def test_energy_gradient_matches_finite_differences(bump_surface, warped_start, rng):
-    from mdlshapemodel.prepare.sphere import _DistortionEnergy
+    from mdlshapemodel.prepare.sphere import DistortionEnergy
 
     vertices, faces = bump_surface
-    energy_of = _DistortionEnergy(vertices, faces, 4.0)
+    energy_of = DistortionEnergy(vertices, faces, 4.0)
     _, grad = energy_of(warped_start)
     step = 1e-6
     # single coordinates, including the vertex with the largest gradient

@@ -12,9 +12,9 @@ from mdlshapemodel.correspondence.sampling import icosphere, sphere_grid
 from mdlshapemodel.prepare.sphere import orientation
 from mdlshapemodel.config import STRATEGIES, OptimisationSettings
 from mdlshapemodel.correspondence.strategies import optimise
-from mdlshapemodel.correspondence.strategies.one_at_a_time import (_optimise_amplitude,
-                                                                    _optimise_pose)
-from mdlshapemodel.correspondence.strategies.simplex import (_population_value,
+from mdlshapemodel.correspondence.strategies.one_at_a_time import (optimise_amplitude,
+                                                                    optimise_pose)
+from mdlshapemodel.correspondence.strategies.simplex import (population_value,
                                                              multiresolution_levels)
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.errors import Cancelled
@@ -46,11 +46,11 @@ def test_amplitude_and_pose_steps_never_increase_the_objective():
     for i in range(state.n_shapes):
         part = state.examples[i].parts[0]
         kernel = SymmetricTheta(part.random_surface_parameter(rng), 0.0, 0.2)
-        new = _optimise_amplitude(state, i, 0, kernel, value, 1.0)
+        new = optimise_amplitude(state, i, 0, kernel, value, 1.0)
         assert new <= value
         assert state.value() == pytest.approx(new, rel=1e-9)  # the state holds what was returned
         value = new
-        new = _optimise_pose(state, i, value, 40)
+        new = optimise_pose(state, i, value, 40)
         assert new <= value
         assert state.value() == pytest.approx(new, rel=1e-9)
         value = new
@@ -201,7 +201,7 @@ def test_population_value_matches_the_incremental_covariance():
     state = small_state()
     _, integrated = objectives(state)
     state.objective = integrated
-    assert _population_value(state, state.shapes.copy()) == pytest.approx(state.value(), rel=1e-9)
+    assert population_value(state, state.shapes.copy()) == pytest.approx(state.value(), rel=1e-9)
     part = state.examples[2].parts[0]
     positions, points, _ = part.propose(SymmetricTheta(part.random_surface_parameter(
         np.random.default_rng(0)), 0.3, 0.2), check_folds=False)
@@ -209,7 +209,7 @@ def test_population_value_matches_the_incremental_covariance():
     shapes = state.shapes.copy()
     shapes[2] = shape
     before = state.evaluations
-    assert _population_value(state, shapes) == pytest.approx(state.value(2, shape), rel=1e-9)
+    assert population_value(state, shapes) == pytest.approx(state.value(2, shape), rel=1e-9)
     assert state.evaluations == before + 2
 
 
@@ -364,11 +364,11 @@ def test_fast_strategy_is_deterministic_and_respects_active():
 
 
 def test_fast_round_gradient_matches_finite_differences():
-    from mdlshapemodel.correspondence.strategies.fast import _Round, gradient_at
+    from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
 
     state = small_state()
     state.objective = objectives(state)[1]
-    round_ = _Round(state, [0, 2], level=1, support=2.0)
+    round_ = FieldRound(state, [0, 2], level=1, support=2.0)
     rng = np.random.default_rng(3)
     upper = round_.bounds.ub
     x = rng.uniform(-0.3, 0.3, round_.size) * np.where(np.isfinite(upper), upper, 0.05)

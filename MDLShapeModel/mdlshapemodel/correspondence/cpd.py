@@ -224,7 +224,7 @@ class _LeanExpectation:
             self.P = None
 
 
-class _Rigid(_LeanExpectation, RigidRegistration):
+class RigidCPD(_LeanExpectation, RigidRegistration):
     """pycpd's rigid CPD with scaling, the lean E-step and a relative stopping rule.
 
     pycpd stops when the objective Q changes by less than ``tolerance`` in absolute terms, but Q
@@ -238,7 +238,7 @@ class _Rigid(_LeanExpectation, RigidRegistration):
         self.diff = abs(self.q - previous) / max(abs(self.q), 1.0)
 
 
-class _Deformable(_LeanExpectation, DeformableRegistration):
+class LowRankDeformableCPD(_LeanExpectation, DeformableRegistration):
     """pycpd's deformable CPD with the lean E-step and the low-rank M-step of the paper (sec. 5.2).
 
     Parameters
@@ -382,7 +382,7 @@ def cpd_registration(template_points: np.ndarray, target_vertices: np.ndarray,
     Y = (template - template_centre) / template_radius
     rigid_Y = Y[subsample_indices(len(Y), RIGID_POINTS, seed)]
     rigid_X = X_all[subsample_indices(len(X_all), RIGID_POINTS, seed + 1)]
-    rigid = _Rigid(X=rigid_X, Y=rigid_Y, sigma2=initial_sigma2(rigid_X, rigid_Y),
+    rigid = RigidCPD(X=rigid_X, Y=rigid_Y, sigma2=initial_sigma2(rigid_X, rigid_Y),
                    max_iterations=100, tolerance=1e-5, w=w)
     rigid.register()
     Y_aligned = rigid.transform_point_cloud(Y=Y)
@@ -392,7 +392,7 @@ def cpd_registration(template_points: np.ndarray, target_vertices: np.ndarray,
     X = X_all[target_indices]
     sigma2_start = (initial_sigma2(X, Y_aligned) if sigma2_factor is None
                     else max(sigma2_factor * rigid.sigma2, MIN_SIGMA2))
-    deformable = _Deformable(X=X, Y=Y_aligned, alpha=alpha, beta=beta, num_eig=num_eig, rng=rng,
+    deformable = LowRankDeformableCPD(X=X, Y=Y_aligned, alpha=alpha, beta=beta, num_eig=num_eig, rng=rng,
                              sigma2=sigma2_start,
                              max_iterations=int(max_iterations), tolerance=tolerance, w=w)
     deformable.register()

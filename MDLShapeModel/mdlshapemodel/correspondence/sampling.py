@@ -99,7 +99,7 @@ class SphereLocator:
         self.vertex_faces = vertex_face_table(self.faces, len(self.sphere))
         self.neighbours = face_neighbours(self.faces)
 
-    def _coordinates(self, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    def coordinates(self, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
         return np.einsum("...ij,...j->...i", self.inverse[faces], points)
 
     def locate(self, points: np.ndarray, hint: np.ndarray | None = None,
@@ -129,7 +129,7 @@ class SphereLocator:
             candidates = self.vertex_faces[nearest].reshape(len(todo), -1)
             valid = candidates >= 0
             safe = np.where(valid, candidates, 0)
-            lam = self._coordinates(safe, points[todo][:, None, :])
+            lam = self.coordinates(safe, points[todo][:, None, :])
             score = np.where(valid, lam.min(axis=2), -np.inf)
             best = np.argmax(score, axis=1)
             rows = np.arange(len(todo))
@@ -138,7 +138,7 @@ class SphereLocator:
             missed = todo[score[rows, best] < -1e-9]
             if len(missed):  # rare: fall back to all faces
                 for index in missed:
-                    lam_all = self._coordinates(np.arange(len(self.faces)), points[index][None, :])
+                    lam_all = self.coordinates(np.arange(len(self.faces)), points[index][None, :])
                     best_face = int(np.argmax(lam_all.min(axis=1)))
                     face[index], coords[index] = best_face, _clamped(lam_all[best_face])
         return face, coords

@@ -279,7 +279,7 @@ class CorrespondenceState:
         flat = (self.shapes - self.reference).reshape(self.n_shapes, -1)
         flat *= np.repeat(2.0 * self.weights, 3)
         grad = multiplier @ flat
-        grad += self._scale_gradient(self.sum_shapes, grad_cov, covariance).reshape(1, -1)
+        grad += self.scale_gradient(self.sum_shapes, grad_cov, covariance).reshape(1, -1)
         return value, grad.reshape(self.shapes.shape)
 
     def example_gradient(self, i: int, shape: np.ndarray | None = None
@@ -294,7 +294,7 @@ class CorrespondenceState:
             row += multiplier[i, i] * (shape - self.shapes[i])
             total = total - self.shapes[i] + shape
         data = 2.0 * row * self.weights[:, None]
-        return value, data + self._scale_gradient(total, grad_cov, covariance)
+        return value, data + self.scale_gradient(total, grad_cov, covariance)
 
     def _covariance_gradient(self, i, shape):
         """F, dF/dD', D' and dF/dK = f^2 H (dF/dD') H at the current (or trial) state."""
@@ -307,7 +307,7 @@ class CorrespondenceState:
         centred = centred - centred.mean(axis=0)[None, :]
         return value, grad_cov, covariance, centred * factor ** 2
 
-    def _scale_gradient(self, total, grad_cov, covariance) -> np.ndarray:
+    def scale_gradient(self, total, grad_cov, covariance) -> np.ndarray:
         """(n_p, 3): the part of dF/dx_ik (the same for every example i) due to the rescaling
         factor f = target_size / cs(mean): dF/df^2 = <Gd, D'> / f^2, d f^2 = -f^2 d cs^2 / cs^2,
         d cs^2 / dx_ik = 2 w_k (xbar_k - c) / n_s."""

@@ -162,7 +162,7 @@ class _AllPoints:
         return slice(None), None
 
 
-class _RandomSubset:
+class RandomPoints:
     """Sampler: a uniform random subset of ``size`` of ``n`` points, fresh at each draw."""
 
     def __init__(self, n: int, size: int):
@@ -172,7 +172,7 @@ class _RandomSubset:
         return np.sort(rng.choice(self.n, size=self.size, replace=False)), None
 
 
-class _Strata:
+class StratifiedPoints:
     """Sampler: one random point from each of ``size`` spatial strata, fresh at each draw.
 
     The strata are the Voronoi cells of ``size`` farthest-point-sampled points. Each stratum enters
@@ -205,10 +205,10 @@ class _Strata:
 def _sampler(points: np.ndarray, max_points: int | None, stratified: bool):
     if max_points is None or max_points >= len(points):
         return _AllPoints()
-    return _Strata(points, max_points) if stratified else _RandomSubset(len(points), max_points)
+    return StratifiedPoints(points, max_points) if stratified else RandomPoints(len(points), max_points)
 
 
-def _means(values: np.ndarray, fraction: np.ndarray | None, weights: np.ndarray):
+def weighted_means(values: np.ndarray, fraction: np.ndarray | None, weights: np.ndarray):
     """(plain, weighted) mean of the values of sampled points: their estimates of the means of all
     points, ``fraction`` the share of the points each sampled point stands for (None: equal)."""
     if fraction is None:
@@ -228,8 +228,8 @@ def _symmetric(points: np.ndarray, weights: np.ndarray, mesh: SurfaceDistance,
     """
     a_index, a_fraction = points_sampler.draw(rng)
     b_index, b_fraction = true_sampler.draw(rng)
-    a_plain, to_surface = _means(true.distance(points[a_index]), a_fraction, weights[a_index])
-    b_plain, from_surface = _means(mesh(true.vertices[b_index]), b_fraction, true.areas[b_index])
+    a_plain, to_surface = weighted_means(true.distance(points[a_index]), a_fraction, weights[a_index])
+    b_plain, from_surface = weighted_means(mesh(true.vertices[b_index]), b_fraction, true.areas[b_index])
     return 0.5 * (a_plain + b_plain), 0.5 * (to_surface + from_surface), to_surface, from_surface
 
 

@@ -91,7 +91,7 @@ def mobius(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return (1.0 - centre @ centre) * d / np.einsum("ij,ij->i", d, d)[:, None] - centre
 
 
-def _balance_objective(v, points, faces, target_log_share, smoothing):
+def balance_objective(v, points, faces, target_log_share, smoothing):
     """Smoothed mean |ln area ratio| after :func:`mobius` with centre v / sqrt(1 + |v|^2).
 
     Returns the value and its analytic gradient with respect to ``v``.
@@ -152,7 +152,7 @@ def balance_area(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
     faces = np.asarray(faces, dtype=np.int64)
     surface_area = np.maximum(face_areas(vertices, faces), 1e-300)
     target = np.log(surface_area / surface_area.sum())
-    result = minimize(_balance_objective, np.zeros(3), jac=True, method="BFGS",
+    result = minimize(balance_objective, np.zeros(3), jac=True, method="BFGS",
                       args=(sphere, faces, target, smoothing), options={"gtol": 1e-6})
     v = result.x
     return mobius(sphere, v / np.sqrt(1.0 + v @ v))
@@ -205,7 +205,7 @@ MAX_ITERATIONS = 10000
 AREA_WEIGHT = 4.0
 
 
-class _DistortionEnergy:
+class DistortionEnergy:
     """Symmetric Dirichlet + area energy of the map surface -> sphere.
 
     For each triangle, with surface areas rescaled to a total of 4 pi (``A``), cotangent weights
@@ -261,7 +261,7 @@ def minimise_distortion(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndar
     """
     from .sphere_kernels import lbfgs
 
-    energy_of = _DistortionEnergy(vertices, faces, area_weight)
+    energy_of = DistortionEnergy(vertices, faces, area_weight)
     x = np.array(sphere, dtype=np.float64, order="C")
     energy, _ = energy_of(x, gradient=False)
     if not np.isfinite(energy):

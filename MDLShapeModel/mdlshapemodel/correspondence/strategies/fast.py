@@ -72,7 +72,7 @@ class _FieldBlock:
 
 @dataclass
 class _Trial:
-    """What the parameters x of a round give (see :meth:`_Round.trial`)."""
+    """What the parameters x of a round give (see :meth:`FieldRound.trial`)."""
 
     x: np.ndarray             # the parameters
     located: list             # per block: phi (n, 3), |m| (n,), faces (n,), dS/du (n, 3, 3)
@@ -85,7 +85,7 @@ class _Trial:
     pose: np.ndarray          # (n_active, 7) the pose parameters of x
 
 
-class _Round:
+class FieldRound:
     """The parameters of one round and the map from them to F and dF/dparameters.
 
     x holds, per active example, the field coefficients of each part (3 per bump) and 7 pose
@@ -225,7 +225,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
     At ``deadline`` the round stops and keeps the best point it has evaluated.
     """
     state.objective = objective
-    round_ = _Round(state, active, level, support)
+    round_ = FieldRound(state, active, level, support)
     cache = {}
 
     def fun(x):

@@ -31,7 +31,7 @@ KIND_OF_OPTION = {"symmetric": SymmetricTheta.kind, "asymmetric": AsymmetricThet
                   "shear": ShearTwist.kind, "rotation": Rotation.kind}
 
 
-def _optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: SymmetricTheta,
+def optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: SymmetricTheta,
                         current: float, max_amplitude: float, min_amplitude: float = 1e-7,
                         improved=None) -> float:
     """Best amplitude for one kernel of part j of example i; commits it when F falls.
@@ -122,7 +122,7 @@ def optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, current
     """One step of the one-at-a-time strategies on part j of example i with a warp of ``kind``.
 
     - ``symmetric``: a random kernel (centre uniform over the surface, omega from sigma_G), its
-      amplitude optimised by :func:`_optimise_amplitude`, as in the paper;
+      amplitude optimised by :func:`optimise_amplitude`, as in the paper;
     - ``asymmetric`` (Appendix eq. 27-29): centre and omega drawn as for the symmetric kernel,
       psi0 uniform, b log-uniform on [0.1, 2] (:func:`warps.random_asymmetric_theta`); A0 >= 0 is
       searched over log10 A0 up to the amplitude whose peak A(psi0) = ``max_amplitude`` (or less,
@@ -144,7 +144,7 @@ def optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, current
     if kind == "symmetric":
         kernel = SymmetricTheta(part.random_surface_parameter(rng), 0.0,
                                 random_width(rng, settings.sigma_g))
-        return _optimise_amplitude(state, i, j, kernel, current, settings.max_amplitude,
+        return optimise_amplitude(state, i, j, kernel, current, settings.max_amplitude,
                                    min_amplitude, improved)
     found: list = []
     seen = improvements(current, improved)
@@ -199,11 +199,11 @@ def warp_counts(state: CorrespondenceState) -> dict:
     return counts
 
 
-def _optimise_pose(state: CorrespondenceState, i: int, current: float, max_evaluations: int,
+def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evaluations: int,
                    improved=None) -> float:
     """Downhill simplex over example i's pose (rotation about its centroid, translation, scale).
 
-    ``improved`` as in :func:`_optimise_amplitude`."""
+    ``improved`` as in :func:`optimise_amplitude`."""
     example = state.examples[i]
     raw = example.raw_points()
     base = example.pose
@@ -265,7 +265,7 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
                 value = optimise_warp(state, i, j, kind, value, settings, rng,
                                        improved=improved)
             if with_pose:
-                value = _optimise_pose(state, i, value, settings.pose_evaluations, improved)
+                value = optimise_pose(state, i, value, settings.pose_evaluations, improved)
             trace.record(state, value, phase, sweep)
             report(progress, None, f"{phase}: sweep {sweep}, F = {value:.3f}")
             if time.perf_counter() > deadline:

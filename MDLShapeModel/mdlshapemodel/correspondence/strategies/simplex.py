@@ -27,7 +27,7 @@ from ..warps import SymmetricTheta, random_width
 from .base import active_parts, end_of_iteration, recorder, start_phase, stalled
 
 
-def _population_value(state: CorrespondenceState, shapes: np.ndarray) -> float:
+def population_value(state: CorrespondenceState, shapes: np.ndarray) -> float:
     """F of the population with *every* shape replaced by ``shapes`` (n_s, n_p, 3)."""
     with state.trial_shapes(shapes):
         return state.value()
@@ -65,7 +65,7 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
                          label: str = "", improved=None) -> float:
     """Downhill simplex over the amplitudes of all ``blocks`` at once; commits when F falls.
 
-    ``improved`` as in :func:`_optimise_amplitude`.
+    ``improved`` as in :func:`optimise_amplitude`.
 
     Trial amplitudes are clipped into [0, A_max] per kernel; a trial whose composed kernels flip a
     grid triangle of its part scores +inf. Stops at the simplex's own tolerance, after
@@ -112,7 +112,7 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
         shapes, parts = trial_of(x)
         if shapes is None:
             return np.inf
-        value = _population_value(state, shapes)
+        value = population_value(state, shapes)
         if value < best["value"]:
             best["value"], best["trial"] = value, parts
             if improved is not None:

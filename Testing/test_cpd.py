@@ -9,7 +9,7 @@ import pytest
 from pycpd import DeformableRegistration, RigidRegistration
 from scipy.spatial import cKDTree
 
-from mdlshapemodel.correspondence.cpd import (CPDResult, _Deformable, _Rigid, closest_points_on_surface,
+from mdlshapemodel.correspondence.cpd import (CPDResult, LowRankDeformableCPD, RigidCPD, closest_points_on_surface,
                                         cpd_case, cpd_correspondence, cpd_registration,
                                         gaussian_kernel, initial_sigma2, low_rank_eigen,
                                         subsample_indices)
@@ -176,12 +176,12 @@ def test_lean_registrations_match_pycpd(rng):
     diff = X[None, :, :] - Y[:, None, :]
     assert sigma2 == pytest.approx(np.sum(diff ** 2) / (3 * len(X) * len(Y)))
     for w in (0.0, 0.2):
-        ours = _Rigid(X=X, Y=Y, sigma2=sigma2, max_iterations=20, tolerance=0.0, w=w)
+        ours = RigidCPD(X=X, Y=Y, sigma2=sigma2, max_iterations=20, tolerance=0.0, w=w)
         theirs = RigidRegistration(X=X, Y=Y, sigma2=sigma2, max_iterations=20, tolerance=0.0, w=w)
         ours.register()
         theirs.register()
         assert np.allclose(ours.TY, theirs.TY, atol=1e-4)
-        ours = _Deformable(X=X, Y=Y, alpha=2.0, beta=1.0, num_eig=None, rng=rng, sigma2=sigma2,
+        ours = LowRankDeformableCPD(X=X, Y=Y, alpha=2.0, beta=1.0, num_eig=None, rng=rng, sigma2=sigma2,
                            max_iterations=20, tolerance=0.0, w=w)
         theirs = DeformableRegistration(X=X, Y=Y, alpha=2.0, beta=1.0, sigma2=sigma2,
                                         max_iterations=20, tolerance=0.0, w=w)
@@ -204,9 +204,9 @@ def test_low_rank_kernel_and_solve(rng):
     # with the eigenpairs down to 1e-7 of the largest the Woodbury solve gives the exact result
     X = Y * 1.1 + 0.05
     sigma2 = initial_sigma2(X, Y)
-    exact = _Deformable(X=X, Y=Y, alpha=2.0, beta=0.5, num_eig=None, rng=rng, sigma2=sigma2,
+    exact = LowRankDeformableCPD(X=X, Y=Y, alpha=2.0, beta=0.5, num_eig=None, rng=rng, sigma2=sigma2,
                         max_iterations=30)
-    low = _Deformable(X=X, Y=Y, alpha=2.0, beta=0.5, num_eig=300, rng=rng, sigma2=sigma2,
+    low = LowRankDeformableCPD(X=X, Y=Y, alpha=2.0, beta=0.5, num_eig=300, rng=rng, sigma2=sigma2,
                       max_iterations=30)
     exact.register()
     low.register()
