@@ -227,7 +227,6 @@ def test_multiresolution_levels_halve_the_width_and_fill_in_between():
 
 @pytest.mark.parametrize("strategy", ["multiresolution", "multiscale"])
 def test_simplex_strategies_lower_the_objective_and_keep_grids_unfolded(strategy):
-    started = time.perf_counter()
     state, trace, start, final = run_simplex(strategy, fixed_fraction=0.0)
     assert final < start - 1e-6
     assert {row[4] for row in trace.rows} == {"integrated"}
@@ -237,7 +236,6 @@ def test_simplex_strategies_lower_the_objective_and_keep_grids_unfolded(strategy
     assert sum(len(p.warps) for e in state.examples for p in e.parts) > 0
     columns = np.array([row[:3] for row in trace.rows])
     assert np.all(np.diff(columns, axis=0) >= 0)
-    assert time.perf_counter() - started < 20.0
 
 
 def test_multiresolution_places_kernels_of_the_level_widths_on_the_lattice():

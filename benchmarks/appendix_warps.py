@@ -56,7 +56,7 @@ def run(job: tuple) -> dict:
     wall = time.perf_counter()
     trace = Trace()
     final = optimise(state, objectives, settings, np.random.default_rng(seed), trace)
-    fixed_end = [row[3] for row in trace.rows if row[4] == "fixed"][-1]
+    fixed_end = [row.objective for row in trace.rows if row.phase == "fixed"][-1]
     return {"warps": warps, "seed": seed, "initial": initial, "final": final, "fixed": fixed_end,
             "cpu": time.process_time() - cpu, "wall": time.perf_counter() - wall,
             "evaluations": state.evaluations, "accepted": warp_counts(state)}

@@ -245,15 +245,15 @@ def run_job(job: dict, budget: float, max_wall: float, objective: str, points: i
         optimise(state, (fixed, chosen), settings, np.random.default_rng(job["seed"]), trace,
                  progress=out_of_cpu)
         # back before the budget: the wall-clock cap, or fast's own end (after its finest level)
-        capped = trace.rows[-1][0] >= max_wall
+        capped = trace.last.wall_seconds >= max_wall
         stopped = "wall-clock cap" if capped else "converged"
     except Cancelled:
         stopped = "CPU budget"
     io.write_csv(path, Trace.HEADER, trace.rows)
     info = {**job, "budget": budget, "objective": objective, "points": state.n_points,
-            "stopped": stopped, "initial": trace.rows[0][3], "final": trace.rows[-1][3],
-            "cpu_seconds": trace.rows[-1][1], "wall_seconds": trace.rows[-1][0],
-            "evaluations": trace.rows[-1][2], "rows": len(trace.rows)}
+            "stopped": stopped, "initial": trace.rows[0].objective, "final": trace.last.objective,
+            "cpu_seconds": trace.last.cpu_seconds, "wall_seconds": trace.last.wall_seconds,
+            "evaluations": trace.last.evaluations, "rows": len(trace.rows)}
     Path(path).with_suffix(".json").write_text(json.dumps(info, indent=1))
     return info
 

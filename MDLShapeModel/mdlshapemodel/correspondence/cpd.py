@@ -324,7 +324,7 @@ def subsample_indices(n: int, max_points: int | None, seed: int = 0) -> np.ndarr
 def closest_points_on_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest point of a triangle mesh to each query point: (closest (n, 3), distance (n,),
-    index of the face holding it (n,)), by :class:`mdlshapemodel.surface.SurfaceDistance`."""
+    index of the face holding it (n,)), by :class:`mdlshapemodel.prepare.surface.SurfaceDistance`."""
     return SurfaceDistance(vertices, faces).closest(points)
 
 

@@ -73,7 +73,7 @@ Scaling study (:func:`scaling_study`, :func:`scaling_gradient`)
     paper's figures show "a least-squares fit to the points").
 
 Reading traces (:func:`trace_curve`, :func:`read_trace`)
-    ``convergence.csv`` (columns of :attr:`mdlshapemodel.strategies.Trace.HEADER`). Its phases
+    ``convergence.csv`` (columns of :attr:`mdlshapemodel.correspondence.trace.Trace.HEADER`). Its phases
     optimise different objectives ("fixed": eq. 13, "integrated": eq. 14) on different scales,
     so select one phase to compare. Times count from the start of the whole run.
 """

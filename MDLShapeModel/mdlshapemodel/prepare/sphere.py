@@ -217,7 +217,7 @@ class DistortionEnergy:
     linear map surface triangle -> chord triangle. ``a`` is the chord-triangle area weighted by
     its plane's distance from the centre: positive exactly when the triangle keeps its orientation
     and zero when its vertices fall on one great circle, so the energy is a barrier against folds.
-    Evaluated in one compiled pass (:func:`.distortion_kernels.distortion_energy`).
+    Evaluated in one compiled pass (:func:`.sphere_kernels.distortion_energy`).
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, area_weight: float):
@@ -255,7 +255,7 @@ def minimise_distortion(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndar
 
     Riemannian L-BFGS with the projection retraction; every trial point is checked for flipped
     triangles (the energy is infinite there), so each accepted iterate is fold-free (compiled:
-    :func:`.distortion_kernels.lbfgs`). It stops
+    :func:`.sphere_kernels.lbfgs`). It stops
     when the energy fell by less than ``tolerance`` (relative) per iteration over the last 20,
     when no step lowers the energy, or after ``max_iterations``.
     """

@@ -56,7 +56,7 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
     """Evaluate every population on the cases they share; differences against the first.
 
     Returns a JSON-ready dict: ``cases`` (shared), ``models`` (label -> measures as from
-    :func:`mdlshapemodel.evaluation.evaluate`) and ``differences`` (label -> measure -> per M:
+    :func:`mdlshapemodel.model.evaluation.evaluate`) and ``differences`` (label -> measure -> per M:
     difference to the first model, its standard error, and whether it exceeds two of them).
     """
     if not populations:
