@@ -1,7 +1,9 @@
 """The real command line, run in a subprocess."""
 
+import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from mdlshapemodel.config import BuildConfig
 from synthetic import small_mask
 
 EXECUTABLE = [sys.executable, "-m", "mdlshapemodel.cli"]
@@ -154,3 +157,90 @@ def test_cpd_build_compare_and_fit(tmp_path):
     bad = run("fit", tmp_path / "nowhere", held_back, "-o", tmp_path / "fit2")
     assert bad.returncode == 2 and "no such model file" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+# Each user-facing field of BuildConfig: its options on the command line and the value they give.
+NON_DEFAULT_OPTIONS = {
+    "labels": (["--label", "1,2", "--label", "3"], [1, 2, 3]),
+    "voxel_size": (["--voxel-size", "0.5"], 0.5),
+    "mirror": (["--mirror", "*_r*", "--mirror", "a,b"], ["*_r*", "a,b"]),
+    "surface_method": (["--surface", "slicer"], "slicer"),
+    "smoothing_factor": (["--smoothing-factor", "0.25"], 0.25),
+    "decimation": (["--decimation", "0.2"], 0.2),
+    "smoothing_sigma": (["--smoothing", "1.5"], 1.5),
+    "max_smoothing_sigma": (["--max-smoothing", "3"], 3.0),
+    "edge_length": (["--edge-length", "1.5"], 1.5),
+    "target_vertices": (["--target-vertices", "5000"], 5000),
+    "correspondence": (["--correspondence", "cpd"], "cpd"),
+    "baselines": (["--baselines", "none,cpd"], ["none", "cpd"]),
+    "points": (["--points", "162"], 162),
+    "strategy": (["--strategy", "one-at-a-time-pose"], "one-at-a-time-pose"),
+    "warps": (["--warps", "symmetric,shear"], ["symmetric", "shear"]),
+    "scaling": (["--no-scaling"], False),
+    "delta_range": (["--delta-range", "0.001", "0.25"], [0.001, 0.25]),
+    "fixed_delta": (["--fixed-delta", "0.2"], 0.2),
+    "sigma_g": (["--sigma-g", "0.05"], 0.05),
+    "max_time": (["--max-time", "30"], 30.0),
+    "fixed_fraction": (["--fixed-fraction", "0.5"], 0.5),
+    "tolerance": (["--tolerance", "0.01"], 0.01),
+    "max_sweeps": (["--max-sweeps", "7"], 7),
+    "seed": (["--seed", "5"], 5),
+    "evaluation_modes": (["--evaluation-modes", "3"], 3),
+    "specificity_samples": (["--specificity-samples", "300"], 300),
+    "surface_samples": (["--surface-samples", "0"], 0),
+    "workers": (["--workers", str((os.cpu_count() or 1) + 1)], (os.cpu_count() or 1) + 1),
+    "cache_dir": (["--cache-dir", "somewhere"], "somewhere"),
+    "strict": (["--strict"], True),
+}
+
+
+def config_of_command_line(tmp_path: Path, name: str, *options) -> dict:
+    """The configuration that ``build`` makes of ``options``: the build writes config.json into
+    its output folder before it looks for its inputs, which here do not exist."""
+    result = run("build", tmp_path / "no-such-input", "-o", tmp_path / name, *options)
+    assert result.returncode == 2 and "no such file" in result.stderr, result.stderr
+    return json.loads((tmp_path / name / "config.json").read_text())
+
+
+def test_build_options_are_the_fields_of_build_config(tmp_path):
+    """Every build option sets a BuildConfig field and shows its help; every field that carries
+    a help text has an option; the defaults are the fields' defaults."""
+    defaults = BuildConfig()
+    offered = [f for f in dataclasses.fields(BuildConfig) if "help" in f.metadata]
+    assert {f.name for f in offered} == set(NON_DEFAULT_OPTIONS)
+    for f in dataclasses.fields(BuildConfig):  # each field is offered or says why not
+        assert ("help" in f.metadata) != ("internal" in f.metadata), f.name
+
+    help_text = run("build", "--help").stdout
+    flags = set(re.findall(r"^ {2}(?:-\w, )?(--[\w-]+)", help_text, re.MULTILINE))
+    assert flags - {"--help", "--output", "--quiet"} == (
+        {arguments[0] for arguments, _ in NON_DEFAULT_OPTIONS.values()} | {"--no-cache"})
+
+    def squeezed(text):  # argparse rewraps help texts
+        return re.sub(r"\s+", "", text)
+
+    for f in offered:
+        default = getattr(BuildConfig, f.name, None) if f.default_factory is dataclasses.MISSING \
+            else f.default_factory()
+        assert squeezed(f.metadata["help"] % {"default": default}) in squeezed(help_text), f.name
+    assert squeezed(BuildConfig.__dataclass_fields__["cache_dir"].metadata["off_help"]) in \
+        squeezed(help_text)
+
+    # no options: the defaults, with the blur rule (max_smoothing_sigma = max(2, smoothing))
+    assert config_of_command_line(tmp_path, "defaults") == json.loads(
+        json.dumps(defaults.to_dict()))
+    # every option: its field
+    options = [a for arguments, _ in NON_DEFAULT_OPTIONS.values() for a in arguments]
+    made = config_of_command_line(tmp_path, "options", *options)
+    for name, (_, value) in NON_DEFAULT_OPTIONS.items():
+        assert value != json.loads(json.dumps(defaults.to_dict()))[name], name
+        assert made[name] == value, name
+    assert made["max_amplitude"] == defaults.max_amplitude
+    # --no-cache wins over --cache-dir; unless set, the largest blur follows --smoothing
+    made = config_of_command_line(tmp_path, "rules", "--no-cache", "--cache-dir", "x",
+                                  "--smoothing", "3")
+    assert made["cache_dir"] == "" and made["smoothing_sigma"] == 3.0
+    assert made["max_smoothing_sigma"] == 3.0
+    assert BuildConfig(smoothing_sigma=3.0).validate().max_smoothing_sigma == 3.0
+    assert defaults.max_smoothing_sigma == 2.0
+
