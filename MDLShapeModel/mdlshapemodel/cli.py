@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import math
+import os
+import signal
 import sys
+import threading
 import time
 import typing
 from dataclasses import MISSING, fields
@@ -122,19 +127,138 @@ def _config_from(args) -> BuildConfig:
     return BuildConfig(**values).validate()
 
 
-class _Progress:
-    """Prints progress messages to stderr, at most one every few seconds."""
+# Log records of progress reports carry this attribute, so that the terminal can leave them out
+# while a bar shows the reports.
+_PROGRESS_LINE = "mdlshapemodel_progress_line"
 
-    def __init__(self, interval: float = 5.0):
+
+class _ProgressDisplay:
+    """Shows the reports of :mod:`mdlshapemodel.progress` on stderr, stage by stage.
+
+    A new stage starts when reports switch between a fraction and none, or the fraction falls
+    back or starts again after reaching 1: preparing (``prepared k/n``), the CPD registrations,
+    the optimisation (no fraction: its message carries the phase, the round or sweep and F) and
+    the evaluation.
+
+    Every report may become a log line (stderr and build.log): the first of a stage, the last
+    (fraction 1) and otherwise at most one every ``interval`` seconds. With ``live`` (stderr is
+    a terminal) the terminal shows a tqdm bar per stage instead, updated on every report: the
+    log lines then go to build.log only (see :class:`_TerminalHandler`). Use it as a context
+    manager: the bar is closed on the way out, also on errors and Ctrl-C.
+    """
+
+    def __init__(self, live: bool = False, stream=None, interval: float = 5.0):
+        self.live = live
+        self.stream = stream if stream is not None else sys.stderr
         self.interval = interval
-        self.last = 0.0
+        self.fraction = self.bar = None
+        self.started = False
+        self.logged = -math.inf
+
+    def __enter__(self) -> "_ProgressDisplay":
+        return self
+
+    def __exit__(self, *exception) -> None:
+        self.close()
 
     def __call__(self, fraction, message):
+        previous = self.fraction
+        new_stage = (not self.started or (fraction is None) != (previous is None)
+                     or (fraction is not None and (fraction < previous or previous >= 1.0)))
+        if new_stage:
+            self.close()
+            self.started = True
+        self.fraction = fraction
         now = time.monotonic()
-        if now - self.last >= self.interval or fraction == 1.0:
-            self.last = now
+        if new_stage or fraction == 1.0 or now - self.logged >= self.interval:
+            self.logged = now
             prefix = f"[{100 * fraction:3.0f}%] " if fraction is not None else ""
-            log.info("%s%s", prefix, message)
+            log.info("%s%s", prefix, message, extra={_PROGRESS_LINE: True})
+        if self.live:
+            with _interrupt_deferred():
+                self._draw(fraction, message)
+
+    def _draw(self, fraction, message):
+        if self.bar is None:  # a new bar shows its first report as it opens
+            from tqdm import tqdm
+
+            columns = _terminal_columns(self.stream)
+            width = {"dynamic_ncols": True} if columns > 0 else {"ncols": 80}
+            if fraction is None:
+                self.bar = tqdm(total=None, desc=message, file=self.stream, leave=True,
+                                bar_format="optimisation [{elapsed}] {desc}", **width)
+            else:
+                self.bar = tqdm(total=1.0, initial=fraction, desc=message, file=self.stream,
+                                leave=True, bar_format="{percentage:3.0f}%|{bar}| {desc} "
+                                                       "[{elapsed}<{remaining}]", **width)
+        else:  # every report is drawn: the library reports per case, round, sweep or
+            # hundred evaluations
+            if fraction is not None:
+                self.bar.n = fraction
+            self.bar.set_description_str(message)
+        if fraction == 1.0:
+            self.close_bar()
+
+    def close_bar(self):
+        """End the current bar (left on screen as it stands)."""
+        with _interrupt_deferred():
+            bar, self.bar = self.bar, None
+            if bar is not None:
+                bar.close()
+
+    def close(self):
+        """End the current stage (and its bar)."""
+        self.close_bar()
+        self.started = False
+
+
+@contextlib.contextmanager
+def _interrupt_deferred():
+    """Ctrl-C (SIGINT) in the block takes effect when the block is done, so that a bar is never
+    left half drawn, or drawn but not yet known (and so never closed). The main thread only
+    (elsewhere Ctrl-C does not arrive)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    previous = signal.signal(signal.SIGINT, lambda number, frame: received.append(number))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received:
+            signal.raise_signal(signal.SIGINT)  # now, to the handler there was before
+
+
+def _terminal_columns(stream) -> int:
+    """Width of the terminal ``stream`` writes to, 0 when unknown."""
+    try:
+        return os.get_terminal_size(stream.fileno()).columns
+    except (AttributeError, OSError, ValueError):
+        return 0
+
+
+class _TerminalHandler(logging.StreamHandler):
+    """Log lines on stderr; ``live``: written around the progress bars (tqdm.write), without
+    the progress lines that the bars show."""
+
+    def __init__(self, stream, live: bool):
+        super().__init__(stream)
+        self.live = live
+        if live:
+            self.addFilter(lambda record: not getattr(record, _PROGRESS_LINE, False))
+
+    def emit(self, record):
+        if not self.live:
+            super().emit(record)
+            return
+        try:
+            from tqdm import tqdm
+
+            with _interrupt_deferred():
+                tqdm.write(self.format(record), file=self.stream)
+        except Exception:  # as logging.StreamHandler: a failing log line is reported, not raised
+            self.handleError(record)
 
 
 def _summary(result) -> str:
@@ -155,10 +279,11 @@ def _summary(result) -> str:
     return "\n".join(lines)
 
 
-def _run_build(inputs, output, config) -> int:
+def _run_build(inputs, output, config, live: bool) -> int:
     from .build import build_model
 
-    result = build_model(inputs, output, config, progress=_Progress())
+    with _ProgressDisplay(live) as progress:
+        result = build_model(inputs, output, config, progress=progress)
     print(_summary(result))
     return 0
 
@@ -247,14 +372,16 @@ def main(argv=None) -> int:
     fit.add_argument("-q", "--quiet", action="store_true")
     args = parser.parse_args(argv)
 
-    handler = logging.StreamHandler(sys.stderr)
+    # a live progress display when a person watches stderr (a terminal), else plain log lines
+    live = args.command in ("build", "demo") and not args.quiet and sys.stderr.isatty()
+    handler = _TerminalHandler(sys.stderr, live)
     handler.setFormatter(logging.Formatter("mdlshapemodel: %(message)s"))
     handler.setLevel(logging.WARNING if args.quiet else logging.INFO)
     log.addHandler(handler)
     log.setLevel(logging.INFO)
     try:
         if args.command == "build":
-            return _run_build(args.inputs, args.output, _config_from(args))
+            return _run_build(args.inputs, args.output, _config_from(args), live)
         if args.command == "compare":
             return _run_compare(args)
         if args.command == "fit":
@@ -267,7 +394,7 @@ def main(argv=None) -> int:
             log.info("wrote %d demo label maps to %s", len(paths), output / "inputs")
             config = BuildConfig(points=642, max_time=args.max_time, seed=args.seed,
                                  specificity_samples=2000).validate()
-            return _run_build(paths, output, config)
+            return _run_build(paths, output, config, live)
     except MDLShapeModelError as error:
         print(f"mdlshapemodel: error: {error}", file=sys.stderr)
         return 2
