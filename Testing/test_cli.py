@@ -1,14 +1,23 @@
 """The real command line, run in a subprocess."""
 
+import dataclasses
+import fcntl
 import json
 import os
+import pty
+import re
+import select
+import signal
+import struct
 import subprocess
 import sys
+import termios
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
+from mdlshapemodel.config import BuildConfig
 from synthetic import small_mask
 
 EXECUTABLE = [sys.executable, "-m", "mdlshapemodel.cli"]
@@ -18,6 +27,39 @@ def run(*args, cwd=None):
     env = dict(os.environ, PYTHONWARNINGS="ignore")
     return subprocess.run(EXECUTABLE + [str(a) for a in args], capture_output=True, text=True,
                           cwd=cwd, env=env, timeout=600)
+
+
+def run_in_terminal(*args, on_output=None, columns: int = 100):
+    """The CLI with its stderr a pseudo-terminal (stdout a pipe): (exit code, stdout, what the
+    terminal received). ``on_output(process, text so far)`` is called as the output grows."""
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    process = subprocess.Popen(EXECUTABLE + [str(a) for a in args], stdin=subprocess.DEVNULL,
+                               stdout=subprocess.PIPE, stderr=slave, env=env)
+    os.close(slave)
+    received = b""
+    try:
+        while True:
+            ready, _, _ = select.select([master], [], [], 600)
+            if not ready:
+                raise TimeoutError("the command line wrote nothing for 10 minutes")
+            try:
+                data = os.read(master, 1 << 16)
+            except OSError:  # the terminal is closed: the process has ended
+                break
+            if not data:
+                break
+            received += data
+            if on_output is not None:
+                on_output(process, received.decode(errors="replace"))
+        stdout = process.stdout.read().decode()
+        process.wait(timeout=60)
+    finally:
+        os.close(master)
+        if process.poll() is None:
+            process.kill()
+    return process.returncode, stdout, received.decode(errors="replace")
 
 
 def write_population(folder: Path, n: int = 4):
@@ -41,6 +83,11 @@ def test_build_end_to_end_with_a_bad_input(tmp_path):
     rejection_lines = [line for line in result.stderr.splitlines() if "broken.vtk" in line]
     assert len(rejection_lines) == 1 and "rejected" in rejection_lines[0]
     assert "objective (eq. 14)" in result.stdout
+    # stderr is no terminal: the progress as plain log lines (each stage's first and last), no bar
+    assert "[100%] prepared 5/5" in result.stderr
+    assert "evaluating the baselines" in result.stderr
+    assert "\r" not in result.stderr and "\x1b" not in result.stderr
+    assert not re.search(r"\d%\|", result.stderr)
     for name in ("model.h5", "mean.vtp", "scores.csv", "metrics.json", "convergence.csv",
                  "report.html", "build.log", "rejected.csv"):
         assert (out / name).is_file(), name
@@ -154,3 +201,147 @@ def test_cpd_build_compare_and_fit(tmp_path):
     bad = run("fit", tmp_path / "nowhere", held_back, "-o", tmp_path / "fit2")
     assert bad.returncode == 2 and "no such model file" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+# Each user-facing field of BuildConfig: its options on the command line and the value they give.
+NON_DEFAULT_OPTIONS = {
+    "labels": (["--label", "1,2", "--label", "3"], [1, 2, 3]),
+    "voxel_size": (["--voxel-size", "0.5"], 0.5),
+    "mirror": (["--mirror", "*_r*", "--mirror", "a,b"], ["*_r*", "a,b"]),
+    "surface_method": (["--surface", "slicer"], "slicer"),
+    "smoothing_factor": (["--smoothing-factor", "0.25"], 0.25),
+    "decimation": (["--decimation", "0.2"], 0.2),
+    "smoothing_sigma": (["--smoothing", "1.5"], 1.5),
+    "max_smoothing_sigma": (["--max-smoothing", "3"], 3.0),
+    "edge_length": (["--edge-length", "1.5"], 1.5),
+    "target_vertices": (["--target-vertices", "5000"], 5000),
+    "correspondence": (["--correspondence", "cpd"], "cpd"),
+    "baselines": (["--baselines", "none,cpd"], ["none", "cpd"]),
+    "points": (["--points", "162"], 162),
+    "strategy": (["--strategy", "one-at-a-time-pose"], "one-at-a-time-pose"),
+    "warps": (["--warps", "symmetric,shear"], ["symmetric", "shear"]),
+    "scaling": (["--no-scaling"], False),
+    "delta_range": (["--delta-range", "0.001", "0.25"], [0.001, 0.25]),
+    "fixed_delta": (["--fixed-delta", "0.2"], 0.2),
+    "sigma_g": (["--sigma-g", "0.05"], 0.05),
+    "max_time": (["--max-time", "30"], 30.0),
+    "fixed_fraction": (["--fixed-fraction", "0.5"], 0.5),
+    "tolerance": (["--tolerance", "0.01"], 0.01),
+    "max_sweeps": (["--max-sweeps", "7"], 7),
+    "seed": (["--seed", "5"], 5),
+    "evaluation_modes": (["--evaluation-modes", "3"], 3),
+    "specificity_samples": (["--specificity-samples", "300"], 300),
+    "surface_samples": (["--surface-samples", "0"], 0),
+    "workers": (["--workers", str((os.cpu_count() or 1) + 1)], (os.cpu_count() or 1) + 1),
+    "cache_dir": (["--cache-dir", "somewhere"], "somewhere"),
+    "strict": (["--strict"], True),
+}
+
+
+def config_of_command_line(tmp_path: Path, name: str, *options) -> dict:
+    """The configuration that ``build`` makes of ``options``: the build writes config.json into
+    its output folder before it looks for its inputs, which here do not exist."""
+    result = run("build", tmp_path / "no-such-input", "-o", tmp_path / name, *options)
+    assert result.returncode == 2 and "no such file" in result.stderr, result.stderr
+    return json.loads((tmp_path / name / "config.json").read_text())
+
+
+def test_build_options_are_the_fields_of_build_config(tmp_path):
+    """Every build option sets a BuildConfig field and shows its help; every field that carries
+    a help text has an option; the defaults are the fields' defaults."""
+    defaults = BuildConfig()
+    offered = [f for f in dataclasses.fields(BuildConfig) if "help" in f.metadata]
+    assert {f.name for f in offered} == set(NON_DEFAULT_OPTIONS)
+    for f in dataclasses.fields(BuildConfig):  # each field is offered or says why not
+        assert ("help" in f.metadata) != ("internal" in f.metadata), f.name
+
+    def squeezed(text):  # argparse rewraps help texts
+        return re.sub(r"\s+", "", text)
+
+    help_text = run("build", "--help").stdout
+    entries = {}  # flag -> its entry in the help (whitespace removed)
+    for entry in re.split(r"\n(?= {2}-)", help_text):
+        flag = re.match(r" {2}(?:-\w, )?(--[\w-]+)", entry)
+        if flag:
+            entries[flag.group(1)] = squeezed(entry)
+    assert set(entries) - {"--help", "--output", "--quiet"} == (
+        {arguments[0] for arguments, _ in NON_DEFAULT_OPTIONS.values()} | {"--no-cache"})
+    for f in offered:
+        default = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
+        flag = NON_DEFAULT_OPTIONS[f.name][0][0]
+        assert squeezed(f.metadata["help"] % {"default": default}) in entries[flag], f.name
+    cache_dir = next(f for f in offered if f.name == "cache_dir")
+    assert squeezed(cache_dir.metadata["off_help"]) in entries["--no-cache"]
+
+    # no options: the defaults, with the blur rule (max_smoothing_sigma = max(2, smoothing))
+    assert config_of_command_line(tmp_path, "defaults") == json.loads(
+        json.dumps(defaults.to_dict()))
+    # every option: its field
+    options = [a for arguments, _ in NON_DEFAULT_OPTIONS.values() for a in arguments]
+    made = config_of_command_line(tmp_path, "options", *options)
+    for name, (_, value) in NON_DEFAULT_OPTIONS.items():
+        assert value != json.loads(json.dumps(defaults.to_dict()))[name], name
+        assert made[name] == value, name
+    assert made["max_amplitude"] == defaults.max_amplitude
+    # --no-cache wins over --cache-dir; unless set, the largest blur follows --smoothing
+    made = config_of_command_line(tmp_path, "rules", "--no-cache", "--cache-dir", "x",
+                                  "--smoothing", "3")
+    assert made["cache_dir"] == "" and made["smoothing_sigma"] == 3.0
+    assert made["max_smoothing_sigma"] == 3.0
+    assert BuildConfig(smoothing_sigma=3.0).validate().max_smoothing_sigma == 3.0
+    assert defaults.max_smoothing_sigma == 2.0
+
+
+def test_progress_bars_on_a_terminal_and_ctrl_c_keeps_the_state_reached(tmp_path):
+    """With stderr a terminal: bars for the preparation and the evaluation, the objective live
+    during the optimisation; Ctrl-C there still writes the model of the state reached."""
+    inputs = write_population(tmp_path / "in")
+    out = tmp_path / "out"
+    interrupted = []
+
+    def interrupt_the_optimisation(process, text):
+        if not interrupted and text.count("F = ") >= 2:  # the objective has been shown twice
+            process.send_signal(signal.SIGINT)
+            interrupted.append(True)
+
+    code, stdout, terminal = run_in_terminal(
+        "build", inputs, "-o", out, "--points", 162, "--strategy", "one-at-a-time-pose",
+        "--max-time", 300, "--tolerance", 1e-9, "--label", "1,2", "--workers", 1,
+        "--specificity-samples", 200, "--evaluation-modes", 2, "--surface-samples", 0,
+        on_output=interrupt_the_optimisation)
+    assert interrupted and code == 0, terminal
+    assert "Traceback" not in terminal
+    # preparation: a bar redrawn in place up to 100%
+    assert re.search(r"\r\s*25%\|[^\r\n]*\| prepared 1/4", terminal), terminal
+    assert re.search(r"\r100%\|[^\r\n]*\| prepared 4/4", terminal), terminal
+    # the optimisation: its phase, sweep and F, redrawn in place
+    assert len(re.findall(r"\roptimisation \[[\d:]+\] fixed: sweep \d+, F = -?\d+\.\d{3}",
+                          terminal)) >= 2, terminal
+    assert "optimisation interrupted: writing the model of the state reached" in terminal
+    # the evaluation: a bar to the end
+    assert re.search(r"\r100%\|[^\r\n]*\| evaluated, outputs written", terminal), terminal
+    # the bars stand in for the plain progress lines, which go to build.log only
+    assert "[100%] prepared 4/4" not in terminal
+    assert "[100%] prepared 4/4" in (out / "build.log").read_text()
+    assert "objective (eq. 14)" in stdout
+    assert json.loads((out / "metrics.json").read_text())["interrupted"] is True
+    assert (out / "model.h5").is_file()
+
+
+def test_ctrl_c_while_preparing_closes_the_bar(tmp_path):
+    inputs = write_population(tmp_path / "in")
+    interrupted = []
+
+    def interrupt_the_preparation(process, text):
+        if not interrupted and "prepared 1/4" in text:
+            process.send_signal(signal.SIGINT)
+            interrupted.append(True)
+
+    code, _, terminal = run_in_terminal("build", inputs, "-o", tmp_path / "out", "--points", 42,
+                                        "--workers", 1, "--no-cache",
+                                        on_output=interrupt_the_preparation)
+    assert interrupted and code == 130, terminal
+    assert "prepared 4/4" not in terminal and "Traceback" not in terminal
+    # the bar was closed (its line ended) before the message
+    before, after = terminal.split("mdlshapemodel: interrupted")
+    assert re.search(r"\| prepared 1/4 \[[^\r\n]*\]\r?\n$", before), terminal

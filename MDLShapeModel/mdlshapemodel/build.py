@@ -31,7 +31,7 @@ from .model.evaluation import evaluate_state
 from .outputs import BuildResult, save_checkpoint, write_outputs
 from .parallel import executor_for
 from .prepare import io, preprocess
-from .progress import Progress
+from .progress import Progress, report
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -54,7 +54,7 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     progress : callable(fraction or None, message), optional
         See :mod:`mdlshapemodel.progress`. Cancelling (returning False or raising
         :class:`Cancelled`) during the optimisation stops it early; the model of the state reached
-        is still written.
+        is still written. Cancelling in another stage raises :class:`Cancelled`.
     executor : concurrent.futures.Executor, optional
         Runs the per-case work (preprocessing, CPD registrations, evaluations); default: a pool
         of ``config.workers`` processes (none when 1). The caller's executor is not shut down.
@@ -164,11 +164,16 @@ def _build(inputs, output: Path, config: BuildConfig, progress, pool) -> BuildRe
                  trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
         checkpoint()
     io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
+    # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
+    # then the model's, with the outputs
+    report(progress, 0.0, "evaluating the baselines" if pending else "evaluating")
     baselines = {name: {**notes, **_outcome(evaluation)}
                  for name, (notes, evaluation) in pending.items()}
 
+    report(progress, 0.5, "evaluating the model, writing outputs")
     result = write_outputs(output, state, prepared, rejected, config, initial, final,
                            voxel, data_range, interrupted, baselines, pool)
+    report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
 

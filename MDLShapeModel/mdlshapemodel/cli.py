@@ -3,166 +3,262 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import math
+import os
+import signal
 import sys
+import threading
 import time
+import typing
+from dataclasses import MISSING, fields
 from pathlib import Path
+from typing import Callable
 
-from .config import BASELINES, CORRESPONDENCES, STRATEGIES, WARPS, BuildConfig
+from .config import OPTION_GROUPS, STRATEGIES, BuildConfig
 from .errors import MDLShapeModelError
 
 log = logging.getLogger("mdlshapemodel")
 
 
-def _labels(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.replace(",", " ").split()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"labels must be integers, got {text!r}") from None
-    return values
+# The build options: made from the fields of BuildConfig that carry an option (config.option), so
+# that every default, type, choice and help text is defined once, there.
+
+def _command_line_fields() -> list:
+    """The fields of :class:`BuildConfig` that the ``build`` command offers, in field order."""
+    return [f for f in fields(BuildConfig) if "help" in f.metadata]
 
 
-def _baselines(text: str) -> list[str]:
-    values = [v for v in text.replace(",", " ").split()]
-    unknown = [v for v in values if v not in BASELINES]
-    if unknown:
-        raise argparse.ArgumentTypeError(f"unknown baseline {unknown[0]!r}; choose from "
-                                         f"{', '.join(BASELINES)}")
-    return values
+def _default_of(f):
+    return f.default_factory() if f.default is MISSING else f.default
 
 
-def _warps(text: str) -> list[str]:
-    values = [v for v in text.replace(",", " ").split()]
-    unknown = [v for v in values if v not in WARPS]
-    if unknown or not values:
-        problem = f"unknown warp kind {unknown[0]!r}" if unknown else "no warp kind given"
-        raise argparse.ArgumentTypeError(f"{problem}; choose from {', '.join(WARPS)}")
-    return values
+def _flag_of(f) -> str:
+    return f.metadata.get("flag") or "--" + f.name.replace("_", "-")
 
 
-def _add_build_options(parser: argparse.ArgumentParser, defaults: BuildConfig):
-    group = parser.add_argument_group("correspondence")
-    group.add_argument("--points", type=int, default=defaults.points,
-                       help="sample points per shape (icosphere when 10*4^k+2; default %(default)s)")
-    group.add_argument("--correspondence", choices=CORRESPONDENCES, default=defaults.correspondence,
-                       help="'mdl': optimised by minimum description length; 'cpd': a template "
-                            "case registered onto every case by coherent point drift, the common "
-                            "alternative, for comparison (default %(default)s)")
-    group.add_argument("--baselines", type=_baselines, default=defaults.baselines, metavar="LIST",
-                       help="other correspondences evaluated on the same cases and shown in the "
-                            "report: comma-separated from none (the initial correspondence) and "
-                            "cpd; '' for no baseline (default none)")
-    group.add_argument("--strategy", choices=STRATEGIES, default=defaults.strategy,
-                       help="optimisation strategy; 'none' keeps the initial (equal-spacing) "
-                            "correspondence (default %(default)s)")
-    group.add_argument("--warps", type=_warps, default=defaults.warps, metavar="LIST",
-                       help="one-at-a-time strategies: the warps each step draws from, uniformly, "
-                            "comma-separated from symmetric (the paper's theta kernel), asymmetric "
-                            "and shear (the Appendix's asymmetric theta and shear/twist maps) and "
-                            "rotation (a global rotation of the parameter sphere) "
-                            "(default symmetric)")
-    group.add_argument("--max-time", type=float, default=defaults.max_time, metavar="SECONDS",
-                       help="time budget of the optimisation (default %(default)s)")
-    group.add_argument("--max-sweeps", type=int, default=defaults.max_sweeps, metavar="N",
-                       help="at most N sweeps over the examples (fast: rounds) per phase; unlike "
-                            "--max-time, a budget that repeats exactly (default %(default)s)")
-    group.add_argument("--seed", type=int, default=defaults.seed,
-                       help="random seed of the paper's strategies (fast draws no random "
-                            "numbers): the same seed and inputs give the same model bit for bit, "
-                            "unless --max-time cuts the runs at different points "
-                            "(default %(default)s)")
-    group.add_argument("--delta-range", type=float, nargs=2, default=defaults.delta_range,
-                       metavar=("MIN", "MAX"),
-                       help="coding accuracy range of eq. 14 in voxels (default %(default)s)")
-    group.add_argument("--fixed-delta", type=float, default=defaults.fixed_delta,
-                       help="coding accuracy of the first phase (eq. 13), voxels "
-                            "(default %(default)s)")
-    group.add_argument("--fixed-fraction", type=float, default=defaults.fixed_fraction,
-                       help="share of --max-time spent on the fixed-Delta phase before the full "
-                            "objective; 0 skips it (default %(default)s)")
-    group.add_argument("--sigma-g", type=float, default=defaults.sigma_g,
-                       help="width distribution of random kernels (default 1/32)")
-    group.add_argument("--no-scaling", action="store_true",
-                       help="keep size: Procrustes and pose use rotation and translation only")
-    group.add_argument("--tolerance", type=float, default=defaults.tolerance,
-                       help="convergence: stop when a sweep gains less than this fraction of the "
-                            "total gain, three times in a row (default %(default)s)")
-    inputs = parser.add_argument_group("inputs and surfaces")
-    inputs.add_argument("--label", type=_labels, action="extend", default=[], metavar="L",
-                        help="label value(s) whose union is the object, e.g. --label 1,2 "
-                             "(default: all non-zero)")
-    inputs.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
-                        help="reflect inputs whose file name matches PATTERN (x -> -x), e.g. "
-                             "--mirror '*_rfemur*' to model right and left sides together; "
-                             "repeatable")
-    inputs.add_argument("--voxel-size", type=float, default=None,
-                        help="mm per voxel for mesh inputs (default: their mean edge length)")
-    inputs.add_argument("--surface", choices=("gaussian", "slicer"), default=defaults.surface_method,
-                        help="label map -> surface: Gaussian blur + flying edges, or 3D Slicer's "
-                             "conversion (flying edges + windowed sinc); either blurs more when "
-                             "the surface is not genus 0 (default %(default)s)")
-    inputs.add_argument("--smoothing", type=float, default=defaults.smoothing_sigma,
-                        help="gaussian: blur of masks before contouring, voxels (default %(default)s)")
-    inputs.add_argument("--smoothing-factor", type=float, default=defaults.smoothing_factor,
-                        help="slicer: smoothing factor 0..1 of the windowed-sinc filter "
-                             "(default %(default)s)")
-    inputs.add_argument("--decimation", type=float, default=defaults.decimation,
-                        help="slicer: fraction of triangles removed before smoothing "
-                             "(default %(default)s)")
-    inputs.add_argument("--edge-length", type=float, default=defaults.edge_length,
-                        help="edge length of the remeshed surfaces, voxels (default %(default)s)")
-    inputs.add_argument("--target-vertices", type=int, default=defaults.target_vertices,
-                        help="meshes with more vertices are decimated (default %(default)s)")
-    run = parser.add_argument_group("running and evaluation")
-    run.add_argument("--workers", type=int, default=defaults.workers,
-                     help="processes for per-case work (default: all cores, %(default)s)")
-    run.add_argument("--cache-dir", default=None, metavar="DIR",
-                     help="where preprocessed cases are kept for rebuilds (default: "
-                          "$MDLSHAPEMODEL_CACHE or ~/.cache/mdlshapemodel)")
-    run.add_argument("--no-cache", action="store_true",
-                     help="preprocess every case again and store nothing")
-    run.add_argument("--strict", action="store_true", help="fail (exit 2) if any input is rejected")
-    run.add_argument("--evaluation-modes", type=int, default=defaults.evaluation_modes,
-                     help="measures are reported for M = 1..this (default %(default)s)")
-    run.add_argument("--specificity-samples", type=int, default=defaults.specificity_samples,
-                     help="model samples for specificity (default %(default)s)")
-    run.add_argument("--surface-samples", type=int, default=defaults.surface_samples,
-                     help="model samples for specificity measured surface to surface; 0 leaves "
-                          "out the surface-to-surface measures (default %(default)s)")
-    run.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+def _dest_of(flag: str) -> str:
+    return flag.lstrip("-").replace("-", "_")
+
+
+def _items(kind: type, metadata) -> Callable[[str], list]:
+    """Parser of a list option's argument: items separated by commas or spaces."""
+    noun = metadata.get("item", "value")
+    choices = metadata.get("choices")
+    kind_name = {int: "integers", float: "numbers"}.get(kind, "values")
+
+    def parse(text: str) -> list:
+        try:
+            values = [kind(v) for v in text.replace(",", " ").split()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{noun}s must be {kind_name}, got {text!r}") from None
+        unknown = [v for v in values if choices is not None and v not in choices]
+        if unknown or (metadata.get("nonempty") and not values):
+            problem = f"unknown {noun} {unknown[0]!r}" if unknown else f"no {noun} given"
+            suffix = f"; choose from {', '.join(choices)}" if choices is not None else ""
+            raise argparse.ArgumentTypeError(problem + suffix)
+        return values
+
+    parse.__name__ = noun
+    return parse
+
+
+def _argument(f, annotation) -> dict:
+    """argparse keywords of the option of field ``f`` (of type ``annotation``)."""
+    metadata = f.metadata
+    default = _default_of(f)
+    keywords = {"dest": f.name, "default": default, "help": metadata["help"]}
+    if "metavar" in metadata:
+        keywords["metavar"] = metadata["metavar"]
+    elif annotation is not bool and "choices" not in metadata:  # named after the flag
+        keywords["metavar"] = _dest_of(_flag_of(f)).upper()
+    origin, arguments = typing.get_origin(annotation), typing.get_args(annotation)
+    if annotation is bool:
+        if default and not _flag_of(f).startswith("--no-"):
+            raise TypeError(f"{f.name}: a bool option that is on by default needs a --no- flag")
+        keywords["action"] = "store_false" if default else "store_true"
+    elif origin is list:
+        (kind,) = arguments
+        if metadata["split"]:
+            keywords.update(type=_items(kind, metadata),
+                            action="extend" if metadata["repeatable"] else "store")
+        elif metadata["repeatable"]:
+            keywords.update(type=kind, action="append")
+        else:
+            raise TypeError(f"{f.name}: a list option must be split or repeatable")
+    elif origin is tuple:
+        keywords.update(type=arguments[0], nargs=len(arguments))
+    else:
+        kinds = [a for a in arguments if a is not type(None)] if arguments else [annotation]
+        if len(kinds) != 1 or kinds[0] not in (int, float, str):
+            raise TypeError(f"{f.name}: no command-line option for the type {annotation}")
+        keywords["type"] = kinds[0]
+        if "choices" in metadata:
+            keywords["choices"] = metadata["choices"]
+    return keywords
+
+
+def _add_build_options(parser: argparse.ArgumentParser):
+    annotations = typing.get_type_hints(BuildConfig)
+    for name in OPTION_GROUPS:  # group by group, so that the usage line lists them so too
+        group = parser.add_argument_group(name)
+        for f in _command_line_fields():
+            if f.metadata["group"] == name:
+                group.add_argument(_flag_of(f), **_argument(f, annotations[f.name]))
+                if "off_flag" in f.metadata:
+                    group.add_argument(f.metadata["off_flag"], action="store_true",
+                                       help=f.metadata["off_help"])
+    group.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
 
 
 def _config_from(args) -> BuildConfig:
-    return BuildConfig(labels=args.label, voxel_size=args.voxel_size, mirror=args.mirror,
-                       smoothing_sigma=args.smoothing, surface_method=args.surface,
-                       smoothing_factor=args.smoothing_factor, decimation=args.decimation,
-                       edge_length=args.edge_length, target_vertices=args.target_vertices,
-                       max_smoothing_sigma=max(2.0, args.smoothing), points=args.points,
-                       strategy=args.strategy, warps=args.warps, scaling=not args.no_scaling,
-                       delta_range=tuple(args.delta_range), fixed_delta=args.fixed_delta,
-                       sigma_g=args.sigma_g, max_time=args.max_time, tolerance=args.tolerance,
-                       fixed_fraction=args.fixed_fraction, max_sweeps=args.max_sweeps,
-                       seed=args.seed, evaluation_modes=args.evaluation_modes,
-                       specificity_samples=args.specificity_samples, workers=args.workers,
-                       correspondence=args.correspondence, baselines=args.baselines,
-                       surface_samples=args.surface_samples,
-                       cache_dir="" if args.no_cache else args.cache_dir,
-                       strict=args.strict).validate()
+    """The :class:`BuildConfig` of parsed ``build`` options (fields without an option keep
+    their defaults)."""
+    annotations = typing.get_type_hints(BuildConfig)
+    values = {}
+    for f in _command_line_fields():
+        value = getattr(args, f.name)
+        if "off_flag" in f.metadata and getattr(args, _dest_of(f.metadata["off_flag"])):
+            value = f.metadata["off_value"]
+        if typing.get_origin(annotations[f.name]) is tuple:
+            value = tuple(value)
+        values[f.name] = value
+    return BuildConfig(**values).validate()
 
 
-class _Progress:
-    """Prints progress messages to stderr, at most one every few seconds."""
+# Log records of progress reports carry this attribute, so that the terminal can leave them out
+# while a bar shows the reports.
+_PROGRESS_LINE = "mdlshapemodel_progress_line"
 
-    def __init__(self, interval: float = 5.0):
+
+class _ProgressDisplay:
+    """Shows the reports of :mod:`mdlshapemodel.progress` on stderr, stage by stage.
+
+    A new stage starts when reports switch between a fraction and none, or the fraction falls
+    back or starts again after reaching 1: preparing (``prepared k/n``), the CPD registrations,
+    the optimisation (no fraction: its message carries the phase, the round or sweep and F) and
+    the evaluation.
+
+    Every report may become a log line (stderr and build.log): the first of a stage, the last
+    (fraction 1) and otherwise at most one every ``interval`` seconds. With ``live`` (stderr is
+    a terminal) the terminal shows a tqdm bar per stage instead, updated on every report: the
+    log lines then go to build.log only (see :class:`_TerminalHandler`). Use it as a context
+    manager: the bar is closed on the way out, also on errors and Ctrl-C.
+    """
+
+    def __init__(self, live: bool = False, stream=None, interval: float = 5.0):
+        self.live = live
+        self.stream = stream if stream is not None else sys.stderr
         self.interval = interval
-        self.last = 0.0
+        self.fraction = self.bar = None
+        self.started = False
+        self.logged = -math.inf
+
+    def __enter__(self) -> "_ProgressDisplay":
+        return self
+
+    def __exit__(self, *exception) -> None:
+        self.close()
 
     def __call__(self, fraction, message):
+        previous = self.fraction
+        new_stage = (not self.started or (fraction is None) != (previous is None)
+                     or (fraction is not None and (fraction < previous or previous >= 1.0)))
+        if new_stage:
+            self.close()
+            self.started = True
+        self.fraction = fraction
         now = time.monotonic()
-        if now - self.last >= self.interval or fraction == 1.0:
-            self.last = now
+        if new_stage or fraction == 1.0 or now - self.logged >= self.interval:
+            self.logged = now
             prefix = f"[{100 * fraction:3.0f}%] " if fraction is not None else ""
-            log.info("%s%s", prefix, message)
+            log.info("%s%s", prefix, message, extra={_PROGRESS_LINE: True})
+        if self.live:
+            with _interrupt_deferred():
+                self._draw(fraction, message)
+
+    def _draw(self, fraction, message):
+        if self.bar is None:  # a new bar shows its first report as it opens
+            from tqdm import tqdm
+
+            columns = _terminal_columns(self.stream)
+            width = {"dynamic_ncols": True} if columns > 0 else {"ncols": 80}
+            if fraction is None:
+                self.bar = tqdm(total=None, desc=message, file=self.stream, leave=True,
+                                bar_format="optimisation [{elapsed}] {desc}", **width)
+            else:
+                self.bar = tqdm(total=1.0, initial=fraction, desc=message, file=self.stream,
+                                leave=True, bar_format="{percentage:3.0f}%|{bar}| {desc} "
+                                                       "[{elapsed}<{remaining}]", **width)
+        else:  # every report is drawn: the library reports per case, round, sweep or
+            # hundred evaluations
+            if fraction is not None:
+                self.bar.n = fraction
+            self.bar.set_description_str(message)
+        if fraction == 1.0:
+            self.close_bar()
+
+    def close_bar(self):
+        """End the current bar (left on screen as it stands)."""
+        with _interrupt_deferred():
+            bar, self.bar = self.bar, None
+            if bar is not None:
+                bar.close()
+
+    def close(self):
+        """End the current stage (and its bar)."""
+        self.close_bar()
+        self.started = False
+
+
+@contextlib.contextmanager
+def _interrupt_deferred():
+    """Ctrl-C (SIGINT) in the block takes effect when the block is done, so that a bar is never
+    left half drawn, or drawn but not yet known (and so never closed). The main thread only
+    (elsewhere Ctrl-C does not arrive)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    previous = signal.signal(signal.SIGINT, lambda number, frame: received.append(number))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received:
+            signal.raise_signal(signal.SIGINT)  # now, to the handler there was before
+
+
+def _terminal_columns(stream) -> int:
+    """Width of the terminal ``stream`` writes to, 0 when unknown."""
+    try:
+        return os.get_terminal_size(stream.fileno()).columns
+    except (AttributeError, OSError, ValueError):
+        return 0
+
+
+class _TerminalHandler(logging.StreamHandler):
+    """Log lines on stderr; ``live``: written around the progress bars (tqdm.write), without
+    the progress lines that the bars show."""
+
+    def __init__(self, stream, live: bool):
+        super().__init__(stream)
+        self.live = live
+        if live:
+            self.addFilter(lambda record: not getattr(record, _PROGRESS_LINE, False))
+
+    def emit(self, record):
+        if not self.live:
+            super().emit(record)
+            return
+        try:
+            from tqdm import tqdm
+
+            with _interrupt_deferred():
+                tqdm.write(self.format(record), file=self.stream)
+        except Exception:  # as logging.StreamHandler: a failing log line is reported, not raised
+            self.handleError(record)
 
 
 def _summary(result) -> str:
@@ -183,10 +279,11 @@ def _summary(result) -> str:
     return "\n".join(lines)
 
 
-def _run_build(inputs, output, config) -> int:
+def _run_build(inputs, output, config, live: bool) -> int:
     from .build import build_model
 
-    result = build_model(inputs, output, config, progress=_Progress())
+    with _ProgressDisplay(live) as progress:
+        result = build_model(inputs, output, config, progress=progress)
     print(_summary(result))
     return 0
 
@@ -233,7 +330,7 @@ def main(argv=None) -> int:
     build = commands.add_parser("build", help="build a model from label maps or meshes")
     build.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
     build.add_argument("-o", "--output", required=True, help="output folder")
-    _add_build_options(build, defaults)
+    _add_build_options(build)
     demo = commands.add_parser("demo", help="build a model of a generated population (about 30 s)")
     demo.add_argument("-o", "--output", default="mdlshapemodel-demo", help="output folder "
                       "(default %(default)s)")
@@ -263,7 +360,8 @@ def main(argv=None) -> int:
     fit.add_argument("model", help="model.h5 or the build output folder holding it")
     fit.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
     fit.add_argument("-o", "--output", required=True, help="output folder")
-    fit.add_argument("--label", type=_labels, action="extend", default=[], metavar="L",
+    fit.add_argument("--label", type=_items(int, {"item": "label"}), action="extend", default=[],
+                     metavar="L",
                      help="label value(s) of the object (default: those the model was built with)")
     fit.add_argument("--max-time", type=float, default=60.0, metavar="SECONDS",
                      help="optimisation time per case (default %(default)s)")
@@ -274,14 +372,16 @@ def main(argv=None) -> int:
     fit.add_argument("-q", "--quiet", action="store_true")
     args = parser.parse_args(argv)
 
-    handler = logging.StreamHandler(sys.stderr)
+    # a live progress display when a person watches stderr (a terminal), else plain log lines
+    live = args.command in ("build", "demo") and not args.quiet and sys.stderr.isatty()
+    handler = _TerminalHandler(sys.stderr, live)
     handler.setFormatter(logging.Formatter("mdlshapemodel: %(message)s"))
     handler.setLevel(logging.WARNING if args.quiet else logging.INFO)
     log.addHandler(handler)
     log.setLevel(logging.INFO)
     try:
         if args.command == "build":
-            return _run_build(args.inputs, args.output, _config_from(args))
+            return _run_build(args.inputs, args.output, _config_from(args), live)
         if args.command == "compare":
             return _run_compare(args)
         if args.command == "fit":
@@ -294,7 +394,7 @@ def main(argv=None) -> int:
             log.info("wrote %d demo label maps to %s", len(paths), output / "inputs")
             config = BuildConfig(points=642, max_time=args.max_time, seed=args.seed,
                                  specificity_samples=2000).validate()
-            return _run_build(paths, output, config)
+            return _run_build(paths, output, config, live)
     except MDLShapeModelError as error:
         print(f"mdlshapemodel: error: {error}", file=sys.stderr)
         return 2

@@ -55,50 +55,191 @@ class OptimisationSettings:
     shear_sigma: float = 0.25      # shear/twist band widths c: positive half of N(0, this)
 
 
+# The command line's option groups, in the order its help lists them (see :func:`option`).
+OPTION_GROUPS = ("correspondence", "inputs and surfaces", "running and evaluation")
+_CORRESPONDENCE, _INPUTS, _RUNNING = OPTION_GROUPS
+# Unless set, the largest blur of a mask whose surface is not genus 0 is the larger of this and
+# the first blur: ``BuildConfig.max_smoothing_sigma``, voxels.
+MAX_SMOOTHING_SIGMA = 2.0
+
+
+def option(group: str, help: str, *, flag: str | None = None, metavar=None, choices=None,
+           item: str | None = None, repeatable: bool = False, split: bool = True,
+           nonempty: bool = False, off_flag: str | None = None, off_value=None,
+           off_help: str | None = None) -> dict:
+    """The metadata of a :class:`BuildConfig` field that users set: what a face (the command
+    line, a panel) needs to offer it. Its type and default are the field's own.
+
+    Parameters
+    ----------
+    group : str
+        One of :data:`OPTION_GROUPS`.
+    help : str
+        What the setting does; ``%(default)s`` stands for the field's default (argparse fills it
+        in; elsewhere ``help % {"default": value}``).
+    flag : str, optional
+        The command-line flag when it is not ``--`` and the field's name with hyphens. The flag
+        of a bool field whose default is True switches it off (``--no-...``).
+    metavar : str or tuple, optional
+        The value's name in the command line's help.
+    choices : tuple, optional
+        The allowed values (of each item, for a list field).
+    item : str, optional
+        List fields: what one item is, for messages ("unknown warp kind ...").
+    repeatable : bool
+        List fields: the flag may be given again and adds items (else the last one counts).
+    split : bool
+        List fields: one argument holds several items, separated by commas or spaces.
+    nonempty : bool
+        List fields: at least one item.
+    off_flag, off_value, off_help : optional
+        A second flag that sets the field to ``off_value`` whatever the first says; its help.
+    """
+    if group not in OPTION_GROUPS:
+        raise ValueError(f"unknown option group {group!r}")
+    metadata = {"group": group, "help": help, "flag": flag, "metavar": metavar,
+                "choices": choices, "item": item, "repeatable": repeatable, "split": split,
+                "nonempty": nonempty, "off_flag": off_flag, "off_value": off_value,
+                "off_help": off_help}
+    return {key: value for key, value in metadata.items() if value is not None}
+
+
+def internal(reason: str) -> dict:
+    """The metadata of a :class:`BuildConfig` field that the command line does not offer: why."""
+    return {"internal": reason}
+
+
 @dataclass
 class BuildConfig:
-    """Settings of a model build. Lengths marked *voxels* are in voxels of the source images."""
+    """Settings of a model build. Lengths marked *voxels* are in voxels of the source images.
+
+    Every field users set carries its :func:`option` in ``field.metadata`` (help, flag, group):
+    the command line's ``build`` options are made from these fields, so each default and rule is
+    defined here once. The others carry :func:`internal`.
+
+    One rule joins two fields: ``max_smoothing_sigma`` left None becomes
+    max(:data:`MAX_SMOOTHING_SIGMA`, ``smoothing_sigma``) on construction (so
+    ``dataclasses.replace`` keeps the value it became; pass None again to apply the rule anew).
+    """
 
     # inputs
-    labels: list = field(default_factory=list)   # label values whose union is the object; [] = all non-zero
-    voxel_size: float | None = None   # mm per voxel for mesh inputs; default: their mean edge length
-    mirror: list = field(default_factory=list)  # file-name patterns of inputs to reflect (x -> -x)
+    labels: list[int] = field(default_factory=list, metadata=option(
+        _INPUTS, "label value(s) whose union is the object, e.g. --label 1,2 "
+                 "(default: all non-zero)",
+        flag="--label", metavar="L", item="label", repeatable=True))
+    voxel_size: float | None = field(default=None, metadata=option(
+        _INPUTS, "mm per voxel for mesh inputs (default: their mean edge length)"))
+    mirror: list[str] = field(default_factory=list, metadata=option(
+        _INPUTS, "reflect inputs whose file name matches PATTERN (x -> -x), e.g. "
+                 "--mirror '*_rfemur*' to model right and left sides together; repeatable",
+        metavar="PATTERN", item="pattern", repeatable=True, split=False))
     # surfaces and sphere maps
-    surface_method: str = "gaussian"  # "gaussian": blur + flying edges; "slicer": flying edges +
-    smoothing_factor: float = 0.5     #   windowed sinc (3D Slicer's conversion, this factor)
-    decimation: float = 0.0           # "slicer": fraction of triangles removed before smoothing
-    smoothing_sigma: float = 1.0      # voxels: Gaussian blur of the mask before contouring
-    max_smoothing_sigma: float = 2.0  # voxels: raised up to this when the surface is not genus 0
-    edge_length: float = 1.0          # voxels: isotropic remeshing of label-map surfaces
-    target_vertices: int = 20000      # meshes with more vertices are decimated
+    surface_method: str = field(default="gaussian", metadata=option(
+        _INPUTS, "label map -> surface: Gaussian blur + flying edges, or 3D Slicer's "
+                 "conversion (flying edges + windowed sinc); either blurs more when the surface "
+                 "is not genus 0 (default %(default)s)",
+        flag="--surface", choices=SURFACE_METHODS))
+    smoothing_factor: float = field(default=0.5, metadata=option(
+        _INPUTS, "slicer: smoothing factor 0..1 of the windowed-sinc filter (default %(default)s)"))
+    decimation: float = field(default=0.0, metadata=option(
+        _INPUTS, "slicer: fraction of triangles removed before smoothing (default %(default)s)"))
+    smoothing_sigma: float = field(default=1.0, metadata=option(
+        _INPUTS, "gaussian: blur of masks before contouring, voxels (default %(default)s)",
+        flag="--smoothing"))
+    # None: MAX_SMOOTHING_SIGMA or smoothing_sigma, whichever is larger (set on construction)
+    max_smoothing_sigma: float | None = field(default=None, metadata=option(
+        _INPUTS, "largest blur of masks whose surface is not genus 0 (blurred more in steps of "
+                 f"0.5), voxels (default: max({MAX_SMOOTHING_SIGMA:g}, --smoothing))",
+        flag="--max-smoothing"))
+    edge_length: float = field(default=1.0, metadata=option(
+        _INPUTS, "edge length of the remeshed surfaces, voxels (default %(default)s)"))
+    target_vertices: int = field(default=20000, metadata=option(
+        _INPUTS, "meshes with more vertices are decimated (default %(default)s)"))
     # correspondence
-    correspondence: str = "mdl"       # "mdl": optimised by MDL; "cpd": CPD template registration
-    baselines: list = field(default_factory=lambda: ["none"])  # also evaluated on the same cases
-    points: int = 2562                # n_p: sample points per shape (icosphere when 10*4^k+2)
+    correspondence: str = field(default="mdl", metadata=option(
+        _CORRESPONDENCE, "'mdl': optimised by minimum description length; 'cpd': a template "
+                         "case registered onto every case by coherent point drift, the common "
+                         "alternative, for comparison (default %(default)s)",
+        choices=CORRESPONDENCES))
+    baselines: list[str] = field(default_factory=lambda: ["none"], metadata=option(
+        _CORRESPONDENCE, "other correspondences evaluated on the same cases and shown in the "
+                         "report: comma-separated from none (the initial correspondence) and "
+                         "cpd; '' for no baseline (default none)",
+        metavar="LIST", choices=BASELINES, item="baseline"))
+    points: int = field(default=2562, metadata=option(  # n_p
+        _CORRESPONDENCE, "sample points per shape (icosphere when 10*4^k+2; default "
+                         "%(default)s)"))
     # optimisation: our gradient strategy by default (the paper's four remain selectable); the
-    # other defaults are those of strategies.OptimisationSettings (one source)
-    strategy: str = "fast"
-    # one-at-a-time strategies: warp kinds each step draws from (uniformly), of symmetric,
-    # asymmetric, shear, rotation; ["symmetric"] is the paper's strategy
-    warps: list = field(default_factory=lambda: list(OptimisationSettings.warps))
-    scaling: bool = True              # Procrustes removes scale
-    delta_range: tuple = (1e-4, 0.5)  # voxels: [Delta_min, Delta_max] of eq. 14 (Table I)
-    fixed_delta: float = 0.1          # voxels: Delta of the first phase (eq. 13)
-    sigma_g: float = OptimisationSettings.sigma_g              # kernel widths (Table I)
-    max_amplitude: float = OptimisationSettings.max_amplitude  # bound of a kernel amplitude A
-    max_time: float = OptimisationSettings.max_time            # seconds of optimisation
-    fixed_fraction: float = OptimisationSettings.fixed_fraction  # fixed-Delta share (0: none)
-    tolerance: float = OptimisationSettings.tolerance          # sweep gain / total gain to stop
-    max_sweeps: int = OptimisationSettings.max_sweeps          # per phase; a repeatable budget
-    seed: int = 0
+    # other defaults are those of OptimisationSettings (one source)
+    strategy: str = field(default="fast", metadata=option(
+        _CORRESPONDENCE, "optimisation strategy; 'none' keeps the initial (equal-spacing) "
+                         "correspondence (default %(default)s)",
+        choices=STRATEGIES))
+    warps: list[str] = field(default_factory=lambda: list(OptimisationSettings.warps),
+                             metadata=option(
+        _CORRESPONDENCE, "one-at-a-time strategies: the warps each step draws from, uniformly, "
+                         "comma-separated from symmetric (the paper's theta kernel), asymmetric "
+                         "and shear (the Appendix's asymmetric theta and shear/twist maps) and "
+                         "rotation (a global rotation of the parameter sphere) "
+                         "(default symmetric)",
+        metavar="LIST", choices=WARPS, item="warp kind", nonempty=True))
+    scaling: bool = field(default=True, metadata=option(  # Procrustes removes scale
+        _CORRESPONDENCE, "keep size: Procrustes and pose use rotation and translation only",
+        flag="--no-scaling"))
+    # [Delta_min, Delta_max] of eq. 14 (Table I); fixed_delta: Delta of eq. 13; sigma_g (Table I)
+    delta_range: tuple[float, float] = field(default=(1e-4, 0.5), metadata=option(
+        _CORRESPONDENCE, "coding accuracy range of eq. 14 in voxels (default %(default)s)",
+        metavar=("MIN", "MAX")))
+    fixed_delta: float = field(default=0.1, metadata=option(
+        _CORRESPONDENCE, "coding accuracy of the first phase (eq. 13), voxels "
+                         "(default %(default)s)"))
+    sigma_g: float = field(default=OptimisationSettings.sigma_g, metadata=option(
+        _CORRESPONDENCE, "width distribution of random kernels (default 1/32)"))
+    max_amplitude: float = field(default=OptimisationSettings.max_amplitude, metadata=internal(
+        "the bound of a kernel amplitude A: the command line keeps the paper's (Table I)"))
+    max_time: float = field(default=OptimisationSettings.max_time, metadata=option(
+        _CORRESPONDENCE, "time budget of the optimisation (default %(default)s)",
+        metavar="SECONDS"))
+    fixed_fraction: float = field(default=OptimisationSettings.fixed_fraction, metadata=option(
+        _CORRESPONDENCE, "share of --max-time spent on the fixed-Delta phase before the full "
+                         "objective; 0 skips it (default %(default)s)"))
+    tolerance: float = field(default=OptimisationSettings.tolerance, metadata=option(
+        _CORRESPONDENCE, "convergence: stop when a sweep gains less than this fraction of the "
+                         "total gain, three times in a row (default %(default)s)"))
+    max_sweeps: int = field(default=OptimisationSettings.max_sweeps, metadata=option(
+        _CORRESPONDENCE, "at most N sweeps over the examples (fast: rounds) per phase; unlike "
+                         "--max-time, a budget that repeats exactly (default %(default)s)",
+        metavar="N"))
+    seed: int = field(default=0, metadata=option(
+        _CORRESPONDENCE, "random seed of the paper's strategies (fast draws no random "
+                         "numbers): the same seed and inputs give the same model bit for bit, "
+                         "unless --max-time cuts the runs at different points "
+                         "(default %(default)s)"))
     # evaluation
-    evaluation_modes: int = 10
-    specificity_samples: int = 10_000
-    surface_samples: int = 200        # specificity samples measured surface to surface (0: none)
+    evaluation_modes: int = field(default=10, metadata=option(
+        _RUNNING, "measures are reported for M = 1..this (default %(default)s)"))
+    specificity_samples: int = field(default=10_000, metadata=option(
+        _RUNNING, "model samples for specificity (default %(default)s)"))
+    surface_samples: int = field(default=200, metadata=option(
+        _RUNNING, "model samples for specificity measured surface to surface; 0 leaves out the "
+                  "surface-to-surface measures (default %(default)s)"))
     # running
-    workers: int = field(default_factory=lambda: os.cpu_count() or 1)
-    cache_dir: str | None = None      # per-case preprocessing cache; None: default place, "": off
-    strict: bool = False
+    workers: int = field(default_factory=lambda: os.cpu_count() or 1, metadata=option(
+        _RUNNING, "processes for per-case work (default: all cores, %(default)s)"))
+    # per-case preprocessing cache; None: the default place, "": none
+    cache_dir: str | None = field(default=None, metadata=option(
+        _RUNNING, "where preprocessed cases are kept for rebuilds (default: "
+                  "$MDLSHAPEMODEL_CACHE or ~/.cache/mdlshapemodel)",
+        metavar="DIR", off_flag="--no-cache", off_value="",
+        off_help="preprocess every case again and store nothing"))
+    strict: bool = field(default=False, metadata=option(
+        _RUNNING, "fail (exit 2) if any input is rejected"))
+
+    def __post_init__(self):
+        # the one rule between two fields: unless set, the blur may rise to MAX_SMOOTHING_SIGMA,
+        # or stays at smoothing_sigma when that is larger
+        if self.max_smoothing_sigma is None and isinstance(self.smoothing_sigma, (int, float)):
+            self.max_smoothing_sigma = max(MAX_SMOOTHING_SIGMA, self.smoothing_sigma)
 
     def validate(self) -> "BuildConfig":
         """Raise :class:`ConfigError` naming the first bad field; return self."""
@@ -114,7 +255,8 @@ class BuildConfig:
         need(0 <= self.smoothing_factor <= 1, "smoothing_factor", "must be between 0 and 1")
         need(0 <= self.decimation < 1, "decimation", "must be in [0, 1)")
         need(self.smoothing_sigma >= 0, "smoothing_sigma", "must be >= 0")
-        need(self.max_smoothing_sigma >= self.smoothing_sigma, "max_smoothing_sigma",
+        need(self.max_smoothing_sigma is not None
+             and self.max_smoothing_sigma >= self.smoothing_sigma, "max_smoothing_sigma",
              "must be >= smoothing_sigma")
         need(self.edge_length > 0, "edge_length", "must be positive")
         need(self.target_vertices >= 100, "target_vertices", "must be at least 100")
