@@ -108,7 +108,7 @@ def test_a_bug_while_preparing_stops_the_build_naming_the_case(tmp_path, monkeyp
     for k, position in enumerate((-0.5, 0.0, 0.5)):
         write_image(folder / f"case_{k}.nii.gz", small_mask(position))
 
-    def broken_sphere_map(vertices, faces):
+    def broken_sphere_map(vertices, faces, **options):
         raise ZeroDivisionError("planted")
 
     monkeypatch.setattr(preparation, "sphere_map", broken_sphere_map)
@@ -122,3 +122,7 @@ def test_a_bug_while_preparing_stops_the_build_naming_the_case(tmp_path, monkeyp
     log = (output / "build.log").read_text()
     assert "Traceback" in log and "broken_sphere_map" in log
     assert not (output / "model.h5").exists()
+    # a bug is not an input error: code that rejects inputs by catching those lets it through
+    from mdlshapemodel import MDLShapeModelError
+
+    assert not isinstance(raised.value, MDLShapeModelError)

@@ -185,7 +185,7 @@ def test_config_round_trip_keeps_the_warps():
 def test_cli_passes_the_warps_to_the_build(monkeypatch, tmp_path):
     seen = {}
 
-    def fake_build(inputs, output, config):
+    def fake_build(inputs, output, config, *display):
         seen["config"] = config
         return 0
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from .config import OPTION_GROUPS, STRATEGIES, BuildConfig
-from .errors import MDLShapeModelError
+from .errors import InternalError, MDLShapeModelError
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -398,6 +398,9 @@ def main(argv=None) -> int:
     except MDLShapeModelError as error:
         print(f"mdlshapemodel: error: {error}", file=sys.stderr)
         return 2
+    except InternalError as error:
+        print(f"mdlshapemodel: internal error: {error}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print("mdlshapemodel: interrupted", file=sys.stderr)
         return 130

@@ -63,6 +63,12 @@ _CORRESPONDENCE, _INPUTS, _RUNNING = OPTION_GROUPS
 MAX_SMOOTHING_SIGMA = 2.0
 
 
+def max_smoothing_for(smoothing_sigma: float) -> float:
+    """The largest blur of a mask whose surface is not genus 0, unless set: the larger of
+    :data:`MAX_SMOOTHING_SIGMA` and the first blur (voxels)."""
+    return max(MAX_SMOOTHING_SIGMA, smoothing_sigma)
+
+
 def option(group: str, help: str, *, flag: str | None = None, metavar=None, choices=None,
            item: str | None = None, repeatable: bool = False, split: bool = True,
            nonempty: bool = False, off_flag: str | None = None, off_value=None,
@@ -239,7 +245,7 @@ class BuildConfig:
         # the one rule between two fields: unless set, the blur may rise to MAX_SMOOTHING_SIGMA,
         # or stays at smoothing_sigma when that is larger
         if self.max_smoothing_sigma is None and isinstance(self.smoothing_sigma, (int, float)):
-            self.max_smoothing_sigma = max(MAX_SMOOTHING_SIGMA, self.smoothing_sigma)
+            self.max_smoothing_sigma = max_smoothing_for(self.smoothing_sigma)
 
     def validate(self) -> "BuildConfig":
         """Raise :class:`ConfigError` naming the first bad field; return self."""

@@ -25,10 +25,12 @@ class BuildError(MDLShapeModelError):
     """No model can be built (e.g. fewer than 3 usable cases)."""
 
 
-class InternalError(MDLShapeModelError):
+class InternalError(Exception):
     """A bug in this package met while working on an input: not a problem of the input.
 
     The message names the input and says that it is a bug; the traceback goes to the build log.
+    Deliberately not an :class:`MDLShapeModelError`: code that rejects bad inputs by catching
+    those never takes a bug for a bad input.
     """
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from ..config import SURFACE_METHODS, BuildConfig
+from ..config import SURFACE_METHODS, BuildConfig, max_smoothing_for
 from ..errors import SurfaceError
 
 
@@ -269,7 +269,7 @@ def slicer_smoothing(polydata, smoothing_factor: float, decimation: float = 0.0)
 
 def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
                     direction=None, smoothing_sigma: float = BuildConfig.smoothing_sigma,
-                    max_smoothing_sigma: float = BuildConfig.max_smoothing_sigma,
+                    max_smoothing_sigma: float | None = BuildConfig.max_smoothing_sigma,
                     edge_length: float = BuildConfig.edge_length,
                     target_vertices: int = BuildConfig.target_vertices,
                     method: str = BuildConfig.surface_method,
@@ -284,7 +284,8 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     with a windowed-sinc filter (:func:`slicer_smoothing`). Both work in voxel space and keep the
     largest component. Diagonal voxel contacts make handles in raw masks, so when the surface is
     not genus 0 the mask is blurred (more): from ``smoothing_sigma`` (gaussian) or 1 voxel
-    (slicer) in steps of 0.5 voxel up to ``max_smoothing_sigma``; ``info["smoothing_sigma"]`` says
+    (slicer) in steps of 0.5 voxel up to ``max_smoothing_sigma`` (None: the rule of
+    :func:`~mdlshapemodel.config.max_smoothing_for`); ``info["smoothing_sigma"]`` says
     which blur was needed (0: none). The surface is then remeshed isotropically (edges of about
     ``edge_length`` voxels: contouring leaves slivers that spoil sphere maps), decimated when it has
     more than ``target_vertices`` vertices, and transformed to physical coordinates. The defaults
@@ -303,6 +304,8 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     -------
     vertices, faces, info
     """
+    if max_smoothing_sigma is None:
+        max_smoothing_sigma = max_smoothing_for(smoothing_sigma)
     if method not in SURFACE_METHODS:
         raise SurfaceError(f"unknown surface method {method!r} (use {', '.join(SURFACE_METHODS)})")
     mask = np.asarray(mask) > 0
