@@ -29,14 +29,21 @@ def run(*args, cwd=None):
                           cwd=cwd, env=env, timeout=600)
 
 
+def _sigint_as_in_a_terminal():
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def run_in_terminal(*args, on_output=None, columns: int = 100):
     """The CLI with its stderr a pseudo-terminal (stdout a pipe): (exit code, stdout, what the
     terminal received). ``on_output(process, text so far)`` is called as the output grows."""
     master, slave = pty.openpty()
     fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
     env = dict(os.environ, PYTHONWARNINGS="ignore")
+    # SIGINT as in a terminal even when this test runs where it is ignored (a background job
+    # of a non-interactive shell), or the Ctrl-C of the tests below would be lost
     process = subprocess.Popen(EXECUTABLE + [str(a) for a in args], stdin=subprocess.DEVNULL,
-                               stdout=subprocess.PIPE, stderr=slave, env=env)
+                               stdout=subprocess.PIPE, stderr=slave, env=env,
+                               preexec_fn=_sigint_as_in_a_terminal)
     os.close(slave)
     received = b""
     try:
