@@ -156,6 +156,41 @@ def test_cancelled_optimisation_still_writes_the_model(population, tmp_path):
     assert ShapeModel.load(tmp_path / "out" / "model.h5").scores.shape[0] == 4
 
 
+def test_a_progress_callback_returning_false_cancels_like_raising(population, tmp_path):
+    _, paths = population
+    calls = []
+
+    def progress(fraction, message):
+        if fraction is None:
+            calls.append(message)
+            return len(calls) < 2       # False at the second optimisation report: stop
+
+    config = BuildConfig(points=42, max_time=600, workers=1, specificity_samples=100,
+                         evaluation_modes=2, cache_dir="")
+    result = build_model(paths, tmp_path / "out", config, progress=progress)
+    assert result.interrupted and len(calls) == 2
+
+
+def test_a_callers_executor_serves_the_build_and_gives_the_same_model(population, tmp_path):
+    """Any concurrent.futures.Executor plugs in (here a spawn process pool the test owns): the
+    same model as a build in one process, and the executor is left running for its owner."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    _, paths = population
+    config = BuildConfig(points=42, max_time=600, workers=1, specificity_samples=200,
+                         evaluation_modes=2, cache_dir="", baselines=["none", "cpd"])
+    alone = build_model(paths, tmp_path / "alone", config)
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as executor:
+        shared = build_model(paths, tmp_path / "shared", config, executor=executor)
+        assert executor.submit(abs, -3).result() == 3      # not shut down by the build
+    assert shared.final_objective == alone.final_objective
+    assert np.array_equal(shared.model.mean, alone.model.mean)
+    for key in ("generalization", "specificity", "generalization_surface_mm"):
+        assert shared.metrics[key] == alone.metrics[key]
+    assert shared.metrics["baselines"] == alone.metrics["baselines"]
+
+
 def test_preprocessing_cache_is_reused_only_for_identical_files_and_settings(population, tmp_path,
                                                                             monkeypatch):
     from mdlshapemodel.prepare import preprocess

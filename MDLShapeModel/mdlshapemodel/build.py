@@ -1,8 +1,10 @@
 """build_model(): files -> prepared cases -> correspondence -> optimisation -> model -> outputs.
 
 Orchestration only: each stage is a room of its own (:mod:`.prepare`, :mod:`.correspondence`,
-:mod:`.model`, :mod:`.outputs`, :mod:`.report`). Per-case work runs on one executor for the whole
-build (a process pool of ``config.workers`` by default, or the caller's). A case that cannot be
+:mod:`.model`, :mod:`.outputs`, :mod:`.report`). Per-case work runs on the caller's executor, or
+by default on a pool of ``config.workers`` processes for each
+stage that fans out over the cases (preprocessing, CPD registrations) and one helper process for
+the evaluations that overlap the optimisation (:func:`.parallel.helper_for`). A case that cannot be
 used is *rejected* with a one-line reason (logged, and listed in ``rejected.csv``) and the build
 goes on; a bug stops the build with a message that names the case (traceback in build.log). The
 optimisation state is checkpointed after every sweep or round, and an interrupted optimisation
@@ -29,7 +31,7 @@ from .correspondence.trace import RESTORED_INITIAL, Trace
 from .errors import BuildError, Cancelled, InternalError
 from .model.evaluation import evaluate_state
 from .outputs import BuildResult, save_checkpoint, write_outputs
-from .parallel import executor_for
+from .parallel import helper_for
 from .prepare import io, preprocess
 from .progress import Progress, report
 
@@ -57,7 +59,8 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         is still written. Cancelling in another stage raises :class:`Cancelled`.
     executor : concurrent.futures.Executor, optional
         Runs the per-case work (preprocessing, CPD registrations, evaluations); default: a pool
-        of ``config.workers`` processes (none when 1). The caller's executor is not shut down.
+        of ``config.workers`` processes per stage (none when 1) and one helper process for the
+        evaluations that overlap the optimisation. The caller's executor is not shut down.
 
     Returns
     -------
@@ -81,8 +84,7 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     if log.level == logging.NOTSET or log.level > logging.INFO:
         log.setLevel(logging.INFO)
     try:
-        with executor_for(config.workers, executor) as pool:
-            return _build(inputs, output, config, progress, pool)
+        return _build(inputs, output, config, progress, executor)
     except InternalError as error:
         # the user sees the one-line message; the traceback (a worker's too) goes to build.log
         handler.stream.write("".join(traceback.format_exception(error)))
@@ -92,7 +94,7 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         handler.close()
 
 
-def _build(inputs, output: Path, config: BuildConfig, progress, pool) -> BuildResult:
+def _build(inputs, output: Path, config: BuildConfig, progress, executor) -> BuildResult:
     started = time.perf_counter()
     (output / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
     paths = io.find_inputs(inputs)
@@ -100,7 +102,7 @@ def _build(inputs, output: Path, config: BuildConfig, progress, pool) -> BuildRe
         raise BuildError("no input files found (label maps: .nii/.nii.gz/.nrrd/.mha...; meshes: "
                          ".vtk/.vtp/.stl/.ply/.obj)")
     log.info("preprocessing %d inputs with %d workers", len(paths), config.workers)
-    prepared, rejected = preprocess(paths, config, pool, progress)
+    prepared, rejected = preprocess(paths, config, executor, progress)
     names = [case.name for case in prepared]
     duplicates = {n for n in names if names.count(n) > 1}
     if duplicates:
@@ -120,60 +122,62 @@ def _build(inputs, output: Path, config: BuildConfig, progress, pool) -> BuildRe
     log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
              state.n_shapes, state.n_points, voxel, data_range)
 
-    pending = {}   # baseline -> (objective and notes, its evaluation: running or done)
-    if "none" in config.baselines and (config.strategy != "none"
-                                       or config.correspondence == "cpd"):
-        log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
-        pending["none"] = ({"objective": initial},
-                           evaluate_state(state, config, prepared, pool=pool))
-    cpd = None
-    if config.correspondence == "cpd" or "cpd" in config.baselines:
-        cpd, template = cpd_state(state, prepared, config, pool, progress)
-        if config.correspondence != "cpd":
-            log.info("evaluating the CPD template correspondence as a baseline")
-            pending["cpd"] = ({"objective": integrated(cpd.covariance()),
-                               "template": template},
-                              evaluate_state(cpd, config, prepared, pool=pool))
+    # the baselines are evaluated on the helper while the optimisation runs
+    with helper_for(config.workers, executor) as pool:
+        pending = {}   # baseline -> (objective and notes, its evaluation: running or done)
+        if "none" in config.baselines and (config.strategy != "none"
+                                           or config.correspondence == "cpd"):
+            log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
+            pending["none"] = ({"objective": initial},
+                               evaluate_state(state, config, prepared, pool=pool))
+        cpd = None
+        if config.correspondence == "cpd" or "cpd" in config.baselines:
+            cpd, template = cpd_state(state, prepared, config, executor, progress)
+            if config.correspondence != "cpd":
+                log.info("evaluating the CPD template correspondence as a baseline")
+                pending["cpd"] = ({"objective": integrated(cpd.covariance()),
+                                   "template": template},
+                                  evaluate_state(cpd, config, prepared, pool=pool))
 
-    trace = Trace()
-    interrupted = False
-    if config.correspondence == "cpd":
-        state = cpd
-        state.objective = integrated
-        initial = final = state.value()
-        trace.record(state, final, "integrated", 0)
-        log.info("CPD correspondence (template %s): objective %.4f", template, final)
-    else:
-        settings = config.optimisation_settings()
+        trace = Trace()
+        interrupted = False
+        if config.correspondence == "cpd":
+            state = cpd
+            state.objective = integrated
+            initial = final = state.value()
+            trace.record(state, final, "integrated", 0)
+            log.info("CPD correspondence (template %s): objective %.4f", template, final)
+        else:
+            settings = config.optimisation_settings()
 
-        def checkpoint():
-            save_checkpoint(output / "checkpoint.npz", state)
+            def checkpoint():
+                save_checkpoint(output / "checkpoint.npz", state)
 
-        try:
-            optimise(state, (fixed, integrated), settings, np.random.default_rng(config.seed),
-                     trace, progress, checkpoint)
-        except (KeyboardInterrupt, Cancelled):
-            interrupted = True
-            log.warning("optimisation interrupted: writing the model of the state reached")
-        if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
-            log.warning("the optimisation did not lower the objective within --max-time "
-                        "(%.0f s): keeping the initial correspondence", config.max_time)
-        state.rebuild()  # also makes the state consistent after an interruption mid-step
-        final = integrated(state.covariance())
-        log.info("final objective %.4f after %.1f s, %d evaluations", final,
-                 trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
-        checkpoint()
-    io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
-    # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
-    # then the model's, with the outputs
-    report(progress, 0.0, "evaluating the baselines" if pending else "evaluating")
-    baselines = {name: {**notes, **_outcome(evaluation)}
-                 for name, (notes, evaluation) in pending.items()}
+            try:
+                optimise(state, (fixed, integrated), settings, np.random.default_rng(config.seed),
+                         trace, progress, checkpoint)
+            except (KeyboardInterrupt, Cancelled):
+                interrupted = True
+                log.warning("optimisation interrupted: writing the model of the state reached")
+            if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
+                log.warning("the optimisation did not lower the objective within --max-time "
+                            "(%.0f s): keeping the initial correspondence", config.max_time)
+            state.rebuild()  # also makes the state consistent after an interruption mid-step
+            final = integrated(state.covariance())
+            log.info("final objective %.4f after %.1f s, %d evaluations", final,
+                     trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
+            checkpoint()
+        io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
+        # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
+        # then the model's, with the outputs
+        report(progress, 0.0, "evaluating the baselines" if pending else "evaluating")
+        baselines = {name: {**notes, **_outcome(evaluation)}
+                     for name, (notes, evaluation) in pending.items()}
 
-    report(progress, 0.5, "evaluating the model, writing outputs")
-    result = write_outputs(output, state, prepared, rejected, config, initial, final,
-                           voxel, data_range, interrupted, baselines, pool)
-    report(progress, 1.0, "evaluated, outputs written")
+        report(progress, 0.5, "evaluating the model, writing outputs")
+        result = write_outputs(output, state, prepared, rejected, config, initial, final,
+                               voxel, data_range, interrupted, baselines, pool)
+        report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
 

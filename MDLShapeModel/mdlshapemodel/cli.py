@@ -331,7 +331,7 @@ def main(argv=None) -> int:
     build.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
     build.add_argument("-o", "--output", required=True, help="output folder")
     _add_build_options(build)
-    demo = commands.add_parser("demo", help="build a model of a generated population (about 30 s)")
+    demo = commands.add_parser("demo", help="build a model of a generated population (about 25 s)")
     demo.add_argument("-o", "--output", default="mdlshapemodel-demo", help="output folder "
                       "(default %(default)s)")
     demo.add_argument("--subjects", type=int, default=12, help="population size (default 12)")

@@ -60,6 +60,20 @@ def executor_for(workers: int, executor: Executor | None = None):
         yield pool
 
 
+@contextlib.contextmanager
+def helper_for(workers: int, executor: Executor | None = None):
+    """The executor for work that overlaps the main process's (evaluating baselines while the
+    single-threaded optimisation runs): the caller's ``executor`` if it gave one, else one worker
+    process when ``workers`` > 1, else None. One process, not ``workers``: the main process keeps
+    a core, and an idle pool would hold its workers' memory for the whole build."""
+    if executor is not None or workers <= 1:
+        yield executor
+        return
+    with _one_blas_thread_per_worker(), ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        yield pool
+
+
 def map_cases(function, arguments: list, executor: Executor | None = None,
               progress: Progress | None = None, message: str = "cases") -> list:
     """``[function(*a) for a in arguments]``, on ``executor`` when given; results in input order,
