@@ -1,0 +1,282 @@
+"""Correspondence measured against a ground truth: populations with known correspondence.
+
+``make`` deforms one shared femur surface (or any closed mesh) by smooth random fields of low rank
+(a few fixed modes, each case a random combination of them), adds a small per-case field and a
+random rigid pose, and voxelises every case at ``--spacing`` mm, so that the tool sees only label
+maps. Vertex k of every deformed mesh is the same anatomical point: the ground truth.
+
+``template`` is a reference correspondence: the template's points rigidly aligned to each case's
+surface (ICP, VTK) and projected to the closest surface point.
+
+``evaluate`` measures the correspondence of build outputs (and of ``template`` outputs): each
+corresponded point is located on its case's true mesh (closest point, barycentric coordinates),
+carried to the undeformed template through the known correspondence, and the spread of each
+point's carried copies about their mean is reported (mean and 95th percentile, mm).
+
+    python benchmarks/ground_truth.py make --cases 30 --spacing 0.5 --output /tmp/gt-femur
+    mdlshapemodel build /tmp/gt-femur/labels -o /tmp/gt-femur/mdl
+    mdlshapemodel build /tmp/gt-femur/labels -o /tmp/gt-femur/initial --strategy none
+    mdlshapemodel build /tmp/gt-femur/labels -o /tmp/gt-femur/cpd --correspondence cpd
+    python benchmarks/ground_truth.py template /tmp/gt-femur --output /tmp/gt-femur/template
+    python benchmarks/ground_truth.py evaluate /tmp/gt-femur /tmp/gt-femur/initial \\
+        /tmp/gt-femur/cpd /tmp/gt-femur/template /tmp/gt-femur/mdl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+FEMURS = Path(__file__).resolve().parents[2] / "shared" / "data" / "femurs"
+
+
+def read_vtp_points(path) -> np.ndarray:
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    reader = vtk.vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    return vtk_to_numpy(reader.GetOutput().GetPoints().GetData()).astype(np.float64)
+
+
+def gaussian_field(points: np.ndarray, centres: np.ndarray, weights: np.ndarray, width: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """u(x) = sum_j w_j exp(-|x - c_j|^2 / (2 s^2)) at ``points`` (n, 3) and its gradient
+    du/dx (n, 3, 3)."""
+    difference = points[:, None, :] - centres[None, :, :]
+    g = np.exp(-np.sum(difference ** 2, axis=2) / (2.0 * width ** 2))       # (n, K)
+    field = g @ weights
+    gradient = -np.einsum("nk,kd,nke->nde", g, weights, difference) / width ** 2
+    return field, gradient
+
+
+def rotation(vector: np.ndarray) -> np.ndarray:
+    angle = float(np.linalg.norm(vector))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = vector / angle
+    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+
+
+def voxelise(vertices: np.ndarray, faces: np.ndarray, spacing: float, margin: int = 4):
+    """Binary label map (z, y, x) of the inside of a closed mesh, and its origin."""
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    from mdlshapemodel.prepare.surface import arrays_to_polydata
+
+    origin = np.floor(vertices.min(axis=0) / spacing) * spacing - margin * spacing
+    size = np.ceil((vertices.max(axis=0) - origin) / spacing).astype(int) + margin + 1
+    image = vtk.vtkImageData()
+    image.SetOrigin(*origin)
+    image.SetSpacing(spacing, spacing, spacing)
+    image.SetDimensions(*size)
+    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
+    image.GetPointData().GetScalars().Fill(1)
+    stencil = vtk.vtkPolyDataToImageStencil()
+    stencil.SetInputData(arrays_to_polydata(vertices, faces))
+    stencil.SetOutputOrigin(*origin)
+    stencil.SetOutputSpacing(spacing, spacing, spacing)
+    stencil.SetOutputWholeExtent(image.GetExtent())
+    stencil.Update()
+    cut = vtk.vtkImageStencil()
+    cut.SetInputData(image)
+    cut.SetStencilConnection(stencil.GetOutputPort())
+    cut.ReverseStencilOff()
+    cut.SetBackgroundValue(0)
+    cut.Update()
+    mask = vtk_to_numpy(cut.GetOutput().GetPointData().GetScalars()).reshape(size[::-1])
+    return mask.astype(np.uint8), origin
+
+
+def make(args):
+    import SimpleITK as sitk
+
+    from mdlshapemodel.prepare import io, surface
+
+    output = Path(args.output)
+    (output / "labels").mkdir(parents=True, exist_ok=True)
+    (output / "meshes").mkdir(parents=True, exist_ok=True)
+    vertices, faces = io.read_mesh(args.mesh)
+    vertices, faces = surface.merge_close_vertices(vertices, faces)
+    vertices, faces = surface.drop_degenerate_faces(vertices, faces)
+    surface.require_sphere_like(vertices, faces)
+    faces = surface.orient_outwards(vertices, faces)
+    if len(vertices) > args.max_vertices:
+        vertices, faces = surface.decimate(vertices, faces, args.max_vertices)
+    vertices = vertices - vertices.mean(axis=0)
+    size = float(np.sqrt(np.mean(np.sum(vertices ** 2, axis=1))))     # RMS radius, mm
+    rng = np.random.default_rng(args.seed)
+    width = args.width * size
+    modes = []
+    for m in range(args.modes):   # fixed smooth modes, each moving its largest point by amplitude
+        centres = vertices[rng.choice(len(vertices), args.centres, replace=False)]
+        weights = rng.normal(size=(args.centres, 3))
+        field, _ = gaussian_field(vertices, centres, weights, width)
+        scale = args.amplitude / (m + 1) / np.max(np.linalg.norm(field, axis=1))
+        modes.append((centres, weights * scale))
+    io.write_polydata(output / "template.vtp", vertices, faces)
+    truth = {"template": str(args.mesh), "rms_radius_mm": size, "spacing_mm": args.spacing,
+             "modes": args.modes, "amplitude_mm": args.amplitude, "cases": {}}
+    started = time.perf_counter()
+    for i in range(args.cases):
+        name = f"case_{i:03d}"
+        for attempt in range(20):   # redraw until the deformation is clearly invertible
+            coefficients = np.clip(rng.normal(size=args.modes), -2.5, 2.5)
+            field = np.zeros_like(vertices)
+            gradient = np.zeros((len(vertices), 3, 3))
+            for b, (centres, weights) in zip(coefficients, modes):
+                f, g = gaussian_field(vertices, centres, b * weights, width)
+                field += f
+                gradient += g
+            centres = vertices[rng.choice(len(vertices), args.centres, replace=False)]
+            noise, noise_gradient = gaussian_field(
+                vertices, centres, rng.normal(size=(args.centres, 3)), width / 2)
+            factor = args.noise / max(np.max(np.linalg.norm(noise, axis=1)), 1e-12)
+            noise, noise_gradient = noise * factor, noise_gradient * factor
+            jacobian = np.linalg.det(np.eye(3) + gradient + noise_gradient)
+            if jacobian.min() > 0.5:
+                break
+        pose = rotation(rng.normal(size=3) * np.radians(args.rotation) / np.sqrt(3))
+        shift = rng.normal(size=3) * args.translation
+        deformed = (vertices + field + noise) @ pose.T + shift
+        io.write_polydata(output / "meshes" / f"{name}.vtp", deformed, faces)
+        mask, origin = voxelise(deformed, faces, args.spacing)
+        image = sitk.GetImageFromArray(mask)
+        image.SetSpacing((args.spacing,) * 3)
+        image.SetOrigin(tuple(float(o) for o in origin))
+        sitk.WriteImage(image, str(output / "labels" / f"{name}.nii.gz"), useCompression=True)
+        truth["cases"][name] = {"coefficients": coefficients.tolist(),
+                                "min_jacobian": float(jacobian.min()),
+                                "voxels": list(mask.shape[::-1])}
+        print(f"{name}: {mask.shape[::-1]} voxels, min Jacobian {jacobian.min():.2f}")
+    (output / "truth.json").write_text(json.dumps(truth, indent=2))
+    print(f"{args.cases} cases in {time.perf_counter() - started:.0f} s, {len(vertices)} vertices, "
+          f"RMS radius {size:.1f} mm -> {output}")
+
+
+def located_on_template(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                        template: np.ndarray) -> np.ndarray:
+    """Each point's closest point on the mesh (vertices, faces), carried to the same barycentric
+    coordinates of the same triangle of ``template`` (the mesh's undeformed vertices)."""
+    from mdlshapemodel.prepare.surface import SurfaceDistance
+
+    closest, _, face = SurfaceDistance(vertices, faces).closest(points)
+    a, b, c = (vertices[faces[face, k]] for k in range(3))
+    v0, v1, v2 = b - a, c - a, closest - a
+    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
+    d20, d21 = np.einsum("ij,ij->i", v2, v0), np.einsum("ij,ij->i", v2, v1)
+    denominator = d00 * d11 - d01 ** 2
+    beta = (d11 * d20 - d01 * d21) / denominator
+    gamma = (d00 * d21 - d01 * d20) / denominator
+    alpha = 1.0 - beta - gamma
+    t = template[faces[face]]
+    return alpha[:, None] * t[:, 0] + beta[:, None] * t[:, 1] + gamma[:, None] * t[:, 2]
+
+
+def correspondence_error(truth_folder: Path, build: Path) -> dict:
+    """Mean and 95th percentile (mm) of the distance of each point's copies, carried to the
+    template, from their mean."""
+    from mdlshapemodel.prepare import io
+
+    template, faces = io.read_mesh(truth_folder / "template.vtp")
+    carried = []
+    for path in sorted((build / "correspondence").glob("*.vtp")):
+        vertices, _ = io.read_mesh(truth_folder / "meshes" / path.name)
+        carried.append(located_on_template(read_vtp_points(path), vertices, faces, template))
+    carried = np.stack(carried)                           # (n_s, n_p, 3)
+    spread = np.linalg.norm(carried - carried.mean(axis=0), axis=2)
+    return {"cases": len(carried), "points": carried.shape[1], "mean_mm": float(spread.mean()),
+            "p95_mm": float(np.percentile(spread, 95))}
+
+
+def evaluate(args):
+    truth = Path(args.truth)
+    print(f"{'correspondence':<40} {'cases':>5} {'points':>6} {'mean mm':>8} {'p95 mm':>8}")
+    for build in args.builds:
+        result = correspondence_error(truth, Path(build))
+        print(f"{Path(build).name:<40} {result['cases']:>5} {result['points']:>6} "
+              f"{result['mean_mm']:>8.3f} {result['p95_mm']:>8.3f}")
+
+
+def template_reference(args):
+    """The template's points rigidly aligned (ICP) to each case's prepared surface and projected
+    to its closest points."""
+    import vtk
+
+    from mdlshapemodel import BuildConfig, MDLShapeModelError
+    from mdlshapemodel.prepare import io
+    from mdlshapemodel.prepare.case import surface_of_mask
+    from mdlshapemodel.prepare.surface import SurfaceDistance, arrays_to_polydata
+
+    truth = Path(args.truth)
+    output = Path(args.output)
+    (output / "correspondence").mkdir(parents=True, exist_ok=True)
+    template, faces = io.read_mesh(truth / "template.vtp")
+    # template points: a fixed random subset of its vertices
+    rng = np.random.default_rng(0)
+    chosen = rng.choice(len(template), min(args.points, len(template)), replace=False)
+    points = template[chosen]
+    config = BuildConfig()
+    for path in sorted((truth / "labels").glob("*.nii.gz")):
+        name = io.case_name(path)
+        try:   # the case's surface as the tool makes it (no sphere map needed)
+            label_map = io.read_label_map(path, config.labels)
+            target, target_faces, _, _ = surface_of_mask(
+                label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
+        except MDLShapeModelError as error:
+            print(f"{path.name}: rejected ({error})")
+            continue
+        source = points - points.mean(axis=0) + target.mean(axis=0)
+        icp = vtk.vtkIterativeClosestPointTransform()
+        icp.SetSource(arrays_to_polydata(source))
+        icp.SetTarget(arrays_to_polydata(target, target_faces))
+        icp.GetLandmarkTransform().SetModeToRigidBody()
+        icp.SetMaximumNumberOfIterations(200)
+        icp.SetMaximumNumberOfLandmarks(len(source))
+        icp.StartByMatchingCentroidsOn()
+        icp.Update()
+        matrix = np.array([[icp.GetMatrix().GetElement(r, c) for c in range(4)] for r in range(4)])
+        aligned = source @ matrix[:3, :3].T + matrix[:3, 3]
+        projected = SurfaceDistance(target, target_faces).closest(aligned)[0]
+        io.write_polydata(output / "correspondence" / f"{name}.vtp", projected)
+        print(f"{name}: aligned, mean projection {np.mean(np.linalg.norm(projected - aligned, axis=1)):.2f} mm")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    maker = commands.add_parser("make", help="a population with known correspondence")
+    maker.add_argument("--mesh", default=str(FEMURS / "m3_lfemur_mm.stl"))
+    maker.add_argument("--cases", type=int, default=30)
+    maker.add_argument("--spacing", type=float, default=0.5, help="voxel size, mm")
+    maker.add_argument("--modes", type=int, default=4)
+    maker.add_argument("--amplitude", type=float, default=6.0,
+                       help="largest displacement of the first mode at 1 SD, mm (mode m: /m)")
+    maker.add_argument("--noise", type=float, default=0.5, help="per-case field, largest mm")
+    maker.add_argument("--width", type=float, default=0.5, help="field width / RMS radius")
+    maker.add_argument("--centres", type=int, default=8, help="Gaussians per field")
+    maker.add_argument("--rotation", type=float, default=10.0, help="SD of the pose angle, deg")
+    maker.add_argument("--translation", type=float, default=3.0, help="SD per axis, mm")
+    maker.add_argument("--max-vertices", type=int, default=40000)
+    maker.add_argument("--seed", type=int, default=0)
+    maker.add_argument("--output", required=True)
+    reference = commands.add_parser("template", help="rigid template + closest point reference")
+    reference.add_argument("truth")
+    reference.add_argument("--points", type=int, default=2562)
+    reference.add_argument("--output", required=True)
+    evaluator = commands.add_parser("evaluate", help="correspondence error of build outputs")
+    evaluator.add_argument("truth")
+    evaluator.add_argument("builds", nargs="+")
+    args = parser.parse_args()
+    {"make": make, "template": template_reference, "evaluate": evaluate}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()
