@@ -55,15 +55,6 @@ def gaussian_field(points: np.ndarray, centres: np.ndarray, weights: np.ndarray,
     return field, gradient
 
 
-def rotation(vector: np.ndarray) -> np.ndarray:
-    angle = float(np.linalg.norm(vector))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = vector / angle
-    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
-
-
 def voxelise(vertices: np.ndarray, faces: np.ndarray, spacing: float, margin: int = 4):
     """Binary label map (z, y, x) of the inside of a closed mesh, and its origin."""
     import vtk
@@ -98,6 +89,7 @@ def voxelise(vertices: np.ndarray, faces: np.ndarray, spacing: float, margin: in
 def make(args):
     import SimpleITK as sitk
 
+    from mdlshapemodel.correspondence.pose import rotation_from_vector
     from mdlshapemodel.prepare import io, surface
 
     output = Path(args.output)
@@ -143,7 +135,7 @@ def make(args):
             jacobian = np.linalg.det(np.eye(3) + gradient + noise_gradient)
             if jacobian.min() > 0.5:
                 break
-        pose = rotation(rng.normal(size=3) * np.radians(args.rotation) / np.sqrt(3))
+        pose = rotation_from_vector(rng.normal(size=3) * np.radians(args.rotation) / np.sqrt(3))
         shift = rng.normal(size=3) * args.translation
         deformed = (vertices + field + noise) @ pose.T + shift
         io.write_polydata(output / "meshes" / f"{name}.vtp", deformed, faces)
