@@ -172,14 +172,15 @@ def located_on_template(points: np.ndarray, vertices: np.ndarray, faces: np.ndar
     return alpha[:, None] * t[:, 0] + beta[:, None] * t[:, 1] + gamma[:, None] * t[:, 2]
 
 
-def correspondence_error(truth_folder: Path, build: Path) -> dict:
+def correspondence_error(truth_folder: Path, build: Path, cases: list) -> dict:
     """Mean and 95th percentile (mm) of the distance of each point's copies, carried to the
-    template, from their mean."""
+    template, from their mean, over ``cases``."""
     from mdlshapemodel.prepare import io
 
     template, faces = io.read_mesh(truth_folder / "template.vtp")
     carried = []
-    for path in sorted((build / "correspondence").glob("*.vtp")):
+    for name in cases:
+        path = build / "correspondence" / f"{name}.vtp"
         vertices, _ = io.read_mesh(truth_folder / "meshes" / path.name)
         carried.append(located_on_template(read_vtp_points(path), vertices, faces, template))
     carried = np.stack(carried)                           # (n_s, n_p, 3)
@@ -189,10 +190,14 @@ def correspondence_error(truth_folder: Path, build: Path) -> dict:
 
 
 def evaluate(args):
+    """The error of every build on the cases that all of them hold (a build rejects some)."""
     truth = Path(args.truth)
+    held = [{p.stem for p in (Path(b) / "correspondence").glob("*.vtp")} for b in args.builds]
+    cases = sorted(set.intersection(*held))
+    print(f"{len(cases)} cases held by every build (of {len(set.union(*held))})")
     print(f"{'correspondence':<40} {'cases':>5} {'points':>6} {'mean mm':>8} {'p95 mm':>8}")
     for build in args.builds:
-        result = correspondence_error(truth, Path(build))
+        result = correspondence_error(truth, Path(build), cases)
         print(f"{Path(build).name:<40} {result['cases']:>5} {result['points']:>6} "
               f"{result['mean_mm']:>8.3f} {result['p95_mm']:>8.3f}")
 
