@@ -1,7 +1,6 @@
 """The state records every accepted reparameterization, for every strategy, and a record (the
 build's checkpoint) re-applied to a fresh state gives the same correspondence bit for bit."""
 
-import time
 
 import numpy as np
 import pytest

@@ -15,7 +15,7 @@ from mdlshapemodel.config import WARPS, OptimisationSettings
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.strategies.one_at_a_time import optimise_warp, warp_counts
 from mdlshapemodel.correspondence.trace import Trace
-from mdlshapemodel.correspondence.warps import ShearTwist, apply_symmetric_theta
+from mdlshapemodel.correspondence.warps import ShearTwist
 
 from synthetic import small_state
 

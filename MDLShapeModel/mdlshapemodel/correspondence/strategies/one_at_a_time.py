@@ -29,6 +29,7 @@ from .base import improvements, rebuilt, recorder, start_phase, stalled
 #: the warp kind (warps.WARP_KINDS) that each ``--warps`` option draws
 KIND_OF_OPTION = {"symmetric": SymmetricTheta.kind, "asymmetric": AsymmetricTheta.kind,
                   "shear": ShearTwist.kind, "rotation": Rotation.kind}
+OPTION_OF_KIND = {kind: option for option, kind in KIND_OF_OPTION.items()}
 
 
 def optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: SymmetricTheta,
@@ -193,9 +194,8 @@ def warp_counts(state: CorrespondenceState) -> dict:
     for example in state.examples:
         for part in example.parts:
             for kind, count in part.warp_counts().items():
-                if kind in KIND_OF_OPTION.values():
-                    option = next(o for o, k in KIND_OF_OPTION.items() if k == kind)
-                    counts[option] += count
+                if kind in OPTION_OF_KIND:
+                    counts[OPTION_OF_KIND[kind]] += count
     return counts
 
 
