@@ -8,8 +8,9 @@ from mdlshapemodel.errors import SurfaceError
 from mdlshapemodel.correspondence.sampling import icosphere
 from mdlshapemodel.prepare.surface import (arrays_to_polydata, compact, decimate, drop_degenerate_faces,
                                    edges_of, face_areas, largest_component, mask_to_surface,
-                                   merge_close_vertices, orient_outwards, remesh,
-                                   require_sphere_like, signed_volume, topology)
+                                   merge_close_vertices, orient_outwards, point_surface_distances,
+                                   remesh, require_sphere_like, resample, signed_volume, topology)
+from mdlshapemodel.config import BuildConfig, MIN_SURFACE_VERTICES, target_vertices_for
 
 
 def torus(n_major=16, n_minor=9, major=3.0, minor=1.0):
@@ -263,6 +264,36 @@ def test_decimate_and_remesh_keep_a_sphere():
     lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
     assert 0.06 < np.median(lengths) < 0.14
     assert np.all(np.abs(np.linalg.norm(vertices, axis=1) - 1.0) < 0.05)
+
+
+def test_resample_coarsens_a_fine_surface_to_the_target_and_keeps_its_shape():
+    # 40,962 vertices, more than PRE_DECIMATION x the target: decimated, then remeshed
+    points, faces = icosphere(6)
+    points = points * np.array([30.0, 10.0, 10.0])
+    vertices, resampled = resample(points, faces, target_vertices=2000, edge_length=0.01)
+    assert topology(vertices, resampled).is_sphere_like
+    assert 1600 < len(vertices) < 2400
+    assert np.mean(point_surface_distances(vertices, points, faces)) < 0.05
+    # a surface already coarser than the target keeps the asked edge length
+    coarse, coarse_faces = resample(*icosphere(3), target_vertices=5000, edge_length=0.1)
+    edges = np.unique(np.sort(edges_of(coarse_faces), axis=1), axis=0)
+    assert 0.07 < np.median(np.linalg.norm(coarse[edges[:, 0]] - coarse[edges[:, 1]], axis=1)) < 0.13
+
+
+def test_the_surface_resolution_follows_the_sampling_grid_unless_set():
+    assert BuildConfig().target_vertices == target_vertices_for(BuildConfig().points)
+    assert BuildConfig(points=642).target_vertices == MIN_SURFACE_VERTICES
+    assert BuildConfig(points=10242).target_vertices > BuildConfig(points=2562).target_vertices
+    assert BuildConfig(points=10242, target_vertices=3000).target_vertices == 3000
+
+
+def test_a_big_mask_gives_a_surface_of_about_the_target_size():
+    z, y, x = np.mgrid[:90, :60, :60]
+    mask = ((x - 30) / 25.0) ** 2 + ((y - 30) / 25.0) ** 2 + ((z - 45) / 40.0) ** 2 < 1
+    fine, fine_faces, _ = mask_to_surface(mask, target_vertices=10 ** 6)   # edges of 1 voxel
+    vertices, faces, info = mask_to_surface(mask, target_vertices=1500)
+    assert len(fine) > 4 * 1500 and 1200 < info["n_vertices"] < 1800
+    assert np.mean(point_surface_distances(vertices, fine, fine_faces)) < 0.1  # voxels
 
 
 # --- label map -> surface ------------------------------------------------------------------------------

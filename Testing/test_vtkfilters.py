@@ -224,11 +224,11 @@ def test_filters_start_at_the_build_defaults():
     assert to_sphere.GetAreaWeight() == mapping["area_weight"].default
     assert to_sphere.GetMaxIterations() == mapping["max_iterations"].default
     contouring = inspect.signature(surface.mask_to_surface).parameters
-    # max_smoothing_sigma: None in both, the one rule of config.max_smoothing_for
+    # max_smoothing_sigma and target_vertices: None in both, the rules of config
     declared = {f.name: f.default for f in dataclasses.fields(BuildConfig)}
-    assert contouring["max_smoothing_sigma"].default is declared["max_smoothing_sigma"] is None
-    for name, field in (("smoothing_sigma", "smoothing_sigma"),
-                        ("edge_length", "edge_length"), ("target_vertices", "target_vertices"),
+    for name in ("max_smoothing_sigma", "target_vertices"):
+        assert contouring[name].default is declared[name] is None, name
+    for name, field in (("smoothing_sigma", "smoothing_sigma"), ("edge_length", "edge_length"),
                         ("method", "surface_method"), ("smoothing_factor", "smoothing_factor"),
                         ("decimation", "decimation")):
         assert contouring[name].default == getattr(defaults, field), name

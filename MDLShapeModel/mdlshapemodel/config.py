@@ -63,6 +63,19 @@ _CORRESPONDENCE, _INPUTS, _RUNNING = OPTION_GROUPS
 MAX_SMOOTHING_SIGMA = 2.0
 
 
+# Unless set, the surfaces mapped to the sphere have about this many vertices per sample point,
+# and at least MIN_SURFACE_VERTICES: ``BuildConfig.target_vertices``. A surface many times finer
+# than the sampling grid buys nothing and costs time (a 0.5 mm femur contour has 146,000).
+SURFACE_VERTICES_PER_POINT = 2
+MIN_SURFACE_VERTICES = 5000
+
+
+def target_vertices_for(points: int) -> int:
+    """The vertices of the surfaces that are mapped to the sphere, unless set: the larger of
+    :data:`MIN_SURFACE_VERTICES` and :data:`SURFACE_VERTICES_PER_POINT` per sample point."""
+    return max(MIN_SURFACE_VERTICES, SURFACE_VERTICES_PER_POINT * points)
+
+
 def max_smoothing_for(smoothing_sigma: float) -> float:
     """The largest blur of a mask whose surface is not genus 0, unless set: the larger of
     :data:`MAX_SMOOTHING_SIGMA` and the first blur (voxels)."""
@@ -158,9 +171,13 @@ class BuildConfig:
                  f"0.5), voxels (default: max({MAX_SMOOTHING_SIGMA:g}, --smoothing))",
         flag="--max-smoothing"))
     edge_length: float = field(default=1.0, metadata=option(
-        _INPUTS, "edge length of the remeshed surfaces, voxels (default %(default)s)"))
-    target_vertices: int = field(default=20000, metadata=option(
-        _INPUTS, "meshes with more vertices are decimated (default %(default)s)"))
+        _INPUTS, "edge length of the remeshed surfaces of label maps, voxels, unless that gives "
+                 "more than --target-vertices vertices (default %(default)s)"))
+    # None: target_vertices_for(points) (set on construction)
+    target_vertices: int | None = field(default=None, metadata=option(
+        _INPUTS, "about how many vertices the surfaces mapped to the sphere have at most: finer "
+                 "ones are remeshed with longer edges than --edge-length (default: "
+                 f"max({MIN_SURFACE_VERTICES}, {SURFACE_VERTICES_PER_POINT} x --points))"))
     # correspondence
     correspondence: str = field(default="mdl", metadata=option(
         _CORRESPONDENCE, "'mdl': optimised by minimum description length; 'cpd': a template "
@@ -242,10 +259,13 @@ class BuildConfig:
         _RUNNING, "fail (exit 2) if any input is rejected"))
 
     def __post_init__(self):
-        # the one rule between two fields: unless set, the blur may rise to MAX_SMOOTHING_SIGMA,
+        # the rules between fields: unless set, the blur may rise to MAX_SMOOTHING_SIGMA,
         # or stays at smoothing_sigma when that is larger
         if self.max_smoothing_sigma is None and isinstance(self.smoothing_sigma, (int, float)):
             self.max_smoothing_sigma = max_smoothing_for(self.smoothing_sigma)
+        # and unless set, the surfaces are about as fine as the sampling grid needs
+        if self.target_vertices is None and isinstance(self.points, int):
+            self.target_vertices = target_vertices_for(self.points)
 
     def validate(self) -> "BuildConfig":
         """Raise :class:`ConfigError` naming the first bad field; return self."""

@@ -29,7 +29,9 @@ CACHE_FORMAT = 2   # 2: the preparation facts as named fields
 # change alters the surfaces or maps, so that entries made by the old algorithm are not reused.
 # 2: compiled distortion minimisation and our own Moebius balancing (maps differ in rounding).
 # 3: a deterministic isotropic remesher (gpytoolbox's) and one BLAS thread while preparing.
-PREPROCESSING_VERSION = 3
+# 4: surfaces remeshed at a resolution tied to the sampling grid (BuildConfig.target_vertices),
+#    big ones decimated first; mesh inputs' voxel size is their own mean edge length.
+PREPROCESSING_VERSION = 4
 PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
                         "smoothing_sigma", "max_smoothing_sigma", "edge_length",
                         "target_vertices")

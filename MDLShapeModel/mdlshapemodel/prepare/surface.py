@@ -13,7 +13,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from ..config import SURFACE_METHODS, BuildConfig, max_smoothing_for
+from ..config import SURFACE_METHODS, BuildConfig, max_smoothing_for, target_vertices_for
 from ..errors import SurfaceError
 
 
@@ -271,7 +271,7 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
                     direction=None, smoothing_sigma: float = BuildConfig.smoothing_sigma,
                     max_smoothing_sigma: float | None = BuildConfig.max_smoothing_sigma,
                     edge_length: float = BuildConfig.edge_length,
-                    target_vertices: int = BuildConfig.target_vertices,
+                    target_vertices: int | None = BuildConfig.target_vertices,
                     method: str = BuildConfig.surface_method,
                     smoothing_factor: float = BuildConfig.smoothing_factor,
                     decimation: float = BuildConfig.decimation
@@ -286,10 +286,10 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     not genus 0 the mask is blurred (more): from ``smoothing_sigma`` (gaussian) or 1 voxel
     (slicer) in steps of 0.5 voxel up to ``max_smoothing_sigma`` (None: the rule of
     :func:`~mdlshapemodel.config.max_smoothing_for`); ``info["smoothing_sigma"]`` says
-    which blur was needed (0: none). The surface is then remeshed isotropically (edges of about
-    ``edge_length`` voxels: contouring leaves slivers that spoil sphere maps), decimated when it has
-    more than ``target_vertices`` vertices, and transformed to physical coordinates. The defaults
-    are those of :class:`~mdlshapemodel.config.BuildConfig`.
+    which blur was needed (0: none). The surface is then remeshed isotropically (contouring
+    leaves slivers that spoil sphere maps) with edges of ``edge_length`` voxels, or longer ones
+    giving about ``target_vertices`` vertices on big objects (:func:`resample`), and transformed
+    to physical coordinates. The defaults are those of :class:`~mdlshapemodel.config.BuildConfig`.
 
     Parameters
     ----------
@@ -306,6 +306,8 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     """
     if max_smoothing_sigma is None:
         max_smoothing_sigma = max_smoothing_for(smoothing_sigma)
+    if target_vertices is None:
+        target_vertices = target_vertices_for(BuildConfig.points)
     if method not in SURFACE_METHODS:
         raise SurfaceError(f"unknown surface method {method!r} (use {', '.join(SURFACE_METHODS)})")
     mask = np.asarray(mask) > 0
@@ -336,9 +338,7 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     else:
         raise SurfaceError(f"no genus-0 surface up to a blur of {max_smoothing_sigma:g} voxels ("
                            + "; ".join(reasons[-2:]) + ")")
-    vertices, faces = remesh(vertices, faces, edge_length)
-    if len(vertices) > target_vertices:
-        vertices, faces = decimate(vertices, faces, target_vertices)
+    vertices, faces = resample(vertices, faces, target_vertices, edge_length)
     # voxel index (x, y, z) -> physical point
     index = vertices - pad
     matrix = np.eye(3) if direction is None else np.asarray(direction, dtype=float).reshape(3, 3)
@@ -405,6 +405,38 @@ def arrays_to_polydata(vertices: np.ndarray, faces: np.ndarray | None = None,
                       numpy_to_vtkIdTypeArray(cells.ravel(), deep=True))
         setter(array)
     return polydata
+
+
+# Surfaces with more than this many times the target number of vertices are decimated before
+# they are remeshed: quadric decimation of a 0.5 mm femur contour (146,000 vertices) to 20,000
+# took 2.4 s and remeshing the result 0.8-1.1 s, against 6.5-7.7 s for remeshing the contour.
+PRE_DECIMATION = 4
+
+
+def edge_length_for(vertices: np.ndarray, faces: np.ndarray, target_vertices: int) -> float:
+    """Edge length of an equilateral triangulation of the surface with ``target_vertices``
+    vertices: a closed genus-0 mesh of n vertices has 2n - 4 triangles, so its area is about
+    2n (sqrt(3) / 4) h^2."""
+    area = float(face_areas(vertices, faces).sum())
+    return float(np.sqrt(2.0 * area / (np.sqrt(3.0) * target_vertices)))
+
+
+def resample(vertices: np.ndarray, faces: np.ndarray, target_vertices: int, edge_length: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Isotropic remeshing with edges of ``edge_length`` or, when that would give more than
+    ``target_vertices`` vertices, of the length giving about that many (:func:`edge_length_for`).
+
+    A surface much finer than the target (more than :data:`PRE_DECIMATION` times) is decimated
+    first, which is faster than remeshing it directly; if remeshing fails (the result would not be
+    genus 0), a surface above the target is decimated to it instead.
+    """
+    edge = max(float(edge_length), edge_length_for(vertices, faces, target_vertices))
+    if len(vertices) > PRE_DECIMATION * target_vertices:
+        vertices, faces = decimate(vertices, faces, PRE_DECIMATION * target_vertices)
+    remeshed, remeshed_faces = remesh(vertices, faces, edge)
+    if remeshed is vertices and len(vertices) > target_vertices:
+        return decimate(vertices, faces, target_vertices)
+    return remeshed, remeshed_faces
 
 
 def remesh(vertices: np.ndarray, faces: np.ndarray, edge_length: float, iterations: int = 5
@@ -545,10 +577,11 @@ def mirror(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndar
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, target_vertices: int
                ) -> tuple[np.ndarray, np.ndarray, float, str]:
     """Merge duplicate points, drop degenerate faces, make the orientation consistent, check the
-    topology, decimate above ``target_vertices`` and remesh at the mean edge length.
+    topology and remesh at the mean edge length, or coarser to about ``target_vertices``
+    vertices (:func:`resample`).
 
-    Returns vertices, faces, the mean edge length before remeshing (the default voxel size of a
-    mesh input) and a repair note ('' when nothing was repaired).
+    Returns vertices, faces, the mean edge length of the input (the default voxel size of a
+    mesh input: its resolution) and a repair note ('' when nothing was repaired).
     """
     if not np.all(np.isfinite(vertices)):
         raise SurfaceError("the mesh has non-finite (NaN or infinite) coordinates")
@@ -561,10 +594,8 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, target_vertices: int
         note = f"made the orientation of {flipped} faces consistent"
     require_sphere_like(vertices, faces)
     faces = orient_outwards(vertices, faces)
-    if len(vertices) > target_vertices:
-        vertices, faces = decimate(vertices, faces, target_vertices)
     edges = edges_of(faces)
     mean_edge = float(np.mean(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)))
-    vertices, faces = remesh(vertices, faces, mean_edge)
+    vertices, faces = resample(vertices, faces, target_vertices, mean_edge)
     require_sphere_like(vertices, faces)
     return vertices, faces, mean_edge, note
