@@ -9,7 +9,8 @@ from mdlshapemodel.correspondence.sampling import SphereLocator, icosphere
 from mdlshapemodel.prepare.sphere import (SphereMap, align_parameterizations, check_bijective, distortion,
                                   first_order_map, map_quality, minimise_distortion, orientation,
                                   principal_axes, solid_angles, sphere_map)
-from mdlshapemodel.prepare.surface import mask_to_surface, topology
+from mdlshapemodel.prepare.multilevel import multilevel_map
+from mdlshapemodel.prepare.surface import mask_to_surface, remesh, topology
 from mdlshapemodel.correspondence.warps import apply_symmetric_theta
 
 
@@ -361,3 +362,55 @@ def test_align_parameterizations_of_two_subjects(bump_map):
         assert np.mean(np.linalg.norm(points - reference_points, axis=1)) < 1.5
     for points in results[1:]:
         np.testing.assert_allclose(points, results[0], atol=1e-6)
+
+
+# --- the initial map that is fold-free by construction ---------------------------------------------
+
+def long_ellipsoid():
+    """A 20:1 ellipsoid of well-shaped triangles (about 1,400 vertices), on which lapy's conformal
+    map breaks down (its intermediate maps crowd points until triangles degenerate)."""
+    points, faces = icosphere(4)
+    return remesh(points * [20.0, 1.0, 1.0], faces, edge_length=0.4)
+
+
+def test_the_multilevel_map_is_fold_free_where_the_conformal_map_is_not():
+    from lapy import TriaMesh
+    from lapy.conformal import spherical_conformal_map
+
+    vertices, faces = long_ellipsoid()
+    try:
+        conformal = spherical_conformal_map(TriaMesh(vertices, faces))
+        conformal /= np.linalg.norm(conformal, axis=1, keepdims=True)
+        conformal_fold_free = check_bijective(conformal, faces) == 0
+    except (ValueError, SphereMapError):
+        conformal_fold_free = False
+    assert not conformal_fold_free
+    sphere = multilevel_map(vertices, faces)
+    np.testing.assert_allclose(np.linalg.norm(sphere, axis=1), 1.0)
+    assert check_bijective(sphere, faces) == 0      # raises unless it covers the sphere once
+    mapped = sphere_map(vertices, faces)
+    assert mapped.quality["flipped_triangles"] == 0
+    assert mapped.quality["mean_abs_log_area_ratio"] < 0.5
+
+
+def test_the_multilevel_map_needs_only_the_topology():
+    # garbage geometry (random points, some of them coincident) on the triangles of a sphere
+    points, faces = icosphere(3)
+    vertices = np.random.default_rng(3).normal(size=points.shape)
+    vertices[:20] = vertices[0]
+    sphere = multilevel_map(vertices, faces)
+    assert check_bijective(sphere, faces) == 0
+
+
+def test_the_multilevel_map_refuses_a_torus():
+    u, v = np.meshgrid(np.arange(12), np.arange(8), indexing="ij")
+    index = (u * 8 + v)
+    a, b = index, np.roll(index, -1, axis=0)
+    c, d = np.roll(b, -1, axis=1), np.roll(index, -1, axis=1)
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                            np.stack([a, c, d], -1).reshape(-1, 3)])
+    angle_u, angle_v = 2 * np.pi * u.ravel() / 12, 2 * np.pi * v.ravel() / 8
+    vertices = np.stack([(3 + np.cos(angle_v)) * np.cos(angle_u),
+                         (3 + np.cos(angle_v)) * np.sin(angle_u), np.sin(angle_v)], axis=1)
+    with pytest.raises(SphereMapError, match="tetrahedron"):
+        multilevel_map(vertices, faces)

@@ -8,6 +8,10 @@ maps. Vertex k of every deformed mesh is the same anatomical point: the ground t
 ``template`` is a reference correspondence: the template's points rigidly aligned to each case's
 surface (ICP, VTK) and projected to the closest surface point.
 
+``floor`` is the true correspondence seen through the preprocessing: the same template points on
+every true mesh, projected onto the case's prepared surface; its error is the noise floor that
+voxelisation and surface extraction set for any method.
+
 ``evaluate`` measures the correspondence of build outputs (and of ``template`` outputs): each
 corresponded point is located on its case's true mesh (closest point, barycentric coordinates),
 carried to the undeformed template through the known correspondence, and the spread of each
@@ -18,8 +22,9 @@ point's carried copies about their mean is reported (mean and 95th percentile, m
     mdlshapemodel build /tmp/gt-femur/labels -o /tmp/gt-femur/initial --strategy none
     mdlshapemodel build /tmp/gt-femur/labels -o /tmp/gt-femur/cpd --correspondence cpd
     python benchmarks/ground_truth.py template /tmp/gt-femur --output /tmp/gt-femur/template
-    python benchmarks/ground_truth.py evaluate /tmp/gt-femur /tmp/gt-femur/initial \\
-        /tmp/gt-femur/cpd /tmp/gt-femur/template /tmp/gt-femur/mdl
+    python benchmarks/ground_truth.py floor /tmp/gt-femur --output /tmp/gt-femur/floor
+    python benchmarks/ground_truth.py evaluate /tmp/gt-femur /tmp/gt-femur/floor \\
+        /tmp/gt-femur/initial /tmp/gt-femur/cpd /tmp/gt-femur/template /tmp/gt-femur/mdl
 """
 
 from __future__ import annotations
@@ -177,16 +182,20 @@ def correspondence_error(truth_folder: Path, build: Path, cases: list) -> dict:
     template, from their mean, over ``cases``."""
     from mdlshapemodel.prepare import io
 
+    from mdlshapemodel.prepare.surface import point_surface_distances
+
     template, faces = io.read_mesh(truth_folder / "template.vtp")
-    carried = []
+    carried, distances = [], []
     for name in cases:
         path = build / "correspondence" / f"{name}.vtp"
         vertices, _ = io.read_mesh(truth_folder / "meshes" / path.name)
         carried.append(located_on_template(read_vtp_points(path), vertices, faces, template))
+        distances.append(point_surface_distances(read_vtp_points(path), vertices, faces))
     carried = np.stack(carried)                           # (n_s, n_p, 3)
     spread = np.linalg.norm(carried - carried.mean(axis=0), axis=2)
     return {"cases": len(carried), "points": carried.shape[1], "mean_mm": float(spread.mean()),
-            "p95_mm": float(np.percentile(spread, 95))}
+            "p95_mm": float(np.percentile(spread, 95)),
+            "fidelity_mm": float(np.mean(np.concatenate(distances)))}
 
 
 def evaluate(args):
@@ -195,11 +204,44 @@ def evaluate(args):
     held = [{p.stem for p in (Path(b) / "correspondence").glob("*.vtp")} for b in args.builds]
     cases = sorted(set.intersection(*held))
     print(f"{len(cases)} cases held by every build (of {len(set.union(*held))})")
-    print(f"{'correspondence':<40} {'cases':>5} {'points':>6} {'mean mm':>8} {'p95 mm':>8}")
+    spacing = json.loads((truth / "truth.json").read_text())["spacing_mm"]
+    print("error: spread of each point's copies carried to the template (mm); fidelity: mean "
+          f"distance of the corresponded points from the true surface (mm; voxel {spacing} mm)")
+    print(f"{'correspondence':<28} {'cases':>5} {'points':>6} {'mean mm':>8} {'p95 mm':>8} "
+          f"{'fidelity':>8}")
     for build in args.builds:
         result = correspondence_error(truth, Path(build), cases)
-        print(f"{Path(build).name:<40} {result['cases']:>5} {result['points']:>6} "
-              f"{result['mean_mm']:>8.3f} {result['p95_mm']:>8.3f}")
+        print(f"{Path(build).name:<28} {result['cases']:>5} {result['points']:>6} "
+              f"{result['mean_mm']:>8.3f} {result['p95_mm']:>8.3f} {result['fidelity_mm']:>8.3f}")
+
+
+def prepared_surfaces(truth: Path):
+    """Each case's name and surface as the tool makes it from the label map (no sphere map);
+    rejected cases are printed and skipped."""
+    from mdlshapemodel import BuildConfig, MDLShapeModelError
+    from mdlshapemodel.prepare import io
+    from mdlshapemodel.prepare.case import surface_of_mask
+
+    config = BuildConfig()
+    for path in sorted((truth / "labels").glob("*.nii.gz")):
+        try:
+            label_map = io.read_label_map(path, config.labels)
+            vertices, faces, _, _ = surface_of_mask(
+                label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
+        except MDLShapeModelError as error:
+            print(f"{path.name}: rejected ({error})")
+            continue
+        yield io.case_name(path), vertices, faces
+
+
+def template_points(truth: Path, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """A fixed random subset of the template's vertices: their indices and positions."""
+    from mdlshapemodel.prepare import io
+
+    template, _ = io.read_mesh(truth / "template.vtp")
+    chosen = np.random.default_rng(0).choice(len(template), min(count, len(template)),
+                                             replace=False)
+    return chosen, template[chosen]
 
 
 def template_reference(args):
@@ -207,29 +249,13 @@ def template_reference(args):
     to its closest points."""
     import vtk
 
-    from mdlshapemodel import BuildConfig, MDLShapeModelError
     from mdlshapemodel.prepare import io
-    from mdlshapemodel.prepare.case import surface_of_mask
     from mdlshapemodel.prepare.surface import SurfaceDistance, arrays_to_polydata
 
-    truth = Path(args.truth)
-    output = Path(args.output)
+    truth, output = Path(args.truth), Path(args.output)
     (output / "correspondence").mkdir(parents=True, exist_ok=True)
-    template, faces = io.read_mesh(truth / "template.vtp")
-    # template points: a fixed random subset of its vertices
-    rng = np.random.default_rng(0)
-    chosen = rng.choice(len(template), min(args.points, len(template)), replace=False)
-    points = template[chosen]
-    config = BuildConfig()
-    for path in sorted((truth / "labels").glob("*.nii.gz")):
-        name = io.case_name(path)
-        try:   # the case's surface as the tool makes it (no sphere map needed)
-            label_map = io.read_label_map(path, config.labels)
-            target, target_faces, _, _ = surface_of_mask(
-                label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
-        except MDLShapeModelError as error:
-            print(f"{path.name}: rejected ({error})")
-            continue
+    _, points = template_points(truth, args.points)
+    for name, target, target_faces in prepared_surfaces(truth):
         source = points - points.mean(axis=0) + target.mean(axis=0)
         icp = vtk.vtkIterativeClosestPointTransform()
         icp.SetSource(arrays_to_polydata(source))
@@ -244,6 +270,23 @@ def template_reference(args):
         projected = SurfaceDistance(target, target_faces).closest(aligned)[0]
         io.write_polydata(output / "correspondence" / f"{name}.vtp", projected)
         print(f"{name}: aligned, mean projection {np.mean(np.linalg.norm(projected - aligned, axis=1)):.2f} mm")
+
+
+def noise_floor(args):
+    """The true correspondence seen through the preprocessing: the same template points on every
+    true mesh, projected to the closest points of the case's prepared surface. Its error is what
+    voxelisation and surface extraction alone cost; no correspondence method can do better."""
+    from mdlshapemodel.prepare import io
+    from mdlshapemodel.prepare.surface import SurfaceDistance
+
+    truth, output = Path(args.truth), Path(args.output)
+    (output / "correspondence").mkdir(parents=True, exist_ok=True)
+    chosen, _ = template_points(truth, args.points)
+    for name, target, target_faces in prepared_surfaces(truth):
+        true_points = io.read_mesh(truth / "meshes" / f"{name}.vtp")[0][chosen]
+        projected = SurfaceDistance(target, target_faces).closest(true_points)[0]
+        io.write_polydata(output / "correspondence" / f"{name}.vtp", projected)
+        print(f"{name}: true points moved {np.mean(np.linalg.norm(projected - true_points, axis=1)):.3f} mm")
 
 
 def main():
@@ -268,11 +311,16 @@ def main():
     reference.add_argument("truth")
     reference.add_argument("--points", type=int, default=2562)
     reference.add_argument("--output", required=True)
+    floor = commands.add_parser("floor", help="the true correspondence through the preprocessing")
+    floor.add_argument("truth")
+    floor.add_argument("--points", type=int, default=2562)
+    floor.add_argument("--output", required=True)
     evaluator = commands.add_parser("evaluate", help="correspondence error of build outputs")
     evaluator.add_argument("truth")
     evaluator.add_argument("builds", nargs="+")
     args = parser.parse_args()
-    {"make": make, "template": template_reference, "evaluate": evaluate}[args.command](args)
+    {"make": make, "template": template_reference, "floor": noise_floor,
+     "evaluate": evaluate}[args.command](args)
 
 
 if __name__ == "__main__":
