@@ -30,7 +30,8 @@ CACHE_FORMAT = 2   # 2: the preparation facts as named fields
 # 2: compiled distortion minimisation and our own Moebius balancing (maps differ in rounding).
 # 3: a deterministic isotropic remesher (gpytoolbox's) and one BLAS thread while preparing.
 # 4: surfaces remeshed at a resolution tied to the sampling grid (BuildConfig.target_vertices),
-#    big ones decimated first; mesh inputs' voxel size is their own mean edge length.
+#    big ones decimated first; mesh inputs' voxel size is their own mean edge length; the
+#    multilevel initial map instead of the Tutte map where the conformal map folds.
 PREPROCESSING_VERSION = 4
 PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
                         "smoothing_sigma", "max_smoothing_sigma", "edge_length",
