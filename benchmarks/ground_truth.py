@@ -17,6 +17,12 @@ corresponded point is located on its case's true mesh (closest point, barycentri
 carried to the undeformed template through the known correspondence, and the spread of each
 point's carried copies about their mean is reported (mean and 95th percentile, mm).
 
+All of it in one command (builds that exist are kept):
+
+    python benchmarks/ground_truth.py run --cases 30 --spacing 0.5 --output /tmp/gt-femur
+
+or step by step:
+
     python benchmarks/ground_truth.py make --cases 30 --spacing 0.5 --output /tmp/gt-femur
     mdlshapemodel build /tmp/gt-femur/labels -o /tmp/gt-femur/mdl
     mdlshapemodel build /tmp/gt-femur/labels -o /tmp/gt-femur/initial --strategy none
@@ -120,6 +126,7 @@ def make(args):
         modes.append((centres, weights * scale))
     io.write_polydata(output / "template.vtp", vertices, faces)
     truth = {"template": str(args.mesh), "rms_radius_mm": size, "spacing_mm": args.spacing,
+             "offset_mm": list(args.offset),
              "modes": args.modes, "amplitude_mm": args.amplitude, "cases": {}}
     started = time.perf_counter()
     for i in range(args.cases):
@@ -142,7 +149,7 @@ def make(args):
                 break
         pose = rotation_from_vector(rng.normal(size=3) * np.radians(args.rotation) / np.sqrt(3))
         shift = rng.normal(size=3) * args.translation
-        deformed = (vertices + field + noise) @ pose.T + shift
+        deformed = (vertices + field + noise) @ pose.T + shift + np.asarray(args.offset)
         io.write_polydata(output / "meshes" / f"{name}.vtp", deformed, faces)
         mask, origin = voxelise(deformed, faces, args.spacing)
         image = sitk.GetImageFromArray(mask)
@@ -289,7 +296,40 @@ def noise_floor(args):
         print(f"{name}: true points moved {np.mean(np.linalg.norm(projected - true_points, axis=1)):.3f} mm")
 
 
+def run_all(args):
+    """Every correspondence on one population: make it (unless it exists), build with every
+    strategy and the CPD baseline through the command line, the two references, then evaluate."""
+    import subprocess
+    import sys
+
+    output = Path(args.output)
+    here = Path(__file__).resolve()
+    if not (output / "truth.json").exists():
+        subprocess.run([sys.executable, str(here), "make", "--cases", str(args.cases),
+                        "--spacing", str(args.spacing), "--output", str(output)], check=True)
+    builds = {"initial": ["--strategy", "none"], "cpd": ["--correspondence", "cpd"]}
+    builds.update({name: ["--strategy", name] for name in args.strategies})
+    for name, options in builds.items():
+        folder = output / "builds" / name
+        if (folder / "model.h5").exists():
+            continue
+        started = time.perf_counter()
+        subprocess.run(["mdlshapemodel", "build", str(output / "labels"), "-o", str(folder),
+                        "--baselines", "", "--max-time", str(args.max_time), "-q", *options],
+                       check=True)
+        print(f"{name}: built in {time.perf_counter() - started:.0f} s", flush=True)
+    for name in ("template", "floor"):
+        if not (output / "builds" / name / "correspondence").exists():
+            subprocess.run([sys.executable, str(here), name, str(output), "--output",
+                            str(output / "builds" / name)], check=True, stdout=subprocess.DEVNULL)
+    order = ["floor", "initial", "template", "cpd", *args.strategies]
+    evaluate(argparse.Namespace(truth=str(output),
+                                builds=[str(output / "builds" / name) for name in order]))
+
+
 def main():
+    from mdlshapemodel.config import STRATEGIES
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     maker = commands.add_parser("make", help="a population with known correspondence")
@@ -306,6 +346,9 @@ def main():
     maker.add_argument("--translation", type=float, default=3.0, help="SD per axis, mm")
     maker.add_argument("--max-vertices", type=int, default=40000)
     maker.add_argument("--seed", type=int, default=0)
+    maker.add_argument("--offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar="MM",
+                       help="a shift of every case before voxelising: the same shapes voxelised "
+                            "anew (a sub-voxel offset measures how stable a build is)")
     maker.add_argument("--output", required=True)
     reference = commands.add_parser("template", help="rigid template + closest point reference")
     reference.add_argument("truth")
@@ -318,9 +361,18 @@ def main():
     evaluator = commands.add_parser("evaluate", help="correspondence error of build outputs")
     evaluator.add_argument("truth")
     evaluator.add_argument("builds", nargs="+")
+    everything = commands.add_parser("run", help="make, build with every strategy, evaluate")
+    everything.add_argument("--cases", type=int, default=30)
+    everything.add_argument("--spacing", type=float, default=0.5)
+    everything.add_argument("--strategies", type=lambda text: text.split(","),
+                            default=",".join(name for name in STRATEGIES if name != "none"),
+                            help="comma-separated (default %(default)s)")
+    everything.add_argument("--max-time", type=float, default=600.0,
+                            help="optimisation budget of each build, s")
+    everything.add_argument("--output", required=True)
     args = parser.parse_args()
     {"make": make, "template": template_reference, "floor": noise_floor,
-     "evaluate": evaluate}[args.command](args)
+     "evaluate": evaluate, "run": run_all}[args.command](args)
 
 
 if __name__ == "__main__":
