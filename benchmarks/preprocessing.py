@@ -10,6 +10,8 @@ about 0.2 GB of imported libraries; the baseline is printed).
     python benchmarks/preprocessing.py --hippocampi 10 --no-femurs --surface slicer
     python benchmarks/preprocessing.py --no-femurs --union-only
     python benchmarks/preprocessing.py --hippocampi 0          # the femurs only
+    python benchmarks/preprocessing.py --hippocampi 0 --no-femurs --workers 1 \\
+        --folder /tmp/gt-femur/labels                            # 0.5 mm femur label maps
 """
 
 from __future__ import annotations
@@ -105,11 +107,15 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--surface", choices=("gaussian", "slicer"), default="gaussian",
                         help="label map -> surface method")
+    parser.add_argument("--folder", action="append", default=[],
+                        help="also every label map (*.nii.gz, label values > 0) in this folder, "
+                             "e.g. a ground-truth population (repeatable)")
     args = parser.parse_args()
     data = Path(args.data)
     hippocampi = sorted((data / "hippocampus" / "labels").glob("*.nii.gz"))[: args.hippocampi]
     femurs = [] if args.no_femurs else sorted((data / "femurs").glob("*.stl"))
-    if not hippocampi and not femurs:
+    folders = [(folder, sorted(Path(folder).glob("*.nii.gz"))) for folder in args.folder]
+    if not hippocampi and not femurs and not any(paths for _, paths in folders):
         print(f"no hippocampus label maps or femurs to prepare under {data}", file=sys.stderr)
         return 2
     context = multiprocessing.get_context("spawn")
@@ -124,6 +130,8 @@ def main() -> int:
     if femurs:
         run("femurs (STL, right ones mirrored)", femurs, [], ["*_rfemur*"], args.workers,
             args.surface)
+    for folder, paths in folders:
+        run(f"{folder} ({args.surface})", paths, [], [], args.workers, args.surface)
     return 0
 
 
