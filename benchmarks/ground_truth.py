@@ -97,6 +97,16 @@ def voxelise(vertices: np.ndarray, faces: np.ndarray, spacing: float, margin: in
     return mask.astype(np.uint8), origin
 
 
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit normals at the vertices: the area-weighted sum of the adjacent faces' normals."""
+    face_normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                            vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], face_normals)
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
 def make(args):
     import SimpleITK as sitk
 
@@ -124,9 +134,10 @@ def make(args):
         field, _ = gaussian_field(vertices, centres, weights, width)
         scale = args.amplitude / (m + 1) / np.max(np.linalg.norm(field, axis=1))
         modes.append((centres, weights * scale))
+    normals = vertex_normals(vertices, faces)
     io.write_polydata(output / "template.vtp", vertices, faces)
     truth = {"template": str(args.mesh), "rms_radius_mm": size, "spacing_mm": args.spacing,
-             "offset_mm": list(args.offset),
+             "offset_mm": list(args.offset), "normal_only": args.normal_only,
              "modes": args.modes, "amplitude_mm": args.amplitude, "cases": {}}
     started = time.perf_counter()
     for i in range(args.cases):
@@ -147,9 +158,14 @@ def make(args):
             jacobian = np.linalg.det(np.eye(3) + gradient + noise_gradient)
             if jacobian.min() > 0.5:
                 break
+        displacement = field + noise
+        along_normal = np.einsum("ij,ij->i", displacement, normals)
+        tangential = displacement - along_normal[:, None] * normals
+        if args.normal_only:      # only what changes the surface: no sliding along it
+            displacement = along_normal[:, None] * normals
         pose = rotation_from_vector(rng.normal(size=3) * np.radians(args.rotation) / np.sqrt(3))
         shift = rng.normal(size=3) * args.translation
-        deformed = (vertices + field + noise) @ pose.T + shift + np.asarray(args.offset)
+        deformed = (vertices + displacement) @ pose.T + shift + np.asarray(args.offset)
         io.write_polydata(output / "meshes" / f"{name}.vtp", deformed, faces)
         mask, origin = voxelise(deformed, faces, args.spacing)
         image = sitk.GetImageFromArray(mask)
@@ -158,8 +174,13 @@ def make(args):
         sitk.WriteImage(image, str(output / "labels" / f"{name}.nii.gz"), useCompression=True)
         truth["cases"][name] = {"coefficients": coefficients.tolist(),
                                 "min_jacobian": float(jacobian.min()),
+                                "rms_normal_mm": float(np.sqrt(np.mean(along_normal ** 2))),
+                                "rms_tangential_mm": float(np.sqrt(np.mean(
+                                    np.sum(tangential ** 2, axis=1)))),
                                 "voxels": list(mask.shape[::-1])}
-        print(f"{name}: {mask.shape[::-1]} voxels, min Jacobian {jacobian.min():.2f}")
+        print(f"{name}: {mask.shape[::-1]} voxels, min Jacobian {jacobian.min():.2f}, "
+              f"displacement RMS {truth['cases'][name]['rms_normal_mm']:.2f} mm along the "
+              f"normals, {truth['cases'][name]['rms_tangential_mm']:.2f} mm along the surface")
     (output / "truth.json").write_text(json.dumps(truth, indent=2))
     print(f"{args.cases} cases in {time.perf_counter() - started:.0f} s, {len(vertices)} vertices, "
           f"RMS radius {size:.1f} mm -> {output}")
@@ -296,6 +317,67 @@ def noise_floor(args):
         print(f"{name}: true points moved {np.mean(np.linalg.norm(projected - true_points, axis=1)):.3f} mm")
 
 
+def description_lengths(shapes: np.ndarray, triangles: np.ndarray, config, voxel: float,
+                        data_range: float) -> tuple[float, float]:
+    """F of eq. 13 (at the build's fixed Delta) and eq. 14 of corresponded shapes (n_s, n_p, 3)
+    with the library's alignment and weights: weighted Procrustes with area weights of the mean
+    (three rounds), rescaled to the mean's centroid size."""
+    from mdlshapemodel.correspondence.objective import objectives
+    from mdlshapemodel.correspondence.pose import centroid_size, generalized_procrustes
+    from mdlshapemodel.prepare.surface import triangle_vertex_areas
+
+    weights = np.full(shapes.shape[1], 1.0 / shapes.shape[1])
+    for _ in range(3):
+        aligned, _ = generalized_procrustes(shapes, weights)
+        weights = triangle_vertex_areas(aligned.mean(axis=0), triangles)
+        weights = weights / weights.sum()
+    centred = (aligned - aligned.mean(axis=0)) * np.sqrt(weights)[None, :, None]
+    flat = centred.reshape(len(shapes), -1)
+    fixed, integrated = objectives(config, voxel, data_range)
+    return fixed(flat @ flat.T), integrated(flat @ flat.T)
+
+
+def objective_check(args):
+    """Does the objective prefer the truth? F of a build's correspondence, and of the same points
+    moved to their true places: each point's copies, carried to the template, are replaced by
+    their mean's closest template point, carried back to every case's true mesh and projected
+    onto the case's prepared surface (the surface the build saw)."""
+    from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.prepare import io
+    from mdlshapemodel.prepare.surface import SurfaceDistance
+
+    truth, build = Path(args.truth), Path(args.build)
+    config = BuildConfig.from_dict(json.loads((build / "config.json").read_text()))
+    metrics = json.loads((build / "metrics.json").read_text())
+    template, faces = io.read_mesh(truth / "template.vtp")
+    surfaces = {name: (v, f) for name, v, f in prepared_surfaces(truth)}
+    names = sorted(p.stem for p in (build / "correspondence").glob("*.vtp") if p.stem in surfaces)
+    points, triangles = {}, None
+    for name in names:
+        points[name], triangles = io.read_mesh(build / "correspondence" / f"{name}.vtp")
+    carried = np.stack([located_on_template(points[n], io.read_mesh(truth / "meshes" / f"{n}.vtp")[0],
+                                            faces, template) for n in names])
+    # each point's true place: its carried copies' mean, on the template (face, barycentric)
+    anchor, _, face = SurfaceDistance(template, faces).closest(carried.mean(axis=0))
+    corners = template[faces[face]]                                   # (n_p, 3, 3)
+    matrix = np.concatenate([corners.transpose(0, 2, 1), np.ones((len(face), 1, 3))], axis=1)
+    weights = np.stack([np.linalg.lstsq(m, np.append(a, 1.0), rcond=None)[0]
+                        for m, a in zip(matrix, anchor)])
+    truths = []
+    for name in names:
+        true_mesh = io.read_mesh(truth / "meshes" / f"{name}.vtp")[0]
+        placed = np.einsum("kc,kcd->kd", weights, true_mesh[faces[face]])
+        truths.append(SurfaceDistance(*surfaces[name]).closest(placed)[0])
+    voxel, data_range = metrics["voxel_size_mm"], metrics["data_range_mm"]
+    built = description_lengths(np.stack([points[n] for n in names]), triangles, config, voxel,
+                                data_range)
+    true = description_lengths(np.stack(truths), triangles, config, voxel, data_range)
+    print(f"{len(names)} cases; the build reported eq. 14 = {metrics['objective']['final']:.2f}")
+    print(f"{'correspondence':<34} {'eq. 13 (fixed Delta)':>20} {'eq. 14':>10}")
+    print(f"{'the build':<34} {built[0]:>20.2f} {built[1]:>10.2f}")
+    print(f"{'the same points at their true places':<34} {true[0]:>20.2f} {true[1]:>10.2f}")
+
+
 def run_all(args):
     """Every correspondence on one population: make it (unless it exists), build with every
     strategy and the CPD baseline through the command line, the two references, then evaluate."""
@@ -346,6 +428,10 @@ def main():
     maker.add_argument("--translation", type=float, default=3.0, help="SD per axis, mm")
     maker.add_argument("--max-vertices", type=int, default=40000)
     maker.add_argument("--seed", type=int, default=0)
+    maker.add_argument("--normal-only", action="store_true",
+                       help="keep only the displacements' components along the template's "
+                            "normals: a truth with no sliding along the surface, which no "
+                            "method that sees only the surfaces could recover")
     maker.add_argument("--offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar="MM",
                        help="a shift of every case before voxelising: the same shapes voxelised "
                             "anew (a sub-voxel offset measures how stable a build is)")
@@ -361,6 +447,9 @@ def main():
     evaluator = commands.add_parser("evaluate", help="correspondence error of build outputs")
     evaluator.add_argument("truth")
     evaluator.add_argument("builds", nargs="+")
+    checker = commands.add_parser("objective", help="F of a build and of its points' true places")
+    checker.add_argument("truth")
+    checker.add_argument("build")
     everything = commands.add_parser("run", help="make, build with every strategy, evaluate")
     everything.add_argument("--cases", type=int, default=30)
     everything.add_argument("--spacing", type=float, default=0.5)
@@ -372,7 +461,7 @@ def main():
     everything.add_argument("--output", required=True)
     args = parser.parse_args()
     {"make": make, "template": template_reference, "floor": noise_floor,
-     "evaluate": evaluate, "run": run_all}[args.command](args)
+     "evaluate": evaluate, "run": run_all, "objective": objective_check}[args.command](args)
 
 
 if __name__ == "__main__":
