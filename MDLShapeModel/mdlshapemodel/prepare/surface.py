@@ -75,9 +75,12 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     if len(faces) == 0:
         return Topology(n_vertices, 0, 0, 0, 0, 0, True)
     directed = edges_of(faces)
-    undirected = np.sort(directed, axis=1)
-    unique, inverse, counts = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
+    # one integer key per undirected edge: a 1-D unique is several times faster than rows
+    size = max(n_vertices, int(faces.max()) + 1)
+    keys = np.minimum(directed[:, 0], directed[:, 1]) * size + np.maximum(directed[:, 0],
+                                                                           directed[:, 1])
+    unique_keys, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    unique = np.stack(np.divmod(unique_keys, size), axis=1)
     used = np.unique(faces)
     graph = sparse.coo_matrix((np.ones(len(unique)), (unique[:, 0], unique[:, 1])),
                               shape=(n_vertices, n_vertices))
