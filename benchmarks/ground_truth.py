@@ -162,7 +162,7 @@ def make(args):
         along_normal = np.einsum("ij,ij->i", displacement, normals)
         tangential = displacement - along_normal[:, None] * normals
         if args.normal_only:      # only what changes the surface: no sliding along it
-            displacement = along_normal[:, None] * normals
+            displacement, tangential = along_normal[:, None] * normals, 0.0 * tangential
         pose = rotation_from_vector(rng.normal(size=3) * np.radians(args.rotation) / np.sqrt(3))
         shift = rng.normal(size=3) * args.translation
         deformed = (vertices + displacement) @ pose.T + shift + np.asarray(args.offset)
