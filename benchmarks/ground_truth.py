@@ -323,7 +323,7 @@ def description_lengths(shapes: np.ndarray, triangles: np.ndarray, config, voxel
     with the library's alignment and weights: weighted Procrustes with area weights of the mean
     (three rounds), rescaled to the mean's centroid size."""
     from mdlshapemodel.correspondence.objective import objectives
-    from mdlshapemodel.correspondence.pose import centroid_size, generalized_procrustes
+    from mdlshapemodel.correspondence.pose import generalized_procrustes
     from mdlshapemodel.prepare.surface import triangle_vertex_areas
 
     weights = np.full(shapes.shape[1], 1.0 / shapes.shape[1])
