@@ -6,7 +6,8 @@ from scipy.spatial import ConvexHull
 
 from mdlshapemodel.errors import SurfaceError
 from mdlshapemodel.correspondence.sampling import icosphere
-from mdlshapemodel.prepare.surface import (arrays_to_polydata, compact, decimate, drop_degenerate_faces,
+from mdlshapemodel.prepare.surface import (arrays_to_polydata, compact, contour_stride, decimate,
+                                   drop_degenerate_faces,
                                    edges_of, face_areas, largest_component, mask_to_surface,
                                    merge_close_vertices, orient_outwards, point_surface_distances,
                                    remesh, require_sphere_like, resample, signed_volume, topology)
@@ -294,6 +295,11 @@ def test_a_big_mask_gives_a_surface_of_about_the_target_size():
     vertices, faces, info = mask_to_surface(mask, target_vertices=1500)
     assert len(fine) > 4 * 1500 and 1200 < info["n_vertices"] < 1800
     assert np.mean(point_surface_distances(vertices, fine, fine_faces)) < 0.1  # voxels
+    # coarser still: edges of about 5 voxels, contoured on every second voxel
+    assert contour_stride(mask, 1.0, 1500) == 1 and contour_stride(mask, 1.0, 500) == 2
+    coarse, coarse_faces, info = mask_to_surface(mask, target_vertices=500)
+    assert topology(coarse, coarse_faces).is_sphere_like and 400 < info["n_vertices"] < 600
+    assert np.mean(point_surface_distances(coarse, fine, fine_faces)) < 0.2
 
 
 # --- label map -> surface ------------------------------------------------------------------------------

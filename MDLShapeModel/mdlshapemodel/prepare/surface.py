@@ -224,13 +224,16 @@ def polydata_to_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
 
 
 
-def _contour(field: np.ndarray):
-    """Flying-edges isosurface at 0.5 of a (z, y, x) array, in voxel-index coordinates."""
+def _contour(field: np.ndarray, stride: int = 1):
+    """Flying-edges isosurface at 0.5 of a (z, y, x) array, in voxel-index coordinates, on every
+    ``stride``-th voxel."""
     import vtk
     from vtk.util.numpy_support import numpy_to_vtk
 
+    field = np.ascontiguousarray(field[::stride, ::stride, ::stride])
     image = vtk.vtkImageData()
     image.SetDimensions(field.shape[2], field.shape[1], field.shape[0])
+    image.SetSpacing(stride, stride, stride)
     image.GetPointData().SetScalars(numpy_to_vtk(field.ravel(), deep=True))
     contour = vtk.vtkFlyingEdges3D()
     contour.SetInputData(image)
@@ -268,6 +271,23 @@ def slicer_smoothing(polydata, smoothing_factor: float, decimation: float = 0.0)
     smoother.NormalizeCoordinatesOn()
     smoother.Update()
     return smoother.GetOutput()
+
+
+# A blurred mask whose surface will be remeshed with edges of at least this many voxels is
+# contoured on every second voxel first: a 0.5 mm femur's contour has 36,500 vertices instead of
+# 146,000 (about 0.05 voxel from the full one on average, 0.2 at most), which saves most of the
+# decimation before remeshing.
+COARSE_CONTOUR_EDGE = 4.0
+
+
+def contour_stride(mask: np.ndarray, edge_length: float, target_vertices: int) -> int:
+    """2 when the remeshed surface of ``mask`` will have edges of at least
+    :data:`COARSE_CONTOUR_EDGE` voxels, else 1. The area is estimated from the voxel faces between
+    inside and outside (on average 3/2 times a smooth surface's area)."""
+    faces = sum(int(np.count_nonzero(np.diff(mask, axis=k))) for k in range(3))
+    area = faces / 1.5
+    edge = max(edge_length, float(np.sqrt(2.0 * area / (np.sqrt(3.0) * target_vertices))))
+    return 2 if edge >= COARSE_CONTOUR_EDGE else 1
 
 
 def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
@@ -322,22 +342,32 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     while ladder[-1] + 0.5 <= max_smoothing_sigma + 1e-9:
         ladder.append(max(ladder[-1] + 0.5, 1.0))
     reasons = []
-    for sigma in ladder:
-        field = ndimage.gaussian_filter(padded, sigma) if sigma > 0 else padded
-        polydata = _contour(field)
+    stride = contour_stride(mask, edge_length, target_vertices) if method == "gaussian" else 1
+
+    def extract(field, step):
+        """The largest component of the contour, and what is wrong with it ('' if nothing)."""
+        polydata = _contour(field, step)
         if method == "slicer":
             polydata = slicer_smoothing(polydata, smoothing_factor, decimation)
         vertices, faces = polydata_to_arrays(polydata)
         if len(faces) == 0:
-            reasons.append(f"blur {sigma:g}: no surface (the mask is too thin)")
-            continue
+            return vertices, faces, "no surface (the mask is too thin)"
         vertices, faces = merge_close_vertices(vertices, faces)
         vertices, faces = drop_degenerate_faces(vertices, faces)
         vertices, faces = largest_component(vertices, faces)
         topo = topology(vertices, faces)
-        if topo.is_sphere_like:
+        return vertices, faces, "" if topo.is_sphere_like else topo.describe()
+
+    for sigma in ladder:
+        field = ndimage.gaussian_filter(padded, sigma) if sigma > 0 else padded
+        # the coarser grid only on a blurred mask; on every voxel when it is not genus 0 there
+        for step in dict.fromkeys((stride if sigma >= 1 else 1, 1)):
+            vertices, faces, problem = extract(field, step)
+            if not problem:
+                break
+        if not problem:
             break
-        reasons.append(f"blur {sigma:g}: {topo.describe()}")
+        reasons.append(f"blur {sigma:g}: {problem}")
     else:
         raise SurfaceError(f"no genus-0 surface up to a blur of {max_smoothing_sigma:g} voxels ("
                            + "; ".join(reasons[-2:]) + ")")

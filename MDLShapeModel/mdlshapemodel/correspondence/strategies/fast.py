@@ -268,7 +268,10 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
                   levels=(0, 1, 2, 3), rounds_per_level: int = 3) -> float:
     """Coarse-to-fine rounds until the gain stalls (``settings.tolerance``), ``deadline`` or
     ``settings.max_sweeps`` rounds. At each level, rounds go on until one gains less than the
-    tolerance (then the next level starts), at most ``rounds_per_level``."""
+    tolerance (then the next level starts), at most ``rounds_per_level``. The pass over the levels
+    is repeated, at most ``settings.field_passes`` times in all, while a whole pass gains more
+    than the tolerance: after the fine levels have moved the points, the coarse fields can move
+    whole regions again."""
     active = range(state.n_shapes) if active is None else active
     if objective.kind == "fixed" and objective.free_below_delta:
         # Case 3 of the fixed-Delta cost (a mode spanning less than Delta is free) is a step of
@@ -278,17 +281,21 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
         objective = replace(objective, free_below_delta=False)
     value = start_value = start_phase(state, objective, trace, phase)
     sweep = 0
-    for level in levels:
-        for _ in range(rounds_per_level):
-            sweep += 1
-            before = value
-            value = optimise_round(state, objective, active, level, deadline=deadline)
-            trace.record(state, value, phase, sweep)
-            report(progress, None, f"{phase}: level {level}, round {sweep}, F = {value:.3f}")
-            if checkpoint is not None:
-                checkpoint()
-            if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
-                return value
-            if stalled(before, value, start_value, settings):
-                break   # this level has stopped paying: go finer
+    for _ in range(settings.field_passes):
+        pass_start = value
+        for level in levels:
+            for _ in range(rounds_per_level):
+                sweep += 1
+                before = value
+                value = optimise_round(state, objective, active, level, deadline=deadline)
+                trace.record(state, value, phase, sweep)
+                report(progress, None, f"{phase}: level {level}, round {sweep}, F = {value:.3f}")
+                if checkpoint is not None:
+                    checkpoint()
+                if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
+                    return value
+                if stalled(before, value, start_value, settings):
+                    break   # this level has stopped paying: go finer
+        if stalled(pass_start, value, start_value, settings):
+            break
     return value
