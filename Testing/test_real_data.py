@@ -67,3 +67,62 @@ def test_small_hippocampus_build_is_faithful_and_fold_free(tmp_path):
         positions = state[f"positions_{i}_0"]
         assert np.all(orientation(positions, triangles) > 0)
     assert result.final_objective <= result.initial_objective
+
+
+FEMUR = DATA / "femurs" / "m3_lfemur_mm.stl"
+
+
+def voxelised(path: Path, spacing: float, output: Path) -> Path:
+    """A label map (NIfTI) of the inside of a closed mesh, by VTK's polygon stencil."""
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    from mdlshapemodel.prepare.io import read_mesh
+    from mdlshapemodel.prepare.surface import arrays_to_polydata
+
+    vertices, faces = read_mesh(path)
+    origin = vertices.min(axis=0) - 4 * spacing
+    size = np.ceil((vertices.max(axis=0) - origin) / spacing).astype(int) + 5
+    image = vtk.vtkImageData()
+    image.SetOrigin(*origin)
+    image.SetSpacing(spacing, spacing, spacing)
+    image.SetDimensions(*size)
+    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
+    image.GetPointData().GetScalars().Fill(1)
+    stencil = vtk.vtkPolyDataToImageStencil()
+    stencil.SetInputData(arrays_to_polydata(vertices, faces))
+    stencil.SetOutputOrigin(*origin)
+    stencil.SetOutputSpacing(spacing, spacing, spacing)
+    stencil.SetOutputWholeExtent(image.GetExtent())
+    cut = vtk.vtkImageStencil()
+    cut.SetInputData(image)
+    cut.SetStencilConnection(stencil.GetOutputPort())
+    cut.SetBackgroundValue(0)
+    cut.Update()
+    mask = vtk_to_numpy(cut.GetOutput().GetPointData().GetScalars()).reshape(size[::-1])
+    label_map = sitk.GetImageFromArray(mask.astype(np.uint8))
+    label_map.SetSpacing((spacing,) * 3)
+    label_map.SetOrigin(tuple(float(o) for o in origin))
+    sitk.WriteImage(label_map, str(output))
+    return output
+
+
+@pytest.mark.skipif(not FEMUR.is_file(), reason=f"shared femur not found at {FEMUR}")
+def test_a_femur_label_map_at_half_a_millimetre_maps_at_the_sampling_grids_resolution(tmp_path):
+    """A big bone: 345 x 200 x 130 voxels, a contour of about 150,000 vertices. Prepared at the
+    resolution the sampling grid needs (BuildConfig.target_vertices), fold-free, and close to
+    the bone's own surface."""
+    from mdlshapemodel.prepare.io import read_mesh
+    from mdlshapemodel.prepare.surface import point_surface_distances
+
+    path = voxelised(FEMUR, 0.5, tmp_path / "femur.nii.gz")
+    config = BuildConfig()
+    case = prepare_case(str(path), config)
+    assert not hasattr(case, "reason"), getattr(case, "reason", "")
+    mapped = case.map
+    assert abs(len(mapped.vertices) - config.target_vertices) < 0.1 * config.target_vertices
+    assert np.all(orientation(mapped.sphere, mapped.faces) > 0)
+    assert np.sum(solid_angles(mapped.sphere, mapped.faces)) == pytest.approx(4 * np.pi, rel=1e-9)
+    assert mapped.quality["mean_abs_log_area_ratio"] <= 0.3
+    bone, bone_faces = read_mesh(FEMUR)
+    assert np.mean(point_surface_distances(mapped.vertices, bone, bone_faces)) < 0.25  # half a voxel
