@@ -311,8 +311,10 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     :func:`~mdlshapemodel.config.max_smoothing_for`); ``info["smoothing_sigma"]`` says
     which blur was needed (0: none). The surface is then remeshed isotropically (contouring
     leaves slivers that spoil sphere maps) with edges of ``edge_length`` voxels, or longer ones
-    giving about ``target_vertices`` vertices on big objects (:func:`resample`), and transformed
-    to physical coordinates. The defaults are those of :class:`~mdlshapemodel.config.BuildConfig`.
+    giving about ``target_vertices`` vertices on big objects (:func:`resample`; a blurred mask
+    whose edges will be that long is contoured on every second voxel, :func:`contour_stride`),
+    and transformed to physical coordinates. The defaults are those of
+    :class:`~mdlshapemodel.config.BuildConfig` (None: its rules).
 
     Parameters
     ----------
