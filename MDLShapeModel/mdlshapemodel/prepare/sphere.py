@@ -190,7 +190,7 @@ def _conformal_map(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray | None
 
 def _initial_map(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Fold-free initial map: the conformal map when it is fold-free (fast: 0.04-0.3 s for
-    2,000-5,000 vertices), else the multilevel map, fold-free by construction (about 1 ms per
+    2,000-5,000 vertices), else the multilevel map, fold-free by construction (about 0.6 ms per
     vertex)."""
     from .multilevel import multilevel_map
 
