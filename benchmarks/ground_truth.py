@@ -378,6 +378,31 @@ def objective_check(args):
     print(f"{'the same points at their true places':<34} {true[0]:>20.2f} {true[1]:>10.2f}")
 
 
+def sliding(args):
+    """How much of the truth slides along the surface: every true mesh rigidly aligned to the
+    template (the vertices correspond), its displacements split along the template's normals, and
+    each point's spread about the population mean printed for both parts (mm)."""
+    from mdlshapemodel.correspondence.pose import generalized_procrustes
+    from mdlshapemodel.prepare import io
+
+    truth = Path(args.truth)
+    template, faces = io.read_mesh(truth / "template.vtp")
+    normals = vertex_normals(template, faces)
+    names = sorted(json.loads((truth / "truth.json").read_text())["cases"])
+    meshes = [io.read_mesh(truth / "meshes" / f"{name}.vtp")[0] for name in names]
+    shapes = np.stack([template, *meshes])
+    aligned, _ = generalized_procrustes(shapes, np.full(len(template), 1.0 / len(template)),
+                                        scaling=False)
+    displacement = aligned[1:] - aligned[0]
+    along = np.einsum("ikd,kd->ik", displacement, normals)
+    tangential = displacement - along[..., None] * normals[None]
+    spread = np.linalg.norm(tangential - tangential.mean(axis=0), axis=2)
+    print(f"{len(names)} cases; spread of each point's true displacement about the population "
+          f"mean: along the surface {spread.mean():.3f} mm (95th percentile "
+          f"{np.percentile(spread, 95):.3f}), along the normals "
+          f"{np.abs(along - along.mean(axis=0)).mean():.3f} mm")
+
+
 def run_all(args):
     """Every correspondence on one population: make it (unless it exists), build with every
     strategy and the CPD baseline through the command line, the two references, then evaluate."""
@@ -450,6 +475,8 @@ def main():
     checker = commands.add_parser("objective", help="F of a build and of its points' true places")
     checker.add_argument("truth")
     checker.add_argument("build")
+    slider = commands.add_parser("sliding", help="how much of the truth slides along the surface")
+    slider.add_argument("truth")
     everything = commands.add_parser("run", help="make, build with every strategy, evaluate")
     everything.add_argument("--cases", type=int, default=30)
     everything.add_argument("--spacing", type=float, default=0.5)
@@ -461,7 +488,8 @@ def main():
     everything.add_argument("--output", required=True)
     args = parser.parse_args()
     {"make": make, "template": template_reference, "floor": noise_floor,
-     "evaluate": evaluate, "run": run_all, "objective": objective_check}[args.command](args)
+     "evaluate": evaluate, "run": run_all, "objective": objective_check,
+     "sliding": sliding}[args.command](args)
 
 
 if __name__ == "__main__":
