@@ -29,6 +29,7 @@ import heapq
 import numpy as np
 
 from ..errors import SphereMapError
+from .spherical import cross_rows, orientation, solid_angles
 
 # Splits whose new vertex cannot be placed after this many halvings of its distance from its
 # partner (beyond double precision) fail; never seen, but the loop must end.
@@ -40,35 +41,13 @@ FAIR_SHARE = 0.1
 SPREAD_ITERATIONS = 200
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b over the last axis (np.cross costs more than the arithmetic on short arrays)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-def _orientation(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """det[p0, p1, p2] of each triangle (rows of vertex indices) of sphere points ``x``."""
-    p0, p1, p2 = x[rows[:, 0]], x[rows[:, 1]], x[rows[:, 2]]
-    return np.einsum("ij,ij->i", p0, _cross(p1, p2))
-
-
-def _solid_angles(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """Signed solid angle of each spherical triangle (Van Oosterom and Strackee's formula)."""
-    p0, p1, p2 = x[rows[:, 0]], x[rows[:, 1]], x[rows[:, 2]]
-    numerator = np.einsum("ij,ij->i", p0, _cross(p1, p2))
-    denominator = (1.0 + np.einsum("ij,ij->i", p0, p1) + np.einsum("ij,ij->i", p1, p2)
-                   + np.einsum("ij,ij->i", p2, p0))
-    return 2.0 * np.arctan2(numerator, denominator)
-
-
 def _valid_star(x: np.ndarray, rows: np.ndarray, covered: float) -> bool:
     """The triangles around a moved vertex are positively oriented and still cover the area
     ``covered`` (the solid angle inside their outer ring, which the move does not change): all
     positive alone would allow a star that winds twice around the vertex."""
-    if not np.all(_orientation(x, rows) > 0):
+    if not np.all(orientation(x, rows) > 0):
         return False
-    return abs(_solid_angles(x, rows).sum() - covered) < 1e-6 * max(covered, 1.0)
+    return abs(solid_angles(x, rows).sum() - covered) < 1e-6 * max(covered, 1.0)
 
 
 class _Mesh:
@@ -166,7 +145,7 @@ def _place_tetrahedron(mesh: _Mesh, x: np.ndarray):
     remaining = np.flatnonzero(mesh.vertex_alive)
     x[remaining] = corners
     rows = mesh.faces[mesh.alive]
-    if _orientation(x, rows[:1])[0] < 0:       # all four faces share one orientation
+    if orientation(x, rows[:1])[0] < 0:       # all four faces share one orientation
         x[remaining[:2]] = x[remaining[1::-1]]
 
 
@@ -177,7 +156,7 @@ def _insert(mesh: _Mesh, x: np.ndarray, record):
     rows = mesh.faces[sorted(mesh.faces_of[t])]
     p = x[s]
     x[t] = p
-    covered = float(_solid_angles(x, rows).sum())   # the two new triangles are empty here
+    covered = float(solid_angles(x, rows).sum())   # the two new triangles are empty here
     neighbours = np.array(sorted(mesh.neighbours(t)))
     # two candidates, the better kept (largest smallest orientation: the middle of a degenerate
     # ring can be positive only by rounding):
@@ -190,7 +169,7 @@ def _insert(mesh: _Mesh, x: np.ndarray, record):
     if np.linalg.norm(centre) > 1e-12:
         x[t] = centre / np.linalg.norm(centre)
         if _valid_star(x, rows, covered):
-            best, best_margin = x[t].copy(), float(_orientation(x, rows).min())
+            best, best_margin = x[t].copy(), float(orientation(x, rows).min())
             # well inside the ring (its thinnest triangle a fair fraction of an even share):
             # no need for the second candidate. det ~ twice the solid angle when small.
             if best_margin >= FAIR_SHARE * 2.0 * covered / len(rows):
@@ -198,7 +177,7 @@ def _insert(mesh: _Mesh, x: np.ndarray, record):
     direction = np.zeros(3)
     for row in mesh.faces[list(shared)]:
         slot = int(np.flatnonzero(row == t)[0])
-        g = _cross(x[row[(slot + 1) % 3]], x[row[(slot + 2) % 3]])
+        g = cross_rows(x[row[(slot + 1) % 3]], x[row[(slot + 2) % 3]])
         g -= np.dot(g, p) * p
         direction += g / np.linalg.norm(g)
     direction /= np.linalg.norm(direction)
@@ -207,7 +186,7 @@ def _insert(mesh: _Mesh, x: np.ndarray, record):
         candidate = p + step * direction
         x[t] = candidate / np.linalg.norm(candidate)
         if _valid_star(x, rows, covered):
-            margin = float(_orientation(x, rows).min())
+            margin = float(orientation(x, rows).min())
             if margin > best_margin:
                 best = x[t].copy()
             break

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import SphereMapError
+from .spherical import cross_rows, orientation, solid_angles  # noqa: F401 (re-exported)
 from .surface import face_areas
 
 
@@ -37,21 +38,6 @@ class SphereMap:
     faces: np.ndarray             # (m, 3) triangles, normals outwards
     sphere: np.ndarray            # (n, 3) unit vectors: the image of each vertex on the sphere
     quality: dict = field(default_factory=dict)
-
-
-def orientation(sphere: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """det[a, b, c] per face: positive when the triangle is counter-clockwise seen from outside."""
-    a, b, c = (sphere[faces[:, k]] for k in range(3))
-    return np.einsum("ij,ij->i", a, np.cross(b, c))
-
-
-def solid_angles(sphere: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Signed solid angle of each spherical triangle (Van Oosterom & Strackee)."""
-    a, b, c = (sphere[faces[:, k]] for k in range(3))
-    numerator = np.einsum("ij,ij->i", a, np.cross(b, c))
-    denominator = 1.0 + np.einsum("ij,ij->i", a, b) + np.einsum("ij,ij->i", b, c) \
-        + np.einsum("ij,ij->i", c, a)
-    return 2.0 * np.arctan2(numerator, denominator)
 
 
 def distortion(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray) -> np.ndarray:
@@ -105,7 +91,7 @@ def balance_objective(v, points, faces, target_log_share, smoothing):
     factor = 1.0 - centre @ centre
     y = factor * d / dd[:, None] - centre
     p0, p1, p2 = y[faces[:, 0]], y[faces[:, 1]], y[faces[:, 2]]
-    normal = _cross(p1 - p0, p2 - p0)
+    normal = cross_rows(p1 - p0, p2 - p0)
     twice_area = np.sqrt(np.einsum("ij,ij->i", normal, normal))
     twice_area = np.maximum(twice_area, 1e-300)
     log_ratio = np.log(twice_area) - np.log(twice_area.sum()) - target_log_share
@@ -119,7 +105,7 @@ def balance_objective(v, points, faces, target_log_share, smoothing):
     # d|n| / dp0 = (p1 - p2) x n/|n|, and cyclically
     g_y = np.zeros_like(y)
     for k, (q1, q2) in enumerate(((p1, p2), (p2, p0), (p0, p1))):
-        contribution = _cross(q1 - q2, unit)
+        contribution = cross_rows(q1 - q2, unit)
         for axis in range(3):
             g_y[:, axis] += np.bincount(faces[:, k], contribution[:, axis], minlength=len(y))
     # chain through y = factor d / dd - c with d = x - c:
@@ -130,15 +116,6 @@ def balance_objective(v, points, faces, target_log_share, smoothing):
     # centre = v / scale: dc/dv = I / scale - v v^T / scale^3 (symmetric)
     g_v = g_c / scale - v * (v @ g_c) / scale ** 3
     return value, g_v
-
-
-def _cross(u: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of two (m, 3) arrays (faster than np.cross for small m)."""
-    out = np.empty_like(u)
-    out[:, 0] = u[:, 1] * w[:, 2] - u[:, 2] * w[:, 1]
-    out[:, 1] = u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2]
-    out[:, 2] = u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
-    return out
 
 
 def balance_area(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
