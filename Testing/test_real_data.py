@@ -73,34 +73,12 @@ FEMUR = DATA / "femurs" / "m3_lfemur_mm.stl"
 
 
 def voxelised(path: Path, spacing: float, output: Path) -> Path:
-    """A label map (NIfTI) of the inside of a closed mesh, by VTK's polygon stencil."""
-    import vtk
-    from vtk.util.numpy_support import vtk_to_numpy
-
+    """A label map (NIfTI) of the inside of a closed mesh file."""
     from mdlshapemodel.prepare.io import read_mesh
-    from mdlshapemodel.prepare.surface import arrays_to_polydata
+    from mdlshapemodel.prepare.surface import mesh_to_mask
 
-    vertices, faces = read_mesh(path)
-    origin = vertices.min(axis=0) - 4 * spacing
-    size = np.ceil((vertices.max(axis=0) - origin) / spacing).astype(int) + 5
-    image = vtk.vtkImageData()
-    image.SetOrigin(*origin)
-    image.SetSpacing(spacing, spacing, spacing)
-    image.SetDimensions(*size)
-    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
-    image.GetPointData().GetScalars().Fill(1)
-    stencil = vtk.vtkPolyDataToImageStencil()
-    stencil.SetInputData(arrays_to_polydata(vertices, faces))
-    stencil.SetOutputOrigin(*origin)
-    stencil.SetOutputSpacing(spacing, spacing, spacing)
-    stencil.SetOutputWholeExtent(image.GetExtent())
-    cut = vtk.vtkImageStencil()
-    cut.SetInputData(image)
-    cut.SetStencilConnection(stencil.GetOutputPort())
-    cut.SetBackgroundValue(0)
-    cut.Update()
-    mask = vtk_to_numpy(cut.GetOutput().GetPointData().GetScalars()).reshape(size[::-1])
-    label_map = sitk.GetImageFromArray(mask.astype(np.uint8))
+    mask, origin = mesh_to_mask(*read_mesh(path), spacing)
+    label_map = sitk.GetImageFromArray(mask)
     label_map.SetSpacing((spacing,) * 3)
     label_map.SetOrigin(tuple(float(o) for o in origin))
     sitk.WriteImage(label_map, str(output))

@@ -9,7 +9,8 @@ from mdlshapemodel.correspondence.sampling import icosphere
 from mdlshapemodel.prepare.surface import (arrays_to_polydata, compact, contour_stride, decimate,
                                    drop_degenerate_faces,
                                    edges_of, face_areas, largest_component, mask_to_surface,
-                                   merge_close_vertices, orient_outwards, point_surface_distances,
+                                   merge_close_vertices, mesh_to_mask, orient_outwards,
+                                   point_surface_distances,
                                    remesh, require_sphere_like, resample, signed_volume, topology)
 from mdlshapemodel.config import BuildConfig, MIN_SURFACE_VERTICES, target_vertices_for
 
@@ -300,6 +301,18 @@ def test_a_big_mask_gives_a_surface_of_about_the_target_size():
     coarse, coarse_faces, info = mask_to_surface(mask, target_vertices=500)
     assert topology(coarse, coarse_faces).is_sphere_like and 400 < info["n_vertices"] < 600
     assert np.mean(point_surface_distances(coarse, fine, fine_faces)) < 0.2
+
+
+def test_mesh_to_mask_fills_the_inside_and_round_trips():
+    points, faces = icosphere(4)
+    centre = np.array([3.3, -2.1, 7.6])
+    mask, origin = mesh_to_mask(points * 10.0 + centre, faces, spacing=0.5)
+    assert mask.dtype == np.uint8 and set(np.unique(mask)) == {0, 1}
+    assert not mask[0].any() and not mask[:, :, -1].any()          # the margin is empty
+    assert mask.sum() * 0.5 ** 3 == pytest.approx(4 / 3 * np.pi * 1000, rel=0.03)
+    vertices, _, _ = mask_to_surface(mask, spacing=(0.5,) * 3, origin=origin)
+    radii = np.linalg.norm(vertices - centre, axis=1)
+    assert abs(radii.mean() - 10.0) < 0.3
 
 
 # --- label map -> surface ------------------------------------------------------------------------------

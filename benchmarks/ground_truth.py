@@ -66,37 +66,6 @@ def gaussian_field(points: np.ndarray, centres: np.ndarray, weights: np.ndarray,
     return field, gradient
 
 
-def voxelise(vertices: np.ndarray, faces: np.ndarray, spacing: float, margin: int = 4):
-    """Binary label map (z, y, x) of the inside of a closed mesh, and its origin."""
-    import vtk
-    from vtk.util.numpy_support import vtk_to_numpy
-
-    from mdlshapemodel.prepare.surface import arrays_to_polydata
-
-    origin = np.floor(vertices.min(axis=0) / spacing) * spacing - margin * spacing
-    size = np.ceil((vertices.max(axis=0) - origin) / spacing).astype(int) + margin + 1
-    image = vtk.vtkImageData()
-    image.SetOrigin(*origin)
-    image.SetSpacing(spacing, spacing, spacing)
-    image.SetDimensions(*size)
-    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
-    image.GetPointData().GetScalars().Fill(1)
-    stencil = vtk.vtkPolyDataToImageStencil()
-    stencil.SetInputData(arrays_to_polydata(vertices, faces))
-    stencil.SetOutputOrigin(*origin)
-    stencil.SetOutputSpacing(spacing, spacing, spacing)
-    stencil.SetOutputWholeExtent(image.GetExtent())
-    stencil.Update()
-    cut = vtk.vtkImageStencil()
-    cut.SetInputData(image)
-    cut.SetStencilConnection(stencil.GetOutputPort())
-    cut.ReverseStencilOff()
-    cut.SetBackgroundValue(0)
-    cut.Update()
-    mask = vtk_to_numpy(cut.GetOutput().GetPointData().GetScalars()).reshape(size[::-1])
-    return mask.astype(np.uint8), origin
-
-
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Unit normals at the vertices: the area-weighted sum of the adjacent faces' normals."""
     face_normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
@@ -167,7 +136,7 @@ def make(args):
         shift = rng.normal(size=3) * args.translation
         deformed = (vertices + displacement) @ pose.T + shift + np.asarray(args.offset)
         io.write_polydata(output / "meshes" / f"{name}.vtp", deformed, faces)
-        mask, origin = voxelise(deformed, faces, args.spacing)
+        mask, origin = surface.mesh_to_mask(deformed, faces, args.spacing)
         image = sitk.GetImageFromArray(mask)
         image.SetSpacing((args.spacing,) * 3)
         image.SetOrigin(tuple(float(o) for o in origin))

@@ -420,6 +420,40 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target_vertices: int
     return vertices, faces
 
 
+def mesh_to_mask(vertices: np.ndarray, faces: np.ndarray, spacing: float, margin: int = 4
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Label map of the inside of a closed mesh, on a grid of ``spacing`` (same units) aligned to
+    multiples of it, with ``margin`` empty voxels around the mesh (VTK's polygon stencil).
+
+    Returns the mask (uint8, indexed z, y, x like ``SimpleITK.GetArrayFromImage``) and the
+    position of voxel (0, 0, 0), x first.
+    """
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    origin = np.floor(vertices.min(axis=0) / spacing) * spacing - margin * spacing
+    size = np.ceil((vertices.max(axis=0) - origin) / spacing).astype(int) + margin + 1
+    image = vtk.vtkImageData()
+    image.SetOrigin(*origin)
+    image.SetSpacing(spacing, spacing, spacing)
+    image.SetDimensions(*size)
+    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
+    image.GetPointData().GetScalars().Fill(1)
+    stencil = vtk.vtkPolyDataToImageStencil()
+    stencil.SetInputData(arrays_to_polydata(vertices, faces))
+    stencil.SetOutputOrigin(*origin)
+    stencil.SetOutputSpacing(spacing, spacing, spacing)
+    stencil.SetOutputWholeExtent(image.GetExtent())
+    cut = vtk.vtkImageStencil()
+    cut.SetInputData(image)
+    cut.SetStencilConnection(stencil.GetOutputPort())
+    cut.ReverseStencilOff()
+    cut.SetBackgroundValue(0)
+    cut.Update()
+    mask = vtk_to_numpy(cut.GetOutput().GetPointData().GetScalars()).reshape(size[::-1])
+    return mask.astype(np.uint8), origin
+
+
 def arrays_to_polydata(vertices: np.ndarray, faces: np.ndarray | None = None,
                        lines: np.ndarray | None = None):
     """A vtkPolyData with the given points and triangles (or line segments)."""
