@@ -15,6 +15,20 @@ from mdlshapemodel.prepare.sphere import align_parameterizations, sphere_map
 SMALL_SHAPE = (18, 20, 28)
 
 
+def torus(major: float = 10.0, minor: float = 3.0, n: int = 24, m: int = 12
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """A consistently oriented triangulated torus (Euler characteristic 0), n x m vertices."""
+    u, v = np.meshgrid(np.arange(n) * 2 * np.pi / n, np.arange(m) * 2 * np.pi / m, indexing="ij")
+    points = np.stack([(major + minor * np.cos(v)) * np.cos(u),
+                       (major + minor * np.cos(v)) * np.sin(u), minor * np.sin(v)], -1).reshape(-1, 3)
+    index = np.arange(n * m).reshape(n, m)
+    a, b = index, np.roll(index, -1, axis=0)
+    c, d = np.roll(b, -1, axis=1), np.roll(index, -1, axis=1)
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                            np.stack([a, c, d], -1).reshape(-1, 3)])
+    return points, faces
+
+
 def small_mask(position: float, scale: float = 1.0) -> np.ndarray:
     """A small ellipsoid with a bump at ``position`` in [-1, 1] along its long axis."""
     return bump_ellipsoid_mask(shape=SMALL_SHAPE, semi_axes=(10.0, 6.0, 5.0),

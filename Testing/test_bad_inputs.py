@@ -6,20 +6,8 @@ import SimpleITK as sitk
 from mdlshapemodel.prepare.io import read_csv, write_polydata
 from mdlshapemodel.correspondence.sampling import icosphere
 
-from synthetic import small_mask
+from synthetic import small_mask, torus
 from test_cli import run
-
-
-def torus(major=10.0, minor=3.0, n=24, m=12):
-    u, v = np.meshgrid(np.arange(n) * 2 * np.pi / n, np.arange(m) * 2 * np.pi / m, indexing="ij")
-    points = np.stack([(major + minor * np.cos(v)) * np.cos(u),
-                       (major + minor * np.cos(v)) * np.sin(u), minor * np.sin(v)], -1).reshape(-1, 3)
-    index = np.arange(n * m).reshape(n, m)
-    a, b = index, np.roll(index, -1, axis=0)
-    c, d = np.roll(b, -1, axis=1), np.roll(index, -1, axis=1)
-    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
-                            np.stack([a, c, d], -1).reshape(-1, 3)])
-    return points, faces
 
 
 def write_image(path, array):

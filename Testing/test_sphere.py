@@ -9,6 +9,7 @@ from mdlshapemodel.correspondence.sampling import SphereLocator, icosphere
 from mdlshapemodel.prepare.sphere import (SphereMap, align_parameterizations, check_bijective, distortion,
                                   first_order_map, map_quality, minimise_distortion, orientation,
                                   principal_axes, solid_angles, sphere_map)
+from synthetic import torus
 from mdlshapemodel.prepare.multilevel import multilevel_map
 from mdlshapemodel.prepare.surface import mask_to_surface, remesh, topology
 from mdlshapemodel.correspondence.warps import apply_symmetric_theta
@@ -403,14 +404,5 @@ def test_the_multilevel_map_needs_only_the_topology():
 
 
 def test_the_multilevel_map_refuses_a_torus():
-    u, v = np.meshgrid(np.arange(12), np.arange(8), indexing="ij")
-    index = (u * 8 + v)
-    a, b = index, np.roll(index, -1, axis=0)
-    c, d = np.roll(b, -1, axis=1), np.roll(index, -1, axis=1)
-    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
-                            np.stack([a, c, d], -1).reshape(-1, 3)])
-    angle_u, angle_v = 2 * np.pi * u.ravel() / 12, 2 * np.pi * v.ravel() / 8
-    vertices = np.stack([(3 + np.cos(angle_v)) * np.cos(angle_u),
-                         (3 + np.cos(angle_v)) * np.sin(angle_u), np.sin(angle_v)], axis=1)
     with pytest.raises(SphereMapError, match="tetrahedron"):
-        multilevel_map(vertices, faces)
+        multilevel_map(*torus())

@@ -12,25 +12,8 @@ from mdlshapemodel.prepare.surface import (arrays_to_polydata, compact, contour_
                                    merge_close_vertices, mesh_to_mask, orient_outwards,
                                    point_surface_distances,
                                    remesh, require_sphere_like, resample, signed_volume, topology)
+from synthetic import torus
 from mdlshapemodel.config import BuildConfig, MIN_SURFACE_VERTICES, target_vertices_for
-
-
-def torus(n_major=16, n_minor=9, major=3.0, minor=1.0):
-    """A consistently oriented triangulated torus (Euler characteristic 0)."""
-    u = np.linspace(0, 2 * np.pi, n_major, endpoint=False)
-    v = np.linspace(0, 2 * np.pi, n_minor, endpoint=False)
-    uu, vv = np.meshgrid(u, v, indexing="ij")
-    vertices = np.stack([(major + minor * np.cos(vv)) * np.cos(uu),
-                         (major + minor * np.cos(vv)) * np.sin(uu),
-                         minor * np.sin(vv)], axis=-1).reshape(-1, 3)
-    index = np.arange(n_major * n_minor).reshape(n_major, n_minor)
-    a = index
-    b = np.roll(index, -1, axis=0)
-    c = np.roll(np.roll(index, -1, axis=0), -1, axis=1)
-    d = np.roll(index, -1, axis=1)
-    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
-                            np.stack([a, c, d], -1).reshape(-1, 3)])
-    return vertices, faces
 
 
 def box(size=(1.0, 1.0, 1.0), offset=(0.0, 0.0, 0.0)):

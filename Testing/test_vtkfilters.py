@@ -15,8 +15,7 @@ from mdlshapemodel.prepare.io import write_polydata
 from mdlshapemodel.prepare.sphere import orientation, sphere_map
 from mdlshapemodel.vtkfilters import LabelMapToClosedSurface, SurfaceToSphereMap
 
-from synthetic import small_mask
-from test_bad_inputs import torus
+from synthetic import small_mask, torus
 
 
 def image_source(mask, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), direction=None):
