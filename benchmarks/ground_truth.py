@@ -158,7 +158,8 @@ def make(args):
 def located_on_template(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
                         template: np.ndarray) -> np.ndarray:
     """Each point's closest point on the mesh (vertices, faces), carried to the same barycentric
-    coordinates of the same triangle of ``template`` (the mesh's undeformed vertices)."""
+    coordinates of the same triangle of ``template`` (the mesh's undeformed vertices; or any
+    mesh with the same triangles, e.g. carrying template points to a case)."""
     from mdlshapemodel.prepare.surface import SurfaceDistance
 
     closest, _, face = SurfaceDistance(vertices, faces).closest(points)
@@ -324,19 +325,14 @@ def objective_check(args):
     points, triangles = {}, None
     for name in names:
         points[name], triangles = io.read_mesh(build / "correspondence" / f"{name}.vtp")
-    carried = np.stack([located_on_template(points[n], io.read_mesh(truth / "meshes" / f"{n}.vtp")[0],
-                                            faces, template) for n in names])
-    # each point's true place: its carried copies' mean, on the template (face, barycentric)
-    anchor, _, face = SurfaceDistance(template, faces).closest(carried.mean(axis=0))
-    corners = template[faces[face]]                                   # (n_p, 3, 3)
-    matrix = np.concatenate([corners.transpose(0, 2, 1), np.ones((len(face), 1, 3))], axis=1)
-    weights = np.stack([np.linalg.lstsq(m, np.append(a, 1.0), rcond=None)[0]
-                        for m, a in zip(matrix, anchor)])
-    truths = []
-    for name in names:
-        true_mesh = io.read_mesh(truth / "meshes" / f"{name}.vtp")[0]
-        placed = np.einsum("kc,kcd->kd", weights, true_mesh[faces[face]])
-        truths.append(SurfaceDistance(*surfaces[name]).closest(placed)[0])
+    true_meshes = {n: io.read_mesh(truth / "meshes" / f"{n}.vtp")[0] for n in names}
+    carried = np.stack([located_on_template(points[n], true_meshes[n], faces, template)
+                        for n in names])
+    # each point's true place: its carried copies' mean, located on the template and carried to
+    # every case's true mesh, then onto the prepared surface
+    mean = carried.mean(axis=0)
+    truths = [SurfaceDistance(*surfaces[n]).closest(
+        located_on_template(mean, template, faces, true_meshes[n]))[0] for n in names]
     voxel, data_range = metrics["voxel_size_mm"], metrics["data_range_mm"]
     built = description_lengths(np.stack([points[n] for n in names]), triangles, config, voxel,
                                 data_range)
