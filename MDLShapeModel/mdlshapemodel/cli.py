@@ -16,8 +16,8 @@ from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Callable
 
-from .config import OPTION_GROUPS, STRATEGIES, BuildConfig
-from .errors import InternalError, MDLShapeModelError
+from .config import OPTION_GROUPS, STRATEGIES, BuildConfig, parse_items
+from .errors import ConfigError, InternalError, MDLShapeModelError
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -43,22 +43,15 @@ def _dest_of(flag: str) -> str:
 
 
 def _items(kind: type, metadata) -> Callable[[str], list]:
-    """Parser of a list option's argument: items separated by commas or spaces."""
+    """Parser of a list option's argument: :func:`~.config.parse_items` for argparse."""
     noun = metadata.get("item", "value")
-    choices = metadata.get("choices")
-    kind_name = {int: "integers", float: "numbers"}.get(kind, "values")
 
     def parse(text: str) -> list:
         try:
-            values = [kind(v) for v in text.replace(",", " ").split()]
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{noun}s must be {kind_name}, got {text!r}") from None
-        unknown = [v for v in values if choices is not None and v not in choices]
-        if unknown or (metadata.get("nonempty") and not values):
-            problem = f"unknown {noun} {unknown[0]!r}" if unknown else f"no {noun} given"
-            suffix = f"; choose from {', '.join(choices)}" if choices is not None else ""
-            raise argparse.ArgumentTypeError(problem + suffix)
-        return values
+            return parse_items(text, kind, noun, metadata.get("choices"),
+                               metadata.get("nonempty", False))
+        except ConfigError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
 
     parse.__name__ = noun
     return parse

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import typing
 from dataclasses import asdict, dataclass, field, fields
 
 from .errors import ConfigError
@@ -84,6 +85,43 @@ def max_smoothing_for(smoothing_sigma: float) -> float:
     """The largest blur of a mask whose surface is not genus 0, unless set: the larger of
     :data:`MAX_SMOOTHING_SIGMA` and the first blur (voxels)."""
     return max(MAX_SMOOTHING_SIGMA, smoothing_sigma)
+
+
+def parse_items(text: str, kind: type = str, item: str = "value", choices=None,
+                nonempty: bool = False) -> list:
+    """The items of a list setting written as text, separated by commas or spaces (``"1, 2"``),
+    each converted to ``kind`` and checked against ``choices``. The one parser of list settings
+    for every face (the command line's list options, the Slicer panel's text fields).
+
+    Raises :class:`ConfigError` with a one-line message (``"unknown warp kind 'twirl'; choose
+    from ..."``, ``"labels must be integers, got 'a'"``).
+
+    Examples
+    --------
+    >>> parse_items("1, 2", int, "label")
+    [1, 2]
+    """
+    kind_name = {int: "integers", float: "numbers"}.get(kind, "values")
+    try:
+        values = [kind(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise ConfigError(f"{item}s must be {kind_name}, got {text!r}") from None
+    unknown = [v for v in values if choices is not None and v not in choices]
+    if unknown or (nonempty and not values):
+        problem = f"unknown {item} {unknown[0]!r}" if unknown else f"no {item} given"
+        suffix = f"; choose from {', '.join(choices)}" if choices is not None else ""
+        raise ConfigError(problem + suffix)
+    return values
+
+
+def field_items(name: str, text: str) -> list:
+    """The value of :class:`BuildConfig`'s list field ``name`` written as text (see
+    :func:`parse_items`; its item kind, noun and choices are the field's)."""
+    f = next(f for f in fields(BuildConfig) if f.name == name)
+    (kind,) = typing.get_args(typing.get_type_hints(BuildConfig)[name])
+    metadata = f.metadata
+    return parse_items(text, kind, metadata.get("item", "value"), metadata.get("choices"),
+                       metadata.get("nonempty", False))
 
 
 def option(group: str, help: str, *, flag: str | None = None, metavar=None, choices=None,
