@@ -32,7 +32,9 @@ CACHE_FORMAT = 2   # 2: the preparation facts as named fields
 # 4: surfaces remeshed at a resolution tied to the sampling grid (BuildConfig.target_vertices),
 #    big ones decimated first; mesh inputs' voxel size is their own mean edge length; the
 #    multilevel initial map instead of the Tutte map where the conformal map folds.
-PREPROCESSING_VERSION = 4
+# 5: mesh files that say their points are RAS (SPACE=RAS, as 3D Slicer may write them) are read
+#    into LPS.
+PREPROCESSING_VERSION = 5
 PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
                         "smoothing_sigma", "max_smoothing_sigma", "edge_length",
                         "target_vertices")

@@ -195,6 +195,10 @@ def captured_vtk_messages():
 
 def read_polydata(path):
     """A vtkPolyData from any supported mesh file (quietly: errors become InputError)."""
+    return _read_polydata(path)[0]
+
+
+def _read_polydata(path):
     if not Path(path).is_file():
         raise InputError("no such file")
     reader = _reader_for(path)
@@ -208,12 +212,43 @@ def read_polydata(path):
                        and "line" not in line), "")
         detail = f" ({reason.strip()[:120]})" if reason else ""
         raise InputError(f"not a readable mesh or the mesh is empty{detail}")
-    return polydata
+    return polydata, reader
+
+
+# Mesh files say in which coordinate system their points are as 3D Slicer writes and reads it:
+# a field-data string array SPACE (.vtp), or "SPACE=LPS" / "SPACE=RAS" in the header (.vtk, .stl)
+# or a comment (.ply, .obj). The library's physical space is LPS, like the images SimpleITK reads;
+# a mesh that says RAS is turned into LPS (x and y negated) when read.
+SPACE = "SPACE"
+COORDINATE_SYSTEM = "LPS"
+
+
+def coordinate_system_of(reader, polydata) -> str | None:
+    """"LPS" or "RAS" when a mesh file read by ``reader`` says which, else None."""
+    array = polydata.GetFieldData().GetAbstractArray(SPACE)
+    texts = [array.GetValue(0)] if array is not None and array.GetNumberOfValues() else []
+    for getter in ("GetHeader", "GetComment"):
+        if hasattr(reader, getter):
+            texts.append(getattr(reader, getter)() or "")
+    if hasattr(reader, "GetComments"):
+        comments = reader.GetComments()
+        texts += [comments.GetValue(i) for i in range(comments.GetNumberOfValues())]
+    for text in texts:
+        text = text.upper()
+        for system in ("LPS", "RAS"):
+            if text == system or f"{SPACE}={system}" in text.replace(" ", ""):
+                return system
+    return None
 
 
 def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (n, 3) and triangles (m, 3) of a mesh file (:func:`mesh_arrays`)."""
-    return mesh_arrays(read_polydata(path))
+    """Vertices (n, 3) and triangles (m, 3) of a mesh file (:func:`mesh_arrays`), in LPS: a
+    file that says its points are RAS (:func:`coordinate_system_of`) is turned into LPS."""
+    polydata, reader = _read_polydata(path)
+    vertices, faces = mesh_arrays(polydata)
+    if coordinate_system_of(reader, polydata) == "RAS":
+        vertices = vertices * np.array([-1.0, -1.0, 1.0])
+    return vertices, faces
 
 
 def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
@@ -238,7 +273,8 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
 
 def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
                    point_data: dict | None = None, lines: np.ndarray | None = None):
-    """Write points with triangles (or lines) and optional point arrays to .vtp/.vtk/.stl/.ply."""
+    """Write points with triangles (or lines) and optional point arrays to .vtp/.vtk/.stl/.ply,
+    saying that the points are LPS (:data:`COORDINATE_SYSTEM`) where 3D Slicer looks for it."""
     import vtk
     from vtk.util.numpy_support import numpy_to_vtk
 
@@ -256,6 +292,16 @@ def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
         raise InputError(f"{path}: cannot write meshes of type {suffix!r}")
     writer = writers[suffix]()
     writer.SetFileName(str(path))
+    # say the coordinate system as 3D Slicer reads it (see coordinate_system_of)
+    if suffix == ".vtp":
+        space = vtk.vtkStringArray()
+        space.SetName(SPACE)
+        space.InsertNextValue(COORDINATE_SYSTEM)
+        polydata.GetFieldData().AddArray(space)
+    elif suffix == ".ply":
+        writer.AddComment(f"{SPACE}={COORDINATE_SYSTEM}")
+    else:
+        writer.SetHeader(f"MDLShapeModel output. {SPACE}={COORDINATE_SYSTEM}")
     writer.SetInputData(polydata)
     if not writer.Write():
         raise InputError(f"{path}: could not be written")
