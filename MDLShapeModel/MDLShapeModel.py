@@ -1,0 +1,886 @@
+"""MDLShapeModel: the 3D Slicer module of the mdlshapemodel library.
+
+Segmentations, label-map volumes, models or a folder of files -> a statistical shape model whose
+point correspondence minimises the description length of the training set (Davies et al., IEEE
+TMI 2010). The module is glue: every step of geometry and statistics is the library's
+(``mdlshapemodel.build_model``, ``ShapeModel``, ``fit_case``); this file only moves data between
+the MRML scene and the library's files.
+
+- :class:`MDLShapeModelLogic` works without any GUI (scripts, tests, other modules, batch):
+  ``buildModel``, ``loadModel``, ``setModeWeights``, ``fitSegmentation``.
+- :class:`MDLShapeModelWidget` is the panel: it fills the parameter node, runs a build in a
+  background thread (:class:`BuildJob`) and shows the results.
+
+Coordinates: Slicer's world is RAS; the library's physical space is LPS, like the image files
+SimpleITK reads. Inputs go to the library as files written by Slicer's own storage nodes (which
+write LPS), and the library's meshes say ``SPACE=LPS`` so Slicer's model storage node turns them
+into RAS on reading: every corresponded model overlays the segmentation it came from.
+
+Only the light ``mdlshapemodel.config`` is imported here at import time; the library's heavier
+dependencies (numba, h5py, scipy, ...) are imported when a build or a model is first used, and
+installed (after asking) by the panel if Slicer lacks them (:func:`ensureDependencies`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import pathlib
+import queue
+import re
+import shutil
+import sys
+import threading
+import typing
+from dataclasses import dataclass, field, fields
+from typing import Annotated
+
+import qt
+import slicer
+import vtk
+from slicer.parameterNodeWrapper import Choice, WithinRange, parameterNodeWrapper
+from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoadableModuleLogic,
+                                           ScriptedLoadableModuleTest,
+                                           ScriptedLoadableModuleWidget)
+from slicer.util import VTKObservationMixin
+
+from mdlshapemodel.config import BuildConfig, field_items
+
+MODULE_DIRECTORY = pathlib.Path(__file__).resolve().parent
+# The node types a build takes as inputs.
+INPUT_NODE_TYPES = ("vtkMRMLSegmentationNode", "vtkMRMLLabelMapVolumeNode", "vtkMRMLModelNode")
+# Python packages the library needs that Slicer ships itself and that must never be installed
+# into Slicer by pip (another vtk breaks Slicer).
+SHIPPED_BY_SLICER = ("vtk", "SimpleITK")
+
+
+def resourcePath(relativePath: str) -> pathlib.Path:
+    """A file of ``Resources/``: next to this file in a built or installed extension (the build
+    copies the project's top-level Resources/ there), else in a checkout's top-level Resources/
+    (the module added to Slicer through "Additional module paths")."""
+    for base in (MODULE_DIRECTORY / "Resources", MODULE_DIRECTORY.parent / "Resources"):
+        if (base / relativePath).exists():
+            return base / relativePath
+    raise FileNotFoundError(f"MDLShapeModel resource {relativePath!r} not found next to "
+                            f"{MODULE_DIRECTORY} nor in {MODULE_DIRECTORY.parent / 'Resources'}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Module
+
+
+class MDLShapeModel(ScriptedLoadableModule):
+    """The module's description for Slicer's module list."""
+
+    def __init__(self, parent):
+        ScriptedLoadableModule.__init__(self, parent)
+        self.parent.title = "MDL Shape Model"
+        self.parent.categories = ["Shape Analysis"]
+        self.parent.dependencies = []
+        self.parent.contributors = ["MDLShapeModel developers"]
+        self.parent.helpText = (
+            "Builds a statistical shape model (mean shape, modes of variation, per-case scores) "
+            "of one structure segmented in many subjects. Point correspondence is found by "
+            "minimising the description length of the whole training set over homeomorphisms of "
+            "the sphere (Davies et al., IEEE TMI 2010), so a correspondence never folds or tears.")
+        self.parent.acknowledgementText = (
+            "Method: Davies, Twining, Cootes and Taylor, Building 3-D statistical shape models by "
+            "direct optimization, IEEE Transactions on Medical Imaging 29(4), 2010.")
+        try:
+            self.parent.icon = qt.QIcon(str(resourcePath("Icons/MDLShapeModel.png")))
+        except FileNotFoundError:
+            pass  # Slicer's default icon
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameter node: the panel's settings. The build settings are BuildConfig fields of the same
+# names, with BuildConfig's defaults and choices (list settings are written as text, "1, 2").
+
+MAIN_SETTINGS = ("labels", "surface_method", "points", "strategy", "max_time", "baselines")
+ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror", "seed",
+                     "evaluation_modes", "specificity_samples", "workers", "strict")
+BUILD_SETTINGS = MAIN_SETTINGS + ADVANCED_SETTINGS
+
+
+def _settingMember(name: str, defaults: BuildConfig):
+    """(annotation, default) of the parameter-node member of BuildConfig field ``name``."""
+    metadata = next(f for f in fields(BuildConfig) if f.name == name).metadata
+    kind = typing.get_type_hints(BuildConfig)[name]
+    value = getattr(defaults, name)
+    if typing.get_origin(kind) is list:
+        return str, ", ".join(str(v) for v in value)
+    if "choices" in metadata:
+        return Annotated[kind, Choice(list(metadata["choices"]))], value
+    if kind is int:
+        return Annotated[int, WithinRange(0, 10**9)], value
+    return kind, value
+
+
+def _parameterNodeClass():
+    defaults = BuildConfig()
+    annotations = {
+        # inputs beside the selected nodes: a folder of label maps or meshes
+        "inputFolder": pathlib.Path,
+        # segment names (comma separated) whose union is the object; empty: all segments
+        "segments": str,
+        "outputDirectory": pathlib.Path,
+        # the result being explored, and the model to fit new cases to
+        "explorerModel": slicer.vtkMRMLModelNode,
+        "modelFile": pathlib.Path,
+    }
+    namespace = {"segments": "", "__doc__": "The MDLShapeModel module's parameters."}
+    for name in BUILD_SETTINGS:
+        annotations[name], namespace[name] = _settingMember(name, defaults)
+    namespace["__annotations__"] = annotations
+    return parameterNodeWrapper(type("MDLShapeModelParameterNode", (), namespace))
+
+
+MDLShapeModelParameterNode = _parameterNodeClass()
+
+
+def buildConfigOf(parameters) -> BuildConfig:
+    """The :class:`BuildConfig` that a parameter node's build settings amount to (validated: a
+    bad value raises ``ConfigError`` naming the field)."""
+    values = {}
+    for name in BUILD_SETTINGS:
+        value = getattr(parameters, name)
+        if typing.get_origin(typing.get_type_hints(BuildConfig)[name]) is list:
+            value = field_items(name, value)
+        values[name] = value
+    return BuildConfig(**values).validate()
+
+
+# ---------------------------------------------------------------------------------------------
+# Logic
+
+
+@dataclass
+class ShapeModelResult:
+    """The MRML nodes of a built or loaded model."""
+
+    outputDirectory: pathlib.Path | None
+    modelFile: pathlib.Path
+    folderItemID: int                       # subject-hierarchy folder holding the nodes
+    meanModelNode: object                   # vtkMRMLModelNode, the mean shape (model frame)
+    explorerModelNode: object               # vtkMRMLModelNode deformed by setModeWeights
+    metricsTableNode: object | None         # vtkMRMLTableNode: C, G, S per mode with SEs
+    scoresTableNode: object | None          # vtkMRMLTableNode: the cases' scores per mode
+    correspondenceModelNodes: list = field(default_factory=list)  # input order, rejected left out
+    caseNames: list = field(default_factory=list)
+    rejected: list = field(default_factory=list)  # (name, reason)
+    interrupted: bool = False
+    reportFile: pathlib.Path | None = None
+
+
+@dataclass
+class ExportedInputs:
+    """Inputs written as files for the library, and those that could not be."""
+
+    paths: list
+    rejected: list                          # (name, reason)
+
+
+class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
+    """Everything the module does, without any GUI.
+
+    Examples
+    --------
+    ::
+
+        logic = MDLShapeModelLogic()
+        result = logic.buildModel([segmentationNode1, segmentationNode2, segmentationNode3],
+                                  "/data/model", BuildConfig(labels=[1, 2]))
+        result.meanModelNode, result.correspondenceModelNodes, result.rejected
+        logic.setModeWeights(result.explorerModelNode, [2.0, -1.0])   # SDs of modes 1 and 2
+    """
+
+    def __init__(self):
+        ScriptedLoadableModuleLogic.__init__(self)
+
+    def getParameterNode(self):
+        return MDLShapeModelParameterNode(super().getParameterNode())
+
+    # -- inputs -> files -------------------------------------------------------------------
+
+    def exportInputs(self, inputs, folder, config: BuildConfig | None = None,
+                     segments=None) -> ExportedInputs:
+        """Write node inputs as files the library reads; file paths pass through.
+
+        Segmentation nodes: the union of ``segments`` (names; None or empty: all segments) as a
+        label map in the segmentation's reference geometry, with the value ``config.labels[0]``
+        (1 when no labels are set) so that the build's label selection keeps it. Label-map
+        volumes as .nrrd, models as .vtp, through Slicer's storage nodes (which write LPS). A node
+        that cannot be exported is rejected with its reason; the others go on.
+        """
+        config = config or BuildConfig()
+        folder = pathlib.Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        paths, rejected, used = [], [], set()
+        for item in inputs:
+            if isinstance(item, (str, os.PathLike)):
+                paths.append(pathlib.Path(item))
+                continue
+            name = _uniqueName(_fileSafe(item.GetName() or item.GetID()), used)
+            try:
+                if item.IsA("vtkMRMLSegmentationNode"):
+                    value = config.labels[0] if config.labels else 1
+                    paths.append(_writeSegmentation(item, segments, value, folder / f"{name}.nrrd"))
+                elif item.IsA("vtkMRMLLabelMapVolumeNode"):
+                    paths.append(_writeNode(item, folder / f"{name}.nrrd",
+                                            "vtkMRMLVolumeArchetypeStorageNode"))
+                elif item.IsA("vtkMRMLModelNode"):
+                    paths.append(_writeNode(item, folder / f"{name}.vtp", "vtkMRMLModelStorageNode"))
+                else:
+                    raise ValueError(f"a {item.GetClassName()} is not an input (use "
+                                     f"{', '.join(INPUT_NODE_TYPES)})")
+            except ValueError as error:
+                rejected.append((item.GetName(), str(error)))
+        return ExportedInputs(paths, rejected)
+
+    # -- the build ---------------------------------------------------------------------------
+
+    def runBuild(self, paths, outputDirectory, config: BuildConfig | None = None, progress=None):
+        """The library's build on files (no MRML: safe in a background thread). Returns the
+        library's ``BuildResult``."""
+        from mdlshapemodel import build_model
+
+        return build_model([str(p) for p in paths], str(outputDirectory), config,
+                           progress=progress, executor=workerPool(config or BuildConfig()))
+
+    def buildModel(self, inputs, outputDirectory, config: BuildConfig | None = None,
+                   progress=None, segments=None) -> ShapeModelResult:
+        """Build a model of ``inputs`` and load it into the scene (blocking).
+
+        Parameters
+        ----------
+        inputs : list
+            vtkMRMLSegmentationNode, vtkMRMLLabelMapVolumeNode, vtkMRMLModelNode objects or file
+            and folder paths, in any mix.
+        outputDirectory : path
+            The build's output folder (the library's layout); node inputs are written to its
+            ``inputs/`` subfolder first.
+        config : BuildConfig, optional
+            Every setting (None: the defaults), as the command line fills it.
+        progress : callable(fraction or None, message), optional
+            The library's progress protocol; returning False cancels (the model of the state
+            reached is still written and loaded when the optimisation was running).
+        segments : list of str, optional
+            Names of the segments whose union is the object (default: all).
+
+        Returns
+        -------
+        ShapeModelResult
+            With ``rejected`` holding every input that could not be used and why.
+        """
+        outputDirectory = pathlib.Path(outputDirectory)
+        exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments)
+        built = self.runBuild(exported.paths, outputDirectory, config, progress)
+        return self.loadResults(outputDirectory, exported.rejected, built.interrupted)
+
+    def startBuild(self, inputs, outputDirectory, config: BuildConfig | None = None,
+                   segments=None) -> "BuildJob":
+        """Export the inputs (here, on the main thread), then run the build in a background
+        thread; load its results with ``job.finish(logic)`` once ``job.done``."""
+        outputDirectory = pathlib.Path(outputDirectory)
+        exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments)
+        return BuildJob(self, exported, outputDirectory, config)
+
+    # -- results -> scene --------------------------------------------------------------------
+
+    def loadResults(self, outputDirectory, rejected=(), interrupted: bool = False
+                    ) -> ShapeModelResult:
+        """The nodes of a build's output folder: the model (:meth:`loadModel`) and every case's
+        corresponded model, in the build's case order."""
+        outputDirectory = pathlib.Path(outputDirectory)
+        result = self.loadModel(outputDirectory / "model.h5")
+        for name in result.caseNames:
+            node = _readModel(outputDirectory / "correspondence" / f"{name}.vtp", name)
+            _placeInFolder(node, result.folderItemID)
+            result.correspondenceModelNodes.append(node)
+        result.rejected = list(rejected) + [(row["case"], row["reason"]) for row in
+                                            _readCsv(outputDirectory / "rejected.csv")]
+        result.interrupted = interrupted
+        report = outputDirectory / "report.html"
+        result.reportFile = report if report.exists() else None
+        return result
+
+    def loadModel(self, path) -> ShapeModelResult:
+        """A model.h5 (or a build's folder) as nodes: the mean, a shape explorer and, when the
+        build's tables are next to it, the metrics and scores tables. No correspondence nodes."""
+        from mdlshapemodel.model.fitting import load_model
+
+        model, modelFile = load_model(path)
+        folderName = modelFile.parent.name or "model"
+        hierarchy = _subjectHierarchy()
+        folder = hierarchy.CreateFolderItem(hierarchy.GetSceneItemID(),
+                                            f"MDL shape model {folderName}")
+        mean = _addModel(f"{folderName} mean", _toRas(model.mean), model.triangles)
+        explorer = _addModel(f"{folderName} shape explorer", _toRas(model.mean), model.triangles)
+        polydata = explorer.GetPolyData()
+        _addPointArray(polydata, "MeanPoints", _toRas(model.mean))
+        for k in range(model.n_modes):
+            standardDeviation = float(model.variances[k]) ** 0.5
+            _addPointArray(polydata, f"mode_{k + 1}", _toRas(model.modes[k] * standardDeviation))
+        _addPointArray(polydata, "Displacement", [0.0] * len(model.mean))
+        polydata.GetPointData().SetActiveScalars("Displacement")
+        explorer.GetDisplayNode().SetActiveScalarName("Displacement")
+        explorer.GetDisplayNode().SetScalarVisibility(True)
+        mean.GetDisplayNode().SetVisibility(False)
+        metrics = _metricsTable(modelFile.parent / "metrics.json", folderName)
+        scores = _scoresTable(modelFile.parent / "scores.csv", folderName)
+        for node in filter(None, (mean, explorer, metrics, scores)):
+            _placeInFolder(node, folder)
+        return ShapeModelResult(modelFile.parent if modelFile.name == "model.h5" else None,
+                                modelFile, folder, mean, explorer, metrics, scores,
+                                caseNames=list(model.names))
+
+    def setModeWeights(self, explorerModelNode, weights) -> None:
+        """Deform a shape explorer node (:meth:`loadModel`) to the mean plus ``weights[k]``
+        standard deviations of mode k+1; its ``Displacement`` array (mm from the mean) colours it.
+        """
+        import numpy as np
+        from vtk.util.numpy_support import vtk_to_numpy
+
+        polydata = explorerModelNode.GetPolyData()
+        data = polydata.GetPointData()
+        points = vtk_to_numpy(data.GetArray("MeanPoints")).copy()
+        for k, weight in enumerate(weights):
+            mode = data.GetArray(f"mode_{k + 1}")
+            if mode is None:
+                raise ValueError(f"the model has {k} modes; {len(weights)} weights given")
+            points += float(weight) * vtk_to_numpy(mode)
+        displacement = np.linalg.norm(points - vtk_to_numpy(data.GetArray("MeanPoints")), axis=1)
+        vtk_to_numpy(polydata.GetPoints().GetData())[:] = points
+        vtk_to_numpy(data.GetArray("Displacement"))[:] = displacement
+        polydata.GetPoints().Modified()
+        data.GetArray("Displacement").Modified()
+        explorerModelNode.SetAttribute("MDLShapeModel.ModeWeights",
+                                       " ".join(f"{float(w):g}" for w in weights))
+        explorerModelNode.Modified()
+
+    def fitSegmentation(self, inputNode, modelPath, outputDirectory, segments=None,
+                        maxTime: float = 60.0):
+        """Fit one new segmentation (or label map, model, file) to a model, as the command
+        line's ``fit`` does; returns (corresponded model node, reconstruction model node, the
+        library's FitResult)."""
+        from mdlshapemodel.model.fitting import build_config_of, fit_case, load_model
+
+        model, _ = load_model(modelPath)
+        config = build_config_of(model)
+        outputDirectory = pathlib.Path(outputDirectory)
+        exported = self.exportInputs([inputNode], outputDirectory / "inputs", config, segments)
+        if exported.rejected:
+            raise ValueError(f"{exported.rejected[0][0]}: {exported.rejected[0][1]}")
+        fitted = fit_case(model, exported.paths[0], config, max_time=maxTime)
+        name = fitted.name
+        nodes = []
+        for suffix, points in (("fitted", fitted.corresponded),
+                               ("reconstruction", fitted.reconstruction(model))):
+            nodes.append(_addModel(f"{name} {suffix}", _toRas(points), model.triangles))
+        return nodes[0], nodes[1], fitted
+
+
+class BuildJob:
+    """A build running in a background thread, so that Slicer stays responsive.
+
+    The main thread polls :meth:`messages` (progress reports: (fraction or None, text)), may
+    :meth:`cancel` (the optimisation stops at its next report and the model of the state reached
+    is written), and once :attr:`done` calls :meth:`finish` to load the results into the scene
+    (MRML is touched only on the main thread).
+    """
+
+    def __init__(self, logic: MDLShapeModelLogic, exported: ExportedInputs, outputDirectory,
+                 config: BuildConfig | None):
+        self.logic = logic
+        self.exported = exported
+        self.outputDirectory = pathlib.Path(outputDirectory)
+        self.built = None
+        self.error = None
+        self._reports = queue.Queue()
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(config,), daemon=True,
+                                        name="MDLShapeModel build")
+        self._thread.start()
+
+    def _progress(self, fraction, message):
+        self._reports.put((fraction, message))
+        if self._cancel.is_set():
+            # one False per Cancel: the optimisation stops there and the library goes on to write
+            # the model of the state reached (in any other stage the build stops: Cancelled)
+            self._cancel.clear()
+            return False
+        return True
+
+    def _run(self, config):
+        try:
+            self.built = self.logic.runBuild(self.exported.paths, self.outputDirectory, config,
+                                             self._progress)
+        except BaseException as error:  # handed to the main thread, which reports it
+            self.error = error
+
+    @property
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        self._thread.join(timeout)
+        return self.done
+
+    def cancel(self) -> None:
+        self._cancel.set()
+
+    def messages(self) -> list:
+        """The progress reports since the last call, oldest first."""
+        reports = []
+        while True:
+            try:
+                reports.append(self._reports.get_nowait())
+            except queue.Empty:
+                return reports
+
+    def finish(self) -> ShapeModelResult:
+        """The results as nodes (main thread, after :attr:`done`); re-raises the build's error."""
+        if self.error is not None:
+            raise self.error
+        return self.logic.loadResults(self.outputDirectory, self.exported.rejected,
+                                      self.built.interrupted)
+
+
+def workerPool(config: BuildConfig):
+    """The executor for a build's per-case work. Inside the Slicer application, Python's
+    ``sys.executable`` is the application itself, which cannot run worker processes: there the
+    workers are started with Slicer's ``PythonSlicer`` interpreter. Elsewhere None: the library's
+    own pools."""
+    if config.workers <= 1 or not os.path.basename(sys.executable).lower().startswith("slicer"):
+        return None
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    interpreter = shutil.which("PythonSlicer") or os.path.join(
+        os.path.dirname(sys.executable), "PythonSlicer")
+    context = multiprocessing.get_context("spawn")
+    context.set_executable(interpreter)
+    return ProcessPoolExecutor(max_workers=config.workers, mp_context=context)
+
+
+def requirements() -> list:
+    """The pip requirements the library needs beyond what Slicer ships
+    (``Resources/requirements.txt``)."""
+    lines = resourcePath("requirements.txt").read_text().splitlines()
+    return [line.strip() for line in lines if line.strip() and not line.startswith("#")]
+
+
+def missingRequirements() -> list:
+    """The requirements whose distribution is not installed (or too old)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from packaging.requirements import Requirement
+
+    missing = []
+    for text in requirements():
+        requirement = Requirement(text)
+        try:
+            if not requirement.specifier.contains(version(requirement.name), prereleases=True):
+                missing.append(text)
+        except PackageNotFoundError:
+            missing.append(text)
+    return missing
+
+
+def ensureDependencies(ask: bool = True) -> bool:
+    """Install the missing requirements into Slicer's Python after asking the user; never vtk or
+    SimpleITK (Slicer's own). True when everything is there."""
+    missing = missingRequirements()
+    if not missing:
+        return True
+    if ask and not slicer.util.confirmOkCancelDisplay(
+            "MDLShapeModel needs these Python packages, which will be installed now:\n"
+            + "\n".join(missing)):
+        return False
+    if hasattr(slicer, "packaging") and hasattr(slicer.packaging, "pip_ensure"):
+        slicer.packaging.pip_ensure(missing)        # Slicer 5.11 and later
+    else:
+        slicer.util.pip_install(" ".join(f'"{r}"' for r in missing))
+    return not missingRequirements()
+
+
+# -- helpers: files and nodes ------------------------------------------------------------------
+
+
+def segmentNames(text: str) -> list:
+    """Segment names written as text: separated by commas (names may hold spaces)."""
+    return [name.strip() for name in text.split(",") if name.strip()]
+
+
+def _fileSafe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "case"
+
+
+def _uniqueName(name: str, used: set) -> str:
+    candidate, k = name, 1
+    while candidate.lower() in used:
+        k += 1
+        candidate = f"{name}_{k}"
+    used.add(candidate.lower())
+    return candidate
+
+
+def _writeNode(node, path: pathlib.Path, storageClass: str) -> pathlib.Path:
+    storage = slicer.mrmlScene.CreateNodeByClass(storageClass)
+    storage.UnRegister(None)
+    storage.SetFileName(str(path))
+    if not storage.WriteData(node):
+        raise ValueError(f"could not be written to {path}")
+    return path
+
+
+def _writeSegmentation(node, segments, value: int, path: pathlib.Path) -> pathlib.Path:
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    segmentation = node.GetSegmentation()
+    ids = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
+    if segments:
+        byName = {segmentation.GetSegment(i).GetName(): i for i in ids}
+        missing = [s for s in segments if s not in byName]
+        if missing:
+            raise ValueError(f"no segment named {missing[0]!r} (it has "
+                             f"{', '.join(sorted(byName)) or 'none'})")
+        ids = [byName[s] for s in segments]
+    if not ids:
+        raise ValueError("the segmentation has no segments")
+    chosen = vtk.vtkStringArray()
+    for i in ids:
+        chosen.InsertNextValue(i)
+    hasGeometry = bool(segmentation.GetConversionParameter("Reference image geometry"))
+    extent = (slicer.vtkSegmentation.EXTENT_REFERENCE_GEOMETRY if hasGeometry
+              else slicer.vtkSegmentation.EXTENT_UNION_OF_EFFECTIVE_SEGMENTS)
+    labelmap = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode")
+    try:
+        if not slicer.vtkSlicerSegmentationsModuleLogic.ExportSegmentsToLabelmapNode(
+                node, chosen, labelmap, None, extent) or labelmap.GetImageData() is None:
+            raise ValueError("its segments could not be exported as a label map")
+        voxels = vtk_to_numpy(labelmap.GetImageData().GetPointData().GetScalars())
+        if not voxels.any():
+            raise ValueError("the chosen segments are empty")
+        voxels[voxels != 0] = value   # the union of the chosen segments
+        labelmap.GetImageData().Modified()
+        return _writeNode(labelmap, path, "vtkMRMLVolumeArchetypeStorageNode")
+    finally:
+        slicer.mrmlScene.RemoveNode(labelmap)
+
+
+def _subjectHierarchy():
+    return slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(slicer.mrmlScene)
+
+
+def _placeInFolder(node, folder: int):
+    hierarchy = _subjectHierarchy()
+    item = hierarchy.GetItemByDataNode(node)
+    if item:
+        hierarchy.SetItemParent(item, folder)
+    else:
+        hierarchy.CreateItem(folder, node)
+
+
+def _toRas(points):
+    """LPS <-> RAS (the same map both ways): x and y negated. (n, 3) array-like -> array."""
+    import numpy as np
+
+    return np.asarray(points, dtype=np.float64) * np.array([-1.0, -1.0, 1.0])
+
+
+def _addPointArray(polydata, name: str, values):
+    import numpy as np
+    from vtk.util.numpy_support import numpy_to_vtk
+
+    array = numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
+    array.SetName(name)
+    polydata.GetPointData().AddArray(array)
+
+
+def _addModel(name: str, points, triangles):
+    """A model node of points (RAS) and triangles, with display nodes."""
+    from mdlshapemodel.prepare.surface import arrays_to_polydata
+
+    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", name)
+    node.SetAndObservePolyData(arrays_to_polydata(points, triangles))
+    node.CreateDefaultDisplayNodes()
+    return node
+
+
+def _readModel(path: pathlib.Path, name: str):
+    """A model node read by Slicer's model storage node (which honours the file's SPACE)."""
+    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", name)
+    storage = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelStorageNode")
+    storage.SetFileName(str(path))
+    if not storage.ReadData(node):
+        raise OSError(f"{path}: could not be read as a model")
+    node.SetAndObserveStorageNodeID(storage.GetID())
+    node.CreateDefaultDisplayNodes()
+    return node
+
+
+def _readCsv(path: pathlib.Path) -> list:
+    if not path.exists():
+        return []
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def _table(name: str, columns: dict):
+    """A table node of named columns (str or float values, all of one length)."""
+    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLTableNode", name)
+    table = node.GetTable()
+    for title, values in columns.items():
+        numeric = all(isinstance(v, (int, float)) for v in values)
+        array = vtk.vtkDoubleArray() if numeric else vtk.vtkStringArray()
+        array.SetName(title)
+        for v in values:
+            array.InsertNextValue(float(v) if numeric else str(v))
+        table.AddColumn(array)
+    node.Modified()
+    return node
+
+
+# the per-mode measures of metrics.json shown in the metrics table, with their standard errors
+MEASURES = (("compactness", "C"), ("generalization", "G"), ("specificity", "S"),
+            ("generalization_mm", "G (mm)"), ("specificity_mm", "S (mm)"))
+
+
+def _metricsTable(path: pathlib.Path, name: str):
+    if not path.exists():
+        return None
+    metrics = json.loads(path.read_text())
+    modes = metrics.get("modes") or list(range(1, len(metrics.get("compactness", [])) + 1))
+    columns = {"mode": [float(m) for m in modes]}
+    for key, title in MEASURES:
+        if key in metrics:
+            columns[title] = [float(v) for v in metrics[key]]
+            columns[f"{title} SE"] = [float(v) for v in metrics.get(f"{key}_se", metrics[key])]
+    return _table(f"{name} measures", columns)
+
+
+def _scoresTable(path: pathlib.Path, name: str):
+    rows = _readCsv(path)
+    if not rows:
+        return None
+    columns = {"case": [row["case"] for row in rows]}
+    for key in rows[0]:
+        if key != "case":
+            columns[key] = [float(row[key]) for row in rows]
+    return _table(f"{name} scores", columns)
+
+
+# ---------------------------------------------------------------------------------------------
+# Widget: the panel (thin: it fills the parameter node and calls the Logic)
+
+
+class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
+    """The panel: Inputs, Parameters (Advanced collapsed), Run, Results."""
+
+    def __init__(self, parent=None):
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        VTKObservationMixin.__init__(self)
+        self.logic = None
+        self._parameterNode = None
+        self._parameterNodeGuiTag = None
+        self._job = None
+        self._timer = None
+        self._result = None
+        self._sliders = []
+
+    def setup(self):
+        ScriptedLoadableModuleWidget.setup(self)
+        uiWidget = slicer.util.loadUI(str(resourcePath("UI/MDLShapeModel.ui")))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        uiWidget.setMRMLScene(slicer.mrmlScene)
+        self.logic = MDLShapeModelLogic()
+        self.ui.inputNodesSelector.nodeTypes = list(INPUT_NODE_TYPES)
+        self.ui.applyButton.clicked.connect(self.onApply)
+        self.ui.cancelButton.clicked.connect(self.onCancel)
+        self.ui.openReportButton.clicked.connect(self.onOpenReport)
+        self.ui.loadModelButton.clicked.connect(self.onLoadModel)
+        self.ui.fitButton.clicked.connect(self.onFit)
+        self.ui.inputNodesSelector.checkedNodesChanged.connect(self.updateCaseList)
+        self.ui.inputFolderSelector.currentPathChanged.connect(self.updateCaseList)
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+        self._timer = qt.QTimer()
+        self._timer.setInterval(200)
+        self._timer.timeout.connect(self.onPoll)
+        self.initializeParameterNode()
+
+    def cleanup(self):
+        self.removeObservers()
+        if self._job is not None:
+            self._job.cancel()
+
+    def enter(self):
+        self.initializeParameterNode()
+
+    def exit(self):
+        if self._parameterNode and self._parameterNodeGuiTag is not None:
+            self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+            self._parameterNodeGuiTag = None
+
+    def onSceneStartClose(self, caller, event):
+        self.exit()
+        self._parameterNode = None
+
+    def onSceneEndClose(self, caller, event):
+        if self.parent.isEntered:
+            self.initializeParameterNode()
+
+    def initializeParameterNode(self):
+        self._parameterNode = self.logic.getParameterNode()
+        if self._parameterNodeGuiTag is None:
+            self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+        self.updateCaseList()
+
+    def inputs(self) -> list:
+        nodes = list(self.ui.inputNodesSelector.checkedNodes())
+        folder = str(self._parameterNode.inputFolder)
+        if folder not in ("", "."):
+            from mdlshapemodel.prepare.io import find_inputs
+
+            nodes += find_inputs([folder])
+        return nodes
+
+    def updateCaseList(self, *unused):
+        self.ui.caseList.clear()
+        for item in self.inputs():
+            self.ui.caseList.addItem(item.GetName() if hasattr(item, "GetName")
+                                     else pathlib.Path(item).name)
+        self.ui.applyButton.enabled = self.ui.caseList.count >= 3 and self._job is None
+
+    def _segments(self) -> list:
+        return segmentNames(self._parameterNode.segments)
+
+    def onApply(self):
+        if not ensureDependencies(ask=True):
+            return
+        with slicer.util.tryWithErrorDisplay("Could not start the build.", waitCursor=True):
+            config = buildConfigOf(self._parameterNode)
+            output = pathlib.Path(str(self._parameterNode.outputDirectory))
+            self.ui.logText.clear()
+            self._job = self.logic.startBuild(self.inputs(), output, config, self._segments())
+            for name, reason in self._job.exported.rejected:
+                self.ui.logText.appendPlainText(f"rejected {name}: {reason}")
+            self.ui.applyButton.enabled = False
+            self.ui.cancelButton.enabled = True
+            self._timer.start()
+
+    def onCancel(self):
+        if self._job is not None:
+            self._job.cancel()
+            self.ui.logText.appendPlainText("cancelling: the state reached will be kept")
+
+    def onPoll(self):
+        for fraction, message in self._job.messages():
+            if fraction is not None:
+                self.ui.progressBar.value = int(100 * fraction)
+            self.ui.progressBar.format = message
+            self.ui.logText.appendPlainText(message)
+        if not self._job.done:
+            return
+        self._timer.stop()
+        job, self._job = self._job, None
+        self.ui.cancelButton.enabled = False
+        self.updateCaseList()
+        with slicer.util.tryWithErrorDisplay("The build failed.", waitCursor=True):
+            self.showResult(job.finish())
+
+    def showResult(self, result: ShapeModelResult):
+        self._result = result
+        self._parameterNode.explorerModel = result.explorerModelNode
+        self.ui.openReportButton.enabled = result.reportFile is not None
+        for name, reason in result.rejected:
+            self.ui.logText.appendPlainText(f"rejected {name}: {reason}")
+        if result.metricsTableNode is not None:
+            self.ui.metricsTableView.setMRMLTableNode(result.metricsTableNode)
+        layout = self.ui.modeSlidersFrame.layout()
+        for slider in self._sliders:
+            layout.removeWidget(slider)
+            slider.deleteLater()
+        self._sliders = []
+        polydata = result.explorerModelNode.GetPolyData()
+        k = 1
+        while polydata.GetPointData().GetArray(f"mode_{k}") is not None and k <= 10:
+            slider = slicer.qMRMLSliderWidget()
+            slider.minimum, slider.maximum, slider.singleStep, slider.value = -3.0, 3.0, 0.1, 0.0
+            slider.toolTip = f"mode {k}, in standard deviations"
+            slider.valueChanged.connect(self.onModeWeights)
+            layout.addRow(f"Mode {k}:", slider)
+            self._sliders.append(slider)
+            k += 1
+
+    def onModeWeights(self, *unused):
+        if self._result is not None:
+            self.logic.setModeWeights(self._result.explorerModelNode,
+                                      [s.value for s in self._sliders])
+
+    def onOpenReport(self):
+        if self._result is not None and self._result.reportFile is not None:
+            qt.QDesktopServices.openUrl(qt.QUrl.fromLocalFile(str(self._result.reportFile)))
+
+    def onLoadModel(self):
+        if not ensureDependencies(ask=True):
+            return
+        with slicer.util.tryWithErrorDisplay("Could not load the model.", waitCursor=True):
+            self.showResult(self.logic.loadModel(str(self._parameterNode.modelFile)))
+
+    def onFit(self):
+        if not ensureDependencies(ask=True):
+            return
+        with slicer.util.tryWithErrorDisplay("Could not fit the segmentation.", waitCursor=True):
+            node = self.ui.fitInputSelector.currentNode()
+            output = pathlib.Path(str(self._parameterNode.outputDirectory)) / "fitted"
+            self.logic.fitSegmentation(node, str(self._parameterNode.modelFile), output,
+                                       self._segments())
+
+
+# ---------------------------------------------------------------------------------------------
+# Test: the whole module on generated data, in a real Slicer (Developer mode: "Reload and Test")
+
+
+class MDLShapeModelTest(ScriptedLoadableModuleTest):
+    """Builds a model of generated ellipsoids through the Logic and checks the nodes."""
+
+    def setUp(self):
+        slicer.mrmlScene.Clear(0)
+
+    def runTest(self):
+        self.setUp()
+        self.test_build_from_label_map_volumes()
+
+    def test_build_from_label_map_volumes(self):
+        import tempfile
+
+        import numpy as np
+
+        self.delayDisplay("Generating five ellipsoid label maps")
+        volumes = []
+        grid = np.mgrid[0:40, 0:40, 0:40].astype(float)
+        for k in range(5):
+            axes = np.array([12.0 + k, 9.0, 7.0 + 0.5 * k])
+            inside = sum(((g - 20.0) / a) ** 2 for g, a in zip(grid, axes)) <= 1.0
+            volume = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode",
+                                                        f"ellipsoid_{k}")
+            slicer.util.updateVolumeFromArray(volume, inside.astype(np.uint8))
+            volumes.append(volume)
+        config = BuildConfig(points=162, max_time=30, baselines=[], workers=1,
+                             evaluation_modes=2, specificity_samples=50)
+        self.delayDisplay("Building the model")
+        result = MDLShapeModelLogic().buildModel(volumes, tempfile.mkdtemp(), config)
+        self.assertEqual(len(result.correspondenceModelNodes), 5)
+        counts = {n.GetPolyData().GetNumberOfPoints() for n in result.correspondenceModelNodes}
+        self.assertEqual(counts, {162})
+        self.assertIsNotNone(result.metricsTableNode)
+        before = slicer.util.arrayFromModelPoints(result.explorerModelNode).copy()
+        MDLShapeModelLogic().setModeWeights(result.explorerModelNode, [2.0])
+        after = slicer.util.arrayFromModelPoints(result.explorerModelNode)
+        self.assertGreater(float(np.abs(after - before).max()), 0.0)
+        self.delayDisplay("Test passed")
+

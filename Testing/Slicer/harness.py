@@ -1,0 +1,268 @@
+"""A headless 3D Slicer for the module's tests and scripts: slicer-core's real MRML, and stand-ins
+for the few parts of the Slicer application that slicer-core does not have.
+
+Real (from the ``slicer-core`` package, Kitware's build of Slicer's libraries): the MRML scene and
+every node class, storage nodes and their file formats, the Segmentations module logic with its
+closed-surface conversion rules, subject hierarchy, tables, and ``slicer.util``.
+
+Stand-ins, each for exactly one thing the application provides:
+
+- ``slicer.mrmlScene``: the application's scene -> a real ``vtkMRMLScene`` made by
+  :func:`new_scene` (the Segmentations and Subject Hierarchy logics attached, as the
+  application attaches them);
+- ``slicer.app``: the application object -> :class:`Application`, its temporary folder only;
+- ``slicer.ScriptedLoadableModule``: the base classes of scripted modules -> the same four
+  classes with the behaviour the module relies on (``getParameterNode`` finds or makes the
+  module's singleton ``vtkMRMLScriptedModuleNode`` as Slicer's does; no GUI);
+- ``slicer.parameterNodeWrapper``: the typed parameter-node decorator -> :func:`parameterNodeWrapper`
+  for the types the module uses (int, float, str, bool, pathlib.Path, MRML nodes, with ``Choice``
+  and ``WithinRange``), storing values exactly as Slicer's does (``SetParameter`` strings, node
+  references), so a scene saved here holds the parameters as Slicer writes them; no GUI binding;
+- ``qt``: PythonQt's flat ``qt`` module -> PySide6's QtCore, QtGui, QtWidgets and QtUiTools in
+  one namespace (when PySide6 is installed; an offscreen QApplication is made on first use).
+
+Use from any script or test::
+
+    import harness
+    harness.install()                      # once; then `import MDLShapeModel` works
+    scene = harness.new_scene()            # a fresh real scene as slicer.mrmlScene
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import sys
+import tempfile
+import types
+import typing
+import unittest
+
+HERE = pathlib.Path(__file__).resolve().parent
+MODULE_DIRECTORY = HERE.parents[1] / "MDLShapeModel"
+
+_installed = False
+
+
+class Application:
+    """Stands in for ``slicer.app``: its temporary folder only."""
+
+    def __init__(self):
+        self.temporaryPath = tempfile.mkdtemp(prefix="slicer-harness-")
+
+    def processEvents(self):
+        pass
+
+
+def new_scene():
+    """A new real ``vtkMRMLScene``, made ``slicer.mrmlScene``, with the Segmentations module's
+    logic (the segmentation conversion rules and node classes) and the Subject Hierarchy module's
+    logic (an item for every new data node) attached."""
+    import slicer
+
+    scene = slicer.vtkMRMLScene()
+    logic = slicer.vtkSlicerSegmentationsModuleLogic()
+    logic.SetMRMLScene(scene)
+    hierarchy = slicer.vtkSlicerSubjectHierarchyModuleLogic()
+    hierarchy.SetMRMLScene(scene)
+    scene._harness_logics = (logic, hierarchy)  # kept alive with the scene
+    slicer.mrmlScene = scene
+    return scene
+
+
+def segmentations_logic():
+    """The Segmentations module logic of the current scene (``slicer.modules.segmentations
+    .logic()`` in the application)."""
+    import slicer
+
+    return slicer.mrmlScene._harness_logics[0]
+
+
+# -- slicer.parameterNodeWrapper ----------------------------------------------------------------
+
+
+class Choice:
+    """The value must be one of ``choices``."""
+
+    def __init__(self, choices):
+        self.choices = list(choices)
+
+    def validate(self, value):
+        if value not in self.choices:
+            raise ValueError(f"{value!r} is not one of {self.choices}")
+
+
+class WithinRange:
+    """The value must lie in [minimum, maximum]."""
+
+    def __init__(self, minimum, maximum):
+        self.minimum, self.maximum = minimum, maximum
+
+    def validate(self, value):
+        if not self.minimum <= value <= self.maximum:
+            raise ValueError(f"{value!r} is not within [{self.minimum}, {self.maximum}]")
+
+
+class _Parameter:
+    """One typed parameter of a parameter node, stored as Slicer's serializers store it."""
+
+    def __init__(self, name, annotated, default):
+        import slicer
+
+        self.name = name
+        self.validators = []
+        kind = annotated
+        if typing.get_origin(annotated) is typing.Annotated:
+            kind, *extras = typing.get_args(annotated)
+            self.validators = [e for e in extras if hasattr(e, "validate")]
+        self.kind = kind
+        self.is_node = isinstance(kind, type) and issubclass(kind, slicer.vtkMRMLNode)
+        if default is _NO_DEFAULT:
+            default = {int: 0, float: 0.0, str: "", bool: False}.get(kind)
+            if kind is pathlib.Path:
+                default = pathlib.Path()
+        self.default = default
+
+    def write(self, node, value):
+        if self.is_node:
+            if value is not None and not isinstance(value, self.kind):
+                raise TypeError(f"{self.name}: expected a {self.kind.__name__}")
+            node.SetParameter(self.name, "")
+            node.SetNodeReferenceID(self.name, value.GetID() if value is not None else None)
+            return
+        if self.kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, self.kind):
+            raise TypeError(f"{self.name}: expected {self.kind.__name__}, got {value!r}")
+        for validator in self.validators:
+            validator.validate(value)
+        text = ("True" if value else "False") if self.kind is bool else str(value)
+        node.SetParameter(self.name, text)
+
+    def read(self, node):
+        if self.is_node:
+            return node.GetNodeReference(self.name)
+        text = node.GetParameter(self.name)
+        if self.kind is bool:
+            return text == "True"
+        return self.kind(text)
+
+
+_NO_DEFAULT = object()
+
+
+def parameterNodeWrapper(classtype):
+    """Stands in for Slicer's ``@parameterNodeWrapper``: typed properties over a
+    ``vtkMRMLScriptedModuleNode`` (``wrapper.parameterNode``), defaults written on wrapping."""
+    hints = typing.get_type_hints(classtype, include_extras=True)
+    parameters = {name: _Parameter(name, kind, classtype.__dict__.get(name, _NO_DEFAULT))
+                  for name, kind in hints.items()}
+
+    def __init__(self, parameterNode):
+        self.parameterNode = parameterNode
+        for parameter in parameters.values():
+            if not parameterNode.HasParameter(parameter.name):
+                parameter.write(parameterNode, parameter.default)
+
+    for name, parameter in parameters.items():
+        setattr(classtype, name, property(
+            lambda self, p=parameter: p.read(self.parameterNode),
+            lambda self, value, p=parameter: p.write(self.parameterNode, value)))
+    classtype.__init__ = __init__
+    classtype.allParameters = parameters
+    classtype.getValue = lambda self, name: getattr(self, name)
+    classtype.setValue = lambda self, name, value: setattr(self, name, value)
+    classtype.default = lambda self, name: types.SimpleNamespace(value=parameters[name].default)
+    return classtype
+
+
+# -- slicer.ScriptedLoadableModule --------------------------------------------------------------
+
+
+class ScriptedLoadableModule:
+    def __init__(self, parent):
+        self.parent = parent
+        self.moduleName = type(self).__name__
+
+
+class ScriptedLoadableModuleLogic:
+    def __init__(self, parent=None):
+        name = type(self).__name__
+        self.moduleName = name[:-len("Logic")] if name.endswith("Logic") else name
+
+    def getParameterNode(self):
+        """The module's singleton parameter node in ``slicer.mrmlScene``, made when missing."""
+        import slicer
+
+        scene = slicer.mrmlScene
+        node = scene.GetSingletonNode(self.moduleName, "vtkMRMLScriptedModuleNode")
+        if node is not None:
+            return node
+        node = scene.CreateNodeByClass("vtkMRMLScriptedModuleNode")
+        node.UnRegister(None)
+        node.SetSingletonTag(self.moduleName)
+        node.SetModuleName(self.moduleName)
+        node.SetName(scene.GenerateUniqueName(self.moduleName))
+        return scene.AddNode(node)
+
+
+class ScriptedLoadableModuleWidget:
+    def __init__(self, parent=None):
+        self.parent = parent
+        self.moduleName = type(self).__name__[:-len("Widget")]
+
+    def setup(self):
+        raise NotImplementedError("the harness has no GUI: test the Logic, or the .ui with Qt")
+
+
+class ScriptedLoadableModuleTest(unittest.TestCase):
+    def delayDisplay(self, message, msec=None):
+        print(message)
+
+
+# -- qt ------------------------------------------------------------------------------------------
+
+
+def qt_module():
+    """PySide6's QtCore, QtGui, QtWidgets and QtUiTools as one module, with a QApplication on the
+    offscreen platform; None when PySide6 is not installed."""
+    try:
+        from PySide6 import QtCore, QtGui, QtUiTools, QtWidgets
+    except ImportError:
+        return None
+    module = types.ModuleType("qt", "PySide6 standing in for PythonQt's qt module")
+    for part in (QtCore, QtGui, QtWidgets, QtUiTools):
+        for name in dir(part):
+            if not name.startswith("_"):
+                setattr(module, name, getattr(part, name))
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    if QtWidgets.QApplication.instance() is None:
+        module.application = QtWidgets.QApplication(["harness"])
+    return module
+
+
+def install():
+    """Put the stand-ins in place and the module's folder on ``sys.path`` (idempotent)."""
+    global _installed
+    if _installed:
+        return
+    import slicer
+
+    qt = qt_module() or types.ModuleType("qt", "no Qt: PySide6 is not installed")
+    sys.modules["qt"] = qt
+    loadable = types.ModuleType("slicer.ScriptedLoadableModule")
+    for cls in (ScriptedLoadableModule, ScriptedLoadableModuleLogic, ScriptedLoadableModuleWidget,
+                ScriptedLoadableModuleTest):
+        setattr(loadable, cls.__name__, cls)
+    wrapper = types.ModuleType("slicer.parameterNodeWrapper")
+    for item in (parameterNodeWrapper, Choice, WithinRange):
+        setattr(wrapper, item.__name__, item)
+    sys.modules["slicer.ScriptedLoadableModule"] = loadable
+    sys.modules["slicer.parameterNodeWrapper"] = wrapper
+    slicer.ScriptedLoadableModule = loadable
+    slicer.parameterNodeWrapper = wrapper
+    slicer.app = Application()
+    new_scene()
+    if str(MODULE_DIRECTORY) not in sys.path:
+        sys.path.insert(0, str(MODULE_DIRECTORY))
+    _installed = True

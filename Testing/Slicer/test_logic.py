@@ -1,0 +1,282 @@
+"""The module's Logic against a real MRML scene (slicer-core), headless, as scripts and other
+modules use it; see harness.py for what stands in for the Slicer application."""
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import slicer
+import vtk
+from vtk.util.numpy_support import vtk_to_numpy
+
+import harness
+import MDLShapeModel as module
+from mdlshapemodel import BuildConfig, ShapeModel
+from mdlshapemodel.errors import ConfigError
+from mdlshapemodel.prepare import io
+from mdlshapemodel.prepare.surface import mask_to_surface, point_surface_distances
+from synthetic import small_mask
+
+# small and quick: 162 points, a short evaluation
+QUICK = dict(points=162, baselines=[], max_time=120, evaluation_modes=2, specificity_samples=100,
+             workers=1)
+LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
+
+
+def points_of(node) -> np.ndarray:
+    return vtk_to_numpy(node.GetPolyData().GetPoints().GetData()).astype(np.float64)
+
+
+def write_label_map(path, mask, label=1, origin=(5.0, -3.0, 2.0), spacing=(1.2, 1.0, 1.0)):
+    image = sitk.GetImageFromArray(mask.astype(np.uint8) * label)
+    image.SetOrigin(origin)
+    image.SetSpacing(spacing)
+    sitk.WriteImage(image, str(path))
+    return path
+
+
+def load_label_map_node(path):
+    """A label-map volume node read by Slicer's volume storage node (as 'Add data' does)."""
+    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", path.name.split(".")[0])
+    storage = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLVolumeArchetypeStorageNode")
+    storage.SetFileName(str(path))
+    assert storage.ReadData(node)
+    return node
+
+
+def closed_surface_ras(segmentation_node) -> tuple:
+    """Slicer's own closed surface of all segments (RAS): vertices, triangles."""
+    segmentation_node.CreateClosedSurfaceRepresentation()
+    append = vtk.vtkAppendPolyData()
+    segmentation = segmentation_node.GetSegmentation()
+    for k in range(segmentation.GetNumberOfSegments()):
+        polydata = vtk.vtkPolyData()
+        segmentation_node.GetClosedSurfaceRepresentation(segmentation.GetNthSegmentID(k), polydata)
+        append.AddInputData(polydata)
+    append.Update()
+    return io.mesh_arrays(append.GetOutput())
+
+
+@pytest.fixture(scope="module")
+def generated_files(tmp_path_factory):
+    """Five small bumpy ellipsoid label maps (label 1) with a non-trivial geometry."""
+    folder = tmp_path_factory.mktemp("generated")
+    return [write_label_map(folder / f"case_{k}.nii.gz", small_mask(float(p), 1.0 + 0.03 * k))
+            for k, p in enumerate(np.linspace(-0.6, 0.6, 5))]
+
+
+def test_importing_the_module_loads_none_of_the_librarys_heavy_dependencies():
+    code = ("import sys; sys.path.insert(0, %r); import harness; harness.install(); "
+            "import MDLShapeModel; print(sorted(m for m in ('numba', 'h5py', 'scipy', 'lapy', "
+            "'gpytoolbox', 'pycpd', 'matplotlib', 'SimpleITK') if m in sys.modules))"
+            % str(harness.HERE))
+    output = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            check=True).stdout
+    assert output.strip().splitlines()[-1] == "[]"
+
+
+def test_the_parameter_node_holds_the_build_configs_defaults_and_fills_it(scene):
+    parameters = module.MDLShapeModelLogic().getParameterNode()
+    assert module.buildConfigOf(parameters) == BuildConfig()
+    parameters.labels = "1, 2"
+    parameters.points = 642
+    parameters.strategy = "one-at-a-time"
+    parameters.baselines = "none cpd"
+    assert module.buildConfigOf(parameters) == BuildConfig(
+        labels=[1, 2], points=642, strategy="one-at-a-time", baselines=["none", "cpd"])
+    with pytest.raises(ValueError):
+        parameters.strategy = "fastest"          # the choices are BuildConfig's
+    parameters.labels = "1, a"
+    with pytest.raises(ConfigError, match="labels must be integers"):
+        module.buildConfigOf(parameters)
+
+
+def test_the_parameter_node_survives_saving_and_reloading_the_scene(scene, tmp_path):
+    explorer = scene.AddNewNodeByClass("vtkMRMLModelNode", "explorer")
+    parameters = module.MDLShapeModelLogic().getParameterNode()
+    parameters.points = 642
+    parameters.max_time = 90.5
+    parameters.strict = True
+    parameters.segments = "Left hippocampus, head"
+    parameters.outputDirectory = tmp_path / "out"
+    parameters.explorerModel = explorer
+    scene.SetURL(str(tmp_path / "scene.mrml"))
+    assert scene.Commit()
+    reloaded = harness.new_scene()
+    reloaded.SetURL(str(tmp_path / "scene.mrml"))
+    assert reloaded.Connect()
+    again = module.MDLShapeModelLogic().getParameterNode()
+    assert again.parameterNode.GetID() is not None and again.points == 642
+    assert again.max_time == 90.5 and again.strict is True
+    assert module.segmentNames(again.segments) == ["Left hippocampus", "head"]
+    assert again.outputDirectory == tmp_path / "out"
+    assert again.explorerModel is not None and again.explorerModel.GetName() == "explorer"
+    assert again.strategy == BuildConfig().strategy
+
+
+def test_segmentation_nodes_build_the_same_model_as_the_command_line_and_overlay(
+        scene, hippocampus_files, tmp_path):
+    config = BuildConfig(labels=[1, 2], **QUICK)
+    logic = harness.segmentations_logic()
+    nodes = [logic.LoadSegmentationFromFile(str(f), True, f.name.split(".")[0])
+             for f in hippocampus_files]
+    result = module.MDLShapeModelLogic().buildModel(nodes, tmp_path / "slicer", config)
+    cli = subprocess.run(
+        [sys.executable, "-m", "mdlshapemodel.cli", "build", *map(str, hippocampus_files),
+         "-o", str(tmp_path / "cli"), "--label", "1,2", "--points", "162", "--baselines", "",
+         "--max-time", "120", "--evaluation-modes", "2", "--specificity-samples", "100",
+         "--workers", "1", "-q"], capture_output=True, text=True)
+    assert cli.returncode == 0, cli.stderr
+    ours, theirs = (ShapeModel.load(tmp_path / name / "model.h5") for name in ("slicer", "cli"))
+    assert ours.names == theirs.names == [f.name.split(".")[0] for f in hippocampus_files]
+    np.testing.assert_array_equal(ours.mean, theirs.mean)
+    np.testing.assert_array_equal(ours.variances, theirs.variances)
+    np.testing.assert_array_equal(ours.modes, theirs.modes)
+    assert result.rejected == [] and len(result.correspondenceModelNodes) == 4
+    for node, segmentation in zip(result.correspondenceModelNodes, nodes):
+        ras = points_of(node)
+        assert len(ras) == 162
+        # the CLI's file, LPS, is the same points
+        lps, _ = io.read_mesh(tmp_path / "cli" / "correspondence" / f"{node.GetName()}.vtp")
+        np.testing.assert_allclose(ras * LPS_TO_RAS, lps, atol=1e-5)
+        # and they lie on the surface Slicer itself makes from the segmentation
+        vertices, triangles = closed_surface_ras(segmentation)
+        assert point_surface_distances(ras, vertices, triangles).mean() < 0.5
+        assert point_surface_distances(ras * LPS_TO_RAS, vertices, triangles).mean() > 5.0
+
+
+@pytest.fixture(scope="module")
+def mixed_build(generated_files, tmp_path_factory):
+    """A build from two label-map volume nodes, a model node, a segmentation node and a file
+    path, with an empty segmentation and an unreadable file among them."""
+    harness.new_scene()
+    folder = tmp_path_factory.mktemp("mixed")
+    volumes = [load_label_map_node(path) for path in generated_files[:2]]
+    vertices, faces, _ = mask_to_surface(small_mask(0.1), (1.2, 1.0, 1.0), (5.0, -3.0, 2.0))
+    io.write_polydata(folder / "surface.vtp", vertices, faces)
+    model = module._readModel(folder / "surface.vtp", "model_case")
+    segmentation = harness.segmentations_logic().LoadSegmentationFromFile(
+        str(generated_files[2]), True, "segmentation_case")
+    empty = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLSegmentationNode", "empty")
+    broken = folder / "broken.nii.gz"
+    broken.write_bytes(b"not an image")
+    inputs = [volumes[0], model, empty, segmentation, broken, volumes[1], generated_files[3]]
+    result = module.MDLShapeModelLogic().buildModel(inputs, folder / "out", BuildConfig(**QUICK))
+    return result, inputs
+
+
+def test_every_kind_of_input_goes_in_and_bad_ones_are_rejected_with_their_reason(mixed_build):
+    result, inputs = mixed_build
+    assert result.caseNames == ["case_0", "model_case", "segmentation_case", "case_1", "case_3"]
+    assert [n.GetName() for n in result.correspondenceModelNodes] == result.caseNames
+    assert {points_of(n).shape for n in result.correspondenceModelNodes} == {(162, 3)}
+    reasons = dict(result.rejected)
+    assert reasons["empty"] == "the segmentation has no segments"
+    assert "broken" in reasons and reasons["broken"]
+    assert len(result.rejected) == 2
+    # every node sits in the result's subject-hierarchy folder
+    hierarchy = slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(slicer.mrmlScene)
+    for node in [result.meanModelNode, result.explorerModelNode, result.metricsTableNode,
+                 result.scoresTableNode, *result.correspondenceModelNodes]:
+        assert hierarchy.GetItemParent(hierarchy.GetItemByDataNode(node)) == result.folderItemID
+
+
+def test_the_model_case_overlays_the_model_it_came_from(mixed_build):
+    result, inputs = mixed_build
+    model = inputs[1]
+    corresponded = result.correspondenceModelNodes[1]
+    vertices, triangles = io.mesh_arrays(model.GetPolyData())
+    assert point_surface_distances(points_of(corresponded), vertices, triangles).mean() < 0.5
+
+
+def test_a_missing_segment_rejects_that_case_by_name(scene, generated_files, tmp_path):
+    segmentation = harness.segmentations_logic().LoadSegmentationFromFile(
+        str(generated_files[0]), True, "named")
+    exported = module.MDLShapeModelLogic().exportInputs([segmentation], tmp_path, None,
+                                                         ["Left hippocampus"])
+    assert exported.paths == []
+    segment = segmentation.GetSegmentation().GetNthSegment(0).GetName()
+    assert exported.rejected == [("named", f"no segment named 'Left hippocampus' (it has {segment})")]
+
+
+def test_load_model_and_mode_weights_move_the_explorer_by_the_modes(mixed_build):
+    result, _ = mixed_build
+    loaded = module.MDLShapeModelLogic().loadModel(result.modelFile)
+    model = ShapeModel.load(result.modelFile)
+    assert loaded.correspondenceModelNodes == []
+    np.testing.assert_allclose(points_of(loaded.meanModelNode), model.mean * LPS_TO_RAS)
+    assert loaded.metricsTableNode.GetNumberOfRows() == 2          # evaluation_modes
+    assert loaded.scoresTableNode.GetNumberOfRows() == 5           # cases
+    weights = [1.5, -0.5]
+    module.MDLShapeModelLogic().setModeWeights(loaded.explorerModelNode, weights)
+    expected = model.instance(np.array(weights) * np.sqrt(model.variances[:2]))
+    np.testing.assert_allclose(points_of(loaded.explorerModelNode), expected * LPS_TO_RAS,
+                               atol=1e-9)
+    shown = vtk_to_numpy(loaded.explorerModelNode.GetPolyData().GetPointData()
+                         .GetArray("Displacement"))
+    np.testing.assert_allclose(shown, np.linalg.norm(expected - model.mean, axis=1), atol=1e-9)
+    module.MDLShapeModelLogic().setModeWeights(loaded.explorerModelNode, [0.0])
+    np.testing.assert_allclose(points_of(loaded.explorerModelNode), model.mean * LPS_TO_RAS,
+                               atol=1e-9)
+    with pytest.raises(ValueError, match="modes"):
+        module.MDLShapeModelLogic().setModeWeights(loaded.explorerModelNode,
+                                                   [0.0] * (model.n_modes + 1))
+
+
+def test_a_background_build_reports_progress_and_cancel_keeps_the_state_reached(
+        scene, generated_files, tmp_path):
+    volumes = [load_label_map_node(path) for path in generated_files]
+    config = BuildConfig(**{**QUICK, "points": 642, "max_time": 600})
+    job = module.MDLShapeModelLogic().startBuild(volumes, tmp_path, config)
+    seen, started, cancelled = [], time.monotonic(), False
+    while not job.done and time.monotonic() - started < 300:
+        seen += job.messages()
+        if not cancelled and any("F =" in message for _, message in seen):
+            job.cancel()         # once the optimisation runs
+            cancelled = True
+        time.sleep(0.05)
+    assert job.wait(300)
+    seen += job.messages()
+    assert any("prepar" in message for _, message in seen)
+    result = job.finish()
+    assert result.interrupted
+    assert json.loads((tmp_path / "metrics.json").read_text())["interrupted"] is True
+    assert len(result.correspondenceModelNodes) == 5
+
+
+def test_slicer_reads_the_librarys_meshes_as_lps_and_the_library_reads_slicers(scene, tmp_path):
+    vertices, faces, _ = mask_to_surface(small_mask(0.0), (1.0, 1.0, 1.0), (10.0, 20.0, 30.0))
+    io.write_polydata(tmp_path / "ours.vtp", vertices, faces)
+    node = scene.AddNewNodeByClass("vtkMRMLModelNode")
+    storage = scene.AddNewNodeByClass("vtkMRMLModelStorageNode")
+    storage.SetCoordinateSystem(slicer.vtkMRMLStorageNode.CoordinateSystemRAS)  # what it assumes
+    storage.SetFileName(str(tmp_path / "ours.vtp"))
+    assert storage.ReadData(node)
+    assert storage.GetCoordinateSystem() == slicer.vtkMRMLStorageNode.CoordinateSystemLPS
+    np.testing.assert_allclose(points_of(node), vertices * LPS_TO_RAS, atol=1e-5)
+    for system, suffix in ((slicer.vtkMRMLStorageNode.CoordinateSystemRAS, ".vtk"),
+                           (slicer.vtkMRMLStorageNode.CoordinateSystemLPS, ".vtp")):
+        writer = scene.AddNewNodeByClass("vtkMRMLModelStorageNode")
+        writer.SetCoordinateSystem(system)
+        writer.SetFileName(str(tmp_path / f"slicers{suffix}"))
+        assert writer.WriteData(node)
+        read, _ = io.read_mesh(tmp_path / f"slicers{suffix}")
+        np.testing.assert_allclose(read, vertices, atol=1e-5)
+
+
+def test_resources_are_found_in_the_checkouts_resources_folder():
+    root = harness.HERE.parents[1]
+    assert module.resourcePath("UI/MDLShapeModel.ui") == root / "Resources" / "UI" / "MDLShapeModel.ui"
+    assert module.requirements() and not any(r.split(">")[0].lower() in ("vtk", "simpleitk")
+                                             for r in module.requirements())
+    with pytest.raises(FileNotFoundError, match="nothing.txt"):
+        module.resourcePath("nothing.txt")
+
+
+def test_the_modules_own_test_runs_here_too(scene):
+    test = module.MDLShapeModelTest()
+    test.runTest()
