@@ -743,8 +743,10 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         nodes = list(self.ui.inputNodesSelector.checkedNodes())
         folder = str(self._parameterNode.inputFolder)
         if folder not in ("", "."):
-            from mdlshapemodel.prepare.io import find_inputs
-
+            try:
+                from mdlshapemodel.prepare.io import find_inputs
+            except ImportError:      # the library's packages are not installed yet: Apply asks
+                return nodes + [folder]
             nodes += find_inputs([folder])
         return nodes
 

@@ -152,3 +152,14 @@ def test_every_strategy_name_has_a_registered_phase():
 
     assert set(PHASES) | {KEEP_INITIAL} == set(STRATEGIES)
     assert KEEP_INITIAL not in PHASES
+
+
+def test_the_library_never_imports_slicer_or_qt():
+    """The Slicer module imports the library, never the reverse: the library runs without Slicer."""
+    faces_only = {"slicer", "qt", "ctk", "MDLShapeModel"}
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([alias.name for alias in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0
+                     else [])
+            assert not {n.split(".")[0] for n in names} & faces_only, path

@@ -1,0 +1,32 @@
+# Stand-in for Slicer's UseSlicer.cmake: the two macros the extension calls (see SlicerConfig.cmake).
+option(BUILD_TESTING "Build the tests" ON)
+set(_standin_modules "${CMAKE_BINARY_DIR}/${Slicer_QTSCRIPTEDMODULES_LIB_DIR}")
+
+macro(slicerMacroBuildScriptedModule)
+  cmake_parse_arguments(MY_SLICER "WITH_GENERIC_TESTS;WITH_SUBDIR;VERBOSE" "NAME"
+                        "SCRIPTS;RESOURCES" ${ARGN})
+  if(MY_SLICER_UNPARSED_ARGUMENTS)
+    message(FATAL_ERROR "Unknown keywords given to slicerMacroBuildScriptedModule(): \"${MY_SLICER_UNPARSED_ARGUMENTS}\"")
+  endif()
+  if(NOT DEFINED MY_SLICER_NAME)
+    message(FATAL_ERROR "NAME is mandatory")
+  endif()
+  foreach(file ${MY_SLICER_SCRIPTS} ${MY_SLICER_RESOURCES})
+    if(NOT EXISTS "${CMAKE_CURRENT_SOURCE_DIR}/${file}")
+      message(FATAL_ERROR "slicerMacroBuildScriptedModule given nonexistent file '${file}'")
+    endif()
+    # as the real macro's copy rule: the path below this folder, kept below the modules folder
+    configure_file("${CMAKE_CURRENT_SOURCE_DIR}/${file}" "${_standin_modules}/${file}" COPYONLY)
+  endforeach()
+  file(APPEND "${CMAKE_BINARY_DIR}/standin-scripted-modules.txt" "${MY_SLICER_NAME}\n")
+  string(REPLACE ";" "\n" _scripts "${MY_SLICER_SCRIPTS}")
+  file(WRITE "${CMAKE_BINARY_DIR}/standin-${MY_SLICER_NAME}-scripts.txt" "${_scripts}\n")
+endmacro()
+
+macro(slicer_add_python_unittest)
+  cmake_parse_arguments(MY "" "SCRIPT" "SLICER_ARGS;TESTNAME_PREFIX" ${ARGN})
+  if(NOT EXISTS "${CMAKE_CURRENT_SOURCE_DIR}/${MY_SCRIPT}")
+    message(FATAL_ERROR "slicer_add_python_unittest given nonexistent script '${MY_SCRIPT}'")
+  endif()
+  file(APPEND "${CMAKE_BINARY_DIR}/standin-python-unittests.txt" "${MY_SCRIPT}\n")
+endmacro()

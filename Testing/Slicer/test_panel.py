@@ -1,0 +1,89 @@
+"""The panel's .ui loaded by a real Qt loader (PySide6, offscreen) with stand-ins for the CTK and
+qMRML widgets (panel.py): it has every widget the module's Widget uses, one widget per parameter
+of the parameter node, the sections the module describes, and it draws."""
+
+import pathlib
+import re
+import typing
+
+import pytest
+
+pytest.importorskip("PySide6")
+
+from PySide6 import QtGui, QtWidgets  # noqa: E402
+
+import harness  # noqa: E402
+import MDLShapeModel as module  # noqa: E402
+import panel  # noqa: E402
+
+UI = module.resourcePath("UI/MDLShapeModel.ui")
+
+
+@pytest.fixture(scope="module")
+def loaded():
+    messages = []
+    return panel.load_panel(UI, messages), messages
+
+
+def test_the_ui_loads_and_only_what_needs_slicer_is_left_unread(loaded):
+    root, messages = loaded
+    assert type(root).__name__ == "qMRMLWidget"
+    # the stand-ins cannot declare the scene signal (its type is MRML's) nor ctkPathLineEdit's
+    # Filters flags (CTK's enum)
+    unexpected = [m for m in messages if "mrmlSceneChanged(vtkMRMLScene*)" not in m
+                  and "(sender name:" not in m and "(receiver name:" not in m
+                  and "set-type property filters" not in m]
+    assert unexpected == []
+
+
+def test_every_widget_the_module_uses_is_in_the_ui(loaded):
+    root, _ = loaded
+    source = pathlib.Path(module.__file__).read_text()
+    used = set(re.findall(r"self\.ui\.(\w+)", source))
+    assert {"applyButton", "cancelButton", "inputNodesSelector", "progressBar"} <= used
+    names = {w.objectName() for w in root.findChildren(QtWidgets.QWidget)}
+    assert used - names == set()
+
+
+def test_every_parameter_has_exactly_one_widget_of_its_kind(loaded):
+    root, _ = loaded
+    widgets = panel.parameter_widgets(root)
+    parameters = module.MDLShapeModelParameterNode.allParameters
+    assert set(widgets) == set(parameters)
+    hints = typing.get_type_hints(module.MDLShapeModelParameterNode, include_extras=True)
+    for name, (widget,) in widgets.items():
+        kind = typing.get_args(hints[name])[0] if typing.get_origin(hints[name]) else hints[name]
+        extras = typing.get_args(hints[name])[1:]
+        if any(isinstance(e, harness.Choice) for e in extras):
+            expected = QtWidgets.QComboBox
+        elif isinstance(kind, type) and issubclass(kind, module.slicer.vtkMRMLNode):
+            expected = panel.qMRMLNodeComboBox
+        else:
+            expected = {int: QtWidgets.QSpinBox, float: QtWidgets.QDoubleSpinBox,
+                        bool: QtWidgets.QCheckBox, str: QtWidgets.QLineEdit,
+                        pathlib.Path: panel.ctkPathLineEdit}[kind]
+        assert isinstance(widget, expected), name
+
+
+def test_the_sections_are_inputs_parameters_run_results_with_advanced_collapsed(loaded):
+    root, _ = loaded
+    sections = {w.getText(): w.getCollapsed() for w in root.findChildren(panel.ctkCollapsibleButton)}
+    assert sections == {"Inputs": False, "Parameters": False, "Run": False, "Results": False,
+                        "Advanced": True}
+    advanced = root.findChild(panel.ctkCollapsibleButton, "advancedCollapsibleButton")
+    main = set(panel.parameter_widgets(advanced))
+    assert main == set(module.ADVANCED_SETTINGS)
+
+
+def test_the_panel_draws(loaded, tmp_path):
+    root, _ = loaded
+    panel.fill(root, module.MDLShapeModelParameterNode)
+    strategy = root.findChild(QtWidgets.QComboBox, "strategyComboBox")
+    assert strategy.currentText() == module.BuildConfig().strategy
+    panel.render(root, tmp_path / "panel.png")
+    image = QtGui.QImage(str(tmp_path / "panel.png"))
+    assert image.width() >= 400 and image.height() >= 600
+    colours = {image.pixel(x, y) for x in range(0, image.width(), 7)
+               for y in range(0, image.height(), 7)}
+    assert len(colours) > 5
+    assert (harness.HERE.parents[1] / "Resources" / "Screenshots" / "panel.png").is_file()
