@@ -280,3 +280,16 @@ def test_resources_are_found_in_the_checkouts_resources_folder():
 def test_the_modules_own_test_runs_here_too(scene):
     test = module.MDLShapeModelTest()
     test.runTest()
+
+
+def test_a_new_segmentation_is_fitted_to_a_loaded_model(mixed_build, generated_files, tmp_path):
+    result, _ = mixed_build
+    segmentation = harness.segmentations_logic().LoadSegmentationFromFile(
+        str(generated_files[4]), True, "new_case")
+    fitted, reconstruction, fit = module.MDLShapeModelLogic().fitSegmentation(
+        segmentation, result.modelFile, tmp_path, maxTime=20)
+    assert fit.name == "new_case"
+    assert points_of(fitted).shape == points_of(reconstruction).shape == (162, 3)
+    np.testing.assert_allclose(points_of(fitted), fit.corresponded * LPS_TO_RAS)
+    vertices, triangles = closed_surface_ras(segmentation)
+    assert point_surface_distances(points_of(fitted), vertices, triangles).mean() < 0.5
