@@ -293,3 +293,10 @@ def test_a_new_segmentation_is_fitted_to_a_loaded_model(mixed_build, generated_f
     np.testing.assert_allclose(points_of(fitted), fit.corresponded * LPS_TO_RAS)
     vertices, triangles = closed_surface_ras(segmentation)
     assert point_surface_distances(points_of(fitted), vertices, triangles).mean() < 0.5
+
+
+def test_missing_requirements_are_the_ones_not_installed(monkeypatch):
+    assert module.missingRequirements() == []          # this virtualenv has the library's packages
+    monkeypatch.setattr(module, "requirements",
+                        lambda: ["numpy>=1.0", "numpy>=999", "no-such-package-mdl>=1"])
+    assert module.missingRequirements() == ["numpy>=999", "no-such-package-mdl>=1"]
