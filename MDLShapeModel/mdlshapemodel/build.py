@@ -126,6 +126,8 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor) -> Bui
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
                                   evaluate_baseline)
+        if corresponded.interrupted:
+            log.warning("optimisation interrupted: writing the model of the state reached")
         io.write_csv(output / "convergence.csv", Trace.HEADER, corresponded.trace.rows)
         # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
         # then the model's, with the outputs
@@ -239,7 +241,6 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                      np.random.default_rng(config.seed), trace, progress, save)
         except (KeyboardInterrupt, Cancelled):
             interrupted = True
-            log.warning("optimisation interrupted: writing the model of the state reached")
         if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
             log.warning("the optimisation did not lower the objective within --max-time "
                         "(%.0f s): keeping the initial correspondence", config.max_time)
