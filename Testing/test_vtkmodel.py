@@ -1,5 +1,6 @@
 """The model-building VTK objects (vtkmodel) in real VTK pipelines, against build_model."""
 
+import ast
 import re
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from mdlshapemodel.vtkmodel import (ShapeModelBuilder, ShapeModelInstance, Shape
 
 from synthetic import small_mask
 
+README = Path(__file__).resolve().parents[1] / "README.md"
 NAMES = ["left_0", "left_1", "left_2", "right_3"]
 # small and deterministic: fast draws no random numbers and stops on its convergence test long
 # before the time limit
@@ -381,3 +383,21 @@ def test_abort_execute_cancels_the_optimisation(pipeline):
     assert builder.executions == 2 and builder.GetErrorText() == ""
     assert builder.GetOutput(0).GetNumberOfPoints() == 42
 
+
+def test_the_readme_example_runs(tmp_path, monkeypatch):
+    text = README.read_text()
+    section = text[text.index("## VTK pipelines"):]
+    code = next(block for block in re.findall(r"```python\n(.*?)```", section, re.S)
+                if "ShapeModelBuilder" in block)
+    files = re.search(r"files = (\{.*?\})", code, re.S).group(1)
+    write_label_maps(tmp_path / "labels", list(ast.literal_eval(files)))  # the files it reads
+    monkeypatch.chdir(tmp_path)
+    namespace = {}
+    exec(compile(code, str(README), "exec"), namespace)
+    builder, model_reader = namespace["builder"], namespace["model_reader"]
+    assert builder.GetErrorText() == ""
+    assert block_names(namespace["corresponded"]) == ["case_1", "case_2", "case_3", "case_4"]
+    assert namespace["instance"].GetOutput().GetNumberOfPoints() == 642
+    model = ShapeModel.load(tmp_path / "model.h5")
+    assert_same_model(model, polydata_to_model(namespace["mean"]))
+    assert_same_model(polydata_to_model(model_reader.GetOutput()), model)
