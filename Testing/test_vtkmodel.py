@@ -358,6 +358,17 @@ def test_failures_leave_empty_outputs_and_a_message(pipeline, quick, tmp_path):
     writer.SetInputConnection(quick.GetOutputPort(0))
     writer.SetFileName(tmp_path / "no" / "such" / "folder.h5")
     assert writer.Write() == 0 and "could not be written" in writer.GetErrorText()
+    # a model polydata whose arrays do not agree: fewer variances than modes
+    damaged = vtk.vtkPolyData()
+    damaged.DeepCopy(quick.GetOutput(0))
+    variances = damaged.GetFieldData().GetArray("Variances")
+    assert variances.GetNumberOfTuples() == 3
+    variances.SetNumberOfTuples(2)
+    instance = ShapeModelInstance()
+    instance.SetInputData(damaged)
+    instance.Update()
+    assert instance.GetErrorText().startswith("not a shape model: cannot reshape")
+    assert instance.GetOutput().GetNumberOfPoints() == 0
 
 
 def test_abort_execute_cancels_the_optimisation(pipeline):

@@ -96,20 +96,23 @@ def _add_strings(data, name: str, values):
     data.AddArray(array)
 
 
+def _missing(what: str, name: str) -> InputError:
+    return InputError(f"not a shape model: no {what} data {name} (the output of "
+                      "ShapeModelBuilder or ShapeModelReader has it)")
+
+
 def _array(data, name: str, what: str):
     """A numeric array of point or field data as numpy (a copy); InputError when missing."""
     array = data.GetArray(name)
     if array is None:
-        raise InputError(f"not a shape model: no {what} data {name} (the output of "
-                         "ShapeModelBuilder or ShapeModelReader has it)")
+        raise _missing(what, name)
     return vtk_to_numpy(array).copy()
 
 
 def _strings(data, name: str) -> list:
     array = data.GetAbstractArray(name)
     if not isinstance(array, vtk.vtkStringArray):
-        raise InputError(f"not a shape model: no field data {name} (the output of "
-                         "ShapeModelBuilder or ShapeModelReader has it)")
+        raise _missing("field", name)
     return [array.GetValue(i) for i in range(array.GetNumberOfValues())]
 
 
@@ -183,15 +186,19 @@ def polydata_to_model(polydata) -> ShapeModel:
     """
     if polydata is None or polydata.GetNumberOfPoints() == 0:
         raise InputError("the model is empty (did the filter before it fail?)")
+    try:
+        return _model_of(polydata)
+    except ValueError as error:      # arrays of other sizes than a model's, damaged metadata
+        raise InputError(f"not a shape model: {error}") from None
+
+
+def _model_of(polydata) -> ShapeModel:
     point_data, fields = polydata.GetPointData(), polydata.GetFieldData()
     mean = vtk_to_numpy(polydata.GetPoints().GetData()).astype(np.float64)
     variances = _array(fields, VARIANCES, "field")
     names = _strings(fields, CASE_NAMES)
     n_points, n_modes = len(mean), len(variances)
     modes = _array(point_data, UNIT_MODES, "point") if n_modes else np.zeros((n_points, 0))
-    if modes.shape != (n_points, 3 * n_modes):
-        raise InputError(f"not a shape model: {UNIT_MODES} has {modes.size} values, not "
-                         f"{3 * n_modes} per point ({n_modes} modes)")
     metadata = json.loads(_field(polydata, METADATA) or "{}")
     parameters = point_data.GetArray(SPHERE_COORDINATES)
     return ShapeModel(
