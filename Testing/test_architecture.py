@@ -1,8 +1,8 @@
 """The house: data flows one way between the rooms, no import circles, light leaves.
 
 Stages, upstream first: the leaves (config, errors, progress, parallel, version), prepare,
-correspondence, model, report, the build (build, outputs), the faces (cli, vtkfilters, demo, and
-the package front door, whose heavy names load on first use). A module may import
+correspondence, model, report, the build (build, outputs), the faces (cli, vtkfilters, vtkmodel,
+demo, and the package front door, whose heavy names load on first use). A module may import
 its own stage and the stages upstream of it, never one downstream.
 """
 
@@ -23,7 +23,7 @@ STAGES = [
     {"model"},
     {"report"},
     {"build", "outputs"},
-    {"cli", "vtkfilters", "demo", "__init__"},
+    {"cli", "vtkfilters", "vtkmodel", "demo", "__init__"},
 ]
 
 

@@ -138,6 +138,7 @@ def assert_same_preparation(to_sphere, case):
     assert np.array_equal(arrays(to_sphere.GetOutput(1))[0], case.map.sphere)
     assert field_value(to_sphere.GetOutput(0), "VoxelSize") == case.voxel_size
     assert field_value(to_sphere.GetOutput(0), "Repair") == case.repair
+    assert field_value(to_sphere.GetOutput(0), "Mirrored") == case.mirrored
 
 
 def messy_mesh(vertices, faces):

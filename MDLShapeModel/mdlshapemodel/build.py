@@ -19,17 +19,19 @@ import logging
 import time
 import traceback
 from concurrent.futures import BrokenExecutor, CancelledError, Executor, Future
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .config import BuildConfig
 from .correspondence.cpd import cpd_state
-from .correspondence.state import initial_state
+from .correspondence.state import CorrespondenceState, initial_state
 from .correspondence.strategies import optimise
 from .correspondence.trace import RESTORED_INITIAL, Trace
 from .errors import BuildError, Cancelled, InternalError
 from .model.evaluation import evaluate_state
+from .model.shape_model import ShapeModel
 from .outputs import BuildResult, save_checkpoint, write_outputs
 from .parallel import helper_for
 from .prepare import io, preprocess
@@ -37,7 +39,8 @@ from .progress import Progress, report
 
 log = logging.getLogger("mdlshapemodel")
 
-__all__ = ["BuildError", "BuildResult", "build_model"]
+__all__ = ["BuildError", "BuildResult", "Correspondence", "build_model", "correspond",
+           "shape_model_of"]
 
 
 def build_model(inputs, output, config: BuildConfig | None = None,
@@ -103,71 +106,29 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor) -> Bui
                          ".vtk/.vtp/.stl/.ply/.obj)")
     log.info("preprocessing %d inputs with %d workers", len(paths), config.workers)
     prepared, rejected = preprocess(paths, config, executor, progress)
-    names = [case.name for case in prepared]
-    duplicates = {n for n in names if names.count(n) > 1}
-    if duplicates:
-        raise BuildError(f"several inputs have the same case name: {', '.join(sorted(duplicates))}")
     for rejection in rejected:
         log.warning("rejected %s: %s", rejection.path, rejection.reason)
     io.write_csv(output / "rejected.csv", ("case", "file", "reason"),
                  [(r.name, r.path, r.reason) for r in rejected])
     if rejected and config.strict:
         raise BuildError(f"{len(rejected)} input(s) rejected and --strict is set")
-    if len(prepared) < 3:
-        raise BuildError(f"only {len(prepared)} usable case(s); at least 3 are needed")
     log.info("prepared %d cases in %.1f s", len(prepared), time.perf_counter() - started)
-
-    state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)
-    initial = integrated(state.covariance())
-    log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
-             state.n_shapes, state.n_points, voxel, data_range)
 
     # the baselines are evaluated on the helper while the optimisation runs
     with helper_for(config.workers, executor) as pool:
         pending = {}   # baseline -> (objective and notes, its evaluation: running or done)
-        if "none" in config.baselines and (config.strategy != "none"
-                                           or config.correspondence == "cpd"):
-            log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
-            pending["none"] = ({"objective": initial},
-                               evaluate_state(state, config, prepared, pool=pool))
-        cpd = None
-        if config.correspondence == "cpd" or "cpd" in config.baselines:
-            cpd, template = cpd_state(state, prepared, config, executor, progress)
-            if config.correspondence != "cpd":
-                log.info("evaluating the CPD template correspondence as a baseline")
-                pending["cpd"] = ({"objective": integrated(cpd.covariance()),
-                                   "template": template},
-                                  evaluate_state(cpd, config, prepared, pool=pool))
 
-        trace = Trace()
-        interrupted = False
-        if config.correspondence == "cpd":
-            state = cpd
-            state.objective = integrated
-            initial = final = state.value()
-            trace.record(state, final, "integrated", 0)
-            log.info("CPD correspondence (template %s): objective %.4f", template, final)
-        else:
-            settings = config.optimisation_settings()
+        def evaluate_baseline(name, state, notes):
+            pending[name] = (notes, evaluate_state(state, config, prepared, pool=pool))
 
-            def checkpoint():
-                save_checkpoint(output / "checkpoint.npz", state)
+        def checkpoint(state):
+            save_checkpoint(output / "checkpoint.npz", state)
 
-            try:
-                optimise(state, (fixed, integrated), settings, np.random.default_rng(config.seed),
-                         trace, progress, checkpoint)
-            except (KeyboardInterrupt, Cancelled):
-                interrupted = True
-                log.warning("optimisation interrupted: writing the model of the state reached")
-            if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
-                log.warning("the optimisation did not lower the objective within --max-time "
-                            "(%.0f s): keeping the initial correspondence", config.max_time)
-            state.rebuild()  # also makes the state consistent after an interruption mid-step
-            final = integrated(state.covariance())
-            log.info("final objective %.4f after %.1f s, %d evaluations", final,
-                     trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
-            checkpoint()
-        io.write_csv(output / "convergence.csv", Trace.HEADER, trace.rows)
+        corresponded = correspond(prepared, config, progress, executor, checkpoint,
+                                  evaluate_baseline)
+        if corresponded.interrupted:
+            log.warning("optimisation interrupted: writing the model of the state reached")
+        io.write_csv(output / "convergence.csv", Trace.HEADER, corresponded.trace.rows)
         # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
         # then the model's, with the outputs
         report(progress, 0.0, "evaluating the baselines" if pending else "evaluating")
@@ -175,11 +136,139 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor) -> Bui
                      for name, (notes, evaluation) in pending.items()}
 
         report(progress, 0.5, "evaluating the model, writing outputs")
-        result = write_outputs(output, state, prepared, rejected, config, initial, final,
-                               voxel, data_range, interrupted, baselines, pool)
+        result = write_outputs(output, corresponded, prepared, rejected, config, baselines, pool)
         report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
+
+
+@dataclass
+class Correspondence:
+    """The correspondence of prepared cases and its model: what :func:`correspond` returns."""
+
+    state: CorrespondenceState   # every example's warps and pose, in the order of the cases
+    model: ShapeModel            # the model of ``state`` (:func:`shape_model_of`)
+    initial_objective: float     # eq. 14 of the initial correspondence (cpd: of the CPD one)
+    final_objective: float       # eq. 14 of ``state``
+    voxel_size: float            # mm, the mean over the cases: the unit of the coding accuracy
+    data_range: float            # mm, of the initially aligned shapes
+    trace: Trace                 # the optimisation's rows (convergence.csv)
+    interrupted: bool = False    # the optimisation was cancelled; ``state`` is the one reached
+
+
+def correspond(prepared: list, config: BuildConfig, progress: Progress | None = None,
+               executor: Executor | None = None, checkpoint=None, baselines=None
+               ) -> Correspondence:
+    """Prepared cases -> their optimised correspondence and its shape model (the middle of a build).
+
+    The initial correspondence (:func:`~.correspondence.state.initial_state`), then either the
+    optimisation of ``config.strategy`` or (``config.correspondence`` "cpd") the CPD template
+    correspondence, then the model (:func:`shape_model_of`). Nothing is written: ``build_model``
+    and :class:`~mdlshapemodel.vtkmodel.ShapeModelBuilder` both call this.
+
+    Parameters
+    ----------
+    prepared : list of PreparedCase
+        At least three cases (:func:`~.prepare.case.prepare_case`) with distinct names, in the
+        model's order (else :class:`BuildError`).
+    config : BuildConfig
+        The correspondence settings (validated by the caller).
+    progress : callable(fraction or None, message), optional
+        See :mod:`mdlshapemodel.progress`. Cancelling during the optimisation stops it and keeps
+        the state reached (``interrupted``); cancelling elsewhere raises :class:`Cancelled`.
+    executor : concurrent.futures.Executor, optional
+        Runs the CPD registrations (default: a pool of ``config.workers`` processes).
+    checkpoint : callable(state), optional
+        Called after every sweep or round of the optimisation and once at its end.
+    baselines : callable(name, state, notes), optional
+        Called with each baseline correspondence of ``config.baselines`` as soon as it is made,
+        before the optimisation moves anything (``notes``: its objective, the CPD template);
+        None: no baseline is made.
+
+    Returns
+    -------
+    Correspondence
+
+    Examples
+    --------
+    ::
+
+        from mdlshapemodel import BuildConfig
+        from mdlshapemodel.build import correspond
+        from mdlshapemodel.prepare import preprocess
+        config = BuildConfig(points=642)
+        prepared, rejected = preprocess(paths, config)
+        result = correspond(prepared, config)
+        result.final_objective, result.model.variances
+    """
+    names = [case.name for case in prepared]
+    duplicates = {n for n in names if names.count(n) > 1}
+    if duplicates:
+        raise BuildError(f"several inputs have the same case name: {', '.join(sorted(duplicates))}")
+    if len(prepared) < 3:
+        raise BuildError(f"only {len(prepared)} usable case(s); at least 3 are needed")
+    state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)
+    initial = integrated(state.covariance())
+    log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
+             state.n_shapes, state.n_points, voxel, data_range)
+    wanted = config.baselines if baselines is not None else []
+    if "none" in wanted and (config.strategy != "none" or config.correspondence == "cpd"):
+        log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
+        baselines("none", state, {"objective": initial})
+    cpd = None
+    if config.correspondence == "cpd" or "cpd" in wanted:
+        cpd, template = cpd_state(state, prepared, config, executor, progress)
+        if config.correspondence != "cpd":
+            log.info("evaluating the CPD template correspondence as a baseline")
+            baselines("cpd", cpd, {"objective": integrated(cpd.covariance()),
+                                   "template": template})
+
+    trace = Trace()
+    interrupted = False
+    if config.correspondence == "cpd":
+        state = cpd
+        state.objective = integrated
+        initial = final = state.value()
+        trace.record(state, final, "integrated", 0)
+        log.info("CPD correspondence (template %s): objective %.4f", template, final)
+    else:
+        def save():
+            if checkpoint is not None:
+                checkpoint(state)
+
+        try:
+            optimise(state, (fixed, integrated), config.optimisation_settings(),
+                     np.random.default_rng(config.seed), trace, progress, save)
+        except (KeyboardInterrupt, Cancelled):
+            interrupted = True
+        if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
+            log.warning("the optimisation did not lower the objective within --max-time "
+                        "(%.0f s): keeping the initial correspondence", config.max_time)
+        state.rebuild()  # also makes the state consistent after an interruption mid-step
+        final = integrated(state.covariance())
+        log.info("final objective %.4f after %.1f s, %d evaluations", final,
+                 trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
+        save()
+    return Correspondence(state, shape_model_of(state, config, final, voxel, data_range),
+                          initial, final, voxel, data_range, trace, interrupted)
+
+
+def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: float,
+                   voxel_size: float, data_range: float) -> ShapeModel:
+    """The shape model of a correspondence: the area-weighted PCA of its aligned shapes, with the
+    sampling grid's triangles and sphere positions, the case names, and as metadata the
+    objective, the method (the strategy, or "cpd"), the voxel size, the data range and the
+    configuration (JSON)."""
+    method = "cpd" if config.correspondence == "cpd" else config.strategy
+    model = ShapeModel.from_shapes(state.aligned_shapes(), state.weights,
+                                   names=[e.name for e in state.examples],
+                                   triangles=state.triangles(),
+                                   part_sizes=[len(p) for p, _ in state.grids],
+                                   objective=objective, strategy=method, voxel_size_mm=voxel_size,
+                                   data_range_mm=data_range,
+                                   config=json.dumps(config.to_dict()))
+    model.parameters = np.concatenate([points for points, _ in state.grids])
+    return model
 
 
 def _outcome(evaluation):

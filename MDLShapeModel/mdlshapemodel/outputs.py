@@ -57,30 +57,33 @@ def warp_summary(example) -> str:
     return " ".join(f"{kind}:{count}" for kind, count in counts.items() if count)
 
 
-def write_outputs(output: Path, state: CorrespondenceState, prepared: list, rejected: list,
-                  config: BuildConfig, initial: float, final: float, voxel: float,
-                  data_range: float, interrupted: bool, baselines: dict | None = None,
-                  pool=None) -> BuildResult:
-    """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html."""
-    triangles = state.triangles()
+def physical_shapes(raw: np.ndarray, triangles: np.ndarray, prepared: list) -> list:
+    """The corresponded shapes in the physical space of their inputs, so that they overlay them:
+    ``raw`` (the state's samples of the prepared surfaces) with those of mirrored cases
+    reflected back."""
+    return [mirror(points, triangles)[0] if case.mirrored else points
+            for points, case in zip(raw, prepared)]
+
+
+def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
+                  config: BuildConfig, baselines: dict | None = None, pool=None) -> BuildResult:
+    """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html, of
+    the :class:`~mdlshapemodel.build.Correspondence` of the ``prepared`` cases."""
+    state, model = corresponded.state, corresponded.model
+    initial, final = corresponded.initial_objective, corresponded.final_objective
+    voxel, data_range = corresponded.voxel_size, corresponded.data_range
+    interrupted = corresponded.interrupted
+    triangles = model.triangles
     aligned = state.aligned_shapes()
     raw = state.raw_shapes()
-    names = [e.name for e in state.examples]
-    method = "cpd" if config.correspondence == "cpd" else config.strategy
-    model = ShapeModel.from_shapes(aligned, state.weights, names=names, triangles=triangles,
-                                   part_sizes=[len(p) for p, _ in state.grids],
-                                   objective=final, strategy=method, voxel_size_mm=voxel,
-                                   data_range_mm=data_range,
-                                   config=json.dumps(config.to_dict()))
-    model.parameters = np.concatenate([points for points, _ in state.grids])
+    names = model.names
     model.save(output / "model.h5")
     io.write_polydata(output / "mean.vtp", model.mean, triangles)
     outlier = score_outliers(model)
     cases = []
+    physical = physical_shapes(raw, triangles, prepared)
     for i, case in enumerate(prepared):
-        # correspondence meshes overlay their input: mirrored cases are reflected back
-        physical = mirror(raw[i], triangles)[0] if case.mirrored else raw[i]
-        io.write_polydata(output / "correspondence" / f"{case.name}.vtp", physical, triangles)
+        io.write_polydata(output / "correspondence" / f"{case.name}.vtp", physical[i], triangles)
         io.write_polydata(output / "aligned" / f"{case.name}.vtp", aligned[i], triangles)
         # from each input-surface vertex to the corresponded mesh
         distances = point_surface_distances(case.map.vertices, raw[i], triangles)
@@ -110,7 +113,8 @@ def write_outputs(output: Path, state: CorrespondenceState, prepared: list, reje
     quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
     metrics = {"objective": {"initial": initial, "final": final,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
-               "strategy": method, "n_shapes": state.n_shapes, "n_points": state.n_points,
+               "strategy": model.metadata["strategy"], "n_shapes": state.n_shapes,
+               "n_points": state.n_points,
                "n_rejected": len(rejected), "voxel_size_mm": voxel, "data_range_mm": data_range,
                "interrupted": interrupted, "evaluations": state.evaluations,
                "variances": model.variances.tolist(), **quality,

@@ -40,6 +40,11 @@ from .prepare.sphere import AREA_WEIGHT, MAX_ITERATIONS
 # Field data that marks a surface made from a label map (LabelMapToClosedSurface), so that
 # SurfaceToSphereMap prepares it as build prepares label maps (not cleaned and remeshed again).
 VOXEL_SIZE = "VoxelSize"
+# The point data of a prepared surface that holds its sphere map (SurfaceToSphereMap's output).
+SPHERE_COORDINATES = "SphereCoordinates"
+# Field data of a prepared surface: 1 when it was mirrored (x -> -x), so that the corresponded
+# surfaces of ShapeModelBuilder can be reflected back over their inputs, as build's are.
+MIRRORED = "Mirrored"
 
 
 def _accessors(attribute: str, cast):
@@ -118,6 +123,23 @@ class _Filter(VTKPythonAlgorithmBase):
         """The last failure's message, or '' after a successful execution."""
         return self._error_text
 
+    def RequestData(self, request, in_info, out_info):
+        """Count the execution, run :meth:`_execute`; a failure goes through :meth:`_fail`."""
+        self.executions += 1
+        self._error_text = ""
+        self.UpdateProgress(0.0)
+        try:
+            self._execute(in_info, out_info)
+        except MDLShapeModelError as error:
+            return self._fail(error)
+        self.UpdateProgress(1.0)
+        return 1
+
+    def _execute(self, in_info, out_info):
+        """Fill the outputs from the inputs; raise :class:`MDLShapeModelError` on a failure
+        (before touching the outputs, which then stay empty)."""
+        raise NotImplementedError
+
     def _fail(self, error: Exception) -> int:
         self._error_text = str(error)
         vtk.vtkOutputWindow.GetInstance().DisplayErrorText(
@@ -178,27 +200,18 @@ class LabelMapToClosedSurface(_Filter):
                            edge_length=self._edge_length,
                            target_vertices=self._target_vertices).validate()
 
-    def RequestData(self, request, in_info, out_info):
-        self.executions += 1
-        self._error_text = ""
-        self.UpdateProgress(0.0)
-        image = vtk.vtkImageData.GetData(in_info[0])
-        output = vtk.vtkPolyData.GetData(out_info)
-        try:
-            config = self.GetConfig()
-            label_map = io.label_map_of_image_data(image, config.labels)
-            self.UpdateProgress(0.1)
-            vertices, faces, sigma, note = surface_of_mask(
-                label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
-        except MDLShapeModelError as error:
-            return self._fail(error)
+    def _execute(self, in_info, out_info):
+        config = self.GetConfig()
+        label_map = io.label_map_of_image_data(vtk.vtkImageData.GetData(in_info[0]),
+                                               config.labels)
+        self.UpdateProgress(0.1)
+        vertices, faces, sigma, note = surface_of_mask(
+            label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
         result = surface.arrays_to_polydata(vertices, faces)
         _add_field(result, VOXEL_SIZE, label_map.voxel_size)
         _add_field(result, "SmoothingSigma", sigma)
         _add_field(result, "Repair", note)
-        output.ShallowCopy(result)
-        self.UpdateProgress(1.0)
-        return 1
+        vtk.vtkPolyData.GetData(out_info).ShallowCopy(result)
 
 
 class SurfaceToSphereMap(_Filter):
@@ -215,8 +228,8 @@ class SurfaceToSphereMap(_Filter):
     vectors) and field data ``FlippedTriangles``, ``MeanAbsLogAreaRatio``,
     ``P95AbsLogAreaRatio``, ``VoxelSize`` (mm per voxel: the input's ``VoxelSize`` when it is a
     label-map surface, else the ``VoxelSize`` parameter, else the mesh's mean edge length before
-    remeshing) and ``Repair`` (what was repaired, or ''). Output 1: the unit sphere with the same
-    triangles.
+    remeshing), ``Repair`` (what was repaired, or '') and ``Mirrored`` (1 when it was mirrored,
+    else 0). Output 1: the unit sphere with the same triangles.
 
     Parameters (Set/Get), with the defaults of :class:`~mdlshapemodel.config.BuildConfig`:
     ``TargetVertices``, ``VoxelSize`` (mm per voxel of mesh inputs; None: their mean edge
@@ -251,30 +264,22 @@ class SurfaceToSphereMap(_Filter):
         """The port of the sphere output (1)."""
         return self.GetOutputPort(1)
 
-    def RequestData(self, request, in_info, out_info):
-        self.executions += 1
-        self._error_text = ""
-        self.UpdateProgress(0.0)
+    def _execute(self, in_info, out_info):
+        config = self.GetConfig()
         polydata = vtk.vtkPolyData.GetData(in_info[0])
-        surface_output = vtk.vtkPolyData.GetData(out_info.GetInformationObject(0))
-        sphere_output = vtk.vtkPolyData.GetData(out_info.GetInformationObject(1))
-        try:
-            config = self.GetConfig()
-            vertices, faces = io.mesh_arrays(polydata)
-            voxel_size = _field(polydata, VOXEL_SIZE)  # None: a mesh, cleaned as build does
-            facts = {}
-            if voxel_size is not None:
-                facts = {"repair": str(_field(polydata, "Repair") or ""),
-                         "smoothing_sigma": _field(polydata, "SmoothingSigma")}
-            case = prepare_surface(vertices, faces, "", "", voxel_size, config,
-                                   mirrored=self._mirrored, area_weight=self._area_weight,
-                                   max_iterations=self._max_iterations, **facts)
-        except MDLShapeModelError as error:
-            return self._fail(error)
+        vertices, faces = io.mesh_arrays(polydata)
+        voxel_size = _field(polydata, VOXEL_SIZE)  # None: a mesh, cleaned as build does
+        facts = {}
+        if voxel_size is not None:
+            facts = {"repair": str(_field(polydata, "Repair") or ""),
+                     "smoothing_sigma": _field(polydata, "SmoothingSigma")}
+        case = prepare_surface(vertices, faces, "", "", voxel_size, config,
+                               mirrored=self._mirrored, area_weight=self._area_weight,
+                               max_iterations=self._max_iterations, **facts)
         mapped = case.map
         result = surface.arrays_to_polydata(mapped.vertices, mapped.faces)
         coordinates = numpy_to_vtk(np.ascontiguousarray(mapped.sphere), deep=True)
-        coordinates.SetName("SphereCoordinates")
+        coordinates.SetName(SPHERE_COORDINATES)
         result.GetPointData().AddArray(coordinates)
         for name, key in (("FlippedTriangles", "flipped_triangles"),
                           ("MeanAbsLogAreaRatio", "mean_abs_log_area_ratio"),
@@ -282,7 +287,7 @@ class SurfaceToSphereMap(_Filter):
             _add_field(result, name, mapped.quality[key])
         _add_field(result, VOXEL_SIZE, case.voxel_size)
         _add_field(result, "Repair", case.repair)
-        surface_output.ShallowCopy(result)
-        sphere_output.ShallowCopy(surface.arrays_to_polydata(mapped.sphere, mapped.faces))
-        self.UpdateProgress(1.0)
-        return 1
+        _add_field(result, MIRRORED, int(case.mirrored))
+        vtk.vtkPolyData.GetData(out_info.GetInformationObject(0)).ShallowCopy(result)
+        vtk.vtkPolyData.GetData(out_info.GetInformationObject(1)).ShallowCopy(
+            surface.arrays_to_polydata(mapped.sphere, mapped.faces))
