@@ -271,7 +271,9 @@ def test_build_options_are_the_fields_of_build_config(tmp_path):
         flag = re.match(r" {2}(?:-\w, )?(--[\w-]+)", entry)
         if flag:
             entries[flag.group(1)] = squeezed(entry)
-    assert set(entries) - {"--help", "--output", "--quiet"} == (
+    # besides the settings: where the build goes and how (again into an earlier build's folder)
+    run_options = {"--help", "--output", "--quiet", "--overwrite", "--resume"}
+    assert set(entries) - run_options == (
         {arguments[0] for arguments, _ in NON_DEFAULT_OPTIONS.values()} | {"--no-cache"})
     for f in offered:
         default = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()

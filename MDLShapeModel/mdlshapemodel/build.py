@@ -28,12 +28,13 @@ from .config import BuildConfig
 from .correspondence.cpd import cpd_state
 from .correspondence.state import CorrespondenceState, initial_state
 from .correspondence.strategies import optimise
+from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import RESTORED_INITIAL, Trace
 from .errors import BuildError, Cancelled, InternalError
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
-from .outputs import (BuildResult, clear_previous_build, previous_build, save_checkpoint,
-                      write_outputs)
+from .outputs import (BuildResult, Checkpoint, clear_previous_build, previous_build,
+                      read_checkpoint, remove_partial_files, save_checkpoint, write_outputs)
 from .parallel import helper_for
 from .prepare import io, preprocess
 from .progress import Progress, report
@@ -46,7 +47,7 @@ __all__ = ["BuildError", "BuildResult", "Correspondence", "build_model", "corres
 
 def build_model(inputs, output, config: BuildConfig | None = None,
                 progress: Progress | None = None, executor: Executor | None = None,
-                overwrite: bool = False) -> BuildResult:
+                overwrite: bool = False, resume: bool = False) -> BuildResult:
     """Build an optimised statistical shape model from label maps or meshes.
 
     Parameters
@@ -69,6 +70,12 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         Replace an earlier build in ``output`` (its files only: :func:`.outputs.previous_build`);
         without it, a build into a folder that holds one raises :class:`BuildError` and touches
         nothing. Every file is written whole or not at all (a temporary name renamed into place).
+    resume : bool
+        Carry on from the checkpoint of an interrupted build in ``output`` (killed, or out of
+        power) and end with the model the uninterrupted build would have made; refused when the
+        inputs or the settings that shape the result differ (:func:`fingerprint`). Without a
+        checkpoint (interrupted while preparing) the build starts over, its prepared cases coming
+        from the preprocessing cache.
 
     Returns
     -------
@@ -84,21 +91,24 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     """
     config = (config or BuildConfig()).validate()
     output = Path(output)
-    earlier = previous_build(output)
+    earlier = [] if resume else previous_build(output)
     if earlier and not overwrite:
         more = f" and {len(earlier) - 2} more" if len(earlier) > 2 else ""
         raise BuildError(f"{output} holds an earlier build ({', '.join(p.name for p in earlier[:2])}"
                          f"{more}): give --overwrite to replace it, or another output folder")
-    clear_previous_build(output)
+    if resume:
+        remove_partial_files(output)
+    else:
+        clear_previous_build(output)
     (output / "correspondence").mkdir(parents=True, exist_ok=True)
     (output / "aligned").mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(output / "build.log", mode="w")
+    handler = logging.FileHandler(output / "build.log", mode="a" if resume else "w")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     log.addHandler(handler)
     if log.level == logging.NOTSET or log.level > logging.INFO:
         log.setLevel(logging.INFO)
     try:
-        return _build(inputs, output, config, progress, executor)
+        return _build(inputs, output, config, progress, executor, resume)
     except InternalError as error:
         # the user sees the one-line message; the traceback (a worker's too) goes to build.log
         handler.stream.write("".join(traceback.format_exception(error)))
@@ -108,7 +118,39 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         handler.close()
 
 
-def _build(inputs, output: Path, config: BuildConfig, progress, executor) -> BuildResult:
+def fingerprint(prepared: list, config: BuildConfig) -> dict:
+    """What a checkpoint is of: the settings that shape the result (all but ``workers``,
+    ``cache_dir`` and ``max_time``) and every prepared case's name and file digest."""
+    settings = {key: value for key, value in config.to_dict().items()
+                if key not in ("workers", "cache_dir", "max_time")}
+    return {"settings": settings,
+            "cases": [[case.name, io.file_digest(case.path)] for case in prepared]}
+
+
+def _resumption(output: Path, prepared: list, config: BuildConfig):
+    """The checkpoint to resume from (None: there is none, start over), checked against the
+    inputs and settings of this build."""
+    path = output / "checkpoint.npz"
+    if not path.exists():
+        log.info("no checkpoint in %s: starting over (the prepared cases come from the cache)",
+                 output)
+        return None
+    checkpoint = read_checkpoint(path)
+    now = json.loads(json.dumps(fingerprint(prepared, config)))   # as JSON gives it back
+    if checkpoint.fingerprint != now:
+        differ = sorted(key for key in set(now["settings"]) | set(checkpoint.fingerprint["settings"])
+                        if now["settings"].get(key) != checkpoint.fingerprint["settings"].get(key))
+        if now["cases"] != checkpoint.fingerprint["cases"]:
+            differ.insert(0, "the input files")
+        raise BuildError(f"{path} is of other inputs or settings ({', '.join(differ)}): resume "
+                         "with the same ones, or build anew with --overwrite")
+    log.info("resuming from %s (%s, step %d)", path, checkpoint.point.phase,
+             checkpoint.point.sweep)
+    return checkpoint
+
+
+def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume: bool
+           ) -> BuildResult:
     started = time.perf_counter()
     io.write_text(output / "config.json", json.dumps(config.to_dict(), indent=2))
     paths = io.find_inputs(inputs)
@@ -132,11 +174,14 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor) -> Bui
         def evaluate_baseline(name, state, notes):
             pending[name] = (notes, evaluate_state(state, config, prepared, pool=pool))
 
-        def checkpoint(state):
-            save_checkpoint(output / "checkpoint.npz", state)
+        print_of = fingerprint(prepared, config)
+        resumed = _resumption(output, prepared, config) if resume else None
+
+        def checkpoint(state, point, rng, trace):
+            save_checkpoint(output / "checkpoint.npz", state, point, rng, trace, print_of)
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
-                                  evaluate_baseline)
+                                  evaluate_baseline, resumed)
         if corresponded.interrupted:
             log.warning("optimisation interrupted: writing the model of the state reached")
         io.write_csv(output / "convergence.csv", Trace.HEADER, corresponded.trace.rows)
@@ -168,8 +213,8 @@ class Correspondence:
 
 
 def correspond(prepared: list, config: BuildConfig, progress: Progress | None = None,
-               executor: Executor | None = None, checkpoint=None, baselines=None
-               ) -> Correspondence:
+               executor: Executor | None = None, checkpoint=None, baselines=None,
+               resume: Checkpoint | None = None) -> Correspondence:
     """Prepared cases -> their optimised correspondence and its shape model (the middle of a build).
 
     The initial correspondence (:func:`~.correspondence.state.initial_state`), then either the
@@ -189,12 +234,18 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         the state reached (``interrupted``); cancelling elsewhere raises :class:`Cancelled`.
     executor : concurrent.futures.Executor, optional
         Runs the CPD registrations (default: a pool of ``config.workers`` processes).
-    checkpoint : callable(state), optional
-        Called after every sweep or round of the optimisation and once at its end.
+    checkpoint : callable(state, point, rng, trace), optional
+        Called after every sweep or round of the optimisation with the
+        :class:`~.correspondence.strategies.base.PhasePoint` reached, the random generator and
+        the trace (what :func:`~.outputs.save_checkpoint` keeps), and once at its end
+        (``PhasePoint.DONE``).
     baselines : callable(name, state, notes), optional
         Called with each baseline correspondence of ``config.baselines`` as soon as it is made,
         before the optimisation moves anything (``notes``: its objective, the CPD template);
         None: no baseline is made.
+    resume : Checkpoint, optional
+        Carry on from this checkpoint (of the same cases and settings) instead of starting the
+        optimisation: the same result as the uninterrupted run.
 
     Returns
     -------
@@ -243,23 +294,34 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         trace.record(state, final, "integrated", 0)
         log.info("CPD correspondence (template %s): objective %.4f", template, final)
     else:
-        def save():
+        rng = np.random.default_rng(config.seed)
+        resumption = None
+        if resume is not None:
+            rng.bit_generator.state = resume.rng_state
+            trace.rows = list(resume.trace_rows)
+            elapsed = trace.rows[-1].wall_seconds if trace.rows else 0.0
+            trace.start_wall -= elapsed
+            trace.start_cpu -= trace.rows[-1].cpu_seconds if trace.rows else 0.0
+            resumption = Resumption(resume.point, resume.record, resume.evaluations, elapsed)
+
+        def save(point):
             if checkpoint is not None:
-                checkpoint(state)
+                checkpoint(state, point, rng, trace)
 
         try:
-            optimise(state, (fixed, integrated), config.optimisation_settings(),
-                     np.random.default_rng(config.seed), trace, progress, save)
+            optimise(state, (fixed, integrated), config.optimisation_settings(), rng, trace,
+                     progress, save, resume=resumption)
         except (KeyboardInterrupt, Cancelled):
             interrupted = True
         if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
             log.warning("the optimisation did not lower the objective within --max-time "
                         "(%.0f s): keeping the initial correspondence", config.max_time)
-        state.rebuild()  # also makes the state consistent after an interruption mid-step
+        if resume is None or resume.point.phase != PhasePoint.DONE:
+            state.rebuild()  # also makes the state consistent after an interruption mid-step
         final = integrated(state.covariance())
         log.info("final objective %.4f after %.1f s, %d evaluations", final,
                  trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
-        save()
+        save(PhasePoint(PhasePoint.DONE, trace.last.sweep if trace.rows else 0))
     return Correspondence(state, shape_model_of(state, config, final, voxel, data_range),
                           initial, final, voxel, data_range, trace, interrupted)
 

@@ -272,11 +272,13 @@ def _summary(result) -> str:
     return "\n".join(lines)
 
 
-def _run_build(inputs, output, config, live: bool, overwrite: bool = False) -> int:
+def _run_build(inputs, output, config, live: bool, overwrite: bool = False,
+               resume: bool = False) -> int:
     from .build import build_model
 
     with _ProgressDisplay(live) as progress:
-        result = build_model(inputs, output, config, progress=progress, overwrite=overwrite)
+        result = build_model(inputs, output, config, progress=progress, overwrite=overwrite,
+                             resume=resume)
     print(_summary(result))
     return 0
 
@@ -323,9 +325,14 @@ def main(argv=None) -> int:
     build = commands.add_parser("build", help="build a model from label maps or meshes")
     build.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
     build.add_argument("-o", "--output", required=True, help="output folder")
-    build.add_argument("--overwrite", action="store_true",
+    again = build.add_mutually_exclusive_group()
+    again.add_argument("--overwrite", action="store_true",
                        help="replace an earlier build in the output folder (its files only; "
                             "without this flag such a build is refused)")
+    again.add_argument("--resume", action="store_true",
+                       help="carry on from the checkpoint of an interrupted build in the output "
+                            "folder, with the same inputs and settings; ends with the model the "
+                            "uninterrupted build would have made")
     _add_build_options(build)
     demo = commands.add_parser("demo", help="build a model of a generated population (about 25 s)")
     demo.add_argument("-o", "--output", default="mdlshapemodel-demo", help="output folder "
@@ -378,7 +385,7 @@ def main(argv=None) -> int:
     try:
         if args.command == "build":
             return _run_build(args.inputs, args.output, _config_from(args), live,
-                              args.overwrite)
+                              args.overwrite, args.resume)
         if args.command == "compare":
             return _run_compare(args)
         if args.command == "fit":

@@ -12,6 +12,9 @@ import numpy as np
 
 from .config import BuildConfig
 from .correspondence.state import CorrespondenceState, state_record
+from .correspondence.strategies.base import PhasePoint
+from .correspondence.trace import TraceRow
+from .errors import BuildError
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel, score_outliers
 from .prepare import io
@@ -59,20 +62,79 @@ def clear_previous_build(output) -> None:
             shutil.rmtree(path)
         else:
             path.unlink()
+    remove_partial_files(output)
 
 
-def save_checkpoint(path: Path, state: CorrespondenceState):
+def remove_partial_files(output) -> None:
+    """Remove the temporary files of writes that a killed build left unfinished
+    (:func:`~.prepare.io.written_whole`; they never hold a final name)."""
+    for name in BUILD_FILES:
+        folder = Path(output) / name
+        if folder.is_dir():
+            for path in folder.glob(f".*{io.PARTIAL}*"):
+                path.unlink(missing_ok=True)
+    for path in Path(output).glob(f".*{io.PARTIAL}*"):
+        path.unlink(missing_ok=True)
+
+
+@dataclass
+class Checkpoint:
+    """What ``--resume`` needs of a checkpoint: the state's record, the point the optimisation
+    had reached (``PhasePoint.DONE`` once it ended), the random generator's state, the trace so
+    far and the evaluation count, and the fingerprint of the inputs and settings it is of."""
+
+    record: dict              # :func:`~.correspondence.state.state_record` arrays
+    point: PhasePoint
+    rng_state: dict | None    # ``numpy.random.Generator.bit_generator.state``
+    trace_rows: list          # TraceRow
+    evaluations: int
+    fingerprint: dict
+
+
+def save_checkpoint(path: Path, state: CorrespondenceState, point: PhasePoint | None = None,
+                    rng=None, trace=None, fingerprint: dict | None = None):
     """The state's correspondence (:func:`~.correspondence.state.state_record`: every accepted
-    warp, every pose, the area weights), written whole or not at all."""
+    warp, every pose, the area weights) and, for resuming, the point reached, the generator's
+    state, the trace and the fingerprint: data only (numbers, strings, JSON; no pickle), written
+    whole or not at all."""
+    arrays = dict(state_record(state))
+    arrays["evaluations"] = np.array(state.evaluations)
+    if point is not None:
+        arrays["point"] = np.array(point.to_json())
+    if rng is not None:
+        arrays["rng_state"] = np.array(json.dumps(rng.bit_generator.state))
+    if trace is not None:
+        rows = trace.rows
+        arrays["trace_numbers"] = np.array([[r.wall_seconds, r.cpu_seconds, r.evaluations,
+                                             r.objective, r.sweep] for r in rows],
+                                           dtype=np.float64).reshape(-1, 5)
+        arrays["trace_phases"] = np.array([r.phase for r in rows], dtype=str)
+    if fingerprint is not None:
+        arrays["fingerprint"] = np.array(json.dumps(fingerprint, sort_keys=True))
     with io.written_whole(path) as temporary, open(temporary, "wb") as handle:
-        np.savez(handle, **state_record(state))
+        np.savez(handle, **arrays)
 
 
 def load_checkpoint(path: Path) -> dict:
     """The arrays of a checkpoint written by :func:`save_checkpoint`, for
-    :func:`~.correspondence.state.replay_record`."""
+    :func:`~.correspondence.state.replay_record` (data only: no pickle is read)."""
     with np.load(path, allow_pickle=False) as data:
         return {name: data[name] for name in data.files}
+
+
+def read_checkpoint(path: Path) -> Checkpoint:
+    """The :class:`Checkpoint` of a build's ``checkpoint.npz``; :class:`~.errors.BuildError`
+    when it is not one that can be resumed from."""
+    try:
+        arrays = load_checkpoint(path)
+        numbers, phases = arrays["trace_numbers"], arrays["trace_phases"]
+        rows = [TraceRow(float(w), float(c), int(e), float(f), str(phase), int(s))
+                for (w, c, e, f, s), phase in zip(numbers, phases)]
+        return Checkpoint(arrays, PhasePoint.from_json(str(arrays["point"])),
+                          json.loads(str(arrays["rng_state"])), rows,
+                          int(arrays["evaluations"]), json.loads(str(arrays["fingerprint"])))
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise BuildError(f"{path}: not a checkpoint to resume from ({error})") from None
 
 
 def warp_summary(example) -> str:

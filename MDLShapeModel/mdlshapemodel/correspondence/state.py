@@ -402,8 +402,9 @@ def initial_state(prepared: list, config: BuildConfig):
 
 def state_record(state: CorrespondenceState) -> dict:
     """The state's correspondence as named arrays: per example its pose, per part its accepted
-    warps (kinds, parameter vectors) and the sample positions they give. With the same prepared
-    cases and settings, :func:`replay_record` rebuilds the state from it bit for bit."""
+    warps (kinds, parameter vectors), the sample positions they give, the sampled points and
+    the faces they lie in. With the same prepared cases and settings, :func:`replay_record`
+    rebuilds the state from it bit for bit."""
     arrays = {"names": np.array([e.name for e in state.examples]), "weights": state.weights,
               "target_size": np.array(state.target_size)}
     for i, example in enumerate(state.examples):
@@ -413,6 +414,10 @@ def state_record(state: CorrespondenceState) -> dict:
         for j, part in enumerate(getattr(example, "parts", [])):
             vectors = [warp.to_vector() for warp in part.warps]
             arrays[f"positions_{i}_{j}"] = part.positions
+            # the samples and the faces they were located in (where a walk starts next): a
+            # resumed optimisation must see exactly these, not a fresh location's rounding
+            arrays[f"points_{i}_{j}"] = part.points
+            arrays[f"hint_{i}_{j}"] = np.asarray(part.hint)
             arrays[f"warp_kinds_{i}_{j}"] = np.array([w.kind for w in part.warps], dtype=str)
             arrays[f"warp_sizes_{i}_{j}"] = np.array([len(v) for v in vectors], dtype=np.int64)
             arrays[f"warp_values_{i}_{j}"] = (np.concatenate(vectors) if vectors
@@ -439,6 +444,9 @@ def replay_record(state: CorrespondenceState, arrays) -> None:
             if len(arrays[f"positions_{i}_{j}"]) != len(part.grid):
                 raise ValueError("the record has another number of sample points")
             part.replay(warps)
+            if f"points_{i}_{j}" in arrays:
+                part.points = np.array(arrays[f"points_{i}_{j}"], dtype=np.float64)
+                part.hint = np.array(arrays[f"hint_{i}_{j}"])
     if len(arrays["weights"]) != state.n_points:
         raise ValueError("the record has another number of sample points")
     state.weights = np.asarray(arrays["weights"], dtype=np.float64).copy()

@@ -58,10 +58,7 @@ def cache_dir_of(config: BuildConfig) -> str | None:
 
 def cache_key(path: str, config: BuildConfig) -> str:
     """Hash of the file's bytes, the preprocessing settings, algorithm and package versions."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
+    digest = hashlib.sha256(io.file_digest(path).encode())
     settings = {name: getattr(config, name) for name in PREPROCESSING_FIELDS}
     settings["mirrored"] = is_mirrored(path, config)
     digest.update(json.dumps([CACHE_FORMAT, PREPROCESSING_VERSION, __version__, settings],

@@ -272,6 +272,20 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
+def file_digest(path) -> str:
+    """SHA-256 of a file's bytes (hex), read in blocks."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+PARTIAL = ".partial"   # in the name of a file being written (written_whole)
+
+
 @contextmanager
 def written_whole(path):
     """Yield a temporary name beside ``path`` to write to; when the block ends without an error,
@@ -288,7 +302,8 @@ def written_whole(path):
     'whole'
     """
     path = Path(path)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    # hidden, marked partial, and ending as the file does (some writers add their suffix)
+    temporary = path.with_name(f".{path.stem}.{os.getpid()}{PARTIAL}{path.suffix}")
     try:
         yield temporary
         os.replace(temporary, path)

@@ -1,7 +1,11 @@
-"""What every strategy shares: starting a phase, the convergence test, rebuilding between sweeps
-and recording the trace."""
+"""What every strategy shares: starting a phase, the convergence test, rebuilding between sweeps,
+recording the trace, and the point a phase has reached (for checkpoints and resuming)."""
 
 from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
 
 from ...config import OptimisationSettings
 from ...progress import report
@@ -10,10 +14,89 @@ from ..state import CorrespondenceState
 from ..trace import Trace
 
 
+@dataclass(frozen=True)
+class PhasePoint:
+    """Where a phase stands after a checkpointed step: what a resumed run needs to carry on
+    exactly as the uninterrupted run would (with the state of that moment and the random
+    generator's state, which the checkpoint holds beside it).
+
+    ``phase`` is "fixed" or "integrated" (:data:`DONE` once the optimisation has ended),
+    ``sweep`` the step's number in the phase, ``counters`` the strategy's loop position and
+    ``values`` the objective values its decisions still need (e.g. the fast strategy's pass,
+    level and round; the start of the phase and of the pass, and F before and after the step).
+    """
+
+    phase: str
+    sweep: int
+    counters: dict = field(default_factory=dict)
+    values: dict = field(default_factory=dict)
+
+    DONE = "done"
+
+    def to_json(self) -> str:
+        return json.dumps({"phase": self.phase, "sweep": self.sweep, "counters": self.counters,
+                           "values": self.values})
+
+    @classmethod
+    def from_json(cls, text: str) -> "PhasePoint":
+        data = json.loads(text)
+        return cls(str(data["phase"]), int(data["sweep"]),
+                   {k: int(v) for k, v in data["counters"].items()},
+                   {k: float(v) for k, v in data["values"].items()})
+
+
+@dataclass(frozen=True)
+class Resumption:
+    """What an optimisation resumes from: the point a checkpoint reached, the state's record of
+    that moment (:func:`~mdlshapemodel.correspondence.state.state_record`), its evaluation count
+    and the optimisation's seconds so far (the time budget goes on from there)."""
+
+    point: PhasePoint
+    record: dict
+    evaluations: int
+    elapsed: float
+
+
 def stalled(before: float, value: float, start_value: float, settings: OptimisationSettings
             ) -> bool:
     """Whether the last sweep gained less than ``tolerance`` times the phase's total gain."""
     return before - value <= settings.tolerance * max(start_value - value, 1e-12)
+
+
+@dataclass
+class Sweeps:
+    """Where a phase of sweeps that stops after ``patience`` quiet ones (one-at-a-time,
+    multiscale) starts: F now and at the phase's start, the quiet sweeps so far, the first sweep
+    to run, and whether a resumed phase has nothing left to do."""
+
+    value: float
+    start: float
+    quiet: int
+    first: int
+    over: bool = False
+
+
+def begin_sweeps(state: CorrespondenceState, objective: Objective, trace: Trace, phase: str,
+                 deadline: float, settings: OptimisationSettings,
+                 resume: PhasePoint | None) -> Sweeps:
+    """A new phase (:func:`start_phase`), or the one ``resume`` was checkpointed in."""
+    if resume is None:
+        value = start_phase(state, objective, trace, phase)
+        return Sweeps(value, value, 0, 1)
+    state.objective = objective
+    quiet = resume.counters["quiet"]
+    over = time.perf_counter() > deadline or quiet >= settings.patience
+    return Sweeps(resume.values["value"], resume.values["start"], quiet, resume.sweep + 1, over)
+
+
+def sweep_point(phase: str, sweep: int, before: float, sweeps: Sweeps,
+                settings: OptimisationSettings):
+    """``point(after)``: the :class:`PhasePoint` of a patient phase after ``sweep``, F having
+    gone from ``before`` to ``after`` (for :func:`rebuilt`)."""
+    def point(after: float) -> PhasePoint:
+        quiet = sweeps.quiet + 1 if stalled(before, after, sweeps.start, settings) else 0
+        return PhasePoint(phase, sweep, {"quiet": quiet}, {"start": sweeps.start, "value": after})
+    return point
 
 
 def improvements(current: float, report):
@@ -53,21 +136,22 @@ def start_phase(state: CorrespondenceState, objective: Objective, trace: Trace, 
 
 
 def end_of_iteration(state: CorrespondenceState, trace: Trace, phase: str, sweep: int,
-                      value: float, label: str, progress, checkpoint) -> float:
+                      value: float, label: str, progress, checkpoint, point=None) -> float:
     """Record the step's F, report it, then :func:`rebuilt` (as between the sweeps of
     one_at_a_time); returns F after the rebuild."""
     trace.record(state, value, phase, sweep)
     report(progress, None, f"{label}: F = {value:.3f}")
-    return rebuilt(state, trace, phase, sweep, checkpoint)
+    return rebuilt(state, trace, phase, sweep, checkpoint, point)
 
 
-def rebuilt(state: CorrespondenceState, trace: Trace, phase: str, sweep: int, checkpoint
-             ) -> float:
+def rebuilt(state: CorrespondenceState, trace: Trace, phase: str, sweep: int, checkpoint,
+            point=None) -> float:
     """Between sweeps / iterations: area weights on the new mean and fresh sums (no drift), F
-    recorded, the state checkpointed; returns F after the rebuild."""
+    recorded, the state checkpointed with ``point(value)`` (a :class:`PhasePoint` of the F after
+    the rebuild); returns that F."""
     state.rebuild()
     value = state.value()
     trace.record(state, value, phase, sweep)
     if checkpoint is not None:
-        checkpoint()
+        checkpoint(point(value) if point is not None else PhasePoint(phase, sweep))
     return value

@@ -24,7 +24,7 @@ from ..state import CorrespondenceState
 from ..fields import FieldBasis
 from ..pose import Pose, weighted_centroid
 from ..warps import FieldWarp
-from .base import stalled, start_phase
+from .base import PhasePoint, stalled, start_phase
 
 
 def gradient_at(state: CorrespondenceState, shapes: np.ndarray) -> tuple[float, np.ndarray]:
@@ -265,13 +265,19 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
 
 def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
                   phase: str, deadline: float, progress=None, checkpoint=None, active=None,
-                  levels=(0, 1, 2, 3), rounds_per_level: int = 3) -> float:
+                  resume: PhasePoint | None = None, levels=(0, 1, 2, 3),
+                  rounds_per_level: int = 3) -> float:
     """Coarse-to-fine rounds until the gain stalls (``settings.tolerance``), ``deadline`` or
     ``settings.max_sweeps`` rounds. At each level, rounds go on until one gains less than the
     tolerance (then the next level starts), at most ``rounds_per_level``. The pass over the levels
     is repeated, at most ``settings.field_passes`` times in all, while a whole pass gains more
     than the tolerance: after the fine levels have moved the points, the coarse fields can move
-    whole regions again."""
+    whole regions again.
+
+    After every round ``checkpoint(point)`` gets a :class:`PhasePoint` (pass, level and round;
+    the F at the start of the phase and of the pass, before and after the round); given one as
+    ``resume``, with the state of that moment, the phase carries on exactly from there.
+    """
     active = range(state.n_shapes) if active is None else active
     if objective.kind == "fixed" and objective.free_below_delta:
         # Case 3 of the fixed-Delta cost (a mode spanning less than Delta is free) is a step of
@@ -279,23 +285,45 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
         # it fails (seen with 82 hippocampi, where the smallest modes reach Delta). The paper's
         # eq. 13 codes every mode, continuously: this phase minimises that.
         objective = replace(objective, free_below_delta=False)
-    value = start_value = start_phase(state, objective, trace, phase)
-    sweep = 0
-    for _ in range(settings.field_passes):
-        pass_start = value
-        for level in levels:
-            for _ in range(rounds_per_level):
-                sweep += 1
-                before = value
-                value = optimise_round(state, objective, active, level, deadline=deadline)
-                trace.record(state, value, phase, sweep)
-                report(progress, None, f"{phase}: level {level}, round {sweep}, F = {value:.3f}")
-                if checkpoint is not None:
-                    checkpoint()
-                if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
-                    return value
-                if stalled(before, value, start_value, settings):
-                    break   # this level has stopped paying: go finer
-        if stalled(pass_start, value, start_value, settings):
-            break
+
+    def following(at: dict, values: dict) -> dict | None:
+        """The loop position after the round at ``at`` (None: the phase is over)."""
+        start = values["start"]
+        if (at["round"] + 1 < rounds_per_level
+                and not stalled(values["before"], values["value"], start, settings)):
+            return {**at, "round": at["round"] + 1}
+        if at["level"] + 1 < len(levels):
+            return {**at, "level": at["level"] + 1, "round": 0}
+        if (at["pass"] + 1 < settings.field_passes
+                and not stalled(values["pass_start"], values["value"], start, settings)):
+            return {"pass": at["pass"] + 1, "level": 0, "round": 0}
+        return None
+
+    if resume is None:
+        value = start_phase(state, objective, trace, phase)
+        sweep, at = 0, {"pass": 0, "level": 0, "round": 0}
+        values = {"start": value, "pass_start": value}
+    else:
+        state.objective = objective
+        sweep, values, value = resume.sweep, dict(resume.values), resume.values["value"]
+        if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
+            return value
+        at = following(resume.counters, values)
+        if at is not None and at["pass"] != resume.counters["pass"]:
+            values["pass_start"] = value
+    while at is not None:
+        sweep += 1
+        values["before"] = value
+        value = optimise_round(state, objective, active, levels[at["level"]], deadline=deadline)
+        values["value"] = value
+        trace.record(state, value, phase, sweep)
+        report(progress, None, f"{phase}: level {levels[at['level']]}, round {sweep}, "
+                               f"F = {value:.3f}")
+        if checkpoint is not None:
+            checkpoint(PhasePoint(phase, sweep, dict(at), dict(values)))
+        if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
+            return value
+        previous, at = at, following(at, values)
+        if at is not None and at["pass"] != previous["pass"]:
+            values["pass_start"] = value
     return value

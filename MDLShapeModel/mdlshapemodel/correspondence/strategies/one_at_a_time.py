@@ -24,7 +24,8 @@ from ..trace import Trace
 from ..warps import (AsymmetricTheta, Rotation, ShearTwist, SymmetricTheta,
                      random_asymmetric_theta, random_shear_twist, random_unit_vector,
                      random_width)
-from .base import improvements, rebuilt, recorder, start_phase, stalled
+from .base import (PhasePoint, begin_sweeps, improvements, rebuilt, recorder, stalled,
+                   sweep_point)
 
 #: the warp kind (warps.WARP_KINDS) that each ``--warps`` option draws
 KIND_OF_OPTION = {"symmetric": SymmetricTheta.kind, "asymmetric": AsymmetricTheta.kind,
@@ -237,23 +238,28 @@ def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalua
 
 def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: OptimisationSettings,
                   rng: np.random.Generator, trace: Trace, phase: str, deadline: float,
-                  progress=None, checkpoint=None, active=None, *, with_pose: bool = False
-                  ) -> float:
+                  progress=None, checkpoint=None, active=None, resume: PhasePoint | None = None,
+                  *, with_pose: bool = False) -> float:
     """Optimise one example at a time (III-D3/III-D4) until convergence or ``deadline``.
 
     ``active``: indices of the examples to optimise (default all); the others stay as they are.
 
     Converged means: for ``patience`` consecutive sweeps, the sweep lowered F by less than
     ``tolerance`` times the total decrease of this phase so far.
+
+    ``checkpoint(point)`` after every sweep; ``resume`` (a :class:`PhasePoint`, with the state and
+    the random generator of that moment) carries on from there.
     """
     kinds = tuple(settings.warps)
     unknown = [kind for kind in kinds if kind not in WARPS]
     if not kinds or unknown:
         raise ValueError(f"warps: {list(kinds)!r} must be one or more of {', '.join(WARPS)}")
-    value = start_value = start_phase(state, objective, trace, phase)
-    quiet_sweeps = 0
     active = np.arange(state.n_shapes) if active is None else np.asarray(active)
-    for sweep in range(1, settings.max_sweeps + 1):
+    sweeps = begin_sweeps(state, objective, trace, phase, deadline, settings, resume)
+    value = sweeps.value
+    if sweeps.over:
+        return value
+    for sweep in range(sweeps.first, settings.max_sweeps + 1):
         before = value
         improved = recorder(state, trace, phase, sweep, settings)
         for i in rng.permutation(active):
@@ -270,11 +276,12 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
             report(progress, None, f"{phase}: sweep {sweep}, F = {value:.3f}")
             if time.perf_counter() > deadline:
                 break
-        value = rebuilt(state, trace, phase, sweep, checkpoint)
+        value = rebuilt(state, trace, phase, sweep, checkpoint,
+                        sweep_point(phase, sweep, before, sweeps, settings))
         if time.perf_counter() > deadline:
             break
-        quiet_sweeps = quiet_sweeps + 1 if stalled(before, value, start_value, settings) else 0
-        if quiet_sweeps >= settings.patience:
+        sweeps.quiet = sweeps.quiet + 1 if stalled(before, value, sweeps.start, settings) else 0
+        if sweeps.quiet >= settings.patience:
             break
     return value
 
@@ -282,7 +289,7 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
 def one_at_a_time_pose(state: CorrespondenceState, objective: Objective,
                        settings: OptimisationSettings, rng: np.random.Generator, trace: Trace,
                        phase: str, deadline: float, progress=None, checkpoint=None,
-                       active=None) -> float:
+                       active=None, resume: PhasePoint | None = None) -> float:
     """III-D4: :func:`one_at_a_time` with the example's pose optimised after each warp."""
     return one_at_a_time(state, objective, settings, rng, trace, phase, deadline, progress,
-                         checkpoint, active, with_pose=True)
+                         checkpoint, active, resume, with_pose=True)

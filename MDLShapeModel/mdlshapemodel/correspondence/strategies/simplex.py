@@ -24,7 +24,8 @@ from ..sampling import icosphere
 from ..state import CorrespondenceState
 from ..trace import Trace
 from ..warps import SymmetricTheta, random_width
-from .base import active_parts, end_of_iteration, recorder, start_phase, stalled
+from .base import (PhasePoint, active_parts, begin_sweeps, end_of_iteration, recorder,
+                   start_phase, stalled, sweep_point)
 
 
 def population_value(state: CorrespondenceState, shapes: np.ndarray) -> float:
@@ -160,16 +161,26 @@ def multiresolution_levels(omega_1: float, levels: int) -> list:
 
 def multiresolution(state: CorrespondenceState, objective: Objective,
                     settings: OptimisationSettings, rng: np.random.Generator, trace: Trace,
-                    phase: str, deadline: float, progress=None, checkpoint=None, active=None
-                    ) -> float:
+                    phase: str, deadline: float, progress=None, checkpoint=None, active=None,
+                    resume: PhasePoint | None = None) -> float:
     """III-D1: one downhill simplex per level over the amplitudes of that level's kernels in all
     active examples and parts; the level's amplitudes are then fixed. Stops after
     ``min(max_levels, max_sweeps)`` levels or at ``deadline`` (the ``sweep`` of the trace is the
-    level, from 1). Deterministic: ``rng`` is not used."""
-    value = start_phase(state, objective, trace, phase)
+    level, from 1). Deterministic: ``rng`` is not used. ``checkpoint(point)`` after every level;
+    ``resume`` carries on after the level it names."""
     parts = active_parts(state, active)
     levels = multiresolution_levels(settings.omega_1, min(settings.max_levels, settings.max_sweeps))
+    if resume is None:
+        value = start_phase(state, objective, trace, phase)
+    else:
+        state.objective = objective
+        value = resume.values["value"]
+        if time.perf_counter() > deadline:
+            return value
+    done = 0 if resume is None else resume.sweep
     for level, (omega, centers) in enumerate(levels, start=1):
+        if level <= done:
+            continue
         blocks = [_block(state, i, j, centers, [omega] * len(centers), settings.max_amplitude)
                   for i, j in parts]
         blocks = [b for b in blocks if b is not None]
@@ -177,7 +188,8 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
                 f"omega = {omega:g})"
         value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label,
                                      recorder(state, trace, phase, level, settings))
-        value = end_of_iteration(state, trace, phase, level, value, label, progress, checkpoint)
+        value = end_of_iteration(state, trace, phase, level, value, label, progress, checkpoint,
+                                 lambda after: PhasePoint(phase, level, {}, {"value": after}))
         if time.perf_counter() > deadline:
             break
     return value
@@ -185,19 +197,23 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
 
 def multiscale(state: CorrespondenceState, objective: Objective, settings: OptimisationSettings,
                rng: np.random.Generator, trace: Trace, phase: str, deadline: float,
-               progress=None, checkpoint=None, active=None) -> float:
+               progress=None, checkpoint=None, active=None,
+               resume: PhasePoint | None = None) -> float:
     """III-D2: each iteration draws one kernel per active example and part (centre uniform over the
     surface by area, width from the positive half of N(0, sigma_G)) and optimises their amplitudes
     together by the downhill simplex; accepted kernels are fixed.
 
     Converged as in :func:`one_at_a_time`, an iteration playing the part of a sweep: for
     ``patience`` consecutive iterations, the gain was below ``tolerance`` times the total gain of
-    this phase; or ``max_sweeps`` iterations, or ``deadline``.
+    this phase; or ``max_sweeps`` iterations, or ``deadline``. ``checkpoint(point)`` after every
+    iteration; ``resume`` (with the state and random generator of that moment) carries on.
     """
-    value = start_value = start_phase(state, objective, trace, phase)
     parts = active_parts(state, active)
-    quiet = 0
-    for iteration in range(1, settings.max_sweeps + 1):
+    sweeps = begin_sweeps(state, objective, trace, phase, deadline, settings, resume)
+    value = sweeps.value
+    if sweeps.over:
+        return value
+    for iteration in range(sweeps.first, settings.max_sweeps + 1):
         before = value
         blocks = []
         for i, j in parts:
@@ -211,10 +227,11 @@ def multiscale(state: CorrespondenceState, objective: Objective, settings: Optim
         value = _optimise_amplitudes(state, blocks, value, settings, deadline, progress, label,
                                      recorder(state, trace, phase, iteration, settings))
         value = end_of_iteration(state, trace, phase, iteration, value, label, progress,
-                                  checkpoint)
+                                  checkpoint, sweep_point(phase, iteration, before, sweeps,
+                                                          settings))
         if time.perf_counter() > deadline:
             break
-        quiet = quiet + 1 if stalled(before, value, start_value, settings) else 0
-        if quiet >= settings.patience:
+        sweeps.quiet = sweeps.quiet + 1 if stalled(before, value, sweeps.start, settings) else 0
+        if sweeps.quiet >= settings.patience:
             break
     return value

@@ -1,0 +1,197 @@
+"""Resuming: an optimisation carried on from any of its checkpoints ends exactly as the
+uninterrupted one, for every strategy; and a real build killed with SIGKILL at any stage and run
+again with --resume gives the uninterrupted build's model, with no half-written file left."""
+
+import copy
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from mdlshapemodel import ShapeModel
+from mdlshapemodel.config import OptimisationSettings
+from mdlshapemodel.correspondence.objective import Objective
+from mdlshapemodel.correspondence.state import state_record
+from mdlshapemodel.correspondence.strategies import optimise
+from mdlshapemodel.correspondence.strategies.base import PhasePoint, Resumption
+from mdlshapemodel.correspondence.trace import Trace
+from mdlshapemodel.errors import BuildError
+from mdlshapemodel.outputs import read_checkpoint
+from mdlshapemodel.prepare import io
+
+from synthetic import small_mask, small_state
+
+
+def objectives(state):
+    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
+    return (Objective("fixed", data_range, delta=0.1),
+            Objective("integrated", data_range, delta_min=1e-4, delta_max=0.5))
+
+
+def assert_same_record(a: dict, b: dict):
+    assert a.keys() == b.keys()
+    for key in a:
+        assert np.array_equal(a[key], b[key]), key
+
+
+@pytest.mark.parametrize("strategy, sweeps", [("fast", 10_000), ("one-at-a-time-pose", 3),
+                                              ("multiscale", 4), ("multiresolution", 2)])
+def test_an_optimisation_resumed_from_any_checkpoint_ends_as_the_uninterrupted_one(strategy,
+                                                                                    sweeps):
+    settings = OptimisationSettings(strategy=strategy, max_time=1e6, max_sweeps=sweeps,
+                                    fixed_fraction=0.5, simplex_evaluations=60)
+    state, rng, trace, saved = small_state(), np.random.default_rng(7), Trace(), []
+
+    def checkpoint(point):
+        saved.append((point, copy.deepcopy(state_record(state)), state.evaluations,
+                      copy.deepcopy(rng.bit_generator.state), list(trace.rows)))
+
+    final = optimise(state, objectives(state), settings, rng, trace, checkpoint=checkpoint)
+    expected = state_record(state)
+    phases = {point.phase for point, *_ in saved}
+    assert phases == {"fixed", "integrated"} and len(saved) >= 3
+    chosen = [saved[0], saved[len(saved) // 2], saved[-1]]
+    if strategy == "fast":   # a checkpoint where the next pass over the levels starts
+        chosen += [s for s in saved if s[0].counters["level"] == 3][:1]
+    for point, record, evaluations, generator, rows in chosen:
+        resumed, resumed_rng = small_state(), np.random.default_rng(0)
+        resumed_rng.bit_generator.state = generator
+        resumed_trace = Trace(rows=list(rows))
+        value = optimise(resumed, objectives(resumed), settings, resumed_rng, resumed_trace,
+                         resume=Resumption(point, record, evaluations, 0.0))
+        assert value == final, (point.phase, point.sweep)
+        assert_same_record(state_record(resumed), expected)
+        assert [r[2:] for r in resumed_trace.rows] == [r[2:] for r in trace.rows]
+
+
+def test_a_phase_point_survives_json():
+    point = PhasePoint("integrated", 7, {"pass": 1, "level": 2, "round": 0},
+                       {"start": 12.5, "value": 3.25, "before": 3.5, "pass_start": 4.0})
+    assert PhasePoint.from_json(point.to_json()) == point
+
+
+# -- a real build killed and resumed ------------------------------------------------------------
+
+QUICK = ["--points", "162", "--baselines", "", "--max-time", "600", "--evaluation-modes", "2",
+         "--specificity-samples", "100", "-q"]
+
+
+@pytest.fixture(scope="module")
+def labels(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("labels")
+    for k, position in enumerate(np.linspace(-0.6, 0.6, 5)):
+        mask = small_mask(float(position), 1.0 + 0.03 * ((k % 3) - 1))
+        sitk.WriteImage(sitk.GetImageFromArray(mask.astype(np.uint8)),
+                        str(folder / f"case_{k}.nii.gz"))
+    return folder
+
+
+def command(labels, output, *extra):
+    return [sys.executable, "-m", "mdlshapemodel.cli", "build", str(labels), "-o", str(output),
+            *QUICK, *extra]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(labels, tmp_path_factory):
+    output = tmp_path_factory.mktemp("uninterrupted")
+    done = subprocess.run(command(labels, output, "--workers", "1"), capture_output=True,
+                          text=True)
+    assert done.returncode == 0, done.stderr
+    return output
+
+
+def killed_at(labels, output, reached, workers: str, cache) -> None:
+    """Run a build and SIGKILL it as soon as ``reached(output)`` (polled) is true."""
+    import os
+    import time
+
+    environment = {**os.environ, "MDLSHAPEMODEL_CACHE": str(cache)}
+    process = subprocess.Popen(command(labels, output, "--workers", workers),
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               env=environment)
+    while process.poll() is None and not reached(output):
+        time.sleep(0.005)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert process.returncode == -signal.SIGKILL, "the build ended before the point"
+
+
+def checkpoint_at(phase: str, sweep: int = 1):
+    """The build's checkpoint says it has reached step ``sweep`` of ``phase``."""
+    def reached(output) -> bool:
+        try:
+            point = read_checkpoint(output / "checkpoint.npz").point
+        except BuildError:       # none yet
+            return False
+        return point.phase == phase and point.sweep >= sweep
+    return reached
+
+
+def prepared_one(cache):
+    """A first case is prepared (its cache entry is written)."""
+    return lambda output: any(Path(cache).glob("*.npz"))
+
+
+def writing_outputs(output) -> bool:
+    """The build has begun writing its outputs (model.h5 comes first)."""
+    return (output / "model.h5").exists()
+
+
+def assert_whole_outputs(output):
+    """Every file under its final name is whole: it reads back."""
+    for path in output.rglob("*"):
+        if not path.is_file() or ".partial" in path.name or path.suffix == ".gz":
+            continue
+        if path.suffix == ".h5":
+            ShapeModel.load(path)
+        elif path.suffix == ".vtp":
+            assert len(io.read_mesh(path)[0]) == 162, path
+        elif path.suffix == ".json":
+            json.loads(path.read_text())
+        elif path.suffix == ".csv":
+            assert io.read_csv(path) is not None
+        elif path.suffix == ".npz":
+            np.load(path, allow_pickle=False).files
+
+
+@pytest.mark.parametrize("stage, workers", [("preparing", "2"), ("fixed", "1"),
+                                            ("integrated", "2"), ("writing outputs", "1")])
+def test_a_build_killed_at_any_stage_resumes_to_the_uninterrupted_model(
+        labels, uninterrupted, tmp_path, stage, workers):
+    import os
+
+    output, cache = tmp_path / "out", tmp_path / "cache"
+    reached = {"preparing": prepared_one(cache), "fixed": checkpoint_at("fixed", 2),
+               "integrated": checkpoint_at("integrated", 1),
+               "writing outputs": writing_outputs}[stage]
+    killed_at(labels, output, reached, workers, cache)
+    assert_whole_outputs(output)
+    refused = subprocess.run(command(labels, output), capture_output=True, text=True)
+    assert refused.returncode == 2 and "--overwrite" in refused.stderr   # not without --resume
+    environment = {**os.environ, "MDLSHAPEMODEL_CACHE": str(cache)}
+    resumed = subprocess.run([c for c in command(labels, output, "--resume", "--workers", "1")
+                              if c != "-q"], capture_output=True, text=True, env=environment)
+    assert resumed.returncode == 0, resumed.stderr
+    if stage == "preparing":   # no checkpoint yet: started over, the prepared case from the cache
+        assert "starting over" in resumed.stderr and "reused" in resumed.stderr
+    else:
+        assert "resuming from" in resumed.stderr
+    ours, theirs = (ShapeModel.load(folder / "model.h5") for folder in (output, uninterrupted))
+    for name in ("mean", "modes", "variances", "scores", "weights"):
+        assert np.array_equal(getattr(ours, name), getattr(theirs, name)), name
+    assert ours.metadata["objective"] == theirs.metadata["objective"]
+    assert not list(output.rglob(".*.partial*"))
+
+
+def test_resuming_with_other_settings_is_refused(labels, uninterrupted, tmp_path):
+    output = tmp_path / "out"
+    killed_at(labels, output, checkpoint_at("integrated"), "1", tmp_path / "cache")
+    other = subprocess.run(command(labels, output, "--resume", "--seed", "3"),
+                           capture_output=True, text=True)
+    assert other.returncode == 2
+    assert "other inputs or settings (seed)" in other.stderr and "Traceback" not in other.stderr
