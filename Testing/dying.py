@@ -16,3 +16,7 @@ def square_or_die(x: int) -> int:
         if x == 4:
             os._exit(7)
     return x * x
+
+
+def die():
+    os.kill(os.getpid(), signal.SIGKILL)

@@ -9,17 +9,17 @@ import logging
 import multiprocessing
 import os
 import subprocess
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 
 import numpy as np
 import SimpleITK as sitk
 
 from mdlshapemodel import BuildConfig, ShapeModel
-from mdlshapemodel.parallel import TEST_CRASH_VARIABLE, ProcessPool, map_cases
+from mdlshapemodel.parallel import TEST_CRASH_VARIABLE, ProcessPool, Task, map_cases
 from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.io import read_csv
 
-from dying import square_or_die
+from dying import die, square_or_die
 from synthetic import small_mask
 from test_cli import EXECUTABLE
 
@@ -53,6 +53,44 @@ def test_a_callers_executor_that_breaks_is_replaced_by_a_pool_of_our_own(caplog)
                                 workers=2)
     assert results == EXPECTED
     assert "the executor broke" in caplog.text
+
+
+class FirstCallDies(Executor):
+    """A caller's executor whose first call kills its worker process instead of running."""
+
+    def __init__(self, pool):
+        self.pool, self.calls = pool, 0
+
+    def submit(self, fn, /, *args, **kwargs):
+        self.calls += 1
+        return self.pool.submit(die) if self.calls == 1 else self.pool.submit(fn, *args, **kwargs)
+
+
+def test_an_evaluation_whose_worker_dies_is_done_here_with_the_same_numbers(rng):
+    from mdlshapemodel.model.evaluation import evaluate
+    from mdlshapemodel.model.shape_model import ShapeModel as Model
+    from test_evaluation import radial_population
+
+    shapes, triangles, weights, surfaces = radial_population(rng, 5, 3)
+    variances = Model.from_shapes(shapes, weights).variances
+    here = evaluate(shapes, weights, variances, 2, 100, np.random.default_rng(5),
+                    triangles=triangles, surfaces=surfaces, surface_samples=5)
+    with ProcessPool(1) as pool:
+        # the surface generalization's worker dies: measured here
+        dying = FirstCallDies(pool)
+        assert evaluate(shapes, weights, variances, 2, 100, np.random.default_rng(5),
+                        triangles=triangles, surfaces=surfaces, surface_samples=5,
+                        pool=dying) == here
+        # a whole evaluation in the background (a baseline's), its worker dies: done here
+        dying.calls = 0
+        task = Task(dying, evaluate, shapes, weights, variances, 2, 100,
+                    np.random.default_rng(5), triangles, surfaces, 5)
+        assert task.result() == here
+    # an executor already broken when the work is submitted
+    broken = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    broken.submit(die).exception()
+    assert Task(broken, square_or_die, 3).result() == 9
+    broken.shutdown()
 
 
 def write_population(folder, n=5):

@@ -9,7 +9,7 @@ worker ran what. A Dask distributed client's ``get_executor()`` plugs in the sam
 A worker process that dies (a segfault in a native library, ``os._exit``, the kernel's
 out-of-memory killer) loses the work it held, not the build: :func:`map_cases` finds the case that
 kills its worker and hands it to the caller's ``died`` (preprocessing rejects it), and runs the
-other cases again.
+other cases again; :class:`Task` does lost work again here.
 """
 
 from __future__ import annotations
@@ -278,6 +278,40 @@ class _CaseMap:
             raise InternalError(f"case {index + 1} of {len(self.arguments)} ({self.message}): "
                                 f"{how}, also when it ran alone; please report it")
         return self.died(index, how)
+
+
+class Task:
+    """``function(*arguments)`` on ``executor`` (None: run here, now); :meth:`result` gives its
+    value. Work the executor lost (its worker process died, or the executor was broken when the
+    work was submitted) is done again here, in this process, with a warning in the log; a
+    :class:`ProcessPool` replaces itself for the next submission.
+
+    Meant for work on data already in memory (an evaluation's linear algebra): if its worker dies,
+    the cause is outside it (a kill, lack of memory), and doing it again here is sound."""
+
+    def __init__(self, executor: Executor | None, function, *arguments, what: str = "work"):
+        self.function, self.arguments, self.what = function, arguments, what
+        self.future = self.error = None
+        if executor is None:
+            self.value = function(*arguments)
+            return
+        try:
+            self.future = executor.submit(function, *arguments)
+        except BrokenExecutor as error:
+            self.error = error
+
+    def result(self, redo: tuple = ()):
+        """The value; also done again here when the executor's run raised one of ``redo``."""
+        if self.future is None and self.error is None:
+            return self.value
+        try:
+            if self.error is not None:
+                raise self.error
+            return self.future.result()
+        except (BrokenExecutor, *redo) as error:
+            log.warning("%s on the executor did not finish (%s); doing it here", self.what,
+                        type(error).__name__)
+            return self.function(*self.arguments)
 
 
 # ---- test-only --------------------------------------------------------------------------------
