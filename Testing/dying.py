@@ -8,13 +8,13 @@ import signal
 
 
 def square_or_die(x: int) -> int:
-    """x squared; 2 kills its process with SIGKILL and 4 ends it with exit code 7 (in a worker:
-    in the main process nothing dies)."""
+    """x squared; 2 kills its process with SIGKILL, 4 ends it with exit code 7 and 6 with exit
+    code 0 (in a worker: in the main process nothing dies)."""
     if multiprocessing.parent_process() is not None:
         if x == 2:
             os.kill(os.getpid(), signal.SIGKILL)
-        if x == 4:
-            os._exit(7)
+        if x in (4, 6):
+            os._exit(7 if x == 4 else 0)
     return x * x
 
 

@@ -87,20 +87,21 @@ class ProcessPool(Executor):
         return future
 
     def death(self, wait_seconds: float = 5.0) -> str:
-        """How a worker of the current pool died: 'signal N', 'exit code N' or 'cause unknown'.
-        Exact for a pool of one worker; with more, the others are stopped (signal 15) when one
-        dies, and the first dead one found is named."""
+        """How a worker of the current pool died: 'signal N', 'exit code N' (0 too: a worker
+        must not end while it holds work) or 'cause unknown'. Exact for a pool of one worker; with
+        more, the others are stopped (signal 15) when one dies, and a dead one is named."""
         deadline = time.monotonic() + wait_seconds
         while True:
             # the executor's thread may be reaping the process at this moment: ask again
             codes = [process.exitcode for process in self._processes.values()]
-            dead = [code for code in codes if code]
+            dead = [code for code in codes if code is not None]
             if dead or time.monotonic() > deadline:
                 break
             time.sleep(0.01)
         if not dead:
             return "cause unknown"
-        return f"signal {-dead[0]}" if dead[0] < 0 else f"exit code {dead[0]}"
+        code = next((code for code in dead if code), 0)
+        return f"signal {-code}" if code < 0 else f"exit code {code}"
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False):
         self._closed = True
