@@ -240,16 +240,18 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
 
     # -- the build ---------------------------------------------------------------------------
 
-    def runBuild(self, paths, outputDirectory, config: BuildConfig | None = None, progress=None):
+    def runBuild(self, paths, outputDirectory, config: BuildConfig | None = None, progress=None,
+                 overwrite: bool = False):
         """The library's build on files (no MRML: safe in a background thread). Returns the
         library's ``BuildResult``."""
         from mdlshapemodel import build_model
 
         return build_model([str(p) for p in paths], str(outputDirectory), config,
-                           progress=progress, executor=workerPool(config or BuildConfig()))
+                           progress=progress, executor=workerPool(config or BuildConfig()),
+                           overwrite=overwrite)
 
     def buildModel(self, inputs, outputDirectory, config: BuildConfig | None = None,
-                   progress=None, segments=None) -> ShapeModelResult:
+                   progress=None, segments=None, overwrite: bool = False) -> ShapeModelResult:
         """Build a model of ``inputs`` and load it into the scene (blocking).
 
         Parameters
@@ -267,6 +269,8 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             reached is still written and loaded when the optimisation was running).
         segments : list of str, optional
             Names of the segments whose union is the object (default: all).
+        overwrite : bool
+            Replace an earlier build in ``outputDirectory`` (else it is refused).
 
         Returns
         -------
@@ -275,16 +279,16 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         """
         outputDirectory = pathlib.Path(outputDirectory)
         exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments)
-        built = self.runBuild(exported.paths, outputDirectory, config, progress)
+        built = self.runBuild(exported.paths, outputDirectory, config, progress, overwrite)
         return self.loadResults(outputDirectory, exported.rejected, built.interrupted)
 
     def startBuild(self, inputs, outputDirectory, config: BuildConfig | None = None,
-                   segments=None) -> "BuildJob":
+                   segments=None, overwrite: bool = False) -> "BuildJob":
         """Export the inputs (here, on the main thread), then run the build in a background
         thread; load its results with ``job.finish(logic)`` once ``job.done``."""
         outputDirectory = pathlib.Path(outputDirectory)
         exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments)
-        return BuildJob(self, exported, outputDirectory, config)
+        return BuildJob(self, exported, outputDirectory, config, overwrite)
 
     # -- results -> scene --------------------------------------------------------------------
 
@@ -391,7 +395,7 @@ class BuildJob:
     """
 
     def __init__(self, logic: MDLShapeModelLogic, exported: ExportedInputs, outputDirectory,
-                 config: BuildConfig | None):
+                 config: BuildConfig | None, overwrite: bool = False):
         self.logic = logic
         self.exported = exported
         self.outputDirectory = pathlib.Path(outputDirectory)
@@ -399,7 +403,7 @@ class BuildJob:
         self.error = None
         self._reports = queue.Queue()
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(config,), daemon=True,
+        self._thread = threading.Thread(target=self._run, args=(config, overwrite), daemon=True,
                                         name="MDLShapeModel build")
         self._thread.start()
 
@@ -412,10 +416,10 @@ class BuildJob:
             return False
         return True
 
-    def _run(self, config):
+    def _run(self, config, overwrite):
         try:
             self.built = self.logic.runBuild(self.exported.paths, self.outputDirectory, config,
-                                             self._progress)
+                                             self._progress, overwrite)
         except BaseException as error:  # handed to the main thread, which reports it
             self.error = error
 
@@ -763,11 +767,18 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onApply(self):
         if not ensureDependencies(ask=True):
             return
+        from mdlshapemodel.outputs import previous_build
+
         with slicer.util.tryWithErrorDisplay("Could not start the build.", waitCursor=True):
             config = buildConfigOf(self._parameterNode)
             output = pathlib.Path(str(self._parameterNode.outputDirectory))
+            overwrite = bool(previous_build(output))
+            if overwrite and not slicer.util.confirmYesNoDisplay(
+                    f"{output} holds an earlier build. Replace it?"):
+                return
             self.ui.logText.clear()
-            self._job = self.logic.startBuild(self.inputs(), output, config, self._segments())
+            self._job = self.logic.startBuild(self.inputs(), output, config, self._segments(),
+                                              overwrite)
             for name, reason in self._job.exported.rejected:
                 self.ui.logText.appendPlainText(f"rejected {name}: {reason}")
             self.ui.applyButton.enabled = False

@@ -32,7 +32,8 @@ from .correspondence.trace import RESTORED_INITIAL, Trace
 from .errors import BuildError, Cancelled, InternalError
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
-from .outputs import BuildResult, save_checkpoint, write_outputs
+from .outputs import (BuildResult, clear_previous_build, previous_build, save_checkpoint,
+                      write_outputs)
 from .parallel import Task, helper_for
 from .prepare import io, preprocess
 from .progress import Progress, report
@@ -44,8 +45,8 @@ __all__ = ["BuildError", "BuildResult", "Correspondence", "build_model", "corres
 
 
 def build_model(inputs, output, config: BuildConfig | None = None,
-                progress: Progress | None = None, executor: Executor | None = None
-                ) -> BuildResult:
+                progress: Progress | None = None, executor: Executor | None = None,
+                overwrite: bool = False) -> BuildResult:
     """Build an optimised statistical shape model from label maps or meshes.
 
     Parameters
@@ -64,6 +65,10 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         Runs the per-case work (preprocessing, CPD registrations, evaluations); default: a pool
         of ``config.workers`` processes per stage (none when 1) and one helper process for the
         evaluations that overlap the optimisation. The caller's executor is not shut down.
+    overwrite : bool
+        Replace an earlier build in ``output`` (its files only: :func:`.outputs.previous_build`);
+        without it, a build into a folder that holds one raises :class:`BuildError` and touches
+        nothing. Every file is written whole or not at all (a temporary name renamed into place).
 
     Returns
     -------
@@ -79,6 +84,12 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     """
     config = (config or BuildConfig()).validate()
     output = Path(output)
+    earlier = previous_build(output)
+    if earlier and not overwrite:
+        more = f" and {len(earlier) - 2} more" if len(earlier) > 2 else ""
+        raise BuildError(f"{output} holds an earlier build ({', '.join(p.name for p in earlier[:2])}"
+                         f"{more}): give --overwrite to replace it, or another output folder")
+    clear_previous_build(output)
     (output / "correspondence").mkdir(parents=True, exist_ok=True)
     (output / "aligned").mkdir(parents=True, exist_ok=True)
     handler = logging.FileHandler(output / "build.log", mode="w")
@@ -99,7 +110,7 @@ def build_model(inputs, output, config: BuildConfig | None = None,
 
 def _build(inputs, output: Path, config: BuildConfig, progress, executor) -> BuildResult:
     started = time.perf_counter()
-    (output / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    io.write_text(output / "config.json", json.dumps(config.to_dict(), indent=2))
     paths = io.find_inputs(inputs)
     if not paths:
         raise BuildError("no input files found (label maps: .nii/.nii.gz/.nrrd/.mha...; meshes: "

@@ -272,11 +272,11 @@ def _summary(result) -> str:
     return "\n".join(lines)
 
 
-def _run_build(inputs, output, config, live: bool) -> int:
+def _run_build(inputs, output, config, live: bool, overwrite: bool = False) -> int:
     from .build import build_model
 
     with _ProgressDisplay(live) as progress:
-        result = build_model(inputs, output, config, progress=progress)
+        result = build_model(inputs, output, config, progress=progress, overwrite=overwrite)
     print(_summary(result))
     return 0
 
@@ -323,6 +323,9 @@ def main(argv=None) -> int:
     build = commands.add_parser("build", help="build a model from label maps or meshes")
     build.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
     build.add_argument("-o", "--output", required=True, help="output folder")
+    build.add_argument("--overwrite", action="store_true",
+                       help="replace an earlier build in the output folder (its files only; "
+                            "without this flag such a build is refused)")
     _add_build_options(build)
     demo = commands.add_parser("demo", help="build a model of a generated population (about 25 s)")
     demo.add_argument("-o", "--output", default="mdlshapemodel-demo", help="output folder "
@@ -374,7 +377,8 @@ def main(argv=None) -> int:
     log.setLevel(logging.INFO)
     try:
         if args.command == "build":
-            return _run_build(args.inputs, args.output, _config_from(args), live)
+            return _run_build(args.inputs, args.output, _config_from(args), live,
+                              args.overwrite)
         if args.command == "compare":
             return _run_compare(args)
         if args.command == "fit":
@@ -387,7 +391,7 @@ def main(argv=None) -> int:
             log.info("wrote %d demo label maps to %s", len(paths), output / "inputs")
             config = BuildConfig(points=642, max_time=args.max_time, seed=args.seed,
                                  specificity_samples=2000).validate()
-            return _run_build(paths, output, config, live)
+            return _run_build(paths, output, config, live, overwrite=True)  # the demo's own
     except MDLShapeModelError as error:
         print(f"mdlshapemodel: error: {error}", file=sys.stderr)
         return 2

@@ -4,6 +4,7 @@ tables, metrics.json, the checkpoint, and (through :mod:`.report`) report.html."
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,12 +33,39 @@ class BuildResult:
     interrupted: bool = False
 
 
+# What a build writes into its output folder. Other entries are not a build's: the inputs/ that the
+# demo and the Slicer module write there first, or anything else a user keeps there.
+BUILD_FILES = ("model.h5", "mean.vtp", "correspondence", "aligned", "scores.csv", "cases.csv",
+               "metrics.json", "report.html", "rejected.csv", "convergence.csv", "config.json",
+               "checkpoint.npz", "build.log")
+
+
+def previous_build(output) -> list:
+    """The files and (non-empty) folders of an earlier build in ``output``, in
+    :data:`BUILD_FILES` order; empty when there is none."""
+    output = Path(output)
+    found = []
+    for name in BUILD_FILES:
+        path = output / name
+        if path.is_file() or (path.is_dir() and any(path.iterdir())):
+            found.append(path)
+    return found
+
+
+def clear_previous_build(output) -> None:
+    """Remove an earlier build's files and folders from ``output`` (and nothing else)."""
+    for path in previous_build(output):
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+
+
 def save_checkpoint(path: Path, state: CorrespondenceState):
     """The state's correspondence (:func:`~.correspondence.state.state_record`: every accepted
-    warp, every pose, the area weights), written to a temporary name and renamed into place."""
-    temporary = path.with_name(path.name + ".tmp.npz")
-    np.savez(temporary, **state_record(state))
-    temporary.replace(path)
+    warp, every pose, the area weights), written whole or not at all."""
+    with io.written_whole(path) as temporary, open(temporary, "wb") as handle:
+        np.savez(handle, **state_record(state))
 
 
 def load_checkpoint(path: Path) -> dict:
@@ -124,6 +152,6 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
                "baselines": baselines or {}}
-    (output / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     write_report(output, metrics, cases, rejected, model, aligned, names)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted)

@@ -202,5 +202,5 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
                         "reconstruction_distance_mm": r.distance_error.tolist(),
                         "mahalanobis": float(np.sqrt(np.sum(r.scores ** 2 / model.variances))),
                         "objective": r.objective, "notes": r.notes} for r in results}
-    (output / "fit.json").write_text(json.dumps(summary, indent=2))
+    io.write_text(output / "fit.json", json.dumps(summary, indent=2))
     return results, rejected

@@ -143,14 +143,17 @@ class ShapeModel:
         return basis, values, inverse_sd[:, None] * (vectors.T @ r)
 
     def save(self, path):
-        """Write the model to an HDF5 file in the Statismo layout (see the module docstring)."""
+        """Write the model to an HDF5 file in the Statismo layout (see the module docstring),
+        whole or not at all (:func:`~mdlshapemodel.prepare.io.written_whole`)."""
         import h5py
+
+        from ..prepare.io import written_whole
 
         keys = [_checked_key(key) for key in self.metadata]      # before the file is touched
         basis, pca_variance, to_statismo = self.euclidean_pca()
         coefficients = to_statismo @ np.asarray(self.scores, dtype=np.float64).T    # (m, n_s)
         build_time = time.asctime()
-        with h5py.File(path, "w") as f:
+        with written_whole(path) as temporary, h5py.File(temporary, "w") as f:
             version = f.create_group("version")
             version.create_dataset("majorVersion", data=np.int32(STATISMO_VERSION[0]))
             version.create_dataset("minorVersion", data=np.int32(STATISMO_VERSION[1]))

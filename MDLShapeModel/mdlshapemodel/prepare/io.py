@@ -6,6 +6,7 @@ Readers raise :class:`InputError` with a one-line reason; callers add the file n
 from __future__ import annotations
 
 import csv
+import os
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -271,10 +272,41 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
+@contextmanager
+def written_whole(path):
+    """Yield a temporary name beside ``path`` to write to; when the block ends without an error,
+    rename it into place (``os.replace``: atomic on one file system), else remove it. So a file
+    is whole or absent under its final name, even if the process is killed while writing.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> target = pathlib.Path(tempfile.mkdtemp()) / "table.txt"
+    >>> with written_whole(target) as temporary:
+    ...     _ = temporary.write_text("whole")
+    >>> target.read_text()
+    'whole'
+    """
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        yield temporary
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def write_text(path, text: str):
+    """Write a text file whole or not at all (:func:`written_whole`)."""
+    with written_whole(path) as temporary:
+        temporary.write_text(text)
+
+
 def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
                    point_data: dict | None = None, lines: np.ndarray | None = None):
     """Write points with triangles (or lines) and optional point arrays to .vtp/.vtk/.stl/.ply,
-    saying that the points are LPS (:data:`COORDINATE_SYSTEM`) where 3D Slicer looks for it."""
+    saying that the points are LPS (:data:`COORDINATE_SYSTEM`) where 3D Slicer looks for it;
+    whole or not at all (:func:`written_whole`)."""
     import vtk
     from vtk.util.numpy_support import numpy_to_vtk
 
@@ -291,7 +323,6 @@ def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
     if suffix not in writers:
         raise InputError(f"{path}: cannot write meshes of type {suffix!r}")
     writer = writers[suffix]()
-    writer.SetFileName(str(path))
     # say the coordinate system as 3D Slicer reads it (see coordinate_system_of)
     if suffix == ".vtp":
         space = vtk.vtkStringArray()
@@ -303,13 +334,15 @@ def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
     else:
         writer.SetHeader(f"MDLShapeModel output. {SPACE}={COORDINATE_SYSTEM}")
     writer.SetInputData(polydata)
-    if not writer.Write():
-        raise InputError(f"{path}: could not be written")
+    with written_whole(path) as temporary:
+        writer.SetFileName(str(temporary))
+        if not writer.Write():
+            raise InputError(f"{path}: could not be written")
 
 
 def write_csv(path, header, rows):
-    """Write a CSV table with a header row."""
-    with open(path, "w", newline="") as handle:
+    """Write a CSV table with a header row (whole or not at all: :func:`written_whole`)."""
+    with written_whole(path) as temporary, open(temporary, "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(header)
         writer.writerows(rows)

@@ -125,7 +125,7 @@ def write_comparison(result: dict, destination) -> Path:
 
     destination = Path(destination)
     destination.mkdir(parents=True, exist_ok=True)
-    (destination / "compare.json").write_text(json.dumps(result, indent=2))
+    io.write_text(destination / "compare.json", json.dumps(result, indent=2))
     rows = comparison_rows(result)
     io.write_csv(destination / "compare.csv", ROW_HEADER, rows)
     series = [(values, label) for label, values in result["models"].items()]
@@ -143,7 +143,7 @@ def write_comparison(result: dict, destination) -> Path:
         body.append("<h2>Cases left out (not in every model)</h2>")
         body.append(table(("model", "cases"), [(k, ", ".join(v)) for k, v in excluded.items()]))
     path = destination / "compare.html"
-    path.write_text(html_page("MDLShapeModel comparison", body))
+    io.write_text(path, html_page("MDLShapeModel comparison", body))
     return path
 
 

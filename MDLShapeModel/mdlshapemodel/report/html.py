@@ -221,5 +221,5 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
         parts += ["<h2>Rejected inputs</h2>",
                   table(("case", "file", "reason"), [(r.name, r.path, r.reason) for r in rejected])]
     path = output / "report.html"
-    path.write_text(html_page("MDLShapeModel report", parts))
+    io.write_text(path, html_page("MDLShapeModel report", parts))
     return path

@@ -1,0 +1,73 @@
+"""A build's files are whole or absent, and a build never mixes with an earlier one in the same
+folder: it is refused unless told to replace it, and then only the earlier build's files go."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from mdlshapemodel import ShapeModel
+from mdlshapemodel.outputs import BUILD_FILES, previous_build
+from mdlshapemodel.prepare.io import write_csv, written_whole
+
+from synthetic import small_mask
+
+QUICK = ["--points", "42", "--baselines", "", "--max-time", "2", "--evaluation-modes", "2",
+         "--specificity-samples", "50", "--workers", "1", "-q"]
+
+
+def test_a_file_is_replaced_only_when_written_whole(tmp_path):
+    target = tmp_path / "table.csv"
+    write_csv(target, ["a"], [[1]])
+    with pytest.raises(RuntimeError):
+        with written_whole(target) as temporary:
+            temporary.write_text("half")
+            raise RuntimeError("killed while writing")
+    assert target.read_text().splitlines() == ["a", "1"]         # the old file, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]   # no temporary left
+
+
+@pytest.fixture(scope="module")
+def labels(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("labels")
+    for k, position in enumerate(np.linspace(-0.6, 0.6, 3)):
+        image = sitk.GetImageFromArray(small_mask(float(position)).astype(np.uint8))
+        sitk.WriteImage(image, str(folder / f"case_{k}.nii.gz"))
+    return folder
+
+
+def build(labels, output, *extra):
+    return subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "build", str(labels),
+                           "-o", str(output), *QUICK, *extra], capture_output=True, text=True)
+
+
+def test_a_second_build_into_the_same_folder_is_refused_unless_overwrite(labels, tmp_path):
+    output = tmp_path / "out"
+    (output / "inputs").mkdir(parents=True)
+    (output / "inputs" / "mine.txt").write_text("the user's")
+    (output / "notes.txt").write_text("the user's")
+    first = build(labels, output)
+    assert first.returncode == 0, first.stderr
+    assert {p.name for p in previous_build(output)} == set(BUILD_FILES)
+    assert not [p for p in output.rglob("*") if p.name.endswith(".partial")]
+    model = (output / "model.h5").read_bytes()
+    stamp = os.stat(output / "model.h5").st_mtime_ns
+
+    again = build(labels, output)
+    assert again.returncode == 2
+    assert "holds an earlier build" in again.stderr and "--overwrite" in again.stderr
+    assert "Traceback" not in again.stderr
+    assert os.stat(output / "model.h5").st_mtime_ns == stamp       # nothing touched
+
+    (output / "correspondence" / "stale_case.vtp").write_text("of the earlier build")
+    replaced = build(labels, output, "--overwrite")
+    assert replaced.returncode == 0, replaced.stderr
+    assert not (output / "correspondence" / "stale_case.vtp").exists()   # the earlier build's
+    assert (output / "notes.txt").read_text() == "the user's"            # not the build's
+    assert (output / "inputs" / "mine.txt").read_text() == "the user's"
+    (tmp_path / "first.h5").write_bytes(model)
+    first_model, replacing = ShapeModel.load(tmp_path / "first.h5"), ShapeModel.load(output / "model.h5")
+    np.testing.assert_array_equal(first_model.mean, replacing.mean)   # the same build again
