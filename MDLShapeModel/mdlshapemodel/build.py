@@ -18,7 +18,7 @@ import json
 import logging
 import time
 import traceback
-from concurrent.futures import BrokenExecutor, CancelledError, Executor, Future
+from concurrent.futures import CancelledError, Executor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,7 +35,7 @@ from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
 from .outputs import (BuildResult, Checkpoint, clear_previous_build, previous_build,
                       read_checkpoint, remove_partial_files, save_checkpoint, write_outputs)
-from .parallel import helper_for
+from .parallel import Task, helper_for
 from .prepare import io, preprocess
 from .progress import Progress, report
 
@@ -346,14 +346,8 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
 
 def _outcome(evaluation):
     """The result of an evaluation that may have run on the executor; one interrupted there
-    (Ctrl-C reaches the worker processes too), cancelled, or lost with a broken pool is done again
-    here. Any other exception is a bug and propagates."""
-    if not isinstance(evaluation, Future):
+    (Ctrl-C reaches the worker processes too), cancelled, or lost with its worker process is done
+    again here. Any other exception is a bug and propagates."""
+    if not isinstance(evaluation, Task):
         return evaluation
-    try:
-        return evaluation.result()
-    except (KeyboardInterrupt, CancelledError, BrokenExecutor) as error:
-        log.warning("a baseline evaluation on the executor did not finish (%s); evaluating here",
-                    type(error).__name__)
-        function, arguments = evaluation.retry
-        return function(*arguments)
+    return evaluation.result(redo=(KeyboardInterrupt, CancelledError))

@@ -4,17 +4,30 @@ Every room that fans work out over cases (preprocessing, the CPD baseline, evalu
 an ``executor`` argument: None runs the work in this process, in order; otherwise the work is
 submitted to it and the results are taken in input order, so the results never depend on which
 worker ran what. A Dask distributed client's ``get_executor()`` plugs in the same way. Only
-:func:`process_pool` creates processes, and only where a caller asks for one.
+:class:`ProcessPool` creates processes, and only where a caller asks for one.
+
+A worker process that dies (a segfault in a native library, ``os._exit``, the kernel's
+out-of-memory killer) loses the work it held, not the build: :func:`map_cases` finds the case that
+kills its worker and hands it to the caller's ``died`` (preprocessing rejects it), and runs the
+other cases again; :class:`Task` does lost work again here.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing
 import os
-from concurrent.futures import Executor, ProcessPoolExecutor
+import signal
+import time
+from collections import deque
+from concurrent.futures import (FIRST_COMPLETED, BrokenExecutor, Executor, ProcessPoolExecutor,
+                                wait)
 
+from .errors import InternalError
 from .progress import Progress, report
+
+log = logging.getLogger("mdlshapemodel")
 
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -33,19 +46,78 @@ def _one_blas_thread_per_worker():
             os.environ.pop(name, None)
 
 
-@contextlib.contextmanager
-def process_pool(workers: int):
-    """A pool of ``workers`` processes started with ``spawn`` (one BLAS thread each), shut down on
-    exit; None when ``workers`` <= 1 (the work then runs in this process).
+class ProcessPool(Executor):
+    """A pool of ``workers`` processes started with ``spawn`` (one BLAS thread each) that replaces
+    itself when a worker process dies.
+
+    A ``ProcessPoolExecutor`` whose worker dies is broken for good: the futures of every call it
+    was running or holding fail with ``BrokenProcessPool``, and it takes no new ones. This pool
+    starts a fresh ``ProcessPoolExecutor`` at the next :meth:`submit` instead, so the lost calls
+    can be submitted again. :meth:`death` says how a worker died. Workers start on demand, at a
+    submission, and are shut down with the pool (``with ProcessPool(n) as pool:``).
 
     ``spawn`` (not ``fork``): VTK, numba and BLAS threads do not survive a fork safely. A script
     that uses it needs the usual ``if __name__ == "__main__":`` guard.
     """
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self._pool = None
+        self._processes = {}   # the worker processes of the current pool, by pid
+        self._closed = False
+
+    def _fresh(self) -> ProcessPoolExecutor:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+        self._pool = ProcessPoolExecutor(max_workers=self.workers,
+                                         mp_context=multiprocessing.get_context("spawn"))
+        self._processes = {}
+        return self._pool
+
+    def submit(self, fn, /, *args, **kwargs):
+        if self._closed:
+            raise RuntimeError("cannot schedule new futures after shutdown")
+        with _one_blas_thread_per_worker():   # workers start within submit
+            try:
+                future = (self._pool or self._fresh()).submit(fn, *args, **kwargs)
+            except BrokenExecutor:
+                future = self._fresh().submit(fn, *args, **kwargs)
+        # kept to read their exit codes after a death (the executor forgets them at shutdown)
+        self._processes.update(getattr(self._pool, "_processes", None) or {})
+        return future
+
+    def death(self, wait_seconds: float = 5.0) -> str:
+        """How a worker of the current pool died: 'signal N', 'exit code N' (0 too: a worker
+        must not end while it holds work) or 'cause unknown'. Exact for a pool of one worker; with
+        more, the others are stopped (signal 15) when one dies, and a dead one is named."""
+        deadline = time.monotonic() + wait_seconds
+        while True:
+            # the executor's thread may be reaping the process at this moment: ask again
+            codes = [process.exitcode for process in self._processes.values()]
+            dead = [code for code in codes if code is not None]
+            if dead or time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        if not dead:
+            return "cause unknown"
+        code = next((code for code in dead if code), 0)
+        return f"signal {-code}" if code < 0 else f"exit code {code}"
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False):
+        self._closed = True
+        if self._pool is not None:
+            self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+            self._pool = None
+
+
+@contextlib.contextmanager
+def process_pool(workers: int):
+    """A :class:`ProcessPool` of ``workers`` processes, shut down on exit; None when ``workers``
+    <= 1 (the work then runs in this process)."""
     if workers <= 1:
         yield None
         return
-    with _one_blas_thread_per_worker(), ProcessPoolExecutor(
-            max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPool(workers) as pool:
         yield pool
 
 
@@ -69,15 +141,38 @@ def helper_for(workers: int, executor: Executor | None = None):
     if executor is not None or workers <= 1:
         yield executor
         return
-    with _one_blas_thread_per_worker(), ProcessPoolExecutor(
-            max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPool(1) as pool:
         yield pool
 
 
 def map_cases(function, arguments: list, executor: Executor | None = None,
-              progress: Progress | None = None, message: str = "cases") -> list:
+              progress: Progress | None = None, message: str = "cases", died=None,
+              workers: int = 1) -> list:
     """``[function(*a) for a in arguments]``, on ``executor`` when given; results in input order,
-    progress reported after each."""
+    progress reported after each.
+
+    A worker process that dies takes down the calls it was running (on a :class:`ProcessPool`,
+    at most one per worker: no more are submitted than it has workers, so the calls that were
+    running are known), and the pool with them. Each of those cases runs again alone, one after
+    another, in a fresh process of its own: the result of one that finishes there is kept; one
+    whose process dies again becomes ``died(index, how)``, ``how`` e.g. ``"worker process died
+    (signal 9)"`` (``died`` None: an :class:`InternalError`). The pool replaces itself and the
+    remaining cases go on.
+
+    Why alone and not by which worker's pid held which case: the pid tells which case was in the
+    process that died, not whether that case killed it. A worker killed from outside (the out-of-memory killer
+    picks the largest process, someone's ``kill``) would have its case given up though it did
+    nothing wrong, and which cases met in a pool depends on timing. Run alone, a case is given up
+    only when it kills a process that runs nothing else: the same cases whatever the timing or
+    the number of workers.
+
+    A caller's ``executor`` that breaks is not ours to replace: its unfinished cases run in a
+    :class:`ProcessPool` of ``workers`` processes made for them (and through it alone, should
+    they kill a worker there), and the log says so.
+
+    Any other exception of ``function`` is re-raised, that of the first such case in input
+    order, once the cases running beside it have finished.
+    """
     total = len(arguments)
     if executor is None or total <= 1:
         results = []
@@ -85,13 +180,151 @@ def map_cases(function, arguments: list, executor: Executor | None = None,
             results.append(function(*a))
             report(progress, (k + 1) / total, f"{message} {k + 1}/{total}")
         return results
-    futures = [executor.submit(function, *a) for a in arguments]
-    try:
-        results = []
-        for k, future in enumerate(futures):
-            results.append(future.result())
-            report(progress, (k + 1) / total, f"{message} {k + 1}/{total}")
-        return results
-    finally:
+    with contextlib.ExitStack() as owned:
+        mapping = _CaseMap(function, arguments, executor, progress, message, died, workers, owned)
+        try:
+            return mapping.run()
+        finally:
+            for future in mapping.running:
+                future.cancel()
+
+
+class _CaseMap:
+    """The state of one :func:`map_cases` on an executor: the cases to submit, those running,
+    the results so far."""
+
+    def __init__(self, function, arguments, executor, progress, message, died, workers, owned):
+        self.function, self.arguments, self.executor = function, arguments, executor
+        self.progress, self.message, self.died, self.workers = progress, message, died, workers
+        self.owned = owned          # the pools made here, shut down when the map ends
+        self.alone = None           # the one-worker pool that runs a suspect case alone
+        self.results = [None] * len(arguments)
+        self.todo = deque(range(len(arguments)))
+        self.running = {}           # future -> case index
+        self.errors = {}            # case index -> exception of the function
+        self.finished = 0
+
+    def run(self) -> list:
+        while self.running or (self.todo and not self.errors):
+            if not self.errors:
+                self._submit()
+            lost = self._collect(wait(self.running, return_when=FIRST_COMPLETED).done)
+            if lost and not self.errors:
+                self._recover(lost)
+        if self.errors:
+            raise self.errors[min(self.errors)]
+        return self.results
+
+    def _submit(self):
+        ours = isinstance(self.executor, ProcessPool)
+        width = self.executor.workers if ours else len(self.arguments)
+        while self.todo and len(self.running) < width:
+            index = self.todo.popleft()
+            try:
+                future = self.executor.submit(self.function, *self.arguments[index])
+            except BrokenExecutor:            # a caller's executor, broken earlier
+                self.todo.appendleft(index)
+                self._recover([])
+                return
+            self.running[future] = index
+
+    def _collect(self, futures) -> list:
+        """Results of finished ``futures`` kept, exceptions noted; returns the lost cases."""
+        lost = []
         for future in futures:
-            future.cancel()
+            index = self.running.pop(future)
+            try:
+                value = future.result()
+            except BrokenExecutor:
+                lost.append(index)
+                continue
+            except BaseException as error:     # a bug, or an interrupt in the worker
+                self.errors[index] = error
+                continue
+            self._keep(index, value)
+        return lost
+
+    def _keep(self, index: int, value):
+        self.results[index] = value
+        self.finished += 1
+        total = len(self.arguments)
+        report(self.progress, self.finished / total, f"{self.message} {self.finished}/{total}")
+
+    def _recover(self, lost: list):
+        # the broken executor fails every call it held: wait for them all
+        lost = sorted(lost + self._collect(wait(self.running).done))
+        if self.errors:
+            return
+        if not isinstance(self.executor, ProcessPool):
+            log.warning("the executor broke with %d of %d cases unfinished: they run in a "
+                        "process pool of %d made for them", len(lost) + len(self.todo),
+                        len(self.arguments), max(1, self.workers))
+            self.executor = self.owned.enter_context(ProcessPool(max(1, self.workers)))
+            self.todo = deque(sorted(lost + list(self.todo)))
+            return
+        log.warning("a worker process died: the cases it may have taken down (%s of %d) run "
+                    "again, each alone in a fresh process", ", ".join(str(i + 1) for i in lost),
+                    len(self.arguments))
+        for index in lost:
+            self._keep(index, self._run_alone(index))
+
+    def _run_alone(self, index: int):
+        if self.alone is None:
+            self.alone = self.owned.enter_context(ProcessPool(1))
+        try:
+            return self.alone.submit(self.function, *self.arguments[index]).result()
+        except BrokenExecutor:
+            how = f"worker process died ({self.alone.death()})"
+        if self.died is None:
+            raise InternalError(f"case {index + 1} of {len(self.arguments)} ({self.message}): "
+                                f"{how}, also when it ran alone; please report it")
+        return self.died(index, how)
+
+
+class Task:
+    """``function(*arguments)`` on ``executor`` (None: run here, now); :meth:`result` gives its
+    value. Work the executor lost (its worker process died, or the executor was broken when the
+    work was submitted) is done again here, in this process, with a warning in the log; a
+    :class:`ProcessPool` replaces itself for the next submission.
+
+    Meant for work on data already in memory (an evaluation's linear algebra): if its worker dies,
+    the cause is outside it (a kill, lack of memory), and doing it again here is sound."""
+
+    def __init__(self, executor: Executor | None, function, *arguments, what: str = "work"):
+        self.function, self.arguments, self.what = function, arguments, what
+        self.future = self.error = None
+        if executor is None:
+            self.value = function(*arguments)
+            return
+        try:
+            self.future = executor.submit(function, *arguments)
+        except BrokenExecutor as error:
+            self.error = error
+
+    def result(self, redo: tuple = ()):
+        """The value; also done again here when the executor's run raised one of ``redo``."""
+        if self.future is None and self.error is None:
+            return self.value
+        try:
+            if self.error is not None:
+                raise self.error
+            return self.future.result()
+        except (BrokenExecutor, *redo) as error:
+            log.warning("%s on the executor did not finish (%s); doing it here", self.what,
+                        type(error).__name__)
+            return self.function(*self.arguments)
+
+
+# ---- test-only --------------------------------------------------------------------------------
+
+TEST_CRASH_VARIABLE = "MDLSHAPEMODEL_TEST_CRASH_ON"
+
+
+def crash_hook_for_tests(subject: str):
+    """TEST-ONLY: kill this process with SIGKILL (as a segfaulting native library would end it)
+    when ``$MDLSHAPEMODEL_TEST_CRASH_ON`` is set and ``subject`` (a file about to be prepared)
+    contains it; only in a worker process, never in the main one. The tests of dying workers set
+    it; nothing else does."""
+    pattern = os.environ.get(TEST_CRASH_VARIABLE)
+    if pattern and pattern in subject and multiprocessing.parent_process() is not None:
+        os.kill(os.getpid(), signal.SIGKILL)

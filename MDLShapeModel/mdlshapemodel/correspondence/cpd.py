@@ -76,6 +76,7 @@ from pycpd import DeformableRegistration, RigidRegistration
 from pycpd.emregistration import EMRegistration
 
 from ..config import BuildConfig
+from ..errors import InternalError
 from ..parallel import executor_for, map_cases
 from ..prepare.surface import SurfaceDistance
 from ..progress import Progress
@@ -513,7 +514,9 @@ def cpd_state(state: CorrespondenceState, prepared: list, config: BuildConfig,
     The template is the case whose initial correspondence is closest to the initial mean (the
     medoid); its points are registered onto every other case's surface by coherent point drift
     and projected onto it (:func:`cpd_correspondence`), on ``executor`` (default: a process
-    pool of ``config.workers``).
+    pool of ``config.workers``). A registration whose worker process dies runs again alone in a
+    fresh process (:func:`~mdlshapemodel.parallel.map_cases`); one that kills that one too is a
+    bug (:class:`InternalError`, naming the case): its input was prepared already.
     """
     aligned = state.aligned_shapes()
     distances = np.einsum("ikd,k->i", (aligned - aligned.mean(axis=0)) ** 2, state.weights)
@@ -522,10 +525,16 @@ def cpd_state(state: CorrespondenceState, prepared: list, config: BuildConfig,
     log.info("CPD baseline: registering the template %s onto %d cases",
              state.examples[template].name, len(prepared) - 1)
     others = [i for i in range(len(prepared)) if i != template]
+
+    def died(index: int, how: str):
+        raise InternalError(f"{prepared[others[index]].name}: {how} while the CPD template was "
+                            "registered onto it, also in a process of its own; please report it")
+
     with executor_for(config.workers, executor) as pool:
         registered = map_cases(cpd_correspondence,
                                [(points, prepared[i].map.vertices, prepared[i].map.faces)
-                                for i in others], pool, progress, "CPD registered")
+                                for i in others], pool, progress, "CPD registered", died,
+                               config.workers)
     shapes = {template: points, **dict(zip(others, registered))}
     examples = [FixedExample(case.name, shapes[i]) for i, case in enumerate(prepared)]
     return (CorrespondenceState(examples, state.grids, scaling=config.scaling),

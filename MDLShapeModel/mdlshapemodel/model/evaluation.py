@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..correspondence import hotloops
+from ..parallel import Task
 from ..prepare.surface import SurfaceDistance
 from .shape_model import ShapeModel
 
@@ -460,7 +461,8 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         Specificity samples per M measured surface to surface.
     pool : concurrent.futures.Executor, optional
         Where to measure the surface generalization meanwhile (e.g. a process on another core);
-        the results are the same.
+        the results are the same. If its worker process dies, it is measured here instead
+        (:class:`~mdlshapemodel.parallel.Task`).
 
     Returns
     -------
@@ -482,8 +484,8 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         # the longest part: started first, elsewhere when there is a pool
         arguments = (shapes, weights, triangles, surfaces, max_modes,
                      SURFACE_GENERALIZATION_POINTS)
-        g_surface = pool.submit(surface_generalization, *arguments) if pool is not None else \
-            surface_generalization(*arguments)
+        g_surface = Task(pool, surface_generalization, *arguments,
+                         what="the surface generalization")
     c, c_se = compactness(variances, n_s, max_modes)
     g = generalization(shapes, weights, max_modes)
     s = specificity(shapes, weights, max_modes, n_samples, rng)
@@ -498,9 +500,8 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
     if surfaces is not None:
         s_surface = surface_specificity(shapes, weights, triangles, surfaces, max_modes,
                                         surface_samples, surface_rng)
-        if pool is not None:
-            g_surface = g_surface.result()
-        for name, result in (("generalization", g_surface), ("specificity", s_surface)):
+        for name, result in (("generalization", g_surface.result()),
+                             ("specificity", s_surface)):
             as_list[name + "_surface_mm"] = result["distance"].tolist()
             as_list[name + "_surface_mm_se"] = result["distance_se"].tolist()
         as_list["specificity_surface_samples"] = int(surface_samples)
@@ -514,8 +515,9 @@ def evaluate_state(state, config, prepared: list | None = None,
     order) and ``config.surface_samples`` > 0, also measured surface to surface.
 
     With a ``pool`` (any ``concurrent.futures.Executor``): ``background`` runs the whole evaluation there and
-    returns its future (the state may change meanwhile: it gets copies); otherwise only a part
-    runs there and the result is returned when all is done.
+    returns its :class:`~mdlshapemodel.parallel.Task` (the state may change meanwhile: it gets
+    copies; if the worker process dies, ``result()`` evaluates here); otherwise only a part runs
+    there and the result is returned when all is done.
     """
     aligned = state.aligned_shapes()
     if model is None:
@@ -528,7 +530,5 @@ def evaluate_state(state, config, prepared: list | None = None,
                  config.specificity_samples, np.random.default_rng(config.seed),
                  state.triangles().copy(), surfaces, config.surface_samples)
     if pool is not None and background:
-        future = pool.submit(evaluate, *arguments)
-        future.retry = (evaluate, arguments)
-        return future
+        return Task(pool, evaluate, *arguments, what="an evaluation")
     return evaluate(*arguments, pool=pool)

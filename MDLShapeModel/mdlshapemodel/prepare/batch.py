@@ -7,8 +7,9 @@ from concurrent.futures import Executor
 
 from ..config import BuildConfig
 from ..errors import InternalError
-from ..parallel import executor_for, map_cases
+from ..parallel import crash_hook_for_tests, executor_for, map_cases
 from ..progress import Progress
+from . import io
 from .cache import cache_dir_of, prepare_case_cached
 from .case import PreparedCase, Rejection
 
@@ -18,6 +19,7 @@ log = logging.getLogger("mdlshapemodel")
 def _prepare_or_bug(path: str, config: BuildConfig, cache_dir: str | None):
     """:func:`cache.prepare_case_cached`, with a bug turned into an :class:`InternalError` that
     names the input (run in worker processes too; the traceback travels with the error)."""
+    crash_hook_for_tests(path)
     try:
         return prepare_case_cached(path, config, cache_dir)
     except Exception as error:
@@ -31,14 +33,24 @@ def preprocess(paths, config: BuildConfig, executor: Executor | None = None,
     """Prepare every case on ``executor`` (default: a process pool of ``config.workers``, none
     when 1; see :mod:`mdlshapemodel.parallel`), reusing cached results (:mod:`.cache`).
 
+    A case whose worker process dies while preparing it (a crash in a native library, a kill)
+    and again when it is prepared alone in a fresh process is rejected, "worker process died
+    (signal 9) while preparing <file>"; the pool is replaced and the other cases go on
+    (:func:`~mdlshapemodel.parallel.map_cases`). Such a rejection is not cached.
+
     Returns (prepared, rejected), each in input order. Raises :class:`InternalError` (naming the
     case) when preparing an input meets a bug rather than a problem of the input.
     """
     paths = [str(p) for p in paths]
     cache_dir = cache_dir_of(config)
+
+    def died(index: int, how: str):
+        path = paths[index]
+        return Rejection(io.case_name(path), path, f"{how} while preparing {path}"), False
+
     with executor_for(config.workers, executor) as pool:
         results = map_cases(_prepare_or_bug, [(p, config, cache_dir) for p in paths], pool,
-                            progress, "prepared")
+                            progress, "prepared", died, config.workers)
     reused = sum(hit for _, hit in results)
     if reused:
         log.info("reused %d of %d preprocessed cases from the cache %s", reused, len(paths),

@@ -1,0 +1,152 @@
+"""A dying worker process is one rejected case, not a dead build (real processes throughout).
+
+Workers are killed by the test-only hook ``MDLSHAPEMODEL_TEST_CRASH_ON`` (preparation) or by
+functions of this module that end their own process, as a segfault in a native library would.
+"""
+
+import json
+import logging
+import multiprocessing
+import os
+import subprocess
+from concurrent.futures import Executor, ProcessPoolExecutor
+
+import numpy as np
+import SimpleITK as sitk
+
+from mdlshapemodel import BuildConfig, ShapeModel
+from mdlshapemodel.parallel import TEST_CRASH_VARIABLE, ProcessPool, Task, map_cases
+from mdlshapemodel.prepare import preprocess
+from mdlshapemodel.prepare.io import read_csv
+
+from dying import die, square_or_die
+from synthetic import small_mask
+from test_cli import EXECUTABLE
+
+
+def rejected(index: int, how: str) -> str:
+    return f"{index}: {how}"
+
+
+EXPECTED = [0, 1, "2: worker process died (signal 9)", 9, "4: worker process died (exit code 7)",
+            25, "6: worker process died (exit code 0)", 49]
+
+
+def test_a_case_that_kills_its_worker_is_given_up_and_the_others_go_on(caplog):
+    """The dying cases become ``died(index, how)`` with their signal or exit code; the cases
+    that were running beside them when the pool broke, and those after, get their results."""
+    with ProcessPool(2) as pool:
+        with caplog.at_level(logging.WARNING, "mdlshapemodel"):
+            results = map_cases(square_or_die, [(x,) for x in range(8)], pool, died=rejected)
+        assert results == EXPECTED
+        # the pool replaced itself: it still works
+        assert pool.submit(square_or_die, 5).result() == 25
+    assert "each alone in a fresh process" in caplog.text
+
+
+def test_a_callers_executor_that_breaks_is_replaced_by_a_pool_of_our_own(caplog):
+    """A caller's executor is not ours to replace: its unfinished cases run in a pool made for
+    them (the log says so), with the same results."""
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as theirs:
+        with caplog.at_level(logging.WARNING, "mdlshapemodel"):
+            results = map_cases(square_or_die, [(x,) for x in range(8)], theirs, died=rejected,
+                                workers=2)
+    assert results == EXPECTED
+    assert "the executor broke" in caplog.text
+
+
+class FirstCallDies(Executor):
+    """A caller's executor whose first call kills its worker process instead of running."""
+
+    def __init__(self, pool):
+        self.pool, self.calls = pool, 0
+
+    def submit(self, fn, /, *args, **kwargs):
+        self.calls += 1
+        return self.pool.submit(die) if self.calls == 1 else self.pool.submit(fn, *args, **kwargs)
+
+
+def test_an_evaluation_whose_worker_dies_is_done_here_with_the_same_numbers(rng):
+    from mdlshapemodel.model.evaluation import evaluate
+    from mdlshapemodel.model.shape_model import ShapeModel as Model
+    from test_evaluation import radial_population
+
+    shapes, triangles, weights, surfaces = radial_population(rng, 5, 3)
+    variances = Model.from_shapes(shapes, weights).variances
+    here = evaluate(shapes, weights, variances, 2, 100, np.random.default_rng(5),
+                    triangles=triangles, surfaces=surfaces, surface_samples=5)
+    with ProcessPool(1) as pool:
+        # the surface generalization's worker dies: measured here
+        dying = FirstCallDies(pool)
+        assert evaluate(shapes, weights, variances, 2, 100, np.random.default_rng(5),
+                        triangles=triangles, surfaces=surfaces, surface_samples=5,
+                        pool=dying) == here
+        # a whole evaluation in the background (a baseline's), its worker dies: done here
+        dying.calls = 0
+        task = Task(dying, evaluate, shapes, weights, variances, 2, 100,
+                    np.random.default_rng(5), triangles, surfaces, 5)
+        assert task.result() == here
+    # an executor already broken when the work is submitted
+    broken = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    broken.submit(die).exception()
+    assert Task(broken, square_or_die, 3).result() == 9
+    broken.shutdown()
+
+
+def write_population(folder, n=5):
+    folder.mkdir()
+    paths = []
+    for k, position in enumerate(np.linspace(-0.6, 0.6, n)):
+        paths.append(folder / f"case_{k}.nii.gz")
+        mask = small_mask(float(position), 1.0 + 0.03 * ((k % 3) - 1)).astype(np.uint8)
+        sitk.WriteImage(sitk.GetImageFromArray(mask), str(paths[-1]))
+    return paths
+
+
+def build(inputs, output, workers, crash_on=None):
+    environment = dict(os.environ, PYTHONWARNINGS="ignore")
+    environment.pop(TEST_CRASH_VARIABLE, None)
+    if crash_on:
+        environment[TEST_CRASH_VARIABLE] = crash_on
+    return subprocess.run(
+        EXECUTABLE + ["build", *map(str, inputs), "-o", str(output), "--points", "162",
+                      "--baselines", "", "--max-sweeps", "1", "--evaluation-modes", "2",
+                      "--specificity-samples", "50", "--surface-samples", "5", "--workers",
+                      str(workers)], capture_output=True, text=True, env=environment,
+        timeout=600)
+
+
+def test_a_build_rejects_the_case_that_kills_its_worker_and_models_the_others(tmp_path):
+    """``--workers 2``, one input kills its worker whenever it is prepared: the build succeeds,
+    rejected.csv says why, and the model is bit for bit that of the other inputs alone (prepared
+    again, in this process, with one worker and no cache)."""
+    from mdlshapemodel.build import correspond
+
+    paths = write_population(tmp_path / "inputs")
+    culprit = paths[2]
+    output = tmp_path / "out"
+    result = build([tmp_path / "inputs"], output, 2, crash_on=culprit.name)
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr
+    rows = read_csv(output / "rejected.csv")
+    assert [(row["case"], row["file"]) for row in rows] == [("case_2", str(culprit))]
+    assert rows[0]["reason"] == f"worker process died (signal 9) while preparing {culprit}"
+    assert len([line for line in result.stderr.splitlines() if culprit.name in line]) == 1
+    assert "each alone in a fresh process" in (output / "build.log").read_text()
+
+    config = BuildConfig.from_dict({**json.loads((output / "config.json").read_text()),
+                                    "workers": 1, "cache_dir": ""})
+    prepared, _ = preprocess([p for p in paths if p != culprit], config)
+    reference = correspond(prepared, config).model
+    survived = ShapeModel.load(output / "model.h5")
+    assert survived.names == reference.names == ["case_0", "case_1", "case_3", "case_4"]
+    for name in ("mean", "modes", "variances", "weights", "scores", "triangles", "parameters"):
+        assert np.array_equal(getattr(survived, name), getattr(reference, name)), name
+
+
+def test_the_crash_hook_never_fires_in_the_main_process(tmp_path, monkeypatch):
+    """With one worker there is no worker process: the case is prepared here, hook or not."""
+    path = write_population(tmp_path / "inputs", 1)[0]
+    monkeypatch.setenv(TEST_CRASH_VARIABLE, path.name)
+    prepared, rejected_cases = preprocess([path], BuildConfig(workers=1, cache_dir=""))
+    assert [case.name for case in prepared] == ["case_0"] and rejected_cases == []
