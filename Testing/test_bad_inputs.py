@@ -1,9 +1,10 @@
 """A batch with every kind of bad input: each gets one clear line, the rest of the batch goes on."""
 
 import numpy as np
+import pytest
 import SimpleITK as sitk
 
-from mdlshapemodel.prepare.io import read_csv, write_polydata
+from mdlshapemodel.prepare.io import read_csv, read_label_map, write_polydata
 from mdlshapemodel.correspondence.sampling import icosphere
 
 from synthetic import small_mask, torus
@@ -114,3 +115,143 @@ def test_a_bug_while_preparing_stops_the_build_naming_the_case(tmp_path, monkeyp
     from mdlshapemodel import MDLShapeModelError
 
     assert not isinstance(raised.value, MDLShapeModelError)
+
+
+# --- damaged files and headers that lie ----------------------------------------------------------
+
+def prepared_or_reason(path):
+    """``prepare_case``'s verdict on a file: 'prepared' or the rejection's reason."""
+    from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.prepare import prepare_case
+
+    result = prepare_case(path, BuildConfig(cache_dir=""))
+    return getattr(result, "reason", "prepared")
+
+
+def write_compressed(folder, suffix):
+    """A small label map written compressed; returns (the file to read, the file of its
+    compressed voxels)."""
+    import gzip
+
+    image = sitk.GetImageFromArray(small_mask(0.0).astype(np.uint8))
+    if suffix == ".img.gz":                     # an Analyze/NIfTI pair with a gzipped image
+        sitk.WriteImage(image, str(folder / "case.hdr"))
+        (folder / "case.img.gz").write_bytes(gzip.compress((folder / "case.img").read_bytes()))
+        (folder / "case.img").unlink()
+        return folder / "case.hdr", folder / "case.img.gz"
+    path = folder / f"case{suffix}"
+    sitk.WriteImage(image, str(path), True)
+    data = {".nhdr": "case.raw.gz", ".mhd": "case.zraw"}.get(suffix, path.name)
+    return path, folder / data
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".img.gz", ".nrrd", ".nhdr", ".mha", ".mhd"])
+def test_a_compressed_label_map_cut_short_or_damaged_is_rejected(tmp_path, suffix):
+    """Measured before: a .nii.gz cut to half its length was read without an error, the missing
+    voxels zeros, and prepared as a good case. Every compressed stream is now checked whole
+    (gzip: CRC-32 and length; MetaImage's zlib: Adler-32 and size) before a reader trusts it."""
+    path, data = write_compressed(tmp_path, suffix)
+    whole = data.read_bytes()
+    assert prepared_or_reason(path) == "prepared"
+    data.write_bytes(whole[:len(whole) // 2])
+    assert "compressed data is truncated or corrupt" in prepared_or_reason(path)
+    damaged = bytearray(whole)
+    damaged[len(whole) * 3 // 4] ^= 0x10        # one bit, well inside the compressed voxels
+    data.write_bytes(bytes(damaged))
+    assert "compressed data is truncated or corrupt" in prepared_or_reason(path)
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".hdr", ".nrrd", ".mha"])
+def test_an_uncompressed_label_map_shorter_than_its_header_says_is_rejected(tmp_path, suffix):
+    """Before, a .nii (or Analyze .img) cut short was read with zeros for the missing voxels."""
+    path = tmp_path / f"case{suffix}"
+    write_image(path, small_mask(0.0))
+    data = path.with_suffix(".img") if suffix == ".hdr" else path
+    data.write_bytes(data.read_bytes()[:-1000])
+    reason = prepared_or_reason(path)
+    assert reason.startswith("the image data is truncated: the header says"), reason
+
+
+NRRD = "NRRD0004\ntype: uint8\ndimension: {dimension}\n{space}\nsizes: {sizes}\n" \
+       "space directions: {directions}\nkinds: {kinds}\nencoding: raw\n\n"
+META = "ObjectType = Image\nNDims = {dimension}\nDimSize = {sizes}\nElementType = MET_UCHAR\n" \
+       "ElementSpacing = {spacing}\nElementNumberOfChannels = {channels}\nElementDataFile = LOCAL\n"
+
+
+def nrrd(sizes, spacing=(1.0, 1.0, 1.0), vector=False) -> bytes:
+    """A NRRD header (with as many voxels after it as a tiny image needs)."""
+    axes = [f"({','.join(str(s if i == k else 0) for i in range(len(spacing)))})"
+            for k, s in enumerate(spacing)]
+    header = NRRD.format(dimension=len(sizes), sizes=" ".join(map(str, sizes)),
+                         space=("space: 3D-right-handed" if len(spacing) == 3
+                                else f"space dimension: {len(spacing)}"),
+                         directions=("none " if vector else "") + " ".join(axes),
+                         kinds=("vector " if vector else "") + " ".join(["domain"] * len(axes)))
+    return header.encode() + bytes(min(np.prod(sizes), 4096))
+
+
+def meta(sizes, spacing="1 1 1", channels=1, dimension=None) -> bytes:
+    header = META.format(dimension=dimension or len(sizes), sizes=" ".join(map(str, sizes)),
+                         spacing=spacing, channels=channels)
+    return header.encode() + bytes(min(np.prod(sizes) * channels, 4096))
+
+
+LYING_HEADERS = {
+    # a header of a few bytes that claims 10^15 voxels: refused from the header, with its size
+    "huge.nrrd": (nrrd([100000, 100000, 100000]),
+                  "the header claims 100000 x 100000 x 100000 = 1,000,000,000,000,000 voxels "
+                  "(1,000,000.0 GB of 8-bit unsigned integer); a label map may have at most"),
+    "huge.mha": (meta([100000, 100000, 100000]), "= 1,000,000,000,000,000 voxels"),
+    "flat.nrrd": (nrrd([8, 8], (1.0, 1.0)), "a 2-D image (8 x 8); this build needs 3-D label maps"),
+    "flat.mha": (meta([8, 8], "1 1"), "a 2-D image (8 x 8); this build needs 3-D label maps"),
+    "movie.mha": (meta([4, 4, 4, 2], "1 1 1 1"), "a 4-D image (4 x 4 x 4 x 2); this build needs"),
+    "vector.nrrd": (nrrd([2, 4, 4, 4], vector=True), "got an image of 2 values per voxel"),
+    "channels.mha": (meta([4, 4, 4], channels=3), "got an image of 3 values per voxel"),
+    "negative.mha": (meta([4, 4, 4], "1 -0.5 1"), "the header's spacing (1, -0.5, 1) is zero or "
+                                                  "negative"),
+    "zero.mha": (meta([4, 4, 4], "0 1 1"), "the header's spacing (0, 1, 1) is zero or negative"),
+    "nan.mha": (meta([4, 4, 4], "nan nan nan"), "is zero or negative"),   # MetaIO: NaN -> 0
+    "zero.nrrd": (nrrd([4, 4, 4], (0.0, 1.0, 1.0)), "is zero or negative"),
+    # MetaIO crashes the process on these (a segmentation fault): refused before it reads them
+    "dimensions.mha": (meta([4, 4, 4], dimension=-1), "the MetaImage header's NDims is '-1'"),
+    "many.mha": (meta([4, 4, 4], dimension=1000000), "NDims is '1000000'; 1 to 10 are possible"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(LYING_HEADERS))
+def test_a_header_that_lies_is_rejected_before_any_voxel_is_read(tmp_path, monkeypatch, name):
+    """Checked from the header (SimpleITK's ReadImageInformation) before anything is allocated:
+    the voxels are never read (the reader's Execute is not called)."""
+    data, phrase = LYING_HEADERS[name]
+    (tmp_path / name).write_bytes(data)
+
+    def never(self):
+        raise AssertionError("the voxels of a rejected header were read")
+
+    monkeypatch.setattr(sitk.ImageFileReader, "Execute", never)
+    reason = prepared_or_reason(tmp_path / name)
+    assert phrase in reason, reason
+
+
+def test_nan_and_zero_in_a_nifti_header_are_taken_as_its_reader_says(tmp_path):
+    """What SimpleITK already handles: a NIfTI pixdim of NaN or 0 is read as spacing 1 (its
+    documented fallback), a NaN in the sform is an error of the reader, named."""
+    import struct
+
+    write_image(tmp_path / "case.nii", small_mask(0.0))
+    header = bytearray((tmp_path / "case.nii").read_bytes())
+    struct.pack_into("<hh", header, 252, 0, 0)                    # no qform, no sform
+    struct.pack_into("<4f", header, 76, 1.0, float("nan"), 0.0, 1.0)
+    (tmp_path / "pixdim.nii").write_bytes(bytes(header))
+    assert read_label_map(tmp_path / "pixdim.nii").spacing == (1.0, 1.0, 1.0)
+    struct.pack_into("<h", header, 254, 1)                        # sform with a NaN
+    struct.pack_into("<4f", header, 280, float("nan"), 0.0, 0.0, 0.0)
+    (tmp_path / "sform.nii").write_bytes(bytes(header))
+    reason = prepared_or_reason(tmp_path / "sform.nii")
+    assert reason.startswith("not a readable image (ITK only supports orthonormal"), reason
+
+
+def test_a_4d_image_of_one_volume_is_its_3d_volume(tmp_path):
+    mask = small_mask(0.0).astype(np.uint8)
+    sitk.WriteImage(sitk.JoinSeries(sitk.GetImageFromArray(mask)), str(tmp_path / "one.nii.gz"))
+    assert np.array_equal(read_label_map(tmp_path / "one.nii.gz").mask, mask != 0)

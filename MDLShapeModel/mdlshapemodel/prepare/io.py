@@ -6,13 +6,24 @@ Readers raise :class:`InputError` with a one-line reason; callers add the file n
 from __future__ import annotations
 
 import csv
+import logging
+import math
+import os
+import re
+import sys
+import tempfile
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..config import MAX_COORDINATE, MAX_VOXELS
 from ..errors import InputError
+from . import integrity
+
+log = logging.getLogger("mdlshapemodel")
 
 IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".hdr", ".img", ".img.gz")
 MESH_SUFFIXES = (".vtk", ".vtp", ".stl", ".ply", ".obj")
@@ -76,7 +87,8 @@ class LabelMap:
 def _require_scalar(components: int):
     """A label map has one value per voxel (SimpleITK images and vtkImageData alike)."""
     if components != 1:
-        raise InputError("expected a scalar label map, got a multi-component image")
+        raise InputError(f"expected a scalar label map, got an image of {components} values per "
+                         "voxel")
 
 
 def select_labels(array: np.ndarray, labels=()) -> np.ndarray:
@@ -120,24 +132,161 @@ def select_labels(array: np.ndarray, labels=()) -> np.ndarray:
     return array != 0
 
 
+_NATIVE_STDERR = threading.Lock()
+
+
+@contextmanager
+def captured_native_stderr():
+    """Collect what native code (ITK's MetaImage and NIfTI readers) prints on the process's
+    standard error instead of printing it; yields a callable that returns the collected text,
+    which is the caller's to use (:func:`_itk_reading`: the reason of a rejection, or log lines).
+
+    File descriptor 2 belongs to the whole process: one block at a time (a lock).
+    """
+    with _NATIVE_STDERR:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (AttributeError, OSError, ValueError):     # no stderr (e.g. a GUI without one)
+            yield lambda: ""
+            return
+        with tempfile.TemporaryFile() as sink:
+            def collected() -> str:
+                sink.seek(0)
+                return sink.read().decode("utf-8", "replace")
+
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield collected
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+
+
+def printable(text) -> str:
+    """``text`` on one line, control characters (newlines, terminal escapes) written as escapes:
+    file names and reasons as they go into a log line."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+
+
+def _printed(native: str) -> tuple[list, list]:
+    """(errors, warnings) in what a reader printed: ITK's warnings are blocks 'WARNING: In
+    file, line n' + 'Class (0x...): message'; MetaIO and nifticlib print their errors as plain
+    lines, and go on."""
+    errors, warnings, warning = [], [], False
+    for line in native.splitlines():
+        if line.startswith("WARNING"):
+            warning = True
+        elif line.strip():
+            if warning:
+                warnings.append(re.sub(r"^\w+ \(0x[0-9a-fA-F]+\): ", "", line.strip()))
+            else:
+                errors.append(line.strip())
+            warning = False
+    return errors, warnings
+
+
+def _itk_reason(text: str, native: str, path) -> str:
+    """The informative part of a SimpleITK error (and of what its reader printed)."""
+    if "Unable to determine ImageIO reader" in text:
+        return "unknown format or corrupt file"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    teem = [line.split(": ", 1)[1] for line in lines if line.startswith("[nrrd]") and ": " in line]
+    if teem:
+        reason = teem[-1]                       # NRRD: the innermost of teem's messages
+    else:
+        reason = next((line for line in lines if "Exception thrown" not in line
+                       and not line.startswith("Reason:")), "unknown error")
+        reason = re.sub(r"^(ITK |itk::|sitk::)?ERROR: (\w+\(0x[0-9a-fA-F]+\): )?", "", reason)
+    printed, _ = _printed(native)
+    if printed and reason.startswith(("File cannot be read", "unknown error")):
+        reason = printed[0]                     # MetaIO prints why; its exception says little
+    return reason.replace(str(path), "the file")[:200]
+
+
+@contextmanager
+def _itk_reading(path):
+    """SimpleITK's errors while reading ``path``, and the errors its reader printed and went on
+    from (MetaIO's 'Uncompress failed' returns an image), -> one InputError; the warnings ITK
+    printed -> one log line each, naming the file."""
+    with captured_native_stderr() as native:
+        try:
+            yield
+            errors, warnings = _printed(native())
+            if errors:
+                raise RuntimeError("")
+        except RuntimeError as error:
+            reason = _itk_reason(str(error), native(), path)
+            raise InputError(f"not a readable image ({reason})") from None
+    for warning in dict.fromkeys(warnings):
+        log.warning("%s: %s", printable(path), printable(warning.replace(str(path), "the file")))
+
+
+def _bits(pixel: str) -> int:
+    """Bits per voxel of a SimpleITK pixel type name ('8-bit unsigned integer', 'vector of
+    32-bit float', 'complex of 64-bit float')."""
+    found = re.search(r"(\d+)-bit", pixel)
+    return (int(found.group(1)) if found else 64) * (2 if "complex" in pixel else 1)
+
+
+def check_image_header(size, spacing, origin, direction, components: int, pixel: str) -> int:
+    """What a label-map header says, checked before any voxel is read: three dimensions (or a
+    fourth of size 1), one value per voxel, at most :data:`~mdlshapemodel.config.MAX_VOXELS`
+    voxels, finite positive spacing, a finite origin and direction. Returns the bytes of the
+    voxels. ``pixel`` is SimpleITK's name of the pixel type."""
+    shape = " x ".join(str(n) for n in size)
+    if len(size) == 2:
+        raise InputError(f"a 2-D image ({shape}); this build needs 3-D label maps")
+    if len(size) != 3 and not (len(size) == 4 and size[3] == 1):
+        raise InputError(f"a {len(size)}-D image ({shape}); this build needs 3-D label maps")
+    _require_scalar(components)
+    voxels = math.prod(size)
+    nbytes = voxels * components * _bits(pixel) // 8
+    if voxels > MAX_VOXELS:
+        raise InputError(f"the header claims {shape} = {voxels:,} voxels ({nbytes / 1e9:,.1f} GB "
+                         f"of {pixel}); a label map may have at most {MAX_VOXELS:,} voxels "
+                         "(MAX_VOXELS: memory)")
+    values = ", ".join(f"{v:g}" for v in spacing)
+    if not all(math.isfinite(v) for v in spacing):
+        raise InputError(f"the header's spacing ({values}) is not a number")
+    if not all(v > 0 for v in spacing):
+        raise InputError(f"the header's spacing ({values}) is zero or negative")
+    if not all(math.isfinite(v) for v in tuple(origin) + tuple(direction)):
+        raise InputError("the header's origin or direction is not a number")
+    extent = max(abs(o) + s * n for o, s, n in zip(origin, spacing, size))
+    if extent > MAX_COORDINATE:
+        raise InputError(f"the image reaches {extent:.3g} mm from the origin, beyond "
+                         f"{MAX_COORDINATE:.0e} (MAX_COORDINATE)")
+    return nbytes
+
+
 def read_label_map(path, labels=()) -> LabelMap:
     """The union of ``labels`` (all non-zero labels when empty) of a label-map image file
-    (:func:`select_labels`)."""
+    (:func:`select_labels`).
+
+    The header is read and checked first (:func:`check_image_header`), then the file's data
+    against it (:func:`.integrity.check_image_data`: complete, intact compressed streams), and only
+    then the voxels."""
     import SimpleITK as sitk
 
     if not Path(path).is_file():
         raise InputError("no such file")
-    try:
-        image = sitk.ReadImage(str(path))
-    except RuntimeError as error:
-        text = str(error)
-        if "Unable to determine ImageIO reader" in text:
-            reason = "unknown format or corrupt file"
-        else:
-            lines = [line.strip() for line in text.splitlines() if line.strip()]
-            reason = next((line for line in lines if "Exception" not in line), "unknown error")
-            reason = reason.replace(str(path), "the file").replace("sitk::ERROR: ", "")[:160]
-        raise InputError(f"not a readable image ({reason})") from None
+    integrity.check_image_text_header(path)
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    with _itk_reading(path):        # what the reader prints about a file it rejects is dropped
+        try:
+            reader.ReadImageInformation()
+        except RuntimeError:
+            integrity.check_gzip(path)  # a damaged .nii.gz: say so, not 'unknown format'
+            raise
+        nbytes = check_image_header(
+            reader.GetSize(), reader.GetSpacing(), reader.GetOrigin(), reader.GetDirection(),
+            reader.GetNumberOfComponents(), sitk.GetPixelIDValueAsString(reader.GetPixelID()))
+        integrity.check_image_data(path, nbytes)
+        image = reader.Execute()
+    if image.GetDimension() == 4:                  # a 4-D image of one volume
+        image = image[:, :, :, 0]
     if image.GetDimension() != 3:
         raise InputError(f"expected a 3-D label map, got a {image.GetDimension()}-D image")
     _require_scalar(image.GetNumberOfComponentsPerPixel())

@@ -1,0 +1,330 @@
+"""An input file's bytes checked against its header before a reader trusts them.
+
+Readers believe headers. SimpleITK fills what a short compressed stream leaves out with zeros (a
+.nii.gz cut to half its length reads without an error, and half an object looks like a good case),
+takes what a damaged MetaImage stream gives, and allocates whatever size a header claims; VTK's
+XML reader allocates what its counts claim (a count of 10^12 aborts the process). The checks here
+read a file's data once, in chunks (bounded memory), after its header was found sane:
+
+- compressed streams decompress completely and intact: gzip (.nii.gz, .img.gz, NRRD ``encoding:
+  gzip``, attached or in a detached data file) by its CRC-32 and length, bzip2 (NRRD) by its CRC,
+  zlib (MetaImage ``CompressedData = True``, LOCAL or in a data file) by its Adler-32;
+- the data, decompressed or not, holds as many bytes as the header says (NIfTI and Analyze,
+  NRRD, MetaImage).
+
+Each check raises :class:`InputError` with a one-line reason. Formats are told by their content
+(what SimpleITK's readers go by), not by the file name.
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import re
+import struct
+import zlib
+from pathlib import Path
+
+from ..errors import InputError
+
+CHUNK = 1 << 20
+# A stream may decompress to this much more than its header says before it is refused: a
+# compression bomb then costs at most this much decompressing.
+SLACK = 1 << 20
+HEADER_LIMIT = 1 << 16   # the longest text header (NRRD, MetaImage) looked at
+
+
+def _corrupt(error: Exception) -> InputError:
+    detail = str(error).strip() or type(error).__name__
+    return InputError(f"compressed data is truncated or corrupt ({detail})")
+
+
+def _short(what: str, got: int, expected: int) -> InputError:
+    return InputError(f"the image data is truncated: the header says {expected:,} bytes, "
+                      f"{what} {got:,}")
+
+
+def _count(read, limit: int, refuse: bool = True) -> int:
+    """The number of bytes ``read(CHUNK)`` gives until it gives none; beyond ``limit`` refused
+    (or, not ``refuse``, no more read)."""
+    total = 0
+    while block := read(CHUNK):
+        total += len(block)
+        if total > limit:
+            if not refuse:
+                break
+            raise InputError(f"the compressed data holds more than the {limit - SLACK:,} "
+                             "bytes its header says")
+    return total
+
+
+def gzip_size(handle, limit: int, refuse: bool = True) -> int:
+    """The decompressed length of the gzip stream (all members) from ``handle``'s position,
+    each member's CRC-32 and length checked (:func:`_count` for ``limit``)."""
+    try:
+        with gzip.GzipFile(fileobj=handle, mode="rb") as stream:
+            return _count(stream.read, limit, refuse)
+    except (OSError, EOFError, zlib.error) as error:   # BadGzipFile is an OSError
+        raise _corrupt(error) from None
+
+
+def check_gzip(path, limit: int = 1 << 30):
+    """A gzip file decompresses intact as far as ``limit`` bytes (others are not looked at):
+    why a reader could not make sense of a damaged .nii.gz."""
+    with open(path, "rb") as handle:
+        if handle.read(2) == b"\x1f\x8b":
+            handle.seek(0)
+            gzip_size(handle, limit, refuse=False)
+
+
+def stream_size(handle, decompressor, limit: int, available: int | None = None) -> int:
+    """The decompressed length of one zlib/bzip2 stream from ``handle``'s position (at most
+    ``available`` bytes of input), which must end (its check value is then verified)."""
+    total, left = 0, available
+    try:
+        while not decompressor.eof:
+            block = handle.read(CHUNK if left is None else min(CHUNK, left))
+            if not block:
+                raise InputError("compressed data is truncated or corrupt (the stream ends "
+                                 "before its end marker)")
+            if left is not None:
+                left -= len(block)
+            while block and not decompressor.eof:
+                if isinstance(decompressor, bz2.BZ2Decompressor):
+                    out, block = decompressor.decompress(block, CHUNK), b""
+                    while not decompressor.eof and not decompressor.needs_input:
+                        total += len(out)
+                        out = decompressor.decompress(b"", CHUNK)
+                else:
+                    out = decompressor.decompress(block, CHUNK)
+                    block = decompressor.unconsumed_tail
+                total += len(out)
+                if total > limit:
+                    raise InputError(f"the compressed data holds more than the "
+                                     f"{limit - SLACK:,} bytes its header says")
+    except (OSError, EOFError, ValueError, zlib.error) as error:
+        raise _corrupt(error) from None
+    return total
+
+
+def _file_size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+# --- label maps ----------------------------------------------------------------------------------
+
+_METAIMAGE = rb"\s*(ObjectType|NDims|ObjectSubType|Comment)\s*="   # how MetaImage files begin
+
+
+def check_image_data(path, nbytes: int):
+    """Check the data of the image file ``path`` whose header says (as SimpleITK read it) that
+    it holds ``nbytes`` bytes of voxels: NIfTI/Analyze (by its own header), NRRD, MetaImage;
+    other files are left to their reader."""
+    path = Path(path)
+    with open(path, "rb") as handle:
+        head = handle.read(HEADER_LIMIT)
+    if head[:2] == b"\x1f\x8b" or _nifti_header(head) is not None:
+        _check_nifti(path)
+    elif head.startswith(b"NRRD"):
+        _check_nrrd(path, head, nbytes)
+    elif re.match(_METAIMAGE, head):
+        _check_metaimage(path, head, nbytes)
+
+
+def _open_data(path: Path):
+    """``path`` opened for reading, decompressed when it is gzip."""
+    handle = open(path, "rb")
+    if handle.read(2) == b"\x1f\x8b":
+        handle.seek(0)
+        return gzip.GzipFile(fileobj=handle, mode="rb")
+    handle.seek(0)
+    return handle
+
+
+def _nifti_header(head: bytes) -> tuple[int, int] | None:
+    """Where the voxels start and how many bytes they take, by a NIfTI-1/Analyze (348-byte) or
+    NIfTI-2 (540-byte) header: its own dimensions and bits per voxel (SimpleITK reports the
+    rescaled type of a file with a scale slope, not the stored one)."""
+    if len(head) < 4:
+        return None
+    for order in "<>":
+        size = struct.unpack(order + "i", head[:4])[0]
+        if size == 348 and len(head) >= 112:
+            dims = struct.unpack(order + "8h", head[40:56])
+            bits = struct.unpack(order + "h", head[72:74])[0]
+            offset = struct.unpack(order + "f", head[108:112])[0]
+            offset = int(offset) if 0 <= offset < 2**40 else 0    # NaN and nonsense: 0
+        elif size == 540 and len(head) >= 176:
+            bits = struct.unpack(order + "h", head[14:16])[0]
+            dims = struct.unpack(order + "8q", head[16:80])
+            offset = max(0, struct.unpack(order + "q", head[168:176])[0])
+        else:
+            continue
+        if not 1 <= dims[0] <= 7:
+            return None
+        voxels = 1
+        for dim in dims[1:dims[0] + 1]:
+            voxels *= max(dim, 1)
+        return offset, voxels * max(bits, 0) // 8
+    return None
+
+
+def _sibling(path: Path, suffixes) -> Path | None:
+    name = path.name
+    stem = name[:-3] if name.lower().endswith(".gz") else name
+    stem = stem[:stem.rfind(".")] if "." in stem else stem
+    return next((p for p in (path.with_name(stem + s) for s in suffixes) if p.is_file()), None)
+
+
+def _check_nifti(path: Path):
+    """A .nii(.gz) holds its header and voxels; an Analyze/NIfTI pair has them in .hdr and
+    .img (either may be gzipped)."""
+    name = path.name.lower()
+    header, data = path, path
+    if name.endswith((".hdr", ".hdr.gz")):
+        data = _sibling(path, (".img", ".img.gz"))
+    elif name.endswith((".img", ".img.gz")):
+        header = _sibling(path, (".hdr", ".hdr.gz"))
+    if header is None or data is None:
+        return                                    # the reader says that a file is missing
+    try:
+        with _open_data(header) as stream:
+            layout = _nifti_header(stream.read(540))
+    except (OSError, EOFError, zlib.error) as error:
+        raise _corrupt(error) from None
+    if layout is None:
+        return                                    # not NIfTI after all: the reader's to judge
+    expected = sum(layout)
+    with open(data, "rb") as handle:
+        if handle.read(2) == b"\x1f\x8b":
+            handle.seek(0)
+            size, what = gzip_size(handle, expected + SLACK), "it decompresses to"
+        else:
+            size, what = _file_size(data), "the file holds"
+    if size < expected:
+        raise _short(what, size, expected)
+
+
+def _text_fields(head: bytes, separator: str) -> tuple[dict, int | None]:
+    """``key<separator>value`` lines of a text header (keys lower case, without spaces) and
+    where the header ends: after the first empty line (NRRD, ``separator`` ':') or after the
+    ElementDataFile line (MetaImage, '='); None when it does not end within ``head``."""
+    fields, position = {}, 0
+    while True:
+        end = head.find(b"\n", position)
+        if end < 0:
+            return fields, None
+        line = head[position:end].decode("latin-1").strip()
+        position = end + 1
+        if separator == ":" and not line:
+            return fields, position
+        key, found, value = line.partition(separator)
+        if found and not line.startswith("#"):
+            key = key.strip().lower().replace(" ", "")
+            fields.setdefault(key, value.strip())
+            if separator == "=" and key == "elementdatafile":
+                return fields, position
+
+
+def _integer(fields: dict, key: str, default: int = 0) -> int:
+    try:
+        return int(fields.get(key, default))
+    except ValueError:
+        raise InputError(f"the header's {key} is not a number ({fields[key][:40]!r})") from None
+
+
+def _data_file(path: Path, name: str) -> Path | None:
+    """A detached data file named in a header, None for lists and patterns of files (left to
+    the reader)."""
+    if not name or name.upper().startswith("LIST") or "%" in name or " " in name.strip():
+        return None
+    return path.parent / name
+
+
+def _skip_lines(handle, lines: int):
+    for _ in range(lines):
+        if not handle.readline(HEADER_LIMIT):
+            break
+
+
+def _check_nrrd(path: Path, head: bytes, nbytes: int):
+    fields, offset = _text_fields(head, ":")
+    detached = fields.get("datafile") or fields.get("data file")
+    if detached is not None:
+        data, offset = _data_file(path, detached), 0
+        if data is None:
+            return
+        if not data.is_file():
+            raise InputError(f"the data file {detached!r} the header names is missing")
+    elif offset is None:
+        return                                    # no data after the header: the reader's to say
+    else:
+        data = path
+    encoding = fields.get("encoding", "raw").lower()
+    line_skip, byte_skip = _integer(fields, "lineskip"), _integer(fields, "byteskip")
+    with open(data, "rb") as handle:
+        handle.seek(offset)
+        _skip_lines(handle, line_skip)
+        start = handle.tell()
+        if encoding in ("gzip", "gz"):
+            expected = max(byte_skip, 0) + nbytes
+            size, what = gzip_size(handle, expected + SLACK), "it decompresses to"
+        elif encoding in ("bzip2", "bz2"):
+            expected = max(byte_skip, 0) + nbytes
+            size = stream_size(handle, bz2.BZ2Decompressor(), expected + SLACK)
+            what = "it decompresses to"
+        elif encoding == "raw":
+            expected = nbytes + (byte_skip if byte_skip > 0 else 0)
+            size, what = _file_size(data) - start, "the file holds"
+        else:
+            return                                # text encodings: the reader counts the values
+    if size < expected:
+        raise _short(what, size, expected)
+
+
+def check_image_text_header(path):
+    """What SimpleITK's own parsing cannot take: MetaIO crashes the process (a segmentation
+    fault or an abort) on a MetaImage header whose NDims is not 1 to 10 (its most)."""
+    path = Path(path)
+    with open(path, "rb") as handle:
+        head = handle.read(HEADER_LIMIT)
+    if not (path.name.lower().endswith((".mha", ".mhd")) or re.match(_METAIMAGE, head)):
+        return
+    for dimensions in re.findall(rb"^[ \t]*NDims[ \t]*[=:](.*)$", head, re.MULTILINE | re.I):
+        dimensions = dimensions.decode("latin-1").strip()
+        if not (dimensions.isdigit() and 1 <= int(dimensions) <= 10):
+            raise InputError(f"not a readable image (the MetaImage header's NDims is "
+                             f"{dimensions[:40]!r}; 1 to 10 are possible)")
+
+
+def _check_metaimage(path: Path, head: bytes, nbytes: int):
+    fields, offset = _text_fields(head, "=")
+    if offset is None:
+        return
+    name = fields.get("elementdatafile", "")
+    if name.upper() == "LOCAL":
+        data = path
+    else:
+        data, offset = _data_file(path, name), 0
+        if data is None:
+            return
+        if not data.is_file():
+            raise InputError(f"the data file {name!r} the header names is missing")
+    compressed = fields.get("compresseddata", "false").lower() in ("true", "1", "yes")
+    with open(data, "rb") as handle:
+        if compressed:
+            handle.seek(offset)
+            available = _integer(fields, "compresseddatasize", -1)
+            # MetaIO inflates zlib or gzip streams (window bits 47 detect which)
+            size = stream_size(handle, zlib.decompressobj(47), nbytes + SLACK,
+                               available if available > 0 else None)
+            what = "it decompresses to"
+        else:
+            header_size = _integer(fields, "headersize")
+            start = offset if name.upper() == "LOCAL" else max(header_size, 0)
+            size, what = _file_size(data) - start, "the file holds"
+    if size < nbytes:
+        raise _short(what, size, nbytes)
