@@ -255,3 +255,141 @@ def test_a_4d_image_of_one_volume_is_its_3d_volume(tmp_path):
     mask = small_mask(0.0).astype(np.uint8)
     sitk.WriteImage(sitk.JoinSeries(sitk.GetImageFromArray(mask)), str(tmp_path / "one.nii.gz"))
     assert np.array_equal(read_label_map(tmp_path / "one.nii.gz").mask, mask != 0)
+
+
+# --- meshes --------------------------------------------------------------------------------------
+
+def sphere_mesh():
+    from mdlshapemodel.correspondence.sampling import icosphere
+
+    vertices, faces = icosphere(2)
+    return vertices * 10.0, faces
+
+
+def legacy_vtk(points: str, polygons: str) -> bytes:
+    return ("# vtk DataFile Version 3.0\nx\nASCII\nDATASET POLYDATA\n" + points
+            + polygons).encode()
+
+
+PLY_HEADER = b"ply\nformat binary_little_endian 1.0\nelement vertex %d\nproperty float x\n" \
+             b"property float y\nproperty float z\nelement face %d\n" \
+             b"property list uchar int vertex_indices\nend_header\n"
+
+
+def damaged_ply(kind: str) -> bytes:
+    """Binary PLY files on which VTK's PLY reader crashed the process (segmentation fault)."""
+    vertices, faces = sphere_mesh()
+    body = vertices.astype("<f4").tobytes()
+    records = np.zeros(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    records["n"], records["v"] = 3, faces
+    if kind == "negative index":
+        records["v"][5, 1] = -16777216
+    if kind == "list count":
+        records["n"][0] = 200
+    data = PLY_HEADER % (len(vertices), len(faces)) + body + records.tobytes()
+    if kind == "cut short":
+        data = data[:len(data) // 2]
+    if kind == "huge count":
+        data = PLY_HEADER % (10**11, len(faces)) + body
+    return data
+
+
+def far_obj() -> bytes:
+    """An OBJ mesh with a point at 10^300 mm (finite: its squares overflow)."""
+    vertices, faces = sphere_mesh()
+    vertices[0, 0] = 1e300
+    return "\n".join(["v " + " ".join(f"{v:.9g}".replace("e+", "e") for v in point)
+                      for point in vertices]
+                     + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]).encode()
+
+
+MESHES = {
+    "far.obj": (far_obj(), "the mesh has a coordinate of 1e+300 mm, beyond 1e+09"),   # a bug before
+    "huge.vtk": (legacy_vtk("POINTS 100000000000 float\n0 0 0 1 0 0 0 1 0\n", ""),
+                 "the header claims 100,000,000,000 points; a mesh may have at most"),
+    "lying.vtk": (legacy_vtk("POINTS 5000000 float\n0 0 0 1 0 0 0 1 0\n", ""),
+                  "the header claims 5,000,000 points in a file of"),
+    "index.vtk": (legacy_vtk("POINTS 3 float\n0 0 0 1 0 0 0 1 0\n", "POLYGONS 1 4\n3 0 1 99\n"),
+                  "a cell refers to point 99; the mesh has 3 points"),
+    "huge.vtp": (b'<?xml version="1.0"?>\n<VTKFile type="PolyData" version="0.1">\n<PolyData>\n'
+                 b'<Piece NumberOfPoints="3" NumberOfPolys="1000000000000">\n',
+                 "the header claims 1,000,000,000,000 cells"),      # VTK aborted (bad_alloc)
+    "cut.ply": (damaged_ply("cut short"), "the file ends within the face elements"),
+    "negative.ply": (damaged_ply("negative index"), "a face refers to vertex -16777216"),
+    "count.ply": (damaged_ply("list count"), "not a readable PLY file"),
+    "huge.ply": (damaged_ply("huge count"), "the header claims 100,000,000,000 vertex elements"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MESHES))
+def test_a_damaged_or_lying_mesh_file_is_rejected_not_a_crash(tmp_path, name):
+    """Each of these crashed the process, allocated what the header claimed or was a Python
+    exception (a bug) before."""
+    data, phrase = MESHES[name]
+    (tmp_path / name).write_bytes(data)
+    reason = prepared_or_reason(tmp_path / name)
+    assert phrase in reason, reason
+
+
+def test_a_vtp_with_a_damaged_compressed_block_is_rejected(tmp_path):
+    """VTK XML files compress their arrays in zlib blocks (Adler-32); the reader's error on a
+    damaged block is a rejection, even when the other arrays were read."""
+    path = tmp_path / "mesh.vtp"
+    write_polydata(path, *sphere_mesh())
+    data = path.read_bytes()
+    start = data.index(b"<AppendedData")
+    start = data.index(b"_", start) + 1
+    end = data.index(b"</AppendedData>")
+    for at in range(start + (end - start) // 3, end - 10, (end - start) // 7):
+        damaged = bytearray(data)
+        damaged[at] = ord("A") if damaged[at] != ord("A") else ord("B")   # another base64 digit
+        path.write_bytes(bytes(damaged))
+        assert prepared_or_reason(path).startswith("not a readable mesh ("), at
+
+
+def test_the_package_reads_ply_files_as_vtk_does(tmp_path):
+    """The package's PLY reader (VTK's crashes on damaged files) gives VTK's points and faces
+    on valid files: ASCII and binary, both byte orders, colours, quads."""
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    from mdlshapemodel.prepare.ply import read_ply
+    from mdlshapemodel.prepare.surface import arrays_to_polydata
+
+    vertices, faces = sphere_mesh()
+    polydata = arrays_to_polydata(vertices, faces)
+    colours = vtk.vtkUnsignedCharArray()
+    colours.SetNumberOfComponents(3)
+    colours.SetName("RGB")
+    for k in range(len(vertices)):
+        colours.InsertNextTuple3(k % 256, 7, 9)
+    polydata.GetPointData().SetScalars(colours)
+    quads = vtk.vtkPolyData()
+    quads.SetPoints(polydata.GetPoints())
+    cells = vtk.vtkCellArray()
+    cells.InsertNextCell(4, [0, 1, 2, 3])
+    cells.InsertNextCell(3, [4, 5, 6])
+    quads.SetPolys(cells)
+    for name, data, setting in [("ascii", polydata, "SetFileTypeToASCII"),
+                                ("little", polydata, "SetFileTypeToBinary"),
+                                ("big", polydata, "SetDataByteOrderToBigEndian"),
+                                ("colours", polydata, None), ("quads", quads, "SetFileTypeToASCII")]:
+        writer = vtk.vtkPLYWriter()
+        writer.SetFileName(str(tmp_path / f"{name}.ply"))
+        if setting:
+            getattr(writer, setting)()
+        if name == "colours":
+            writer.SetArrayName("RGB")
+        writer.SetInputData(data)
+        writer.Write()
+        reader = vtk.vtkPLYReader()
+        reader.SetFileName(str(tmp_path / f"{name}.ply"))
+        reader.Update()
+        expected = reader.GetOutput()
+        found = read_ply(tmp_path / f"{name}.ply")
+        np.testing.assert_array_equal(found.vertices,
+                                      vtk_to_numpy(expected.GetPoints().GetData()))
+        np.testing.assert_array_equal(found.offsets,
+                                      vtk_to_numpy(expected.GetPolys().GetOffsetsArray()))
+        np.testing.assert_array_equal(found.connectivity,
+                                      vtk_to_numpy(expected.GetPolys().GetConnectivityArray()))

@@ -10,7 +10,9 @@ read a file's data once, in chunks (bounded memory), after its header was found 
   gzip``, attached or in a detached data file) by its CRC-32 and length, bzip2 (NRRD) by its CRC,
   zlib (MetaImage ``CompressedData = True``, LOCAL or in a data file) by its Adler-32;
 - the data, decompressed or not, holds as many bytes as the header says (NIfTI and Analyze,
-  NRRD, MetaImage).
+  NRRD, MetaImage);
+- the counts of a mesh file's header are within the bounds of :mod:`mdlshapemodel.config` and
+  fit the file (VTK XML and legacy VTK files).
 
 Each check raises :class:`InputError` with a one-line reason. Formats are told by their content
 (what SimpleITK's readers go by), not by the file name.
@@ -25,6 +27,7 @@ import struct
 import zlib
 from pathlib import Path
 
+from ..config import MAX_MESH_POINTS
 from ..errors import InputError
 
 CHUNK = 1 << 20
@@ -328,3 +331,109 @@ def _check_metaimage(path: Path, head: bytes, nbytes: int):
             size, what = _file_size(data) - start, "the file holds"
     if size < nbytes:
         raise _short(what, size, nbytes)
+
+
+# --- meshes ----------------------------------------------------------------------------------------
+
+# The most a mesh header may claim, per kind of count: a closed triangle mesh has about twice as
+# many triangles as points, three indices per triangle and a few values per point.
+MESH_BOUNDS = {"points": MAX_MESH_POINTS, "cells": 2 * MAX_MESH_POINTS,
+               "cell indices": 8 * MAX_MESH_POINTS, "array values": 16 * MAX_MESH_POINTS}
+
+
+def check_mesh_counts(path):
+    """The counts a VTK XML (.vtp) or legacy VTK (.vtk) header claims are within
+    :data:`MESH_BOUNDS` (from :data:`~mdlshapemodel.config.MAX_MESH_POINTS`) and, but for array
+    values (which may be compressed), fit the file: each takes a byte at least."""
+    path = Path(path)
+    size = _file_size(path)
+    with open(path, "rb") as handle:
+        head = handle.read(HEADER_LIMIT)
+    if head.lstrip().startswith(b"<"):
+        counts = _xml_counts(path)
+    elif head.startswith(b"# vtk DataFile"):
+        counts = _legacy_counts(path)
+    else:
+        return
+    for what, count in counts:
+        if count < 0:
+            raise InputError(f"the header claims {count:,} {what}")
+        if count > MESH_BOUNDS[what]:
+            raise InputError(f"the header claims {count:,} {what}; a mesh may have at most "
+                             f"{MESH_BOUNDS[what]:,} (MAX_MESH_POINTS: memory)")
+        if what != "array values" and count > size:
+            raise InputError(f"the header claims {count:,} {what} in a file of {size:,} bytes")
+
+
+_LEGACY_COUNT = re.compile(rb"^[ \t]*(POINTS|VERTICES|LINES|POLYGONS|TRIANGLE_STRIPS|POINT_DATA"
+                           rb"|CELL_DATA)[ \t]+(-?\d+)(?:[ \t]+(-?\d+))?", re.MULTILINE)
+
+
+def _legacy_counts(path: Path) -> list:
+    """(what, count) of every section of a legacy VTK file: points, cells (and their index
+    lists) and values."""
+    counts = []
+    with open(path, "rb") as handle:
+        text = handle.read()
+    for match in _LEGACY_COUNT.finditer(text):
+        keyword, count = match.group(1), int(match.group(2))
+        what = "points" if keyword in (b"POINTS", b"POINT_DATA") else "cells"
+        counts.append((what, count))
+        if match.group(3):
+            counts.append(("cell indices", int(match.group(3))))
+    return counts
+
+
+def _position(path: Path, marker: bytes) -> int | None:
+    """Where ``marker`` first occurs in a file, read in chunks."""
+    with open(path, "rb") as handle:
+        offset, tail = 0, b""
+        while block := handle.read(CHUNK):
+            found = (tail + block).find(marker)
+            if found >= 0:
+                return offset - len(tail) + found
+            offset += len(block)
+            tail = block[-len(marker):]
+    return None
+
+
+def _xml_counts(path: Path) -> list:
+    """(what, count) from a VTK XML file's elements before its appended data (which need not
+    be XML): the points and cells of every piece, tuples times components of every array."""
+    import xml.etree.ElementTree as ElementTree
+
+    parser = ElementTree.XMLPullParser(events=("start",))
+    counts, points, cells = [], 0, 0
+    end = _position(path, b"<AppendedData")
+    with open(path, "rb") as handle:
+        left = end if end is not None else _file_size(path)
+        while left > 0 and (block := handle.read(min(CHUNK, left))):
+            left -= len(block)
+            parser.feed(block)
+            try:
+                for _, element in parser.read_events():
+                    counts += _element_counts(element, points, cells)
+                    if element.tag == "Piece":
+                        points = _attribute(element, "NumberOfPoints")
+                        cells = sum(_attribute(element, f"NumberOf{kind}")
+                                    for kind in ("Verts", "Lines", "Strips", "Polys", "Cells"))
+                        counts += [("points", points), ("cells", cells)]
+            except ElementTree.ParseError as error:
+                raise InputError(f"not a readable VTK XML file ({error})") from None
+    return counts
+
+
+def _attribute(element, name: str) -> int:
+    value = element.get(name, "0")
+    try:
+        return int(value)
+    except ValueError:
+        raise InputError(f"{element.tag} {name}={value[:40]!r} is not a whole number") from None
+
+
+def _element_counts(element, points: int, cells: int) -> list:
+    if element.tag not in ("DataArray", "Array"):
+        return []
+    components = _attribute(element, "NumberOfComponents") or 1
+    tuples = _attribute(element, "NumberOfTuples") or max(points, cells, 1)
+    return [("array values", components * tuples)]

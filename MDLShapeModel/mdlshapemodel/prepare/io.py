@@ -316,8 +316,9 @@ def label_map_of_image_data(image, labels=()) -> LabelMap:
 def _reader_for(path):
     import vtk
 
+    # PLY files are read by .ply.read_ply: VTK's reader crashes on damaged ones
     readers = {".vtk": vtk.vtkPolyDataReader, ".vtp": vtk.vtkXMLPolyDataReader,
-               ".stl": vtk.vtkSTLReader, ".ply": vtk.vtkPLYReader, ".obj": vtk.vtkOBJReader}
+               ".stl": vtk.vtkSTLReader, ".obj": vtk.vtkOBJReader}
     suffix = suffix_of(path)
     if suffix not in readers:
         raise InputError(f"unsupported mesh format {suffix or Path(path).suffix!r}")
@@ -327,7 +328,8 @@ def _reader_for(path):
 @contextmanager
 def captured_vtk_messages():
     """Collect VTK's error and warning text instead of printing it; yields a callable that
-    returns the collected text."""
+    returns the collected text (a str: VTK gives bytes when a damaged file put invalid UTF-8
+    into a message)."""
     import vtk
 
     window = vtk.vtkStringOutputWindow()
@@ -336,10 +338,14 @@ def captured_vtk_messages():
     vtk.vtkOutputWindow.SetInstance(window)
     vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
     try:
-        yield window.GetOutput
+        yield lambda: _text(window.GetOutput())
     finally:
         vtk.vtkOutputWindow.SetInstance(previous_window)
         vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.ConvertToVerbosity(previous_verbosity))
+
+
+def _text(value) -> str:
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value or "")
 
 
 def read_polydata(path):
@@ -347,21 +353,64 @@ def read_polydata(path):
     return _read_polydata(path)[0]
 
 
+def vtk_errors(text: str) -> list:
+    """The messages of the errors (not the warnings) in text collected by
+    :func:`captured_vtk_messages`."""
+    reasons, in_error = [], False
+    for line in text.splitlines():
+        if line.startswith(("ERROR:", "Warning:", "Generic Warning:")):
+            in_error = line.startswith("ERROR:")
+        elif in_error and line.strip():
+            reasons.append(re.sub(r"^\w+ \(0x[0-9a-fA-F]+\): ", "", line.strip()))
+            in_error = False
+    return reasons
+
+
 def _read_polydata(path):
+    """(vtkPolyData, the texts in which the file may say its coordinate system); a reader's
+    error, a header that claims too much (:func:`.integrity.check_mesh_counts`) or an empty mesh
+    is an InputError."""
     if not Path(path).is_file():
         raise InputError("no such file")
+    if suffix_of(path) == ".ply":
+        return _read_ply(path)
     reader = _reader_for(path)
+    integrity.check_mesh_counts(path)
     reader.SetFileName(str(path))
     with captured_vtk_messages() as messages:
         reader.Update()
-        text = messages().strip().splitlines()
+        errors = vtk_errors(messages())
     polydata = reader.GetOutput()
+    if errors:
+        reason = printable(errors[0].replace(str(path), "the file"))[:120]
+        raise InputError(f"not a readable mesh ({reason})")
     if polydata is None or polydata.GetNumberOfPoints() == 0:
-        reason = next((line.split(": ", 1)[-1] for line in text if ": " in line
-                       and "line" not in line), "")
-        detail = f" ({reason.strip()[:120]})" if reason else ""
-        raise InputError(f"not a readable mesh or the mesh is empty{detail}")
-    return polydata, reader
+        raise InputError("not a readable mesh or the mesh is empty")
+    array = polydata.GetFieldData().GetAbstractArray(SPACE)
+    notes = [array.GetValue(0)] if array is not None and array.GetNumberOfValues() else []
+    notes += [getattr(reader, getter)() for getter in ("GetHeader", "GetComment")
+              if hasattr(reader, getter)]
+    return polydata, [_text(note) for note in notes]
+
+
+def _read_ply(path):
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+
+    from .ply import read_ply
+
+    mesh = read_ply(path)
+    if len(mesh.vertices) == 0:
+        raise InputError("not a readable mesh or the mesh is empty")
+    polydata = vtk.vtkPolyData()
+    points = vtk.vtkPoints()
+    points.SetData(numpy_to_vtk(mesh.vertices, deep=True))
+    polydata.SetPoints(points)
+    polygons = vtk.vtkCellArray()
+    polygons.SetData(numpy_to_vtkIdTypeArray(mesh.offsets, deep=True),
+                     numpy_to_vtkIdTypeArray(mesh.connectivity, deep=True))
+    polydata.SetPolys(polygons)
+    return polydata, mesh.comments
 
 
 # Mesh files say in which coordinate system their points are as 3D Slicer writes and reads it:
@@ -372,17 +421,10 @@ SPACE = "SPACE"
 COORDINATE_SYSTEM = "LPS"
 
 
-def coordinate_system_of(reader, polydata) -> str | None:
-    """"LPS" or "RAS" when a mesh file read by ``reader`` says which, else None."""
-    array = polydata.GetFieldData().GetAbstractArray(SPACE)
-    texts = [array.GetValue(0)] if array is not None and array.GetNumberOfValues() else []
-    for getter in ("GetHeader", "GetComment"):
-        if hasattr(reader, getter):
-            texts.append(getattr(reader, getter)() or "")
-    if hasattr(reader, "GetComments"):
-        comments = reader.GetComments()
-        texts += [comments.GetValue(i) for i in range(comments.GetNumberOfValues())]
-    for text in texts:
+def coordinate_system_of(notes) -> str | None:
+    """"LPS" or "RAS" when one of a mesh file's ``notes`` (its SPACE field data, header or
+    comments) says which, else None."""
+    for text in notes:
         text = text.upper()
         for system in ("LPS", "RAS"):
             if text == system or f"{SPACE}={system}" in text.replace(" ", ""):
@@ -393,9 +435,9 @@ def coordinate_system_of(reader, polydata) -> str | None:
 def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) and triangles (m, 3) of a mesh file (:func:`mesh_arrays`), in LPS: a
     file that says its points are RAS (:func:`coordinate_system_of`) is turned into LPS."""
-    polydata, reader = _read_polydata(path)
+    polydata, notes = _read_polydata(path)
     vertices, faces = mesh_arrays(polydata)
-    if coordinate_system_of(reader, polydata) == "RAS":
+    if coordinate_system_of(notes) == "RAS":
         vertices = vertices * np.array([-1.0, -1.0, 1.0])
     return vertices, faces
 
@@ -409,6 +451,7 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
 
     if polydata is None or polydata.GetNumberOfPoints() == 0:
         raise InputError("the mesh is empty")
+    _require_valid_cells(polydata)
     triangulate = vtk.vtkTriangleFilter()
     triangulate.SetInputData(polydata)
     triangulate.PassVertsOff()
@@ -418,6 +461,27 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
     if len(faces) == 0:
         raise InputError("the mesh has no triangles")
     return vertices, faces
+
+
+def _require_valid_cells(polydata):
+    """Every cell's points are points of the mesh and every polygon has three at least (a
+    damaged file may say otherwise; VTK's filters would read outside the points)."""
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    points = polydata.GetNumberOfPoints()
+    for cells in (polydata.GetPolys(), polydata.GetStrips(), polydata.GetLines(),
+                  polydata.GetVerts()):
+        if cells is None or cells.GetNumberOfCells() == 0:
+            continue
+        indices = vtk_to_numpy(cells.GetConnectivityArray())
+        if indices.size and (indices.min() < 0 or indices.max() >= points):
+            bad = indices[(indices < 0) | (indices >= points)][0]
+            raise InputError(f"a cell refers to point {bad}; the mesh has {points} points")
+    polygons = polydata.GetPolys()
+    if polygons is not None and polygons.GetNumberOfCells():
+        sizes = np.diff(vtk_to_numpy(polygons.GetOffsetsArray()))
+        if sizes.min() < 3:
+            raise InputError(f"a polygon of only {sizes.min()} point(s)")
 
 
 def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
