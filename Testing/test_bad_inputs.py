@@ -393,3 +393,41 @@ def test_the_package_reads_ply_files_as_vtk_does(tmp_path):
                                       vtk_to_numpy(expected.GetPolys().GetOffsetsArray()))
         np.testing.assert_array_equal(found.connectivity,
                                       vtk_to_numpy(expected.GetPolys().GetConnectivityArray()))
+
+
+# --- names and where outputs go ------------------------------------------------------------------
+
+def test_a_case_file_stays_directly_in_its_folder_whatever_the_name(tmp_path):
+    from mdlshapemodel.prepare.io import case_file
+
+    for name in ("../escaped", "../../etc/passwd", "a/b", "a\\b", "..", ".", "", "x\ny",
+                 "\x1b[2Jterminal", "/absolute"):
+        path = case_file(tmp_path, name)
+        assert path.parent == tmp_path and path.name.isprintable(), name
+        assert path.name.removesuffix(".vtp").strip("."), name
+    assert case_file(tmp_path, "gööd 1 ✓").name == "gööd 1 ✓.vtp"    # unicode and spaces kept
+    assert case_file(tmp_path, "..").name == "__.vtp"
+
+
+def test_names_that_would_leave_out_write_inside_it(tmp_path, monkeypatch):
+    """Case names from anywhere (here: planted in io.case_name, as a caller of the API or a
+    Slicer node could give them) make files only inside OUT; the names are kept in the model."""
+    from mdlshapemodel import BuildConfig, ShapeModel, build_model
+    from mdlshapemodel.prepare import io
+
+    folder = tmp_path / "inputs"
+    folder.mkdir()
+    names = {"a": "../../escaped", "b": "sub/dir/x", "c": ".."}
+    for position, stem in zip((-0.5, 0.0, 0.5), names):
+        write_image(folder / f"{stem}.nii.gz", small_mask(position))
+    file_name = io.case_name
+    monkeypatch.setattr(io, "case_name", lambda path: names[file_name(path)])
+    before = set(tmp_path.rglob("*"))
+    out = tmp_path / "deep" / "out"
+    build_model([folder], out, BuildConfig(points=42, max_sweeps=1, workers=1, cache_dir="",
+                                           specificity_samples=50, evaluation_modes=1))
+    written = set(tmp_path.rglob("*")) - before
+    assert all(path in (out, out.parent) or out in path.parents for path in written)
+    assert sorted(p.name for p in (out / "correspondence").iterdir()) == [
+        ".._.._escaped.vtp", "__.vtp", "sub_dir_x.vtp"]
+    assert sorted(ShapeModel.load(out / "model.h5").names) == sorted(names.values())

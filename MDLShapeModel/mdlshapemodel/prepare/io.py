@@ -45,6 +45,18 @@ def case_name(path) -> str:
     return name[: len(name) - len(suffix)] if suffix else Path(path).stem
 
 
+def case_file(folder, name: str, suffix: str = ".vtp") -> Path:
+    """The file of case ``name`` in an output ``folder``: the one place where a case's name
+    becomes a path. Path separators and control characters in the name become '_' ('.' and
+    '..' too), so the file is always directly in ``folder``: a name from anywhere (a file name,
+    a Slicer node, a caller of the API) can neither leave the output folder nor break a line."""
+    separators = {"/", "\\"} | ({":"} if os.name == "nt" else set())
+    safe = "".join("_" if c in separators or not c.isprintable() else c for c in str(name))
+    if safe.strip(".") == "":
+        safe = "_" * max(len(safe), 1)
+    return Path(folder) / f"{safe}{suffix}"
+
+
 def is_image(path) -> bool:
     return suffix_of(path) in IMAGE_SUFFIXES
 
