@@ -1,5 +1,7 @@
 """A batch with every kind of bad input: each gets one clear line, the rest of the batch goes on."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -431,3 +433,59 @@ def test_names_that_would_leave_out_write_inside_it(tmp_path, monkeypatch):
     assert sorted(p.name for p in (out / "correspondence").iterdir()) == [
         ".._.._escaped.vtp", "__.vtp", "sub_dir_x.vtp"]
     assert sorted(ShapeModel.load(out / "model.h5").names) == sorted(names.values())
+
+
+# --- data only: nothing from a file is run ----------------------------------------------------------
+
+class Planted:
+    """Unpickling this would run code (touch a file): what a hostile pickle does."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_cache_entry_holding_a_pickle_is_made_anew_not_run(tmp_path):
+    from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.prepare.cache import cache_key, prepare_case_cached
+
+    path = tmp_path / "case.nii.gz"
+    write_image(path, small_mask(0.0))
+    config = BuildConfig(cache_dir=str(tmp_path / "cache"))
+    entry = tmp_path / "cache" / f"{cache_key(str(path), config)}.npz"
+    entry.parent.mkdir()
+    marker = tmp_path / "the pickle ran"
+    np.savez(entry, reason=np.array([Planted(marker)], dtype=object))
+    result, reused = prepare_case_cached(str(path), config, config.cache_dir)
+    assert not marker.exists() and not reused and not hasattr(result, "reason")
+    # the entry is now the real one; cut short (a damaged zip), it is made anew too
+    entry.write_bytes(entry.read_bytes()[:300])
+    result, reused = prepare_case_cached(str(path), config, config.cache_dir)
+    assert not reused and not hasattr(result, "reason")
+
+
+def test_a_checkpoint_holding_a_pickle_is_refused_not_run(tmp_path):
+    from mdlshapemodel.outputs import load_checkpoint
+
+    marker = tmp_path / "the pickle ran"
+    np.savez(tmp_path / "checkpoint.npz", names=np.array([Planted(marker)], dtype=object))
+    with pytest.raises(ValueError, match="allow_pickle"):
+        load_checkpoint(tmp_path / "checkpoint.npz")
+    assert not marker.exists()
+
+
+def test_no_file_is_unpickled_or_evaluated_anywhere_in_the_package():
+    """Model files are read through h5py datasets, settings and metrics as JSON, arrays with
+    allow_pickle=False: nothing in the package (nor the Slicer module) unpickles or evaluates."""
+    import re
+
+    import mdlshapemodel
+
+    package = Path(mdlshapemodel.__file__).parent
+    risky = re.compile(r"\bimport pickle|\bpickle\.|allow_pickle\s*=\s*True|\beval\(|\bexec\(|"
+                       r"\bmarshal\b|\bshelve\b|yaml\.load|\bdill\b|joblib|(?<![.\w])compile\(")
+    for file in sorted(package.rglob("*.py")) + [package.parent / "MDLShapeModel.py"]:
+        for number, line in enumerate(file.read_text().splitlines(), 1):
+            assert not risky.search(line), f"{file}:{number}: {line.strip()}"

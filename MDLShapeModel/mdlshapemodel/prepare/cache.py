@@ -12,6 +12,8 @@ import hashlib
 import json
 import logging
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -104,8 +106,9 @@ def prepare_case_cached(path: str, config: BuildConfig, cache_dir: str | None):
     if file.exists():
         try:
             return _load_cached(file, name, str(path)), True
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
+        except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile,
+                zlib.error):
+            pass   # a damaged entry, or one holding objects (never unpickled): made anew
     result = prepare_case(path, config)
     try:
         _store_cached(file, result)
