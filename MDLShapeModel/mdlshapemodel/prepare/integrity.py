@@ -298,7 +298,7 @@ def check_image_text_header(path):
         return
     for dimensions in re.findall(rb"^[ \t]*NDims[ \t]*[=:](.*)$", head, re.MULTILINE | re.I):
         dimensions = dimensions.decode("latin-1").strip()
-        if not (dimensions.isdigit() and 1 <= int(dimensions) <= 10):
+        if not (re.fullmatch("[0-9]{1,2}", dimensions) and 1 <= int(dimensions) <= 10):
             raise InputError(f"not a readable image (the MetaImage header's NDims is "
                              f"{dimensions[:40]!r}; 1 to 10 are possible)")
 

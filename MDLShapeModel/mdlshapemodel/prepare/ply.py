@@ -10,6 +10,7 @@ file, a file that ends early, indices outside the vertices.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,7 +72,7 @@ def _header(data: bytes) -> tuple[str, list, list, int]:
             comments.append(line.split(None, 1)[1] if len(words) > 1 else "")
         elif words[0] == "format" and len(words) >= 2 and words[1] in FORMATS:
             form = words[1]
-        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+        elif words[0] == "element" and len(words) == 3 and re.fullmatch("[0-9]+", words[2]):
             count = int(words[2])
             bound = MAX_MESH_POINTS if words[1] == "vertex" else 2 * MAX_MESH_POINTS
             if count > bound:
