@@ -163,6 +163,17 @@ def test_a_compressed_label_map_cut_short_or_damaged_is_rejected(tmp_path, suffi
     assert "compressed data is truncated or corrupt" in prepared_or_reason(path)
 
 
+def test_a_compressed_stream_far_longer_than_its_header_says_is_refused(tmp_path):
+    """A compression bomb costs at most 1 MiB of decompressing beyond what the header says."""
+    import gzip
+
+    path, _ = write_compressed(tmp_path, ".nii.gz")
+    path.write_bytes(gzip.compress(gzip.decompress(path.read_bytes()) + bytes(20 << 20)))
+    voxels = 352 + np.prod(small_mask(0.0).shape)      # the NIfTI header and one byte per voxel
+    assert (f"the compressed data holds more than the {voxels:,} bytes its header says"
+            in prepared_or_reason(path))
+
+
 @pytest.mark.parametrize("suffix", [".nii", ".hdr", ".nrrd", ".mha"])
 def test_an_uncompressed_label_map_shorter_than_its_header_says_is_rejected(tmp_path, suffix):
     """Before, a .nii (or Analyze .img) cut short was read with zeros for the missing voxels."""

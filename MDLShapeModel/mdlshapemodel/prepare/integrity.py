@@ -82,29 +82,24 @@ def check_gzip(path, limit: int = 1 << 30):
 
 def stream_size(handle, decompressor, limit: int, available: int | None = None) -> int:
     """The decompressed length of one zlib/bzip2 stream from ``handle``'s position (at most
-    ``available`` bytes of input), which must end (its check value is then verified)."""
-    total, left = 0, available
+    ``available`` bytes of input), which must end (its check value is then verified). Output
+    comes in blocks of CHUNK at most: a bomb never sits in memory."""
+    total, left, data, ended = 0, available, b"", False
     try:
         while not decompressor.eof:
-            block = handle.read(CHUNK if left is None else min(CHUNK, left))
-            if not block:
+            if not data and not ended:
+                data = handle.read(CHUNK if left is None else min(CHUNK, left))
+                left = None if left is None else left - len(data)
+                ended = not data
+            out = decompressor.decompress(data, CHUNK)
+            data = getattr(decompressor, "unconsumed_tail", b"")   # bzip2 keeps its own
+            total += len(out)
+            if total > limit:
+                raise InputError(f"the compressed data holds more than the "
+                                 f"{limit - SLACK:,} bytes its header says")
+            if ended and not out and not data:
                 raise InputError("compressed data is truncated or corrupt (the stream ends "
                                  "before its end marker)")
-            if left is not None:
-                left -= len(block)
-            while block and not decompressor.eof:
-                if isinstance(decompressor, bz2.BZ2Decompressor):
-                    out, block = decompressor.decompress(block, CHUNK), b""
-                    while not decompressor.eof and not decompressor.needs_input:
-                        total += len(out)
-                        out = decompressor.decompress(b"", CHUNK)
-                else:
-                    out = decompressor.decompress(block, CHUNK)
-                    block = decompressor.unconsumed_tail
-                total += len(out)
-                if total > limit:
-                    raise InputError(f"the compressed data holds more than the "
-                                     f"{limit - SLACK:,} bytes its header says")
     except (OSError, EOFError, ValueError, zlib.error) as error:
         raise _corrupt(error) from None
     return total
