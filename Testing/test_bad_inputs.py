@@ -17,11 +17,17 @@ def write_image(path, array):
     sitk.WriteImage(sitk.GetImageFromArray(array.astype(np.uint8)), str(path))
 
 
+GOOD = ["good_0", "good_1", "gööd 2 ✓"]       # unicode and spaces are fine in a name
+
+
 def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
+    """Through the command line: exit 0, a model of the good cases, one line on stderr and one
+    row in rejected.csv per bad file naming its problem, no traceback, nothing written outside
+    OUT (the inputs' folder unchanged)."""
     folder = tmp_path / "inputs"
     folder.mkdir()
-    for k, position in enumerate((-0.5, 0.0, 0.5)):
-        write_image(folder / f"good_{k}.nii.gz", small_mask(position))
+    for name, position in zip(GOOD, (-0.5, 0.0, 0.5)):
+        write_image(folder / f"{name}.nii.gz", small_mask(position))
     sphere, faces = icosphere(2)
     sphere = sphere * 10.0
     expected = {}
@@ -52,6 +58,23 @@ def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
     two_blobs[5:15, 5:15, 25:37] = True
     write_image(folder / "two_objects.nii.gz", two_blobs)
     expected["two_objects"] = "2 disjoint objects"
+    whole = (folder / "good_0.nii.gz").read_bytes()
+    (folder / "half.nii.gz").write_bytes(whole[:len(whole) // 2])     # read as good before
+    expected["half"] = "compressed data is truncated or corrupt"
+    write_image(folder / "short.nii", small_mask(0.0))
+    (folder / "short.nii").write_bytes((folder / "short.nii").read_bytes()[:-500])
+    expected["short"] = "the image data is truncated"
+    for name in ("huge.nrrd", "flat.mha", "zero.mha", "many.mha"):
+        (folder / name).write_bytes(LYING_HEADERS[name][0])
+    expected["huge"] = "1,000,000,000,000,000 voxels"
+    expected["flat"] = "a 2-D image (8 x 8); this build needs 3-D label maps"
+    expected["zero"] = "zero or negative"
+    expected["many"] = "NDims is '1000000'"
+    for name, phrase in (("negative.ply", "a face refers to vertex"),
+                         ("huge.vtp", "1,000,000,000,000 cells"), ("index.vtk", "point 99")):
+        (folder / f"mesh_{name}").write_bytes(MESHES[name][0])
+        expected["mesh_" + name.split(".")[0]] = phrase
+    inputs = {p: p.read_bytes() for p in folder.iterdir()}
 
     out = tmp_path / "out"
     result = run("build", folder, "-o", out, "--label", 1, "--points", 42, "--max-sweeps", 1,
@@ -64,8 +87,9 @@ def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
         lines = [line for line in result.stderr.splitlines() if f"/{name}." in line]
         assert len(lines) == 1, (name, lines)
         assert phrase in lines[0] and phrase in rejected[name], (name, lines[0])
-    assert sorted(p.stem for p in (out / "correspondence").iterdir()) == ["good_0", "good_1",
-                                                                         "good_2"]
+    assert sorted(p.stem for p in (out / "correspondence").iterdir()) == sorted(GOOD)
+    assert {p: p.read_bytes() for p in folder.iterdir()} == inputs
+    assert {p.name for p in tmp_path.iterdir()} == {"inputs", "out"}
     strict = run("build", folder, "-o", tmp_path / "strict", "--label", 1, "--points", 42,
                  "--workers", 2, "--strict")
     assert strict.returncode == 2 and "strict" in strict.stderr
@@ -268,6 +292,16 @@ def test_a_4d_image_of_one_volume_is_its_3d_volume(tmp_path):
     mask = small_mask(0.0).astype(np.uint8)
     sitk.WriteImage(sitk.JoinSeries(sitk.GetImageFromArray(mask)), str(tmp_path / "one.nii.gz"))
     assert np.array_equal(read_label_map(tmp_path / "one.nii.gz").mask, mask != 0)
+
+
+def test_the_size_bound_is_stated_once_and_follows_the_memory_budget():
+    from mdlshapemodel import config
+
+    assert config.MAX_VOXELS == config.MEMORY_BUDGET // config.PREPARATION_BYTES_PER_VOXEL
+    assert config.MAX_MESH_POINTS == (config.MEMORY_BUDGET
+                                      // config.PREPARATION_BYTES_PER_MESH_POINT)
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    assert f"{config.MAX_VOXELS:,}" in readme and f"{config.MAX_MESH_POINTS:,}" in readme
 
 
 # --- meshes --------------------------------------------------------------------------------------
