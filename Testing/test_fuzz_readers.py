@@ -36,8 +36,13 @@ ABSURD = [b"0", b"-1", b"nan", b"inf", b"1e308", b"65535", b"4294967296", b"1000
           b"-2147483648"]
 
 
-def _seed_files(folder: Path) -> dict:
+def _seed_files() -> dict:
     """The bytes of one small valid file of every format the fuzzing damages."""
+    with tempfile.TemporaryDirectory(prefix="mdlshapemodel-fuzz-seeds-") as folder:
+        return _write_seeds(Path(folder))
+
+
+def _write_seeds(folder: Path) -> dict:
     image = sitk.GetImageFromArray(small_mask(0.0).astype(np.uint8))
     for suffix in (".nii.gz", ".nrrd", ".mha"):
         sitk.WriteImage(image, str(folder / f"seed{suffix}"), True)   # compressed
@@ -51,7 +56,7 @@ def _seed_files(folder: Path) -> dict:
     return {p.name.removeprefix("seed"): p.read_bytes() for p in folder.iterdir()}
 
 
-SEEDS = _seed_files(Path(tempfile.mkdtemp(prefix="mdlshapemodel-fuzz-seeds-")))
+SEEDS = _seed_files()
 SUFFIXES = sorted(SEEDS)
 
 
