@@ -12,6 +12,10 @@ import pytest
 # Every test session gets its own, empty preprocessing cache (also inherited by CLI subprocesses):
 # results never leak in from a user's cache or from an earlier run.
 os.environ["MDLSHAPEMODEL_CACHE"] = tempfile.mkdtemp(prefix="mdlshapemodel-test-cache-")
+# hypothesis (Testing/test_fuzz_readers.py) keeps what it learns in a folder of its own, not in
+# the checkout (.hypothesis/)
+os.environ.setdefault("HYPOTHESIS_STORAGE_DIRECTORY",
+                      tempfile.mkdtemp(prefix="mdlshapemodel-test-hypothesis-"))
 
 
 @pytest.fixture

@@ -1,9 +1,12 @@
 """A batch with every kind of bad input: each gets one clear line, the rest of the batch goes on."""
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 import SimpleITK as sitk
 
-from mdlshapemodel.prepare.io import read_csv, write_polydata
+from mdlshapemodel.prepare.io import read_csv, read_label_map, write_polydata
 from mdlshapemodel.correspondence.sampling import icosphere
 
 from synthetic import small_mask, torus
@@ -14,11 +17,17 @@ def write_image(path, array):
     sitk.WriteImage(sitk.GetImageFromArray(array.astype(np.uint8)), str(path))
 
 
+GOOD = ["good_0", "good_1", "gööd 2 ✓"]       # unicode and spaces are fine in a name
+
+
 def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
+    """Through the command line: exit 0, a model of the good cases, one line on stderr and one
+    row in rejected.csv per bad file naming its problem, no traceback, nothing written outside
+    OUT (the inputs' folder unchanged)."""
     folder = tmp_path / "inputs"
     folder.mkdir()
-    for k, position in enumerate((-0.5, 0.0, 0.5)):
-        write_image(folder / f"good_{k}.nii.gz", small_mask(position))
+    for name, position in zip(GOOD, (-0.5, 0.0, 0.5)):
+        write_image(folder / f"{name}.nii.gz", small_mask(position))
     sphere, faces = icosphere(2)
     sphere = sphere * 10.0
     expected = {}
@@ -49,6 +58,23 @@ def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
     two_blobs[5:15, 5:15, 25:37] = True
     write_image(folder / "two_objects.nii.gz", two_blobs)
     expected["two_objects"] = "2 disjoint objects"
+    whole = (folder / "good_0.nii.gz").read_bytes()
+    (folder / "half.nii.gz").write_bytes(whole[:len(whole) // 2])     # read as good before
+    expected["half"] = "compressed data is truncated or corrupt"
+    write_image(folder / "short.nii", small_mask(0.0))
+    (folder / "short.nii").write_bytes((folder / "short.nii").read_bytes()[:-500])
+    expected["short"] = "the image data is truncated"
+    for name in ("huge.nrrd", "flat.mha", "zero.mha", "many.mha"):
+        (folder / name).write_bytes(LYING_HEADERS[name][0])
+    expected["huge"] = "1,000,000,000,000,000 voxels"
+    expected["flat"] = "a 2-D image (8 x 8); this build needs 3-D label maps"
+    expected["zero"] = "zero or negative"
+    expected["many"] = "NDims is '1000000'"
+    for name, phrase in (("negative.ply", "a face refers to vertex"),
+                         ("huge.vtp", "1,000,000,000,000 cells"), ("index.vtk", "point 99")):
+        (folder / f"mesh_{name}").write_bytes(MESHES[name][0])
+        expected["mesh_" + name.split(".")[0]] = phrase
+    inputs = {p: p.read_bytes() for p in folder.iterdir()}
 
     out = tmp_path / "out"
     result = run("build", folder, "-o", out, "--label", 1, "--points", 42, "--max-sweeps", 1,
@@ -61,8 +87,9 @@ def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
         lines = [line for line in result.stderr.splitlines() if f"/{name}." in line]
         assert len(lines) == 1, (name, lines)
         assert phrase in lines[0] and phrase in rejected[name], (name, lines[0])
-    assert sorted(p.stem for p in (out / "correspondence").iterdir()) == ["good_0", "good_1",
-                                                                         "good_2"]
+    assert sorted(p.stem for p in (out / "correspondence").iterdir()) == sorted(GOOD)
+    assert {p: p.read_bytes() for p in folder.iterdir()} == inputs
+    assert {p.name for p in tmp_path.iterdir()} == {"inputs", "out"}
     strict = run("build", folder, "-o", tmp_path / "strict", "--label", 1, "--points", 42,
                  "--workers", 2, "--strict")
     assert strict.returncode == 2 and "strict" in strict.stderr
@@ -114,3 +141,396 @@ def test_a_bug_while_preparing_stops_the_build_naming_the_case(tmp_path, monkeyp
     from mdlshapemodel import MDLShapeModelError
 
     assert not isinstance(raised.value, MDLShapeModelError)
+
+
+# --- damaged files and headers that lie ----------------------------------------------------------
+
+def prepared_or_reason(path):
+    """``prepare_case``'s verdict on a file: 'prepared' or the rejection's reason."""
+    from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.prepare import prepare_case
+
+    result = prepare_case(path, BuildConfig(cache_dir=""))
+    return getattr(result, "reason", "prepared")
+
+
+def write_compressed(folder, suffix):
+    """A small label map written compressed; returns (the file to read, the file of its
+    compressed voxels)."""
+    import gzip
+
+    image = sitk.GetImageFromArray(small_mask(0.0).astype(np.uint8))
+    if suffix == ".img.gz":                     # an Analyze/NIfTI pair with a gzipped image
+        sitk.WriteImage(image, str(folder / "case.hdr"))
+        (folder / "case.img.gz").write_bytes(gzip.compress((folder / "case.img").read_bytes()))
+        (folder / "case.img").unlink()
+        return folder / "case.hdr", folder / "case.img.gz"
+    path = folder / f"case{suffix}"
+    sitk.WriteImage(image, str(path), True)
+    data = {".nhdr": "case.raw.gz", ".mhd": "case.zraw"}.get(suffix, path.name)
+    return path, folder / data
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".img.gz", ".nrrd", ".nhdr", ".mha", ".mhd"])
+def test_a_compressed_label_map_cut_short_or_damaged_is_rejected(tmp_path, suffix):
+    """Measured before: a .nii.gz cut to half its length was read without an error, the missing
+    voxels zeros, and prepared as a good case. Every compressed stream is now checked whole
+    (gzip: CRC-32 and length; MetaImage's zlib: Adler-32 and size) before a reader trusts it."""
+    path, data = write_compressed(tmp_path, suffix)
+    whole = data.read_bytes()
+    assert prepared_or_reason(path) == "prepared"
+    data.write_bytes(whole[:len(whole) // 2])
+    assert "compressed data is truncated or corrupt" in prepared_or_reason(path)
+    damaged = bytearray(whole)
+    damaged[len(whole) * 3 // 4] ^= 0x10        # one bit, well inside the compressed voxels
+    data.write_bytes(bytes(damaged))
+    assert "compressed data is truncated or corrupt" in prepared_or_reason(path)
+
+
+def test_a_compressed_stream_far_longer_than_its_header_says_is_refused(tmp_path):
+    """A compression bomb costs at most 1 MiB of decompressing beyond what the header says."""
+    import gzip
+
+    path, _ = write_compressed(tmp_path, ".nii.gz")
+    path.write_bytes(gzip.compress(gzip.decompress(path.read_bytes()) + bytes(20 << 20)))
+    voxels = 352 + np.prod(small_mask(0.0).shape)      # the NIfTI header and one byte per voxel
+    assert (f"the compressed data holds more than the {voxels:,} bytes its header says"
+            in prepared_or_reason(path))
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".hdr", ".nrrd", ".mha"])
+def test_an_uncompressed_label_map_shorter_than_its_header_says_is_rejected(tmp_path, suffix):
+    """Before, a .nii (or Analyze .img) cut short was read with zeros for the missing voxels."""
+    path = tmp_path / f"case{suffix}"
+    write_image(path, small_mask(0.0))
+    data = path.with_suffix(".img") if suffix == ".hdr" else path
+    data.write_bytes(data.read_bytes()[:-1000])
+    reason = prepared_or_reason(path)
+    assert reason.startswith("the image data is truncated: the header says"), reason
+
+
+NRRD = "NRRD0004\ntype: uint8\ndimension: {dimension}\n{space}\nsizes: {sizes}\n" \
+       "space directions: {directions}\nkinds: {kinds}\nencoding: raw\n\n"
+META = "ObjectType = Image\nNDims = {dimension}\nDimSize = {sizes}\nElementType = MET_UCHAR\n" \
+       "ElementSpacing = {spacing}\nElementNumberOfChannels = {channels}\nElementDataFile = LOCAL\n"
+
+
+def nrrd(sizes, spacing=(1.0, 1.0, 1.0), vector=False) -> bytes:
+    """A NRRD header (with as many voxels after it as a tiny image needs)."""
+    axes = [f"({','.join(str(s if i == k else 0) for i in range(len(spacing)))})"
+            for k, s in enumerate(spacing)]
+    header = NRRD.format(dimension=len(sizes), sizes=" ".join(map(str, sizes)),
+                         space=("space: 3D-right-handed" if len(spacing) == 3
+                                else f"space dimension: {len(spacing)}"),
+                         directions=("none " if vector else "") + " ".join(axes),
+                         kinds=("vector " if vector else "") + " ".join(["domain"] * len(axes)))
+    return header.encode() + bytes(min(np.prod(sizes), 4096))
+
+
+def meta(sizes, spacing="1 1 1", channels=1, dimension=None) -> bytes:
+    header = META.format(dimension=dimension or len(sizes), sizes=" ".join(map(str, sizes)),
+                         spacing=spacing, channels=channels)
+    return header.encode() + bytes(min(np.prod(sizes) * channels, 4096))
+
+
+LYING_HEADERS = {
+    # a header of a few bytes that claims 10^15 voxels: refused from the header, with its size
+    "huge.nrrd": (nrrd([100000, 100000, 100000]),
+                  "the header claims 100000 x 100000 x 100000 = 1,000,000,000,000,000 voxels "
+                  "(1,000,000.0 GB of 8-bit unsigned integer); a label map may have at most"),
+    "huge.mha": (meta([100000, 100000, 100000]), "= 1,000,000,000,000,000 voxels"),
+    "flat.nrrd": (nrrd([8, 8], (1.0, 1.0)), "a 2-D image (8 x 8); this build needs 3-D label maps"),
+    "flat.mha": (meta([8, 8], "1 1"), "a 2-D image (8 x 8); this build needs 3-D label maps"),
+    "movie.mha": (meta([4, 4, 4, 2], "1 1 1 1"), "a 4-D image (4 x 4 x 4 x 2); this build needs"),
+    "vector.nrrd": (nrrd([2, 4, 4, 4], vector=True), "got an image of 2 values per voxel"),
+    "channels.mha": (meta([4, 4, 4], channels=3), "got an image of 3 values per voxel"),
+    "negative.mha": (meta([4, 4, 4], "1 -0.5 1"), "the header's spacing (1, -0.5, 1) is zero or "
+                                                  "negative"),
+    "zero.mha": (meta([4, 4, 4], "0 1 1"), "the header's spacing (0, 1, 1) is zero or negative"),
+    "nan.mha": (meta([4, 4, 4], "nan nan nan"), "is zero or negative"),   # MetaIO: NaN -> 0
+    "zero.nrrd": (nrrd([4, 4, 4], (0.0, 1.0, 1.0)), "is zero or negative"),
+    # MetaIO crashes the process on these (a segmentation fault): refused before it reads them
+    "dimensions.mha": (meta([4, 4, 4], dimension=-1), "the MetaImage header's NDims is '-1'"),
+    "many.mha": (meta([4, 4, 4], dimension=1000000), "NDims is '1000000'; 1 to 10 are possible"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(LYING_HEADERS))
+def test_a_header_that_lies_is_rejected_before_any_voxel_is_read(tmp_path, monkeypatch, name):
+    """Checked from the header (SimpleITK's ReadImageInformation) before anything is allocated:
+    the voxels are never read (the reader's Execute is not called)."""
+    data, phrase = LYING_HEADERS[name]
+    (tmp_path / name).write_bytes(data)
+
+    def never(self):
+        raise AssertionError("the voxels of a rejected header were read")
+
+    monkeypatch.setattr(sitk.ImageFileReader, "Execute", never)
+    reason = prepared_or_reason(tmp_path / name)
+    assert phrase in reason, reason
+
+
+def test_nan_and_zero_in_a_nifti_header_are_taken_as_its_reader_says(tmp_path):
+    """What SimpleITK already handles: a NIfTI pixdim of NaN or 0 is read as spacing 1 (its
+    documented fallback), a NaN in the sform is an error of the reader, named."""
+    import struct
+
+    write_image(tmp_path / "case.nii", small_mask(0.0))
+    header = bytearray((tmp_path / "case.nii").read_bytes())
+    struct.pack_into("<hh", header, 252, 0, 0)                    # no qform, no sform
+    struct.pack_into("<4f", header, 76, 1.0, float("nan"), 0.0, 1.0)
+    (tmp_path / "pixdim.nii").write_bytes(bytes(header))
+    assert read_label_map(tmp_path / "pixdim.nii").spacing == (1.0, 1.0, 1.0)
+    struct.pack_into("<h", header, 254, 1)                        # sform with a NaN
+    struct.pack_into("<4f", header, 280, float("nan"), 0.0, 0.0, 0.0)
+    (tmp_path / "sform.nii").write_bytes(bytes(header))
+    reason = prepared_or_reason(tmp_path / "sform.nii")
+    assert reason.startswith("not a readable image (ITK only supports orthonormal"), reason
+
+
+def test_a_4d_image_of_one_volume_is_its_3d_volume(tmp_path):
+    mask = small_mask(0.0).astype(np.uint8)
+    sitk.WriteImage(sitk.JoinSeries(sitk.GetImageFromArray(mask)), str(tmp_path / "one.nii.gz"))
+    assert np.array_equal(read_label_map(tmp_path / "one.nii.gz").mask, mask != 0)
+
+
+def test_the_size_bound_is_stated_once_and_follows_the_memory_budget():
+    from mdlshapemodel import config
+
+    assert config.MAX_VOXELS == config.MEMORY_BUDGET // config.PREPARATION_BYTES_PER_VOXEL
+    assert config.MAX_MESH_POINTS == (config.MEMORY_BUDGET
+                                      // config.PREPARATION_BYTES_PER_MESH_POINT)
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    assert f"{config.MAX_VOXELS:,}" in readme and f"{config.MAX_MESH_POINTS:,}" in readme
+
+
+# --- meshes --------------------------------------------------------------------------------------
+
+def sphere_mesh():
+    from mdlshapemodel.correspondence.sampling import icosphere
+
+    vertices, faces = icosphere(2)
+    return vertices * 10.0, faces
+
+
+def legacy_vtk(points: str, polygons: str) -> bytes:
+    return ("# vtk DataFile Version 3.0\nx\nASCII\nDATASET POLYDATA\n" + points
+            + polygons).encode()
+
+
+PLY_HEADER = b"ply\nformat binary_little_endian 1.0\nelement vertex %d\nproperty float x\n" \
+             b"property float y\nproperty float z\nelement face %d\n" \
+             b"property list uchar int vertex_indices\nend_header\n"
+
+
+def damaged_ply(kind: str) -> bytes:
+    """Binary PLY files on which VTK's PLY reader crashed the process (segmentation fault)."""
+    vertices, faces = sphere_mesh()
+    body = vertices.astype("<f4").tobytes()
+    records = np.zeros(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    records["n"], records["v"] = 3, faces
+    if kind == "negative index":
+        records["v"][5, 1] = -16777216
+    if kind == "list count":
+        records["n"][0] = 200
+    data = PLY_HEADER % (len(vertices), len(faces)) + body + records.tobytes()
+    if kind == "cut short":
+        data = data[:len(data) // 2]
+    if kind == "huge count":
+        data = PLY_HEADER % (10**11, len(faces)) + body
+    return data
+
+
+def far_obj() -> bytes:
+    """An OBJ mesh with a point at 10^300 mm (finite: its squares overflow)."""
+    vertices, faces = sphere_mesh()
+    vertices[0, 0] = 1e300
+    return "\n".join(["v " + " ".join(f"{v:.9g}".replace("e+", "e") for v in point)
+                      for point in vertices]
+                     + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]).encode()
+
+
+MESHES = {
+    "far.obj": (far_obj(), "the mesh has a coordinate of 1e+300 mm, beyond 1e+09"),   # a bug before
+    "huge.vtk": (legacy_vtk("POINTS 100000000000 float\n0 0 0 1 0 0 0 1 0\n", ""),
+                 "the header claims 100,000,000,000 points; a mesh may have at most"),
+    "lying.vtk": (legacy_vtk("POINTS 5000000 float\n0 0 0 1 0 0 0 1 0\n", ""),
+                  "the header claims 5,000,000 points in a file of"),
+    "index.vtk": (legacy_vtk("POINTS 3 float\n0 0 0 1 0 0 0 1 0\n", "POLYGONS 1 4\n3 0 1 99\n"),
+                  "a cell refers to point 99; the mesh has 3 points"),
+    "huge.vtp": (b'<?xml version="1.0"?>\n<VTKFile type="PolyData" version="0.1">\n<PolyData>\n'
+                 b'<Piece NumberOfPoints="3" NumberOfPolys="1000000000000">\n',
+                 "the header claims 1,000,000,000,000 cells"),      # VTK aborted (bad_alloc)
+    "cut.ply": (damaged_ply("cut short"), "the file ends within the face elements"),
+    "negative.ply": (damaged_ply("negative index"), "a face refers to vertex -16777216"),
+    "count.ply": (damaged_ply("list count"), "not a readable PLY file"),
+    "huge.ply": (damaged_ply("huge count"), "the header claims 100,000,000,000 vertex elements"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MESHES))
+def test_a_damaged_or_lying_mesh_file_is_rejected_not_a_crash(tmp_path, name):
+    """Each of these crashed the process, allocated what the header claimed or was a Python
+    exception (a bug) before."""
+    data, phrase = MESHES[name]
+    (tmp_path / name).write_bytes(data)
+    reason = prepared_or_reason(tmp_path / name)
+    assert phrase in reason, reason
+
+
+def test_a_vtp_with_a_damaged_compressed_block_is_rejected(tmp_path):
+    """VTK XML files compress their arrays in zlib blocks (Adler-32); the reader's error on a
+    damaged block is a rejection, even when the other arrays were read."""
+    path = tmp_path / "mesh.vtp"
+    write_polydata(path, *sphere_mesh())
+    data = path.read_bytes()
+    start = data.index(b"<AppendedData")
+    start = data.index(b"_", start) + 1
+    end = data.index(b"</AppendedData>")
+    for at in range(start + (end - start) // 3, end - 10, (end - start) // 7):
+        damaged = bytearray(data)
+        damaged[at] = ord("A") if damaged[at] != ord("A") else ord("B")   # another base64 digit
+        path.write_bytes(bytes(damaged))
+        assert prepared_or_reason(path).startswith("not a readable mesh ("), at
+
+
+def test_the_package_reads_ply_files_as_vtk_does(tmp_path):
+    """The package's PLY reader (VTK's crashes on damaged files) gives VTK's points and faces
+    on valid files: ASCII and binary, both byte orders, colours, quads."""
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    from mdlshapemodel.prepare.ply import read_ply
+    from mdlshapemodel.prepare.surface import arrays_to_polydata
+
+    vertices, faces = sphere_mesh()
+    polydata = arrays_to_polydata(vertices, faces)
+    colours = vtk.vtkUnsignedCharArray()
+    colours.SetNumberOfComponents(3)
+    colours.SetName("RGB")
+    for k in range(len(vertices)):
+        colours.InsertNextTuple3(k % 256, 7, 9)
+    polydata.GetPointData().SetScalars(colours)
+    quads = vtk.vtkPolyData()
+    quads.SetPoints(polydata.GetPoints())
+    cells = vtk.vtkCellArray()
+    cells.InsertNextCell(4, [0, 1, 2, 3])
+    cells.InsertNextCell(3, [4, 5, 6])
+    quads.SetPolys(cells)
+    for name, data, setting in [("ascii", polydata, "SetFileTypeToASCII"),
+                                ("little", polydata, "SetFileTypeToBinary"),
+                                ("big", polydata, "SetDataByteOrderToBigEndian"),
+                                ("colours", polydata, None), ("quads", quads, "SetFileTypeToASCII")]:
+        writer = vtk.vtkPLYWriter()
+        writer.SetFileName(str(tmp_path / f"{name}.ply"))
+        if setting:
+            getattr(writer, setting)()
+        if name == "colours":
+            writer.SetArrayName("RGB")
+        writer.SetInputData(data)
+        writer.Write()
+        reader = vtk.vtkPLYReader()
+        reader.SetFileName(str(tmp_path / f"{name}.ply"))
+        reader.Update()
+        expected = reader.GetOutput()
+        found = read_ply(tmp_path / f"{name}.ply")
+        np.testing.assert_array_equal(found.vertices,
+                                      vtk_to_numpy(expected.GetPoints().GetData()))
+        np.testing.assert_array_equal(found.offsets,
+                                      vtk_to_numpy(expected.GetPolys().GetOffsetsArray()))
+        np.testing.assert_array_equal(found.connectivity,
+                                      vtk_to_numpy(expected.GetPolys().GetConnectivityArray()))
+
+
+# --- names and where outputs go ------------------------------------------------------------------
+
+def test_a_case_file_stays_directly_in_its_folder_whatever_the_name(tmp_path):
+    from mdlshapemodel.prepare.io import case_file
+
+    for name in ("../escaped", "../../etc/passwd", "a/b", "a\\b", "..", ".", "", "x\ny",
+                 "\x1b[2Jterminal", "/absolute"):
+        path = case_file(tmp_path, name)
+        assert path.parent == tmp_path and path.name.isprintable(), name
+        assert path.name.removesuffix(".vtp").strip("."), name
+    assert case_file(tmp_path, "gööd 1 ✓").name == "gööd 1 ✓.vtp"    # unicode and spaces kept
+    assert case_file(tmp_path, "..").name == "__.vtp"
+
+
+def test_names_that_would_leave_out_write_inside_it(tmp_path, monkeypatch):
+    """Case names from anywhere (here: planted in io.case_name, as a caller of the API or a
+    Slicer node could give them) make files only inside OUT; the names are kept in the model."""
+    from mdlshapemodel import BuildConfig, ShapeModel, build_model
+    from mdlshapemodel.prepare import io
+
+    folder = tmp_path / "inputs"
+    folder.mkdir()
+    names = {"a": "../../escaped", "b": "sub/dir/x", "c": ".."}
+    for position, stem in zip((-0.5, 0.0, 0.5), names):
+        write_image(folder / f"{stem}.nii.gz", small_mask(position))
+    file_name = io.case_name
+    monkeypatch.setattr(io, "case_name", lambda path: names[file_name(path)])
+    before = set(tmp_path.rglob("*"))
+    out = tmp_path / "deep" / "out"
+    build_model([folder], out, BuildConfig(points=42, max_sweeps=1, workers=1, cache_dir="",
+                                           specificity_samples=50, evaluation_modes=1))
+    written = set(tmp_path.rglob("*")) - before
+    assert all(path in (out, out.parent) or out in path.parents for path in written)
+    assert sorted(p.name for p in (out / "correspondence").iterdir()) == [
+        ".._.._escaped.vtp", "__.vtp", "sub_dir_x.vtp"]
+    assert sorted(ShapeModel.load(out / "model.h5").names) == sorted(names.values())
+
+
+# --- data only: nothing from a file is run ----------------------------------------------------------
+
+class Planted:
+    """Unpickling this would run code (touch a file): what a hostile pickle does."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_cache_entry_holding_a_pickle_is_made_anew_not_run(tmp_path):
+    from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.prepare.cache import cache_key, prepare_case_cached
+
+    path = tmp_path / "case.nii.gz"
+    write_image(path, small_mask(0.0))
+    config = BuildConfig(cache_dir=str(tmp_path / "cache"))
+    entry = tmp_path / "cache" / f"{cache_key(str(path), config)}.npz"
+    entry.parent.mkdir()
+    marker = tmp_path / "the pickle ran"
+    np.savez(entry, reason=np.array([Planted(marker)], dtype=object))
+    result, reused = prepare_case_cached(str(path), config, config.cache_dir)
+    assert not marker.exists() and not reused and not hasattr(result, "reason")
+    # the entry is now the real one; cut short (a damaged zip), it is made anew too
+    entry.write_bytes(entry.read_bytes()[:300])
+    result, reused = prepare_case_cached(str(path), config, config.cache_dir)
+    assert not reused and not hasattr(result, "reason")
+
+
+def test_a_checkpoint_holding_a_pickle_is_refused_not_run(tmp_path):
+    from mdlshapemodel.outputs import load_checkpoint
+
+    marker = tmp_path / "the pickle ran"
+    np.savez(tmp_path / "checkpoint.npz", names=np.array([Planted(marker)], dtype=object))
+    with pytest.raises(ValueError, match="allow_pickle"):
+        load_checkpoint(tmp_path / "checkpoint.npz")
+    assert not marker.exists()
+
+
+def test_no_file_is_unpickled_or_evaluated_anywhere_in_the_package():
+    """Model files are read through h5py datasets, settings and metrics as JSON, arrays with
+    allow_pickle=False: nothing in the package (nor the Slicer module) unpickles or evaluates."""
+    import re
+
+    import mdlshapemodel
+
+    package = Path(mdlshapemodel.__file__).parent
+    risky = re.compile(r"\bimport pickle|\bpickle\.|allow_pickle\s*=\s*True|\beval\(|\bexec\(|"
+                       r"\bmarshal\b|\bshelve\b|yaml\.load|\bdill\b|joblib|(?<![.\w])compile\(")
+    for file in sorted(package.rglob("*.py")) + [package.parent / "MDLShapeModel.py"]:
+        for number, line in enumerate(file.read_text().splitlines(), 1):
+            assert not risky.search(line), f"{file}:{number}: {line.strip()}"

@@ -160,7 +160,7 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume
     log.info("preprocessing %d inputs with %d workers", len(paths), config.workers)
     prepared, rejected = preprocess(paths, config, executor, progress)
     for rejection in rejected:
-        log.warning("rejected %s: %s", rejection.path, rejection.reason)
+        log.warning("rejected %s: %s", io.printable(rejection.path), rejection.reason)
     io.write_csv(output / "rejected.csv", ("case", "file", "reason"),
                  [(r.name, r.path, r.reason) for r in rejected])
     if rejected and config.strict:
@@ -263,10 +263,11 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         result = correspond(prepared, config)
         result.final_objective, result.model.variances
     """
-    names = [case.name for case in prepared]
-    duplicates = {n for n in names if names.count(n) > 1}
+    files = [io.case_file("", case.name).name for case in prepared]   # names as file names
+    duplicates = {case.name for case, file in zip(prepared, files) if files.count(file) > 1}
     if duplicates:
-        raise BuildError(f"several inputs have the same case name: {', '.join(sorted(duplicates))}")
+        raise BuildError("several inputs have the same case name: "
+                         f"{', '.join(sorted(map(io.printable, duplicates)))}")
     if len(prepared) < 3:
         raise BuildError(f"only {len(prepared)} usable case(s); at least 3 are needed")
     state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)

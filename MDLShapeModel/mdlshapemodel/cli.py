@@ -301,12 +301,13 @@ def _run_compare(args) -> int:
 
 def _run_fit(args) -> int:
     from .model.fitting import fit_cases
+    from .prepare.io import printable
 
     results, rejected = fit_cases(args.model, args.inputs, args.output, args.label,
                                   args.max_time, args.max_sweeps, args.seed,
                                   strategy=args.strategy)
     for name, path, reason in rejected:
-        log.warning("rejected %s: %s", path, reason)
+        log.warning("rejected %s: %s", printable(path), printable(reason))
     for result in results:
         print(f"{result.name}: reconstruction error with all modes "
               f"{result.squared_error[-1]:.4f} mm^2 ({result.distance_error[-1]:.3f} mm mean), "

@@ -74,6 +74,21 @@ MAX_SMOOTHING_SIGMA = 2.0
 SURFACE_VERTICES_PER_POINT = 2
 MIN_SURFACE_VERTICES = 5000
 
+# The largest inputs: a file whose header claims more is rejected, with its size, before anything
+# is allocated for it (a header of a few bytes can claim 10^15 voxels). The bounds are what
+# preparing one input may take of MEMORY_BUDGET, at the peak memory measured per voxel of a label
+# map (17 bytes for 8-bit labels, 22 for 32-bit, 33 for 64-bit floats: the mask, its components
+# and the blur are images of the same size) and per point of a mesh (1.6 kB: cleaning, topology
+# and remeshing). One input is prepared per worker process (--workers).
+MEMORY_BUDGET = 16 * 2**30
+PREPARATION_BYTES_PER_VOXEL = 36
+PREPARATION_BYTES_PER_MESH_POINT = 1600
+MAX_VOXELS = MEMORY_BUDGET // PREPARATION_BYTES_PER_VOXEL               # 477,218,588
+MAX_MESH_POINTS = MEMORY_BUDGET // PREPARATION_BYTES_PER_MESH_POINT     # 10,737,418
+# The largest coordinate (mm) of an input: a mesh's points, a label map's corners. 1,000 km is no
+# anatomy; beyond about 1e154 squared distances overflow (a point at 1e308 broke the k-d tree).
+MAX_COORDINATE = 1e9
+
 
 def target_vertices_for(points: int) -> int:
     """The vertices of the surfaces that are mapped to the sphere, unless set: the larger of

@@ -173,8 +173,9 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     cases = []
     physical = physical_shapes(raw, triangles, prepared)
     for i, case in enumerate(prepared):
-        io.write_polydata(output / "correspondence" / f"{case.name}.vtp", physical[i], triangles)
-        io.write_polydata(output / "aligned" / f"{case.name}.vtp", aligned[i], triangles)
+        io.write_polydata(io.case_file(output / "correspondence", case.name), physical[i],
+                          triangles)
+        io.write_polydata(io.case_file(output / "aligned", case.name), aligned[i], triangles)
         # from each input-surface vertex to the corresponded mesh
         distances = point_surface_distances(case.map.vertices, raw[i], triangles)
         quality = prepared[i].map.quality

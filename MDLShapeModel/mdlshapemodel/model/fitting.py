@@ -190,9 +190,9 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
             rejected.append((io.case_name(path), str(path), reason))
             continue
         results.append(result)
-        io.write_polydata(output / "correspondence" / f"{result.name}.vtp", result.corresponded,
-                          model.triangles)
-        io.write_polydata(output / "reconstruction" / f"{result.name}.vtp",
+        io.write_polydata(io.case_file(output / "correspondence", result.name),
+                          result.corresponded, model.triangles)
+        io.write_polydata(io.case_file(output / "reconstruction", result.name),
                           result.reconstruction(model), model.triangles)
     io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(model.n_modes)],
                  [[r.name] + [f"{v:.6g}" for v in r.scores] for r in results])

@@ -12,6 +12,8 @@ import hashlib
 import json
 import logging
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +36,10 @@ CACHE_FORMAT = 2   # 2: the preparation facts as named fields
 #    multilevel initial map instead of the Tutte map where the conformal map folds.
 # 5: mesh files that say their points are RAS (SPACE=RAS, as 3D Slicer may write them) are read
 #    into LPS.
-PREPROCESSING_VERSION = 5
+# 6: files checked before they are read (README "Bad inputs"): valid inputs give the same results,
+#    but damaged ones that were prepared (a .nii.gz cut short) are rejected now, and a 4-D image
+#    of one volume is prepared: verdicts cached by 5 must not be reused.
+PREPROCESSING_VERSION = 6
 PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
                         "smoothing_sigma", "max_smoothing_sigma", "edge_length",
                         "target_vertices")
@@ -101,8 +106,9 @@ def prepare_case_cached(path: str, config: BuildConfig, cache_dir: str | None):
     if file.exists():
         try:
             return _load_cached(file, name, str(path)), True
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
+        except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile,
+                zlib.error):
+            pass   # a damaged entry, or one holding objects (never unpickled): made anew
     result = prepare_case(path, config)
     try:
         _store_cached(file, result)

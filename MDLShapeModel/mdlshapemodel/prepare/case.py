@@ -152,8 +152,10 @@ def prepare_case(path, config: BuildConfig) -> PreparedCase | Rejection:
     try:
         return _prepare(path, config)
     except MDLShapeModelError as error:
-        return Rejection(io.case_name(path), str(path), str(error))
+        reason = str(error)
     except OSError as error:
-        return Rejection(io.case_name(path), str(path), f"could not be read ({error})")
+        reason = f"could not be read ({error})"
     except MemoryError:
-        return Rejection(io.case_name(path), str(path), "not enough memory to prepare it")
+        reason = "not enough memory to prepare it"
+    # one line: a reason may quote a damaged file's bytes
+    return Rejection(io.case_name(path), str(path), io.printable(reason))

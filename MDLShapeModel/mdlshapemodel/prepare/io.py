@@ -6,14 +6,24 @@ Readers raise :class:`InputError` with a one-line reason; callers add the file n
 from __future__ import annotations
 
 import csv
+import logging
+import math
 import os
+import re
+import sys
+import tempfile
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..config import MAX_COORDINATE, MAX_VOXELS
 from ..errors import InputError
+from . import integrity
+
+log = logging.getLogger("mdlshapemodel")
 
 IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".hdr", ".img", ".img.gz")
 MESH_SUFFIXES = (".vtk", ".vtp", ".stl", ".ply", ".obj")
@@ -33,6 +43,18 @@ def case_name(path) -> str:
     name = Path(path).name
     suffix = suffix_of(path)
     return name[: len(name) - len(suffix)] if suffix else Path(path).stem
+
+
+def case_file(folder, name: str, suffix: str = ".vtp") -> Path:
+    """The file of case ``name`` in an output ``folder``: the one place where a case's name
+    becomes a path. Path separators and control characters in the name become '_' ('.' and
+    '..' too), so the file is always directly in ``folder``: a name from anywhere (a file name,
+    a Slicer node, a caller of the API) can neither leave the output folder nor break a line."""
+    separators = {"/", "\\"} | ({":"} if os.name == "nt" else set())
+    safe = "".join("_" if c in separators or not c.isprintable() else c for c in str(name))
+    if safe.strip(".") == "":
+        safe = "_" * max(len(safe), 1)
+    return Path(folder) / f"{safe}{suffix}"
 
 
 def is_image(path) -> bool:
@@ -77,7 +99,8 @@ class LabelMap:
 def _require_scalar(components: int):
     """A label map has one value per voxel (SimpleITK images and vtkImageData alike)."""
     if components != 1:
-        raise InputError("expected a scalar label map, got a multi-component image")
+        raise InputError(f"expected a scalar label map, got an image of {components} values per "
+                         "voxel")
 
 
 def select_labels(array: np.ndarray, labels=()) -> np.ndarray:
@@ -121,24 +144,161 @@ def select_labels(array: np.ndarray, labels=()) -> np.ndarray:
     return array != 0
 
 
+_NATIVE_STDERR = threading.Lock()
+
+
+@contextmanager
+def captured_native_stderr():
+    """Collect what native code (ITK's MetaImage and NIfTI readers) prints on the process's
+    standard error instead of printing it; yields a callable that returns the collected text,
+    which is the caller's to use (:func:`_itk_reading`: the reason of a rejection, or log lines).
+
+    File descriptor 2 belongs to the whole process: one block at a time (a lock).
+    """
+    with _NATIVE_STDERR:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (AttributeError, OSError, ValueError):     # no stderr (e.g. a GUI without one)
+            yield lambda: ""
+            return
+        with tempfile.TemporaryFile() as sink:
+            def collected() -> str:
+                sink.seek(0)
+                return sink.read().decode("utf-8", "replace")
+
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield collected
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+
+
+def printable(text) -> str:
+    """``text`` on one line, control characters (newlines, terminal escapes) written as escapes:
+    file names and reasons as they go into a log line."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+
+
+def _printed(native: str) -> tuple[list, list]:
+    """(errors, warnings) in what a reader printed: ITK's warnings are blocks 'WARNING: In
+    file, line n' + 'Class (0x...): message'; MetaIO and nifticlib print their errors as plain
+    lines, and go on."""
+    errors, warnings, warning = [], [], False
+    for line in native.splitlines():
+        if line.startswith("WARNING"):
+            warning = True
+        elif line.strip():
+            if warning:
+                warnings.append(re.sub(r"^\w+ \(0x[0-9a-fA-F]+\): ", "", line.strip()))
+            else:
+                errors.append(line.strip())
+            warning = False
+    return errors, warnings
+
+
+def _itk_reason(text: str, native: str, path) -> str:
+    """The informative part of a SimpleITK error (and of what its reader printed)."""
+    if "Unable to determine ImageIO reader" in text:
+        return "unknown format or corrupt file"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    teem = [line.split(": ", 1)[1] for line in lines if line.startswith("[nrrd]") and ": " in line]
+    if teem:
+        reason = teem[-1]                       # NRRD: the innermost of teem's messages
+    else:
+        reason = next((line for line in lines if "Exception thrown" not in line
+                       and not line.startswith("Reason:")), "unknown error")
+        reason = re.sub(r"^(ITK |itk::|sitk::)?ERROR: (\w+\(0x[0-9a-fA-F]+\): )?", "", reason)
+    printed, _ = _printed(native)
+    if printed and reason.startswith(("File cannot be read", "unknown error")):
+        reason = printed[0]                     # MetaIO prints why; its exception says little
+    return reason.replace(str(path), "the file")[:200]
+
+
+@contextmanager
+def _itk_reading(path):
+    """SimpleITK's errors while reading ``path``, and the errors its reader printed and went on
+    from (MetaIO's 'Uncompress failed' returns an image), -> one InputError; the warnings ITK
+    printed -> one log line each, naming the file."""
+    with captured_native_stderr() as native:
+        try:
+            yield
+            errors, warnings = _printed(native())
+            if errors:
+                raise RuntimeError("")
+        except RuntimeError as error:
+            reason = _itk_reason(str(error), native(), path)
+            raise InputError(f"not a readable image ({reason})") from None
+    for warning in dict.fromkeys(warnings):
+        log.warning("%s: %s", printable(path), printable(warning.replace(str(path), "the file")))
+
+
+def _bits(pixel: str) -> int:
+    """Bits per voxel of a SimpleITK pixel type name ('8-bit unsigned integer', 'vector of
+    32-bit float', 'complex of 64-bit float')."""
+    found = re.search(r"(\d+)-bit", pixel)
+    return (int(found.group(1)) if found else 64) * (2 if "complex" in pixel else 1)
+
+
+def check_image_header(size, spacing, origin, direction, components: int, pixel: str) -> int:
+    """What a label-map header says, checked before any voxel is read: three dimensions (or a
+    fourth of size 1), one value per voxel, at most :data:`~mdlshapemodel.config.MAX_VOXELS`
+    voxels, finite positive spacing, a finite origin and direction. Returns the bytes of the
+    voxels. ``pixel`` is SimpleITK's name of the pixel type."""
+    shape = " x ".join(str(n) for n in size)
+    if len(size) == 2:
+        raise InputError(f"a 2-D image ({shape}); this build needs 3-D label maps")
+    if len(size) != 3 and not (len(size) == 4 and size[3] == 1):
+        raise InputError(f"a {len(size)}-D image ({shape}); this build needs 3-D label maps")
+    _require_scalar(components)
+    voxels = math.prod(size)
+    nbytes = voxels * components * _bits(pixel) // 8
+    if voxels > MAX_VOXELS:
+        raise InputError(f"the header claims {shape} = {voxels:,} voxels ({nbytes / 1e9:,.1f} GB "
+                         f"of {pixel}); a label map may have at most {MAX_VOXELS:,} voxels "
+                         "(MAX_VOXELS: memory)")
+    values = ", ".join(f"{v:g}" for v in spacing)
+    if not all(math.isfinite(v) for v in spacing):
+        raise InputError(f"the header's spacing ({values}) is not a number")
+    if not all(v > 0 for v in spacing):
+        raise InputError(f"the header's spacing ({values}) is zero or negative")
+    if not all(math.isfinite(v) for v in tuple(origin) + tuple(direction)):
+        raise InputError("the header's origin or direction is not a number")
+    extent = max(abs(o) + s * n for o, s, n in zip(origin, spacing, size))
+    if extent > MAX_COORDINATE:
+        raise InputError(f"the image reaches {extent:.3g} mm from the origin, beyond "
+                         f"{MAX_COORDINATE:.0e} (MAX_COORDINATE)")
+    return nbytes
+
+
 def read_label_map(path, labels=()) -> LabelMap:
     """The union of ``labels`` (all non-zero labels when empty) of a label-map image file
-    (:func:`select_labels`)."""
+    (:func:`select_labels`).
+
+    The header is read and checked first (:func:`check_image_header`), then the file's data
+    against it (:func:`.integrity.check_image_data`: complete, intact compressed streams), and only
+    then the voxels."""
     import SimpleITK as sitk
 
     if not Path(path).is_file():
         raise InputError("no such file")
-    try:
-        image = sitk.ReadImage(str(path))
-    except RuntimeError as error:
-        text = str(error)
-        if "Unable to determine ImageIO reader" in text:
-            reason = "unknown format or corrupt file"
-        else:
-            lines = [line.strip() for line in text.splitlines() if line.strip()]
-            reason = next((line for line in lines if "Exception" not in line), "unknown error")
-            reason = reason.replace(str(path), "the file").replace("sitk::ERROR: ", "")[:160]
-        raise InputError(f"not a readable image ({reason})") from None
+    integrity.check_image_text_header(path)
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    with _itk_reading(path):        # what the reader prints about a file it rejects is dropped
+        try:
+            reader.ReadImageInformation()
+        except RuntimeError:
+            integrity.check_gzip(path)  # a damaged .nii.gz: say so, not 'unknown format'
+            raise
+        nbytes = check_image_header(
+            reader.GetSize(), reader.GetSpacing(), reader.GetOrigin(), reader.GetDirection(),
+            reader.GetNumberOfComponents(), sitk.GetPixelIDValueAsString(reader.GetPixelID()))
+        integrity.check_image_data(path, nbytes)
+        image = reader.Execute()
+    if image.GetDimension() == 4:                  # a 4-D image of one volume
+        image = image[:, :, :, 0]
     if image.GetDimension() != 3:
         raise InputError(f"expected a 3-D label map, got a {image.GetDimension()}-D image")
     _require_scalar(image.GetNumberOfComponentsPerPixel())
@@ -168,8 +328,9 @@ def label_map_of_image_data(image, labels=()) -> LabelMap:
 def _reader_for(path):
     import vtk
 
+    # PLY files are read by .ply.read_ply: VTK's reader crashes on damaged ones
     readers = {".vtk": vtk.vtkPolyDataReader, ".vtp": vtk.vtkXMLPolyDataReader,
-               ".stl": vtk.vtkSTLReader, ".ply": vtk.vtkPLYReader, ".obj": vtk.vtkOBJReader}
+               ".stl": vtk.vtkSTLReader, ".obj": vtk.vtkOBJReader}
     suffix = suffix_of(path)
     if suffix not in readers:
         raise InputError(f"unsupported mesh format {suffix or Path(path).suffix!r}")
@@ -179,7 +340,8 @@ def _reader_for(path):
 @contextmanager
 def captured_vtk_messages():
     """Collect VTK's error and warning text instead of printing it; yields a callable that
-    returns the collected text."""
+    returns the collected text (a str: VTK gives bytes when a damaged file put invalid UTF-8
+    into a message)."""
     import vtk
 
     window = vtk.vtkStringOutputWindow()
@@ -188,10 +350,14 @@ def captured_vtk_messages():
     vtk.vtkOutputWindow.SetInstance(window)
     vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
     try:
-        yield window.GetOutput
+        yield lambda: _text(window.GetOutput())
     finally:
         vtk.vtkOutputWindow.SetInstance(previous_window)
         vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.ConvertToVerbosity(previous_verbosity))
+
+
+def _text(value) -> str:
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value or "")
 
 
 def read_polydata(path):
@@ -199,21 +365,64 @@ def read_polydata(path):
     return _read_polydata(path)[0]
 
 
+def vtk_errors(text: str) -> list:
+    """The messages of the errors (not the warnings) in text collected by
+    :func:`captured_vtk_messages`."""
+    reasons, in_error = [], False
+    for line in text.splitlines():
+        if line.startswith(("ERROR:", "Warning:", "Generic Warning:")):
+            in_error = line.startswith("ERROR:")
+        elif in_error and line.strip():
+            reasons.append(re.sub(r"^\w+ \(0x[0-9a-fA-F]+\): ", "", line.strip()))
+            in_error = False
+    return reasons
+
+
 def _read_polydata(path):
+    """(vtkPolyData, the texts in which the file may say its coordinate system); a reader's
+    error, a header that claims too much (:func:`.integrity.check_mesh_counts`) or an empty mesh
+    is an InputError."""
     if not Path(path).is_file():
         raise InputError("no such file")
+    if suffix_of(path) == ".ply":
+        return _read_ply(path)
     reader = _reader_for(path)
+    integrity.check_mesh_counts(path)
     reader.SetFileName(str(path))
     with captured_vtk_messages() as messages:
         reader.Update()
-        text = messages().strip().splitlines()
+        errors = vtk_errors(messages())
     polydata = reader.GetOutput()
+    if errors:
+        reason = printable(errors[0].replace(str(path), "the file"))[:120]
+        raise InputError(f"not a readable mesh ({reason})")
     if polydata is None or polydata.GetNumberOfPoints() == 0:
-        reason = next((line.split(": ", 1)[-1] for line in text if ": " in line
-                       and "line" not in line), "")
-        detail = f" ({reason.strip()[:120]})" if reason else ""
-        raise InputError(f"not a readable mesh or the mesh is empty{detail}")
-    return polydata, reader
+        raise InputError("not a readable mesh or the mesh is empty")
+    array = polydata.GetFieldData().GetAbstractArray(SPACE)
+    notes = [array.GetValue(0)] if array is not None and array.GetNumberOfValues() else []
+    notes += [getattr(reader, getter)() for getter in ("GetHeader", "GetComment")
+              if hasattr(reader, getter)]
+    return polydata, [_text(note) for note in notes]
+
+
+def _read_ply(path):
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+
+    from .ply import read_ply
+
+    mesh = read_ply(path)
+    if len(mesh.vertices) == 0:
+        raise InputError("not a readable mesh or the mesh is empty")
+    polydata = vtk.vtkPolyData()
+    points = vtk.vtkPoints()
+    points.SetData(numpy_to_vtk(mesh.vertices, deep=True))
+    polydata.SetPoints(points)
+    polygons = vtk.vtkCellArray()
+    polygons.SetData(numpy_to_vtkIdTypeArray(mesh.offsets, deep=True),
+                     numpy_to_vtkIdTypeArray(mesh.connectivity, deep=True))
+    polydata.SetPolys(polygons)
+    return polydata, mesh.comments
 
 
 # Mesh files say in which coordinate system their points are as 3D Slicer writes and reads it:
@@ -224,17 +433,10 @@ SPACE = "SPACE"
 COORDINATE_SYSTEM = "LPS"
 
 
-def coordinate_system_of(reader, polydata) -> str | None:
-    """"LPS" or "RAS" when a mesh file read by ``reader`` says which, else None."""
-    array = polydata.GetFieldData().GetAbstractArray(SPACE)
-    texts = [array.GetValue(0)] if array is not None and array.GetNumberOfValues() else []
-    for getter in ("GetHeader", "GetComment"):
-        if hasattr(reader, getter):
-            texts.append(getattr(reader, getter)() or "")
-    if hasattr(reader, "GetComments"):
-        comments = reader.GetComments()
-        texts += [comments.GetValue(i) for i in range(comments.GetNumberOfValues())]
-    for text in texts:
+def coordinate_system_of(notes) -> str | None:
+    """"LPS" or "RAS" when one of a mesh file's ``notes`` (its SPACE field data, header or
+    comments) says which, else None."""
+    for text in notes:
         text = text.upper()
         for system in ("LPS", "RAS"):
             if text == system or f"{SPACE}={system}" in text.replace(" ", ""):
@@ -245,9 +447,9 @@ def coordinate_system_of(reader, polydata) -> str | None:
 def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) and triangles (m, 3) of a mesh file (:func:`mesh_arrays`), in LPS: a
     file that says its points are RAS (:func:`coordinate_system_of`) is turned into LPS."""
-    polydata, reader = _read_polydata(path)
+    polydata, notes = _read_polydata(path)
     vertices, faces = mesh_arrays(polydata)
-    if coordinate_system_of(reader, polydata) == "RAS":
+    if coordinate_system_of(notes) == "RAS":
         vertices = vertices * np.array([-1.0, -1.0, 1.0])
     return vertices, faces
 
@@ -261,6 +463,7 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
 
     if polydata is None or polydata.GetNumberOfPoints() == 0:
         raise InputError("the mesh is empty")
+    _require_valid_cells(polydata)
     triangulate = vtk.vtkTriangleFilter()
     triangulate.SetInputData(polydata)
     triangulate.PassVertsOff()
@@ -270,6 +473,27 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
     if len(faces) == 0:
         raise InputError("the mesh has no triangles")
     return vertices, faces
+
+
+def _require_valid_cells(polydata):
+    """Every cell's points are points of the mesh and every polygon has three at least (a
+    damaged file may say otherwise; VTK's filters would read outside the points)."""
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    points = polydata.GetNumberOfPoints()
+    for cells in (polydata.GetPolys(), polydata.GetStrips(), polydata.GetLines(),
+                  polydata.GetVerts()):
+        if cells is None or cells.GetNumberOfCells() == 0:
+            continue
+        indices = vtk_to_numpy(cells.GetConnectivityArray())
+        if indices.size and (indices.min() < 0 or indices.max() >= points):
+            bad = indices[(indices < 0) | (indices >= points)][0]
+            raise InputError(f"a cell refers to point {bad}; the mesh has {points} points")
+    polygons = polydata.GetPolys()
+    if polygons is not None and polygons.GetNumberOfCells():
+        sizes = np.diff(vtk_to_numpy(polygons.GetOffsetsArray()))
+        if sizes.min() < 3:
+            raise InputError(f"a polygon of only {sizes.min()} point(s)")
 
 
 def file_digest(path) -> str:

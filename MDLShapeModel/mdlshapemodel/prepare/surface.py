@@ -13,7 +13,8 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from ..config import SURFACE_METHODS, BuildConfig, max_smoothing_for, target_vertices_for
+from ..config import (MAX_COORDINATE, SURFACE_METHODS, BuildConfig, max_smoothing_for,
+                      target_vertices_for)
 from ..errors import SurfaceError
 
 
@@ -197,10 +198,20 @@ def make_orientation_consistent(vertices: np.ndarray, faces: np.ndarray
     return faces, int(flip.sum())
 
 
+def require_coordinates(vertices: np.ndarray, what: str = "surface"):
+    """Raise :class:`SurfaceError` unless every coordinate is finite and within
+    :data:`~mdlshapemodel.config.MAX_COORDINATE` mm."""
+    if not np.all(np.isfinite(vertices)):
+        raise SurfaceError(f"the {what} has non-finite (NaN or infinite) coordinates")
+    largest = float(np.abs(vertices).max()) if vertices.size else 0.0
+    if largest > MAX_COORDINATE:
+        raise SurfaceError(f"the {what} has a coordinate of {largest:.3g} mm, beyond "
+                           f"{MAX_COORDINATE:.0e} (MAX_COORDINATE)")
+
+
 def require_sphere_like(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     """Raise :class:`SurfaceError` unless the mesh is one closed genus-0 component."""
-    if not np.all(np.isfinite(vertices)):
-        raise SurfaceError("the surface has non-finite (NaN or infinite) coordinates")
+    require_coordinates(vertices)
     topo = topology(vertices, faces)
     if not topo.is_sphere_like:
         raise SurfaceError(topo.describe())
@@ -652,8 +663,7 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, target_vertices: int
     Returns vertices, faces, the mean edge length of the input (the default voxel size of a
     mesh input: its resolution) and a repair note ('' when nothing was repaired).
     """
-    if not np.all(np.isfinite(vertices)):
-        raise SurfaceError("the mesh has non-finite (NaN or infinite) coordinates")
+    require_coordinates(vertices, "mesh")
     vertices, faces = merge_close_vertices(vertices, faces)
     vertices, faces = drop_degenerate_faces(vertices, faces)
     topo = topology(vertices, faces)
