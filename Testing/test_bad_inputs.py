@@ -212,7 +212,8 @@ def test_an_uncompressed_label_map_shorter_than_its_header_says_is_rejected(tmp_
 NRRD = "NRRD0004\ntype: uint8\ndimension: {dimension}\n{space}\nsizes: {sizes}\n" \
        "space directions: {directions}\nkinds: {kinds}\nencoding: raw\n\n"
 META = "ObjectType = Image\nNDims = {dimension}\nDimSize = {sizes}\nElementType = MET_UCHAR\n" \
-       "ElementSpacing = {spacing}\nElementNumberOfChannels = {channels}\nElementDataFile = LOCAL\n"
+       "ElementSpacing = {spacing}\nElementNumberOfChannels = {channels}\n{matrix}" \
+       "ElementDataFile = LOCAL\n"
 
 
 def nrrd(sizes, spacing=(1.0, 1.0, 1.0), vector=False) -> bytes:
@@ -227,9 +228,10 @@ def nrrd(sizes, spacing=(1.0, 1.0, 1.0), vector=False) -> bytes:
     return header.encode() + bytes(min(np.prod(sizes), 4096))
 
 
-def meta(sizes, spacing="1 1 1", channels=1, dimension=None) -> bytes:
+def meta(sizes, spacing="1 1 1", channels=1, dimension=None, matrix=None) -> bytes:
     header = META.format(dimension=dimension or len(sizes), sizes=" ".join(map(str, sizes)),
-                         spacing=spacing, channels=channels)
+                         spacing=spacing, channels=channels,
+                         matrix=f"TransformMatrix = {matrix}\n" if matrix else "")
     return header.encode() + bytes(min(np.prod(sizes) * channels, 4096))
 
 
@@ -249,6 +251,9 @@ LYING_HEADERS = {
     "zero.mha": (meta([4, 4, 4], "0 1 1"), "the header's spacing (0, 1, 1) is zero or negative"),
     "nan.mha": (meta([4, 4, 4], "nan nan nan"), "is zero or negative"),   # MetaIO: NaN -> 0
     "zero.nrrd": (nrrd([4, 4, 4], (0.0, 1.0, 1.0)), "is zero or negative"),
+    # SimpleITK's Execute ran for more than 30 minutes on this one
+    "direction.mha": (meta([4, 4, 4], matrix="1 0 0 0 1 0 1e308 0 1"),
+                      "the header's direction (1, 0, 1e+308, 0, 1, 0, 0, 0, 1) is not a rotation"),
     # MetaIO crashes the process on these (a segmentation fault): refused before it reads them
     "dimensions.mha": (meta([4, 4, 4], dimension=-1), "the MetaImage header's NDims is '-1'"),
     "many.mha": (meta([4, 4, 4], dimension=1000000), "NDims is '1000000'; 1 to 10 are possible"),

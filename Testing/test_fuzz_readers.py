@@ -13,6 +13,7 @@ The budget is bounded for CI: a fixed number of examples per format, the same on
 longer search.
 """
 
+import faulthandler
 import gzip
 import os
 import re
@@ -32,6 +33,7 @@ from synthetic import small_mask
 
 CONFIG = BuildConfig(cache_dir="")
 EXAMPLES = int(os.environ.get("MDLSHAPEMODEL_FUZZ_EXAMPLES", 60))   # per format
+HANG = 120   # seconds: one damaged file is prepared in well under 1 s
 ABSURD = [b"0", b"-1", b"nan", b"inf", b"1e308", b"65535", b"4294967296", b"1000000000000",
           b"-2147483648"]
 
@@ -90,7 +92,13 @@ def _check(suffix: str, data: bytes, capfd):
         path = Path(folder) / f"damaged{suffix}"
         path.write_bytes(data)
         capfd.readouterr()
-        result = prepare_case(path, CONFIG)
+        # a reader that hangs (SimpleITK did, on a direction holding 1e308) ends the run with
+        # its traceback instead of holding CI until its time limit
+        faulthandler.dump_traceback_later(HANG, exit=True)
+        try:
+            result = prepare_case(path, CONFIG)
+        finally:
+            faulthandler.cancel_dump_traceback_later()
         printed = capfd.readouterr()
         assert isinstance(result, (PreparedCase, Rejection))
         if isinstance(result, Rejection):

@@ -244,7 +244,8 @@ def _bits(pixel: str) -> int:
 def check_image_header(size, spacing, origin, direction, components: int, pixel: str) -> int:
     """What a label-map header says, checked before any voxel is read: three dimensions (or a
     fourth of size 1), one value per voxel, at most :data:`~mdlshapemodel.config.MAX_VOXELS`
-    voxels, finite positive spacing, a finite origin and direction. Returns the bytes of the
+    voxels, finite positive spacing, a finite origin, a direction that is a rotation (to 1%),
+    corners within :data:`~mdlshapemodel.config.MAX_COORDINATE`. Returns the bytes of the
     voxels. ``pixel`` is SimpleITK's name of the pixel type."""
     shape = " x ".join(str(n) for n in size)
     if len(size) == 2:
@@ -265,6 +266,11 @@ def check_image_header(size, spacing, origin, direction, components: int, pixel:
         raise InputError(f"the header's spacing ({values}) is zero or negative")
     if not all(math.isfinite(v) for v in tuple(origin) + tuple(direction)):
         raise InputError("the header's origin or direction is not a number")
+    axes = np.clip(np.reshape(direction, (len(size), len(size))), -2, 2)   # no overflow
+    if np.abs(axes.T @ axes - np.eye(len(size))).max() > 0.01:      # ITK hangs on 1e308 in it
+        values = ", ".join(f"{v:.3g}" for v in direction)
+        raise InputError(f"the header's direction ({values}) is not a rotation (its axes are "
+                         "not orthonormal)")
     extent = max(abs(o) + s * n for o, s, n in zip(origin, spacing, size))
     if extent > MAX_COORDINATE:
         raise InputError(f"the image reaches {extent:.3g} mm from the origin, beyond "
