@@ -23,7 +23,6 @@ installed (after asking) by the panel if Slicer lacks them (:func:`ensureDepende
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import pathlib
@@ -626,10 +625,10 @@ def _readModel(path: pathlib.Path, name: str):
 
 
 def _readCsv(path: pathlib.Path) -> list:
-    if not path.exists():
-        return []
-    with open(path, newline="") as handle:
-        return list(csv.DictReader(handle))
+    """The rows of a table of the build (none when it is absent)."""
+    from mdlshapemodel.prepare.io import read_csv
+
+    return read_csv(path) if path.exists() else []
 
 
 def _table(name: str, columns: dict):

@@ -127,16 +127,16 @@ def fingerprint(prepared: list, config: BuildConfig) -> dict:
             "cases": [[case.name, io.file_digest(case.path)] for case in prepared]}
 
 
-def _resumption(output: Path, prepared: list, config: BuildConfig):
-    """The checkpoint to resume from (None: there is none, start over), checked against the
-    inputs and settings of this build."""
+def _resumption(output: Path, print_of: dict):
+    """The checkpoint to resume from (None: there is none, start over), checked against this
+    build's :func:`fingerprint` ``print_of``."""
     path = output / "checkpoint.npz"
     if not path.exists():
         log.info("no checkpoint in %s: starting over (the prepared cases come from the cache)",
                  output)
         return None
     checkpoint = read_checkpoint(path)
-    now = json.loads(json.dumps(fingerprint(prepared, config)))   # as JSON gives it back
+    now = json.loads(json.dumps(print_of))   # as JSON gives it back
     if checkpoint.fingerprint != now:
         differ = sorted(key for key in set(now["settings"]) | set(checkpoint.fingerprint["settings"])
                         if now["settings"].get(key) != checkpoint.fingerprint["settings"].get(key))
@@ -175,7 +175,7 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume
             pending[name] = (notes, evaluate_state(state, config, prepared, pool=pool))
 
         print_of = fingerprint(prepared, config)
-        resumed = _resumption(output, prepared, config) if resume else None
+        resumed = _resumption(output, print_of) if resume else None
 
         def checkpoint(state, point, rng, trace):
             save_checkpoint(output / "checkpoint.npz", state, point, rng, trace, print_of)

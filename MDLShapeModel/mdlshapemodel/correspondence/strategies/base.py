@@ -136,7 +136,7 @@ def start_phase(state: CorrespondenceState, objective: Objective, trace: Trace, 
 
 
 def end_of_iteration(state: CorrespondenceState, trace: Trace, phase: str, sweep: int,
-                      value: float, label: str, progress, checkpoint, point=None) -> float:
+                      value: float, label: str, progress, checkpoint, point) -> float:
     """Record the step's F, report it, then :func:`rebuilt` (as between the sweeps of
     one_at_a_time); returns F after the rebuild."""
     trace.record(state, value, phase, sweep)
@@ -145,7 +145,7 @@ def end_of_iteration(state: CorrespondenceState, trace: Trace, phase: str, sweep
 
 
 def rebuilt(state: CorrespondenceState, trace: Trace, phase: str, sweep: int, checkpoint,
-            point=None) -> float:
+            point) -> float:
     """Between sweeps / iterations: area weights on the new mean and fresh sums (no drift), F
     recorded, the state checkpointed with ``point(value)`` (a :class:`PhasePoint` of the F after
     the rebuild); returns that F."""
@@ -153,5 +153,5 @@ def rebuilt(state: CorrespondenceState, trace: Trace, phase: str, sweep: int, ch
     value = state.value()
     trace.record(state, value, phase, sweep)
     if checkpoint is not None:
-        checkpoint(point(value) if point is not None else PhasePoint(phase, sweep))
+        checkpoint(point(value))
     return value
