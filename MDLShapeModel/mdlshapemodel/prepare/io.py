@@ -393,7 +393,7 @@ def _read_polydata(path):
     if suffix_of(path) == ".ply":
         return _read_ply(path)
     reader = _reader_for(path)
-    integrity.check_mesh_counts(path)
+    integrity.check_mesh_file(path)
     reader.SetFileName(str(path))
     with captured_vtk_messages() as messages:
         reader.Update()
