@@ -383,6 +383,40 @@ def test_a_damaged_or_lying_mesh_file_is_rejected_not_a_crash(tmp_path, name):
     assert phrase in reason, reason
 
 
+def test_a_vtk_file_whose_offsets_overrun_its_indices_is_rejected_not_a_crash(tmp_path):
+    """Found by mutating files in child processes: VTK's legacy reader takes a last offset of
+    9600 for 960 indices, and vtkTriangleFilter then crashed the process."""
+    import re
+
+    path = tmp_path / "mesh.vtk"
+    write_polydata(path, *sphere_mesh())
+    text = path.read_text()
+    last = re.search(r"(\d+)\s*\nCONNECTIVITY", text)
+    path.write_text(text[:last.start(1)] + last.group(1) + "0" + text[last.end(1):])
+    reason = prepared_or_reason(path)
+    assert reason == f"the cells' offsets (0 to {last.group(1)}0) do not fit their " \
+                     f"{last.group(1)} point indices", reason
+
+
+def test_a_vtp_whose_block_header_says_blocks_of_0_bytes_is_rejected_not_a_crash(tmp_path):
+    """Found by mutating files in child processes: one changed base64 digit made a compressed
+    array's block size 0, and VTK's XML reader divided by it (SIGFPE, the process ended)."""
+    import base64
+    import struct
+
+    path = tmp_path / "mesh.vtp"
+    write_polydata(path, *sphere_mesh())
+    data = path.read_bytes()
+    start = data.index(b"_", data.index(b"<AppendedData")) + 1
+    header = base64.b64decode(data[start:start + 16])            # blocks, block size, last
+    blocks, _, last = struct.unpack("<3I", header)
+    damaged = base64.b64encode(struct.pack("<3I", blocks, 0, last))
+    path.write_bytes(data[:start] + damaged + data[start + 16:])
+    reason = prepared_or_reason(path)
+    assert reason.startswith("not a readable VTK XML file (the data of ") and \
+        f"blocks of 0 bytes, the last of {last}" in reason, reason
+
+
 def test_a_vtp_with_a_damaged_compressed_block_is_rejected(tmp_path):
     """VTK XML files compress their arrays in zlib blocks (Adler-32); the reader's error on a
     damaged block is a rejection, even when the other arrays were read."""

@@ -12,7 +12,8 @@ read a file's data once, in chunks (bounded memory), after its header was found 
 - the data, decompressed or not, holds as many bytes as the header says (NIfTI and Analyze,
   NRRD, MetaImage);
 - the counts of a mesh file's header are within the bounds of :mod:`mdlshapemodel.config` and
-  fit the file (VTK XML and legacy VTK files).
+  fit the file (VTK XML and legacy VTK files), and the block headers of VTK XML binary data fit
+  their data.
 
 Each check raises :class:`InputError` with a one-line reason. Formats are told by their content
 (what SimpleITK's readers go by), not by the file name.
@@ -20,6 +21,8 @@ Each check raises :class:`InputError` with a one-line reason. Formats are told b
 
 from __future__ import annotations
 
+import base64
+import binascii
 import bz2
 import gzip
 import re
@@ -336,10 +339,11 @@ MESH_BOUNDS = {"points": MAX_MESH_POINTS, "cells": 2 * MAX_MESH_POINTS,
                "cell indices": 8 * MAX_MESH_POINTS, "array values": 16 * MAX_MESH_POINTS}
 
 
-def check_mesh_counts(path):
+def check_mesh_file(path):
     """The counts a VTK XML (.vtp) or legacy VTK (.vtk) header claims are within
     :data:`MESH_BOUNDS` (from :data:`~mdlshapemodel.config.MAX_MESH_POINTS`) and, but for array
-    values (which may be compressed), fit the file: each takes a byte at least."""
+    values (which may be compressed), fit the file: each takes a byte at least. In VTK XML files
+    the headers of the binary data too (:func:`_check_binary_arrays`)."""
     path = Path(path)
     size = _file_size(path)
     with open(path, "rb") as handle:
@@ -394,11 +398,12 @@ def _position(path: Path, marker: bytes) -> int | None:
 
 def _xml_counts(path: Path) -> list:
     """(what, count) from a VTK XML file's elements before its appended data (which need not
-    be XML): the points and cells of every piece, tuples times components of every array."""
+    be XML): the points and cells of every piece, tuples times components of every array; and
+    the binary data's block headers checked (:func:`_check_binary_arrays`)."""
     import xml.etree.ElementTree as ElementTree
 
-    parser = ElementTree.XMLPullParser(events=("start",))
-    counts, points, cells = [], 0, 0
+    parser = ElementTree.XMLPullParser(events=("start", "end"))
+    counts, points, cells, root, arrays = [], 0, 0, {}, []
     end = _position(path, b"<AppendedData")
     with open(path, "rb") as handle:
         left = end if end is not None else _file_size(path)
@@ -406,8 +411,15 @@ def _xml_counts(path: Path) -> list:
             left -= len(block)
             parser.feed(block)
             try:
-                for _, element in parser.read_events():
+                for event, element in parser.read_events():
+                    if event == "end":
+                        if element.tag in ("DataArray", "Array"):
+                            arrays.append((dict(element.attrib), element.text or ""))
+                        element.clear()
+                        continue
                     counts += _element_counts(element, points, cells)
+                    if element.tag == "VTKFile":
+                        root = dict(element.attrib)
                     if element.tag == "Piece":
                         points = _attribute(element, "NumberOfPoints")
                         cells = sum(_attribute(element, f"NumberOf{kind}")
@@ -415,7 +427,90 @@ def _xml_counts(path: Path) -> list:
                         counts += [("points", points), ("cells", cells)]
             except ElementTree.ParseError as error:
                 raise InputError(f"not a readable VTK XML file ({error})") from None
+    _check_binary_arrays(path, root, arrays, end)
     return counts
+
+
+def _check_binary_arrays(path: Path, root: dict, arrays: list, appended: int | None):
+    """The headers of a VTK XML file's binary arrays (inline base64, or appended raw or base64)
+    against the data they describe: VTK's reader divided by a block size of 0 (SIGFPE) and
+    allocates what a header says. Compressed: [blocks][block size][last block size][compressed
+    size of each block], the block size not 0 when there are blocks, the last not larger, the
+    compressed sizes within the data; uncompressed: [bytes] within the data."""
+    order = ">" if root.get("byte_order") == "BigEndian" else "<"
+    word = "Q" if root.get("header_type") == "UInt64" else "I"
+    chunks = [(attributes, re.sub(rb"\s+", b"", text.encode("latin-1")), True)
+              for attributes, text in arrays if attributes.get("format") == "binary"]
+    appended_arrays = [a for a, _ in arrays if a.get("format") == "appended"]
+    if appended is not None and appended_arrays:
+        with open(path, "rb") as handle:
+            handle.seek(appended)
+            data = handle.read()
+        tag = re.match(rb"<AppendedData[^>]*>\s*_", data)
+        if tag is None:
+            raise InputError("not a readable VTK XML file (no '_' opens its appended data)")
+        encoded = b'encoding="base64"' in tag.group(0)
+        data = data[tag.end():]
+        closing = data.rfind(b"</AppendedData>")
+        data = data[:closing] if closing >= 0 else data
+        starts = sorted({_attribute_of(a, "offset") for a in appended_arrays} | {len(data)})
+        for attributes in appended_arrays:
+            start = _attribute_of(attributes, "offset")
+            if start > len(data):
+                raise InputError(f"not a readable VTK XML file (an array's offset {start:,} is "
+                                 "beyond its appended data)")
+            stop = starts[starts.index(start) + 1] if start < len(data) else start
+            piece = data[start:stop]
+            chunks.append((attributes, re.sub(rb"\s+", b"", piece) if encoded else piece,
+                           encoded))
+    size = struct.calcsize(word)
+    bound = 8 * MESH_BOUNDS["array values"]
+    for attributes, chunk, encoded in chunks:
+        name = attributes.get("Name", "an array")
+        try:
+            _check_binary_array(chunk, encoded, "compressor" in root, order + word, size, bound)
+        except (binascii.Error, ValueError, struct.error) as error:
+            raise InputError(f"not a readable VTK XML file (the data of {name[:40]!r}: "
+                             f"{error})") from None
+
+
+def _check_binary_array(chunk: bytes, encoded: bool, compressed: bool, word: str, size: int,
+                        bound: int):
+    def words(data: bytes, n: int) -> tuple:
+        if len(data) < n * size:
+            raise ValueError("its header is cut short")
+        return struct.unpack(f"{word[0]}{n}{word[1]}", data[:n * size])
+
+    def decoded(text: bytes) -> bytes:
+        return base64.b64decode(text, validate=True) if encoded else text
+
+    if not compressed:
+        data = decoded(chunk)
+        (length,) = words(data, 1)
+        if length > len(data) - size:
+            raise ValueError(f"its header says {length:,} bytes, it holds {len(data) - size:,}")
+        return
+    def characters(n: int) -> int:
+        """The length in the file of a header of ``n`` words (base64: encoded on its own)."""
+        return 4 * -(-n * size // 3) if encoded else n * size
+
+    blocks, block, last = words(decoded(chunk[:characters(3)]), 3)
+    if blocks and (block == 0 or last > block):
+        raise ValueError(f"blocks of {block} bytes, the last of {last}")
+    if blocks * block > bound:
+        raise ValueError(f"{blocks:,} blocks of {block:,} bytes")
+    header = characters(3 + blocks)
+    compressed_sizes = words(decoded(chunk[:header]), 3 + blocks)[3:]
+    held = len(decoded(chunk[header:]))
+    if sum(compressed_sizes) > held:
+        raise ValueError(f"its blocks take {sum(compressed_sizes):,} bytes, it holds {held:,}")
+
+
+def _attribute_of(attributes: dict, name: str) -> int:
+    value = attributes.get(name, "0")
+    if not re.fullmatch("[0-9]+", value):
+        raise InputError(f"not a readable VTK XML file ({name}={value[:40]!r})")
+    return int(value)
 
 
 def _attribute(element, name: str) -> int:

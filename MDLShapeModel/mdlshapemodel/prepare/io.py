@@ -393,7 +393,7 @@ def _read_polydata(path):
     if suffix_of(path) == ".ply":
         return _read_ply(path)
     reader = _reader_for(path)
-    integrity.check_mesh_counts(path)
+    integrity.check_mesh_file(path)
     reader.SetFileName(str(path))
     with captured_vtk_messages() as messages:
         reader.Update()
@@ -482,8 +482,10 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _require_valid_cells(polydata):
-    """Every cell's points are points of the mesh and every polygon has three at least (a
-    damaged file may say otherwise; VTK's filters would read outside the points)."""
+    """Every cell's points are points of the mesh, its offsets fit its point list, and every
+    polygon has three at least (a damaged file may say otherwise; VTK's filters would read
+    outside the arrays: a legacy .vtk whose last offset was 9600 for 960 indices crashed
+    vtkTriangleFilter)."""
     from vtk.util.numpy_support import vtk_to_numpy
 
     points = polydata.GetNumberOfPoints()
@@ -491,7 +493,11 @@ def _require_valid_cells(polydata):
                   polydata.GetVerts()):
         if cells is None or cells.GetNumberOfCells() == 0:
             continue
+        offsets = vtk_to_numpy(cells.GetOffsetsArray())
         indices = vtk_to_numpy(cells.GetConnectivityArray())
+        if offsets[0] != 0 or offsets[-1] != indices.size or np.any(np.diff(offsets) < 0):
+            raise InputError(f"the cells' offsets (0 to {offsets[-1]}) do not fit their "
+                             f"{indices.size} point indices")
         if indices.size and (indices.min() < 0 or indices.max() >= points):
             bad = indices[(indices < 0) | (indices >= points)][0]
             raise InputError(f"a cell refers to point {bad}; the mesh has {points} points")
