@@ -361,6 +361,30 @@ def test_fast_strategy_is_deterministic_and_respects_active():
         assert moved == (i in (1, 3))
 
 
+@pytest.mark.parametrize("make_state", [small_state, two_part_state])
+def test_fast_strategy_gives_the_same_result_on_any_number_of_threads(make_state):
+    """The per-example loops run on threads: every position, pose, trace value and the final F
+    are the same bit for bit with 1, 2 and 3 threads (3: chunks of unequal size)."""
+    ends = []
+    for threads in (1, 2, 3):
+        state = make_state()
+        settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=3,
+                                        fixed_fraction=0.5, threads=threads)
+        trace = Trace()
+        final = optimise(state, objectives(state), settings, np.random.default_rng(0), trace)
+        ends.append((final, [row[3] for row in trace.rows],
+                     [[p.positions.copy() for p in e.parts] for e in state.examples],
+                     [e.pose.apply(np.eye(3)) for e in state.examples]))
+    first = ends[0]
+    assert first[1][-1] < first[1][0]                  # the optimisation moved something
+    for other in ends[1:]:
+        assert other[0] == first[0] and other[1] == first[1]
+        for a, b in zip(first[2], other[2]):
+            for pa, pb in zip(a, b):
+                np.testing.assert_array_equal(pa, pb)
+        np.testing.assert_array_equal(np.array(first[3]), np.array(other[3]))
+
+
 def test_fast_round_gradient_matches_finite_differences():
     from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
 

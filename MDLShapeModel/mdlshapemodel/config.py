@@ -42,6 +42,9 @@ class OptimisationSettings:
     patience: int = 3
     max_sweeps: int = 10_000
     pose_evaluations: int = 80
+    # threads for the per-example loops of an evaluation (the fast strategy's field sampling and
+    # its chain rule); the result does not depend on it (``BuildConfig.workers``)
+    threads: int = 1
     # the fast strategy: coarse-to-fine passes over its field levels; another pass only while the
     # last one gained more than ``tolerance`` of the phase's gain (the second pass took the
     # ground-truth error of a femur population with no sliding from 1.134 to 0.992 mm)
@@ -376,7 +379,7 @@ class BuildConfig:
                                     max_amplitude=self.max_amplitude, max_time=self.max_time,
                                     fixed_fraction=self.fixed_fraction,
                                     tolerance=self.tolerance, max_sweeps=self.max_sweeps,
-                                    warps=tuple(self.warps))
+                                    warps=tuple(self.warps), threads=self.workers)
 
     def to_dict(self) -> dict:
         data = asdict(self)

@@ -22,7 +22,7 @@ import signal
 import time
 from collections import deque
 from concurrent.futures import (FIRST_COMPLETED, BrokenExecutor, Executor, ProcessPoolExecutor,
-                                wait)
+                                ThreadPoolExecutor, wait)
 
 from .errors import InternalError
 from .progress import Progress, report
@@ -108,6 +108,56 @@ class ProcessPool(Executor):
         if self._pool is not None:
             self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
             self._pool = None
+
+
+class Threads:
+    """Runs ``function(indices)`` over contiguous chunks of ``range(n)``, one chunk per thread,
+    for loops whose work is in compiled code that releases the GIL (numba ``nogil``).
+
+    Each index is handled by exactly one call, with the same arithmetic as in one thread, so the
+    results do not depend on the number of threads. ``threads`` <= 1 runs in the calling thread.
+    Use as a context manager (the threads end with it).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> out = np.zeros(10)
+    >>> def square(indices):
+    ...     for k in indices:
+    ...         out[k] = k * k
+    >>> with Threads(2) as threads:
+    ...     threads.over(10, square)
+    >>> int(out.sum())
+    285
+    """
+
+    def __init__(self, threads: int):
+        self.threads = max(int(threads), 1)
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+
+    def over(self, n: int, function) -> None:
+        """``function(range(a, b))`` for the chunks of ``range(n)``; the first exception of a
+        chunk is raised once every chunk has ended."""
+        parts = min(self.threads, n)
+        if self._pool is None or parts <= 1:
+            function(range(n))
+            return
+        edges = [n * k // parts for k in range(parts + 1)]
+        futures = [self._pool.submit(function, range(a, b)) for a, b in zip(edges, edges[1:])]
+        wait(futures)
+        for future in futures:
+            future.result()
+
+    def close(self):
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 @contextlib.contextmanager

@@ -8,6 +8,10 @@ to all of them comes from one evaluation of dF/dX (the shapes) chained through t
 (dS/du of the barycentric interpolation) and the field. The round's maps are then composed into the
 sample positions, the state is rebuilt (new area weights), and the next round starts at the same or
 a finer level (coarse to fine), until the objective stops falling or the time is up.
+
+The per-example steps of an evaluation (the field map, point location and surface Jacobian, and
+their chain rule) run on ``settings.threads`` threads (:class:`~mdlshapemodel.parallel.Threads`),
+each example on one thread with the same arithmetic: the result is the same on any number.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import Bounds, minimize
 
+from ...parallel import Threads
 from ...progress import report
 from .. import hotloops
 from ..state import CorrespondenceState
@@ -94,25 +99,35 @@ class FieldRound:
     X = e^sigma R(w) (P(y) - c) + c + L t, with P the example's pose and y its unposed samples.
     """
 
-    def __init__(self, state: CorrespondenceState, active, level: int, support: float):
+    def __init__(self, state: CorrespondenceState, active, level: int, support: float,
+                 threads: Threads | None = None):
         self.state = state
+        self.threads = threads or Threads(1)
         self.level, self.support = level, support
         self.active = np.array(list(active), dtype=np.int64)
         self.blocks = []
         offset = 0
         limits = []         # the bound of each parameter's absolute value
         pose_slices = []
-        for row, i in enumerate(self.active):
-            for j, part in enumerate(state.examples[i].parts):
-                basis = FieldBasis.icosphere_level(level, part.positions, support)
-                size = 3 * basis.n_centres
-                self.blocks.append(_FieldBlock(row, part, state.part_slices[j], basis,
-                                          slice(offset, offset + size)))
-                offset += size
-                limits.append(np.full(size, basis.max_coefficient() / np.sqrt(3.0)))
-            pose_slices.append(np.arange(offset, offset + 7))
-            offset += 7
-            limits.append([0.5, 0.5, 0.5, np.inf, np.inf, np.inf, 0.2])
+        parts = [(row, j, part) for row, i in enumerate(self.active)
+                 for j, part in enumerate(state.examples[i].parts)]
+        bases = [None] * len(parts)
+
+        def make(indices):
+            for b in indices:
+                bases[b] = FieldBasis.icosphere_level(level, parts[b][2].positions, support)
+
+        self.threads.over(len(parts), make)
+        for b, ((row, j, part), basis) in enumerate(zip(parts, bases)):
+            size = 3 * basis.n_centres
+            self.blocks.append(_FieldBlock(row, part, state.part_slices[j], basis,
+                                           slice(offset, offset + size)))
+            offset += size
+            limits.append(np.full(size, basis.max_coefficient() / np.sqrt(3.0)))
+            if b + 1 == len(parts) or parts[b + 1][0] != row:   # the example's last part
+                pose_slices.append(np.arange(offset, offset + 7))
+                offset += 7
+                limits.append([0.5, 0.5, 0.5, np.inf, np.inf, np.inf, 0.2])
         self.size = offset
         limit = np.concatenate(limits)
         self.bounds = Bounds(-limit, limit)
@@ -125,30 +140,40 @@ class FieldRound:
         self.centres = np.array([weighted_centroid(state.shapes[i], state.weights)
                                  for i in self.active]).reshape(-1, 3)
 
+    @staticmethod
+    def _sample(block: _FieldBlock, x: np.ndarray, raw: np.ndarray) -> tuple:
+        """One block's field map at x, located on its surface: phi, |m|, faces, dS/du; its
+        samples go into ``raw``."""
+        part, basis = block.part, block.basis
+        n = len(basis.points)
+        phi, norms = np.empty((n, 3)), np.empty(n)
+        face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
+        found = np.empty(n, dtype=np.bool_)
+        sampled = raw[block.row, block.rows]
+        w = basis.weights
+        hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
+                              x[block.coefficients].reshape(-1, 3), part.locator.inverse,
+                              part.locator.neighbours, part.faces, part.vertices, block.hint,
+                              8, phi, norms, face, sampled, jac, found)
+        missed = np.flatnonzero(~found)
+        if len(missed):     # walked too far: locate these among the faces near them
+            face[missed], coords = part.locator.locate(phi[missed])
+            sampled[missed] = part.locator.interpolate(part.vertices, face[missed], coords)
+            jac[missed] = part.locator.jacobian(part.vertices, face[missed], phi[missed])
+        block.hint = face
+        return phi, norms, face, jac
+
     def trial(self, x: np.ndarray) -> _Trial:
         """Everything that parameters x give: see :meth:`gradient` and :meth:`commit`."""
         n_p = self.state.n_points
         raw = np.empty((len(self.active), n_p, 3))
-        located = []
-        for block in self.blocks:
-            part, basis = block.part, block.basis
-            n = len(basis.points)
-            phi, norms = np.empty((n, 3)), np.empty(n)
-            face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
-            found = np.empty(n, dtype=np.bool_)
-            sampled = raw[block.row, block.rows]
-            w = basis.weights
-            hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
-                                  x[block.coefficients].reshape(-1, 3), part.locator.inverse,
-                                  part.locator.neighbours, part.faces, part.vertices, block.hint,
-                                  8, phi, norms, face, sampled, jac, found)
-            missed = np.flatnonzero(~found)
-            if len(missed):     # walked too far: locate these among the faces near them
-                face[missed], coords = part.locator.locate(phi[missed])
-                sampled[missed] = part.locator.interpolate(part.vertices, face[missed], coords)
-                jac[missed] = part.locator.jacobian(part.vertices, face[missed], phi[missed])
-            block.hint = face
-            located.append((phi, norms, face, jac))
+        located = [None] * len(self.blocks)
+
+        def sample(indices):
+            for b in indices:
+                located[b] = self._sample(self.blocks[b], x, raw)
+
+        self.threads.over(len(self.blocks), sample)
         p = x[self.pose_index]
         rotation, jacobian = rotations_and_jacobians(p[:, :3])
         scale = np.exp(p[:, 6])
@@ -170,12 +195,17 @@ class FieldRound:
         # the samples y of example i are posed by scale e^sigma s0 and rotation R(w) R0
         total_scale = scale * self.scale0
         total_rotation = rotation @ self.rotation0
-        for block, (phi, norms, face, jac) in zip(self.blocks, trial.located):
-            w = block.basis.weights
-            result[block.coefficients] = hotloops.field_sample_gradient(
-                w.indptr, w.indices, w.data, block.basis.points, phi, norms, jac,
-                total_scale[block.row], total_rotation[block.row], g[block.row, block.rows],
-                block.basis.n_centres).ravel()
+
+        def chain(indices):
+            for b in indices:
+                block, (phi, norms, _, jac) = self.blocks[b], trial.located[b]
+                w = block.basis.weights
+                result[block.coefficients] = hotloops.field_sample_gradient(
+                    w.indptr, w.indices, w.data, block.basis.points, phi, norms, jac,
+                    total_scale[block.row], total_rotation[block.row], g[block.row, block.rows],
+                    block.basis.n_centres).ravel()
+
+        self.threads.over(len(self.blocks), chain)
         # the pose: with N = sum_k g_k v_k^T (3 x 3) every term is a contraction of N:
         # sum_k v_k x (R^T g_k) = axial part of R^T N, sum_k g_k . R v_k = <R, N>
         n = g.transpose(0, 2, 1) @ trial.about
@@ -219,13 +249,13 @@ class _RoundOutOfTime(Exception):
 
 def optimise_round(state: CorrespondenceState, objective, active, level: int,
                    max_iterations: int = 30, support: float = 2.0,
-                   deadline: float = float("inf")) -> float:
+                   deadline: float = float("inf"), threads: Threads | None = None) -> float:
     """One L-BFGS-B round at one field level; returns F after it.
 
     At ``deadline`` the round stops and keeps the best point it has evaluated.
     """
     state.objective = objective
-    round_ = FieldRound(state, active, level, support)
+    round_ = FieldRound(state, active, level, support, threads)
     cache = {}
 
     def fun(x):
@@ -311,19 +341,21 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
         at = following(resume.counters, values)
         if at is not None and at["pass"] != resume.counters["pass"]:
             values["pass_start"] = value
-    while at is not None:
-        sweep += 1
-        values["before"] = value
-        value = optimise_round(state, objective, active, levels[at["level"]], deadline=deadline)
-        values["value"] = value
-        trace.record(state, value, phase, sweep)
-        report(progress, None, f"{phase}: level {levels[at['level']]}, round {sweep}, "
-                               f"F = {value:.3f}")
-        if checkpoint is not None:
-            checkpoint(PhasePoint(phase, sweep, dict(at), dict(values)))
-        if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
-            return value
-        previous, at = at, following(at, values)
-        if at is not None and at["pass"] != previous["pass"]:
-            values["pass_start"] = value
-    return value
+    with Threads(settings.threads) as threads:
+        while at is not None:
+            sweep += 1
+            values["before"] = value
+            value = optimise_round(state, objective, active, levels[at["level"]],
+                                   deadline=deadline, threads=threads)
+            values["value"] = value
+            trace.record(state, value, phase, sweep)
+            report(progress, None, f"{phase}: level {levels[at['level']]}, round {sweep}, "
+                                   f"F = {value:.3f}")
+            if checkpoint is not None:
+                checkpoint(PhasePoint(phase, sweep, dict(at), dict(values)))
+            if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
+                return value
+            previous, at = at, following(at, values)
+            if at is not None and at["pass"] != previous["pass"]:
+                values["pass_start"] = value
+        return value
