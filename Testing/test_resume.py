@@ -105,8 +105,9 @@ def uninterrupted(labels, tmp_path_factory):
     return output
 
 
-def killed_at(labels, output, reached, workers: str, cache) -> None:
-    """Run a build and SIGKILL it as soon as ``reached(output)`` (polled) is true."""
+def killed_at(labels, output, reached, workers: str, cache) -> list:
+    """Run a build and SIGKILL it as soon as ``reached(output)`` (polled) is true; check that
+    its worker processes end with it, and return their pids."""
     import os
     import time
 
@@ -116,9 +117,38 @@ def killed_at(labels, output, reached, workers: str, cache) -> None:
                                env=environment)
     while process.poll() is None and not reached(output):
         time.sleep(0.005)
+    workers = descendants(process.pid)
     process.send_signal(signal.SIGKILL)
     process.wait()
     assert process.returncode == -signal.SIGKILL, "the build ended before the point"
+    # its worker processes end with it (they would otherwise wait for work for ever)
+    deadline = time.monotonic() + 10.0
+    while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(alive(pid) for pid in workers), "a worker outlived the killed build"
+    return workers
+
+
+def descendants(pid: int) -> list:
+    """The pids of a process's children and theirs (Linux /proc)."""
+    found, queue = [], [pid]
+    while queue:
+        for task in Path(f"/proc/{queue.pop()}/task").glob("*"):
+            try:
+                children = [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            found += children
+            queue += children
+    return found
+
+
+def alive(pid: int) -> bool:
+    """The process exists and is not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def checkpoint_at(phase: str, sweep: int = 1):
@@ -169,7 +199,9 @@ def test_a_build_killed_at_any_stage_resumes_to_the_uninterrupted_model(
     reached = {"preparing": prepared_one(cache), "fixed": checkpoint_at("fixed", 2),
                "integrated": checkpoint_at("integrated", 1),
                "writing outputs": writing_outputs}[stage]
-    killed_at(labels, output, reached, workers, cache)
+    pids = killed_at(labels, output, reached, workers, cache)
+    if stage == "preparing":
+        assert len(pids) >= 2             # the pool's workers were there, and ended
     assert_whole_outputs(output)
     refused = subprocess.run(command(labels, output), capture_output=True, text=True)
     assert refused.returncode == 2 and "--overwrite" in refused.stderr   # not without --resume

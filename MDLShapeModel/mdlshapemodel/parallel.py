@@ -19,6 +19,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import threading
 import time
 from collections import deque
 from concurrent.futures import (FIRST_COMPLETED, BrokenExecutor, Executor, ProcessPoolExecutor,
@@ -46,6 +47,18 @@ def _one_blas_thread_per_worker():
             os.environ.pop(name, None)
 
 
+def _end_with_parent(parent: int, interval: float = 0.5) -> None:
+    """Worker initializer: end this worker process soon after the process that started it is
+    gone (killed with SIGKILL, it cannot shut its pool down). A worker waiting for work would
+    otherwise live on, holding its memory, once its parent had died."""
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(interval)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="mdlshapemodel-parent-watch", daemon=True).start()
+
+
 class ProcessPool(Executor):
     """A pool of ``workers`` processes started with ``spawn`` (one BLAS thread each) that replaces
     itself when a worker process dies.
@@ -70,7 +83,8 @@ class ProcessPool(Executor):
         if self._pool is not None:
             self._pool.shutdown(wait=True)
         self._pool = ProcessPoolExecutor(max_workers=self.workers,
-                                         mp_context=multiprocessing.get_context("spawn"))
+                                         mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_end_with_parent, initargs=(os.getpid(),))
         self._processes = {}
         return self._pool
 
