@@ -108,6 +108,35 @@ def test_generalization_matches_brute_force(rng):
     assert np.all(np.diff(result["squared"]) <= 1e-12)        # more modes never reconstruct worse
 
 
+def test_generalization_of_a_larger_population_matches_brute_force(rng):
+    """40 shapes: each left-out model comes from the others' scatter as a rank-one change of the
+    whole population's (the secular equation), and equals the model built from the others."""
+    shapes, weights = random_population(rng, n_s=40, n_p=30)
+    result = generalization(shapes, weights, 10)
+    squared, distance = brute_force_generalization(shapes, weights, 10)
+    np.testing.assert_allclose(result["squared_per_case"], squared, rtol=1e-8)
+    np.testing.assert_allclose(result["distance_per_case"], distance, rtol=1e-8)
+
+
+def test_generalization_with_repeated_variances_matches_brute_force():
+    """Shapes on a circle in two directions (equal variances: the rank-one route cannot tell the
+    two apart) and along a third: still the brute force's errors."""
+    n_s, n_p = 12, 10
+    angles = 2 * np.pi * np.arange(n_s) / n_s
+    rng = np.random.default_rng(3)
+    base = rng.normal(size=(n_p, 3))
+    # orthonormal directions (equal weights): the circle's two variances are equal
+    e1, e2, e3 = np.linalg.qr(rng.normal(size=(3 * n_p, 3)))[0].T.reshape(3, n_p, 3)
+    shapes = (base + 2.0 * np.cos(angles)[:, None, None] * e1
+              + 2.0 * np.sin(angles)[:, None, None] * e2
+              + 0.3 * np.cos(2 * angles)[:, None, None] * e3)
+    weights = np.full(n_p, 1.0 / n_p)
+    result = generalization(shapes, weights, 4)
+    squared, distance = brute_force_generalization(shapes, weights, 4)
+    np.testing.assert_allclose(result["squared_per_case"], squared, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(result["distance_per_case"], distance, rtol=1e-8, atol=1e-12)
+
+
 def test_generalization_per_case_errors(rng):
     """Each left-out shape's errors: they are the brute-force ones, and their means are G(M)."""
     shapes, weights = random_population(rng)
