@@ -173,18 +173,22 @@ def specificity(shapes: np.ndarray, weights: np.ndarray, max_modes: int, n_sampl
     distance = np.zeros((n_samples, max_modes))
     normal = rng.standard_normal((n_samples, rank))
     train_sq = np.sum(coordinates ** 2, axis=1)
+    # the training shapes' point displacements from the mean, once: a sample's displacements
+    # then cost O(M n_p), not O(n_s n_p)
+    train_points = coordinates @ to_points
     for m in range(1, max_modes + 1):
         kept = min(m, rank)
         for start in range(0, n_samples, chunk):
             stop = min(start + chunk, n_samples)
-            sample = np.zeros((stop - start, rank))
-            sample[:, :kept] = normal[start:stop, :kept] * sd[:kept]
-            d2 = (np.sum(sample ** 2, axis=1)[:, None] - 2 * sample @ coordinates.T
+            sample = normal[start:stop, :kept] * sd[:kept]
+            d2 = (np.sum(sample ** 2, axis=1)[:, None] - 2 * sample @ coordinates[:, :kept].T
                   + train_sq[None, :])
             nearest = np.argmin(d2, axis=1)
-            difference = sample - coordinates[nearest]
-            squared[start:stop, m - 1] = np.sum(difference ** 2, axis=1)
-            distance[start:stop, m - 1] = _point_distances(difference, to_points, weights)
+            offset = -coordinates[nearest]
+            offset[:, :kept] += sample
+            squared[start:stop, m - 1] = np.sum(offset ** 2, axis=1)
+            difference = sample @ to_points[:kept] - train_points[nearest]
+            distance[start:stop, m - 1] = hotloops.weighted_point_norms(difference, weights)
     return _mean_and_error(squared, distance, n_samples)
 
 
