@@ -90,10 +90,27 @@ def preprocessing_seconds(log: Path) -> float:
     raise ValueError(f"{log}: no preprocessing line")
 
 
+STAGES = (("waited", r"waited ([\d.]+) s for the baselines"),
+          ("files", r"wrote the model, meshes and tables in ([\d.]+) s"),
+          ("evaluation", r"evaluated the model in ([\d.]+) s"),
+          ("report", r"wrote the report in ([\d.]+) s"))
+
+
+def stage_seconds(log: Path) -> dict:
+    """The seconds of the stages after the optimisation, from a build's build.log."""
+    text = log.read_text()
+    found = {}
+    for name, pattern in STAGES:
+        match = re.search(pattern, text)
+        found[name] = float(match.group(1)) if match else 0.0
+    return found
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, nargs="+", default=[20, 40, 80])
     parser.add_argument("--data", default=str(DATA))
+    parser.add_argument("--label", default="1,2", help="labels of the object (default 1,2)")
     parser.add_argument("--output", default="end-to-end-benchmark")
     parser.add_argument("--warm", action="store_true",
                         help="reuse the preprocessing cache (default: an empty one per build)")
@@ -109,7 +126,7 @@ def main() -> int:
         output = Path(args.output) / f"n{n}"
         with tempfile.TemporaryDirectory() as cache:
             command = [sys.executable, "-m", "mdlshapemodel.cli", "build",
-                       *map(str, inputs[:n]), "--label", "1,2", "-o", str(output), "-q",
+                       *map(str, inputs[:n]), "--label", args.label, "-o", str(output), "-q",
                        *([] if args.warm else ["--cache-dir", cache]), *extra]
             start = time.perf_counter()
             process = subprocess.Popen(command)
@@ -127,10 +144,15 @@ def main() -> int:
             trace = list(csv.DictReader(file))
         optimisation = float(trace[-1]["wall_seconds"]) if trace else 0.0
         prep = preprocessing_seconds(output / "build.log")
+        stages = stage_seconds(output / "build.log")
         rows.append((n, wall, prep, optimisation, wall - prep - optimisation, watch.peak_total,
                      watch.peak_single, metrics["objective"]["initial"],
                      metrics["objective"]["final"], metrics["strategy"], metrics["n_points"]))
-        print(f"n_s={n}: {wall:.0f} s wall, peak {watch.peak_total:.0f} MB", flush=True)
+        other = wall - prep - optimisation - sum(stages.values())
+        print(f"n_s={n}: {wall:.0f} s wall, peak {watch.peak_total:.0f} MB; seconds: "
+              f"preprocessing {prep:.1f}, optimisation {optimisation:.1f}, "
+              + ", ".join(f"{name} {value:.1f}" for name, value in stages.items())
+              + f", the rest (start-up, initial correspondence, ...) {other:.1f}", flush=True)
     print(f"\n{'n_s':>4} {'points':>6} {'strategy':<20} {'wall s':>7} {'prep s':>7} {'opt s':>7} "
           f"{'opt s/shape':>11} {'rest s':>7} {'peak MB (all)':>13} {'(largest)':>9} "
           f"{'eq.14 initial':>13} {'final':>8}")

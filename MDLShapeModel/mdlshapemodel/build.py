@@ -188,8 +188,11 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume
         # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
         # then the model's, with the outputs
         report(progress, 0.0, "evaluating the baselines" if pending else "evaluating")
+        waited = time.perf_counter()
         baselines = {name: {**notes, **_outcome(evaluation)}
                      for name, (notes, evaluation) in pending.items()}
+        if pending:
+            log.info("waited %.1f s for the baselines' evaluation", time.perf_counter() - waited)
 
         report(progress, 0.5, "evaluating the model, writing outputs")
         result = write_outputs(output, corresponded, prepared, rejected, config, baselines, pool)

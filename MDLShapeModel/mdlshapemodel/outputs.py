@@ -4,7 +4,9 @@ tables, metrics.json, the checkpoint, and (through :mod:`.report`) report.html."
 from __future__ import annotations
 
 import json
+import logging
 import shutil
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +22,8 @@ from .model.shape_model import ShapeModel, score_outliers
 from .prepare import io
 from .prepare.surface import mirror, point_surface_distances
 from .report.html import write_report
+
+log = logging.getLogger("mdlshapemodel")
 
 
 @dataclass
@@ -167,6 +171,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     aligned = state.aligned_shapes()
     raw = state.raw_shapes()
     names = model.names
+    started = time.perf_counter()
     model.save(output / "model.h5")
     io.write_polydata(output / "mean.vtp", model.mean, triangles)
     outlier = score_outliers(model)
@@ -201,7 +206,10 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
     io.write_csv(output / "cases.csv", list(cases[0].keys()),
                  [[c.get(k, "") for k in cases[0]] for c in cases])
+    log.info("wrote the model, meshes and tables in %.1f s", time.perf_counter() - started)
+    started = time.perf_counter()
     quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
+    log.info("evaluated the model in %.1f s", time.perf_counter() - started)
     metrics = {"objective": {"initial": initial, "final": final,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
                "strategy": model.metadata["strategy"], "n_shapes": state.n_shapes,
@@ -216,5 +224,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
                "baselines": baselines or {}}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
+    started = time.perf_counter()
     write_report(output, metrics, cases, rejected, model, aligned, names)
+    log.info("wrote the report in %.1f s", time.perf_counter() - started)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted)
