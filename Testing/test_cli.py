@@ -242,6 +242,7 @@ NON_DEFAULT_OPTIONS = {
     "specificity_samples": (["--specificity-samples", "300"], 300),
     "surface_samples": (["--surface-samples", "0"], 0),
     "workers": (["--workers", str((os.cpu_count() or 1) + 1)], (os.cpu_count() or 1) + 1),
+    "scheduler": (["--scheduler", "tcp://127.0.0.1:1"], "tcp://127.0.0.1:1"),
     "cache_dir": (["--cache-dir", "somewhere"], "somewhere"),
     "strict": (["--strict"], True),
 }

@@ -1,15 +1,15 @@
 """build_model(): files -> prepared cases -> correspondence -> optimisation -> model -> outputs.
 
 Orchestration only: each stage is a room of its own (:mod:`.prepare`, :mod:`.correspondence`,
-:mod:`.model`, :mod:`.outputs`, :mod:`.report`). Per-case work runs on the caller's executor, or
-by default on a pool of ``config.workers`` processes for each
-stage that fans out over the cases (preprocessing, CPD registrations) and one helper process for
-the evaluations that overlap the optimisation (:func:`.parallel.helper_for`). A case that cannot be
-used is *rejected* with a one-line reason (logged, and listed in ``rejected.csv``) and the build
-goes on; a bug stops the build with a message that names the case (traceback in build.log). The
-optimisation state is checkpointed after every sweep or round, and an interrupted optimisation
-(Ctrl-C, a cancelling progress callback, or the time limit) still writes a model of the state
-reached.
+:mod:`.model`, :mod:`.outputs`, :mod:`.report`). Per-case work runs on the caller's executor, on
+the Dask cluster of ``config.scheduler``, or by default on a pool of ``config.workers`` processes
+for each stage that fans out over the cases (preprocessing, CPD registrations) and one helper
+process for the evaluations that overlap the optimisation (:func:`.parallel.helper_for`). A case
+that cannot be used is *rejected* with a one-line reason (logged, and listed in ``rejected.csv``)
+and the build goes on; a bug stops the build with a message that names the case (traceback in
+build.log). The optimisation state is checkpointed after every sweep or round, and an interrupted
+optimisation (Ctrl-C, a cancelling progress callback, or the time limit) still writes a model of
+the state reached.
 """
 
 from __future__ import annotations
@@ -30,12 +30,12 @@ from .correspondence.state import CorrespondenceState, initial_state
 from .correspondence.strategies import optimise
 from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import RESTORED_INITIAL, Trace
-from .errors import BuildError, Cancelled, InternalError
+from .errors import BuildError, Cancelled, ConfigError, InternalError
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
 from .outputs import (BuildResult, Checkpoint, clear_previous_build, previous_build,
                       read_checkpoint, remove_partial_files, save_checkpoint, write_outputs)
-from .parallel import Task, helper_for
+from .parallel import Task, dask_executor, helper_for
 from .prepare import io, preprocess
 from .progress import Progress, report
 
@@ -65,7 +65,10 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     executor : concurrent.futures.Executor, optional
         Runs the per-case work (preprocessing, CPD registrations, evaluations); default: a pool
         of ``config.workers`` processes per stage (none when 1) and one helper process for the
-        evaluations that overlap the optimisation. The caller's executor is not shut down.
+        evaluations that overlap the optimisation, or with ``config.scheduler`` the Dask cluster
+        there (:func:`.parallel.dask_executor`; not both). On a Dask client's executor
+        (``Client.get_executor()``) each call runs as :class:`.parallel.InTurn`. The caller's
+        executor is not shut down.
     overwrite : bool
         Replace an earlier build in ``output`` (its files only: :func:`.outputs.previous_build`);
         without it, a build into a folder that holds one raises :class:`BuildError` and touches
@@ -90,6 +93,8 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         result.final_objective, result.metrics["generalization"]
     """
     config = (config or BuildConfig()).validate()
+    if executor is not None and config.scheduler is not None:
+        raise ConfigError("scheduler: give an executor or a scheduler's address, not both")
     output = Path(output)
     earlier = [] if resume else previous_build(output)
     if earlier and not overwrite:
@@ -120,9 +125,10 @@ def build_model(inputs, output, config: BuildConfig | None = None,
 
 def fingerprint(prepared: list, config: BuildConfig) -> dict:
     """What a checkpoint is of: the settings that shape the result (all but ``workers``,
-    ``cache_dir`` and ``max_time``) and every prepared case's name and file digest."""
+    ``scheduler``, ``cache_dir`` and ``max_time``) and every prepared case's name and file
+    digest."""
     settings = {key: value for key, value in config.to_dict().items()
-                if key not in ("workers", "cache_dir", "max_time")}
+                if key not in ("workers", "scheduler", "cache_dir", "max_time")}
     return {"settings": settings,
             "cases": [[case.name, io.file_digest(case.path)] for case in prepared]}
 
@@ -157,7 +163,16 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume
     if not paths:
         raise BuildError("no input files found (label maps: .nii/.nii.gz/.nrrd/.mha...; meshes: "
                          ".vtk/.vtp/.stl/.ply/.obj)")
-    log.info("preprocessing %d inputs with %d workers", len(paths), config.workers)
+    if config.scheduler is None:
+        log.info("preprocessing %d inputs with %d workers", len(paths), config.workers)
+        return _build_from(paths, output, config, progress, executor, resume, started)
+    with dask_executor(config.scheduler) as cluster:   # connected and checked before any work
+        log.info("preprocessing %d inputs on the Dask cluster", len(paths))
+        return _build_from(paths, output, config, progress, cluster, resume, started)
+
+
+def _build_from(paths: list, output: Path, config: BuildConfig, progress, executor,
+                resume: bool, started: float) -> BuildResult:
     prepared, rejected = preprocess(paths, config, executor, progress)
     for rejection in rejected:
         log.warning("rejected %s: %s", io.printable(rejection.path), rejection.reason)

@@ -309,6 +309,13 @@ class BuildConfig:
     # running
     workers: int = field(default_factory=lambda: os.cpu_count() or 1, metadata=option(
         _RUNNING, "processes for per-case work (default: all cores, %(default)s)"))
+    # None: the per-case work runs here (``workers``)
+    scheduler: str | None = field(default=None, metadata=option(
+        _RUNNING, "run the per-case work (preparing, CPD baseline, evaluations) on the Dask "
+                  "cluster whose scheduler is at ADDRESS, e.g. tcp://10.0.0.5:8786, instead "
+                  "of --workers local processes; the same model bit for bit (needs pip install "
+                  "\"mdlshapemodel[dask]\" here and on the workers; see the README)",
+        metavar="ADDRESS"))
     # per-case preprocessing cache; None: the default place, "": none
     cache_dir: str | None = field(default=None, metadata=option(
         _RUNNING, "where preprocessed cases are kept for rebuilds (default: "
@@ -371,6 +378,9 @@ class BuildConfig:
         need(self.surface_samples == 0 or self.surface_samples >= 2, "surface_samples",
              "must be 0 (none) or at least 2")
         need(self.workers >= 1, "workers", "must be at least 1")
+        need(self.scheduler is None or (isinstance(self.scheduler, str)
+                                        and self.scheduler.strip() != ""),
+             "scheduler", "must be a Dask scheduler's address, e.g. tcp://127.0.0.1:8786")
         return self
 
     def optimisation_settings(self) -> OptimisationSettings:

@@ -78,6 +78,7 @@ from pycpd.emregistration import EMRegistration
 from ..config import BuildConfig
 from ..errors import InternalError
 from ..parallel import executor_for, map_cases
+from ..prepare.case import one_blas_thread
 from ..prepare.surface import SurfaceDistance
 from ..progress import Progress
 from .state import CorrespondenceState, FixedExample
@@ -356,6 +357,7 @@ def _normalisation(points: np.ndarray) -> tuple[np.ndarray, float]:
     return centre, radius
 
 
+@one_blas_thread()   # the same arithmetic wherever it runs: see the docstring
 def cpd_registration(template_points: np.ndarray, target_vertices: np.ndarray,
                      target_faces: np.ndarray, *, beta: float = 0.3, alpha: float = 2.0,
                      max_iterations: int = 150, tolerance: float = 1e-6,
@@ -363,7 +365,11 @@ def cpd_registration(template_points: np.ndarray, target_vertices: np.ndarray,
                      sigma2_factor: float | None = 4.0, w: float = 0.0, seed: int = 0
                      ) -> CPDResult:
     """Register template points onto one target surface by CPD; see :func:`cpd_correspondence`
-    for the parameters. Returns a :class:`CPDResult` with the correspondence and diagnostics."""
+    for the parameters. Returns a :class:`CPDResult` with the correspondence and diagnostics.
+
+    BLAS runs single-threaded, as in preparation, so the result is the same bit for bit in a
+    worker process, on a Dask worker and in the build's own process (``--workers 1``: there,
+    threaded BLAS gave other last bits)."""
     started = time.perf_counter()
     template, vertices, faces = _check_inputs(template_points, target_vertices, target_faces)
     if not (beta > 0 and alpha > 0 and tolerance > 0 and 0 <= w < 1 and max_iterations >= 1

@@ -1,0 +1,254 @@
+"""Per-case work on a Dask cluster (``build --scheduler``), with real processes throughout: the
+test starts a scheduler and two worker processes on 127.0.0.1 with the ``dask`` command of this
+interpreter, and runs the real command line against them.
+
+The workers run two threads each, and their environment asks BLAS for two threads: what the
+library must make safe (one call at a time per process, one BLAS thread) is then really there to
+be made safe. They also carry the test-only crash hook for inputs named ``crashing*``.
+"""
+
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from distributed import Client
+
+import mdlshapemodel
+from mdlshapemodel import BuildConfig, ShapeModel
+from mdlshapemodel.build import fingerprint
+from mdlshapemodel.errors import ConfigError
+from mdlshapemodel.parallel import TEST_CRASH_VARIABLE, Task, map_cases, on_cluster
+from mdlshapemodel.prepare import preprocess
+from mdlshapemodel.prepare.io import read_csv
+
+from dying import square_or_die
+from on_workers import blas_threads, held
+from test_cli import EXECUTABLE
+from test_workers import write_population
+
+DASK = Path(sys.executable).with_name("dask")
+PACKAGE_ROOT = str(Path(mdlshapemodel.__file__).resolve().parents[1])
+TESTING = str(Path(__file__).resolve().parent)
+CRASHING = "crashing"
+SMALL_BUILD = ["--points", "162", "--max-sweeps", "1", "--evaluation-modes", "2",
+               "--specificity-samples", "50", "--surface-samples", "5", "--baselines", "none,cpd",
+               "--no-cache"]
+
+
+def _start(arguments: list, environment: dict, log: Path) -> subprocess.Popen:
+    with open(log, "w") as handle:   # the child keeps its own descriptor
+        return subprocess.Popen([str(DASK), *arguments], stdout=handle, stderr=subprocess.STDOUT,
+                                env=environment, start_new_session=True)
+
+
+def _stop(process: subprocess.Popen):
+    """End ``process`` and every process it started (its own process group)."""
+    if process.poll() is None:
+        os.killpg(process.pid, signal.SIGTERM)
+        try:
+            process.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+
+
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory) -> str:
+    """The address of a scheduler on 127.0.0.1 with two worker processes of two threads each;
+    the scheduler gives a call up at its first dead worker (allowed-failures 0)."""
+    folder = tmp_path_factory.mktemp("dask")
+    inherited = [os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else []
+    environment = dict(os.environ, PYTHONWARNINGS="ignore",
+                       PYTHONPATH=os.pathsep.join([PACKAGE_ROOT, TESTING, *inherited]))
+    file = folder / "scheduler.json"
+    started = []
+    try:
+        started.append(_start(["scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--no-dashboard", "--scheduler-file", str(file)],
+                              {**environment, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"},
+                              folder / "scheduler.log"))
+        deadline = time.monotonic() + 60
+        while not file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(file.read_text())["address"]
+        started.append(_start(["worker", address, "--nworkers", "2", "--nthreads", "2",
+                               "--no-dashboard", "--local-directory", str(folder)],
+                              {**environment, "OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2",
+                               TEST_CRASH_VARIABLE: CRASHING}, folder / "workers.log"))
+        with Client(address, set_as_default=False) as client:
+            client.wait_for_workers(2, timeout=90)
+        yield address
+    finally:
+        for process in reversed(started):
+            _stop(process)
+
+
+def build(inputs: list, output: Path, *options, crash: bool = False):
+    """The real command line's ``build`` of ``inputs`` with the small settings and ``options``;
+    ``crash``: with the test-only crash hook for inputs named ``crashing*``."""
+    environment = dict(os.environ, PYTHONWARNINGS="ignore")
+    environment.pop(TEST_CRASH_VARIABLE, None)
+    if crash:
+        environment[TEST_CRASH_VARIABLE] = CRASHING
+    return subprocess.run(EXECUTABLE + ["build", *map(str, inputs), "-o", str(output),
+                                        *SMALL_BUILD, *map(str, options)],
+                          capture_output=True, text=True, env=environment, timeout=300)
+
+
+def free_port() -> int:
+    """A TCP port of 127.0.0.1 on which nothing listens (just now)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_importing_the_library_and_its_build_imports_no_dask():
+    code = ("import sys, mdlshapemodel, mdlshapemodel.build, mdlshapemodel.parallel; "
+            "print(','.join(m for m in ('dask', 'distributed') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            check=True)
+    assert result.stdout.strip() == ""
+
+
+def test_the_scheduler_is_not_part_of_what_a_checkpoint_is_of():
+    """A build interrupted on one cluster (or locally) resumes on another: the address is not
+    in the fingerprint that ``--resume`` checks."""
+    assert (fingerprint([], BuildConfig(scheduler="tcp://10.0.0.5:8786"))
+            == fingerprint([], BuildConfig()))
+    with pytest.raises(ConfigError, match="scheduler"):
+        BuildConfig(scheduler=" ").validate()
+
+
+def test_an_unreachable_scheduler_is_one_line_and_exit_code_2_before_any_work(tmp_path):
+    paths = write_population(tmp_path / "inputs", 3)
+    address = f"tcp://127.0.0.1:{free_port()}"
+    started = time.monotonic()
+    result = build(paths, tmp_path / "out", "--scheduler", address)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.splitlines() == [
+        f"mdlshapemodel: error: no Dask scheduler reachable at {address} (Connection refused)"]
+    assert time.monotonic() - started < 20   # no retrying until a timeout
+    assert not (tmp_path / "out" / "rejected.csv").exists()   # nothing was prepared
+
+
+def test_without_distributed_the_error_says_what_to_install(tmp_path):
+    """The package made unimportable as if it were not installed (None in sys.modules)."""
+    paths = write_population(tmp_path / "inputs", 3)
+    code = ("import sys; sys.modules['distributed'] = None; from mdlshapemodel.cli import main; "
+            "sys.exit(main(sys.argv[1:]))")
+    result = subprocess.run([sys.executable, "-c", code, "build", *map(str, paths), "-o",
+                             str(tmp_path / "out"), "--scheduler", "tcp://127.0.0.1:8786"],
+                            capture_output=True, text=True)
+    assert result.returncode == 2, result.stderr
+    (line,) = result.stderr.splitlines()
+    assert line.startswith("mdlshapemodel: error: scheduler tcp://127.0.0.1:8786: the Dask "
+                           "client is not installed")
+    assert line.endswith('pip install "mdlshapemodel[dask]"')
+
+
+def test_calls_run_one_at_a_time_per_worker_process_with_one_blas_thread(scheduler):
+    """The workers run two threads and ask BLAS for two: a Dask client's executor as the
+    library uses it runs one call at a time in each process, with one BLAS thread; the same
+    calls straight on the client overlap and have two."""
+    with Client(scheduler, set_as_default=False) as client:
+        raw = client.get_executor(pure=False)
+        ours = on_cluster(raw)
+
+        def overlapping(executor) -> bool:
+            calls = defaultdict(list)
+            for pid, start, end in (f.result() for f in
+                                    [executor.submit(held, 0.5) for _ in range(4)]):
+                calls[pid].append((start, end))
+            return any(later[0] < earlier[1] for spans in calls.values()
+                       for earlier, later in zip(sorted(spans), sorted(spans)[1:]))
+
+        assert overlapping(raw)
+        assert not overlapping(ours)
+        assert client.submit(blas_threads, pure=False).result() == 2
+        assert ours.submit(blas_threads).result() == 1
+
+
+def test_work_a_closed_dask_client_cannot_take_is_done_locally(scheduler, caplog):
+    """A client whose scheduler went away closes itself: the cases then run in a local pool,
+    an evaluation here (as when a caller's executor breaks)."""
+    with Client(scheduler, set_as_default=False) as client:
+        executor = client.get_executor(pure=False)
+    with caplog.at_level(logging.WARNING, "mdlshapemodel"):
+        assert map_cases(square_or_die, [(1,), (3,)], executor, workers=1) == [1, 9]
+        assert Task(executor, square_or_die, 5).result() == 25
+    assert "the executor broke with 2 of 2 cases unfinished" in caplog.text
+    assert "did not finish (BrokenExecutor); doing it here" in caplog.text
+
+
+def model_arrays(output: Path) -> dict:
+    model = ShapeModel.load(output / "model.h5")
+    arrays = {name: getattr(model, name) for name in ("mean", "modes", "variances", "weights",
+                                                      "scores", "triangles", "parameters")}
+    arrays["names"] = model.names
+    return arrays
+
+
+def test_a_build_on_the_cluster_equals_the_local_builds_bit_for_bit(scheduler, tmp_path):
+    """Four cases and a truncated file, built on the cluster, with two local worker processes
+    and in one process: the same rejection, model, meshes and measures (baselines too)."""
+    paths = write_population(tmp_path / "inputs", 4)
+    truncated = tmp_path / "inputs" / "truncated.nii.gz"
+    data = paths[0].read_bytes()
+    truncated.write_bytes(data[:len(data) // 2])
+    outputs = {how: tmp_path / how for how in ("cluster", "two", "one")}
+    options = {"cluster": ["--scheduler", scheduler], "two": ["--workers", "2"],
+               "one": ["--workers", "1"]}
+    for how, output in outputs.items():
+        result = build([tmp_path / "inputs"], output, *options[how])
+        assert result.returncode == 0, result.stderr
+        assert "Traceback" not in result.stderr
+    log = (outputs["cluster"] / "build.log").read_text()
+    assert f"per-case work on the Dask scheduler {scheduler}: 2 workers, 4 threads" in log
+    assert "start workers with --nthreads 1" in log   # they have two threads each
+
+    rejected = read_csv(outputs["cluster"] / "rejected.csv")
+    assert [(row["case"], row["file"]) for row in rejected] == [("truncated", str(truncated))]
+    assert rejected[0]["reason"].startswith("compressed data is truncated or corrupt")
+    reference = model_arrays(outputs["cluster"])
+    assert reference["names"] == ["case_0", "case_1", "case_2", "case_3"]
+    metrics = json.loads((outputs["cluster"] / "metrics.json").read_text())
+    assert set(metrics["baselines"]) == {"none", "cpd"}
+    meshes = sorted(p.relative_to(outputs["cluster"]) for p in outputs["cluster"].rglob("*.vtp"))
+    assert len(meshes) == 9   # the mean, and each case corresponded and aligned
+    for how in ("two", "one"):
+        assert read_csv(outputs[how] / "rejected.csv") == rejected, how
+        arrays = model_arrays(outputs[how])
+        for name, value in reference.items():
+            assert np.array_equal(arrays[name], value), (how, name)
+        assert json.loads((outputs[how] / "metrics.json").read_text()) == metrics, how
+        for mesh in meshes:
+            assert (outputs[how] / mesh).read_bytes() == (outputs["cluster"] / mesh).read_bytes(), (
+                how, mesh)
+
+
+def test_an_input_that_kills_its_dask_workers_is_rejected_and_the_others_are_prepared(
+        scheduler, tmp_path, monkeypatch, caplog):
+    """The crash hook kills the worker that prepares ``crashing.nii.gz``: the scheduler gives it
+    up, it dies again alone in a fresh process here, and is rejected; the other cases (also any
+    that the dead worker held) are prepared. Through a caller's client, as from Python."""
+    paths = write_population(tmp_path / "inputs", 4)
+    culprit = paths[1].rename(paths[1].with_name(f"{CRASHING}.nii.gz"))
+    monkeypatch.setenv(TEST_CRASH_VARIABLE, CRASHING)   # for the fresh process here
+    with Client(scheduler, set_as_default=False) as client:
+        with caplog.at_level(logging.WARNING, "mdlshapemodel"):
+            prepared, rejected = preprocess([paths[0], culprit, *paths[2:]],
+                                            BuildConfig(cache_dir=""),
+                                            client.get_executor(pure=False))
+    assert [case.name for case in prepared] == ["case_0", "case_2", "case_3"]
+    assert [(r.name, r.path, r.reason) for r in rejected] == [
+        (CRASHING, str(culprit), f"worker process died (signal 9) while preparing {culprit}")]
+    assert "was given up by the Dask cluster" in caplog.text
