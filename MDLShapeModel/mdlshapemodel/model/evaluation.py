@@ -328,9 +328,8 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     max_points : int, optional
         Use at most this many points on each side of each comparison (a fresh uniform random
         subset, drawn from ``rng``): an unbiased Monte Carlo estimate that bounds the cost for very
-        large surfaces. Default: all points (exact). The cost is about 10 us per point and side
-        for each case and distinct M (about 18 s for n_s = 40, M = 1..10, 2,562 points and true
-        surfaces of 2,562 vertices, on a 2-core machine).
+        large surfaces. Default: all points (exact). The cost is about 5-7 us per point and side
+        for each case and distinct M (exact closest points, :class:`SurfaceDistance`).
     rng : numpy.random.Generator, optional
         Only used with ``max_points`` (default: ``numpy.random.default_rng(0)``).
 
