@@ -16,7 +16,8 @@ does exactly that, per target surface:
    from ``sigma2_factor`` times the variance the rigid registration ended with, not from pycpd's
    start (the mean squared distance over all point pairs), see below;
 3. the deformed points are mapped back to the target's frame and each is **projected** onto the
-   closest point of the target triangle mesh (:class:`~mdlshapemodel.prepare.surface.SurfaceDistance`).
+   closest point of the target triangle mesh
+   (:class:`~mdlshapemodel.prepare.surface.SurfaceDistance`).
 
 pycpd 2.0.0 (the release on PyPI) solves the full M x M system of the deformable M-step (eq. 22 of
 the paper) at every iteration and builds its E-step through (M, N, D) difference arrays; it has no
