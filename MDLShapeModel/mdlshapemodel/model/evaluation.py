@@ -80,9 +80,10 @@ def _leave_one_out(coordinates: np.ndarray, max_modes: int):
     # the model without shape i has at most n_s - 2 modes: null directions would otherwise
     # hold the part of shape i that the others do not span
     wanted = min(max_modes, max(n_s - 2, 0), r)
+    rho = n_s / (n_s - 1.0)
     for i in range(n_s):
-        offset = coordinates[i] * (n_s / (n_s - 1.0))          # x_i minus the others' mean
-        directions = _downdated_modes(scatter, coordinates[i], n_s / (n_s - 1.0), wanted)
+        offset = coordinates[i] * rho          # x_i minus the others' mean
+        directions = _downdated_modes(scatter, coordinates[i], rho, wanted)
         if directions is None:
             directions, rank = _modes_of_others(coordinates, i)
         else:

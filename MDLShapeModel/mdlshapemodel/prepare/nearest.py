@@ -61,7 +61,7 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
                 qx, qy, qz = bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz)
             else:                                     # inside: barycentric (u, v, w)
                 total = va + vb + vc
-                if total <= 0.0:                      # degenerate triangle: nearest vertex
+                if total <= 0.0:                      # zero area, no edge region met: a
                     qx, qy, qz = ax, ay, az
                 else:
                     v = vb / total
@@ -102,6 +102,12 @@ def closest_on_triangles(points, vertices, faces, candidates):
     return found, squared, face
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _cell_index(value, origin, cell, size):
+    """The index along one axis of the cell holding ``value``, clamped to the grid."""
+    return min(max(int(np.floor((value - origin) / cell)), 0), size - 1)
+
+
 @njit(cache=True, nogil=True)
 def build_grid(vertices, faces, origin, cell, shape):
     """CSR arrays (start, triangles) of the cells of a grid of ``shape`` (3,) cubic cells of size
@@ -114,8 +120,8 @@ def build_grid(vertices, faces, origin, cell, shape):
         for d in range(3):
             lo = min(vertices[faces[f, 0], d], vertices[faces[f, 1], d], vertices[faces[f, 2], d])
             hi = max(vertices[faces[f, 0], d], vertices[faces[f, 1], d], vertices[faces[f, 2], d])
-            low[f, d] = min(max(int(np.floor((lo - origin[d]) / cell)), 0), shape[d] - 1)
-            high[f, d] = min(max(int(np.floor((hi - origin[d]) / cell)), 0), shape[d] - 1)
+            low[f, d] = _cell_index(lo, origin[d], cell, shape[d])
+            high[f, d] = _cell_index(hi, origin[d], cell, shape[d])
         for i in range(low[f, 0], high[f, 0] + 1):
             for j in range(low[f, 1], high[f, 1] + 1):
                 for k in range(low[f, 2], high[f, 2] + 1):
@@ -186,9 +192,9 @@ def query_grid(points, vertices, faces, origin, cell, shape, start, triangles):
     q = np.empty(3)
     for p in range(k):
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
-        ci = min(max(int(np.floor((px - origin[0]) / cell)), 0), nx - 1)
-        cj = min(max(int(np.floor((py - origin[1]) / cell)), 0), ny - 1)
-        ck = min(max(int(np.floor((pz - origin[2]) / cell)), 0), nz - 1)
+        ci = _cell_index(px, origin[0], cell, nx)
+        cj = _cell_index(py, origin[1], cell, ny)
+        ck = _cell_index(pz, origin[2], cell, nz)
         ring = 0
         while True:
             i0, i1 = max(ci - ring, 0), min(ci + ring, nx - 1)
@@ -197,19 +203,14 @@ def query_grid(points, vertices, faces, origin, cell, shape, start, triangles):
             # the shell: the cells at Chebyshev distance ``ring`` from (ci, cj, ck)
             for i in range(i0, i1 + 1):
                 for j in range(j0, j1 + 1):
-                    if abs(i - ci) == ring or abs(j - cj) == ring:
-                        for kk in range(k0, k1 + 1):
+                    # on a side of the shell every kk, inside it only its top and bottom
+                    # (ring > 0 there)
+                    side = abs(i - ci) == ring or abs(j - cj) == ring
+                    first, last = (k0, k1) if side else (ck - ring, ck + ring)
+                    for kk in range(first, last + 1, 1 if side else 2 * ring):
+                        if k0 <= kk <= k1:
                             _visit_cell(i, j, kk, p, points, vertices, faces, origin, cell,
                                         shape, start, triangles, stamp, q, found, squared, face)
-                    else:
-                        if ck - ring >= 0:
-                            _visit_cell(i, j, ck - ring, p, points, vertices, faces, origin,
-                                        cell, shape, start, triangles, stamp, q, found, squared,
-                                        face)
-                        if ck + ring <= nz - 1:
-                            _visit_cell(i, j, ck + ring, p, points, vertices, faces, origin,
-                                        cell, shape, start, triangles, stamp, q, found, squared,
-                                        face)
             # every unvisited cell lies in the part of the grid beyond one side of the visited
             # box: the nearest such part bounds the distance of anything not yet tested
             bound = np.inf
