@@ -486,3 +486,26 @@ def test_fast_strategy_passes_over_the_levels_again_while_it_pays():
         rounds[passes] = len(trace.rows)
     assert rounds[2] > rounds[1]          # the first pass gained: a second one ran
     assert finals[2] < finals[1]          # and it lowered F further
+
+
+@pytest.mark.parametrize("strategy", ["fast", "one-at-a-time-pose"])
+@pytest.mark.parametrize("scaling", [True, False])
+def test_pose_optimisation_never_changes_one_example_size_against_another(strategy, scaling):
+    """The fast strategy holds every example's size (a free size lets F fall without limit:
+    most examples shrink, a few grow); the paper's pose step scales only when Procrustes does
+    (``--no-scaling`` keeps sizes). The rescaling of the whole population scales all alike."""
+    state = small_state()
+    state.scaling = scaling
+    if not scaling:
+        state.procrustes()
+    start = np.array([e.pose.scale for e in state.examples])
+    settings = OptimisationSettings(strategy=strategy, max_time=1e6, max_sweeps=2,
+                                    pose_evaluations=30, fixed_fraction=0)
+    optimise(state, objectives(state), settings, np.random.default_rng(1), Trace())
+    ratio = np.array([e.pose.scale for e in state.examples]) / start
+    moved = [e for e in state.examples if any(p.warps for p in e.parts)]
+    assert moved, "the optimisation changed nothing"
+    if strategy == "fast" or not scaling:
+        assert np.allclose(ratio, ratio[0], rtol=1e-12)
+    else:   # III-D4's simplex does move the scale of an example against the others
+        assert not np.allclose(ratio, ratio[0], rtol=1e-6)

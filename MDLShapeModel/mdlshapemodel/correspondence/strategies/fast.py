@@ -32,6 +32,15 @@ from ..warps import FieldWarp
 from .base import PhasePoint, stalled, start_phase
 
 
+#: The bound of the log scale of an example's pose in a round: 0, the size of every example stays
+#: what the Procrustes alignment gave it. With its size free, F falls without limit by shrinking
+#: most examples towards their centroids and growing a few (one mode of pure scale, every other
+#: mode small): seen on a two-part population, whose sizes ended between 0.13 and 40 mm around a
+#: mean of 11. The rescaling of the whole population (``CorrespondenceState.target_size``) keeps
+#: only the mean's size.
+POSE_SCALE_LIMIT = 0.0
+
+
 def gradient_at(state: CorrespondenceState, shapes: np.ndarray) -> tuple[float, np.ndarray]:
     """F and dF/dX (n_s, n_p, 3) for trial shapes of every example (the state is unchanged)."""
     with state.trial_shapes(shapes):
@@ -127,7 +136,9 @@ class FieldRound:
             if b + 1 == len(parts) or parts[b + 1][0] != row:   # the example's last part
                 pose_slices.append(np.arange(offset, offset + 7))
                 offset += 7
-                limits.append([0.5, 0.5, 0.5, np.inf, np.inf, np.inf, 0.2])
+                # the log scale is held at 0: an example's size is not free to lower F
+                # (POSE_SCALE_LIMIT)
+                limits.append([0.5, 0.5, 0.5, np.inf, np.inf, np.inf, POSE_SCALE_LIMIT])
         self.size = offset
         limit = np.concatenate(limits)
         self.bounds = Bounds(-limit, limit)

@@ -202,7 +202,8 @@ def warp_counts(state: CorrespondenceState) -> dict:
 
 def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evaluations: int,
                    improved=None) -> float:
-    """Downhill simplex over example i's pose (rotation about its centroid, translation, scale).
+    """Downhill simplex over example i's pose (rotation about its centroid, translation, and
+    scale unless the state keeps sizes, ``state.scaling`` False: ``--no-scaling``).
 
     ``improved`` as in :func:`optimise_amplitude`."""
     example = state.examples[i]
@@ -211,8 +212,10 @@ def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalua
     centre = weighted_centroid(base.apply(raw), state.weights)
     size = state.target_size
 
+    free = 7 if state.scaling else 6        # the log scale is the 7th parameter
+
     def pose_of(parameters: np.ndarray) -> Pose:
-        delta = pose_from_parameters(parameters)
+        delta = pose_from_parameters(np.concatenate([parameters, np.zeros(7 - free)]))
         # rotate and scale about the shape's centroid, then translate
         about = Pose(1.0, np.eye(3), centre).compose(delta).compose(Pose(1.0, np.eye(3), -centre))
         return about.compose(base)
@@ -224,9 +227,9 @@ def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalua
         seen(value)
         return value
 
-    step = np.array([0.02, 0.02, 0.02, 0.02 * size, 0.02 * size, 0.02 * size, 0.01])
-    simplex = np.vstack([np.zeros(7), np.diag(step)])
-    result = minimize(objective, np.zeros(7), method="Nelder-Mead",
+    step = np.array([0.02, 0.02, 0.02, 0.02 * size, 0.02 * size, 0.02 * size, 0.01])[:free]
+    simplex = np.vstack([np.zeros(free), np.diag(step)])
+    result = minimize(objective, np.zeros(free), method="Nelder-Mead",
                       options={"initial_simplex": simplex, "maxfev": max_evaluations,
                                "xatol": 1e-6, "fatol": 1e-6})
     if result.fun < current:
