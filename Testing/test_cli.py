@@ -217,6 +217,7 @@ NON_DEFAULT_OPTIONS = {
     "labels": (["--label", "1,2", "--label", "3"], [1, 2, 3]),
     "voxel_size": (["--voxel-size", "0.5"], 0.5),
     "mirror": (["--mirror", "*_r*", "--mirror", "a,b"], ["*_r*", "a,b"]),
+    "parts": (["--part", "head=1", "--part", "tail=2,3"], ["head=1", "tail=2,3"]),
     "surface_method": (["--surface", "slicer"], "slicer"),
     "smoothing_factor": (["--smoothing-factor", "0.25"], 0.25),
     "decimation": (["--decimation", "0.2"], 0.2),
@@ -274,8 +275,9 @@ def test_build_options_are_the_fields_of_build_config(tmp_path):
         flag = re.match(r" {2}(?:-\w, )?(--[\w-]+)", entry)
         if flag:
             entries[flag.group(1)] = squeezed(entry)
-    # besides the settings: where the build goes and how (again into an earlier build's folder)
-    run_options = {"--help", "--output", "--quiet", "--overwrite", "--resume"}
+    # besides the settings: what goes in (a manifest), where the build goes and how (again into
+    # an earlier build's folder)
+    run_options = {"--help", "--manifest", "--output", "--quiet", "--overwrite", "--resume"}
     assert set(entries) - run_options == (
         {arguments[0] for arguments, _ in NON_DEFAULT_OPTIONS.values()} | {"--no-cache"})
     for f in offered:

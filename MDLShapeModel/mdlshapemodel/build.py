@@ -37,6 +37,7 @@ from .outputs import (BuildResult, Checkpoint, clear_previous_build, previous_bu
                       read_checkpoint, remove_partial_files, save_checkpoint, write_outputs)
 from .parallel import Task, dask_executor, helper_for
 from .prepare import io, preprocess
+from .prepare.parts import case_inputs, read_manifest
 from .progress import Progress, report
 
 log = logging.getLogger("mdlshapemodel")
@@ -47,13 +48,14 @@ __all__ = ["BuildError", "BuildResult", "Correspondence", "build_model", "corres
 
 def build_model(inputs, output, config: BuildConfig | None = None,
                 progress: Progress | None = None, executor: Executor | None = None,
-                overwrite: bool = False, resume: bool = False) -> BuildResult:
+                overwrite: bool = False, resume: bool = False, manifest=None) -> BuildResult:
     """Build an optimised statistical shape model from label maps or meshes.
 
     Parameters
     ----------
     inputs : list of paths
-        Label-map or mesh files, or folders of them.
+        Label-map or mesh files, or folders of them: one file per case (with ``config.parts``,
+        label maps split into the parts). May be empty when a ``manifest`` is given.
     output : path
         Output folder (created); see the README for its layout.
     config : BuildConfig, optional
@@ -73,6 +75,9 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         Replace an earlier build in ``output`` (its files only: :func:`.outputs.previous_build`);
         without it, a build into a folder that holds one raises :class:`BuildError` and touches
         nothing. Every file is written whole or not at all (a temporary name renamed into place).
+    manifest : path, optional
+        A CSV table of cases with the columns ``case``, ``part``, ``file``: one file per part
+        (:func:`.prepare.parts.read_manifest`), added to ``inputs``.
     resume : bool
         Carry on from the checkpoint of an interrupted build in ``output`` (killed, or out of
         power) and end with the model the uninterrupted build would have made; refused when the
@@ -113,7 +118,7 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     if log.level == logging.NOTSET or log.level > logging.INFO:
         log.setLevel(logging.INFO)
     try:
-        return _build(inputs, output, config, progress, executor, resume)
+        return _build(inputs, output, config, progress, executor, resume, manifest)
     except InternalError as error:
         # the user sees the one-line message; the traceback (a worker's too) goes to build.log
         handler.stream.write("".join(traceback.format_exception(error)))
@@ -125,12 +130,12 @@ def build_model(inputs, output, config: BuildConfig | None = None,
 
 def fingerprint(prepared: list, config: BuildConfig) -> dict:
     """What a checkpoint is of: the settings that shape the result (all but ``workers``,
-    ``scheduler``, ``cache_dir`` and ``max_time``) and every prepared case's name and file
-    digest."""
+    ``scheduler``, ``cache_dir`` and ``max_time``) and every prepared case's name and the
+    digests of its files."""
     settings = {key: value for key, value in config.to_dict().items()
                 if key not in ("workers", "scheduler", "cache_dir", "max_time")}
     return {"settings": settings,
-            "cases": [[case.name, io.file_digest(case.path)] for case in prepared]}
+            "cases": [[case.name, *map(io.file_digest, case.paths)] for case in prepared]}
 
 
 def _resumption(output: Path, print_of: dict):
@@ -155,25 +160,27 @@ def _resumption(output: Path, print_of: dict):
     return checkpoint
 
 
-def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume: bool
-           ) -> BuildResult:
+def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume: bool,
+           manifest) -> BuildResult:
     started = time.perf_counter()
     io.write_text(output / "config.json", json.dumps(config.to_dict(), indent=2))
-    paths = io.find_inputs(inputs)
-    if not paths:
+    cases = case_inputs(io.find_inputs(inputs), config)
+    if manifest is not None:
+        cases += read_manifest(manifest, config)
+    if not cases:
         raise BuildError("no input files found (label maps: .nii/.nii.gz/.nrrd/.mha...; meshes: "
                          ".vtk/.vtp/.stl/.ply/.obj)")
     if config.scheduler is None:
-        log.info("preprocessing %d inputs with %d workers", len(paths), config.workers)
-        return _build_from(paths, output, config, progress, executor, resume, started)
+        log.info("preprocessing %d cases with %d workers", len(cases), config.workers)
+        return _build_from(cases, output, config, progress, executor, resume, started)
     with dask_executor(config.scheduler) as cluster:   # connected and checked before any work
-        log.info("preprocessing %d inputs on the Dask cluster", len(paths))
-        return _build_from(paths, output, config, progress, cluster, resume, started)
+        log.info("preprocessing %d cases on the Dask cluster", len(cases))
+        return _build_from(cases, output, config, progress, cluster, resume, started)
 
 
-def _build_from(paths: list, output: Path, config: BuildConfig, progress, executor,
+def _build_from(cases: list, output: Path, config: BuildConfig, progress, executor,
                 resume: bool, started: float) -> BuildResult:
-    prepared, rejected = preprocess(paths, config, executor, progress)
+    prepared, rejected = preprocess(cases, config, executor, progress)
     for rejection in rejected:
         log.warning("rejected %s: %s", io.printable(rejection.path), rejection.reason)
     io.write_csv(output / "rejected.csv", ("case", "file", "reason"),
@@ -288,6 +295,11 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                          f"{', '.join(sorted(map(io.printable, duplicates)))}")
     if len(prepared) < 3:
         raise BuildError(f"only {len(prepared)} usable case(s); at least 3 are needed")
+    parts = prepared[0].part_names
+    other = next((case for case in prepared if case.part_names != parts), None)
+    if other is not None:
+        raise BuildError(f"the cases have different parts: {prepared[0].name} has "
+                         f"{parts}, {other.name} has {other.part_names}")
     state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)
     initial = integrated(state.covariance())
     log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
@@ -341,14 +353,16 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         log.info("final objective %.4f after %.1f s, %d evaluations", final,
                  trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
         save(PhasePoint(PhasePoint.DONE, trace.last.sweep if trace.rows else 0))
-    return Correspondence(state, shape_model_of(state, config, final, voxel, data_range),
+    named = parts if len(parts) > 1 else ()
+    return Correspondence(state, shape_model_of(state, config, final, voxel, data_range, named),
                           initial, final, voxel, data_range, trace, interrupted)
 
 
 def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: float,
-                   voxel_size: float, data_range: float) -> ShapeModel:
+                   voxel_size: float, data_range: float, part_names=()) -> ShapeModel:
     """The shape model of a correspondence: the area-weighted PCA of its aligned shapes, with the
-    sampling grid's triangles and sphere positions, the case names, and as metadata the
+    sampling grid's triangles and sphere positions, the case names, the part names of a
+    multi-part object, and as metadata the
     objective, the method (the strategy, or "cpd"), the voxel size, the data range and the
     configuration (JSON)."""
     method = "cpd" if config.correspondence == "cpd" else config.strategy
@@ -356,6 +370,7 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
                                    names=[e.name for e in state.examples],
                                    triangles=state.triangles(),
                                    part_sizes=[len(p) for p, _ in state.grids],
+                                   part_names=part_names,
                                    objective=objective, strategy=method, voxel_size_mm=voxel_size,
                                    data_range_mm=data_range,
                                    config=json.dumps(config.to_dict()))

@@ -273,12 +273,12 @@ def _summary(result) -> str:
 
 
 def _run_build(inputs, output, config, live: bool, overwrite: bool = False,
-               resume: bool = False) -> int:
+               resume: bool = False, manifest=None) -> int:
     from .build import build_model
 
     with _ProgressDisplay(live) as progress:
         result = build_model(inputs, output, config, progress=progress, overwrite=overwrite,
-                             resume=resume)
+                             resume=resume, manifest=manifest)
     print(_summary(result))
     return 0
 
@@ -324,8 +324,12 @@ def main(argv=None) -> int:
         description="Statistical shape models with correspondence by minimum description length.")
     commands = parser.add_subparsers(dest="command", required=True)
     build = commands.add_parser("build", help="build a model from label maps or meshes")
-    build.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
+    build.add_argument("inputs", nargs="*", help="label maps, meshes, or folders of them")
     build.add_argument("-o", "--output", required=True, help="output folder")
+    build.add_argument("--manifest", metavar="CSV",
+                       help="a table of cases with the columns case,part,file: one file per part "
+                            "of each case (paths relative to the table's folder), instead of or "
+                            "besides INPUTS")
     again = build.add_mutually_exclusive_group()
     again.add_argument("--overwrite", action="store_true",
                        help="replace an earlier build in the output folder (its files only; "
@@ -341,6 +345,9 @@ def main(argv=None) -> int:
     demo.add_argument("--subjects", type=int, default=12, help="population size (default 12)")
     demo.add_argument("--max-time", type=float, default=40.0, help="optimisation seconds (default 40)")
     demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--parts", action="store_true",
+                      help="a two-part population: each subject cut into two touching parts "
+                           "(labels 1 and 2), modelled as --part left=1 --part right=2")
     demo.add_argument("-q", "--quiet", action="store_true")
     compare = commands.add_parser(
         "compare", help="evaluate several models of the same cases side by side",
@@ -385,20 +392,24 @@ def main(argv=None) -> int:
     log.setLevel(logging.INFO)
     try:
         if args.command == "build":
+            if not args.inputs and not args.manifest:
+                build.error("give input files or folders, or --manifest")
             return _run_build(args.inputs, args.output, _config_from(args), live,
-                              args.overwrite, args.resume)
+                              args.overwrite, args.resume, args.manifest)
         if args.command == "compare":
             return _run_compare(args)
         if args.command == "fit":
             return _run_fit(args)
         if args.command == "demo":
-            from .demo import write_demo_population
+            from .demo import DEMO_PARTS, write_demo_population
 
             output = Path(args.output)
-            paths = write_demo_population(output / "inputs", args.subjects, args.seed)
+            paths = write_demo_population(output / "inputs", args.subjects, args.seed,
+                                          args.parts)
             log.info("wrote %d demo label maps to %s", len(paths), output / "inputs")
             config = BuildConfig(points=642, max_time=args.max_time, seed=args.seed,
-                                 specificity_samples=2000).validate()
+                                 specificity_samples=2000,
+                                 parts=list(DEMO_PARTS) if args.parts else []).validate()
             return _run_build(paths, output, config, live, overwrite=True)  # the demo's own
     except MDLShapeModelError as error:
         print(f"mdlshapemodel: error: {error}", file=sys.stderr)

@@ -132,6 +132,41 @@ def parse_items(text: str, kind: type = str, item: str = "value", choices=None,
     return values
 
 
+@dataclass(frozen=True)
+class PartSpec:
+    """One part of a multi-part object (``BuildConfig.parts``): its name and the labels whose
+    union it is (empty: the build's ``labels``, e.g. a part given by its own files)."""
+
+    name: str
+    labels: tuple = ()
+
+
+def parse_part(text: str) -> PartSpec:
+    """A part written as ``NAME=LABELS`` (``head=1``, ``tail=2,3``) or ``NAME`` alone (the build's
+    labels, for parts that have files of their own). Names are letters, digits, ``_`` and ``-``
+    (they become folder names of the outputs).
+
+    Raises :class:`ConfigError` with a one-line message.
+
+    Examples
+    --------
+    >>> parse_part("tail=2, 3")
+    PartSpec(name='tail', labels=(2, 3))
+    """
+    name, _, labels = str(text).partition("=")
+    name = name.strip()
+    if not name or not all(c.isalnum() or c in "_-" for c in name) or name.startswith("-"):
+        raise ConfigError(f"part {text!r}: a part is NAME=LABELS, its name of letters, digits, "
+                          "'_' and '-' (e.g. head=1)")
+    try:
+        values = parse_items(labels, int, "label") if labels.strip() else []
+    except ConfigError as error:
+        raise ConfigError(f"part {text!r}: {error}") from None
+    if any(v <= 0 for v in values):
+        raise ConfigError(f"part {text!r}: label values must be positive integers")
+    return PartSpec(name, tuple(values))
+
+
 def field_items(name: str, text: str) -> list:
     """The value of :class:`BuildConfig`'s list field ``name`` written as text (see
     :func:`parse_items`; its item kind, noun and choices are the field's)."""
@@ -206,6 +241,11 @@ class BuildConfig:
         _INPUTS, "label value(s) whose union is the object, e.g. --label 1,2 "
                  "(default: all non-zero)",
         flag="--label", metavar="L", item="label", repeatable=True))
+    parts: list[str] = field(default_factory=list, metadata=option(
+        _INPUTS, "a part of a multi-part object: its name and the label value(s) whose union "
+                 "it is, e.g. --part head=1 --part tail=2 (repeatable; each part gets its own "
+                 "surface, sphere map and --points sample points, and one pose moves all parts)",
+        flag="--part", metavar="NAME=LABELS", item="part", repeatable=True, split=False))
     voxel_size: float | None = field(default=None, metadata=option(
         _INPUTS, "mm per voxel for mesh inputs (default: their mean edge length)"))
     mirror: list[str] = field(default_factory=list, metadata=option(
@@ -342,6 +382,11 @@ class BuildConfig:
 
         need(all(isinstance(v, int) and v > 0 for v in self.labels), "labels",
              "label values must be positive integers")
+        try:
+            names = [part.name for part in self.part_specs()]
+        except ConfigError as error:
+            raise ConfigError(f"parts: {error}") from None
+        need(len(set(names)) == len(names), "parts", "part names must differ")
         need(self.voxel_size is None or self.voxel_size > 0, "voxel_size", "must be positive")
         need(self.surface_method in SURFACE_METHODS, "surface_method",
              f"must be one of {', '.join(SURFACE_METHODS)}")
@@ -382,6 +427,10 @@ class BuildConfig:
                                         and self.scheduler.strip() != ""),
              "scheduler", "must be a Dask scheduler's address, e.g. tcp://127.0.0.1:8786")
         return self
+
+    def part_specs(self) -> list[PartSpec]:
+        """The parts of ``parts`` (:func:`parse_part`); none for a one-part object."""
+        return [parse_part(text) for text in self.parts]
 
     def optimisation_settings(self) -> OptimisationSettings:
         """The optimiser's settings of this build."""

@@ -29,8 +29,18 @@ def bump_ellipsoid_mask(shape=(30, 34, 48), semi_axes=(16.0, 9.0, 7.0), bump_pos
     return ellipsoid | bump
 
 
-def write_demo_population(folder, n_subjects: int = 12, seed: int = 0) -> list[Path]:
-    """Write ``n_subjects`` label maps (NIfTI, 1 mm voxels) to ``folder``; return their paths."""
+#: the parts of the two-part demo population (``write_demo_population(..., parts=True)``): the
+#: labels of its two halves, as ``--part`` takes them
+DEMO_PARTS = ("left=1", "right=2")
+
+
+def write_demo_population(folder, n_subjects: int = 12, seed: int = 0,
+                          parts: bool = False) -> list[Path]:
+    """Write ``n_subjects`` label maps (NIfTI, 1 mm voxels) to ``folder``; return their paths.
+
+    With ``parts``, each ellipsoid is cut across its long axis, 4 voxels left of its centre, into
+    two touching parts, labels 1 and 2 (:data:`DEMO_PARTS`); the bump is on the right part.
+    """
     import SimpleITK as sitk
 
     folder = Path(folder)
@@ -41,9 +51,13 @@ def write_demo_population(folder, n_subjects: int = 12, seed: int = 0) -> list[P
     paths = []
     for k, radius in enumerate(radii):
         thickness = float(7.0 + 1.0 * rng.uniform(-1, 1))
-        mask = bump_ellipsoid_mask(semi_axes=(16.0, 9.0, thickness), bump_position=0.3,
-                                   bump_radius=float(radius))
-        image = sitk.GetImageFromArray(mask.astype(np.uint8))
+        shape = (30, 34, 48)
+        mask = bump_ellipsoid_mask(shape=shape, semi_axes=(16.0, 9.0, thickness),
+                                   bump_position=0.3, bump_radius=float(radius))
+        labels = mask.astype(np.uint8)
+        if parts:
+            labels[:, :, (shape[2] - 1) // 2 - 4:] *= 2
+        image = sitk.GetImageFromArray(labels)
         image.SetSpacing((1.0, 1.0, 1.0))
         path = folder / f"subject_{k + 1:02d}.nii.gz"
         sitk.WriteImage(image, str(path))

@@ -1,5 +1,6 @@
-"""The files of a build's output folder: model.h5, mean.vtp, correspondence/, aligned/, the
-tables, metrics.json, the checkpoint, and (through :mod:`.report`) report.html."""
+"""The files of a build's output folder: model.h5, mean.vtp, correspondence/, aligned/ (with a
+sub-folder per part of a multi-part object), the tables, metrics.json, the checkpoint, and (through
+:mod:`.report`) report.html."""
 
 from __future__ import annotations
 
@@ -75,7 +76,7 @@ def remove_partial_files(output) -> None:
     for name in BUILD_FILES:
         folder = Path(output) / name
         if folder.is_dir():
-            for path in folder.glob(f".*{io.PARTIAL}*"):
+            for path in folder.rglob(f".*{io.PARTIAL}*"):   # parts have folders of their own
                 path.unlink(missing_ok=True)
     for path in Path(output).glob(f".*{io.PARTIAL}*"):
         path.unlink(missing_ok=True)
@@ -151,6 +152,27 @@ def warp_summary(example) -> str:
     return " ".join(f"{kind}:{count}" for kind, count in counts.items() if count)
 
 
+@dataclass
+class PartMesh:
+    """Where one part of a model's points are, and its triangles numbered within the part."""
+
+    name: str            # "" for a one-part object
+    folder: str          # the part's sub-folder of correspondence/ and aligned/ ("" for one part)
+    rows: slice          # its rows of the model's points
+    triangles: np.ndarray
+
+
+def part_meshes(model: ShapeModel) -> list:
+    """The parts of a model's points, each with its own triangles (one part: all of them)."""
+    slices = model.part_slices()
+    if len(slices) == 1:
+        return [PartMesh("", "", slices[0], model.triangles)]
+    owner = model.part_of_triangles()
+    names = model.part_names or [f"part_{j}" for j in range(len(slices))]
+    return [PartMesh(name, name, rows, model.triangles[owner == j] - rows.start)
+            for j, (name, rows) in enumerate(zip(names, slices))]
+
+
 def physical_shapes(raw: np.ndarray, triangles: np.ndarray, prepared: list) -> list:
     """The corresponded shapes in the physical space of their inputs, so that they overlay them:
     ``raw`` (the state's samples of the prepared surfaces) with those of mirrored cases
@@ -173,26 +195,37 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     names = model.names
     started = time.perf_counter()
     model.save(output / "model.h5")
-    io.write_polydata(output / "mean.vtp", model.mean, triangles)
+    parts = part_meshes(model)
+    io.write_polydata(output / "mean.vtp", model.mean, triangles,
+                      cell_data={"part": model.part_of_triangles()} if model.part_names else None)
     outlier = score_outliers(model)
     cases = []
     physical = physical_shapes(raw, triangles, prepared)
+    for folder in ("correspondence", "aligned"):
+        for part in parts:
+            (output / folder / part.folder).mkdir(parents=True, exist_ok=True)
     for i, case in enumerate(prepared):
-        io.write_polydata(io.case_file(output / "correspondence", case.name), physical[i],
-                          triangles)
-        io.write_polydata(io.case_file(output / "aligned", case.name), aligned[i], triangles)
-        # from each input-surface vertex to the corresponded mesh
-        distances = point_surface_distances(case.map.vertices, raw[i], triangles)
-        quality = prepared[i].map.quality
-        cases.append({"case": case.name, "file": case.path,
-                      "surface_vertices": int(len(case.map.vertices)),
+        for folder, shape in (("correspondence", physical[i]), ("aligned", aligned[i])):
+            for part in parts:
+                io.write_polydata(io.case_file(output / folder / part.folder, case.name),
+                                  shape[part.rows], part.triangles)
+        # from each input-surface vertex to the corresponded mesh of its part
+        distances = np.concatenate([
+            point_surface_distances(prepared_part.map.vertices, raw[i][part.rows],
+                                    part.triangles)
+            for prepared_part, part in zip(case.parts, parts)])
+        qualities = [prepared_part.map.quality for prepared_part in case.parts]
+        cases.append({"case": case.name, "file": ";".join(case.paths),
+                      "surface_vertices": int(sum(len(p.map.vertices) for p in case.parts)),
                       "mean_distance_mm": float(distances.mean()),
                       "max_distance_mm": float(distances.max()),
                       "mean_distance_voxels": float(distances.mean() / case.voxel_size),
-                      "sphere_flips": quality["flipped_triangles"],
-                      "sphere_mean_abs_log_area": quality["mean_abs_log_area_ratio"],
-                      "sphere_p95_abs_log_area": quality["p95_abs_log_area_ratio"],
-                      "sphere_seconds": quality["seconds"],
+                      "sphere_flips": sum(q["flipped_triangles"] for q in qualities),
+                      "sphere_mean_abs_log_area": float(np.mean(
+                          [q["mean_abs_log_area_ratio"] for q in qualities])),
+                      "sphere_p95_abs_log_area": max(q["p95_abs_log_area_ratio"]
+                                                     for q in qualities),
+                      "sphere_seconds": sum(q["seconds"] for q in qualities),
                       "warps": int(sum(len(p.warps) for p in getattr(state.examples[i], "parts",
                                                                       []))),
                       "warp_kinds": warp_summary(state.examples[i]),

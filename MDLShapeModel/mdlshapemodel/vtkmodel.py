@@ -55,7 +55,7 @@ from .errors import BuildError, Cancelled, ConfigError, InputError
 from .model.shape_model import ShapeModel
 from .outputs import physical_shapes
 from .prepare import surface
-from .prepare.case import PreparedCase
+from .prepare.case import PreparedCase, PreparedPart
 from .prepare.sphere import SphereMap
 from .vtkfilters import (MIRRORED, SPHERE_COORDINATES, VOXEL_SIZE, _accessors, _add_field,
                          _field, _Filter)
@@ -226,9 +226,8 @@ def _prepared_case(polydata, name: str, config: BuildConfig) -> PreparedCase:
     if voxel_size is None:
         raise InputError(f"{name}: no field data {VOXEL_SIZE} and no BuildConfig.voxel_size")
     mapped = SphereMap(vertices, faces, vtk_to_numpy(sphere).astype(np.float64))
-    return PreparedCase(name, "", mapped, float(voxel_size),
-                        mirrored=bool(_field(polydata, MIRRORED)),
-                        repair=str(_field(polydata, "Repair") or ""))
+    part = PreparedPart("", "", mapped, repair=str(_field(polydata, "Repair") or ""))
+    return PreparedCase(name, [part], float(voxel_size), bool(_field(polydata, MIRRORED)))
 
 
 class _PipelineProgress:

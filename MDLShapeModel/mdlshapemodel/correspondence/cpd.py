@@ -520,7 +520,7 @@ def cpd_state(state: CorrespondenceState, prepared: list, config: BuildConfig,
 
     The template is the case whose initial correspondence is closest to the initial mean (the
     medoid); its points are registered onto every other case's surface by coherent point drift
-    and projected onto it (:func:`cpd_correspondence`), on ``executor`` (default: a process
+    (part by part for a multi-part object) and projected onto it (:func:`cpd_correspondence`), on ``executor`` (default: a process
     pool of ``config.workers``). A registration whose worker process dies runs again alone in a
     fresh process (:func:`~mdlshapemodel.parallel.map_cases`); one that kills that one too is a
     bug (:class:`InternalError`, naming the case): its input was prepared already.
@@ -531,18 +531,22 @@ def cpd_state(state: CorrespondenceState, prepared: list, config: BuildConfig,
     points = state.examples[template].raw_points()
     log.info("CPD baseline: registering the template %s onto %d cases",
              state.examples[template].name, len(prepared) - 1)
-    others = [i for i in range(len(prepared)) if i != template]
+    # each part of the template onto the same part of every other case
+    tasks = [(i, j) for i in range(len(prepared)) if i != template
+             for j in range(len(state.part_slices))]
 
     def died(index: int, how: str):
-        raise InternalError(f"{prepared[others[index]].name}: {how} while the CPD template was "
+        raise InternalError(f"{prepared[tasks[index][0]].name}: {how} while the CPD template was "
                             "registered onto it, also in a process of its own; please report it")
 
     with executor_for(config.workers, executor) as pool:
         registered = map_cases(cpd_correspondence,
-                               [(points, prepared[i].map.vertices, prepared[i].map.faces)
-                                for i in others], pool, progress, "CPD registered", died,
-                               config.workers)
-    shapes = {template: points, **dict(zip(others, registered))}
+                               [(points[state.part_slices[j]], prepared[i].parts[j].map.vertices,
+                                 prepared[i].parts[j].map.faces) for i, j in tasks],
+                               pool, progress, "CPD registered", died, config.workers)
+    shapes = {template: points}
+    for (i, _), part_points in zip(tasks, registered):
+        shapes[i] = np.concatenate([shapes[i], part_points]) if i in shapes else part_points
     examples = [FixedExample(case.name, shapes[i]) for i, case in enumerate(prepared)]
     return (CorrespondenceState(examples, state.grids, scaling=config.scaling),
             state.examples[template].name)

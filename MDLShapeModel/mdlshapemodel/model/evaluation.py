@@ -579,8 +579,8 @@ def evaluate_state(state, config, prepared: list | None = None,
         model = ShapeModel.from_shapes(aligned, state.weights)
     surfaces = None
     if prepared is not None and config.surface_samples > 0:
-        surfaces = [(state.to_model_frame(i, case.map.vertices), case.map.faces)
-                    for i, case in enumerate(prepared)]
+        surfaces = [(state.to_model_frame(i, vertices), faces)
+                    for i, (vertices, faces) in enumerate(case.surface() for case in prepared)]
     arguments = (aligned, state.weights.copy(), model.variances, config.evaluation_modes,
                  config.specificity_samples, np.random.default_rng(config.seed),
                  state.triangles().copy(), surfaces, config.surface_samples)

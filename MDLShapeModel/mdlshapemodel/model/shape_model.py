@@ -39,8 +39,8 @@ vectors are point-interleaved (x1, y1, z1, x2, ...: ``MapPointIdToInternalIdx = 
     /mdlshapemodel               our model, float64 and exact (ignored by Statismo/Scalismo):
         @format = "mdlshapemodel", @format_version = 2
         mean (n, 3), modes (m, n, 3), variances (m,), weights (n,), scores (s, m) float64;
-        names (s,) UTF-8 strings; part_sizes (parts,) int64; triangles (t, 3) and
-        parameters (n, 3) when set; metadata/<key> one scalar (or array) dataset per entry
+        names (s,) UTF-8 strings; part_sizes (parts,) int64; part_names (parts,) UTF-8 strings
+        for a multi-part object; triangles (t, 3) and parameters (n, 3) when set; metadata/<key> one scalar (or array) dataset per entry
 
 The Statismo groups hold the same Gaussian as the model: with V the (3n, m) flattened modes
 (orthonormal in the weighted inner product) the shape covariance is V diag(lambda) V^T; a thin QR
@@ -84,11 +84,25 @@ class ShapeModel:
     part_sizes: list = field(default_factory=list)
     metadata: dict = field(default_factory=dict)
     parameters: np.ndarray | None = None     # (n_p, 3) sampling positions on the unit sphere
+    part_names: list = field(default_factory=list)  # one per part_sizes entry; [] for one part
+
+    def part_slices(self) -> list:
+        """The rows of the points of each part (``part_sizes`` in order)."""
+        ends = np.cumsum(self.part_sizes or [len(self.mean)])
+        return [slice(int(end - size), int(end))
+                for end, size in zip(ends, self.part_sizes or [len(self.mean)])]
+
+    def part_of_triangles(self) -> np.ndarray:
+        """The part index of each triangle (a triangle lies within one part)."""
+        if self.triangles is None:
+            return np.zeros(0, dtype=np.int64)
+        starts = np.cumsum([0] + list(self.part_sizes or [len(self.mean)]))[1:-1]
+        return np.searchsorted(starts, np.asarray(self.triangles)[:, 0], side="right")
 
     @classmethod
     def from_shapes(cls, shapes: np.ndarray, weights: np.ndarray, names=None, triangles=None,
                     part_sizes=None, relative_tolerance: float = 1e-10, parameters=None,
-                    **metadata):
+                    part_names=None, **metadata):
         """Area-weighted PCA of aligned shapes (n_s, n_p, 3)."""
         shapes = np.asarray(shapes, dtype=np.float64)
         n_s, n_p, _ = shapes.shape
@@ -103,7 +117,7 @@ class ShapeModel:
         return cls(mean=mean, modes=modes, variances=variances[keep], weights=np.asarray(weights),
                    scores=scores, names=list(names or [f"case_{i}" for i in range(n_s)]),
                    triangles=triangles, part_sizes=list(part_sizes or [n_p]), metadata=metadata,
-                   parameters=parameters)
+                   parameters=parameters, part_names=list(part_names or []))
 
     @property
     def n_modes(self) -> int:
@@ -202,6 +216,10 @@ class ShapeModel:
         group.create_dataset("names", data=np.array([str(n) for n in self.names], dtype=object),
                              dtype=h5py.string_dtype())
         group.create_dataset("part_sizes", data=np.asarray(self.part_sizes, dtype=np.int64))
+        if self.part_names:
+            group.create_dataset("part_names", data=np.array([str(n) for n in self.part_names],
+                                                             dtype=object),
+                                 dtype=h5py.string_dtype())
         if self.triangles is not None:
             group.create_dataset("triangles", data=np.asarray(self.triangles))
         if self.parameters is not None:
@@ -253,7 +271,9 @@ class ShapeModel:
                    scores=group["scores"][()], names=[_text(n) for n in group["names"][()]],
                    triangles=group["triangles"][()] if "triangles" in group else None,
                    part_sizes=[int(s) for s in group["part_sizes"][()]], metadata=metadata,
-                   parameters=group["parameters"][()] if "parameters" in group else None)
+                   parameters=group["parameters"][()] if "parameters" in group else None,
+                   part_names=[_text(n) for n in group["part_names"][()]]
+                   if "part_names" in group else [])
 
     @classmethod
     def _read_statismo(cls, f, path) -> "ShapeModel":

@@ -1,4 +1,5 @@
-"""Many inputs -> prepared cases, on an executor, through the cache; bugs named, not hidden."""
+"""Many inputs -> prepared cases (every part of every case one task), on an executor, through the
+cache; bugs named, not hidden."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from ..progress import Progress
 from . import io
 from .cache import cache_dir_of, prepare_case_cached
 from .case import PreparedCase, Rejection
+from .parts import CaseInput, case_inputs, joined, part_config
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -28,10 +30,15 @@ def _prepare_or_bug(path: str, config: BuildConfig, cache_dir: str | None):
                             "please report it") from error
 
 
-def preprocess(paths, config: BuildConfig, executor: Executor | None = None,
+def preprocess(inputs, config: BuildConfig, executor: Executor | None = None,
                progress: Progress | None = None) -> tuple[list, list]:
     """Prepare every case on ``executor`` (default: a process pool of ``config.workers``, none
     when 1; see :mod:`mdlshapemodel.parallel`), reusing cached results (:mod:`.cache`).
+
+    ``inputs`` are files (each one case; with ``config.parts`` each split into its parts, see
+    :func:`.parts.case_inputs`) or :class:`.parts.CaseInput` records (e.g. of a manifest,
+    :func:`.parts.read_manifest`). Every part of every case is one task; a case whose part is
+    rejected is rejected whole, the part named (:func:`.parts.joined`).
 
     A case whose worker process dies while preparing it (a crash in a native library, a kill)
     and again when it is prepared alone in a fresh process is rejected, "worker process died
@@ -41,20 +48,27 @@ def preprocess(paths, config: BuildConfig, executor: Executor | None = None,
     Returns (prepared, rejected), each in input order. Raises :class:`InternalError` (naming the
     case) when preparing an input meets a bug rather than a problem of the input.
     """
-    paths = [str(p) for p in paths]
+    inputs = list(inputs)
+    cases = (inputs if all(isinstance(item, CaseInput) for item in inputs) and inputs
+             else case_inputs(inputs, config))
+    tasks = [(case, part) for case in cases if not case.problem for part in case.parts]
     cache_dir = cache_dir_of(config)
 
     def died(index: int, how: str):
-        path = paths[index]
+        path = tasks[index][1].path
         return Rejection(io.case_name(path), path, f"{how} while preparing {path}"), False
 
     with executor_for(config.workers, executor) as pool:
-        results = map_cases(_prepare_or_bug, [(p, config, cache_dir) for p in paths], pool,
+        results = map_cases(_prepare_or_bug, [(part.path, part_config(config, part), cache_dir)
+                                              for _, part in tasks], pool,
                             progress, "prepared", died, config.workers)
     reused = sum(hit for _, hit in results)
     if reused:
-        log.info("reused %d of %d preprocessed cases from the cache %s", reused, len(paths),
-                 cache_dir)
-    prepared = [r for r, _ in results if isinstance(r, PreparedCase)]
-    rejected = [r for r, _ in results if isinstance(r, Rejection)]
+        log.info("reused %d of %d preprocessed %s from the cache %s", reused, len(tasks),
+                 "parts" if len(tasks) > len(cases) else "cases", cache_dir)
+    done = iter(result for result, _ in results)
+    outcomes = [Rejection(case.name, case.path, case.problem) if case.problem
+                else joined(case, [next(done) for _ in case.parts]) for case in cases]
+    prepared = [r for r in outcomes if isinstance(r, PreparedCase)]
+    rejected = [r for r in outcomes if isinstance(r, Rejection)]
     return prepared, rejected

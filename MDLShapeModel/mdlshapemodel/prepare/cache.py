@@ -21,7 +21,7 @@ import numpy as np
 from ..config import BuildConfig
 from ..version import __version__
 from . import io
-from .case import PreparedCase, Rejection, is_mirrored, prepare_case
+from .case import PreparedCase, PreparedPart, Rejection, is_mirrored, prepare_case
 from .sphere import SphereMap
 
 log = logging.getLogger("mdlshapemodel")
@@ -78,7 +78,8 @@ def _load_cached(file: Path, name: str, path: str):
         quality = json.loads(str(data["quality"]))
         facts = json.loads(str(data["facts"]))
         mapped = SphereMap(data["vertices"], data["faces"], data["sphere"], quality)
-        return PreparedCase(name, path, mapped, float(data["voxel_size"]), **facts)
+        part = PreparedPart("", path, mapped, facts["repair"], facts["smoothing_sigma"])
+        return PreparedCase(name, [part], float(data["voxel_size"]), facts["mirrored"])
 
 
 def _store_cached(file: Path, result):

@@ -24,16 +24,74 @@ from .sphere import AREA_WEIGHT, MAX_ITERATIONS, SphereMap, sphere_map
 
 
 @dataclass
-class PreparedCase:
-    """One input after preprocessing: its surface and bijective sphere map, and what was done."""
+class PreparedPart:
+    """One closed surface of a case (a part of a multi-part object, or the whole object) and its
+    bijective sphere map, with what was done to make it."""
 
-    name: str
-    path: str
+    name: str                             # the part's name; "" for a one-part object
+    path: str                             # the file it was made from
     map: SphereMap
-    voxel_size: float                     # mm per voxel (mesh inputs: see BuildConfig.voxel_size)
-    mirrored: bool = False                # reflected x -> -x (BuildConfig.mirror)
     repair: str = ""                      # what was repaired in the input ('' when nothing)
     smoothing_sigma: float | None = None  # label maps: the blur that gave a genus-0 surface
+
+    def record(self) -> dict:
+        """The preprocessing facts as a JSON-ready dict (cache entries, cases.csv)."""
+        return {"repair": self.repair, "smoothing_sigma": self.smoothing_sigma}
+
+
+@dataclass
+class PreparedCase:
+    """One case after preprocessing: the surface and sphere map of each of its parts (one for a
+    one-part object), and what was done.
+
+    A one-part case (what :func:`prepare_case` makes from one file) offers its part's ``map``,
+    ``repair`` and ``smoothing_sigma`` directly; :func:`~.parts.joined` makes a multi-part case
+    from one prepared case per part.
+    """
+
+    name: str
+    parts: list                           # of PreparedPart, in the object's part order
+    voxel_size: float                     # mm per voxel (mesh inputs: see BuildConfig.voxel_size)
+    mirrored: bool = False                # reflected x -> -x (BuildConfig.mirror)
+
+    @property
+    def path(self) -> str:
+        """The input file (of several parts: the first part's)."""
+        return self.parts[0].path
+
+    @property
+    def paths(self) -> list:
+        """The distinct input files, in part order."""
+        return list(dict.fromkeys(part.path for part in self.parts))
+
+    @property
+    def part_names(self) -> list:
+        return [part.name for part in self.parts]
+
+    @property
+    def map(self) -> SphereMap:
+        """The sphere map of a one-part case."""
+        if len(self.parts) != 1:
+            raise ValueError(f"{self.name} has {len(self.parts)} parts: use parts[j].map")
+        return self.parts[0].map
+
+    @property
+    def repair(self) -> str:
+        """What was repaired, part by part ("head: ..." for named parts)."""
+        return "; ".join(f"{p.name}: {p.repair}" if p.name else p.repair
+                         for p in self.parts if p.repair)
+
+    @property
+    def smoothing_sigma(self) -> float | None:
+        """The largest blur that a part needed (None: no part came from a label map)."""
+        sigmas = [p.smoothing_sigma for p in self.parts if p.smoothing_sigma is not None]
+        return max(sigmas) if sigmas else None
+
+    def surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """The vertices and triangles of every part's surface, as one mesh."""
+        offsets = np.cumsum([0] + [len(p.map.vertices) for p in self.parts[:-1]])
+        return (np.concatenate([p.map.vertices for p in self.parts]),
+                np.concatenate([p.map.faces + offset for p, offset in zip(self.parts, offsets)]))
 
     def record(self) -> dict:
         """The preprocessing facts as a JSON-ready dict (cache entries, cases.csv)."""
@@ -107,8 +165,8 @@ def prepare_surface(vertices: np.ndarray, faces: np.ndarray, name: str, path: st
             vertices, faces = surface.mirror(vertices, faces)
         mapped = sphere_map(vertices, faces, area_weight=area_weight,
                             max_iterations=max_iterations)
-    return PreparedCase(name, str(path), mapped, float(voxel_size), mirrored=mirrored,
-                        repair=repair, smoothing_sigma=smoothing_sigma)
+    return PreparedCase(name, [PreparedPart("", str(path), mapped, repair, smoothing_sigma)],
+                        float(voxel_size), mirrored)
 
 
 def _prepare(path, config: BuildConfig) -> PreparedCase:

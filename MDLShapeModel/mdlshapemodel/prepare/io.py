@@ -554,10 +554,12 @@ def write_text(path, text: str):
 
 
 def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
-                   point_data: dict | None = None, lines: np.ndarray | None = None):
-    """Write points with triangles (or lines) and optional point arrays to .vtp/.vtk/.stl/.ply,
-    saying that the points are LPS (:data:`COORDINATE_SYSTEM`) where 3D Slicer looks for it;
-    whole or not at all (:func:`written_whole`)."""
+                   point_data: dict | None = None, lines: np.ndarray | None = None,
+                   cell_data: dict | None = None):
+    """Write points with triangles (or lines) and optional point and cell arrays (integer
+    arrays stay integer) to .vtp/.vtk/.stl/.ply, saying that the points are LPS
+    (:data:`COORDINATE_SYSTEM`) where 3D Slicer looks for it; whole or not at all
+    (:func:`written_whole`)."""
     import vtk
     from vtk.util.numpy_support import numpy_to_vtk
 
@@ -568,6 +570,12 @@ def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
         array = numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
         array.SetName(name)
         polydata.GetPointData().AddArray(array)
+    for name, values in (cell_data or {}).items():
+        values = np.asarray(values)
+        array = numpy_to_vtk(np.ascontiguousarray(
+            values, dtype=np.int32 if values.dtype.kind in "iu" else np.float64), deep=True)
+        array.SetName(name)
+        polydata.GetCellData().AddArray(array)
     suffix = suffix_of(path)
     writers = {".vtp": vtk.vtkXMLPolyDataWriter, ".vtk": vtk.vtkPolyDataWriter,
                ".stl": vtk.vtkSTLWriter, ".ply": vtk.vtkPLYWriter}

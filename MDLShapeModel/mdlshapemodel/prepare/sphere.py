@@ -328,29 +328,43 @@ def _subsample(points: np.ndarray, count: int = 600) -> np.ndarray:
     return points[::step]
 
 
-def align_parameterizations(maps: list, reference: int = 0) -> list:
+def reference_frames(surfaces: list, reference: int = 0) -> list:
+    """For each surface (vertices, faces), the rotation Q that brings it into the frame of the
+    reference's: principal axes, with the sign ambiguity resolved by the smallest chamfer
+    distance among the four proper choices."""
+    ref_vertices, ref_faces = surfaces[reference]
+    ref_centre, ref_axes = principal_axes(ref_vertices, ref_faces)
+    ref_points = _subsample(ref_vertices - ref_centre)
+    flips = [np.diag(d) for d in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1))]
+    frames = []
+    for vertices, faces in surfaces:
+        centre, axes = principal_axes(vertices, faces)
+        points = _subsample(vertices - centre)
+        candidates = [ref_axes @ flip @ axes.T for flip in flips]
+        frames.append(min(candidates, key=lambda q: _chamfer(points @ q.T, ref_points)))
+    return frames
+
+
+def align_parameterizations(maps: list, reference: int = 0, frames: list | None = None
+                            ) -> list:
     """Rotate each sphere map so that its parameterization matches the reference's.
 
-    Each shape is first brought into the reference's frame (principal axes, with the sign
-    ambiguity resolved by the smallest chamfer distance among the four proper choices). In that
-    frame, the rotation P of the parameter sphere that best matches the first-order maps,
-    min ||Q M_i P - M_ref||_F over proper rotations, is an orthogonal Procrustes problem. The new
-    sphere coordinates are P^T u, so that S_i'(u) = S_i(P u).
+    Each shape is first brought into the reference's frame (``frames``, default
+    :func:`reference_frames` of the maps' own surfaces; a multi-part object passes the frames of
+    its whole surfaces, so that the arrangement of the parts settles what one part's symmetry
+    leaves open). In that frame, the rotation P of the parameter sphere that best matches the
+    first-order maps, min ||Q M_i P - M_ref||_F over proper rotations, is an orthogonal
+    Procrustes problem. The new sphere coordinates are P^T u, so that S_i'(u) = S_i(P u).
 
     Returns new :class:`SphereMap` objects (the inputs are not modified); each ``quality`` gains
     ``parameter_rotation_degrees``.
     """
+    if frames is None:
+        frames = reference_frames([(m.vertices, m.faces) for m in maps], reference)
     ref = maps[reference]
-    ref_centre, ref_axes = principal_axes(ref.vertices, ref.faces)
     _, ref_first = first_order_map(ref.vertices, ref.faces, ref.sphere)
-    ref_points = _subsample(ref.vertices - ref_centre)
-    flips = [np.diag(d) for d in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1))]
     aligned = []
-    for item in maps:
-        centre, axes = principal_axes(item.vertices, item.faces)
-        points = _subsample(item.vertices - centre)
-        candidates = [ref_axes @ flip @ axes.T for flip in flips]
-        frame = min(candidates, key=lambda q: _chamfer(points @ q.T, ref_points))
+    for item, frame in zip(maps, frames):
         _, first = first_order_map(item.vertices, item.faces, item.sphere)
         u, _, vt = np.linalg.svd((frame @ first).T @ ref_first)
         d = np.ones(3)
