@@ -97,7 +97,7 @@ class MDLShapeModel(ScriptedLoadableModule):
 # names, with BuildConfig's defaults and choices (list settings are written as text, "1, 2").
 
 MAIN_SETTINGS = ("labels", "surface_method", "points", "strategy", "max_time", "baselines")
-ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror", "seed",
+ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror", "parts", "seed",
                      "evaluation_modes", "specificity_samples", "workers", "strict")
 BUILD_SETTINGS = MAIN_SETTINGS + ADVANCED_SETTINGS
 
@@ -165,8 +165,10 @@ class ShapeModelResult:
     explorerModelNode: object               # vtkMRMLModelNode deformed by setModeWeights
     metricsTableNode: object | None         # vtkMRMLTableNode: C, G, S per mode with SEs
     scoresTableNode: object | None          # vtkMRMLTableNode: the cases' scores per mode
-    correspondenceModelNodes: list = field(default_factory=list)  # input order, rejected left out
+    # input order, rejected left out; several parts: each case's parts in turn ("case part")
+    correspondenceModelNodes: list = field(default_factory=list)
     caseNames: list = field(default_factory=list)
+    partNames: list = field(default_factory=list)     # [] for a one-part object
     rejected: list = field(default_factory=list)  # (name, reason)
     interrupted: bool = False
     reportFile: pathlib.Path | None = None
@@ -295,12 +297,16 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                     ) -> ShapeModelResult:
         """The nodes of a build's output folder: the model (:meth:`loadModel`) and every case's
         corresponded model, in the build's case order."""
+        from mdlshapemodel.prepare.io import case_file
+
         outputDirectory = pathlib.Path(outputDirectory)
         result = self.loadModel(outputDirectory / "model.h5")
         for name in result.caseNames:
-            node = _readModel(outputDirectory / "correspondence" / f"{name}.vtp", name)
-            _placeInFolder(node, result.folderItemID)
-            result.correspondenceModelNodes.append(node)
+            for part in result.partNames or [""]:   # several parts: a node per part
+                node = _readModel(case_file(outputDirectory / "correspondence" / part, name),
+                                  f"{name} {part}".strip())
+                _placeInFolder(node, result.folderItemID)
+                result.correspondenceModelNodes.append(node)
         result.rejected = list(rejected) + [(row["case"], row["reason"]) for row in
                                             _readCsv(outputDirectory / "rejected.csv")]
         result.interrupted = interrupted
@@ -336,7 +342,7 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             _placeInFolder(node, folder)
         return ShapeModelResult(modelFile.parent if modelFile.name == "model.h5" else None,
                                 modelFile, folder, mean, explorer, metrics, scores,
-                                caseNames=list(model.names))
+                                caseNames=list(model.names), partNames=list(model.part_names))
 
     def setModeWeights(self, explorerModelNode, weights) -> None:
         """Deform a shape explorer node (:meth:`loadModel`) to the mean plus ``weights[k]``

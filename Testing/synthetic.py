@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -52,3 +53,23 @@ def small_state(n: int = 5, points: int = 162) -> CorrespondenceState:
     examples = [Example(f"case_{k}", [PartState(m.vertices, m.faces, m.sphere, grid, triangles)])
                 for k, m in enumerate(small_maps(n))]
     return CorrespondenceState(examples, [(grid, triangles)])
+
+
+def split_into_part_files(paths, parts: dict, folder, manifest: str = "cases.csv"):
+    """Write each label map's parts (``{name: label}``) as binary label maps of their own in
+    ``folder``, and a manifest (case,part,file; paths relative to ``folder``) listing them.
+    Returns the manifest's path."""
+    import SimpleITK as sitk
+
+    rows = ["case,part,file"]
+    for path in map(Path, paths):
+        image = sitk.ReadImage(str(path))
+        case = path.name.split(".")[0]
+        for name, label in parts.items():
+            part = sitk.Cast(image == label, sitk.sitkUInt8)
+            part.CopyInformation(image)
+            sitk.WriteImage(part, str(Path(folder) / f"{case}_{name}.nii.gz"))
+            rows.append(f"{case},{name},{case}_{name}.nii.gz")
+    table = Path(folder) / manifest
+    table.write_text("\n".join(rows) + "\n")
+    return table

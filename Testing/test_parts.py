@@ -25,6 +25,7 @@ from mdlshapemodel.errors import ConfigError, InputError
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.parts import read_manifest
+from synthetic import split_into_part_files
 
 PARTS = list(DEMO_PARTS)          # left=1, right=2
 
@@ -46,17 +47,10 @@ def two_label_maps(tmp_path_factory):
     file per part."""
     folder = tmp_path_factory.mktemp("two_part")
     paths = write_demo_population(folder / "joint", 6, seed=3, parts=True)
-    rows = ["case,part,file"]
-    for path in paths:
-        image = sitk.ReadImage(str(path))
-        for name, label in (("left", 1), ("right", 2)):
-            part = sitk.Cast(image == label, sitk.sitkUInt8)
-            part.CopyInformation(image)
-            file = folder / "split" / f"{path.name[:-7]}_{name}.nii.gz"
-            file.parent.mkdir(exist_ok=True)
-            sitk.WriteImage(part, str(file))
-            rows.append(f"{path.name[:-7]},{name},split/{file.name}")
-    (folder / "cases.csv").write_text("\n".join(rows) + "\n")
+    (folder / "split").mkdir()
+    table = split_into_part_files(paths, {"left": 1, "right": 2}, folder / "split")
+    # the manifest beside the split folder: its paths relative to its own folder
+    (folder / "cases.csv").write_text(table.read_text().replace(",subject", ",split/subject"))
     return folder, paths
 
 
@@ -235,3 +229,68 @@ def test_demo_population_with_parts_has_two_touching_labels(tmp_path):
         one, two = np.argwhere(labels == 1), np.argwhere(labels == 2)
         assert one[:, 2].max() + 1 == two[:, 2].min()          # they share a face
     assert Path(paths[0]).name == "subject_01.nii.gz"
+
+
+def test_fit_and_compare_take_two_part_models(two_label_maps, tmp_path):
+    """A new case is fitted to a two-part model part by part (split by the model's labels, or
+    from a manifest of one file per part); compare evaluates two-part models side by side."""
+    folder, paths = two_label_maps
+    common = ["--points", "162", "--max-sweeps", "2", "--surface-samples", "0",
+              "--specificity-samples", "200", "--workers", "1"]
+    models = {}
+    for strategy in ("fast", "none"):
+        models[strategy] = tmp_path / strategy
+        run = subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "build",
+                              *map(str, paths[:5]), "-o", str(models[strategy]), "--part",
+                              "left=1", "--part", "right=2", "--strategy", strategy, *common],
+                             capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+    table = folder / "held_out.csv"
+    table.write_text("case,part,file\nby_files,left,split/subject_06_left.nii.gz\n"
+                     "by_files,right,split/subject_06_right.nii.gz\n")
+    fitted = tmp_path / "fitted"
+    run = subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "fit",
+                          str(models["fast"]), str(paths[5]), "--manifest", str(table),
+                          "-o", str(fitted), "--max-sweeps", "2"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    summary = json.loads((fitted / "fit.json").read_text())
+    assert set(summary) == {"subject_06", "by_files"}
+    for name, result in summary.items():
+        squared = result["reconstruction_squared_mm2"]
+        assert squared[-1] < 0.5 * squared[0], name     # the modes explain the new case
+        for part in ("left", "right"):
+            for sub in ("correspondence", "reconstruction"):
+                one = _polydata(fitted / sub / part / f"{name}.vtp")
+                assert one.GetNumberOfPoints() == 162
+    # the same new case, from one label map or from two files: the same fit
+    assert np.allclose(summary["subject_06"]["reconstruction_squared_mm2"],
+                       summary["by_files"]["reconstruction_squared_mm2"], rtol=1e-9)
+    run = subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "compare",
+                          str(models["fast"]), str(models["none"]), "-o", str(tmp_path / "cmp"),
+                          "--samples", "200", "--modes", "3"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "cmp" / "compare.json").exists()
+
+
+def test_a_two_part_model_goes_through_files_and_vtk_whole(tmp_path, rng):
+    from mdlshapemodel.correspondence.sampling import sphere_grid
+    from mdlshapemodel.vtkmodel import ShapeModelReader, model_to_polydata, polydata_to_model
+
+    grid, triangles = sphere_grid(42)
+    shapes = np.concatenate([grid + rng.normal(scale=0.05, size=(6, 42, 3)),
+                             2 * grid + 5 + rng.normal(scale=0.05, size=(6, 42, 3))], axis=1)
+    model = ShapeModel.from_shapes(shapes, np.full(84, 1 / 84), part_sizes=[42, 42],
+                                   part_names=["inner", "outer"],
+                                   triangles=np.concatenate([triangles, triangles + 42]))
+    assert [m.name for m in model.part_meshes()] == ["inner", "outer"]
+    assert np.array_equal(model.part_meshes()[1].triangles, triangles)
+    model.save(tmp_path / "model.h5")
+    assert ShapeModel.load(tmp_path / "model.h5").part_names == ["inner", "outer"]
+    polydata = model_to_polydata(model)
+    part = vtk_to_numpy(polydata.GetCellData().GetArray("part"))
+    assert part.tolist() == [0] * len(triangles) + [1] * len(triangles)
+    assert polydata_to_model(polydata).part_names == ["inner", "outer"]
+    reader = ShapeModelReader()
+    reader.SetFileName(str(tmp_path / "model.h5"))
+    reader.Update()
+    assert polydata_to_model(reader.GetOutput()).part_sizes == [42, 42]

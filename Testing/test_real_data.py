@@ -104,3 +104,29 @@ def test_a_femur_label_map_at_half_a_millimetre_maps_at_the_sampling_grids_resol
     assert mapped.quality["mean_abs_log_area_ratio"] <= 0.3
     bone, bone_faces = read_mesh(FEMUR)
     assert np.mean(point_surface_distances(mapped.vertices, bone, bone_faces)) < 0.25  # half a voxel
+
+
+def test_hippocampi_as_head_and_tail_from_labels_and_from_one_file_per_part(tmp_path):
+    """The shared hippocampi as two parts, head (label 1) and body/tail (label 2): from the label
+    maps with --part, and split into one file per part listed in a manifest: the same model."""
+    from mdlshapemodel.model.shape_model import ShapeModel
+    from synthetic import split_into_part_files
+
+    paths = [hippocampus(n) for n in (1, 3, 4, 6, 7)]
+    manifest = split_into_part_files(paths, {"head": 1, "tail": 2}, tmp_path)
+    settings = dict(points=162, max_sweeps=2, surface_samples=0, specificity_samples=200,
+                    workers=1, cache_dir="")
+    by_labels = build_model(paths, tmp_path / "labels",
+                            BuildConfig(parts=["head=1", "tail=2"], **settings))
+    by_files = build_model([], tmp_path / "files", BuildConfig(**settings),
+                           manifest=manifest)
+    for result in (by_labels, by_files):
+        assert result.model.part_names == ["head", "tail"] and not result.rejected
+        assert result.final_objective < result.initial_objective
+    assert np.array_equal(by_labels.model.mean, by_files.model.mean)
+    assert np.array_equal(by_labels.model.scores, by_files.model.scores)
+    # the head is the front of the hippocampus: its points and the tail's lie apart
+    mean = ShapeModel.load(tmp_path / "files" / "model.h5").mean
+    head, tail = mean[:162].mean(axis=0), mean[162:].mean(axis=0)
+    assert np.linalg.norm(head - tail) > 10.0
+    assert len(read_csv(tmp_path / "files" / "cases.csv")) == 5

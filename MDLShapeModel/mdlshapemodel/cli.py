@@ -305,7 +305,7 @@ def _run_fit(args) -> int:
 
     results, rejected = fit_cases(args.model, args.inputs, args.output, args.label,
                                   args.max_time, args.max_sweeps, args.seed,
-                                  strategy=args.strategy)
+                                  strategy=args.strategy, manifest=args.manifest)
     for name, path, reason in rejected:
         log.warning("rejected %s: %s", printable(path), printable(reason))
     for result in results:
@@ -369,8 +369,11 @@ def main(argv=None) -> int:
                     "new case's reparameterization and pose, with the model's training shapes "
                     "fixed) and write their scores and reconstructions.")
     fit.add_argument("model", help="model.h5 or the build output folder holding it")
-    fit.add_argument("inputs", nargs="+", help="label maps, meshes, or folders of them")
+    fit.add_argument("inputs", nargs="*", help="label maps, meshes, or folders of them")
     fit.add_argument("-o", "--output", required=True, help="output folder")
+    fit.add_argument("--manifest", metavar="CSV",
+                     help="a table of new cases with the columns case,part,file (one file per "
+                          "part of a multi-part model), instead of or besides INPUTS")
     fit.add_argument("--label", type=_items(int, {"item": "label"}), action="extend", default=[],
                      metavar="L",
                      help="label value(s) of the object (default: those the model was built with)")
@@ -399,6 +402,8 @@ def main(argv=None) -> int:
         if args.command == "compare":
             return _run_compare(args)
         if args.command == "fit":
+            if not args.inputs and not args.manifest:
+                fit.error("give input files or folders, or --manifest")
             return _run_fit(args)
         if args.command == "demo":
             from .demo import DEMO_PARTS, write_demo_population

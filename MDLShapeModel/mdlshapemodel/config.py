@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import typing
 from dataclasses import asdict, dataclass, field, fields
 
@@ -167,9 +168,28 @@ def parse_part(text: str) -> PartSpec:
     return PartSpec(name, tuple(values))
 
 
+def split_parts(text: str) -> list:
+    """The parts of ``parts`` written as one text, ``"head=1; tail=2, 3"`` (separated by ';',
+    or by commas or spaces before the next ``NAME=``), each checked by :func:`parse_part`.
+
+    Examples
+    --------
+    >>> split_parts("head=1, tail=2,3")
+    ['head=1', 'tail=2,3']
+    """
+    items = [item.strip() for item in
+             re.split(r";|[,\s]+(?=[A-Za-z0-9_][A-Za-z0-9_-]*\s*=)", text) if item.strip()]
+    for item in items:
+        parse_part(item)
+    return items
+
+
 def field_items(name: str, text: str) -> list:
     """The value of :class:`BuildConfig`'s list field ``name`` written as text (see
-    :func:`parse_items`; its item kind, noun and choices are the field's)."""
+    :func:`parse_items`, or :func:`split_parts` for ``parts``; its item kind, noun and choices
+    are the field's)."""
+    if name == "parts":
+        return split_parts(text)
     f = next(f for f in fields(BuildConfig) if f.name == name)
     (kind,) = typing.get_args(typing.get_type_hints(BuildConfig)[name])
     metadata = f.metadata

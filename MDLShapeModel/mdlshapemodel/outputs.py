@@ -152,27 +152,6 @@ def warp_summary(example) -> str:
     return " ".join(f"{kind}:{count}" for kind, count in counts.items() if count)
 
 
-@dataclass
-class PartMesh:
-    """Where one part of a model's points are, and its triangles numbered within the part."""
-
-    name: str            # "" for a one-part object
-    folder: str          # the part's sub-folder of correspondence/ and aligned/ ("" for one part)
-    rows: slice          # its rows of the model's points
-    triangles: np.ndarray
-
-
-def part_meshes(model: ShapeModel) -> list:
-    """The parts of a model's points, each with its own triangles (one part: all of them)."""
-    slices = model.part_slices()
-    if len(slices) == 1:
-        return [PartMesh("", "", slices[0], model.triangles)]
-    owner = model.part_of_triangles()
-    names = model.part_names or [f"part_{j}" for j in range(len(slices))]
-    return [PartMesh(name, name, rows, model.triangles[owner == j] - rows.start)
-            for j, (name, rows) in enumerate(zip(names, slices))]
-
-
 def physical_shapes(raw: np.ndarray, triangles: np.ndarray, prepared: list) -> list:
     """The corresponded shapes in the physical space of their inputs, so that they overlay them:
     ``raw`` (the state's samples of the prepared surfaces) with those of mirrored cases
@@ -195,7 +174,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     names = model.names
     started = time.perf_counter()
     model.save(output / "model.h5")
-    parts = part_meshes(model)
+    parts = model.part_meshes()
     io.write_polydata(output / "mean.vtp", model.mean, triangles,
                       cell_data={"part": model.part_of_triangles()} if model.part_names else None)
     outlier = score_outliers(model)
@@ -203,11 +182,11 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     physical = physical_shapes(raw, triangles, prepared)
     for folder in ("correspondence", "aligned"):
         for part in parts:
-            (output / folder / part.folder).mkdir(parents=True, exist_ok=True)
+            (output / folder / part.name).mkdir(parents=True, exist_ok=True)
     for i, case in enumerate(prepared):
         for folder, shape in (("correspondence", physical[i]), ("aligned", aligned[i])):
             for part in parts:
-                io.write_polydata(io.case_file(output / folder / part.folder, case.name),
+                io.write_polydata(io.case_file(output / folder / part.name, case.name),
                                   shape[part.rows], part.triangles)
         # from each input-surface vertex to the corresponded mesh of its part
         distances = np.concatenate([

@@ -28,9 +28,10 @@ One vtkPolyData holds a :class:`~mdlshapemodel.model.shape_model.ShapeModel` exa
   sqrt(``Variances[k-1]``)), ``AreaWeights`` (the weights of that inner product, sum 1) and, when
   the model has them, ``SphereCoordinates`` (each point's sampling position on the unit sphere);
 - field data ``Variances`` (one per mode, descending, mm^2), ``Scores`` (a row per case, a
-  component per mode), ``CaseNames``, ``PartSizes`` and ``Metadata`` (JSON: the objective, the
-  strategy, the voxel size, the data range and the build configuration of a built model). The
-  builder adds ``InitialObjective`` (eq. 14 of the initial correspondence).
+  component per mode), ``CaseNames``, ``PartSizes``, for a multi-part model ``PartNames`` (and
+  the cell data ``part``: each triangle's part, 0, 1, ...), and ``Metadata`` (JSON: the
+  objective, the strategy, the voxel size, the data range and the build configuration of a
+  built model). The builder adds ``InitialObjective`` (eq. 14 of the initial correspondence).
 
 All four follow the conventions of :mod:`~mdlshapemodel.vtkfilters`: Set/Get methods that call
 ``Modified()`` only when a value changes, an ``executions`` counter, progress through
@@ -70,6 +71,8 @@ VARIANCES = "Variances"
 SCORES = "Scores"
 CASE_NAMES = "CaseNames"
 PART_SIZES = "PartSizes"
+PART_NAMES = "PartNames"
+PART = "part"
 METADATA = "Metadata"
 INITIAL_OBJECTIVE = "InitialObjective"
 CASE_NAME = "CaseName"            # field data of a builder input: its case name
@@ -165,6 +168,10 @@ def model_to_polydata(model: ShapeModel) -> vtk.vtkPolyData:
     _add_array(fields, SCORES, np.asarray(model.scores, dtype=np.float64))
     _add_strings(fields, CASE_NAMES, model.names)
     _add_array(fields, PART_SIZES, np.asarray(model.part_sizes, dtype=np.int64))
+    if model.part_names:
+        _add_strings(fields, PART_NAMES, model.part_names)
+        if triangles is not None:
+            _add_array(polydata.GetCellData(), PART, model.part_of_triangles().astype(np.int32))
     _add_field(polydata, METADATA, json.dumps(model.metadata, default=_json_value))
     return polydata
 
@@ -209,6 +216,7 @@ def _model_of(polydata) -> ShapeModel:
         triangles=(surface.polydata_to_arrays(polydata)[1] if polydata.GetNumberOfPolys()
                    else None),
         part_sizes=[int(size) for size in _array(fields, PART_SIZES, "field")],
+        part_names=_strings(fields, PART_NAMES) if fields.GetAbstractArray(PART_NAMES) else [],
         metadata={key: np.asarray(value) if isinstance(value, list) else value
                   for key, value in metadata.items()},
         parameters=None if parameters is None else vtk_to_numpy(parameters).astype(np.float64))

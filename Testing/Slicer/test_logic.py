@@ -1,6 +1,7 @@
 """The module's Logic against a real MRML scene (slicer-core), headless, as scripts and other
 modules use it; see harness.py for what stands in for the Slicer application."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -300,3 +301,26 @@ def test_missing_requirements_are_the_ones_not_installed(monkeypatch):
     monkeypatch.setattr(module, "requirements",
                         lambda: ["numpy>=1.0", "numpy>=999", "no-such-package-mdl>=1"])
     assert module.missingRequirements() == ["numpy>=999", "no-such-package-mdl>=1"]
+
+
+def test_a_two_part_object_is_built_from_label_map_nodes_and_loaded_part_by_part(tmp_path):
+    """Label-map volume nodes of a two-label population, the parts set in the parameter node:
+    the Logic builds the two-part model and loads one correspondence node per case and part."""
+    from mdlshapemodel.demo import DEMO_PARTS, write_demo_population
+
+    harness.new_scene()
+    paths = write_demo_population(tmp_path / "labels", 4, parts=True)
+    volumes = [load_label_map_node(path) for path in paths]
+    parameters = module.MDLShapeModelLogic().getParameterNode()
+    parameters.parts = "; ".join(DEMO_PARTS)
+    config = module.buildConfigOf(parameters)
+    assert config.parts == list(DEMO_PARTS)
+    config = dataclasses.replace(config, **QUICK)
+    result = module.MDLShapeModelLogic().buildModel(volumes, tmp_path / "out", config)
+    assert result.partNames == ["left", "right"] and not result.rejected
+    names = [node.GetName() for node in result.correspondenceModelNodes]
+    assert names == [f"{case} {part}" for case in result.caseNames for part in ("left", "right")]
+    for node in result.correspondenceModelNodes:
+        assert node.GetPolyData().GetNumberOfPoints() == 162
+    # the explorer holds the whole object: both parts' points
+    assert result.explorerModelNode.GetPolyData().GetNumberOfPoints() == 324

@@ -29,8 +29,9 @@ from ..correspondence.state import CorrespondenceState, Example, FixedExample, P
 from ..correspondence.strategies import optimise
 from ..correspondence.trace import Trace
 from ..errors import InputError, MDLShapeModelError
-from ..prepare import PreparedCase, io, prepare_case
-from ..prepare.sphere import SphereMap, align_parameterizations
+from ..prepare import PreparedCase, io
+from ..prepare.parts import CaseInput, case_inputs, prepare_object, read_manifest
+from ..prepare.sphere import SphereMap, align_parameterizations, reference_frames
 from .shape_model import ShapeModel
 
 
@@ -87,9 +88,11 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     Parameters
     ----------
     model : ShapeModel
-        A single-part model with its sampling grid (``model.parameters``).
-    path : path
-        Label map or mesh of the new case.
+        A model with its sampling grid (``model.parameters``); of one part or several.
+    path : path or CaseInput
+        Label map or mesh of the new case (a multi-part model's parts are split from a label map
+        by the labels it was built with), or a :class:`~.prepare.parts.CaseInput` of one file per
+        part (e.g. a row group of a manifest).
     config : BuildConfig, optional
         Preprocessing settings (default: the ones stored in the model).
     max_time, max_sweeps : budget of the optimisation of the new case.
@@ -101,24 +104,34 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     if model.parameters is None or model.triangles is None:
         raise InputError("the model has no sampling grid (model.parameters) or no triangles; "
                          "rebuild it with this version")
-    if len(model.part_sizes) != 1:
-        raise InputError("fitting a new case is implemented for single-part models only")
     config = config or build_config_of(model)
-    case = prepared if prepared is not None else prepare_case(str(path), config)
+    if prepared is not None:
+        case = prepared
+    else:
+        case = prepare_object(path if isinstance(path, CaseInput)
+                              else case_inputs([path], config)[0], config)
     if not isinstance(case, PreparedCase):
-        raise InputError(f"{path}: {case.reason}")
+        raise InputError(f"{case.path}: {case.reason}")
+    meshes = model.part_meshes()
+    if case.part_names != [mesh.name for mesh in meshes]:
+        raise InputError(f"{case.path}: its parts {case.part_names} are not the model's "
+                         f"{[mesh.name for mesh in meshes]}")
     started = time.perf_counter()
 
-    # the model's parameterization: the mean mesh, sampled at the grid points
-    reference = SphereMap(model.mean, model.triangles, model.parameters)
-    new_map = align_parameterizations([reference, case.map])[1]
+    # the model's parameterization: each part of the mean mesh, sampled at its grid points; the
+    # new case's parts aligned to them in the frame of the whole object
+    references = [SphereMap(model.mean[m.rows], m.triangles, model.parameters[m.rows])
+                  for m in meshes]
+    whole = [(model.mean, model.triangles), case.surface()]
+    frames = reference_frames(whole) if len(meshes) > 1 else None
+    new_maps = [align_parameterizations([reference, part.map], frames=frames)[1]
+                for reference, part in zip(references, case.parts)]
     training = model.instance(model.scores)
     examples = [FixedExample(name, shape) for name, shape in zip(model.names, training)]
-    examples.append(Example(case.name, [PartState(new_map.vertices, new_map.faces,
-                                                  new_map.sphere, model.parameters,
-                                                  model.triangles)]))
-    state = CorrespondenceState(examples, [(model.parameters, model.triangles)],
-                                scaling=config.scaling)
+    grids = [(model.parameters[m.rows], m.triangles) for m in meshes]
+    examples.append(Example(case.name, [PartState(new.vertices, new.faces, new.sphere, *grid)
+                                        for new, grid in zip(new_maps, grids)]))
+    state = CorrespondenceState(examples, grids, scaling=config.scaling)
 
     voxel = float(model.metadata.get("voxel_size_mm", case.voxel_size))
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
@@ -161,13 +174,16 @@ def reconstruction_errors(model: ShapeModel, aligned: np.ndarray, scores: np.nda
 
 def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
               max_sweeps: int = 10_000, seed: int = 0, progress=None,
-              strategy: str | None = None) -> tuple[list, list]:
+              strategy: str | None = None, manifest=None) -> tuple[list, list]:
     """Fit every input to the model and write the results to ``output``.
 
-    Writes ``correspondence/<case>.vtp`` (the case's corresponded points, its own coordinates),
-    ``reconstruction/<case>.vtp`` (the model's reconstruction with all modes, same coordinates),
-    ``scores.csv``, ``fit.json`` (errors for M = 0..n_modes, objective) and ``rejected.csv``.
-    Returns (results, rejections as (name, path, reason)).
+    ``inputs`` are files or folders (one case per file; a multi-part model's parts are split
+    by its labels) and ``manifest`` a table of one file per part (case,part,file; see
+    :func:`~.prepare.parts.read_manifest`; each file is its part: all its labels). Writes ``correspondence/<case>.vtp`` (the case's
+    corresponded points, its own coordinates), ``reconstruction/<case>.vtp`` (the model's
+    reconstruction with all modes, same coordinates), both in a sub-folder per part for a
+    multi-part model, ``scores.csv``, ``fit.json`` (errors for M = 0..n_modes, objective) and
+    ``rejected.csv``. Returns (results, rejections as (name, path, reason)).
     """
     model, _ = load_model(model_path)
     config = build_config_of(model)
@@ -175,25 +191,31 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
         config.labels = list(labels)
         config.validate()
     output = Path(output)
+    meshes = model.part_meshes()
     for folder in ("correspondence", "reconstruction"):
-        (output / folder).mkdir(parents=True, exist_ok=True)
-    paths = io.find_inputs(inputs)
-    if not paths:
+        for mesh in meshes:
+            (output / folder / mesh.name).mkdir(parents=True, exist_ok=True)
+    cases = case_inputs(io.find_inputs(inputs), config)
+    if manifest is not None:   # a file per part holds that part: no labels select within it
+        names_only = replace(config, parts=[spec.name for spec in config.part_specs()])
+        cases += read_manifest(manifest, names_only)
+    if not cases:
         raise InputError("no input files found")
     results, rejected = [], []
-    for path in paths:
+    for case in cases:
         try:
-            result = fit_case(model, path, config, max_time, max_sweeps, seed, progress,
+            result = fit_case(model, case, config, max_time, max_sweeps, seed, progress,
                               strategy=strategy)
         except MDLShapeModelError as error:
-            reason = str(error).removeprefix(f"{path}: ")
-            rejected.append((io.case_name(path), str(path), reason))
+            reason = str(error).removeprefix(f"{case.path}: ")
+            rejected.append((case.name, case.path, reason))
             continue
         results.append(result)
-        io.write_polydata(io.case_file(output / "correspondence", result.name),
-                          result.corresponded, model.triangles)
-        io.write_polydata(io.case_file(output / "reconstruction", result.name),
-                          result.reconstruction(model), model.triangles)
+        for folder, points in (("correspondence", result.corresponded),
+                               ("reconstruction", result.reconstruction(model))):
+            for mesh in meshes:
+                io.write_polydata(io.case_file(output / folder / mesh.name, result.name),
+                                  points[mesh.rows], mesh.triangles)
     io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(model.n_modes)],
                  [[r.name] + [f"{v:.6g}" for v in r.scores] for r in results])
     io.write_csv(output / "rejected.csv", ("case", "file", "reason"), rejected)

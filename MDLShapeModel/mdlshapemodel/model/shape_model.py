@@ -71,6 +71,15 @@ REPRESENTER_VERSION = "0.1"
 
 
 @dataclass
+class PartMesh:
+    """Where one part of a model's points are, and its triangles numbered within the part."""
+
+    name: str            # "" for a one-part object
+    rows: slice          # its rows of the model's points
+    triangles: np.ndarray
+
+
+@dataclass
 class ShapeModel:
     """Mean, modes, variances and training scores of a point distribution model."""
 
@@ -91,6 +100,17 @@ class ShapeModel:
         ends = np.cumsum(self.part_sizes or [len(self.mean)])
         return [slice(int(end - size), int(end))
                 for end, size in zip(ends, self.part_sizes or [len(self.mean)])]
+
+    def part_meshes(self) -> list:
+        """Each part's rows of the points and its own triangles (:class:`PartMesh`; one part:
+        all of them). A part's name is also the sub-folder of its files in a build's output."""
+        slices = self.part_slices()
+        if len(slices) == 1:
+            return [PartMesh("", slices[0], self.triangles)]
+        owner = self.part_of_triangles()
+        names = self.part_names or [f"part_{j}" for j in range(len(slices))]
+        return [PartMesh(name, rows, self.triangles[owner == j] - rows.start)
+                for j, (name, rows) in enumerate(zip(names, slices))]
 
     def part_of_triangles(self) -> np.ndarray:
         """The part index of each triangle (a triangle lies within one part)."""

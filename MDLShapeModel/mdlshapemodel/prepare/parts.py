@@ -23,7 +23,7 @@ import numpy as np
 from ..config import BuildConfig, PartSpec, parse_part
 from ..errors import ConfigError, InputError
 from . import io
-from .case import PreparedCase, PreparedPart, Rejection
+from .case import PreparedCase, PreparedPart, Rejection, prepare_case
 
 #: the columns a manifest must have (others are ignored)
 MANIFEST_COLUMNS = ("case", "part", "file")
@@ -164,3 +164,13 @@ def joined(case: CaseInput, results: list):
                           result.smoothing_sigma) for part, result in zip(case.parts, results)]
     return PreparedCase(case.name, parts, float(np.mean([r.voxel_size for r in results])),
                         any(r.mirrored for r in results))
+
+
+def prepare_object(case: CaseInput, config: BuildConfig):
+    """Prepare every part of one case here, one after the other (no cache): a
+    :class:`PreparedCase` or the :class:`Rejection` of :func:`joined`. What ``fit`` uses for a
+    new case; a build prepares the parts on its executor (:func:`~.batch.preprocess`)."""
+    if case.problem:
+        return Rejection(case.name, case.path, case.problem)
+    return joined(case, [prepare_case(part.path, part_config(config, part))
+                         for part in case.parts])
