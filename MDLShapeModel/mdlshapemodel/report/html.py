@@ -153,7 +153,19 @@ def _renderings(model, shapes, names) -> list:
     """The mode and correspondence images, or a note when offscreen rendering is unavailable."""
     if model is None or model.triangles is None:
         return []
-    from . import rendering
+    from . import curves, rendering
+
+    if curves.is_curve_model(model):
+        parts = ["<h2>Modes of variation</h2>",
+                 "<p>The mean curve and the curves at ± 3 standard deviations along the first "
+                 "modes.</p>", _image(curves.mode_curves(model), "modes of variation")]
+        if shapes is not None:
+            parts += ["<h2>Correspondence</h2>",
+                      "<p>The sample points coloured by their index: the same colour is the "
+                      "same model point on every case.</p>",
+                      _image(curves.correspondence_points(shapes, model.triangles, names),
+                             "correspondence")]
+        return parts
 
     parts = []
     try:
