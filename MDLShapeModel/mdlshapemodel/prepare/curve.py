@@ -475,7 +475,7 @@ def _in_plane(physical: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """2-D coordinates of physical points in an axis-aligned plane: (x, y) for an axial slice,
     (y, z) for a sagittal one, (z, x) for a coronal one (right-handed about the axis)."""
     axis = int(np.argmax(np.abs(normal)))
-    if abs(normal[axis]) < 1.0 - 1e-6 * np.linalg.norm(normal):
+    if abs(normal[axis]) < (1.0 - 1e-6) * np.linalg.norm(normal):
         raise InputError("an oblique slice; a 2-D label image must lie in an axial, coronal or "
                          "sagittal plane")
     keep = [(axis + 1) % 3, (axis + 2) % 3]
