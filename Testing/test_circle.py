@@ -19,7 +19,8 @@ from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
 from mdlshapemodel.correspondence.strategies.one_at_a_time import optimise_warp
 from mdlshapemodel.correspondence.trace import Trace
-from mdlshapemodel.correspondence.warps import WARP_KINDS, make_warp, minimum_amplitude
+from mdlshapemodel.correspondence.warps import (WARP_KINDS, apply_warps, make_warp,
+                                                minimum_amplitude)
 from mdlshapemodel.prepare.curve import curve_map, read_curve, resample_curve, segment_lengths
 
 DATA = Path(os.environ.get("MDLSHAPEMODEL_DATA",
@@ -264,3 +265,24 @@ def test_every_strategy_lowers_the_objective_on_hands_without_folding(strategy):
         assert not part.folds(part.positions) and increasing_cyclically(part.positions)
         assert part.positions[-1] - part.positions[0] < 2 * np.pi
         assert np.allclose(example.pose.rotation[2], [0, 0, 1])
+        # the recorded warps, applied to the grid, are the sample positions bit for bit
+        assert np.array_equal(apply_warps(part.grid, part.warps), part.positions)
+
+
+def test_a_two_part_curve_state_is_optimised_with_one_pose_per_example():
+    rng = np.random.default_rng(2)
+    curves = [[resample_curve(blob(phase=0.2 * k), 120, rng.random()),
+               resample_curve(blob(phase=1.0 + 0.1 * k, bump=0.1) * 0.5 + [40, 0], 120,
+                              rng.random())] for k in range(5)]
+    state = curve_state(curves, [f"pair_{k}" for k in range(5)], [32, 16])
+    assert state.planar and state.n_points == 48 and state.triangles().shape == (48, 2)
+    assert state.triangles()[32:].min() == 32                  # the second part's segments
+    np.testing.assert_allclose(state.weights.sum(), 1.0)
+    settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=3,
+                                    fixed_fraction=0.0)
+    trace = Trace()
+    final = optimise(state, objectives(state), settings, np.random.default_rng(0), trace)
+    assert final < trace.rows[0][3]
+    for example in state.examples:
+        assert [p.kind for p in example.parts] == ["circle", "circle"]
+        assert all(increasing_cyclically(p.positions) for p in example.parts)

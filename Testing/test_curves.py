@@ -252,6 +252,10 @@ def test_bad_label_images_are_rejected_with_one_line(tmp_path):
                     str(tmp_path / "empty.png"))
     assert rejection(tmp_path / "empty.png") == "the label map is empty (no non-zero voxels)"
     assert rejection(tmp_path / "missing.png") == "no such file"
+    (tmp_path / "garbage.png").write_bytes(b"\x89PNG not really" * 10)
+    assert rejection(tmp_path / "garbage.png").startswith("not a readable image")
+    (tmp_path / "garbage.vtk").write_bytes(b"# vtk DataFile Version 3.0\nnothing\n")
+    assert rejection(tmp_path / "garbage.vtk").startswith("not a readable mesh")
 
 
 # ------------------------------------------------------------------------------------------------
