@@ -129,6 +129,10 @@ def test_a_png_label_image_gives_the_outline_of_its_region(tmp_path):
     sitk.WriteImage(sitk.GetImageFromArray(mask * 255), str(tmp_path / "disc.png"))
     curve = read_curve(tmp_path / "disc.png")
     assert signed_area(curve) > 0
+    # the same mask saved as a grey picture in colour (RGB) reads alike
+    grey = np.repeat((mask * 255)[..., None], 3, axis=2)
+    sitk.WriteImage(sitk.GetImageFromArray(grey, isVector=True), str(tmp_path / "grey.png"))
+    np.testing.assert_array_equal(read_curve(tmp_path / "grey.png"), curve)
     # pixel coordinates: x along columns, y along rows; the sub-pixel outline of a disc of radius
     # 12 pixels lies near radius 12 from its centre
     radii = np.linalg.norm(curve - [24.0, 20.0], axis=1)
@@ -252,6 +256,11 @@ def test_bad_label_images_are_rejected_with_one_line(tmp_path):
                     str(tmp_path / "empty.png"))
     assert rejection(tmp_path / "empty.png") == "the label map is empty (no non-zero voxels)"
     assert rejection(tmp_path / "missing.png") == "no such file"
+    colour = np.zeros((40, 50, 3), np.uint8)
+    colour[..., 0] = disc_mask() * 255
+    sitk.WriteImage(sitk.GetImageFromArray(colour, isVector=True), str(tmp_path / "red.png"))
+    assert rejection(tmp_path / "red.png") == \
+        "a colour image (3 values per pixel); a 2-D label image has one value per pixel"
     (tmp_path / "garbage.png").write_bytes(b"\x89PNG not really" * 10)
     assert rejection(tmp_path / "garbage.png").startswith("not a readable image")
     (tmp_path / "garbage.vtk").write_bytes(b"# vtk DataFile Version 3.0\nnothing\n")

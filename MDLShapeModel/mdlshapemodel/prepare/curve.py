@@ -439,9 +439,6 @@ def read_label_region(path, labels=()) -> tuple[np.ndarray, np.ndarray, np.ndarr
             size = reader.GetSize()
             singleton, matrix = _image_geometry(size, reader.GetSpacing(), reader.GetOrigin(),
                                                 reader.GetDirection())
-            if reader.GetNumberOfComponents() != 1:
-                raise InputError(f"expected a scalar label image, got "
-                                 f"{reader.GetNumberOfComponents()} values per pixel")
             if int(np.prod(size)) > MAX_VOXELS:
                 raise InputError(f"the header claims {int(np.prod(size)):,} pixels; at most "
                                  f"{MAX_VOXELS:,} (MAX_VOXELS: memory)")
@@ -454,7 +451,7 @@ def read_label_region(path, labels=()) -> tuple[np.ndarray, np.ndarray, np.ndarr
         except RuntimeError as error:
             reason = str(error).strip().splitlines()[-1][:120] if str(error).strip() else "?"
             raise InputError(f"not a readable image ({reason})") from None
-    array = sitk.GetArrayFromImage(image)
+    array = _grey(sitk.GetArrayFromImage(image), image.GetNumberOfComponentsPerPixel())
     origin = np.asarray(image.GetOrigin(), dtype=np.float64)
     if singleton is not None:
         # numpy axes are (z, y, x): drop the singleton one; keep the in-plane index axes
@@ -469,6 +466,18 @@ def read_label_region(path, labels=()) -> tuple[np.ndarray, np.ndarray, np.ndarr
         raise InputError(f"{count} separate regions ({listed} pixels); a 2-D label image must "
                          "hold one region")
     return ndimage.binary_fill_holes(mask), matrix, origin
+
+
+def _grey(array: np.ndarray, components: int) -> np.ndarray:
+    """One value per pixel: a grey picture saved in colour (equal red, green and blue; an alpha
+    channel ignored) gives its first channel; other colour pictures are rejected."""
+    if components == 1:
+        return array
+    colours = array[..., :min(components, 3)]
+    if np.any(colours != colours[..., :1]):
+        raise InputError(f"a colour image ({components} values per pixel); a 2-D label image "
+                         "has one value per pixel")
+    return array[..., 0]
 
 
 def _in_plane(physical: np.ndarray, normal: np.ndarray) -> np.ndarray:
