@@ -426,31 +426,29 @@ def read_label_region(path, labels=()) -> tuple[np.ndarray, np.ndarray, np.ndarr
     from scipy import ndimage
 
     from . import integrity
-    from .io import captured_native_stderr, select_labels
+    from .io import _itk_reading, select_labels
 
     if not Path(path).is_file():
         raise InputError("no such file")
     integrity.check_image_text_header(path)
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
-    with captured_native_stderr():
-        try:
-            reader.ReadImageInformation()
-            size = reader.GetSize()
-            singleton, matrix = _image_geometry(size, reader.GetSpacing(), reader.GetOrigin(),
-                                                reader.GetDirection())
-            if int(np.prod(size)) > MAX_VOXELS:
-                raise InputError(f"the header claims {int(np.prod(size)):,} pixels; at most "
-                                 f"{MAX_VOXELS:,} (MAX_VOXELS: memory)")
-            if not np.all(np.isfinite(matrix)) or not np.all(np.isfinite(reader.GetOrigin())):
-                raise InputError("the header's spacing, origin or direction is not a number")
-            pixel = sitk.GetPixelIDValueAsString(reader.GetPixelID())
-            bits = int(re.search(r"(\d+)-bit", pixel).group(1)) if "bit" in pixel else 64
-            integrity.check_image_data(path, int(np.prod(size)) * bits // 8)
-            image = reader.Execute()
-        except RuntimeError as error:
-            reason = str(error).strip().splitlines()[-1][:120] if str(error).strip() else "?"
-            raise InputError(f"not a readable image ({reason})") from None
+    # SimpleITK's errors and what its reader printed -> one InputError, as for 3-D label maps
+    with _itk_reading(path):
+        reader.ReadImageInformation()
+        size = reader.GetSize()
+        singleton, matrix = _image_geometry(size, reader.GetSpacing(), reader.GetOrigin(),
+                                            reader.GetDirection())
+        if int(np.prod(size)) > MAX_VOXELS:
+            raise InputError(f"the header claims {int(np.prod(size)):,} pixels; at most "
+                             f"{MAX_VOXELS:,} (MAX_VOXELS: memory)")
+        if not np.all(np.isfinite(matrix)) or not np.all(np.isfinite(reader.GetOrigin())):
+            raise InputError("the header's spacing, origin or direction is not a number")
+        pixel = sitk.GetPixelIDValueAsString(reader.GetPixelID())
+        bits = int(re.search(r"(\d+)-bit", pixel).group(1)) if "bit" in pixel else 64
+        integrity.check_image_data(
+            path, int(np.prod(size)) * reader.GetNumberOfComponents() * bits // 8)
+        image = reader.Execute()
     array = _grey(sitk.GetArrayFromImage(image), image.GetNumberOfComponentsPerPixel())
     origin = np.asarray(image.GetOrigin(), dtype=np.float64)
     if singleton is not None:
