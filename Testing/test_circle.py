@@ -17,7 +17,8 @@ from mdlshapemodel.correspondence.pose import align, generalized_procrustes
 from mdlshapemodel.correspondence.state import replay_record, state_record
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
-from mdlshapemodel.correspondence.strategies.one_at_a_time import optimise_warp
+from mdlshapemodel.correspondence.strategies.one_at_a_time import (optimise_shift,
+                                                                    optimise_warp)
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.warps import (WARP_KINDS, apply_warps, make_warp,
                                                 minimum_amplitude)
@@ -213,6 +214,29 @@ def test_a_curve_state_replays_from_its_record():
         assert np.array_equal(a.parts[0].positions, b.parts[0].positions)
         assert np.array_equal(a.parts[0].points, b.parts[0].points)
     assert fresh.value() == state.value()
+
+
+def test_a_shift_step_undoes_a_misplaced_origin():
+    rng = np.random.default_rng(4)
+    curves = [blob(bump=0.3 + 0.02 * rng.normal()) * rng.uniform(0.95, 1.05, 2)
+              for _ in range(5)]
+    curves[2] = np.roll(curves[2], 12, axis=0)                 # origin 12 / 200 of a turn on
+    state = curve_state(curves, [f"c{k}" for k in range(5)], 40, align_origins=False)
+    # Procrustes turns the misplaced curve to fit its wrong correspondence; a shift is searched
+    # at a fixed pose (the -pose strategy refits the pose after it): give it its true pose
+    state.examples[2].pose = state.examples[0].pose.copy()
+    state.rebuild()
+    state.objective = objectives(state)[1]
+    value = state.value()
+    part = state.examples[2].parts[0]
+    new = optimise_shift(state, 2, 0, part.shift, value, np.pi / 4)
+    assert new < value
+    assert [w.kind for w in part.warps] == ["circle_shift"]
+    # its parameter 0 is the old point 188 (of 200): a shift by the arc length of the last 12
+    # segments brings the samples back to the others' points
+    lengths = segment_lengths(curves[2])
+    expected = 2 * np.pi * lengths[:12].sum() / lengths.sum()
+    assert part.warps[0].shift == pytest.approx(expected, abs=0.02)
 
 
 def test_curves_refuse_the_warps_of_the_sphere():

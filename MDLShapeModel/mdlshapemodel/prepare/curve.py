@@ -195,12 +195,13 @@ def _meeting_point(p1, p2, q1, q2) -> tuple[float, float]:
     return float(point[0]), float(point[1])
 
 
-def check_curve(points, max_loop: float = 0.01) -> np.ndarray:
+def check_curve(points, max_loop: float = 0.01, notes: list | None = None) -> np.ndarray:
     """A clean closed curve from ordered points, or :class:`InputError` saying why not.
 
     Consecutive equal points and a closing point equal to the first are dropped; the order is
     reversed if needed to make the curve counter-clockwise (the first point kept first); loops
-    shorter than ``max_loop`` of the length are cut out (:func:`remove_small_loops`).
+    shorter than ``max_loop`` of the length are cut out (:func:`remove_small_loops`) and, when
+    ``notes`` is a list, said there (a repair note for the case's record).
 
     Raises
     ------
@@ -239,7 +240,10 @@ def check_curve(points, max_loop: float = 0.01) -> np.ndarray:
         raise InputError("the curve encloses no area (its points are collinear)")
     if area < 0:
         points = np.concatenate([points[:1], points[:0:-1]])
-    points, _ = remove_small_loops(points, max_loop)
+    points, cut = remove_small_loops(points, max_loop)
+    if cut and notes is not None:
+        notes.append(f"{cut} small loop{'s' if cut > 1 else ''} cut where the curve crossed "
+                     "itself")
     if len(points) < MIN_POINTS:
         raise InputError(f"the curve has {len(points)} points; a curve needs at least "
                          f"{MIN_POINTS}")
@@ -537,7 +541,7 @@ def read_curve_image(path, labels=(), sigma: float = IMAGE_SMOOTHING_SIGMA) -> n
     return physical
 
 
-def read_curve(path, labels=()) -> np.ndarray:
+def read_curve(path, labels=(), notes: list | None = None) -> np.ndarray:
     """A clean closed 2-D curve (n, 2) from a curve file (:func:`check_curve`).
 
     Parameters
@@ -547,6 +551,8 @@ def read_curve(path, labels=()) -> np.ndarray:
         with one slice (.png, .nii, .nii.gz, .nrrd, .mha): the outline of its labelled region.
     labels : sequence of int
         For label images: the labels of the region (all non-zero labels when empty).
+    notes : list, optional
+        Receives a line for each repair made (:func:`check_curve`).
 
     Raises
     ------
@@ -564,7 +570,7 @@ def read_curve(path, labels=()) -> np.ndarray:
         points = read_curve_image(path, labels)
     else:
         raise InputError(f"not a 2-D curve file (unknown type {Path(path).suffix!r})")
-    return check_curve(points)
+    return check_curve(points, notes=notes)
 
 
 def is_curve_file(path) -> bool:

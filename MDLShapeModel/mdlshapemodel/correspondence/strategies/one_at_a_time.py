@@ -114,7 +114,9 @@ def optimise_shift(state: CorrespondenceState, i: int, j: int, shift_of, current
     Brent search; ``shift_of(s)`` is the part's shift warp); commits it when F falls.
 
     The circle kernels fix two points each; a shift moves every sample along the curve at once,
-    which they would need many steps for."""
+    which they would need many steps for. It is searched at the example's current pose (III-D4
+    then refits the pose): an origin far off, which Procrustes has partly absorbed as a
+    rotation, is the initial alignment's to fix (:func:`~...prepare.curve.align_curve_origins`)."""
     found: list = []
     _search_warp(state, i, j, shift_of, (-max_shift, max_shift), False, 1e-3 * max_shift, 25,
                  found, improvements(current, improved))
