@@ -24,6 +24,8 @@ from mdlshapemodel.correspondence.warps import (WARP_KINDS, apply_warps, make_wa
                                                 minimum_amplitude)
 from mdlshapemodel.prepare.curve import curve_map, read_curve, resample_curve, segment_lengths
 
+from test_resume import assert_same_record, optimised_with_checkpoints, resumed_from
+
 DATA = Path(os.environ.get("MDLSHAPEMODEL_DATA",
                            Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 HANDS = sorted((DATA / "hands2d").glob("hand-*.vtk"))
@@ -310,3 +312,19 @@ def test_a_two_part_curve_state_is_optimised_with_one_pose_per_example():
     for example in state.examples:
         assert [p.kind for p in example.parts] == ["circle", "circle"]
         assert all(increasing_cyclically(p.positions) for p in example.parts)
+
+
+@pytest.mark.parametrize("strategy, sweeps", [("fast", 10_000), ("one-at-a-time-pose", 3),
+                                              ("multiscale", 3)])
+def test_a_curve_optimisation_resumed_from_a_checkpoint_ends_as_the_uninterrupted_one(strategy,
+                                                                                       sweeps):
+    settings = OptimisationSettings(strategy=strategy, max_time=1e6, max_sweeps=sweeps,
+                                    fixed_fraction=0.5, simplex_evaluations=60,
+                                    pose_evaluations=30)
+    state = blobs_state()
+    final, _, saved = optimised_with_checkpoints(state, settings)
+    assert len(saved) >= 3
+    resumed = blobs_state()
+    value, _ = resumed_from(resumed, settings, saved[len(saved) // 2])
+    assert value == final
+    assert_same_record(state_record(resumed), state_record(state))
