@@ -125,11 +125,13 @@ class CircleFieldBasis:
         self.radius = self.support * TWO_PI / self.n_centres
         distance = np.abs(circular_offset(self.points[:, None], self.centres[None, :]))
         self.weights = wendland(distance / self.radius)
-        self.overlap = int(np.max(np.count_nonzero(self.weights, axis=1), initial=0))
+        #: the most bumps non-zero at any angle (not only at ``points``): an open interval of
+        #: 2 r = 2 support spacings holds at most ceil(2 support) centres
+        self.overlap = int(np.ceil(2.0 * self.support))
 
     def max_coefficient(self, safety: float = 0.5) -> float:
-        """A bound B on every |a_j| under which t -> t + s + v(t) is strictly increasing:
-        |v'| <= overlap * B * slope / r <= ``safety`` < 1."""
+        """A bound B on every |a_j| under which t -> t + s + v(t) is strictly increasing on the
+        whole circle: |v'| <= overlap * B * slope / r <= ``safety`` < 1."""
         return safety * self.radius / (max(self.overlap, 1) * WENDLAND_SLOPE)
 
     def apply(self, coefficients: np.ndarray, shift: float = 0.0) -> np.ndarray:

@@ -93,7 +93,7 @@ def align(source: np.ndarray, target: np.ndarray, weights: np.ndarray,
 
 def planar_rotation(covariance: np.ndarray) -> tuple[np.ndarray, float]:
     """The rotation about z maximising sum_k w_k t_k . R s_k, and that maximum, from the
-    covariance C = sum_k w_k t_k s_k^T (3 x 3; only its x-y block is used).
+    covariance C = sum_k w_k t_k s_k^T (3 x 3; only its x-y block is used): eq. 18 in the plane.
 
     With R the rotation by angle a, the sum is cos a (C_xx + C_yy) + sin a (C_yx - C_xy): largest
     at a = atan2(C_yx - C_xy, C_xx + C_yy), where it is the length of that vector.
