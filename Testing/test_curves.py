@@ -311,6 +311,17 @@ def test_crossings_are_found_among_ten_thousand_points():
     assert np.hypot(x - star[4000, 0], y - star[4000, 1]) < 1e-3
 
 
+def test_crossings_are_found_with_a_few_long_segments_among_many_short_ones():
+    # a D: a dense half circle closed by one long diagonal segment (it alone would cover some
+    # 10^7 cells of the short segments' size)
+    t = np.linspace(0, np.pi, 10_000)
+    half_disc = np.stack([np.cos(t), np.sin(t)], axis=1) @ np.array([[1, -1], [1, 1]]) / np.sqrt(2)
+    assert find_crossing(half_disc) is None
+    crossed = half_disc.copy()
+    crossed[5000] = -crossed[5000]                              # a spike across the diagonal
+    assert find_crossing(crossed) is not None
+
+
 def test_small_loops_are_cut_out_and_large_ones_rejected():
     points = ellipse(n=200)
     twisted = points.copy()

@@ -110,9 +110,9 @@ def find_crossing(points: np.ndarray) -> tuple[int, int, tuple[float, float]] | 
     """Segments i < j (segment k joins point k to k + 1) where the closed polygon touches or
     crosses itself, and a point where they meet; None when the polygon is simple.
 
-    Segments are binned in a uniform grid of cells about the median segment length; only
-    segments sharing a cell are tested, so the cost is about O(n) for evenly spaced points
-    (10^4 points: milliseconds). Two consecutive segments cross when the second folds back onto
+    Segments are binned in a uniform grid of cells about the median segment length (coarser
+    when long segments would cover more than 16 n cells); only segments sharing a cell are
+    tested, so the cost is about O(n) for evenly spaced points (10^4 points: milliseconds). Two consecutive segments cross when the second folds back onto
     the first (a spike).
     """
     n = len(points)
@@ -127,10 +127,15 @@ def find_crossing(points: np.ndarray) -> tuple[int, int, tuple[float, float]] | 
     lower, upper = np.minimum(start, end), np.maximum(start, end)
     cell = max(float(np.median(np.linalg.norm(a, axis=1))), 1e-300)
     origin = lower.min(axis=0)
-    first = np.floor((lower - origin) / cell).astype(np.int64)
-    last = np.floor((upper - origin) / cell).astype(np.int64)
-    span = last - first + 1
-    counts = span[:, 0] * span[:, 1]
+    while True:
+        first = np.floor((lower - origin) / cell).astype(np.int64)
+        last = np.floor((upper - origin) / cell).astype(np.int64)
+        span = last - first + 1
+        counts = span[:, 0] * span[:, 1]
+        # a few long segments among many short ones would cover too many cells: coarser cells
+        if counts.sum() <= 16 * n:
+            break
+        cell *= 2.0
     segment = np.repeat(np.arange(n), counts)
     offset = np.arange(len(segment)) - np.repeat(np.cumsum(counts) - counts, counts)
     cx = first[segment, 0] + offset % span[segment, 0]
