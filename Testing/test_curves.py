@@ -238,6 +238,9 @@ def test_bad_polydata_is_rejected_with_one_line(tmp_path):
     branch = polydata_of(points, [list(range(20)) + [0], [5, 12]])
     assert rejection(write_polydata(tmp_path / "branch.vtk", branch)).startswith(
         "the lines branch at (")
+    pieces = polydata_of(points, [list(range(8)), list(range(10, 18))])
+    assert rejection(write_polydata(tmp_path / "pieces.vtk", pieces)) == \
+        "the lines form 2 open pieces; a curve is one closed chain"
     two = polydata_of(np.vstack([points, points + [100, 0, 0]]),
                       [list(range(20)) + [0], list(range(20, 40)) + [20]])
     assert rejection(write_polydata(tmp_path / "two.vtp", two)) == \

@@ -292,6 +292,9 @@ def chain_loops(points: np.ndarray, segments: np.ndarray, tolerance: float = 0.0
         neighbours[b, filled[b]] = a
         filled[b] += 1
     ends = np.flatnonzero(degree == 1)
+    if len(ends) > 2:
+        raise InputError(f"the lines form {len(ends) // 2} open pieces; a curve is one closed "
+                         "chain")
     if len(ends):
         gap = float(np.linalg.norm(unique[ends[0]] - unique[ends[1]]))
         if len(ends) == 2 and gap <= tolerance:
