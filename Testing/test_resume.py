@@ -39,31 +39,49 @@ def assert_same_record(a: dict, b: dict):
         assert np.array_equal(a[key], b[key]), key
 
 
-@pytest.mark.parametrize("strategy, sweeps", [("fast", 10_000), ("one-at-a-time-pose", 3),
-                                              ("multiscale", 4), ("multiresolution", 2)])
-def test_an_optimisation_resumed_from_any_checkpoint_ends_as_the_uninterrupted_one(strategy,
-                                                                                    sweeps):
-    settings = OptimisationSettings(strategy=strategy, max_time=1e6, max_sweeps=sweeps,
-                                    fixed_fraction=0.5, simplex_evaluations=60)
-    state, rng, trace, saved = small_state(), np.random.default_rng(7), Trace(), []
+def optimised_with_checkpoints(state, settings, seed: int = 7):
+    """``optimise`` with a checkpoint keeping, at every step, (point, state record, evaluations,
+    generator state, trace rows): the final F, the trace and those checkpoints."""
+    rng, trace, saved = np.random.default_rng(seed), Trace(), []
 
     def checkpoint(point):
         saved.append((point, copy.deepcopy(state_record(state)), state.evaluations,
                       copy.deepcopy(rng.bit_generator.state), list(trace.rows)))
 
     final = optimise(state, objectives(state), settings, rng, trace, checkpoint=checkpoint)
+    return final, trace, saved
+
+
+def resumed_from(state, settings, saved):
+    """``optimise`` of a fresh ``state`` resumed from one of :func:`optimised_with_checkpoints`'
+    checkpoints: the final F and the trace."""
+    point, record, evaluations, generator, rows = saved
+    rng = np.random.default_rng(0)
+    rng.bit_generator.state = generator
+    trace = Trace(rows=list(rows))
+    value = optimise(state, objectives(state), settings, rng, trace,
+                     resume=Resumption(point, record, evaluations, 0.0))
+    return value, trace
+
+
+@pytest.mark.parametrize("strategy, sweeps", [("fast", 10_000), ("one-at-a-time-pose", 3),
+                                              ("multiscale", 4), ("multiresolution", 2)])
+def test_an_optimisation_resumed_from_any_checkpoint_ends_as_the_uninterrupted_one(strategy,
+                                                                                    sweeps):
+    settings = OptimisationSettings(strategy=strategy, max_time=1e6, max_sweeps=sweeps,
+                                    fixed_fraction=0.5, simplex_evaluations=60)
+    state = small_state()
+    final, trace, saved = optimised_with_checkpoints(state, settings)
     expected = state_record(state)
     phases = {point.phase for point, *_ in saved}
     assert phases == {"fixed", "integrated"} and len(saved) >= 3
     chosen = [saved[0], saved[len(saved) // 2], saved[-1]]
     if strategy == "fast":   # a checkpoint where the next pass over the levels starts
         chosen += [s for s in saved if s[0].counters["level"] == 3][:1]
-    for point, record, evaluations, generator, rows in chosen:
-        resumed, resumed_rng = small_state(), np.random.default_rng(0)
-        resumed_rng.bit_generator.state = generator
-        resumed_trace = Trace(rows=list(rows))
-        value = optimise(resumed, objectives(resumed), settings, resumed_rng, resumed_trace,
-                         resume=Resumption(point, record, evaluations, 0.0))
+    for entry in chosen:
+        resumed = small_state()
+        value, resumed_trace = resumed_from(resumed, settings, entry)
+        point = entry[0]
         assert value == final, (point.phase, point.sweep)
         assert_same_record(state_record(resumed), expected)
         assert [r[2:] for r in resumed_trace.rows] == [r[2:] for r in trace.rows]

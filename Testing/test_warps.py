@@ -177,6 +177,7 @@ def test_random_helpers(rng):
 # ------------------------------------------------------------------------------------------------
 # Appendix transformations (asymmetric theta, shear/twist), global rotation and the common interface
 
+from mdlshapemodel.correspondence.circle import CIRCLE_WARP_KINDS  # noqa: E402
 from mdlshapemodel.correspondence.pose import rotation_from_vector  # noqa: E402
 from mdlshapemodel.correspondence.sampling import sphere_grid  # noqa: E402
 from mdlshapemodel.prepare.sphere import orientation as sphere_orientation, solid_angles  # noqa: E402
@@ -551,7 +552,7 @@ def test_apply_warp_by_name_matches_the_functions(rng):
         apply_warp(points, "field", {"level": 0, "support": 2.0, "coefficients": coefficients}),
         FieldBasis.icosphere_level(0, points, 2.0).apply(coefficients), atol=0)
     assert set(WARP_KINDS) == {"symmetric_theta", "asymmetric_theta", "shear_twist", "rotation",
-                               "field"}
+                               "field", *CIRCLE_WARP_KINDS}
     with pytest.raises(ValueError):
         apply_warp(points, "bogus", {})
     # parameters() rebuild the same warp

@@ -63,50 +63,73 @@ def centroid_size(points: np.ndarray, weights: np.ndarray) -> float:
 
 
 def align(source: np.ndarray, target: np.ndarray, weights: np.ndarray,
-          scaling: bool = True) -> Pose:
+          scaling: bool = True, planar: bool = False) -> Pose:
     """Similarity (or rigid) transform minimising sum_k w_k |T(source_k) - target_k|^2.
 
-    Weighted orthogonal Procrustes (Umeyama), proper rotations only.
+    Weighted orthogonal Procrustes (Umeyama), proper rotations only. ``planar``: for shapes in
+    the plane z = 0 (closed curves), a rotation about z (a proper 2-D rotation, never a
+    reflection) and a translation in x and y.
     """
     mu_s = weighted_centroid(source, weights)
     mu_t = weighted_centroid(target, weights)
     s = source - mu_s
     t = target - mu_t
     covariance = (t * weights[:, None]).T @ s
-    u, singular, vt = np.linalg.svd(covariance)
-    d = np.ones(3)
-    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-    rotation = (u * d) @ vt
+    if planar:
+        rotation, gain = planar_rotation(covariance)
+    else:
+        u, singular, vt = np.linalg.svd(covariance)
+        d = np.ones(3)
+        d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+        rotation = (u * d) @ vt
+        gain = np.sum(singular * d)
     if scaling:
         variance = float(weights @ np.einsum("ij,ij->i", s, s))
-        scale = float(np.sum(singular * d) / variance) if variance > 0 else 1.0
+        scale = float(gain / variance) if variance > 0 else 1.0
     else:
         scale = 1.0
     return Pose(scale, rotation, mu_t - scale * rotation @ mu_s)
 
 
+def planar_rotation(covariance: np.ndarray) -> tuple[np.ndarray, float]:
+    """The rotation about z maximising sum_k w_k t_k . R s_k, and that maximum, from the
+    covariance C = sum_k w_k t_k s_k^T (3 x 3; only its x-y block is used): eq. 18 in the plane.
+
+    With R the rotation by angle a, the sum is cos a (C_xx + C_yy) + sin a (C_yx - C_xy): largest
+    at a = atan2(C_yx - C_xy, C_xx + C_yy), where it is the length of that vector.
+    """
+    along = covariance[0, 0] + covariance[1, 1]
+    across = covariance[1, 0] - covariance[0, 1]
+    angle = np.arctan2(across, along)
+    rotation = np.eye(3)
+    rotation[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    return rotation, float(np.hypot(along, across))
+
+
 def generalized_procrustes(shapes: np.ndarray, weights: np.ndarray, scaling: bool = True,
                            target_size: float | None = None, iterations: int = 50,
-                           tolerance: float = 1e-10) -> tuple[np.ndarray, list[Pose]]:
-    """Align shapes (n_s, n_p, 3) to their common mean (Goodall 1991, weighted).
+                           tolerance: float = 1e-10, planar: bool = False
+                           ) -> tuple[np.ndarray, list[Pose]]:
+    """Align shapes (n_s, n_p, 3) to their common mean (Goodall 1991, weighted; eq. 18).
 
     The mean is kept centred at the origin with centroid size ``target_size`` (default: the mean
     centroid size of the inputs), so aligned shapes stay in the inputs' units (mm) and a coding
-    accuracy Delta given in those units keeps its meaning.
+    accuracy Delta given in those units keeps its meaning. ``planar``: shapes in the plane
+    z = 0, rotated about z only (:func:`align`).
 
     Returns the aligned shapes and one :class:`Pose` per shape (input -> aligned).
     """
     shapes = np.asarray(shapes, dtype=np.float64)
     if target_size is None:
         target_size = float(np.mean([centroid_size(x, weights) for x in shapes]))
-    poses = [align(x, shapes[0], weights, scaling=False) for x in shapes]
+    poses = [align(x, shapes[0], weights, scaling=False, planar=planar) for x in shapes]
     previous = np.inf
     for _ in range(iterations):
         aligned = np.stack([p.apply(x) for p, x in zip(poses, shapes)])
         mean = aligned.mean(axis=0)
         mean = mean - weighted_centroid(mean, weights)
         mean *= target_size / centroid_size(mean, weights)
-        poses = [align(x, mean, weights, scaling=scaling) for x in shapes]
+        poses = [align(x, mean, weights, scaling=scaling, planar=planar) for x in shapes]
         aligned = np.stack([p.apply(x) for p, x in zip(poses, shapes)])
         residual = float(np.sum((aligned - mean) ** 2 * weights[None, :, None]))
         if previous - residual <= tolerance * max(residual, 1e-300):

@@ -22,16 +22,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import BuildConfig
+from ..prepare.curve import segment_vertex_lengths
 from ..prepare.sphere import align_parameterizations, orientation, reference_frames
 from ..prepare.surface import face_areas, triangle_vertex_areas
 from .objective import Objective, objectives
 from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
-from .sampling import SphereLocator, grid_order, sphere_grid
-from .warps import WARP_KINDS, Warp, apply_symmetric_theta, apply_warps
+from .sampling import SphereLocator, grid_order, icosphere, sphere_grid
+from .warps import WARP_KINDS, SymmetricTheta, Warp, apply_symmetric_theta, apply_warps
 
 
 class PartState:
     """One part of one example: surface, sphere map, current sample positions on the sphere."""
+
+    #: whether the part lies in the plane z = 0 (curves: :class:`.circle.CurvePart`)
+    planar = False
+    #: the parameter domain (the fast strategy picks its field block by it)
+    kind = "sphere"
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
                  grid: np.ndarray, grid_triangles: np.ndarray):
@@ -65,6 +71,18 @@ class PartState:
         bary = np.array([1 - s, s * (1 - r2), s * r2])
         point = bary @ self.sphere[self.faces[face]]
         return point / np.linalg.norm(point)
+
+    def kernel(self, center, amplitude: float, omega: float) -> SymmetricTheta:
+        """The part's kernel warp, the symmetric theta map (the strategies draw kernels through
+        this, so that a curve part can give its own)."""
+        return SymmetricTheta(center, amplitude, omega)
+
+    @staticmethod
+    def kernel_centres(level: int) -> np.ndarray:
+        """The kernel centres that level ``level`` of III-D1 adds: the vertices that the
+        ``level``-th subdivision of the icosahedron adds (level 0: its 12 vertices)."""
+        previous = len(icosphere(level - 1)[0]) if level > 0 else 0
+        return icosphere(level)[0][previous:]
 
     def folds(self, positions: np.ndarray) -> bool:
         """Whether any sampling-grid triangle is flipped at these positions.
@@ -167,14 +185,21 @@ class CorrespondenceState:
         F as a function of the (rescaled) reduced covariance.
     scaling : bool
         Whether Procrustes alignment removes scale.
+    planar : bool, optional
+        Whether the shapes lie in the plane z = 0 and poses rotate about z only; by default when
+        every part is planar (closed curves).
     """
 
     def __init__(self, examples: list, grids: list, objective: Objective | None = None,
-                 scaling: bool = True):
+                 scaling: bool = True, planar: bool | None = None):
         self.examples = examples
         self.grids = grids
         self.objective = objective
         self.scaling = scaling
+        if planar is None:
+            parts = [part for example in examples for part in example.parts]
+            planar = bool(parts) and all(part.planar for part in parts)
+        self.planar = planar
         sizes = [len(points) for points, _ in grids]
         self.part_slices = [slice(a, b) for a, b in zip(np.cumsum([0] + sizes[:-1]),
                                                          np.cumsum(sizes))]
@@ -191,9 +216,10 @@ class CorrespondenceState:
 
     # ------------------------------------------------------------------ alignment and weights
     def area_weights(self, mean: np.ndarray) -> np.ndarray:
-        """w_k: a third of the area, on the mean shape, of the triangles around point k (eq. 17)."""
-        weights = np.concatenate([triangle_vertex_areas(mean[s], triangles)
-                                  for s, (_, triangles) in zip(self.part_slices, self.grids)])
+        """w_k: a third of the area, on the mean shape, of the triangles around point k (eq. 17);
+        for a curve's grid (segments), half the length of the two segments around it."""
+        weights = np.concatenate([vertex_measures(mean[s], cells)
+                                  for s, (_, cells) in zip(self.part_slices, self.grids)])
         return weights / weights.sum()
 
     def procrustes(self, rounds: int = 3):
@@ -202,7 +228,8 @@ class CorrespondenceState:
         weights = np.full(self.n_points, 1.0 / self.n_points)
         for _ in range(rounds):
             aligned, poses = generalized_procrustes(raw, weights, scaling=self.scaling,
-                                                    target_size=self.target_size)
+                                                    target_size=self.target_size,
+                                                    planar=self.planar)
             weights = self.area_weights(aligned.mean(axis=0))
         for example, pose in zip(self.examples, poses):
             example.pose = pose
@@ -380,6 +407,14 @@ class CorrespondenceState:
                 part.positions, part.points, part.hint = positions.copy(), points.copy(), hint.copy()
                 part.warps = list(warps)
         self.rebuild()
+
+
+def vertex_measures(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """The measure of eq. 17 around each grid point: a third of the area of its triangles (cells
+    of 3 points, a sphere's grid) or half the length of its segments (cells of 2, a curve's)."""
+    if cells.shape[1] == 2:
+        return segment_vertex_lengths(points, cells)
+    return triangle_vertex_areas(points, cells)
 
 
 def initial_state(prepared: list, config: BuildConfig):

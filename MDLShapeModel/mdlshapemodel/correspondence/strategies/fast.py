@@ -25,6 +25,7 @@ from scipy.optimize import Bounds, minimize
 from ...parallel import Threads
 from ...progress import report
 from .. import hotloops
+from ..circle import CircleField, CircleFieldBasis
 from ..state import CorrespondenceState
 from ..fields import FieldBasis
 from ..pose import Pose, weighted_centroid
@@ -74,14 +75,118 @@ def rotations_and_jacobians(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return rotations, jacobians
 
 
-class _FieldBlock:
-    """One part of one active example in a round: its field basis and where its coefficients
-    (in x) and points (``row`` of the active examples, ``rows`` of the shape vector) are."""
+class SphereBlock:
+    """One sphere part of one active example in a round: its field basis (bumps at the vertices
+    of an icosphere of ``level``, 3 coefficients each) and where its coefficients (in x, set by
+    the round) and points (``row`` of the active examples, ``rows`` of the shape vector) are.
 
-    def __init__(self, row: int, part, rows: slice, basis: FieldBasis, coefficients: slice):
+    A block does a part's share of an evaluation: :meth:`sample` (field map, point location,
+    surface Jacobian), :meth:`gradient` (their chain rule), :meth:`folds` and :meth:`commit`.
+    The round picks the block class by the part's ``kind`` (:data:`FIELD_BLOCKS`)."""
+
+    def __init__(self, row: int, part, rows: slice, level: int, support: float):
         self.row, self.part, self.rows = row, part, rows
-        self.basis, self.coefficients = basis, coefficients
+        self.level, self.support = level, support
+        self.basis = FieldBasis.icosphere_level(level, part.positions, support)
+        self.size = 3 * self.basis.n_centres
+        self.coefficients = slice(0, self.size)
         self.hint = part.hint           # the faces last located: the next walk starts there
+
+    def limits(self) -> np.ndarray:
+        """The bound of each coefficient's absolute value (a homeomorphism within them)."""
+        return np.full(self.size, self.basis.max_coefficient() / np.sqrt(3.0))
+
+    def sample(self, x: np.ndarray, raw: np.ndarray) -> tuple:
+        """The field map at x, located on the surface: phi, |m|, faces, dS/du; the samples go
+        into ``raw``."""
+        part, basis = self.part, self.basis
+        n = len(basis.points)
+        phi, norms = np.empty((n, 3)), np.empty(n)
+        face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
+        found = np.empty(n, dtype=np.bool_)
+        sampled = raw[self.row, self.rows]
+        w = basis.weights
+        hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
+                              x[self.coefficients].reshape(-1, 3), part.locator.inverse,
+                              part.locator.neighbours, part.faces, part.vertices, self.hint,
+                              8, phi, norms, face, sampled, jac, found)
+        missed = np.flatnonzero(~found)
+        if len(missed):     # walked too far: locate these among the faces near them
+            face[missed], coords = part.locator.locate(phi[missed])
+            sampled[missed] = part.locator.interpolate(part.vertices, face[missed], coords)
+            jac[missed] = part.locator.jacobian(part.vertices, face[missed], phi[missed])
+        self.hint = face
+        return phi, norms, face, jac
+
+    def gradient(self, located: tuple, scale: float, rotation: np.ndarray,
+                 shape_gradient: np.ndarray) -> np.ndarray:
+        """dF/d(coefficients) from dF/dX of the block's points, posed by ``scale`` and
+        ``rotation``."""
+        phi, norms, _, jac = located
+        w = self.basis.weights
+        return hotloops.field_sample_gradient(
+            w.indptr, w.indices, w.data, self.basis.points, phi, norms, jac, scale, rotation,
+            shape_gradient, self.basis.n_centres).ravel()
+
+    def folds(self, located: tuple) -> bool:
+        return self.part.folds(located[0])
+
+    def commit(self, located: tuple, x: np.ndarray, raw: np.ndarray):
+        """Commit the block's map at x to its part, recorded as a :class:`FieldWarp`."""
+        phi, _, face, _ = located
+        warp = FieldWarp(self.level, self.support, x[self.coefficients].reshape(-1, 3).copy())
+        self.part.commit(warp, phi, raw[self.row, self.rows].copy(), face)
+
+
+class CurveBlock:
+    """One curve part (:class:`~..circle.CurvePart`) of one active example in a round: the map
+    t -> t + s + v(t) of :class:`~..circle.CircleFieldBasis` at ``level`` (8 * 2**level bumps,
+    one scalar coefficient each) and the shift s of the origin, last. The interface of
+    :class:`SphereBlock`.
+
+    Chain rule: X_k = scale R S(phi_k) + ..., dS/dphi = the polyline's tangent T_k (constant on
+    each segment), so dF/da_j = sum_k g_j(t_k) q_k and dF/ds = sum_k q_k with
+    q_k = scale (R^T dF/dX_k) . T_k.
+    """
+
+    def __init__(self, row: int, part, rows: slice, level: int, support: float):
+        self.row, self.part, self.rows = row, part, rows
+        self.level, self.support = level, support
+        self.basis = CircleFieldBasis(level, support, part.positions)
+        self.size = self.basis.n_centres + 1
+        self.coefficients = slice(0, self.size)
+
+    def limits(self) -> np.ndarray:
+        """|a_j| within :meth:`CircleFieldBasis.max_coefficient`; a shift of at most 1/8 turn
+        per round (any shift is a homeomorphism: this only keeps the steps local)."""
+        return np.append(np.full(self.basis.n_centres, self.basis.max_coefficient()),
+                         np.pi / 4.0)
+
+    def sample(self, x: np.ndarray, raw: np.ndarray) -> tuple:
+        """phi, the curve segments and dS/dphi at x; the samples go into ``raw``."""
+        values = x[self.coefficients]
+        phi = self.basis.apply(values[:-1], values[-1])
+        raw[self.row, self.rows], segments = self.part.sample(phi)
+        return phi, segments, self.part.tangent(segments)
+
+    def gradient(self, located: tuple, scale: float, rotation: np.ndarray,
+                 shape_gradient: np.ndarray) -> np.ndarray:
+        along = scale * np.einsum("kd,kd->k", shape_gradient @ rotation, located[2])
+        return np.append(self.basis.weights.T @ along, along.sum())
+
+    def folds(self, located: tuple) -> bool:
+        return self.part.folds(located[0])
+
+    def commit(self, located: tuple, x: np.ndarray, raw: np.ndarray):
+        """Commit the block's map at x to its part, recorded as a :class:`CircleField`."""
+        phi, segments, _ = located
+        values = x[self.coefficients]
+        warp = CircleField(self.level, self.support, float(values[-1]), values[:-1].copy())
+        self.part.commit(warp, phi, raw[self.row, self.rows].copy(), segments)
+
+
+#: the field block of each kind of part (``part.kind``)
+FIELD_BLOCKS = {"sphere": SphereBlock, "circle": CurveBlock}
 
 
 @dataclass
@@ -89,7 +194,8 @@ class _Trial:
     """What the parameters x of a round give (see :meth:`FieldRound.trial`)."""
 
     x: np.ndarray             # the parameters
-    located: list             # per block: phi (n, 3), |m| (n,), faces (n,), dS/du (n, 3, 3)
+    located: list             # per block: what its sample() gives (sphere: phi, |m|, faces,
+                              # dS/du)
     raw: np.ndarray           # (n_active, n_p, 3) the unposed samples
     about: np.ndarray         # the samples posed as at the start, centred on their centroid
     rotation: np.ndarray      # (n_active, 3, 3) R(w)
@@ -102,10 +208,12 @@ class _Trial:
 class FieldRound:
     """The parameters of one round and the map from them to F and dF/dparameters.
 
-    x holds, per active example, the field coefficients of each part (3 per bump) and 7 pose
+    x holds, per active example, the field coefficients of each part (3 per bump on a sphere;
+    1 per bump and a shift on a curve: the part's block, :data:`FIELD_BLOCKS`) and 7 pose
     parameters: a rotation vector w and a log scale sigma about the example's centroid c at the
     start of the round, and a translation t in units of the shape size L:
     X = e^sigma R(w) (P(y) - c) + c + L t, with P the example's pose and y its unposed samples.
+    A planar state's bounds hold w_x, w_y and t_z at zero (rotation about z, in-plane moves).
     """
 
     def __init__(self, state: CorrespondenceState, active, level: int, support: float,
@@ -114,31 +222,32 @@ class FieldRound:
         self.threads = threads or Threads(1)
         self.level, self.support = level, support
         self.active = np.array(list(active), dtype=np.int64)
-        self.blocks = []
         offset = 0
         limits = []         # the bound of each parameter's absolute value
         pose_slices = []
         parts = [(row, j, part) for row, i in enumerate(self.active)
                  for j, part in enumerate(state.examples[i].parts)]
-        bases = [None] * len(parts)
+        self.blocks = [None] * len(parts)
 
         def make(indices):
             for b in indices:
-                bases[b] = FieldBasis.icosphere_level(level, parts[b][2].positions, support)
+                row, j, part = parts[b]
+                self.blocks[b] = FIELD_BLOCKS[part.kind](row, part, state.part_slices[j],
+                                                         level, support)
 
         self.threads.over(len(parts), make)
-        for b, ((row, j, part), basis) in enumerate(zip(parts, bases)):
-            size = 3 * basis.n_centres
-            self.blocks.append(_FieldBlock(row, part, state.part_slices[j], basis,
-                                           slice(offset, offset + size)))
-            offset += size
-            limits.append(np.full(size, basis.max_coefficient() / np.sqrt(3.0)))
+        # the log scale is held at 0: an example's size is not free to lower F
+        # (POSE_SCALE_LIMIT); a planar state turns about z and moves in x and y only
+        pose_limits = ([0.0, 0.0, 0.5, np.inf, np.inf, 0.0, POSE_SCALE_LIMIT] if state.planar
+                       else [0.5, 0.5, 0.5, np.inf, np.inf, np.inf, POSE_SCALE_LIMIT])
+        for b, (block, (row, _, _)) in enumerate(zip(self.blocks, parts)):
+            block.coefficients = slice(offset, offset + block.size)
+            offset += block.size
+            limits.append(block.limits())
             if b + 1 == len(parts) or parts[b + 1][0] != row:   # the example's last part
                 pose_slices.append(np.arange(offset, offset + 7))
                 offset += 7
-                # the log scale is held at 0: an example's size is not free to lower F
-                # (POSE_SCALE_LIMIT)
-                limits.append([0.5, 0.5, 0.5, np.inf, np.inf, np.inf, POSE_SCALE_LIMIT])
+                limits.append(pose_limits)
         self.size = offset
         limit = np.concatenate(limits)
         self.bounds = Bounds(-limit, limit)
@@ -151,29 +260,6 @@ class FieldRound:
         self.centres = np.array([weighted_centroid(state.shapes[i], state.weights)
                                  for i in self.active]).reshape(-1, 3)
 
-    @staticmethod
-    def _sample(block: _FieldBlock, x: np.ndarray, raw: np.ndarray) -> tuple:
-        """One block's field map at x, located on its surface: phi, |m|, faces, dS/du; its
-        samples go into ``raw``."""
-        part, basis = block.part, block.basis
-        n = len(basis.points)
-        phi, norms = np.empty((n, 3)), np.empty(n)
-        face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
-        found = np.empty(n, dtype=np.bool_)
-        sampled = raw[block.row, block.rows]
-        w = basis.weights
-        hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
-                              x[block.coefficients].reshape(-1, 3), part.locator.inverse,
-                              part.locator.neighbours, part.faces, part.vertices, block.hint,
-                              8, phi, norms, face, sampled, jac, found)
-        missed = np.flatnonzero(~found)
-        if len(missed):     # walked too far: locate these among the faces near them
-            face[missed], coords = part.locator.locate(phi[missed])
-            sampled[missed] = part.locator.interpolate(part.vertices, face[missed], coords)
-            jac[missed] = part.locator.jacobian(part.vertices, face[missed], phi[missed])
-        block.hint = face
-        return phi, norms, face, jac
-
     def trial(self, x: np.ndarray) -> _Trial:
         """Everything that parameters x give: see :meth:`gradient` and :meth:`commit`."""
         n_p = self.state.n_points
@@ -182,7 +268,7 @@ class FieldRound:
 
         def sample(indices):
             for b in indices:
-                located[b] = self._sample(self.blocks[b], x, raw)
+                located[b] = self.blocks[b].sample(x, raw)
 
         self.threads.over(len(self.blocks), sample)
         p = x[self.pose_index]
@@ -209,12 +295,10 @@ class FieldRound:
 
         def chain(indices):
             for b in indices:
-                block, (phi, norms, _, jac) = self.blocks[b], trial.located[b]
-                w = block.basis.weights
-                result[block.coefficients] = hotloops.field_sample_gradient(
-                    w.indptr, w.indices, w.data, block.basis.points, phi, norms, jac,
-                    total_scale[block.row], total_rotation[block.row], g[block.row, block.rows],
-                    block.basis.n_centres).ravel()
+                block = self.blocks[b]
+                result[block.coefficients] = block.gradient(
+                    trial.located[b], total_scale[block.row], total_rotation[block.row],
+                    g[block.row, block.rows])
 
         self.threads.over(len(self.blocks), chain)
         # the pose: with N = sum_k g_k v_k^T (3 x 3) every term is a contraction of N:
@@ -231,17 +315,14 @@ class FieldRound:
         return result
 
     def folds(self, trial: _Trial) -> bool:
-        return any(block.part.folds(phi) for block, (phi, _, _, _) in
-                   zip(self.blocks, trial.located))
+        return any(block.folds(located) for block, located in zip(self.blocks, trial.located))
 
     def commit(self, trial: _Trial):
         """Compose the round's maps into the sample positions (each recorded as a
-        :class:`FieldWarp`, which re-applied to the positions at the start of the round gives
-        the same positions bit for bit) and the poses."""
-        for block, (phi, _, face, _) in zip(self.blocks, trial.located):
-            warp = FieldWarp(self.level, self.support,
-                             trial.x[block.coefficients].reshape(-1, 3).copy())
-            block.part.commit(warp, phi, trial.raw[block.row, block.rows].copy(), face)
+        :class:`FieldWarp` or :class:`CircleField`, which re-applied to the positions at the
+        start of the round gives the same positions bit for bit) and the poses."""
+        for block, located in zip(self.blocks, trial.located):
+            block.commit(located, trial.x, trial.raw)
         rotation, scale, p = trial.rotation, trial.scale, trial.pose
         for row, i in enumerate(self.active):
             centre = self.centres[row]

@@ -108,6 +108,21 @@ def _commit_best(state: CorrespondenceState, i: int, j: int, found: list, curren
     return current
 
 
+def optimise_shift(state: CorrespondenceState, i: int, j: int, shift_of, current: float,
+                   max_shift: float, improved=None) -> float:
+    """Best shift of the origin in [-max_shift, max_shift] for curve part j of example i (bounded
+    Brent search; ``shift_of(s)`` is the part's shift warp); commits it when F falls.
+
+    The circle kernels fix two points each; a shift moves every sample along the curve at once,
+    which they would need many steps for. It is searched at the example's current pose (III-D4
+    then refits the pose): an origin far off, which Procrustes has partly absorbed as a
+    rotation, is the initial alignment's to fix (:func:`~...prepare.curve.align_curve_origins`)."""
+    found: list = []
+    _search_warp(state, i, j, shift_of, (-max_shift, max_shift), False, 1e-3 * max_shift, 25,
+                 found, improvements(current, improved))
+    return _commit_best(state, i, j, found, current)
+
+
 def _signed_bounds(part, move, cap: float, min_parameter: float) -> tuple | None:
     """[-low, high]: the unfolded range of a signed warp parameter within [-cap, cap], from one
     bisection per sign (:meth:`PartState.feasible_parameter`); None when both sides are negligible."""
@@ -124,7 +139,8 @@ def optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, current
     """One step of the one-at-a-time strategies on part j of example i with a warp of ``kind``.
 
     - ``symmetric``: a random kernel (centre uniform over the surface, omega from sigma_G), its
-      amplitude optimised by :func:`optimise_amplitude`, as in the paper;
+      amplitude optimised by :func:`optimise_amplitude`, as in the paper; on a curve (a part
+      with a ``shift``) the circle kernel, then a shift of the origin (:func:`optimise_shift`);
     - ``asymmetric`` (Appendix eq. 27-29): centre and omega drawn as for the symmetric kernel,
       psi0 uniform, b log-uniform on [0.1, 2] (:func:`warps.random_asymmetric_theta`); A0 >= 0 is
       searched over log10 A0 up to the amplitude whose peak A(psi0) = ``max_amplitude`` (or less,
@@ -144,10 +160,14 @@ def optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, current
     part = state.examples[i].parts[j]
     positions = part.positions
     if kind == "symmetric":
-        kernel = SymmetricTheta(part.random_surface_parameter(rng), 0.0,
-                                random_width(rng, settings.sigma_g))
-        return optimise_amplitude(state, i, j, kernel, current, settings.max_amplitude,
+        kernel = part.kernel(part.random_surface_parameter(rng), 0.0,
+                             random_width(rng, settings.sigma_g))
+        value = optimise_amplitude(state, i, j, kernel, current, settings.max_amplitude,
                                    min_amplitude, improved)
+        shift = getattr(part, "shift", None)      # curves: a shift of the origin too
+        if shift is not None:
+            value = optimise_shift(state, i, j, shift, value, settings.max_angle, improved)
+        return value
     found: list = []
     seen = improvements(current, improved)
     if kind == "asymmetric":
@@ -203,7 +223,8 @@ def warp_counts(state: CorrespondenceState) -> dict:
 def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evaluations: int,
                    improved=None) -> float:
     """Downhill simplex over example i's pose (rotation about its centroid, translation, and
-    scale unless the state keeps sizes, ``state.scaling`` False: ``--no-scaling``).
+    scale unless the state keeps sizes, ``state.scaling`` False: ``--no-scaling``); for a planar
+    state (curves) rotation about z and translation in x and y only.
 
     ``improved`` as in :func:`optimise_amplitude`."""
     example = state.examples[i]
@@ -212,10 +233,15 @@ def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalua
     centre = weighted_centroid(base.apply(raw), state.weights)
     size = state.target_size
 
-    free = 7 if state.scaling else 6        # the log scale is the 7th parameter
+    # the parameters the simplex moves (of rotation vector, translation, log scale): in the
+    # plane only for a planar state, and the log scale (the 7th) unless the state keeps sizes
+    free = np.array(([2, 3, 4] if state.planar else [0, 1, 2, 3, 4, 5])
+                    + ([6] if state.scaling else []))
 
     def pose_of(parameters: np.ndarray) -> Pose:
-        delta = pose_from_parameters(np.concatenate([parameters, np.zeros(7 - free)]))
+        vector = np.zeros(7)
+        vector[free] = parameters
+        delta = pose_from_parameters(vector)
         # rotate and scale about the shape's centroid, then translate
         about = Pose(1.0, np.eye(3), centre).compose(delta).compose(Pose(1.0, np.eye(3), -centre))
         return about.compose(base)
@@ -227,9 +253,9 @@ def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalua
         seen(value)
         return value
 
-    step = np.array([0.02, 0.02, 0.02, 0.02 * size, 0.02 * size, 0.02 * size, 0.01])[:free]
-    simplex = np.vstack([np.zeros(free), np.diag(step)])
-    result = minimize(objective, np.zeros(free), method="Nelder-Mead",
+    step = np.array([0.02, 0.02, 0.02, 0.02 * size, 0.02 * size, 0.02 * size, 0.01])[free]
+    simplex = np.vstack([np.zeros(len(free)), np.diag(step)])
+    result = minimize(objective, np.zeros(len(free)), method="Nelder-Mead",
                       options={"initial_simplex": simplex, "maxfev": max_evaluations,
                                "xatol": 1e-6, "fatol": 1e-6})
     if result.fun < current:
@@ -257,6 +283,9 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
     unknown = [kind for kind in kinds if kind not in WARPS]
     if not kinds or unknown:
         raise ValueError(f"warps: {list(kinds)!r} must be one or more of {', '.join(WARPS)}")
+    if state.planar and kinds != ("symmetric",):
+        raise ValueError(f"warps: {list(kinds)!r}: closed 2-D curves take the symmetric kernel "
+                         "only (asymmetric, shear and rotation are warps of the sphere)")
     active = np.arange(state.n_shapes) if active is None else np.asarray(active)
     sweeps = begin_sweeps(state, objective, trace, phase, deadline, settings, resume)
     value = sweeps.value

@@ -20,10 +20,9 @@ from scipy.optimize import minimize
 from ...config import OptimisationSettings
 from ...progress import report
 from ..objective import Objective
-from ..sampling import icosphere
-from ..state import CorrespondenceState
+from ..state import CorrespondenceState, PartState
 from ..trace import Trace
-from ..warps import SymmetricTheta, random_width
+from ..warps import random_width
 from .base import (PhasePoint, active_parts, begin_sweeps, end_of_iteration, recorder,
                    start_phase, stalled, sweep_point)
 
@@ -93,7 +92,7 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
             for k in ks:
                 b = blocks[k]
                 part = example.parts[b.j]
-                kernels = [SymmetricTheta(c, float(a), w) for c, w, a in
+                kernels = [part.kernel(c, float(a), w) for c, w, a in
                            zip(b.centers, b.omegas, amplitudes[offsets[k]:offsets[k + 1]]) if a > 0]
                 if not kernels:
                     continue
@@ -150,13 +149,7 @@ def multiresolution_levels(omega_1: float, levels: int) -> list:
     """[(omega, centres)] of III-D1: level k has kernels of width omega_1 / 2**k at the vertices that
     the k-th subdivision of the icosahedron adds (level 0: its 12 vertices), i.e. halfway between
     the kernels of the earlier levels."""
-    result = []
-    previous = 0
-    for k in range(levels):
-        points, _ = icosphere(k)
-        result.append((omega_1 / 2.0 ** k, points[previous:]))
-        previous = len(points)
-    return result
+    return [(omega_1 / 2.0 ** k, PartState.kernel_centres(k)) for k in range(levels)]
 
 
 def multiresolution(state: CorrespondenceState, objective: Objective,
@@ -169,7 +162,8 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
     level, from 1). Deterministic: ``rng`` is not used. ``checkpoint(point)`` after every level;
     ``resume`` carries on after the level it names."""
     parts = active_parts(state, active)
-    levels = multiresolution_levels(settings.omega_1, min(settings.max_levels, settings.max_sweeps))
+    widths = [settings.omega_1 / 2.0 ** k for k in range(min(settings.max_levels,
+                                                              settings.max_sweeps))]
     if resume is None:
         value = start_phase(state, objective, trace, phase)
     else:
@@ -178,11 +172,15 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
         if time.perf_counter() > deadline:
             return value
     done = 0 if resume is None else resume.sweep
-    for level, (omega, centers) in enumerate(levels, start=1):
+    for level, omega in enumerate(widths, start=1):
         if level <= done:
             continue
-        blocks = [_block(state, i, j, centers, [omega] * len(centers), settings.max_amplitude)
-                  for i, j in parts]
+        blocks = []
+        for i, j in parts:
+            # the part's own centres: the icosphere's on a sphere, the circle's on a curve
+            centers = state.examples[i].parts[j].kernel_centres(level - 1)
+            blocks.append(_block(state, i, j, centers, [omega] * len(centers),
+                                 settings.max_amplitude))
         blocks = [b for b in blocks if b is not None]
         label = f"{phase}: level {level} ({sum(len(b.upper) for b in blocks)} kernels, " \
                 f"omega = {omega:g})"
