@@ -107,6 +107,8 @@ def _settingMember(name: str, defaults: BuildConfig):
     metadata = next(f for f in fields(BuildConfig) if f.name == name).metadata
     kind = typing.get_type_hints(BuildConfig)[name]
     value = getattr(defaults, name)
+    if name == "points":       # None: per kind of input; the panel builds surfaces
+        kind, value = int, defaults.points_for(curves=False)
     if typing.get_origin(kind) is list:
         return str, ", ".join(str(v) for v in value)
     if "choices" in metadata:

@@ -34,7 +34,7 @@ _prepared = None  # the preprocessed cases, shared with the worker processes (fo
 def initial_state(prepared, points: int):
     """The state and objectives exactly as the build pipeline sets them up."""
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.correspondence.state import initial_state as pipeline_state
+    from mdlshapemodel.correspondence.initial import initial_state as pipeline_state
 
     state, objectives, _, _ = pipeline_state(prepared, BuildConfig(points=points))
     return state, objectives

@@ -47,7 +47,7 @@ def run(strategy: str, paths: list, budget: float, seed: int) -> tuple:
     from mdlshapemodel.config import BuildConfig
     from mdlshapemodel.model.evaluation import evaluate
     from mdlshapemodel.model.shape_model import ShapeModel
-    from mdlshapemodel.correspondence.state import initial_state
+    from mdlshapemodel.correspondence.initial import initial_state
     from mdlshapemodel.correspondence.strategies import optimise
     from mdlshapemodel.correspondence.trace import Trace
     from mdlshapemodel.prepare import preprocess

@@ -108,6 +108,8 @@ TIMES = (("cpu_seconds", "CPU time"), ("evaluations", "evaluations"))
 EXTRA = ("multiresolution", "fast")   # can be run; multiresolution is left out of the table
 PAPER_TABLE_III = {"multiscale": (47.5163, 2.4037), "one-at-a-time": (0.3276, 0.2722),
                    "one-at-a-time-pose": (0.3106, 0.2758)}
+PAPER_TABLE_II = {"multiscale": (5.4613, 1.0384), "one-at-a-time": (0.9082, 0.4624),
+                  "one-at-a-time-pose": (0.8282, 0.4576)}    # 2-D: 100 hands
 LABELS = {"multiscale": "Multiscale (III-D2)", "one-at-a-time": "One-at-a-time (III-D3)",
           "one-at-a-time-pose": "Including pose (III-D4)", "multiresolution":
           "Multiresolution (III-D1)", "fast": "Fast (ours, default)"}
@@ -118,7 +120,9 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--output", default="strategy-scaling", help="output folder")
-    parser.add_argument("--data", default=str(DATA), help="folder of the label maps")
+    parser.add_argument("--data", default=str(DATA), help="folder of the label maps (or curves)")
+    parser.add_argument("--pattern", default="*.nii.gz",
+                        help="the pool's files in --data, e.g. '*.csv' for 2-D curves (Table II)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[15, 25, 35], help="n_s values")
     parser.add_argument("--trials", type=int, default=3, help="trials per n_s")
     parser.add_argument("--strategies", nargs="+", default=list(STRATEGIES),
@@ -129,7 +133,9 @@ def parse_args(argv=None):
                         help="wall-clock cap per run, seconds (default 10 x --budget)")
     parser.add_argument("--objective", choices=("integrated", "fixed"), default="integrated",
                         help="the single objective optimised: eq. 14 (default) or eq. 13")
-    parser.add_argument("--points", type=int, default=2562, help="n_p, sample points per shape")
+    parser.add_argument("--points", type=int, default=None,
+                        help="n_p, sample points per shape (default: the build's, 2562 on the "
+                             "sphere, 128 on the circle)")
     parser.add_argument("--seed", type=int, default=2010, help="seed of subsets and optimisers")
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (processes)")
     parser.add_argument("--bootstrap", type=int, default=100, help="bootstrap resamples")
@@ -148,13 +154,13 @@ def parse_args(argv=None):
 # planning
 
 
-def usable_pool(data: Path, workers: int) -> list:
-    """Sorted paths of the pool: the label maps that preprocessing accepts, minus duplicates."""
+def usable_pool(data: Path, workers: int, pattern: str = "*.nii.gz") -> list:
+    """Sorted paths of the pool: the files that preprocessing accepts, minus duplicates."""
     from mdlshapemodel.config import BuildConfig
     from mdlshapemodel.prepare.io import case_name
     from mdlshapemodel.prepare import preprocess
 
-    paths = [p for p in sorted(data.glob("*.nii.gz")) if case_name(p) not in DUPLICATES]
+    paths = [p for p in sorted(data.glob(pattern)) if case_name(p) not in DUPLICATES]
     prepared, rejected = preprocess(paths, BuildConfig(labels=[1, 2], workers=workers))
     for rejection in rejected:
         print(f"left out of the pool: {rejection.name}: {rejection.reason}", file=sys.stderr)
@@ -207,7 +213,7 @@ def initial_state(paths, points: int):
     """Correspondence state of the cases as ``mdlshapemodel build`` sets it up (from the cache)
     and the two objectives (eq. 13, eq. 14) with the default Delta settings (Table I)."""
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.correspondence.state import initial_state as pipeline_state
+    from mdlshapemodel.correspondence.initial import initial_state as pipeline_state
     from mdlshapemodel.prepare import preprocess
 
     config = BuildConfig(labels=[1, 2], workers=1, points=points)
@@ -357,19 +363,22 @@ def table(results: dict, summary: dict, plan: dict) -> str:
     args = plan["args"]
     cpu, evaluations = results["cpu_seconds"], results["evaluations"]
     ref = cpu["reference"]
-    lines = [f"Gradient of alpha against n_s (cf. Table III); reference: {ref['strategy']} at "
+    curves = plan["args"].get("curves", False)
+    paper_table, which = (PAPER_TABLE_II, "2-D") if curves else (PAPER_TABLE_III, "3-D")
+    lines = [f"Gradient of alpha against n_s (cf. Table {'II' if curves else 'III'}); "
+             f"reference: {ref['strategy']} at "
              f"n_s = {ref['n_s']} ({ref['trials']} trials); alpha > 1 = slower than the reference",
              f"budget {args['budget']:g} CPU s per run, n_p = {args['points']}, objective: "
              f"eq. {14 if args['objective'] == 'integrated' else 13} only, "
              f"{args['trials']} trials per n_s, {cpu['grid']['bootstrap']} bootstrap resamples, "
              f"{cpu['grid']['spacing']} time grid of {cpu['grid']['points']} points",
              "",
-             f"{'strategy':<26}{'CPU time':>20}{'evaluations':>20}   paper 3-D (CPU / eval.)"]
+             f"{'strategy':<26}{'CPU time':>20}{'evaluations':>20}   paper {which} (CPU / eval.)"]
     for s in ANALYSED:
         if s not in cpu["strategies"]:
             continue
         a, b = cpu["strategies"][s], evaluations["strategies"][s]
-        paper = "%g / %g" % PAPER_TABLE_III[s] if s in PAPER_TABLE_III else "-"
+        paper = "%g / %g" % paper_table[s] if s in paper_table else "-"
         lines.append(f"{LABELS[s]:<26}{a['gradient']:>11.3f} +- {a['gradient_se']:<6.3f}"
                      f"{b['gradient']:>11.3f} +- {b['gradient_se']:<6.3f}   {paper}")
     for time_column, title in TIMES:
@@ -421,12 +430,15 @@ def main(argv=None) -> int:
             return 2
         plan = json.loads(plan_file.read_text())
     else:
-        pool = usable_pool(Path(args.data), args.jobs)
+        pool = usable_pool(Path(args.data), args.jobs, args.pattern)
         if not pool:
             print(f"no usable label maps in {args.data}", file=sys.stderr)
             return 2
+        from mdlshapemodel.prepare.curve import is_curve_file
+
         jobs = plan_jobs(pool, args.sizes, args.trials, args.strategies, args.seed)
-        plan = {"args": vars(args), "pool": pool, "jobs": jobs}
+        plan = {"args": {**vars(args), "curves": is_curve_file(pool[0])}, "pool": pool,
+                "jobs": jobs}
         if plan_file.exists():  # more strategies, sizes or trials for the same study
             plan = merged_plan(json.loads(plan_file.read_text()), plan)
         output.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,8 @@ import numpy as np
 
 from .config import BuildConfig
 from .correspondence.cpd import cpd_state
-from .correspondence.state import CorrespondenceState, initial_state
+from .correspondence.initial import initial_state
+from .correspondence.state import CorrespondenceState
 from .correspondence.strategies import optimise
 from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import RESTORED_INITIAL, Trace
@@ -37,6 +38,7 @@ from .outputs import (BuildResult, Checkpoint, clear_previous_build, previous_bu
                       read_checkpoint, remove_partial_files, save_checkpoint, write_outputs)
 from .parallel import Task, dask_executor, helper_for
 from .prepare import io, preprocess
+from .prepare.case import Rejection
 from .prepare.parts import case_inputs, read_manifest
 from .progress import Progress, report
 
@@ -181,6 +183,8 @@ def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume
 def _build_from(cases: list, output: Path, config: BuildConfig, progress, executor,
                 resume: bool, started: float) -> BuildResult:
     prepared, rejected = preprocess(cases, config, executor, progress)
+    prepared, odd = one_kind(prepared)
+    rejected = rejected + odd
     for rejection in rejected:
         log.warning("rejected %s: %s", io.printable(rejection.path), rejection.reason)
     io.write_csv(output / "rejected.csv", ("case", "file", "reason"),
@@ -221,6 +225,20 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
+
+
+def one_kind(prepared: list) -> tuple[list, list]:
+    """The prepared cases of the kind most of them are (surfaces or 2-D curves: a model is of
+    one), and a :class:`Rejection` for each of the others (a stray 2-D image among label maps)."""
+    curves = [case for case in prepared if case.is_curve]
+    if not curves or len(curves) == len(prepared):
+        return prepared, []
+    keep_curves = len(curves) > len(prepared) - len(curves)
+    kind, other = ("2-D curves", "a surface") if keep_curves else ("surfaces", "a 2-D curve")
+    return ([case for case in prepared if case.is_curve == keep_curves],
+            [Rejection(case.name, case.path, f"{other}, but most inputs are {kind} (a model "
+                                             "is of one kind)")
+             for case in prepared if case.is_curve != keep_curves])
 
 
 @dataclass
@@ -300,6 +318,13 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     if other is not None:
         raise BuildError(f"the cases have different parts: {prepared[0].name} has "
                          f"{parts}, {other.name} has {other.part_names}")
+    curves = [case.name for case in prepared if case.is_curve]
+    if curves and len(curves) != len(prepared):
+        surface = next(case.name for case in prepared if not case.is_curve)
+        raise BuildError(f"2-D curves and surfaces in one build: {curves[0]} is a curve, "
+                         f"{surface} a surface")
+    if curves and config.correspondence == "cpd":
+        raise BuildError("--correspondence cpd registers surfaces; these inputs are 2-D curves")
     state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)
     initial = integrated(state.covariance())
     log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
@@ -309,6 +334,9 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
         baselines("none", state, {"objective": initial})
     cpd = None
+    if "cpd" in wanted and curves:
+        log.warning("no CPD baseline for 2-D curves (it registers surfaces)")
+        wanted = [name for name in wanted if name != "cpd"]
     if config.correspondence == "cpd" or "cpd" in wanted:
         cpd, template = cpd_state(state, prepared, config, executor, progress)
         if config.correspondence != "cpd":

@@ -345,9 +345,12 @@ def main(argv=None) -> int:
     demo.add_argument("--subjects", type=int, default=12, help="population size (default 12)")
     demo.add_argument("--max-time", type=float, default=40.0, help="optimisation seconds (default 40)")
     demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--parts", action="store_true",
+    kind = demo.add_mutually_exclusive_group()
+    kind.add_argument("--parts", action="store_true",
                       help="a two-part population: each subject cut into two touching parts "
                            "(labels 1 and 2), modelled as --part left=1 --part right=2")
+    kind.add_argument("--2d", dest="curves", action="store_true",
+                      help="a population of 2-D outlines (CSV point lists): a 2-D model")
     demo.add_argument("-q", "--quiet", action="store_true")
     compare = commands.add_parser(
         "compare", help="evaluate several models of the same cases side by side",
@@ -406,14 +409,18 @@ def main(argv=None) -> int:
                 fit.error("give input files or folders, or --manifest")
             return _run_fit(args)
         if args.command == "demo":
-            from .demo import DEMO_PARTS, write_demo_population
+            from .demo import DEMO_PARTS, write_demo_curves, write_demo_population
 
             output = Path(args.output)
-            paths = write_demo_population(output / "inputs", args.subjects, args.seed,
-                                          args.parts)
-            log.info("wrote %d demo label maps to %s", len(paths), output / "inputs")
-            config = BuildConfig(points=642, max_time=args.max_time, seed=args.seed,
-                                 specificity_samples=2000,
+            if args.curves:
+                paths = write_demo_curves(output / "inputs", args.subjects, args.seed)
+            else:
+                paths = write_demo_population(output / "inputs", args.subjects, args.seed,
+                                              args.parts)
+            log.info("wrote %d demo %s to %s", len(paths),
+                     "outlines" if args.curves else "label maps", output / "inputs")
+            config = BuildConfig(points=None if args.curves else 642, max_time=args.max_time,
+                                 seed=args.seed, specificity_samples=2000,
                                  parts=list(DEMO_PARTS) if args.parts else []).validate()
             return _run_build(paths, output, config, live, overwrite=True)  # the demo's own
     except MDLShapeModelError as error:

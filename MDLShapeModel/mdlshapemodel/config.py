@@ -72,6 +72,11 @@ _CORRESPONDENCE, _INPUTS, _RUNNING = OPTION_GROUPS
 MAX_SMOOTHING_SIGMA = 2.0
 
 
+# Unless set (``BuildConfig.points``), the sample points of each part: on the sphere for a
+# surface (an icosphere of 2562 vertices), on the circle for a 2-D curve (the issue's 128).
+SURFACE_POINTS = 2562
+CURVE_POINTS = 128
+
 # Unless set, the surfaces mapped to the sphere have about this many vertices per sample point,
 # and at least MIN_SURFACE_VERTICES: ``BuildConfig.target_vertices``. A surface many times finer
 # than the sampling grid buys nothing and costs time (a 0.5 mm femur contour has 146,000).
@@ -309,9 +314,11 @@ class BuildConfig:
                          "report: comma-separated from none (the initial correspondence) and "
                          "cpd; '' for no baseline (default none)",
         metavar="LIST", choices=BASELINES, item="baseline"))
-    points: int = field(default=2562, metadata=option(  # n_p
-        _CORRESPONDENCE, "sample points per shape (icosphere when 10*4^k+2; default "
-                         "%(default)s)"))
+    # None: SURFACE_POINTS on surfaces, CURVE_POINTS on 2-D curves (points_for)
+    points: int | None = field(default=None, metadata=option(  # n_p
+        _CORRESPONDENCE, "sample points per part: on the sphere (an icosphere when 10*4^k+2) "
+                         f"for surfaces, default {SURFACE_POINTS}; equally spaced on the circle for "
+                         f"2-D curves, default {CURVE_POINTS}"))
     # optimisation: our gradient strategy by default (the paper's four remain selectable); the
     # other defaults are those of OptimisationSettings (one source)
     strategy: str = field(default="fast", metadata=option(
@@ -391,8 +398,8 @@ class BuildConfig:
         if self.max_smoothing_sigma is None and isinstance(self.smoothing_sigma, (int, float)):
             self.max_smoothing_sigma = max_smoothing_for(self.smoothing_sigma)
         # and unless set, the surfaces are about as fine as the sampling grid needs
-        if self.target_vertices is None and isinstance(self.points, int):
-            self.target_vertices = target_vertices_for(self.points)
+        if self.target_vertices is None and isinstance(self.points, (int, type(None))):
+            self.target_vertices = target_vertices_for(self.points_for(curves=False))
 
     def validate(self) -> "BuildConfig":
         """Raise :class:`ConfigError` naming the first bad field; return self."""
@@ -422,7 +429,7 @@ class BuildConfig:
              f"must be one of {', '.join(CORRESPONDENCES)}")
         need(all(b in BASELINES for b in self.baselines), "baselines",
              f"each must be one of {', '.join(BASELINES)}")
-        need(self.points >= 12, "points", "must be at least 12")
+        need(self.points is None or self.points >= 12, "points", "must be at least 12")
         need(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
         need(isinstance(self.warps, (list, tuple)) and len(self.warps) > 0
              and all(w in WARPS for w in self.warps) and len(set(self.warps)) == len(self.warps),
@@ -447,6 +454,13 @@ class BuildConfig:
                                         and self.scheduler.strip() != ""),
              "scheduler", "must be a Dask scheduler's address, e.g. tcp://127.0.0.1:8786")
         return self
+
+    def points_for(self, curves: bool) -> int:
+        """The sample points of each part: ``points``, or unless set :data:`CURVE_POINTS` for
+        2-D curves and :data:`SURFACE_POINTS` for surfaces."""
+        if self.points is not None:
+            return self.points
+        return CURVE_POINTS if curves else SURFACE_POINTS
 
     def part_specs(self) -> list[PartSpec]:
         """The parts of ``parts`` (:func:`parse_part`); none for a one-part object."""

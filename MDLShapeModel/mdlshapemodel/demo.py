@@ -1,4 +1,5 @@
-"""A small synthetic population for ``mdlshapemodel demo``.
+"""Small synthetic populations for ``mdlshapemodel demo``: label maps (3-D, or two parts) and
+2-D curves.
 
 Each subject is an ellipsoid of varying thickness with a bump on its upper side whose size varies
 from subject to subject. An area-preserving parameterization gives a large bump more of the
@@ -29,6 +30,16 @@ def bump_ellipsoid_mask(shape=(30, 34, 48), semi_axes=(16.0, 9.0, 7.0), bump_pos
     return ellipsoid | bump
 
 
+def _population(folder, seed: int, sizes: np.ndarray):
+    """The folder (made), the generator of a demo population and its subjects' sizes in a
+    random order."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    rng.shuffle(sizes)
+    return folder, rng, sizes
+
+
 #: the parts of the two-part demo population (``write_demo_population(..., parts=True)``): the
 #: labels of its two halves, as ``--part`` takes them
 DEMO_PARTS = ("left=1", "right=2")
@@ -43,11 +54,7 @@ def write_demo_population(folder, n_subjects: int = 12, seed: int = 0,
     """
     import SimpleITK as sitk
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    radii = np.linspace(2.5, 7.5, n_subjects)
-    rng.shuffle(radii)
+    folder, rng, radii = _population(folder, seed, np.linspace(2.5, 7.5, n_subjects))
     paths = []
     for k, radius in enumerate(radii):
         thickness = float(7.0 + 1.0 * rng.uniform(-1, 1))
@@ -61,5 +68,29 @@ def write_demo_population(folder, n_subjects: int = 12, seed: int = 0,
         image.SetSpacing((1.0, 1.0, 1.0))
         path = folder / f"subject_{k + 1:02d}.nii.gz"
         sitk.WriteImage(image, str(path))
+        paths.append(path)
+    return paths
+
+
+def demo_curve(bump: float, width: float, rng: np.random.Generator, n: int = 400) -> np.ndarray:
+    """A closed 2-D outline (n, 2), mm: an ellipse (40 x 24 mm) with a bump of height ``bump``
+    (mm) on its upper side, slightly wobbled, starting at a random point."""
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    bumped = 1.0 + bump / 12.0 * np.exp(-((t - 1.9) / 0.2) ** 2)
+    wobble = 1.0 + 0.02 * np.sin(3.0 * t + rng.uniform(0, 2 * np.pi))
+    points = np.stack([20.0 * width * np.cos(t), 12.0 * bumped * wobble * np.sin(t)], axis=1)
+    return np.roll(points, int(rng.integers(n)), axis=0)
+
+
+def write_demo_curves(folder, n_subjects: int = 12, seed: int = 0) -> list[Path]:
+    """Write ``n_subjects`` closed outlines as CSV point lists (x, y per row) to ``folder``:
+    ellipses of varying width whose bump varies in height (a larger bump takes more of the
+    arc length, so equal arc-length spacing shifts the points around it). Returns the paths."""
+    folder, rng, bumps = _population(folder, seed, np.linspace(3.0, 18.0, n_subjects))
+    paths = []
+    for k, bump in enumerate(bumps):
+        points = demo_curve(float(bump), float(1.0 + 0.05 * rng.uniform(-1, 1)), rng)
+        path = folder / f"outline_{k + 1:02d}.csv"
+        np.savetxt(path, points, delimiter=",", header="x,y", comments="", fmt="%.6f")
         paths.append(path)
     return paths

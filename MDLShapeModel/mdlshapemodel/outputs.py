@@ -21,7 +21,8 @@ from .errors import BuildError
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel, score_outliers
 from .prepare import io
-from .prepare.surface import mirror, point_surface_distances
+from .prepare.curve import CurveMap, point_curve_distances
+from .prepare.surface import point_surface_distances
 from .report.html import write_report
 
 log = logging.getLogger("mdlshapemodel")
@@ -152,11 +153,38 @@ def warp_summary(example) -> str:
     return " ".join(f"{kind}:{count}" for kind, count in counts.items() if count)
 
 
+def _input_points(mapped) -> np.ndarray:
+    """The input surface's vertices, or a 2-D curve's points (n, 2)."""
+    return mapped.points if isinstance(mapped, CurveMap) else mapped.vertices
+
+
+def input_distances(mapped, corresponded: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """From each vertex of a part's input surface (point of its curve) to the corresponded
+    points meshed with ``cells`` (triangles, or segments for a curve)."""
+    if isinstance(mapped, CurveMap):
+        return point_curve_distances(mapped.points, corresponded[:, :2], cells)
+    return point_surface_distances(mapped.vertices, corresponded, cells)
+
+
+def sphere_quality(case) -> dict:
+    """The sphere maps' quality columns of cases.csv (all parts together; empty for curves,
+    whose arc-length map on the circle has no distortion to report)."""
+    keys = ("sphere_flips", "sphere_mean_abs_log_area", "sphere_p95_abs_log_area",
+            "sphere_seconds")
+    if case.is_curve:
+        return dict.fromkeys(keys, "")
+    qualities = [part.map.quality for part in case.parts]
+    return dict(zip(keys, (sum(q["flipped_triangles"] for q in qualities),
+                           float(np.mean([q["mean_abs_log_area_ratio"] for q in qualities])),
+                           max(q["p95_abs_log_area_ratio"] for q in qualities),
+                           sum(q["seconds"] for q in qualities))))
+
+
 def physical_shapes(raw: np.ndarray, triangles: np.ndarray, prepared: list) -> list:
     """The corresponded shapes in the physical space of their inputs, so that they overlay them:
     ``raw`` (the state's samples of the prepared surfaces) with those of mirrored cases
-    reflected back."""
-    return [mirror(points, triangles)[0] if case.mirrored else points
+    reflected back (x -> -x)."""
+    return [points * [-1.0, 1.0, 1.0] if case.mirrored else points
             for points, case in zip(raw, prepared)]
 
 
@@ -188,23 +216,17 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
             for part in parts:
                 io.write_polydata(io.case_file(output / folder / part.name, case.name),
                                   shape[part.rows], part.triangles)
-        # from each input-surface vertex to the corresponded mesh of its part
+        # from each input-surface vertex (curve point) to the corresponded mesh of its part
         distances = np.concatenate([
-            point_surface_distances(prepared_part.map.vertices, raw[i][part.rows],
-                                    part.triangles)
+            input_distances(prepared_part.map, raw[i][part.rows], part.triangles)
             for prepared_part, part in zip(case.parts, parts)])
-        qualities = [prepared_part.map.quality for prepared_part in case.parts]
         cases.append({"case": case.name, "file": ";".join(case.paths),
-                      "surface_vertices": int(sum(len(p.map.vertices) for p in case.parts)),
+                      "surface_vertices": int(sum(len(_input_points(p.map))
+                                                  for p in case.parts)),
                       "mean_distance_mm": float(distances.mean()),
                       "max_distance_mm": float(distances.max()),
                       "mean_distance_voxels": float(distances.mean() / case.voxel_size),
-                      "sphere_flips": sum(q["flipped_triangles"] for q in qualities),
-                      "sphere_mean_abs_log_area": float(np.mean(
-                          [q["mean_abs_log_area_ratio"] for q in qualities])),
-                      "sphere_p95_abs_log_area": max(q["p95_abs_log_area_ratio"]
-                                                     for q in qualities),
-                      "sphere_seconds": sum(q["seconds"] for q in qualities),
+                      **sphere_quality(case),
                       "warps": int(sum(len(p.warps) for p in getattr(state.examples[i], "parts",
                                                                       []))),
                       "warp_kinds": warp_summary(state.examples[i]),

@@ -199,6 +199,14 @@ def polydata_to_model(polydata) -> ShapeModel:
         raise InputError(f"not a shape model: {error}") from None
 
 
+def _segments(polydata) -> np.ndarray:
+    """The two-point lines of a model of 2-D curves, (m, 2)."""
+    lines = polydata.GetLines()
+    if not np.all(np.diff(vtk_to_numpy(lines.GetOffsetsArray())) == 2):
+        raise ValueError("its lines are not segments of two points")
+    return vtk_to_numpy(lines.GetConnectivityArray()).reshape(-1, 2).astype(np.int64)
+
+
 def _model_of(polydata) -> ShapeModel:
     point_data, fields = polydata.GetPointData(), polydata.GetFieldData()
     mean = vtk_to_numpy(polydata.GetPoints().GetData()).astype(np.float64)
@@ -214,7 +222,7 @@ def _model_of(polydata) -> ShapeModel:
         variances=variances, weights=_array(point_data, AREA_WEIGHTS, "point"),
         scores=_array(fields, SCORES, "field").reshape(len(names), n_modes), names=names,
         triangles=(surface.polydata_to_arrays(polydata)[1] if polydata.GetNumberOfPolys()
-                   else None),
+                   else _segments(polydata) if polydata.GetNumberOfLines() else None),
         part_sizes=[int(size) for size in _array(fields, PART_SIZES, "field")],
         part_names=_strings(fields, PART_NAMES) if fields.GetAbstractArray(PART_NAMES) else [],
         metadata={key: np.asarray(value) if isinstance(value, list) else value

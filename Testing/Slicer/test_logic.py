@@ -17,6 +17,7 @@ from vtk.util.numpy_support import vtk_to_numpy
 import harness
 import MDLShapeModel as module
 from mdlshapemodel import BuildConfig, ShapeModel
+from mdlshapemodel.config import SURFACE_POINTS
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.prepare import io
 from mdlshapemodel.prepare.surface import mask_to_surface, point_surface_distances
@@ -82,7 +83,8 @@ def test_importing_the_module_loads_none_of_the_librarys_heavy_dependencies():
 
 def test_the_parameter_node_holds_the_build_configs_defaults_and_fills_it(scene):
     parameters = module.MDLShapeModelLogic().getParameterNode()
-    assert module.buildConfigOf(parameters) == BuildConfig()
+    # (the panel builds surfaces: its points default is the sphere's, BuildConfig's is None)
+    assert module.buildConfigOf(parameters) == BuildConfig(points=SURFACE_POINTS)
     parameters.labels = "1, 2"
     parameters.points = 642
     parameters.strategy = "one-at-a-time"

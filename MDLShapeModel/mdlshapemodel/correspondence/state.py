@@ -21,13 +21,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import BuildConfig
 from ..prepare.curve import segment_vertex_lengths
-from ..prepare.sphere import align_parameterizations, orientation, reference_frames
+from ..prepare.sphere import orientation
 from ..prepare.surface import face_areas, triangle_vertex_areas
-from .objective import Objective, objectives
+from .objective import Objective
 from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
-from .sampling import SphereLocator, grid_order, icosphere, sphere_grid
+from .sampling import SphereLocator, grid_order, icosphere
 from .warps import WARP_KINDS, SymmetricTheta, Warp, apply_symmetric_theta, apply_warps
 
 
@@ -415,32 +414,6 @@ def vertex_measures(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     if cells.shape[1] == 2:
         return segment_vertex_lengths(points, cells)
     return triangle_vertex_areas(points, cells)
-
-
-def initial_state(prepared: list, config: BuildConfig):
-    """The initial correspondence of prepared cases and the two objectives.
-
-    Part by part (every case has the same parts, in the same order), the sphere maps are aligned
-    across the population (in the frame of each case's whole surface) and sampled at
-    ``config.points``; one pose per case moves all its
-    parts (III-E). The objectives' Delta follow the mean voxel size. Returns (state, (fixed,
-    integrated), voxel size, data range of the aligned shapes).
-    """
-    n_parts = len(prepared[0].parts)
-    grid_points, grid_triangles = sphere_grid(config.points)
-    # several parts: each case's frame from its whole surface, the same for all its parts
-    frames = reference_frames([case.surface() for case in prepared]) if n_parts > 1 else None
-    maps = [align_parameterizations([case.parts[j].map for case in prepared], frames=frames)
-            for j in range(n_parts)]
-    examples = [Example(case.name, [PartState(maps[j][i].vertices, maps[j][i].faces,
-                                              maps[j][i].sphere, grid_points, grid_triangles)
-                                    for j in range(n_parts)])
-                for i, case in enumerate(prepared)]
-    state = CorrespondenceState(examples, [(grid_points, grid_triangles)] * n_parts,
-                                scaling=config.scaling)
-    voxel = float(np.mean([case.voxel_size for case in prepared]))
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    return state, objectives(config, voxel, data_range), voxel, data_range
 
 
 def state_record(state: CorrespondenceState) -> dict:

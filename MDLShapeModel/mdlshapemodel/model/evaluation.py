@@ -578,7 +578,8 @@ def evaluate_state(state, config, prepared: list | None = None,
     if model is None:
         model = ShapeModel.from_shapes(aligned, state.weights)
     surfaces = None
-    if prepared is not None and config.surface_samples > 0:
+    # (curves: the measures between the sample points only)
+    if prepared is not None and config.surface_samples > 0 and not prepared[0].is_curve:
         surfaces = [(state.to_model_frame(i, vertices), faces)
                     for i, (vertices, faces) in enumerate(case.surface() for case in prepared)]
     arguments = (aligned, state.weights.copy(), model.variances, config.evaluation_modes,

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import BuildConfig
+from ..correspondence.circle import CurvePart
 from ..correspondence.objective import objectives
 from ..correspondence.pose import Pose, align
 from ..correspondence.state import CorrespondenceState, Example, FixedExample, PartState
@@ -31,6 +32,7 @@ from ..correspondence.trace import Trace
 from ..errors import InputError, MDLShapeModelError
 from ..prepare import PreparedCase, io
 from ..prepare.parts import CaseInput, case_inputs, prepare_object, read_manifest
+from ..prepare.curve import align_curve_origins, curve_map
 from ..prepare.sphere import SphereMap, align_parameterizations, reference_frames
 from .shape_model import ShapeModel
 
@@ -118,20 +120,32 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
                          f"{[mesh.name for mesh in meshes]}")
     started = time.perf_counter()
 
-    # the model's parameterization: each part of the mean mesh, sampled at its grid points; the
-    # new case's parts aligned to them in the frame of the whole object
-    references = [SphereMap(model.mean[m.rows], m.triangles, model.parameters[m.rows])
-                  for m in meshes]
-    whole = [(model.mean, model.triangles), case.surface()]
-    frames = reference_frames(whole) if len(meshes) > 1 else None
-    new_maps = [align_parameterizations([reference, part.map], frames=frames)[1]
-                for reference, part in zip(references, case.parts)]
     training = model.instance(model.scores)
     examples = [FixedExample(name, shape) for name, shape in zip(model.names, training)]
     grids = [(model.parameters[m.rows], m.triangles) for m in meshes]
-    examples.append(Example(case.name, [PartState(new.vertices, new.faces, new.sphere, *grid)
-                                        for new, grid in zip(new_maps, grids)]))
-    state = CorrespondenceState(examples, grids, scaling=config.scaling)
+    if model.of_curves != case.is_curve:
+        raise InputError(f"{case.path}: a {'2-D' if case.is_curve else '3-D'} input; the model "
+                         f"is of {'2-D curves' if model.of_curves else 'surfaces'}")
+    if case.is_curve:
+        # the new outline's origin aligned to the model's mean outline, then sampled at the grid
+        new_maps = [align_curve_origins([curve_map(model.mean[m.rows, :2]), part.map])[1]
+                    for m, part in zip(meshes, case.parts)]
+        examples.append(Example(case.name, [CurvePart(new, *grid)
+                                            for new, grid in zip(new_maps, grids)]))
+    else:
+        # the model's parameterization: each part of the mean mesh, sampled at its grid points;
+        # the new case's parts aligned to them in the frame of the whole object
+        references = [SphereMap(model.mean[m.rows], m.triangles, model.parameters[m.rows])
+                      for m in meshes]
+        whole = [(model.mean, model.triangles), case.surface()]
+        frames = reference_frames(whole) if len(meshes) > 1 else None
+        new_maps = [align_parameterizations([reference, part.map], frames=frames)[1]
+                    for reference, part in zip(references, case.parts)]
+        examples.append(Example(case.name, [PartState(new.vertices, new.faces, new.sphere,
+                                                      *grid)
+                                            for new, grid in zip(new_maps, grids)]))
+    state = CorrespondenceState(examples, grids, scaling=config.scaling,
+                                planar=case.is_curve)
 
     voxel = float(model.metadata.get("voxel_size_mm", case.voxel_size))
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
@@ -144,7 +158,8 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
                      progress, active=[len(examples) - 1])
 
     raw = examples[-1].raw_points()
-    to_model = align(raw, model.mean, model.weights, scaling=config.scaling)
+    to_model = align(raw, model.mean, model.weights, scaling=config.scaling,
+                     planar=case.is_curve)
     aligned = to_model.apply(raw)
     scores = model.project(aligned)
     squared, distance = reconstruction_errors(model, aligned, scores)

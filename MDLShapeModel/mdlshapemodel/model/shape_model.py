@@ -22,9 +22,11 @@ vectors are point-interleaved (x1, y1, z1, x2, ...: ``MapPointIdToInternalIdx = 
     /version/minorVersion        int32 scalar dataset   9
     /representer                 group, fixed-length string attributes:
         @name = "itkStandardMeshRepresenter", @version = "0.1",
-        @datasetType = "POLYGON_MESH" ("POINT_SET" when the model has no triangles)
+        @datasetType = "POLYGON_MESH" ("POINT_SET" when the model has no triangles,
+        "LINE_MESH" for 2-D curves, whose connectivity is segments)
     /representer/points          float32 (3, n)   the mean shape, column i = point i
-    /representer/cells           int32   (3, t)   column j = triangle j (only with triangles)
+    /representer/cells           int32   (3, t)   column j = triangle j (only with triangles;
+                                 (2, t) segments for curves)
     /model/mean                  float32 (3n,)
     /model/pcaBasis              float32 (3n, m)  orthonormal columns U (Euclidean)
     /model/pcaVariance           float32 (m,)     descending
@@ -89,10 +91,12 @@ class ShapeModel:
     weights: np.ndarray              # (n_p,) area weights, sum 1
     scores: np.ndarray               # (n_s, n_modes)
     names: list = field(default_factory=list)
-    triangles: np.ndarray | None = None      # (m, 3) connectivity of the points (all parts)
+    triangles: np.ndarray | None = None      # (m, 3) connectivity of the points (all parts);
+    #                                          (m, 2) segments for a model of 2-D curves
     part_sizes: list = field(default_factory=list)
     metadata: dict = field(default_factory=dict)
-    parameters: np.ndarray | None = None     # (n_p, 3) sampling positions on the unit sphere
+    parameters: np.ndarray | None = None     # (n_p, 3) sampling positions on the unit sphere;
+    #                                          (n_p,) angles on the circle for 2-D curves
     part_names: list = field(default_factory=list)  # one per part_sizes entry; [] for one part
 
     def part_slices(self) -> list:
@@ -100,6 +104,11 @@ class ShapeModel:
         ends = np.cumsum(self.part_sizes or [len(self.mean)])
         return [slice(int(end - size), int(end))
                 for end, size in zip(ends, self.part_sizes or [len(self.mean)])]
+
+    @property
+    def of_curves(self) -> bool:
+        """Whether the model is of 2-D curves: its connectivity is segments (m, 2)."""
+        return self.triangles is not None and np.shape(self.triangles)[1:] == (2,)
 
     def part_meshes(self) -> list:
         """Each part's rows of the points and its own triangles (:class:`PartMesh`; one part:
@@ -195,8 +204,9 @@ class ShapeModel:
             representer = f.create_group("representer")
             _string_attribute(representer, "name", REPRESENTER_NAME)
             _string_attribute(representer, "version", REPRESENTER_VERSION)
-            _string_attribute(representer, "datasetType",
-                              "POINT_SET" if self.triangles is None else "POLYGON_MESH")
+            kind = ("POINT_SET" if self.triangles is None else
+                    "LINE_MESH" if np.shape(self.triangles)[1:] == (2,) else "POLYGON_MESH")
+            _string_attribute(representer, "datasetType", kind)
             representer.create_dataset("points", data=np.asarray(self.mean, np.float32).T)
             if self.triangles is not None:
                 representer.create_dataset("cells", data=np.asarray(self.triangles, np.int32).T)
@@ -320,7 +330,7 @@ class ShapeModel:
             raise InputError(f"{path}: representer points {representer['points'].shape} do not "
                              f"match the {n_p} points of the mean")
         triangles = None
-        if "cells" in representer and representer["cells"].shape[:1] == (3,):
+        if "cells" in representer and representer["cells"].shape[:1] in ((3,), (2,)):
             triangles = np.asarray(representer["cells"][()], np.int64).T
             if triangles.size and (triangles.min() < 0 or triangles.max() >= n_p):
                 raise InputError(f"{path}: representer cells index points outside 0..{n_p - 1}")

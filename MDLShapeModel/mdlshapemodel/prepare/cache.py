@@ -20,7 +20,7 @@ import numpy as np
 
 from ..config import BuildConfig
 from ..version import __version__
-from . import io
+from . import curve, io
 from .case import PreparedCase, PreparedPart, Rejection, is_mirrored, prepare_case
 from .sphere import SphereMap
 
@@ -100,7 +100,8 @@ def prepare_case_cached(path: str, config: BuildConfig, cache_dir: str | None):
 
     Returns (result, whether it came from the cache). Unreadable cache entries are recomputed.
     """
-    if cache_dir is None or not Path(path).is_file():
+    if cache_dir is None or not Path(path).is_file() or curve.is_curve_file(path):
+        # (2-D curves take milliseconds: not cached)
         return prepare_case(path, config), False
     name = io.case_name(path)
     file = Path(cache_dir) / f"{cache_key(path, config)}.npz"

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..config import BuildConfig
 from ..errors import InputError, MDLShapeModelError
-from . import io, surface
+from . import curve, io, surface
 from .sphere import AREA_WEIGHT, MAX_ITERATIONS, SphereMap, sphere_map
 
 
@@ -30,7 +30,7 @@ class PreparedPart:
 
     name: str                             # the part's name; "" for a one-part object
     path: str                             # the file it was made from
-    map: SphereMap
+    map: SphereMap                        # or a curve.CurveMap: a 2-D curve on the circle
     repair: str = ""                      # what was repaired in the input ('' when nothing)
     smoothing_sigma: float | None = None  # label maps: the blur that gave a genus-0 surface
 
@@ -86,6 +86,11 @@ class PreparedCase:
         """The largest blur that a part needed (None: no part came from a label map)."""
         sigmas = [p.smoothing_sigma for p in self.parts if p.smoothing_sigma is not None]
         return max(sigmas) if sigmas else None
+
+    @property
+    def is_curve(self) -> bool:
+        """Whether the case is of 2-D curves (its parts mapped to the circle)."""
+        return isinstance(self.parts[0].map, curve.CurveMap)
 
     def surface(self) -> tuple[np.ndarray, np.ndarray]:
         """The vertices and triangles of every part's surface, as one mesh."""
@@ -169,9 +174,27 @@ def prepare_surface(vertices: np.ndarray, faces: np.ndarray, name: str, path: st
                         float(voxel_size), mirrored)
 
 
+def prepare_curve(path, config: BuildConfig) -> PreparedCase:
+    """A prepared case from a 2-D curve file: the clean closed curve (:func:`.curve.read_curve`),
+    reflected x -> -x if ``config.mirror`` says so, and its arc-length parameterization on the
+    circle. Its voxel size (the unit of the coding accuracy) is ``config.voxel_size``, else a
+    label image's pixel size, else the curve's mean segment length."""
+    notes = []
+    points = curve.read_curve(path, config.labels, notes)
+    mirrored = is_mirrored(path, config)
+    if mirrored:
+        points = curve.check_curve(points * [-1.0, 1.0])      # counter-clockwise again
+    voxel = config.voxel_size or curve.pixel_size(path) or float(
+        np.mean(curve.segment_lengths(points)))
+    part = PreparedPart("", str(path), curve.curve_map(points), "; ".join(notes))
+    return PreparedCase(io.case_name(path), [part], float(voxel), mirrored)
+
+
 def _prepare(path, config: BuildConfig) -> PreparedCase:
     name = io.case_name(path)
     mirrored = is_mirrored(path, config)
+    if curve.is_curve_file(path):
+        return prepare_curve(path, config)
     if io.is_image(path):
         label_map = io.read_label_map(path, config.labels)
         vertices, faces, sigma, note = surface_of_mask(

@@ -478,6 +478,27 @@ def read_label_region(path, labels=()) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return ndimage.binary_fill_holes(mask), matrix, origin
 
 
+def pixel_size(path) -> float | None:
+    """The side (mm) of a square of a label image's pixel area (the geometric mean of its two
+    in-plane spacings), or None for a curve file that is not an image. Reads the header only."""
+    if _suffix(path) not in CURVE_IMAGE_SUFFIXES:
+        return None
+    import SimpleITK as sitk
+
+    from .io import _itk_reading
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    with _itk_reading(path):
+        reader.ReadImageInformation()
+    singleton, matrix = _image_geometry(reader.GetSize(), reader.GetSpacing(),
+                                        reader.GetOrigin(), reader.GetDirection())
+    if singleton is not None:
+        matrix = np.delete(matrix, singleton, axis=1)
+    columns = np.linalg.norm(matrix, axis=0)
+    return float(np.sqrt(np.prod(columns[:2])))
+
+
 def _grey(array: np.ndarray, components: int) -> np.ndarray:
     """One value per pixel: a grey picture saved in colour (equal red, green and blue; an alpha
     channel ignored) gives its first channel; other colour pictures are rejected."""
@@ -609,8 +630,12 @@ def is_curve_file(path) -> bool:
         if suffix in CURVE_IMAGE_SUFFIXES:
             import SimpleITK as sitk
 
+            from . import integrity
             from .io import captured_native_stderr
 
+            # a header SimpleITK would choke on (an NDims of -1 hangs its reader) is no curve's:
+            # the 3-D reader rejects it with its reason
+            integrity.check_image_text_header(path)
             reader = sitk.ImageFileReader()
             reader.SetFileName(str(path))
             with captured_native_stderr():
@@ -618,7 +643,7 @@ def is_curve_file(path) -> bool:
             size = reader.GetSize()
             return len(size) == 2 or (len(size) == 3 and sorted(size)[0] == 1
                                       and sorted(size)[1] > 1)
-    except (OSError, ValueError, RuntimeError):
+    except (OSError, ValueError, RuntimeError, InputError):
         return False
     return False
 
@@ -749,3 +774,21 @@ def _roll_fraction(z: np.ndarray, shift: float) -> np.ndarray:
     low = np.floor(position).astype(np.int64)
     fraction = position - low
     return (1.0 - fraction) * z[low % count] + fraction * z[(low + 1) % count]
+
+
+def point_curve_distances(points: np.ndarray, curve_points: np.ndarray, segments: np.ndarray,
+                          chunk: int = 4096) -> np.ndarray:
+    """Distance from each point (n, 2 or 3) to the nearest of the segments (m, 2) joining
+    ``curve_points``: the 2-D counterpart of :func:`.surface.point_surface_distances`."""
+    points = np.asarray(points, dtype=np.float64)
+    a = np.asarray(curve_points, dtype=np.float64)[segments[:, 0]]
+    edge = np.asarray(curve_points, dtype=np.float64)[segments[:, 1]] - a
+    squared = np.maximum(np.einsum("md,md->m", edge, edge), 1e-300)
+    result = np.empty(len(points))
+    for start in range(0, len(points), chunk):
+        offset = points[start:start + chunk, None, :] - a[None]
+        t = np.clip(np.einsum("nmd,md->nm", offset, edge) / squared, 0.0, 1.0)
+        nearest = offset - t[..., None] * edge[None]
+        result[start:start + chunk] = np.sqrt(np.einsum("nmd,nmd->nm", nearest, nearest)
+                                              .min(axis=1))
+    return result

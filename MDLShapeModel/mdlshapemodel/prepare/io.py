@@ -27,12 +27,17 @@ log = logging.getLogger("mdlshapemodel")
 
 IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".hdr", ".img", ".img.gz")
 MESH_SUFFIXES = (".vtk", ".vtp", ".stl", ".ply", ".obj")
+# files that only hold 2-D curves (a .vtk/.vtp polyline or a one-slice image is one too: see
+# prepare.curve.is_curve_file)
+CURVE_SUFFIXES = (".csv", ".txt", ".png")
+# left out of a folder's inputs (READMEs, licences): a .txt curve is given by its name
+FOLDER_SKIPS = (".txt",)
 
 
 def suffix_of(path) -> str:
     """The recognised (possibly double) suffix of a file name, lower case, or ''."""
     name = Path(path).name.lower()
-    for suffix in IMAGE_SUFFIXES + MESH_SUFFIXES:
+    for suffix in IMAGE_SUFFIXES + MESH_SUFFIXES + CURVE_SUFFIXES:
         if name.endswith(suffix):
             return suffix
     return ""
@@ -66,14 +71,16 @@ def is_mesh(path) -> bool:
 
 
 def find_inputs(paths) -> list[Path]:
-    """Expand folders into their supported files (sorted); keep files as given.
+    """Expand folders into their supported files (sorted; not .txt files, which are given by
+    name); keep files as given.
 
     Raises :class:`InputError` for a path that does not exist.
     """
     found = []
     for path in map(Path, paths):
         if path.is_dir():
-            found.extend(sorted(p for p in path.iterdir() if p.is_file() and suffix_of(p)))
+            found.extend(sorted(p for p in path.iterdir() if p.is_file() and suffix_of(p)
+                                and suffix_of(p) not in FOLDER_SKIPS))
         elif path.exists():
             found.append(path)
         else:

@@ -13,8 +13,8 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from ..config import (MAX_COORDINATE, SURFACE_METHODS, BuildConfig, max_smoothing_for,
-                      target_vertices_for)
+from ..config import (MAX_COORDINATE, SURFACE_METHODS, SURFACE_POINTS, BuildConfig,
+                      max_smoothing_for, target_vertices_for)
 from ..errors import SurfaceError
 from .nearest import TriangleGrid
 
@@ -344,7 +344,7 @@ def mask_to_surface(mask: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0,
     if max_smoothing_sigma is None:
         max_smoothing_sigma = max_smoothing_for(smoothing_sigma)
     if target_vertices is None:
-        target_vertices = target_vertices_for(BuildConfig.points)
+        target_vertices = target_vertices_for(SURFACE_POINTS)
     if method not in SURFACE_METHODS:
         raise SurfaceError(f"unknown surface method {method!r} (use {', '.join(SURFACE_METHODS)})")
     mask = np.asarray(mask) > 0
@@ -468,9 +468,13 @@ def mesh_to_mask(vertices: np.ndarray, faces: np.ndarray, spacing: float, margin
 
 def arrays_to_polydata(vertices: np.ndarray, faces: np.ndarray | None = None,
                        lines: np.ndarray | None = None):
-    """A vtkPolyData with the given points and triangles (or line segments)."""
+    """A vtkPolyData with the given points and triangles (or line segments). ``faces`` of two
+    columns are segments (the connectivity of a model of 2-D curves): they become lines."""
     import vtk
     from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+
+    if faces is not None and np.shape(faces)[1:] == (2,):
+        faces, lines = None, faces
 
     polydata = vtk.vtkPolyData()
     points = vtk.vtkPoints()

@@ -9,18 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .html import _figure_to_base64, _pyplot
-
-
-def is_curve_model(model) -> bool:
-    """Whether a model's connectivity is segments (a model of 2-D curves)."""
-    return model.triangles is not None and np.asarray(model.triangles).shape[1:] == (2,)
-
-
-def _encoded(figure) -> str:
-    encoded = _figure_to_base64(figure)
-    _pyplot().close(figure)
-    return encoded
+from .figures import encoded_png, pyplot
 
 
 def _draw(axes, points: np.ndarray, segments: np.ndarray, **style):
@@ -42,7 +31,7 @@ def _frame(axes, shapes):
 def mode_curves(model, n_modes: int = 3, standard_deviations=(-3.0, 0.0, 3.0)) -> str:
     """Base64 PNG: one panel per mode (at most ``n_modes``), the mean and the shapes at
     ``standard_deviations`` of that mode drawn as curves (the classic figure of 2-D models)."""
-    plt = _pyplot()
+    plt = pyplot()
     n_modes = max(1, min(n_modes, model.n_modes))
     figure, panels = plt.subplots(1, n_modes, figsize=(3.2 * n_modes, 3.4), squeeze=False)
     colours = {s: plt.get_cmap("coolwarm")(0.5 + s / (2.0 * max(map(abs, standard_deviations))
@@ -61,14 +50,14 @@ def mode_curves(model, n_modes: int = 3, standard_deviations=(-3.0, 0.0, 3.0)) -
         variance = float(model.variances[k]) if k < model.n_modes else 0.0
         axes.set_title(f"mode {k + 1}: √λ = {np.sqrt(max(variance, 0.0)):.3g} mm", fontsize=9)
     panels[0][0].legend(fontsize=7, loc="best")
-    return _encoded(figure)
+    return encoded_png(figure)
 
 
 def correspondence_points(shapes: np.ndarray, segments: np.ndarray, names=None,
                           max_cases: int = 4) -> str:
     """Base64 PNG: a few cases' curves with their sample points coloured by index: the same colour is
     the same point of the model on every case."""
-    plt = _pyplot()
+    plt = pyplot()
     shapes = np.asarray(shapes)
     chosen = np.unique(np.linspace(0, len(shapes) - 1, min(max_cases, len(shapes))).astype(int))
     figure, panels = plt.subplots(1, len(chosen), figsize=(3.2 * len(chosen), 3.4),
@@ -80,4 +69,4 @@ def correspondence_points(shapes: np.ndarray, segments: np.ndarray, names=None,
         _frame(axes, shapes[i][None])
         if names is not None:
             axes.set_title(str(names[i]), fontsize=9)
-    return _encoded(figure)
+    return encoded_png(figure)

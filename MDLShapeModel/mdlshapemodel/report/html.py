@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io as _io
 import logging
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from ..errors import MDLShapeModelError
 from ..prepare import io
+from .figures import encoded_png, pyplot
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -28,24 +28,9 @@ STYLE = ("body{font-family:sans-serif;margin:2em;max-width:1150px}table{border-c
          "th{background:#eee}td.flag{color:#b00;font-weight:bold}img{max-width:100%}")
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _figure_to_base64(figure) -> str:
-    buffer = _io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=90, bbox_inches="tight")
-    return base64.b64encode(buffer.getvalue()).decode("ascii")
-
-
 def measure_plot(series: list, keys=("compactness", "generalization", "specificity")) -> str:
     """Base64 PNG: one panel per measure, one error-bar line per (values, label) in ``series``."""
-    plt = _pyplot()
+    plt = pyplot()
     titles = {"compactness": "Compactness C(M) [mm²]", "generalization": "Generalization G(M) [mm²]",
               "specificity": "Specificity S(M) [mm²]",
               "generalization_surface_mm": "Generalization, surface distance [mm]",
@@ -62,9 +47,7 @@ def measure_plot(series: list, keys=("compactness", "generalization", "specifici
         axis.set_title(titles.get(key, key))
         axis.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8)
-    encoded = _figure_to_base64(figure)
-    plt.close(figure)
-    return encoded
+    return encoded_png(figure)
 
 
 def convergence_plot(path: Path) -> str | None:
@@ -72,7 +55,7 @@ def convergence_plot(path: Path) -> str | None:
     rows = io.read_csv(path) if path.exists() else []
     if len(rows) < 2:
         return None
-    plt = _pyplot()
+    plt = pyplot()
     titles = {"fixed": "fixed-Delta objective (eq. 13)", "integrated": "objective (eq. 14)"}
     phases = [p for p in titles if any(r["phase"] == p for r in rows)]
     figure, axes = plt.subplots(1, len(phases), figsize=(5.5 * len(phases), 3.4), squeeze=False)
@@ -84,9 +67,7 @@ def convergence_plot(path: Path) -> str | None:
         axis.set_xlabel("wall seconds")
         axis.set_ylabel("F [nats]")
         axis.grid(alpha=0.3)
-    encoded = _figure_to_base64(figure)
-    plt.close(figure)
-    return encoded
+    return encoded_png(figure)
 
 
 def table(header, rows, flags=None) -> str:
@@ -155,7 +136,7 @@ def _renderings(model, shapes, names) -> list:
         return []
     from . import curves, rendering
 
-    if curves.is_curve_model(model):
+    if model.of_curves:
         parts = ["<h2>Modes of variation</h2>",
                  "<p>The mean curve and the curves at ± 3 standard deviations along the first "
                  "modes.</p>", _image(curves.mode_curves(model), "modes of variation")]

@@ -1,0 +1,52 @@
+"""The initial correspondence of prepared cases: their parameterizations aligned across the
+population and sampled (sphere grids for surfaces, the circle for 2-D curves), Procrustes-aligned,
+with the two objectives of the build."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import BuildConfig
+from ..prepare.sphere import align_parameterizations, reference_frames
+from .circle import curve_state
+from .objective import objectives
+from .sampling import sphere_grid
+from .state import CorrespondenceState, Example, PartState
+
+
+def initial_state(prepared: list, config: BuildConfig):
+    """The initial correspondence of prepared cases and the two objectives.
+
+    2-D curves: :func:`.circle.curve_state` (origins aligned, ``config.points_for(curves=True)``
+    equally spaced samples on the circle, planar pose). Surfaces: part by part (every case has
+    the same parts, in the same order), the sphere maps are aligned
+    across the population (in the frame of each case's whole surface) and sampled at
+    ``config.points``; one pose per case moves all its
+    parts (III-E). The objectives' Delta follow the mean voxel size. Returns (state, (fixed,
+    integrated), voxel size, data range of the aligned shapes).
+    """
+    if prepared[0].is_curve:
+        state = curve_state([[part.map for part in case.parts] for case in prepared],
+                            [case.name for case in prepared], config.points_for(curves=True),
+                            scaling=config.scaling)
+        return _with_objectives(state, prepared, config)
+    n_parts = len(prepared[0].parts)
+    grid_points, grid_triangles = sphere_grid(config.points_for(curves=False))
+    # several parts: each case's frame from its whole surface, the same for all its parts
+    frames = reference_frames([case.surface() for case in prepared]) if n_parts > 1 else None
+    maps = [align_parameterizations([case.parts[j].map for case in prepared], frames=frames)
+            for j in range(n_parts)]
+    examples = [Example(case.name, [PartState(maps[j][i].vertices, maps[j][i].faces,
+                                              maps[j][i].sphere, grid_points, grid_triangles)
+                                    for j in range(n_parts)])
+                for i, case in enumerate(prepared)]
+    state = CorrespondenceState(examples, [(grid_points, grid_triangles)] * n_parts,
+                                scaling=config.scaling)
+    return _with_objectives(state, prepared, config)
+
+
+def _with_objectives(state: CorrespondenceState, prepared: list, config: BuildConfig):
+    """(state, its two objectives, the mean voxel size, the data range of the aligned shapes)."""
+    voxel = float(np.mean([case.voxel_size for case in prepared]))
+    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
+    return state, objectives(config, voxel, data_range), voxel, data_range
