@@ -368,7 +368,8 @@ def table(results: dict, summary: dict, plan: dict) -> str:
     lines = [f"Gradient of alpha against n_s (cf. Table {'II' if curves else 'III'}); "
              f"reference: {ref['strategy']} at "
              f"n_s = {ref['n_s']} ({ref['trials']} trials); alpha > 1 = slower than the reference",
-             f"budget {args['budget']:g} CPU s per run, n_p = {args['points']}, objective: "
+             f"budget {args['budget']:g} CPU s per run, "
+             f"n_p = {args['points'] or 'the default'}, objective: "
              f"eq. {14 if args['objective'] == 'integrated' else 13} only, "
              f"{args['trials']} trials per n_s, {cpu['grid']['bootstrap']} bootstrap resamples, "
              f"{cpu['grid']['spacing']} time grid of {cpu['grid']['points']} points",
