@@ -157,3 +157,21 @@ def test_a_new_outline_is_fitted_to_a_2d_model(curve_build, tmp_path):
     refused = cli("fit", output, surface, "-o", tmp_path / "refused")
     assert refused.returncode == 2
     assert "a 3-D input; the model is of 2-D curves" in refused.stderr
+
+
+def test_a_2d_model_reads_into_vtk_as_polylines_and_compares(curve_build, tmp_path):
+    from mdlshapemodel.vtkmodel import ShapeModelReader, polydata_to_model
+
+    run, output = curve_build
+    reader = ShapeModelReader()
+    reader.SetFileName(str(output / "model.h5"))
+    reader.Update()
+    polydata = reader.GetOutput()
+    assert polydata.GetNumberOfLines() == 128 and polydata.GetNumberOfPolys() == 0
+    model = polydata_to_model(polydata)
+    assert model.of_curves and np.array_equal(model.triangles,
+                                              ShapeModel.load(output / "model.h5").triangles)
+    result = cli("compare", output, output, "-o", tmp_path / "cmp", "--samples", "200",
+                 "--modes", "2")
+    assert result.returncode == 0, result.stderr
+    assert "on 8 shared cases" in result.stdout
