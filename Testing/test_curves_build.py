@@ -175,3 +175,21 @@ def test_a_2d_model_reads_into_vtk_as_polylines_and_compares(curve_build, tmp_pa
                  "--modes", "2")
     assert result.returncode == 0, result.stderr
     assert "on 8 shared cases" in result.stdout
+
+
+def test_a_case_whose_parts_are_a_curve_and_a_surface_is_rejected(tmp_path):
+    from mdlshapemodel import BuildConfig
+    from mdlshapemodel.prepare import preprocess
+    from mdlshapemodel.prepare.parts import read_manifest
+    from synthetic import small_mask
+
+    sitk.WriteImage(sitk.GetImageFromArray(small_mask(0.0).astype(np.uint8)),
+                    str(tmp_path / "body.nii.gz"))
+    np.savetxt(tmp_path / "outline.csv", demo_curve(5.0, 1.0, np.random.default_rng(0)),
+               delimiter=",")
+    (tmp_path / "cases.csv").write_text("case,part,file\nc,body,body.nii.gz\nc,outline,outline.csv\n")
+    config = BuildConfig(points=42, workers=1, cache_dir="")
+    prepared, rejected = preprocess(read_manifest(tmp_path / "cases.csv", config), config)
+    assert not prepared and len(rejected) == 1
+    assert rejected[0].reason == ("part outline is a 2-D curve and part body a surface: the "
+                                  "parts of an object are of one kind")

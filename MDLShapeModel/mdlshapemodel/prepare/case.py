@@ -1,4 +1,5 @@
-"""One input file -> one prepared case: its closed genus-0 surface and bijective sphere map.
+"""One input file -> one prepared case: its closed genus-0 surface and bijective sphere map, or
+its closed 2-D curve and arc-length map on the circle.
 
 :func:`prepare_case` is the single code path from a file to a prepared case, used by ``build``,
 ``fit`` and (for the steps after reading) the VTK filters. An input that cannot be used is
@@ -213,7 +214,8 @@ def prepare_case(path, config: BuildConfig) -> PreparedCase | Rejection:
     Parameters
     ----------
     path : str or Path
-        A label map (the union of ``config.labels``) or a closed triangle mesh.
+        A label map (the union of ``config.labels``), a closed triangle mesh, or a 2-D curve
+        file (:func:`.curve.is_curve_file`: point lists, polylines, one-slice label images).
     config : BuildConfig
         The preprocessing settings (surface, remeshing, mirroring).
 

@@ -160,6 +160,13 @@ def joined(case: CaseInput, results: list):
             return Rejection(case.name, part.path, reason)
     if len(results) == 1:
         return replace(results[0], name=case.name)
+    kinds = [result.is_curve for result in results]
+    if len(set(kinds)) > 1:
+        curve_part = case.parts[kinds.index(True)]
+        surface_part = case.parts[kinds.index(False)]
+        return Rejection(case.name, curve_part.path,
+                         f"part {curve_part.part} is a 2-D curve and part {surface_part.part} a "
+                         "surface: the parts of an object are of one kind")
     parts = [PreparedPart(part.part, result.path, result.map, result.repair,
                           result.smoothing_sigma) for part, result in zip(case.parts, results)]
     return PreparedCase(case.name, parts, float(np.mean([r.voxel_size for r in results])),
