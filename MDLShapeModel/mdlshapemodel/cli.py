@@ -323,8 +323,11 @@ def main(argv=None) -> int:
         prog="mdlshapemodel",
         description="Statistical shape models with correspondence by minimum description length.")
     commands = parser.add_subparsers(dest="command", required=True)
-    build = commands.add_parser("build", help="build a model from label maps or meshes")
-    build.add_argument("inputs", nargs="*", help="label maps, meshes, or folders of them")
+    build = commands.add_parser("build", help="build a model from label maps, meshes or 2-D "
+                                              "curves")
+    build.add_argument("inputs", nargs="*", help="label maps, meshes, 2-D curves (point lists, "
+                                                 "polylines, 2-D label images), or folders of "
+                                                 "them")
     build.add_argument("-o", "--output", required=True, help="output folder")
     build.add_argument("--manifest", metavar="CSV",
                        help="a table of cases with the columns case,part,file: one file per part "
