@@ -151,17 +151,12 @@ class CircleField(Warp):
     coefficients: np.ndarray
     kind: ClassVar[str] = "circle_field"
     _sizes: ClassVar[dict] = {"coefficients": -1}
+    _integers: ClassVar[tuple] = ("level",)
 
     def __post_init__(self):
         object.__setattr__(self, "level", int(self.level))
         object.__setattr__(self, "coefficients",
                            np.asarray(self.coefficients, dtype=np.float64).reshape(-1))
-
-    @classmethod
-    def from_vector(cls, vector):
-        warp = super().from_vector(vector)
-        object.__setattr__(warp, "level", int(warp.level))
-        return warp
 
     def apply(self, points):
         return CircleFieldBasis(self.level, self.support, points).apply(self.coefficients,
@@ -204,12 +199,7 @@ class CurvePart(PartState):
         #: dS/dt on each segment of the curve (n, 3), z = 0
         self.tangents = np.column_stack([np.diff(closed, axis=0) / np.diff(self.knots)[:, None],
                                          np.zeros(len(curve.points))])
-        self.warps: list[Warp] = []
-        self.grid = np.asarray(grid, dtype=np.float64)
-        self.positions = self.grid.copy()
-        self.grid_triangles = np.asarray(grid_segments, dtype=np.int64)
-        self.hint = None
-        self.points, self.hint = self.sample(self.positions)
+        self.start_at(grid, grid_segments)
 
     def sample(self, positions: np.ndarray, hint: np.ndarray | None = None):
         """S(phi(u_k)) (n, 3) at angles ``positions`` and the curve segment of each (``hint`` is

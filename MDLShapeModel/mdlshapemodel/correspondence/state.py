@@ -48,11 +48,16 @@ class PartState:
         self.locator = SphereLocator(self.sphere, self.faces)
         areas = face_areas(self.vertices, self.faces)
         self.cumulative_area = np.cumsum(areas) / areas.sum()
+        self.start_at(grid, grid_triangles)
+
+    def start_at(self, grid: np.ndarray, grid_cells: np.ndarray):
+        """No warp yet: the sample positions are the grid's (its triangles, or segments on a
+        circle), and the samples are taken there."""
         #: every accepted warp, in order: ``apply_warps(grid, warps)`` gives ``positions``
         self.warps: list[Warp] = []
         self.grid = np.asarray(grid, dtype=np.float64)
         self.positions = self.grid.copy()
-        self.grid_triangles = np.asarray(grid_triangles, dtype=np.int64)
+        self.grid_triangles = np.asarray(grid_cells, dtype=np.int64)
         self.hint = None
         self.points, self.hint = self.sample(self.positions)
 

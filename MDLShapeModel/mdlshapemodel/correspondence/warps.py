@@ -394,6 +394,8 @@ class Warp:
     kind: ClassVar[str]
     #: the length of each parameter in :meth:`to_vector` (scalars 1; -1: the rest, at most once)
     _sizes: ClassVar[dict] = {}
+    #: the scalar parameters that are integers (stored as floats, given back as int)
+    _integers: ClassVar[tuple] = ()
 
     def to_vector(self) -> np.ndarray:
         """Every parameter, in field order, as one float64 array."""
@@ -414,7 +416,8 @@ class Warp:
         values, start = {}, 0
         for name, size in zip(names, sizes):
             chunk = vector[start:start + size]
-            values[name] = chunk.copy() if cls._sizes.get(name, 1) != 1 else float(chunk[0])
+            values[name] = (chunk.copy() if cls._sizes.get(name, 1) != 1 else
+                            int(chunk[0]) if name in cls._integers else float(chunk[0]))
             start += size
         warp = object.__new__(cls)          # the stored values exactly: no __post_init__
         for name, value in values.items():
@@ -558,6 +561,7 @@ class FieldWarp(Warp):
     coefficients: np.ndarray
     kind: ClassVar[str] = "field"
     _sizes: ClassVar[dict] = {"coefficients": -1}
+    _integers: ClassVar[tuple] = ("level",)
 
     def __post_init__(self):
         object.__setattr__(self, "level", int(self.level))
@@ -567,7 +571,6 @@ class FieldWarp(Warp):
     @classmethod
     def from_vector(cls, vector):
         warp = super().from_vector(vector)
-        object.__setattr__(warp, "level", int(warp.level))
         object.__setattr__(warp, "coefficients", warp.coefficients.reshape(-1, 3))
         return warp
 

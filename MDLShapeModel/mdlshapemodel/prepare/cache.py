@@ -20,7 +20,7 @@ import numpy as np
 
 from ..config import BuildConfig
 from ..version import __version__
-from . import curve, io
+from . import io
 from .case import PreparedCase, PreparedPart, Rejection, is_mirrored, prepare_case
 from .sphere import SphereMap
 
@@ -100,8 +100,7 @@ def prepare_case_cached(path: str, config: BuildConfig, cache_dir: str | None):
 
     Returns (result, whether it came from the cache). Unreadable cache entries are recomputed.
     """
-    if cache_dir is None or not Path(path).is_file() or curve.is_curve_file(path):
-        # (2-D curves take milliseconds: not cached)
+    if cache_dir is None or not Path(path).is_file():
         return prepare_case(path, config), False
     name = io.case_name(path)
     file = Path(cache_dir) / f"{cache_key(path, config)}.npz"
@@ -112,6 +111,8 @@ def prepare_case_cached(path: str, config: BuildConfig, cache_dir: str | None):
                 zlib.error):
             pass   # a damaged entry, or one holding objects (never unpickled): made anew
     result = prepare_case(path, config)
+    if isinstance(result, PreparedCase) and result.is_curve:
+        return result, False            # 2-D curves take milliseconds: not stored
     try:
         _store_cached(file, result)
     except OSError as error:

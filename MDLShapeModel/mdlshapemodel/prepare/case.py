@@ -192,10 +192,10 @@ def prepare_curve(path, config: BuildConfig) -> PreparedCase:
 
 
 def _prepare(path, config: BuildConfig) -> PreparedCase:
-    name = io.case_name(path)
-    mirrored = is_mirrored(path, config)
     if curve.is_curve_file(path):
         return prepare_curve(path, config)
+    name = io.case_name(path)
+    mirrored = is_mirrored(path, config)
     if io.is_image(path):
         label_map = io.read_label_map(path, config.labels)
         vertices, faces, sigma, note = surface_of_mask(

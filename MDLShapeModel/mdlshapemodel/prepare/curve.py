@@ -23,6 +23,7 @@ import numpy as np
 
 from ..config import MAX_COORDINATE, MAX_VOXELS
 from ..errors import InputError
+from . import io
 
 #: the fewest points of a usable curve
 MIN_POINTS = 8
@@ -37,14 +38,6 @@ CURVE_IMAGE_SUFFIXES = (".png", ".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".m
 OPEN_GAP = 5.0
 #: the Gaussian blur (pixels) of a label image's region before its outline is taken
 IMAGE_SMOOTHING_SIGMA = 0.7
-
-
-def _suffix(path) -> str:
-    name = Path(path).name.lower()
-    for suffix in TABLE_SUFFIXES + POLYLINE_SUFFIXES + CURVE_IMAGE_SUFFIXES:
-        if name.endswith(suffix):
-            return suffix
-    return ""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -481,7 +474,7 @@ def read_label_region(path, labels=()) -> tuple[np.ndarray, np.ndarray, np.ndarr
 def pixel_size(path) -> float | None:
     """The side (mm) of a square of a label image's pixel area (the geometric mean of its two
     in-plane spacings), or None for a curve file that is not an image. Reads the header only."""
-    if _suffix(path) not in CURVE_IMAGE_SUFFIXES:
+    if io.suffix_of(path) not in CURVE_IMAGE_SUFFIXES:
         return None
     import SimpleITK as sitk
 
@@ -588,7 +581,7 @@ def read_curve(path, labels=(), notes: list | None = None) -> np.ndarray:
     InputError
         One line naming the problem (the caller adds the file name).
     """
-    suffix = _suffix(path)
+    suffix = io.suffix_of(path)
     if not Path(path).is_file():
         raise InputError("no such file")
     if suffix in TABLE_SUFFIXES:
@@ -609,7 +602,7 @@ def is_curve_file(path) -> bool:
     file's section keywords, the XML file's piece counts); images when they have two dimensions
     or one of their three is of size 1 (the header only). False for missing or unreadable files.
     """
-    suffix = _suffix(path)
+    suffix = io.suffix_of(path)
     try:
         if suffix in TABLE_SUFFIXES:
             return True
