@@ -180,7 +180,7 @@ def sphere_quality(case) -> dict:
                            sum(q["seconds"] for q in qualities))))
 
 
-def physical_shapes(raw: np.ndarray, triangles: np.ndarray, prepared: list) -> list:
+def physical_shapes(raw: np.ndarray, prepared: list) -> list:
     """The corresponded shapes in the physical space of their inputs, so that they overlay them:
     ``raw`` (the state's samples of the prepared surfaces) with those of mirrored cases
     reflected back (x -> -x)."""
@@ -207,7 +207,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                       cell_data={"part": model.part_of_triangles()} if model.part_names else None)
     outlier = score_outliers(model)
     cases = []
-    physical = physical_shapes(raw, triangles, prepared)
+    physical = physical_shapes(raw, prepared)
     for folder in ("correspondence", "aligned"):
         for part in parts:
             (output / folder / part.name).mkdir(parents=True, exist_ok=True)

@@ -390,7 +390,7 @@ class ShapeModelBuilder(_Filter):
         result = model_to_polydata(model)
         _add_field(result, INITIAL_OBJECTIVE, corresponded.initial_objective)
         blocks = vtk.vtkMultiBlockDataSet()
-        shapes = physical_shapes(corresponded.state.raw_shapes(), model.triangles, prepared)
+        shapes = physical_shapes(corresponded.state.raw_shapes(), prepared)
         for i, (name, points) in enumerate(zip(names, shapes)):
             blocks.SetBlock(i, surface.arrays_to_polydata(points, model.triangles))
             blocks.GetMetaData(i).Set(vtk.vtkCompositeDataSet.NAME(), name)
