@@ -48,7 +48,8 @@ class OptimisationSettings:
     threads: int = 1
     # the fast strategy: coarse-to-fine passes over its field levels; another pass only while the
     # last one gained more than ``tolerance`` of the phase's gain (the second pass took the
-    # ground-truth error of a femur population with no sliding from 1.134 to 0.992 mm)
+    # ground-truth error of a femur population with no sliding from 1.134 to 0.992 mm, with each
+    # example's size free in the pose)
     field_passes: int = 2
     # the simplex strategies (III-D1, III-D2)
     omega_1: float = 0.25          # multiresolution: width of the level-0 kernels (Table I)
