@@ -384,6 +384,7 @@ def from_truth(args):
     optimiser reaches from the sphere maps says that the optimiser stops in another basin."""
     from mdlshapemodel.config import BuildConfig
     from mdlshapemodel.correspondence.objective import objectives
+    from mdlshapemodel.correspondence.pose import generalized_procrustes
     from mdlshapemodel.correspondence.sampling import sphere_grid
     from mdlshapemodel.correspondence.state import CorrespondenceState, Example, PartState
     from mdlshapemodel.correspondence.strategies import optimise
@@ -392,7 +393,8 @@ def from_truth(args):
     from mdlshapemodel.prepare.sphere import align_parameterizations, sphere_map
 
     truth = Path(args.truth)
-    config = BuildConfig(max_time=args.max_time, fixed_fraction=args.fixed_fraction)
+    config = BuildConfig(max_time=args.max_time, fixed_fraction=args.fixed_fraction,
+                         fixed_delta=args.fixed_delta)
     spacing = json.loads((truth / "truth.json").read_text())["spacing_mm"]
     names = sorted(json.loads((truth / "truth.json").read_text())["cases"])
     template, faces = io.read_mesh(truth / "template.vtp")
@@ -412,7 +414,10 @@ def from_truth(args):
     examples = [Example(name, [PartState(vertices, triangles, sphere, grid, grid_triangles)])
                 for name, vertices, sphere in zip(names, cases, spheres)]
     state = CorrespondenceState(examples, [(grid, grid_triangles)], scaling=config.scaling)
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
+    # R of the objectives from the true meshes, aligned: the same for both starts, so that their
+    # F compare
+    aligned, _ = generalized_procrustes(np.stack(cases), np.full(len(coarse), 1.0 / len(coarse)))
+    data_range = float(np.max(np.ptp(aligned.reshape(-1, 3), axis=0)))
     fixed, integrated = objectives(config, spacing, data_range)
 
     def measured(when: str):
@@ -522,6 +527,8 @@ def main():
     start.add_argument("--max-time", type=float, default=300.0, help="optimisation budget, s")
     start.add_argument("--fixed-fraction", type=float, default=BuildConfig.fixed_fraction,
                        help="as the build's option (0: eq. 14 alone)")
+    start.add_argument("--fixed-delta", type=float, default=BuildConfig.fixed_delta,
+                       help="as the build's option (voxels)")
     everything = commands.add_parser("run", help="make, build with every strategy, evaluate")
     everything.add_argument("--cases", type=int, default=30)
     everything.add_argument("--spacing", type=float, default=0.5)
