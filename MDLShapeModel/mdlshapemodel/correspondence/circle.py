@@ -33,7 +33,8 @@ import numpy as np
 from ..prepare.curve import CurveMap, align_curve_origins, check_curve, curve_map
 from .fields import WENDLAND_SLOPE, wendland
 from .state import CorrespondenceState, Example, PartState
-from .warps import (WARP_KINDS, Warp, minimum_amplitude, theta_map, theta_map_inverse)
+from .warps import (WARP_KINDS, DisplacementField, Warp, minimum_amplitude, theta_map,
+                    theta_map_inverse)
 
 TWO_PI = 2.0 * np.pi
 
@@ -140,7 +141,7 @@ class CircleFieldBasis:
 
 
 @dataclass(frozen=True, eq=False)
-class CircleField(Warp):
+class CircleField(DisplacementField):
     """The fast strategy's map of one round on a curve: t -> t + ``shift`` + v(t) with bumps of
     ``level`` and ``support`` (:class:`CircleFieldBasis`) and coefficients a_j. A homeomorphism
     while |a_j| <= :meth:`CircleFieldBasis.max_coefficient`; no closed-form inverse."""
@@ -150,20 +151,10 @@ class CircleField(Warp):
     shift: float
     coefficients: np.ndarray
     kind: ClassVar[str] = "circle_field"
-    _sizes: ClassVar[dict] = {"coefficients": -1}
-    _integers: ClassVar[tuple] = ("level",)
-
-    def __post_init__(self):
-        object.__setattr__(self, "level", int(self.level))
-        object.__setattr__(self, "coefficients",
-                           np.asarray(self.coefficients, dtype=np.float64).reshape(-1))
 
     def apply(self, points):
         return CircleFieldBasis(self.level, self.support, points).apply(self.coefficients,
                                                                         self.shift)
-
-    def inverse(self, points):
-        raise NotImplementedError("a displacement field has no closed-form inverse")
 
 
 WARP_KINDS.update({cls.kind: cls for cls in (CircleKernel, CircleShift, CircleField)})

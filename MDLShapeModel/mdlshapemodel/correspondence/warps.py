@@ -548,8 +548,35 @@ class Rotation(Warp):
         return apply_rotation(points, self.rotation_vector, inverse=True)
 
 
+class DisplacementField(Warp):
+    """Shared behaviour of the fast strategy's field warps (:class:`FieldWarp` on the sphere,
+    :class:`~.circle.CircleField` on the circle): an integer ``level``, ``coefficients`` of the
+    shape ``_coefficient_shape`` (also when read back by :meth:`from_vector`), and no closed-form
+    inverse."""
+
+    _sizes: ClassVar[dict] = {"coefficients": -1}
+    _integers: ClassVar[tuple] = ("level",)
+    #: the shape of ``coefficients``
+    _coefficient_shape: ClassVar[tuple] = (-1,)
+
+    def __post_init__(self):
+        object.__setattr__(self, "level", int(self.level))
+        object.__setattr__(self, "coefficients", np.asarray(
+            self.coefficients, dtype=np.float64).reshape(self._coefficient_shape))
+
+    @classmethod
+    def from_vector(cls, vector):
+        warp = super().from_vector(vector)
+        object.__setattr__(warp, "coefficients",
+                           warp.coefficients.reshape(cls._coefficient_shape))
+        return warp
+
+    def inverse(self, points):
+        raise NotImplementedError("a displacement field has no closed-form inverse")
+
+
 @dataclass(frozen=True, eq=False)
-class FieldWarp(Warp):
+class FieldWarp(DisplacementField):
     """A smooth tangent displacement field (:mod:`.fields`): bumps at the vertices of the
     ``level``-times subdivided icosahedron, each reaching ``support`` mean edge lengths, with
     vector coefficients (n_c, 3); u -> (u + v(u)) / |u + v(u)|. A homeomorphism while the
@@ -560,26 +587,11 @@ class FieldWarp(Warp):
     support: float
     coefficients: np.ndarray
     kind: ClassVar[str] = "field"
-    _sizes: ClassVar[dict] = {"coefficients": -1}
-    _integers: ClassVar[tuple] = ("level",)
-
-    def __post_init__(self):
-        object.__setattr__(self, "level", int(self.level))
-        object.__setattr__(self, "coefficients",
-                           np.asarray(self.coefficients, dtype=np.float64).reshape(-1, 3))
-
-    @classmethod
-    def from_vector(cls, vector):
-        warp = super().from_vector(vector)
-        object.__setattr__(warp, "coefficients", warp.coefficients.reshape(-1, 3))
-        return warp
+    _coefficient_shape: ClassVar[tuple] = (-1, 3)
 
     def apply(self, points):
         basis = FieldBasis.icosphere_level(self.level, points, self.support)
         return basis.apply(self.coefficients)
-
-    def inverse(self, points):
-        raise NotImplementedError("a displacement field has no closed-form inverse")
 
 
 WARP_KINDS: dict[str, type] = {cls.kind: cls for cls in
