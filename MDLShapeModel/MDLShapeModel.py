@@ -230,9 +230,11 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                     value = config.labels[0] if config.labels else 1
                     paths.append(_writeSegmentation(item, segments, value, folder / f"{name}.nrrd"))
                 elif item.IsA("vtkMRMLLabelMapVolumeNode"):
+                    _checkData(item)
                     paths.append(_writeNode(item, folder / f"{name}.nrrd",
                                             "vtkMRMLVolumeArchetypeStorageNode"))
                 elif item.IsA("vtkMRMLModelNode"):
+                    _checkData(item)
                     paths.append(_writeNode(item, folder / f"{name}.vtp", "vtkMRMLModelStorageNode"))
                 else:
                     raise ValueError(f"a {item.GetClassName()} is not an input (use "
@@ -535,6 +537,24 @@ def _uniqueName(name: str, used: set) -> str:
         candidate = f"{name}_{k}"
     used.add(candidate.lower())
     return candidate
+
+
+def _checkData(node):
+    """A volume's or model's data checked before a storage node reads it to write the file, as
+    the library checks VTK data: an image's scalars against its extent, a mesh's cells against
+    its points (a storage node would read past a shorter array). ValueError with the reason."""
+    from mdlshapemodel.errors import InputError
+    from mdlshapemodel.prepare import io
+
+    try:
+        if node.IsA("vtkMRMLVolumeNode"):
+            io.image_values(node.GetImageData())
+        elif node.GetPolyData() is None or node.GetPolyData().GetNumberOfPoints() == 0:
+            raise InputError("the model has no mesh")
+        else:
+            io.require_valid_cells(node.GetPolyData())
+    except InputError as error:
+        raise ValueError(str(error)) from None
 
 
 def _writeNode(node, path: pathlib.Path, storageClass: str) -> pathlib.Path:

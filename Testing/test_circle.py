@@ -1,8 +1,6 @@
 """Closed 2-D curves in the optimisation: circle warps, CurvePart, planar pose, the length weights,
 records, and every strategy on resampled hands (correspondence/circle.py)."""
 
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,11 +22,9 @@ from mdlshapemodel.correspondence.warps import (WARP_KINDS, apply_warps, make_wa
                                                 minimum_amplitude)
 from mdlshapemodel.prepare.curve import curve_map, read_curve, resample_curve, segment_lengths
 
+from common import DATA, HANDS
 from test_resume import assert_same_record, optimised_with_checkpoints, resumed_from
 
-DATA = Path(os.environ.get("MDLSHAPEMODEL_DATA",
-                           Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-HANDS = sorted((DATA / "hands2d").glob("hand-*.vtk"))
 needs_hands = pytest.mark.skipif(not HANDS, reason=f"shared hands not found at {DATA / 'hands2d'}")
 
 

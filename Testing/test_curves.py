@@ -1,7 +1,6 @@
 """Closed 2-D curves: the readers of every kind of file, their one-line rejections, the arc-length
 parameterization and the alignment of origins (prepare/curve.py)."""
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +15,7 @@ from mdlshapemodel.prepare.curve import (align_curve_origins, check_curve, curve
                                          resample_curve, segment_lengths,
                                          segment_vertex_lengths, signed_area)
 
-DATA = Path(os.environ.get("MDLSHAPEMODEL_DATA",
-                           Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-HANDS = sorted((DATA / "hands2d").glob("hand-*.vtk"))
+from common import DATA, HANDS
 
 
 def ellipse(n=60, a=20.0, b=10.0, centre=(5.0, -3.0), clockwise=False):

@@ -17,7 +17,7 @@ from mdlshapemodel.prepare import prepare_case, preprocess
 
 from synthetic import small_mask
 
-HIPPOCAMPI = Path(__file__).resolve().parents[2] / "shared" / "data" / "hippocampus" / "labels"
+from common import HIPPOCAMPI
 
 PREPARE = """
 import hashlib, sys

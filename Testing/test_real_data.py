@@ -1,6 +1,5 @@
 """Integration tests on the shared real data (skipped when ../shared/data is absent)."""
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +13,7 @@ from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.prepare.sphere import orientation, solid_angles
 from mdlshapemodel.prepare.surface import topology
 
-DATA = Path(os.environ.get("MDLSHAPEMODEL_DATA",
-                          Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-HIPPOCAMPI = DATA / "hippocampus" / "labels"
+from common import DATA, HIPPOCAMPI
 
 pytestmark = pytest.mark.skipif(not HIPPOCAMPI.is_dir(),
                                 reason=f"shared hippocampus data not found at {HIPPOCAMPI}")

@@ -189,6 +189,19 @@ class LabelMapToClosedSurface(_Filter):
     SetEdgeLength, GetEdgeLength = _accessors("_edge_length", float)
     SetTargetVertices, GetTargetVertices = _accessors("_target_vertices", int)
 
+    def RequestUpdateExtent(self, request, in_info, out_info):
+        """Ask the source for the whole image, as VTK's image-to-surface filters do.
+
+        Without this the pipeline's default hands each source an update extent taken from
+        elsewhere in the pipeline (with one branch per case: another case's image), and a reader
+        asked for an extent outside its own fills the image with garbage or writes past it.
+        """
+        info = in_info[0].GetInformationObject(0)
+        executive = vtk.vtkStreamingDemandDrivenPipeline
+        if info.Has(executive.WHOLE_EXTENT()):
+            info.Set(executive.UPDATE_EXTENT(), info.Get(executive.WHOLE_EXTENT()), 6)
+        return 1
+
     def GetConfig(self) -> BuildConfig:
         """The build configuration that these parameters amount to (validated: a bad value
         raises :class:`~mdlshapemodel.errors.ConfigError` naming the field)."""

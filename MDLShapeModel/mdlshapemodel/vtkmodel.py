@@ -55,7 +55,7 @@ from .config import BuildConfig
 from .errors import BuildError, Cancelled, ConfigError, InputError
 from .model.shape_model import ShapeModel
 from .outputs import physical_shapes
-from .prepare import surface
+from .prepare import io, surface
 from .prepare.case import PreparedCase, PreparedPart
 from .prepare.sphere import SphereMap
 from .vtkfilters import (MIRRORED, SPHERE_COORDINATES, VOXEL_SIZE, _accessors, _add_field,
@@ -227,21 +227,33 @@ def _model_of(polydata) -> ShapeModel:
         part_names=_strings(fields, PART_NAMES) if fields.GetAbstractArray(PART_NAMES) else [],
         metadata={key: np.asarray(value) if isinstance(value, list) else value
                   for key, value in metadata.items()},
-        parameters=None if parameters is None else vtk_to_numpy(parameters).astype(np.float64))
+        parameters=None if parameters is None else vtk_to_numpy(parameters).astype(np.float64)
+    ).check()
 
 
 def _prepared_case(polydata, name: str, config: BuildConfig) -> PreparedCase:
-    """A sphere-mapped surface (an output of SurfaceToSphereMap) as the prepared case of build."""
-    sphere = (polydata.GetPointData().GetArray(SPHERE_COORDINATES) if polydata is not None
-              else None)
-    if sphere is None or sphere.GetNumberOfComponents() != 3:
+    """A sphere-mapped surface (an output of SurfaceToSphereMap) as the prepared case of build.
+
+    Its cells and its ``SphereCoordinates`` are checked against its points first: the
+    correspondence's compiled loops index both by point and would read past a shorter array.
+    """
+    try:
+        if polydata is not None:
+            io.require_valid_cells(polydata)
+        sphere = io.point_values(polydata, SPHERE_COORDINATES, 3)
+    except InputError as error:
+        raise InputError(f"{name}: {error}") from None
+    if sphere is None:
         raise InputError(f"{name}: no point data {SPHERE_COORDINATES} (connect the output of "
                          "SurfaceToSphereMap; an empty one means that it failed)")
+    sphere = sphere.astype(np.float64)
+    if not np.all(np.isfinite(sphere)) or np.max(np.abs(np.linalg.norm(sphere, axis=1) - 1)) > 1e-6:
+        raise InputError(f"{name}: point data {SPHERE_COORDINATES} are not unit vectors")
     vertices, faces = surface.polydata_to_arrays(polydata)
     voxel_size = _field(polydata, VOXEL_SIZE) or config.voxel_size
     if voxel_size is None:
         raise InputError(f"{name}: no field data {VOXEL_SIZE} and no BuildConfig.voxel_size")
-    mapped = SphereMap(vertices, faces, vtk_to_numpy(sphere).astype(np.float64))
+    mapped = SphereMap(vertices, faces, sphere)
     part = PreparedPart("", "", mapped, repair=str(_field(polydata, "Repair") or ""))
     return PreparedCase(name, [part], float(voxel_size), bool(_field(polydata, MIRRORED)))
 

@@ -20,7 +20,8 @@ from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.config import SURFACE_POINTS
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.prepare import io
-from mdlshapemodel.prepare.surface import mask_to_surface, point_surface_distances
+from mdlshapemodel.prepare.surface import (arrays_to_polydata, mask_to_surface,
+                                           point_surface_distances)
 from synthetic import small_mask
 
 # small and quick: 162 points, a short evaluation
@@ -204,6 +205,30 @@ def test_a_missing_segment_rejects_that_case_by_name(scene, generated_files, tmp
     assert exported.paths == []
     segment = segmentation.GetSegmentation().GetNthSegment(0).GetName()
     assert exported.rejected == [("named", f"no segment named 'Left hippocampus' (it has {segment})")]
+
+
+def test_nodes_whose_arrays_do_not_fit_their_size_are_rejected_before_they_are_written(
+        scene, generated_files, tmp_path):
+    short = load_label_map_node(generated_files[0])
+    scalars = short.GetImageData().GetPointData().GetScalars()
+    total = scalars.GetNumberOfTuples()
+    scalars.SetNumberOfTuples(total // 2)          # the extent still says the whole image
+    extent = short.GetImageData().GetExtent()
+    vertices, triangles, _ = mask_to_surface(small_mask(0.1))
+    dangling = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", "dangling")
+    polydata = arrays_to_polydata(vertices, triangles)
+    polydata.GetPolys().GetConnectivityArray().SetValue(5, len(vertices) + 7)
+    dangling.SetAndObservePolyData(polydata)
+    good = load_label_map_node(generated_files[1])
+    exported = module.MDLShapeModelLogic().exportInputs([short, dangling, good], tmp_path)
+    assert [path.name for path in exported.paths] == [f"{good.GetName()}.nrrd"]
+    nx, ny, nz = (extent[1] + 1, extent[3] + 1, extent[5] + 1)
+    assert dict(exported.rejected) == {
+        short.GetName(): f"the input image's scalars hold {total // 2} values but its extent "
+                         f"{tuple(extent)} says {nx} x {ny} x {nz} = {total}",
+        "dangling": f"a cell refers to point {len(vertices) + 7}; the mesh has {len(vertices)} "
+                    "points"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{good.GetName()}.nrrd"]
 
 
 def test_load_model_and_mode_weights_move_the_explorer_by_the_modes(mixed_build):

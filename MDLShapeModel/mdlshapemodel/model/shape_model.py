@@ -152,6 +152,42 @@ class ShapeModel:
     def n_modes(self) -> int:
         return len(self.variances)
 
+    def check(self) -> "ShapeModel":
+        """Raise ValueError naming the first array that does not fit the others; else self.
+
+        The readers (:meth:`load`, :func:`mdlshapemodel.vtkmodel.polydata_to_model`) check what
+        they read, so that a damaged or hand-made model is refused before VTK draws triangles
+        that index missing points or an array of another length is indexed by point.
+        """
+        mean = np.asarray(self.mean)
+        if mean.ndim != 2 or mean.shape[1] != 3 or len(mean) == 0:
+            raise ValueError(f"mean has shape {mean.shape}, not (points, 3)")
+        n_p, m = len(mean), len(np.ravel(self.variances))
+        expected = {"modes": (m, n_p, 3), "variances": (m,), "weights": (n_p,),
+                    "scores": (len(self.names), m) if self.names else (len(self.scores), m)}
+        for name, shape in expected.items():
+            if np.shape(getattr(self, name)) != shape:
+                raise ValueError(f"{name} has shape {np.shape(getattr(self, name))}, not {shape} "
+                                 f"for {n_p} points and {m} modes")
+        for name in ("mean", "modes", "variances", "weights", "scores"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} has values that are not finite")
+        if self.parameters is not None and np.shape(self.parameters) not in ((n_p, 3), (n_p,)):
+            raise ValueError(f"parameters have shape {np.shape(self.parameters)}, not ({n_p}, 3)")
+        if self.triangles is not None and len(self.triangles):
+            cells = np.asarray(self.triangles)
+            if (cells.ndim != 2 or cells.shape[1] not in (2, 3)
+                    or not np.issubdtype(cells.dtype, np.integer)):
+                raise ValueError(f"triangles have shape {cells.shape} of {cells.dtype}")
+            if cells.min() < 0 or cells.max() >= n_p:
+                raise ValueError(f"triangles index points outside 0..{n_p - 1}")
+        if self.part_sizes and (sum(self.part_sizes) != n_p or min(self.part_sizes) <= 0):
+            raise ValueError(f"part sizes {list(self.part_sizes)} do not add up to {n_p} points")
+        if self.part_names and len(self.part_names) != len(self.part_sizes):
+            raise ValueError(f"{len(self.part_names)} part names for "
+                             f"{len(self.part_sizes)} parts")
+        return self
+
     def instance(self, scores: np.ndarray) -> np.ndarray:
         """Shape for scores on the first modes: (m,) -> (n_p, 3); a batch (k, m) -> (k, n_p, 3)
         (e.g. ``instance(model.scores)`` gives back the training shapes)."""
@@ -303,7 +339,7 @@ class ShapeModel:
                    part_sizes=[int(s) for s in group["part_sizes"][()]], metadata=metadata,
                    parameters=group["parameters"][()] if "parameters" in group else None,
                    part_names=[_text(n) for n in group["part_names"][()]]
-                   if "part_names" in group else [])
+                   if "part_names" in group else []).check()
 
     @classmethod
     def _read_statismo(cls, f, path) -> "ShapeModel":

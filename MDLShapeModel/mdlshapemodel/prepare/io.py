@@ -320,18 +320,65 @@ def read_label_map(path, labels=()) -> LabelMap:
                     image.GetDirection())
 
 
-def label_map_of_image_data(image, labels=()) -> LabelMap:
-    """The union of ``labels`` (all non-zero labels when empty) of a label map held in a
-    vtkImageData, with the same rules and messages as :func:`read_label_map`; the geometry is
-    the image's origin, spacing and direction matrix."""
+def image_values(image) -> np.ndarray:
+    """The scalars of a vtkImageData as a (z, y, x) numpy view, checked against its extent.
+
+    A vtkImageData carries its size twice: in its extent and in the length of its scalars. A
+    pipeline that asks a source for another extent than it can give, or a hand-made image, can
+    leave the two apart; viewing the scalars in the extent's shape would then read past them
+    (or index garbage), so a mismatch is an :class:`InputError` naming both sizes.
+
+    Examples
+    --------
+    >>> import vtk
+    >>> image = vtk.vtkImageData()
+    >>> image.SetDimensions(4, 3, 2)
+    >>> image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
+    >>> image_values(image).shape
+    (2, 3, 4)
+    """
     from vtk.util.numpy_support import vtk_to_numpy
 
     scalars = image.GetPointData().GetScalars() if image is not None else None
     if scalars is None or scalars.GetNumberOfTuples() == 0:
         raise InputError("the input image has no scalars")
     nx, ny, nz = image.GetDimensions()
+    if min(nx, ny, nz) <= 0:
+        raise InputError(f"the input image's extent {tuple(image.GetExtent())} is empty")
     _require_scalar(scalars.GetNumberOfComponents())
-    mask = select_labels(vtk_to_numpy(scalars).reshape(nz, ny, nx), labels)
+    if scalars.GetNumberOfTuples() != nx * ny * nz:
+        raise InputError(f"the input image's scalars hold {scalars.GetNumberOfTuples()} values "
+                         f"but its extent {tuple(image.GetExtent())} says {nx} x {ny} x {nz} = "
+                         f"{nx * ny * nz}")
+    return vtk_to_numpy(scalars).reshape(nz, ny, nx)
+
+
+def point_values(dataset, name: str, components: int) -> np.ndarray | None:
+    """A point-data array of a VTK data set as an (n_points, components) numpy view, or None
+    when the data set has no array of that name.
+
+    The array must have one tuple per point of ``dataset`` and ``components`` components: an
+    array of another size (VTK lets one be added) would have compiled loops that index it by
+    point read past its end, so it is an :class:`InputError` naming the array and both sizes.
+    """
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    array = dataset.GetPointData().GetArray(name) if dataset is not None else None
+    if array is None:
+        return None
+    tuples, width = array.GetNumberOfTuples(), array.GetNumberOfComponents()
+    if tuples != dataset.GetNumberOfPoints() or width != components:
+        raise InputError(f"point data {name} holds {tuples} x {width} values; the data set has "
+                         f"{dataset.GetNumberOfPoints()} points x {components} components")
+    return vtk_to_numpy(array).reshape(tuples, components)
+
+
+def label_map_of_image_data(image, labels=()) -> LabelMap:
+    """The union of ``labels`` (all non-zero labels when empty) of a label map held in a
+    vtkImageData, with the same rules and messages as :func:`read_label_map`; the geometry is
+    the image's origin, spacing and direction matrix. The scalars are checked against the
+    extent first (:func:`image_values`)."""
+    mask = select_labels(image_values(image), labels)
     matrix = image.GetDirectionMatrix()
     direction = tuple(matrix.GetElement(r, c) for r in range(3) for c in range(3))
     return LabelMap(np.ascontiguousarray(mask), tuple(image.GetSpacing()),
@@ -476,7 +523,7 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
 
     if polydata is None or polydata.GetNumberOfPoints() == 0:
         raise InputError("the mesh is empty")
-    _require_valid_cells(polydata)
+    require_valid_cells(polydata)
     triangulate = vtk.vtkTriangleFilter()
     triangulate.SetInputData(polydata)
     triangulate.PassVertsOff()
@@ -488,7 +535,7 @@ def mesh_arrays(polydata) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
-def _require_valid_cells(polydata):
+def require_valid_cells(polydata):
     """Every cell's points are points of the mesh, its offsets fit its point list, and every
     polygon has three at least (a damaged file may say otherwise; VTK's filters would read
     outside the arrays: a legacy .vtk whose last offset was 9600 for 960 indices crashed

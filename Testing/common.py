@@ -1,0 +1,42 @@
+"""What many test files share: where the shared real data is (../shared/data beside the
+checkout, or the folder named by MDLSHAPEMODEL_DATA; tests that need it skip with a reason when
+it is absent) and running the command line or a script in a subprocess, always with a timeout."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+DATA = Path(os.environ.get("MDLSHAPEMODEL_DATA",
+                           Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+HIPPOCAMPI = DATA / "hippocampus" / "labels"
+HANDS = sorted((DATA / "hands2d").glob("hand-*.vtk"))
+
+needs_hippocampi = pytest.mark.skipif(not HIPPOCAMPI.is_dir(),
+                                      reason=f"shared hippocampus data not found at {HIPPOCAMPI}")
+
+
+def hippocampi(count: int) -> list:
+    """The first ``count`` shared hippocampus label maps, in sorted order."""
+    return sorted(HIPPOCAMPI.glob("*.nii.gz"))[:count]
+
+
+TIMEOUT = 900   # seconds for one subprocess: a hang fails the test instead of stalling the run
+
+
+def run_cli(*arguments, timeout: float = TIMEOUT, **kwargs) -> subprocess.CompletedProcess:
+    """``mdlshapemodel ARGUMENTS`` in a subprocess (text output captured; not checked)."""
+    return subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", *map(str, arguments)],
+                          capture_output=True, text=True, timeout=timeout, **kwargs)
+
+
+def run_python(code: str, *arguments, cwd=None, timeout: float = TIMEOUT
+               ) -> subprocess.CompletedProcess:
+    """``code`` run as a script in a fresh interpreter (text output captured; not checked): a
+    crash in native code ends that process, not the test run."""
+    return subprocess.run([sys.executable, "-c", code, *map(str, arguments)], cwd=cwd,
+                          capture_output=True, text=True, timeout=timeout)
