@@ -7,7 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mdlshapemodel.config import BuildConfig
 from mdlshapemodel.prepare import surface
+from mdlshapemodel.correspondence.objective import objectives
 from mdlshapemodel.correspondence.state import CorrespondenceState, Example, PartState
 from mdlshapemodel.demo import bump_ellipsoid_mask
 from mdlshapemodel.correspondence.sampling import sphere_grid
@@ -53,6 +55,16 @@ def small_state(n: int = 5, points: int = 162) -> CorrespondenceState:
     examples = [Example(f"case_{k}", [PartState(m.vertices, m.faces, m.sphere, grid, triangles)])
                 for k, m in enumerate(small_maps(n))]
     return CorrespondenceState(examples, [(grid, triangles)])
+
+
+def build_objectives(state: CorrespondenceState, config: BuildConfig | None = None,
+                     voxel: float = 1.0) -> tuple:
+    """(fixed, integrated): the two objectives a build gives ``state``, made by the build's own
+    :func:`~mdlshapemodel.correspondence.objective.objectives` from ``config`` (default: the
+    defaults, ``--fixed-delta 0.1`` and ``--delta-range 1e-4 0.5``, in voxels) at the mean voxel
+    size ``voxel``, with the data range of the aligned shapes as ``initial_state`` measures it."""
+    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
+    return objectives(BuildConfig() if config is None else config, voxel, data_range)
 
 
 def split_into_part_files(paths, parts: dict, folder, manifest: str = "cases.csv"):

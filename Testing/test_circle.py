@@ -10,7 +10,6 @@ from mdlshapemodel.correspondence.circle import (CIRCLE_WARP_KINDS, CircleField,
                                                  CircleFieldBasis, CircleKernel, CircleShift,
                                                  CurvePart, apply_circle_kernel, circle_grid,
                                                  curve_state)
-from mdlshapemodel.correspondence.objective import Objective
 from mdlshapemodel.correspondence.pose import align, generalized_procrustes
 from mdlshapemodel.correspondence.state import replay_record, state_record
 from mdlshapemodel.correspondence.strategies import optimise
@@ -23,6 +22,7 @@ from mdlshapemodel.correspondence.warps import (WARP_KINDS, apply_warps, make_wa
 from mdlshapemodel.prepare.curve import curve_map, read_curve, resample_curve, segment_lengths
 
 from common import DATA, HANDS
+from synthetic import build_objectives
 from test_resume import assert_same_record, optimised_with_checkpoints, resumed_from
 
 needs_hands = pytest.mark.skipif(not HANDS, reason=f"shared hands not found at {DATA / 'hands2d'}")
@@ -53,12 +53,6 @@ def hands_state(count=6, n_points=48, seed=0):
     rng = np.random.default_rng(seed)
     curves = [resample_curve(read_curve(path), 300, rng.random()) for path in HANDS[:count]]
     return curve_state(curves, [path.stem for path in HANDS[:count]], n_points)
-
-
-def objectives(state, voxel=1.0):
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    return (Objective("fixed", data_range, delta=0.1 * voxel),
-            Objective("integrated", data_range, delta_min=1e-4 * voxel, delta_max=0.5 * voxel))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -194,7 +188,7 @@ def test_planar_procrustes_rotates_a_mirrored_shape_and_never_reflects_it():
 
 def test_a_curve_state_replays_from_its_record():
     state = blobs_state()
-    _, integrated = objectives(state)
+    _, integrated = build_objectives(state)
     state.objective = integrated
     value = state.value()
     settings = OptimisationSettings()
@@ -224,7 +218,7 @@ def test_a_shift_step_undoes_a_misplaced_origin():
     # at a fixed pose (the -pose strategy refits the pose after it): give it its true pose
     state.examples[2].pose = state.examples[0].pose.copy()
     state.rebuild()
-    state.objective = objectives(state)[1]
+    state.objective = build_objectives(state)[1]
     value = state.value()
     part = state.examples[2].parts[0]
     new = optimise_shift(state, 2, 0, part.shift, value, np.pi / 4)
@@ -242,7 +236,7 @@ def test_curves_refuse_the_warps_of_the_sphere():
     settings = OptimisationSettings(strategy="one-at-a-time", warps=("symmetric", "shear"),
                                     max_sweeps=1)
     with pytest.raises(ValueError, match="symmetric kernel only"):
-        optimise(state, objectives(state), settings, np.random.default_rng(0), Trace())
+        optimise(state, build_objectives(state), settings, np.random.default_rng(0), Trace())
 
 
 # ------------------------------------------------------------------------------------------------
@@ -251,7 +245,7 @@ def test_curves_refuse_the_warps_of_the_sphere():
 
 def test_the_fast_gradient_on_a_curve_state_matches_finite_differences(rng):
     state = blobs_state()
-    state.objective = objectives(state)[1]
+    state.objective = build_objectives(state)[1]
     round_ = FieldRound(state, range(state.n_shapes), 1, 2.0)
     x = rng.uniform(-0.3, 0.3, round_.size) * np.minimum(round_.bounds.ub, 1.0)
     trial = round_.trial(x)
@@ -278,7 +272,7 @@ def test_every_strategy_lowers_the_objective_on_hands_without_folding(strategy):
                                     pose_evaluations=30, fixed_fraction=0.0, max_levels=2,
                                     simplex_evaluations=150)
     trace = Trace()
-    final = optimise(state, objectives(state), settings, np.random.default_rng(0), trace)
+    final = optimise(state, build_objectives(state), settings, np.random.default_rng(0), trace)
     assert final < trace.rows[0][3]
     assert np.all(state.shapes[:, :, 2] == 0)
     assert any(example.parts[0].warps for example in state.examples)
@@ -303,7 +297,7 @@ def test_a_two_part_curve_state_is_optimised_with_one_pose_per_example():
     settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=3,
                                     fixed_fraction=0.0)
     trace = Trace()
-    final = optimise(state, objectives(state), settings, np.random.default_rng(0), trace)
+    final = optimise(state, build_objectives(state), settings, np.random.default_rng(0), trace)
     assert final < trace.rows[0][3]
     for example in state.examples:
         assert [p.kind for p in example.parts] == ["circle", "circle"]

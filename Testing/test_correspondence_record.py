@@ -7,7 +7,6 @@ import pytest
 
 from mdlshapemodel.config import OptimisationSettings
 from mdlshapemodel.correspondence.circle import CIRCLE_WARP_KINDS
-from mdlshapemodel.correspondence.objective import Objective
 from mdlshapemodel.correspondence.state import replay_record, state_record
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.trace import Trace
@@ -15,7 +14,7 @@ from mdlshapemodel.correspondence.warps import (WARP_KINDS, AsymmetricTheta, Fie
                                                 ShearTwist, SymmetricTheta, apply_warps)
 from mdlshapemodel.outputs import load_checkpoint, save_checkpoint, warp_summary
 
-from synthetic import small_state
+from synthetic import build_objectives, small_state
 
 STRATEGY_KINDS = {
     "fast": {"field"},
@@ -25,12 +24,6 @@ STRATEGY_KINDS = {
 }
 
 
-def objectives(state):
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    return (Objective("fixed", data_range, delta=0.1),
-            Objective("integrated", data_range, delta_min=1e-4, delta_max=0.5))
-
-
 def optimised(strategy):
     state = small_state()
     options = dict(max_time=1e6, max_sweeps=3, fixed_fraction=0.0, pose_evaluations=20,
@@ -38,7 +31,7 @@ def optimised(strategy):
     if strategy == "one-at-a-time-pose":
         options["warps"] = ("symmetric", "asymmetric", "shear", "rotation")
     settings = OptimisationSettings(strategy=strategy, **options)
-    final = optimise(state, objectives(state), settings, np.random.default_rng(4), Trace())
+    final = optimise(state, build_objectives(state), settings, np.random.default_rng(4), Trace())
     return state, final
 
 

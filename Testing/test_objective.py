@@ -525,3 +525,32 @@ def test_objective_gradient_of_repeated_eigenvalues_is_basis_independent(rng):
     _, grad = objective.gradient(gram)
     _, rotated = objective.gradient(q @ gram @ q.T)
     np.testing.assert_allclose(q @ grad @ q.T, rotated, atol=1e-8 * np.abs(grad).max())
+
+
+def test_a_builds_objectives_take_fixed_delta_and_delta_range_in_voxels(rng):
+    """``objectives(config, voxel, R)`` makes the build's two objectives: eq. 13 at
+    ``--fixed-delta`` and eq. 14 over ``--delta-range``, both given in voxels and so scaled by the
+    mean voxel size, over the data range R of the aligned shapes."""
+    from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.correspondence.objective import objectives
+
+    coded = rng.normal(size=(12, 5)) * np.array([4.0, 1.5, 0.6, 0.2, 0.03])
+    coded -= coded.mean(axis=0)
+    config = BuildConfig(fixed_delta=0.3, delta_range=(0.002, 0.4))
+    for voxel in (1.0, 0.5, 2.5):
+        fixed, integrated = objectives(config, voxel, 20.0)
+        assert (fixed.kind, integrated.kind) == ("fixed", "integrated")
+        assert fixed.data_range == integrated.data_range == 20.0
+        assert fixed.delta == pytest.approx(0.3 * voxel, rel=1e-15)
+        assert (integrated.delta_min, integrated.delta_max) == pytest.approx(
+            (0.002 * voxel, 0.4 * voxel), rel=1e-15)
+        assert fixed.from_coded(coded) == pytest.approx(
+            description_length(coded, 0.3 * voxel, 20.0), rel=1e-12)
+        assert integrated.from_coded(coded) == pytest.approx(
+            integrated_description_length(coded, 0.002 * voxel, 0.4 * voxel, 20.0), rel=1e-12)
+    # the voxel size changes what the build minimises: a finer accuracy costs more nats
+    assert objectives(config, 0.5, 20.0)[0].from_coded(coded) > \
+        objectives(config, 1.0, 20.0)[0].from_coded(coded)
+    # the defaults: --fixed-delta 0.1, --delta-range 1e-4 0.5
+    fixed, integrated = objectives(BuildConfig(), 1.0, 20.0)
+    assert (fixed.delta, integrated.delta_min, integrated.delta_max) == (0.1, 1e-4, 0.5)

@@ -15,7 +15,6 @@ import SimpleITK as sitk
 
 from mdlshapemodel import ShapeModel
 from mdlshapemodel.config import OptimisationSettings
-from mdlshapemodel.correspondence.objective import Objective
 from mdlshapemodel.correspondence.state import state_record
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.strategies.base import PhasePoint, Resumption
@@ -24,13 +23,7 @@ from mdlshapemodel.errors import BuildError
 from mdlshapemodel.outputs import read_checkpoint
 from mdlshapemodel.prepare import io
 
-from synthetic import small_mask, small_state
-
-
-def objectives(state):
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    return (Objective("fixed", data_range, delta=0.1),
-            Objective("integrated", data_range, delta_min=1e-4, delta_max=0.5))
+from synthetic import build_objectives, small_mask, small_state
 
 
 def assert_same_record(a: dict, b: dict):
@@ -48,7 +41,7 @@ def optimised_with_checkpoints(state, settings, seed: int = 7):
         saved.append((point, copy.deepcopy(state_record(state)), state.evaluations,
                       copy.deepcopy(rng.bit_generator.state), list(trace.rows)))
 
-    final = optimise(state, objectives(state), settings, rng, trace, checkpoint=checkpoint)
+    final = optimise(state, build_objectives(state), settings, rng, trace, checkpoint=checkpoint)
     return final, trace, saved
 
 
@@ -59,7 +52,7 @@ def resumed_from(state, settings, saved):
     rng = np.random.default_rng(0)
     rng.bit_generator.state = generator
     trace = Trace(rows=list(rows))
-    value = optimise(state, objectives(state), settings, rng, trace,
+    value = optimise(state, build_objectives(state), settings, rng, trace,
                      resume=Resumption(point, record, evaluations, 0.0))
     return value, trace
 

@@ -7,10 +7,9 @@ import pytest
 
 from mdlshapemodel.correspondence.state import CorrespondenceState, Example, PartState
 from mdlshapemodel.correspondence.warps import SymmetricTheta
-from mdlshapemodel.correspondence.objective import Objective
 from mdlshapemodel.correspondence.sampling import icosphere, sphere_grid
 from mdlshapemodel.prepare.sphere import orientation
-from mdlshapemodel.config import STRATEGIES, OptimisationSettings
+from mdlshapemodel.config import STRATEGIES, BuildConfig, OptimisationSettings
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.strategies.one_at_a_time import (optimise_amplitude,
                                                                     optimise_pose)
@@ -19,13 +18,7 @@ from mdlshapemodel.correspondence.strategies.simplex import (population_value,
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.errors import Cancelled
 
-from synthetic import small_maps, small_state
-
-
-def objectives(state):
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    return (Objective("fixed", data_range, delta=0.1),
-            Objective("integrated", data_range, delta_min=1e-4, delta_max=0.5))
+from synthetic import build_objectives, small_maps, small_state
 
 
 def run(strategy, seed, sweeps=2, fixed_fraction=0.5):
@@ -33,13 +26,13 @@ def run(strategy, seed, sweeps=2, fixed_fraction=0.5):
     settings = OptimisationSettings(strategy=strategy, max_time=1e6, max_sweeps=sweeps,
                                     pose_evaluations=30, fixed_fraction=fixed_fraction)
     trace = Trace()
-    final = optimise(state, objectives(state), settings, np.random.default_rng(seed), trace)
+    final = optimise(state, build_objectives(state), settings, np.random.default_rng(seed), trace)
     return state, trace, final
 
 
 def test_amplitude_and_pose_steps_never_increase_the_objective():
     state = small_state()
-    _, integrated = objectives(state)
+    _, integrated = build_objectives(state)
     state.objective = integrated
     value = state.value()
     rng = np.random.default_rng(2)
@@ -95,14 +88,33 @@ def test_time_budget_is_respected():
     state = small_state()
     settings = OptimisationSettings(max_time=1.0)
     start = time.perf_counter()
-    optimise(state, objectives(state), settings, np.random.default_rng(0), Trace())
+    optimise(state, build_objectives(state), settings, np.random.default_rng(0), Trace())
     # one example's step may finish after the deadline, never a whole further sweep
     assert time.perf_counter() - start < 1.0 + 10.0
 
 
+@pytest.mark.parametrize("strategy", ["one-at-a-time", "multiscale"])
+def test_sigma_g_sets_the_width_of_the_random_kernels(strategy):
+    """``--sigma-g``, through the build's settings (``BuildConfig.optimisation_settings``), is the
+    spread of the random kernels' widths: each |N(0, sigma_g)| (at least 1e-4)."""
+    medians = {}
+    for sigma_g in (0.02, 0.3):
+        config = BuildConfig(strategy=strategy, sigma_g=sigma_g, max_sweeps=2, fixed_fraction=0.0,
+                             max_time=1e6, workers=1)
+        state = small_state()
+        optimise(state, build_objectives(state, config), config.optimisation_settings(),
+                 np.random.default_rng(0), Trace())
+        widths = np.array([w.omega for e in state.examples for p in e.parts for w in p.warps])
+        assert len(widths), "no kernel was accepted"
+        # a draw beyond 5 sigma_g has probability 6e-7
+        assert np.all((widths >= 1e-4) & (widths <= 5 * sigma_g)), (sigma_g, widths)
+        medians[sigma_g] = np.median(widths)
+    assert medians[0.3] > 3 * medians[0.02]
+
+
 def test_snapshot_and_restore_return_the_exact_state():
     state = small_state()
-    _, integrated = objectives(state)
+    _, integrated = build_objectives(state)
     state.objective = integrated
     before = state.value()
     saved = state.snapshot()
@@ -125,7 +137,7 @@ def test_a_budget_too_short_to_help_keeps_the_initial_correspondence():
     """With an evaluation budget of a few sweeps, the final value is never above the start."""
     for seed in range(3):
         state = small_state()
-        fixed, integrated = objectives(state)
+        fixed, integrated = build_objectives(state)
         state.objective = integrated
         start = state.value()
         settings = OptimisationSettings(max_sweeps=1, pose_evaluations=10)
@@ -147,8 +159,8 @@ def run_simplex(strategy, seed=0, state=None, fixed_fraction=0.5, active=None, *
                                     fixed_fraction=fixed_fraction,
                                     **{**SIMPLEX[strategy], **options})
     trace = Trace()
-    start = objectives(state)[1](state.covariance())
-    final = optimise(state, objectives(state), settings, np.random.default_rng(seed), trace,
+    start = build_objectives(state)[1](state.covariance())
+    final = optimise(state, build_objectives(state), settings, np.random.default_rng(seed), trace,
                      active=active)
     return state, trace, start, final
 
@@ -194,12 +206,12 @@ def test_unknown_strategy_is_rejected_with_a_clear_error():
     state = small_state()
     settings = OptimisationSettings(strategy="simulated-annealing")
     with pytest.raises(ValueError, match="unknown strategy 'simulated-annealing'.*multiscale"):
-        optimise(state, objectives(state), settings, np.random.default_rng(0), Trace())
+        optimise(state, build_objectives(state), settings, np.random.default_rng(0), Trace())
 
 
 def test_population_value_matches_the_incremental_covariance():
     state = small_state()
-    _, integrated = objectives(state)
+    _, integrated = build_objectives(state)
     state.objective = integrated
     assert population_value(state, state.shapes.copy()) == pytest.approx(state.value(), rel=1e-9)
     part = state.examples[2].parts[0]
@@ -310,7 +322,7 @@ def test_simplex_strategies_honour_deadline_progress_and_checkpoint(strategy):
     settings = OptimisationSettings(strategy=strategy, max_time=1.5, fixed_fraction=0.5)
     started = time.perf_counter()
     trace = Trace()
-    final = optimise(state, objectives(state), settings, np.random.default_rng(0), trace,
+    final = optimise(state, build_objectives(state), settings, np.random.default_rng(0), trace,
                      progress, lambda point: saved.append((point.phase, point.sweep)))
     # the simplex stops at the deadline itself; only the rebuild after it remains
     assert time.perf_counter() - started < 1.5 + 3.0
@@ -326,7 +338,7 @@ def test_simplex_strategies_honour_deadline_progress_and_checkpoint(strategy):
     state = small_state()
     before = [e.parts[0].positions.copy() for e in state.examples]
     with pytest.raises(Cancelled):
-        optimise(state, objectives(state), OptimisationSettings(strategy=strategy, max_time=1e6),
+        optimise(state, build_objectives(state), OptimisationSettings(strategy=strategy, max_time=1e6),
                  np.random.default_rng(0), Trace(), cancel)
     # cancelled during the first simplex: nothing was committed
     for example, positions in zip(state.examples, before):
@@ -355,7 +367,7 @@ def test_fast_strategy_is_deterministic_and_respects_active():
     state = small_state()
     grid, _ = sphere_grid(162)
     settings = OptimisationSettings(strategy="fast", max_time=1e6, fixed_fraction=0.0)
-    optimise(state, objectives(state), settings, np.random.default_rng(0), Trace(), active=[1, 3])
+    optimise(state, build_objectives(state), settings, np.random.default_rng(0), Trace(), active=[1, 3])
     for i, example in enumerate(state.examples):
         moved = not np.allclose(example.parts[0].positions, grid)
         assert moved == (i in (1, 3))
@@ -371,7 +383,7 @@ def test_fast_strategy_gives_the_same_result_on_any_number_of_threads(make_state
         settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=3,
                                         fixed_fraction=0.5, threads=threads)
         trace = Trace()
-        final = optimise(state, objectives(state), settings, np.random.default_rng(0), trace)
+        final = optimise(state, build_objectives(state), settings, np.random.default_rng(0), trace)
         ends.append((final, [row[3] for row in trace.rows],
                      [[p.positions.copy() for p in e.parts] for e in state.examples],
                      [e.pose.apply(np.eye(3)) for e in state.examples]))
@@ -389,7 +401,7 @@ def test_fast_round_gradient_matches_finite_differences():
     from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
 
     state = small_state()
-    state.objective = objectives(state)[1]
+    state.objective = build_objectives(state)[1]
     round_ = FieldRound(state, [0, 2], level=1, support=2.0)
     rng = np.random.default_rng(3)
     upper = round_.bounds.ub
@@ -425,7 +437,7 @@ def test_trace_improvements_adds_rows_without_changing_the_optimisation(strategy
         state = small_state()
         settings = OptimisationSettings(strategy=strategy, trace_improvements=fine, **options)
         trace = Trace()
-        final = optimise(state, objectives(state), settings, np.random.default_rng(5), trace)
+        final = optimise(state, build_objectives(state), settings, np.random.default_rng(5), trace)
         results.append((state, trace, final))
     (coarse_state, coarse, coarse_final), (fine_state, fine, fine_final) = results
     assert fine_final == coarse_final
@@ -457,7 +469,7 @@ def test_fast_fixed_phase_codes_every_mode():
     from mdlshapemodel.correspondence.strategies.fast import optimise_fast
 
     state = small_state()
-    fixed, _ = objectives(state)
+    fixed, _ = build_objectives(state)
     # a Delta at which some of the smallest modes span less than Delta: case 3 matters
     fixed = replace(fixed, delta=0.05)
     coded_free = fixed(state.covariance())
@@ -478,7 +490,7 @@ def test_fast_strategy_passes_over_the_levels_again_while_it_pays():
     finals, rounds = {}, {}
     for passes in (1, 2):
         state = small_state()
-        fixed, _ = objectives(state)
+        fixed, _ = build_objectives(state)
         trace = Trace()
         settings = OptimisationSettings(strategy="fast", field_passes=passes)
         finals[passes] = optimise_fast(state, fixed, settings, None, trace, "fixed",
@@ -501,7 +513,7 @@ def test_pose_optimisation_never_changes_one_example_size_against_another(strate
     start = np.array([e.pose.scale for e in state.examples])
     settings = OptimisationSettings(strategy=strategy, max_time=1e6, max_sweeps=2,
                                     pose_evaluations=30, fixed_fraction=0)
-    optimise(state, objectives(state), settings, np.random.default_rng(1), Trace())
+    optimise(state, build_objectives(state), settings, np.random.default_rng(1), Trace())
     ratio = np.array([e.pose.scale for e in state.examples]) / start
     moved = [e for e in state.examples if any(p.warps for p in e.parts)]
     assert moved, "the optimisation changed nothing"

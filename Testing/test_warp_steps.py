@@ -17,15 +17,7 @@ from mdlshapemodel.correspondence.strategies.one_at_a_time import optimise_warp,
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.warps import ShearTwist
 
-from synthetic import small_state
-
-
-def objectives(state):
-    from mdlshapemodel.correspondence.objective import Objective
-
-    data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
-    return (Objective("fixed", data_range, delta=0.1),
-            Objective("integrated", data_range, delta_min=1e-4, delta_max=0.5))
+from synthetic import build_objectives, small_state
 
 
 def unfolded(state) -> bool:
@@ -43,7 +35,7 @@ def run(warps, seed=0, sweeps=2, strategy="one-at-a-time", **options):
                                     fixed_fraction=0.0, pose_evaluations=20, warps=warps,
                                     **options)
     trace = Trace()
-    final = optimise(state, objectives(state), settings, np.random.default_rng(seed), trace)
+    final = optimise(state, build_objectives(state), settings, np.random.default_rng(seed), trace)
     return state, trace, final
 
 
@@ -83,7 +75,7 @@ def test_all_kinds_together_are_each_drawn_and_the_pose_strategy_works_with_them
 def stepping(kind):
     """A small state on eq. 14, its F, a generator and settings drawing only ``kind``."""
     state = small_state()
-    state.objective = objectives(state)[1]
+    state.objective = build_objectives(state)[1]
     return state, state.value(), np.random.default_rng(3), OptimisationSettings(warps=(kind,))
 
 
@@ -157,7 +149,7 @@ def test_symmetric_alone_is_the_default_and_draws_no_kind():
         settings = OptimisationSettings(strategy="one-at-a-time", max_time=1e6, max_sweeps=1,
                                         fixed_fraction=0.0, warps=warps)
         rng = RecordingGenerator(0)
-        optimise(state, objectives(state), settings, rng, Trace())
+        optimise(state, build_objectives(state), settings, rng, Trace())
         assert ("integers" in rng.calls) == drawn
 
 
