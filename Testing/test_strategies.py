@@ -112,6 +112,52 @@ def test_sigma_g_sets_the_width_of_the_random_kernels(strategy):
     assert medians[0.3] > 3 * medians[0.02]
 
 
+def values_after_each_sweep(trace: Trace, phase: str) -> list:
+    """F at the start of ``phase`` and after each of its sweeps (the row after the rebuild)."""
+    ends = {}
+    for row in trace.rows:
+        if row.phase == phase:
+            ends[row.sweep] = row.objective
+    assert sorted(ends) == list(range(len(ends)))
+    return [ends[sweep] for sweep in range(len(ends))]
+
+
+def converged_at(values: list, tolerance: float, patience: int):
+    """The sweep after which the stopping rule of ``--tolerance`` holds (``patience`` sweeps in a
+    row each gained no more than ``tolerance`` times the phase's gain so far), None if none."""
+    quiet = 0
+    for sweep in range(1, len(values)):
+        gain, total = values[sweep - 1] - values[sweep], values[0] - values[sweep]
+        quiet = quiet + 1 if gain <= tolerance * max(total, 1e-12) else 0
+        if quiet >= patience:
+            return sweep
+    return None
+
+
+@pytest.mark.parametrize("strategy", ["one-at-a-time", "multiscale"])
+def test_tolerance_ends_a_phase_once_its_sweeps_stop_paying(strategy):
+    """``--tolerance`` (through ``BuildConfig.optimisation_settings``) ends a phase at the first
+    sweep (multiscale: iteration) that completes ``patience`` quiet ones in a row, well before
+    ``max_sweeps``; a smaller tolerance runs on along the same path."""
+    runs = {}
+    for tolerance in (0.1, 0.01):
+        config = BuildConfig(strategy=strategy, tolerance=tolerance, max_sweeps=40,
+                             fixed_fraction=0.0, max_time=1e6, workers=1)
+        settings = config.optimisation_settings()
+        state = small_state()
+        trace = Trace()
+        final = optimise(state, build_objectives(state, config), settings,
+                         np.random.default_rng(0), trace)
+        values = values_after_each_sweep(trace, "integrated")
+        assert final == values[-1]
+        stop = converged_at(values, tolerance, settings.patience)
+        assert stop == len(values) - 1 < settings.max_sweeps, (tolerance, values)
+        runs[tolerance] = values
+    coarse, fine = runs[0.1], runs[0.01]
+    assert len(fine) > len(coarse)
+    assert fine[:len(coarse)] == coarse    # the tolerance decides where to stop, nothing else
+
+
 def test_snapshot_and_restore_return_the_exact_state():
     state = small_state()
     _, integrated = build_objectives(state)
