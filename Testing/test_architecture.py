@@ -1,9 +1,10 @@
 """The house: data flows one way between the rooms, no import circles, light leaves.
 
 Stages, upstream first: the leaves (config, errors, progress, parallel, version), prepare,
-correspondence, model, report, the build (build, outputs), the faces (cli, vtkfilters, vtkmodel,
-demo, and the package front door, whose heavy names load on first use). A module may import
-its own stage and the stages upstream of it, never one downstream.
+correspondence, model, analysis, report, the build and the analysis's files (build, outputs,
+analyze), the faces (cli, vtkfilters, vtkmodel, demo, and the package front door, whose heavy
+names load on first use). A module may import its own stage and the stages upstream of it, never
+one downstream.
 """
 
 import ast
@@ -21,8 +22,9 @@ STAGES = [
     {"prepare"},
     {"correspondence"},
     {"model"},
+    {"analysis"},
     {"report"},
-    {"build", "outputs"},
+    {"build", "outputs", "analyze"},
     {"cli", "vtkfilters", "vtkmodel", "demo", "__init__"},
 ]
 

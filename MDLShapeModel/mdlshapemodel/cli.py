@@ -16,7 +16,8 @@ from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Callable
 
-from .config import OPTION_GROUPS, STRATEGIES, BuildConfig, parse_items
+from .config import (ANALYSIS_SIZES, DISPLACEMENTS, OPTION_GROUPS, STRATEGIES,
+                     AnalysisConfig, BuildConfig, parse_items)
 from .errors import ConfigError, InternalError, MDLShapeModelError
 
 log = logging.getLogger("mdlshapemodel")
@@ -317,6 +318,39 @@ def _run_fit(args) -> int:
     return 0 if results else 2
 
 
+def _run_analyze(args, live: bool) -> int:
+    from .analyze import analyze_build
+
+    config = AnalysisConfig(group=args.group, covariates=args.covariate,
+                            nuisance=args.nuisance, reference=args.reference,
+                            permutations=args.permutations, size=args.size,
+                            displacement=args.displacement, alpha=args.alpha,
+                            seed=args.seed).validate()
+    with _ProgressDisplay(live) as progress:
+        result = analyze_build(args.build, args.table, args.output, config, progress,
+                               args.overwrite)
+    summary = result.summary
+    counts, overall = summary["significant_points"], summary["global_test"]
+    for case, reason in ((d["case"], d["reason"]) for d in summary["left_out"]):
+        log.warning("left out %s: %s", case, reason)
+    if summary["unmatched_rows"]:
+        log.warning("table rows matching no case: %s", ", ".join(summary["unmatched_rows"]))
+    lines = [f"  cases: {summary['n_cases']}"
+             + (" (" + ", ".join(f"{k}: {v}" for k, v in summary["n_per_group"].items()) + ")"
+                if summary["n_per_group"] else ""),
+             f"  points significant at alpha {config.alpha}: {counts['fwer']} family-wise, "
+             f"{counts['fdr']} FDR, of {counts['of']}",
+             f"  global test on {overall['modes']} principal scores: p = {overall['p']:.4g}"]
+    if summary["classification"]:
+        c = summary["classification"]
+        lines.append(f"  classification ({c['folds']}-fold): accuracy {c['accuracy']:.3f} "
+                     f"± {c['accuracy_se']:.3f}, AUC {c['auc']:.3f} ± {c['auc_se']:.3f}")
+    lines.append(f"  unusual cases (p < 0.01): {', '.join(summary['unusual']['flagged']) or 'none'}")
+    lines.append(f"  page: {Path(args.output) / 'analysis.html'}")
+    print("\n".join(lines))
+    return 0
+
+
 def main(argv=None) -> int:
     defaults = BuildConfig()
     parser = argparse.ArgumentParser(
@@ -390,10 +424,55 @@ def main(argv=None) -> int:
                      help="optimisation strategy for the new cases (default: the model's own)")
     fit.add_argument("--seed", type=int, default=0)
     fit.add_argument("-q", "--quiet", action="store_true")
+    analysis_defaults = AnalysisConfig()
+    analyze = commands.add_parser(
+        "analyze", help="test group differences and covariates on a build's shapes",
+        description="Where do groups differ, what changes with a covariate, which cases are "
+                    "unusual: per-point tests on the corresponded shapes of a build with "
+                    "permutation inference (family-wise and FDR corrected), a global test, the "
+                    "discriminant of two groups and its cross-validated classification. Writes "
+                    "analysis.json, points.csv, effects.vtp, unusual.csv and analysis.html.",
+        epilog="examples:\n  mdlshapemodel analyze out --table subjects.csv --group diagnosis "
+               "-o findings\n  mdlshapemodel analyze out --table subjects.csv --covariate age "
+               "--nuisance sex -o aging",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    analyze.add_argument("build", help="a build's output folder")
+    analyze.add_argument("--table", required=True, metavar="CSV",
+                         help="subjects table: a 'case' column with the build's case names, "
+                              "other columns variables")
+    analyze.add_argument("-o", "--output", required=True, help="output folder")
+    analyze.add_argument("--group", metavar="NAME", help="categorical column: the groups "
+                                                         "compared")
+    analyze.add_argument("--reference", metavar="LEVEL",
+                         help="the group the others are compared with (default: the first in "
+                              "sorted order)")
+    analyze.add_argument("--covariate", metavar="NAME", action="append", default=[],
+                         help="numeric column: its effect is tested (adjusted for, with "
+                              "--group); repeatable")
+    analyze.add_argument("--nuisance", metavar="NAME", action="append", default=[],
+                         help="column adjusted for (numeric, or categorical); repeatable")
+    analyze.add_argument("--permutations", type=int, default=analysis_defaults.permutations,
+                         help="random permutations (default %(default)s)")
+    analyze.add_argument("--size", choices=ANALYSIS_SIZES, default=analysis_defaults.size,
+                         help="kept: aligned by rotation and translation, so size differences "
+                              "show; removed: each case scaled to the mean size first "
+                              "(default %(default)s)")
+    analyze.add_argument("--displacement", choices=DISPLACEMENTS,
+                         default=analysis_defaults.displacement,
+                         help="what is tested per point: normal, the displacement along the "
+                              "mean surface's normal (not changed by sliding correspondence); "
+                              "vector, the displacement vector (Hotelling's T^2) "
+                              "(default %(default)s)")
+    analyze.add_argument("--alpha", type=float, default=analysis_defaults.alpha,
+                         help="significance level (default %(default)s)")
+    analyze.add_argument("--seed", type=int, default=analysis_defaults.seed)
+    analyze.add_argument("--overwrite", action="store_true",
+                         help="replace an earlier analysis in the output folder")
+    analyze.add_argument("-q", "--quiet", action="store_true")
     args = parser.parse_args(argv)
 
     # a live progress display when a person watches stderr (a terminal), else plain log lines
-    live = args.command in ("build", "demo") and not args.quiet and sys.stderr.isatty()
+    live = args.command in ("build", "demo", "analyze") and not args.quiet and sys.stderr.isatty()
     handler = _TerminalHandler(sys.stderr, live)
     handler.setFormatter(logging.Formatter("mdlshapemodel: %(message)s"))
     handler.setLevel(logging.WARNING if args.quiet else logging.INFO)
@@ -407,6 +486,10 @@ def main(argv=None) -> int:
                               args.overwrite, args.resume, args.manifest)
         if args.command == "compare":
             return _run_compare(args)
+        if args.command == "analyze":
+            if args.group is None and not args.covariate:
+                analyze.error("give --group, --covariate or both")
+            return _run_analyze(args, live)
         if args.command == "fit":
             if not args.inputs and not args.manifest:
                 fit.error("give input files or folders, or --manifest")

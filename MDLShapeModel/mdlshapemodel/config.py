@@ -490,3 +490,43 @@ class BuildConfig:
         if "delta_range" in values:
             values["delta_range"] = tuple(values["delta_range"])
         return cls(**values).validate()
+
+
+# What the analysis tests at each point: the displacement along the mean surface's outward
+# normal (one number; a correspondence that slides along the surface does not change it), or the
+# displacement vector (Hotelling's T^2 of 3 numbers, 2 for 2-D curves).
+DISPLACEMENTS = ("normal", "vector")
+# How the analysis aligns the shapes: size kept (rigid; a loss of volume shows) or removed
+# (each scaled to the mean centroid size first).
+ANALYSIS_SIZES = ("kept", "removed")
+
+
+@dataclass
+class AnalysisConfig:
+    """Settings of one analysis of a build (``mdlshapemodel analyze``): which variables of the
+    subjects table are tested and how. ``validate`` names the field at fault."""
+
+    group: str | None = None          # categorical column: the groups compared
+    covariates: list[str] = field(default_factory=list)   # numeric columns
+    nuisance: list[str] = field(default_factory=list)     # columns adjusted for
+    reference: str | None = None      # the group the others are compared with (default: first)
+    permutations: int = 10_000
+    size: str = "kept"
+    displacement: str = "normal"
+    alpha: float = 0.05
+    seed: int = 0
+    folds: int = 10                   # cross-validation of the two-group classification
+
+    def validate(self) -> "AnalysisConfig":
+        """Raise :class:`ConfigError` naming the first bad field; return self."""
+        def need(condition: bool, name: str, text: str):
+            if not condition:
+                raise ConfigError(f"{name}: {text} (got {getattr(self, name)!r})")
+
+        need(self.permutations >= 1, "permutations", "must be at least 1")
+        need(self.size in ANALYSIS_SIZES, "size", f"must be one of {', '.join(ANALYSIS_SIZES)}")
+        need(self.displacement in DISPLACEMENTS, "displacement",
+             f"must be one of {', '.join(DISPLACEMENTS)}")
+        need(0 < self.alpha < 1, "alpha", "must be between 0 and 1")
+        need(self.folds >= 2, "folds", "must be at least 2")
+        return self

@@ -478,16 +478,22 @@ def _statismo_names(info, n_s: int) -> list:
     return [f"case_{i}" for i in range(n_s)]
 
 
-def score_outliers(model: ShapeModel, explained: float = 0.95, quantile: float = 0.99) -> dict:
+def score_outliers(model: ShapeModel, explained: float | None = None,
+                   alpha: float | None = None) -> dict:
     """Mahalanobis distance of each training case over the modes that explain ``explained`` of
-    the variance, and whether its square exceeds the ``quantile`` of chi-square with that many
-    degrees of freedom."""
-    from scipy.stats import chi2
+    the variance, its p-value against the distribution of a training case's own distance (a
+    scaled Beta, :func:`~.outliers.training_distances`), and whether it is below ``alpha``.
 
-    cumulative = np.cumsum(model.variances) / max(model.variances.sum(), 1e-300)
-    modes = int(min(np.searchsorted(cumulative, explained) + 1, model.n_modes))
-    squared = np.sum(model.scores[:, :modes] ** 2 / model.variances[:modes], axis=1)
-    threshold = float(np.sqrt(chi2.ppf(quantile, modes)))
-    distance = np.sqrt(squared)
-    return {"modes": modes, "threshold": threshold, "distance": distance,
-            "outlier": distance > threshold}
+    Returns a dict with ``modes``, ``threshold`` (the distance at which p = alpha),
+    ``distance``, ``p`` and ``outlier`` (one per case)."""
+    from .outliers import ALPHA, EXPLAINED, modes_explaining, training_distances
+
+    n = len(model.scores)
+    if n < 3 or model.n_modes == 0:
+        return {"modes": 0, "threshold": float("nan"), "distance": np.full(n, np.nan),
+                "p": np.full(n, np.nan), "outlier": np.zeros(n, dtype=bool)}
+    k = modes_explaining(model.variances, EXPLAINED if explained is None else explained, n)
+    result = training_distances(model.scores, model.variances, k,
+                                ALPHA if alpha is None else alpha)
+    return {"modes": result.modes, "threshold": result.threshold, "distance": result.distance,
+            "p": result.p, "outlier": result.outlier}

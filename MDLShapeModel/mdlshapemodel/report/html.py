@@ -207,8 +207,10 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
         flags = [[k == "score_outlier" and bool(c.get(k)) for k in keys] for c in cases]
         parts += ["<h2>Cases</h2>",
                   "<p>Fidelity: distance from the input surface to the corresponded mesh. Sphere "
-                  "map: flipped triangles and |ln area ratio|. Score outlier: Mahalanobis "
-                  "distance of the case's scores beyond the 99th percentile of chi-square.</p>",
+                  "map: flipped triangles and |ln area ratio|. Score outlier: the Mahalanobis "
+                  "distance of the case's scores (over the modes explaining 95% of the "
+                  "variance) has p < 0.01 against the distribution of a training case's own "
+                  "distance (a scaled Beta).</p>",
                   table(keys, [[c.get(k, "") for k in keys] for c in cases], flags)]
     if rejected:
         parts += ["<h2>Rejected inputs</h2>",

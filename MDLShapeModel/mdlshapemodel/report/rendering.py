@@ -533,3 +533,51 @@ def render_correspondence(shapes, triangles, names=None, max_cases: int = 4, siz
     layout = grid_layout("correspondence", 1, len(panels), size)
     return _compose(layout, [panels], [str(names[i]) for i in indices],
                     caption="same colour = corresponding points")
+
+
+# ---------------------------------------------------------------------------------------------
+# maps of values on the mean surface (the analysis)
+
+
+def boundary_points(triangles: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """Points inside a region that share a triangle with a point outside it: the region's
+    outline on the mesh."""
+    inside = np.asarray(inside, dtype=bool)
+    mixed = inside[triangles].any(axis=1) & ~inside[triangles].all(axis=1)
+    outline = np.zeros_like(inside)
+    outline[np.unique(triangles[mixed])] = True
+    return outline & inside
+
+
+def render_maps(mean: np.ndarray, triangles: np.ndarray, maps: list, outlined=None,
+                size=(260, 230)) -> bytes:
+    """PNG of values on a surface from three views (the mean's principal axes: front, back,
+    side), one row per map.
+
+    ``maps`` is a list of ``(row label, values (p,), colormap name, vmin, vmax, colour-bar
+    label)``; all rows share the first map's colour bar when there is one map, else each row's
+    range is written in its label. ``outlined`` (p,) booleans: the boundary of that region is
+    drawn black on every map.
+    """
+    triangles = _checked_triangles(triangles, len(mean))
+    mean = np.asarray(mean, dtype=np.float64)
+    normals = vertex_normals(mean, triangles)
+    _, axes = principal_axes(mean)
+    views = [axes, np.array([-axes[0], axes[1], -axes[2]]),
+             np.array([axes[2], axes[1], -axes[0]])]
+    fitted = [_fit_view([mean], view, size[0] / size[1]) for view in views]
+    edge = None if outlined is None else boundary_points(triangles, outlined)
+    panels = []
+    with _PanelRenderer(triangles, len(mean), size) as renderer:
+        for _, values, cmap_name, vmin, vmax, _ in maps:
+            cmap = _colormap(cmap_name)
+            scaled = (np.asarray(values, float) - vmin) / max(vmax - vmin, 1e-300)
+            colours = _to_uint8(cmap(np.clip(scaled, 0.0, 1.0)))
+            if edge is not None:
+                colours[edge] = 0
+            panels.append([renderer.render(mean, normals, colours, view) for view in fitted])
+    layout = grid_layout("modes", len(maps), 3, size)
+    first = maps[0]
+    colorbar = (_colormap(first[2]), first[3], first[4], first[5]) if len(maps) == 1 else None
+    return _compose(layout, panels, ("front", "back", "side"), [m[0] for m in maps],
+                    colorbar=colorbar)

@@ -1,0 +1,27 @@
+"""From a model to findings: where groups differ, what changes with a covariate, which cases
+are unusual.
+
+The stage after :mod:`mdlshapemodel.model`: functions over arrays and
+:class:`~mdlshapemodel.model.shape_model.ShapeModel`\\ s that return named results.
+
+- :func:`~.table.subjects`: a subjects table (CSV with a ``case`` column) matched to a build's
+  cases, and the design of one test;
+- :func:`~.shapes.read_build`, :func:`~.shapes.align`, :func:`~.shapes.vertex_normals`: the
+  corresponded shapes, aligned, and the mean surface's normals;
+- :func:`~.glm.permutation_test`: per-point linear models, Freedman-Lane permutations,
+  family-wise (maximum statistic) and FDR (:func:`~.glm.benjamini_hochberg`) correction;
+- :func:`~.discriminant.discriminant`, :func:`~.discriminant.classify`: the discriminant shape
+  change of two groups and its cross-validated accuracy and AUC;
+- :func:`~.study.analyze_shapes`: all of them for one build and table (an
+  :class:`~.study.Analysis`).
+"""
+
+from .discriminant import classify, discriminant
+from .glm import benjamini_hochberg, permutation_test
+from .shapes import align, read_build, vertex_normals
+from .study import Analysis, analyze_shapes, unusual_cases
+from .table import Subjects, subjects
+
+__all__ = ["Analysis", "Subjects", "align", "analyze_shapes", "benjamini_hochberg", "classify",
+           "discriminant", "permutation_test", "read_build", "subjects", "unusual_cases",
+           "vertex_normals"]

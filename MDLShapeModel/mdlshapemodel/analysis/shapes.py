@@ -1,0 +1,140 @@
+"""The corresponded shapes an analysis compares: read from a build, aligned, and the mean
+surface's outward normals along which displacements are measured.
+
+A build writes each case's corresponded points in the physical space of its input
+(``correspondence/``; a mirrored case reflected back over its input). The analysis takes them in
+the model's frame (mirrored cases reflected again, so that all are of one side) and aligns them
+by weighted generalized Procrustes (eq. 18, the model's area weights):
+
+- ``size="kept"`` (default): rotation and translation only, so that a difference in size (a loss
+  of volume) shows as a difference of shape, in mm;
+- ``size="removed"``: each case first scaled to the population's mean centroid size, so that only
+  shape differences remain (units: mm at the mean size).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..correspondence.pose import centroid_size, generalized_procrustes
+from ..errors import InputError
+from ..model.shape_model import ShapeModel
+from ..prepare import io
+
+SIZES = ("kept", "removed")
+
+
+@dataclass
+class BuildShapes:
+    """A build's model and its cases' corresponded points in the model's frame (unaligned)."""
+
+    model: ShapeModel
+    shapes: np.ndarray        # (n_s, n_p, 3), in the model's order
+    folder: Path
+
+
+def read_build(folder) -> BuildShapes:
+    """The model and corresponded shapes of a build folder (``mdlshapemodel build -o FOLDER``).
+
+    Raises InputError naming the folder and what is missing when it is not a finished build.
+    """
+    folder = Path(folder)
+    if not (folder / "model.h5").is_file():
+        raise InputError(f"{folder}: not a build folder (no model.h5)")
+    model = ShapeModel.load(folder / "model.h5")
+    cases = folder / "cases.csv"
+    if not cases.is_file():
+        raise InputError(f"{folder}: not a finished build (no cases.csv)")
+    mirrored = {row["case"]: row.get("mirrored") == "True" for row in io.read_csv(cases)}
+    shapes = []
+    for name in model.names:
+        points = []
+        for part in model.part_meshes():
+            path = io.case_file(folder / "correspondence" / part.name, name)
+            if not path.is_file():
+                raise InputError(f"{folder}: no corresponded shape of case {name!r} ({path})")
+            vertices, _ = _points_of(path)
+            points.append(vertices)
+        shape = np.concatenate(points)
+        if shape.shape != model.mean.shape:
+            raise InputError(f"{path}: {len(shape)} points; the model has {len(model.mean)}")
+        shapes.append(shape * [-1.0, 1.0, 1.0] if mirrored.get(name) else shape)
+    return BuildShapes(model, np.stack(shapes), folder)
+
+
+def _points_of(path):
+    polydata = io.read_polydata(path)
+    from ..prepare.surface import polydata_to_arrays
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    if polydata.GetNumberOfPolys():
+        return polydata_to_arrays(polydata)
+    return vtk_to_numpy(polydata.GetPoints().GetData()).astype(np.float64), None
+
+
+def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
+          planar: bool = False) -> np.ndarray:
+    """Shapes (n, p, 3) aligned by weighted generalized Procrustes without scaling (eq. 18);
+    ``size="removed"`` scales each to the mean centroid size first.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> base = rng.normal(size=(30, 3))
+    >>> shapes = np.stack([base + 5.0 * k for k in range(4)])      # translated copies
+    >>> aligned = align(shapes, np.full(30, 1 / 30))
+    >>> float(np.abs(aligned - aligned[0]).max()) < 1e-9
+    True
+    """
+    if size not in SIZES:
+        raise InputError(f"size must be one of {', '.join(SIZES)}, not {size!r}")
+    shapes = np.asarray(shapes, dtype=np.float64)
+    weights = np.asarray(weights, dtype=np.float64)
+    if size == "removed":
+        sizes = np.array([centroid_size(x, weights) for x in shapes])
+        centres = np.einsum("p,npd->nd", weights / weights.sum(), shapes)
+        shapes = ((shapes - centres[:, None]) * (sizes.mean() / sizes)[:, None, None]
+                  + centres[:, None])
+    aligned, _ = generalized_procrustes(shapes, weights, scaling=False, planar=planar)
+    return aligned
+
+
+def vertex_normals(points: np.ndarray, cells: np.ndarray | None) -> np.ndarray:
+    """Unit outward normals at the points of a mean shape: the area-weighted normals of its
+    triangles (outward as the model's triangles are oriented), or for a model of 2-D curves
+    (cells are segments) the in-plane normals of the closed curve, outward.
+
+    Examples
+    --------
+    >>> square = np.array([[0., 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    >>> segments = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+    >>> vertex_normals(square, segments)[0].round(3).tolist()
+    [-0.707, -0.707, 0.0]
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if cells is None or len(cells) == 0:
+        raise InputError("the model has no triangles or segments: no normals to measure along")
+    cells = np.asarray(cells)
+    normals = np.zeros_like(points)
+    if cells.shape[1] == 3:
+        a, b, c = (points[cells[:, k]] for k in range(3))
+        face = np.cross(b - a, c - a)                  # length: twice the area
+        for k in range(3):
+            np.add.at(normals, cells[:, k], face)
+    else:
+        start, end = points[cells[:, 0]], points[cells[:, 1]]
+        tangent = end - start
+        normal = np.stack([tangent[:, 1], -tangent[:, 0], np.zeros(len(tangent))], axis=1)
+        centre = points.mean(axis=0)
+        middle = (start + end) / 2
+        if np.sum(np.einsum("ij,ij->i", normal, middle - centre)) < 0:
+            normal = -normal                           # clockwise curve: turn them outward
+        for k in range(2):
+            np.add.at(normals, cells[:, k], normal)
+    length = np.linalg.norm(normals, axis=1)
+    if np.any(length == 0):
+        raise InputError("the mean shape has points with no normal (degenerate cells)")
+    return normals / length[:, None]

@@ -1,0 +1,158 @@
+"""One analysis of a model's shapes: the per-point test, the global test, the discriminant and
+classification of two groups, and how unusual each case is.
+
+:func:`analyze_shapes` takes the corresponded shapes of a model's cases (for example
+:func:`~.shapes.read_build`) and the design made of a subjects table
+(:func:`~.table.subjects`), and returns an :class:`Analysis` of arrays; writing its files is the
+job of :mod:`mdlshapemodel.analyze`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import AnalysisConfig
+from ..model.outliers import Distances, modes_explaining, training_distances
+from ..model.shape_model import ShapeModel
+from ..progress import report
+from .discriminant import Classification, Discriminant, classify, discriminant, principal_scores
+from .glm import PointTest, permutation_test
+from .shapes import align, vertex_normals
+from .table import Subjects
+
+
+@dataclass
+class GlobalTest:
+    """The test of the effect on the first k principal scores together (permutation Hotelling's
+    T^2 for one effect column, Pillai's trace for several)."""
+
+    modes: int
+    statistic: float
+    p: float
+    permutations: int
+
+
+@dataclass
+class Unusual:
+    """How unusual each of the model's cases is: Mahalanobis distance in the model space with its
+    p-value (:mod:`~mdlshapemodel.model.outliers`) and, per point, how far the case lies from its
+    reconstruction by the same k modes (mm)."""
+
+    names: list
+    distances: Distances
+    departure: np.ndarray          # (n_s, n_p) mm
+
+
+@dataclass
+class Analysis:
+    """What :func:`analyze_shapes` found. Per-point arrays follow the model's points."""
+
+    config: AnalysisConfig
+    subjects: Subjects
+    aligned: np.ndarray            # (n, p, 3) the used cases' shapes, aligned
+    mean: np.ndarray               # (p, 3) their mean
+    normals: np.ndarray            # (p, 3) its outward unit normals
+    parts: np.ndarray              # (p,) the part index of each point
+    points: PointTest              # the per-point test
+    difference: np.ndarray         # (r, p, 3) effect vectors (mm; per unit of a covariate)
+    normal_difference: np.ndarray  # (r, p) their components along the normals (negative: inward)
+    global_test: GlobalTest
+    discriminant: Discriminant | None
+    classification: Classification | None
+    unusual: Unusual
+
+    def significant(self, correction: str = "fwer") -> np.ndarray:
+        """Points significant at ``config.alpha`` after family-wise ("fwer") or FDR ("fdr")
+        correction."""
+        values = self.points.p_fwer if correction == "fwer" else self.points.q_fdr
+        return values <= self.config.alpha
+
+
+def unusual_cases(model: ShapeModel) -> Unusual:
+    """Distances of the model's training cases (p-values from a training case's own reference
+    distribution) and each case's departure from its reconstruction by the same modes."""
+    n = len(model.scores)
+    k = modes_explaining(model.variances, n_cases=n)
+    distances = training_distances(model.scores, model.variances, k)
+    full = model.instance(model.scores)
+    reconstructed = model.instance(model.scores[:, :k])
+    return Unusual(list(model.names), distances, np.linalg.norm(full - reconstructed, axis=2))
+
+
+def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
+                   config: AnalysisConfig | None = None, progress=None) -> Analysis:
+    """Test the subjects' effect on the shapes of a model's cases.
+
+    Parameters
+    ----------
+    model : ShapeModel
+        The model (its area weights, triangles or segments, parts, training scores).
+    shapes : ndarray (n_s, n_p, 3)
+        Every model case's corresponded points in the model's frame, in the model's order
+        (unaligned: they are aligned here as ``config.size`` says).
+    subjects : Subjects
+        Which cases are used and the design (:func:`~.table.subjects`).
+    config : AnalysisConfig
+    progress : callable, optional
+        The library's progress protocol; the permutations report as they go.
+
+    Returns
+    -------
+    Analysis
+
+    Examples
+    --------
+    ::
+
+        built = read_build("out")
+        design = subjects("subjects.csv", built.model.names, group="diagnosis")
+        found = analyze_shapes(built.model, built.shapes, design)
+        found.significant("fwer").sum(), found.global_test.p
+    """
+    config = (config or AnalysisConfig()).validate()
+    planar = model.of_curves
+    used = np.asarray(shapes, dtype=np.float64)[subjects.indices]
+    report(progress, 0.0, "aligning the shapes")
+    aligned = align(used, model.weights, config.size, planar=planar)
+    mean = aligned.mean(axis=0)
+    normals = vertex_normals(mean, model.triangles)
+    offsets = aligned - mean
+    if config.displacement == "normal":
+        data = np.einsum("npd,pd->np", offsets, normals)
+    else:
+        data = offsets[..., :2] if planar else offsets
+    points = permutation_test(data, subjects.interest, subjects.nuisance, config.permutations,
+                              config.seed, progress)
+    difference = _effects(offsets, subjects)
+    normal_difference = np.einsum("rpd,pd->rp", difference, normals)
+    r = subjects.interest.shape[1]
+    z = 1 + subjects.nuisance.shape[1]
+    _, _, scores = principal_scores(aligned, model.weights, max_modes=len(aligned) - z - r - 1)
+    report(progress, None, "the global test")
+    overall = permutation_test(scores[:, None, :], subjects.interest, subjects.nuisance,
+                               config.permutations, config.seed)
+    global_test = GlobalTest(scores.shape[1], float(overall.statistic[0]), float(overall.p[0]),
+                             config.permutations)
+    found_discriminant = found_classification = None
+    if subjects.groups is not None and len(subjects.levels) == 2:
+        second = np.array([g == subjects.levels[1] for g in subjects.groups])
+        found_discriminant = discriminant(aligned, model.weights, second)
+        found_classification = classify(aligned, model.weights, second, config.folds,
+                                        config.seed)
+    parts = np.concatenate([np.full(s.stop - s.start, j)
+                            for j, s in enumerate(model.part_slices())])
+    return Analysis(config, subjects, aligned, mean, normals, parts, points, difference,
+                    normal_difference, global_test, found_discriminant, found_classification,
+                    unusual_cases(model))
+
+
+def _effects(offsets: np.ndarray, subjects: Subjects) -> np.ndarray:
+    """The effect columns' least-squares coefficients on the point coordinates (r, p, 3),
+    adjusted for the nuisance."""
+    n, p, d = offsets.shape
+    design = np.hstack([np.ones((n, 1)), subjects.nuisance, subjects.interest])
+    coefficients, *_ = np.linalg.lstsq(design, offsets.reshape(n, -1), rcond=None)
+    r = subjects.interest.shape[1]
+    return coefficients[-r:].reshape(r, p, d)

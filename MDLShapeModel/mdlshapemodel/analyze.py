@@ -1,0 +1,219 @@
+"""``analyze_build``: a build folder and a subjects table -> the analysis's output folder.
+
+Everything is checked before anything is written: the build, the table, the columns. The files
+are written into a temporary folder beside the output and moved into place at the end, so the
+output folder holds a whole analysis or none (an interrupted run leaves nothing behind).
+
+The output folder::
+
+    analysis.json   settings, cases per group, cases left out and why, the global test, the
+                    number of significant points (FWER, FDR), the classification
+    points.csv      one row per model point: point,part,x,y,z,statistic,p,p_fwer,q_fdr,
+                    difference_x,difference_y,difference_z,normal_difference_mm
+                    (several effect columns: difference_<name>_x ... per column)
+    effects.vtp     the mean surface with the same values as point arrays (effects/<part>.vtp
+                    for a multi-part model)
+    unusual.csv     per case: Mahalanobis distance, p, flagged, largest departure from its
+                    reconstruction
+    unusual/        per case, the mean surface with the case's departure (mm) as point data
+    analysis.html   the page of findings
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .analysis.shapes import read_build
+from .analysis.study import Analysis, analyze_shapes
+from .analysis.table import subjects
+from .config import AnalysisConfig
+from .errors import InputError
+from .prepare import io
+from .report.analysis_page import write_analysis_page
+from .version import __version__
+
+ANALYSIS_FILES = ("analysis.json", "points.csv", "effects.vtp", "effects", "unusual.csv",
+                  "unusual", "analysis.html")
+
+
+@dataclass
+class AnalysisResult:
+    """What :func:`analyze_build` wrote and found."""
+
+    output: Path
+    analysis: Analysis
+    summary: dict
+
+
+def _columns(analysis: Analysis) -> tuple[list, list]:
+    """The header of points.csv and its rows."""
+    names = analysis.subjects.interest_names
+    mean, points = analysis.mean, analysis.points
+    header = ["point", "part", "x", "y", "z", "statistic", "p", "p_fwer", "q_fdr"]
+    single = len(names) == 1
+    for name in names:
+        prefix = "difference" if single else f"difference_{name}"
+        header += [f"{prefix}_x", f"{prefix}_y", f"{prefix}_z"]
+        header.append("normal_difference_mm" if single else f"normal_difference_{name}_mm")
+    rows = []
+    for k in range(len(mean)):
+        row = [k, int(analysis.parts[k]), *(f"{v:.6g}" for v in mean[k]),
+               f"{points.statistic[k]:.6g}", f"{points.p[k]:.6g}", f"{points.p_fwer[k]:.6g}",
+               f"{points.q_fdr[k]:.6g}"]
+        for r in range(len(names)):
+            row += [f"{v:.6g}" for v in analysis.difference[r, k]]
+            row.append(f"{analysis.normal_difference[r, k]:.6g}")
+        rows.append(row)
+    return header, rows
+
+
+def summary_of(analysis: Analysis, build, table) -> dict:
+    """The content of analysis.json."""
+    config, design = analysis.config, analysis.subjects
+    summary = {
+        "version": __version__, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "build": str(build), "table": str(table), "settings": asdict(config),
+        "n_cases": len(design.cases),
+        "n_per_group": ({level: design.groups.count(level) for level in design.levels}
+                        if design.groups is not None else None),
+        "tested": design.interest_names,
+        "adjusted_for": ([*config.covariates, *config.nuisance] if config.group
+                         else list(config.nuisance)),
+        "left_out": [{"case": c, "reason": r} for c, r in design.left_out],
+        "unmatched_rows": design.unmatched,
+        "global_test": {"modes": analysis.global_test.modes,
+                        "statistic": analysis.global_test.statistic,
+                        "p": analysis.global_test.p,
+                        "permutations": analysis.global_test.permutations},
+        "significant_points": {"fwer": int(analysis.significant("fwer").sum()),
+                               "fdr": int(analysis.significant("fdr").sum()),
+                               "of": len(analysis.mean)},
+        "degrees_of_freedom": analysis.points.df,
+        "classification": None, "discriminant": None,
+        "unusual": {"modes": analysis.unusual.distances.modes,
+                    "threshold": analysis.unusual.distances.threshold,
+                    "flagged": [n for n, o in zip(analysis.unusual.names,
+                                                  analysis.unusual.distances.outlier) if o]},
+    }
+    if analysis.classification is not None:
+        c = analysis.classification
+        summary["classification"] = {"folds": c.folds, "accuracy": c.accuracy,
+                                     "accuracy_se": c.accuracy_se, "auc": c.auc,
+                                     "auc_se": c.auc_se}
+        summary["discriminant"] = {"modes": analysis.discriminant.modes,
+                                   "shrinkage": analysis.discriminant.shrinkage}
+    return summary
+
+
+def _write(folder: Path, analysis: Analysis, summary: dict, model):
+    io.write_text(folder / "analysis.json", json.dumps(summary, indent=2))
+    header, rows = _columns(analysis)
+    io.write_csv(folder / "points.csv", header, rows)
+    arrays = {"statistic": analysis.points.statistic, "p": analysis.points.p,
+              "p_fwer": analysis.points.p_fwer, "q_fdr": analysis.points.q_fdr,
+              "minus_log10_p_fwer": -np.log10(analysis.points.p_fwer),
+              "significant_fwer": analysis.significant("fwer").astype(np.uint8),
+              "significant_fdr": analysis.significant("fdr").astype(np.uint8)}
+    for name, difference, normal in zip(analysis.subjects.interest_names, analysis.difference,
+                                        analysis.normal_difference):
+        suffix = "" if len(analysis.subjects.interest_names) == 1 else f"_{name}"
+        arrays[f"difference{suffix}"] = difference
+        arrays[f"normal_difference{suffix}_mm"] = normal
+    parts = model.part_meshes()
+    if len(parts) == 1:
+        io.write_polydata(folder / "effects.vtp", analysis.mean, model.triangles,
+                          point_data=arrays)
+    else:
+        (folder / "effects").mkdir()
+        for part in parts:
+            io.write_polydata(folder / "effects" / f"{part.name}.vtp", analysis.mean[part.rows],
+                              part.triangles,
+                              point_data={k: v[part.rows] for k, v in arrays.items()})
+    unusual = analysis.unusual
+    io.write_csv(folder / "unusual.csv",
+                 ["case", "mahalanobis", "p", "flagged", "max_departure_mm", "at_point"],
+                 [[name, f"{d:.6g}", f"{p:.6g}", bool(o), f"{dep.max():.6g}",
+                   int(dep.argmax())]
+                  for name, d, p, o, dep in zip(unusual.names, unusual.distances.distance,
+                                                unusual.distances.p, unusual.distances.outlier,
+                                                unusual.departure)])
+    (folder / "unusual").mkdir()
+    for name, departure in zip(unusual.names, unusual.departure):
+        io.write_polydata(io.case_file(folder / "unusual", name), model.mean, model.triangles,
+                          point_data={"departure_mm": departure})
+    write_analysis_page(folder / "analysis.html", summary, analysis, model)
+
+
+def earlier_analysis(output) -> list:
+    """The files of an earlier analysis in ``output`` (empty when there is none)."""
+    output = Path(output)
+    return [output / name for name in ANALYSIS_FILES if (output / name).exists()]
+
+
+def analyze_build(build, table, output, config: AnalysisConfig | None = None, progress=None,
+                  overwrite: bool = False) -> AnalysisResult:
+    """Analyse a build's shapes against a subjects table and write the output folder.
+
+    Parameters
+    ----------
+    build : path
+        A build's output folder (``mdlshapemodel build -o BUILD``).
+    table : path
+        The subjects table (CSV with a ``case`` column).
+    output : path
+        The analysis's folder (created; an earlier analysis there is refused unless
+        ``overwrite``).
+    config : AnalysisConfig
+        What to test and how (``group`` and/or ``covariates`` must be set).
+    progress : callable, optional
+        The library's progress protocol.
+
+    Returns
+    -------
+    AnalysisResult
+
+    Examples
+    --------
+    ::
+
+        from mdlshapemodel.analyze import analyze_build
+        from mdlshapemodel.config import AnalysisConfig
+
+        result = analyze_build("out", "subjects.csv", "findings",
+                               AnalysisConfig(group="diagnosis", nuisance=["age"]))
+        result.summary["significant_points"], result.summary["global_test"]["p"]
+    """
+    config = (config or AnalysisConfig()).validate()
+    output = Path(output)
+    built = read_build(build)
+    design = subjects(table, built.model.names, config.group, config.covariates,
+                      config.nuisance, config.reference)
+    if output.resolve() == Path(build).resolve():
+        raise InputError(f"{output}: the output folder is the build folder; choose another")
+    earlier = earlier_analysis(output)
+    if earlier and not overwrite:
+        raise InputError(f"{output}: holds an earlier analysis ({earlier[0].name}); use "
+                         "--overwrite to replace it")
+    if output.exists() and not output.is_dir():
+        raise InputError(f"{output}: exists and is not a folder")
+    analysis = analyze_shapes(built.model, built.shapes, design, config, progress)
+    summary = summary_of(analysis, build, table)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial-", dir=output.parent))
+    try:
+        _write(staging, analysis, summary, built.model)
+        output.mkdir(exist_ok=True)
+        for path in earlier_analysis(output):
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        for path in staging.iterdir():
+            path.rename(output / path.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return AnalysisResult(output, analysis, summary)

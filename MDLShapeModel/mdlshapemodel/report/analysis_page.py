@@ -1,0 +1,189 @@
+"""analysis.html: the findings of one analysis, self-contained (pictures inlined).
+
+The effect maps on the mean surface from three views (significance and the effect along the
+normal, the significant region outlined), the global test, the discriminant shape change of two
+groups at -2 and +2 SD, the discriminant scores by group, the classification, the unusual cases,
+and a few lines on how to read them.
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..analysis.study import Analysis
+from ..errors import MDLShapeModelError
+from ..model.shape_model import ShapeModel
+from ..prepare import io
+from .figures import encoded_png, pyplot
+from .html import _image, html_page, table
+from .rendering import render_maps, render_modes
+
+log = logging.getLogger("mdlshapemodel")
+
+HOW_TO_READ = """
+<h2>How to read this page</h2>
+<ul>
+<li><b>What is tested at each point.</b> {what}. The statistic is {statistic}; its p-value counts
+how often {permutations} random relabellings of the cases (permutations of the residuals of the
+model without the effect, Freedman-Lane) gave a statistic at least as large.</li>
+<li><b>Family-wise correction</b> (p<sub>FWER</sub>): the largest statistic over all points is
+compared, so the chance that <i>any</i> point is called significant when there is no effect is
+at most &alpha; = {alpha}. <b>FDR</b> (q): among the points called significant, the expected share
+of false ones is at most &alpha; (Benjamini-Hochberg); it finds more, with weaker guarantees.</li>
+<li><b>Effect along the normal</b>: the mean difference {effect_unit} projected on the mean
+surface's outward normal; negative values (blue) point inwards (a loss of volume there).</li>
+<li><b>Global test</b>: the same test on the first k principal scores together: is there any
+difference in shape at all?</li>
+<li>The shapes were aligned by rotation and translation{size}; differences in position and
+orientation are not findings, differences in {sized} are.</li>
+</ul>
+"""
+
+
+def _maps(analysis: Analysis, model: ShapeModel) -> list:
+    points, alpha = analysis.points, analysis.config.alpha
+    significant = analysis.significant("fwer")
+    cells = model.triangles
+    log_p = -np.log10(points.p_fwer)
+    top = max(float(log_p.max()), -np.log10(alpha) * 1.5)
+    rows = [("-log10 p (FWER)", log_p, "viridis", 0.0, top, "-log10 p, family-wise")]
+    for name, values in zip(analysis.subjects.interest_names, analysis.normal_difference):
+        limit = float(np.max(np.abs(values))) or 1.0
+        rows.append((f"effect: {name}", values, "coolwarm", -limit, limit,
+                     "along the normal [mm]"))
+    parts = []
+    if model.of_curves:
+        return [_image(_curve_maps(analysis, rows, significant), "effect maps")]
+    for row in rows:
+        png = render_maps(analysis.mean, cells, [row], outlined=significant)
+        parts.append(_image(_b64(png), row[0]))
+    return parts
+
+
+def _b64(png: bytes) -> str:
+    import base64
+
+    return base64.b64encode(png).decode("ascii")
+
+
+def _curve_maps(analysis: Analysis, rows, significant) -> str:
+    plt = pyplot()
+    figure, axes = plt.subplots(1, len(rows), figsize=(4.2 * len(rows), 4.0), squeeze=False)
+    for axis, (label, values, cmap, low, high, unit) in zip(axes[0], rows):
+        drawn = axis.scatter(analysis.mean[:, 0], analysis.mean[:, 1], c=values, cmap=cmap,
+                             vmin=low, vmax=high, s=14)
+        axis.scatter(analysis.mean[significant, 0], analysis.mean[significant, 1], s=60,
+                     facecolors="none", edgecolors="black", linewidths=0.6)
+        axis.set_aspect("equal")
+        axis.set_title(label)
+        axis.set_xticks([])
+        axis.set_yticks([])
+        figure.colorbar(drawn, ax=axis, shrink=0.8, label=unit)
+    return encoded_png(figure)
+
+
+def _discriminant_parts(analysis: Analysis, model: ShapeModel) -> list:
+    found = analysis.discriminant
+    if found is None:
+        return []
+    levels = analysis.subjects.levels
+    parts = [f"<h2>Discriminant shape change: {html.escape(levels[0])} &rarr; "
+             f"{html.escape(levels[1])}</h2>",
+             f"<p>Linear discriminant in the space of the first {found.modes} principal scores "
+             f"(Ledoit-Wolf shrinkage {found.shrinkage:.2f}), shown as the shape change that "
+             f"goes with its score: the mean at -2 and +2 SD of the score (positive towards "
+             f"{html.escape(levels[1])}).</p>"]
+    if not model.of_curves:
+        pattern_model = ShapeModel(mean=found.mean, modes=found.pattern[None],
+                                   variances=np.ones(1), weights=model.weights,
+                                   scores=np.zeros((0, 1)), triangles=model.triangles)
+        try:
+            parts.append(_image(_b64(render_modes(pattern_model, 1)), "discriminant change"))
+        except (MDLShapeModelError, RuntimeError) as error:
+            parts.append(f"<p>Rendering left out: {html.escape(str(error))}</p>")
+    plt = pyplot()
+    figure, axis = plt.subplots(figsize=(5.0, 2.6))
+    groups = np.array(analysis.subjects.groups)
+    for k, level in enumerate(levels):
+        values = found.scores[groups == level]
+        axis.scatter(values, np.full(len(values), k) + np.linspace(-0.15, 0.15, len(values)),
+                     s=14, label=level)
+    axis.set_yticks(range(len(levels)), levels)
+    axis.set_xlabel("discriminant score [SD]")
+    axis.grid(alpha=0.3)
+    parts.append(_image(encoded_png(figure), "scores by group"))
+    return parts
+
+
+def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: ShapeModel
+                        ) -> Path:
+    """Write ``path`` (analysis.html) from an analysis and its ``summary`` (the content of
+    analysis.json) and return the path."""
+    config = analysis.config
+    subjects = analysis.subjects
+    body = ["<h1>MDLShapeModel analysis</h1>",
+            f"<p>Build <code>{html.escape(str(summary['build']))}</code>, table "
+            f"<code>{html.escape(str(summary['table']))}</code>. {summary['n_cases']} cases "
+            f"used"]
+    if subjects.groups is not None:
+        body[-1] += " (" + ", ".join(f"{html.escape(level)}: {count}" for level, count
+                                     in summary["n_per_group"].items()) + ")"
+    body[-1] += f"; {len(subjects.left_out)} left out.</p>"
+    tested = (f"group <b>{html.escape(config.group)}</b>" if config.group else
+              "covariate(s) <b>" + html.escape(", ".join(config.covariates)) + "</b>")
+    adjusted = summary["adjusted_for"]
+    body.append(f"<p>Tested: {tested}" + (f", adjusted for {html.escape(', '.join(adjusted))}"
+                                          if adjusted else "") + ".</p>")
+    counts = summary["significant_points"]
+    body += ["<h2>Where the shapes differ</h2>",
+             f"<p>{counts['fwer']} of {len(analysis.mean)} points significant at &alpha; = "
+             f"{config.alpha} after family-wise correction, {counts['fdr']} after FDR "
+             "correction (outlined in black: family-wise).</p>"]
+    try:
+        body += _maps(analysis, model)
+    except (MDLShapeModelError, RuntimeError) as error:
+        log.warning("analysis page: no renderings (%s)", error)
+        body.append(f"<p>Renderings left out: {html.escape(str(error))}</p>")
+    overall = summary["global_test"]
+    body += ["<h2>Global test</h2>",
+             f"<p>On the first {overall['modes']} principal scores: statistic "
+             f"{overall['statistic']:.4g}, permutation p = {overall['p']:.4g}.</p>"]
+    body += _discriminant_parts(analysis, model)
+    if analysis.classification is not None:
+        c = summary["classification"]
+        body += ["<h2>Classification</h2>",
+                 f"<p>{c['folds']}-fold cross-validated linear discriminant (principal "
+                 "components and discriminant fitted on the training folds only).</p>",
+                 table(("measure", "value", "SE"),
+                       [("accuracy", c["accuracy"], c["accuracy_se"]),
+                        ("AUC", c["auc"], c["auc_se"])])]
+    unusual = analysis.unusual
+    flagged = [(name, d, p) for name, d, p, o in zip(unusual.names, unusual.distances.distance,
+                                                      unusual.distances.p,
+                                                      unusual.distances.outlier) if o]
+    body += ["<h2>Unusual cases</h2>",
+             f"<p>Mahalanobis distance over the first {unusual.distances.modes} modes, against "
+             "the distribution of a training case's own distance (a scaled Beta); flagged below "
+             f"p = 0.01: {len(flagged)} case(s). Where each case departs from its reconstruction "
+             "is in <code>unusual/</code>.</p>"]
+    if flagged:
+        body.append(table(("case", "distance", "p"), flagged))
+    what = ("the displacement of the point along the mean surface's outward normal (one number;"
+            " sliding of the correspondence along the surface does not change it)"
+            if config.displacement == "normal" else
+            "the displacement vector of the point from the mean shape")
+    statistic = ("Hotelling's T<sup>2</sup> (F = t<sup>2</sup> for one number)"
+                 if analysis.points.effect.shape[0] == 1 else "the F of Pillai's trace")
+    body.append(HOW_TO_READ.format(
+        what=what, statistic=statistic, permutations=config.permutations, alpha=config.alpha,
+        effect_unit="(mm)" if config.group else "per unit of the covariate (mm)",
+        size="" if config.size == "kept" else ", after scaling each case to the mean size",
+        sized="size and shape" if config.size == "kept" else "shape"))
+    if subjects.left_out:
+        body += ["<h2>Cases left out</h2>", table(("case", "reason"), subjects.left_out)]
+    io.write_text(path, html_page("MDLShapeModel analysis", body))
+    return path
