@@ -102,7 +102,8 @@ def _discriminant_parts(analysis: Analysis, model: ShapeModel) -> list:
                                    variances=np.ones(1), weights=model.weights,
                                    scores=np.zeros((0, 1)), triangles=model.triangles)
         try:
-            parts.append(_image(_b64(render_modes(pattern_model, 1)), "discriminant change"))
+            picture = render_modes(pattern_model, 1, row_labels=["discriminant\nscore"])
+            parts.append(_image(_b64(picture), "discriminant change"))
         except (MDLShapeModelError, RuntimeError) as error:
             parts.append(f"<p>Rendering left out: {html.escape(str(error))}</p>")
     plt = pyplot()

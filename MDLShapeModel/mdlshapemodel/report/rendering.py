@@ -422,8 +422,8 @@ def mode_panels(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(3
     return panels, row_labels, [_sd_label(s) for s in sds], half_range
 
 
-def render_modes(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(300, 260)
-                 ) -> bytes:
+def render_modes(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(300, 260),
+                 row_labels=None) -> bytes:
     """PNG of the first modes of variation of a :class:`~mdlshapemodel.model.ShapeModel`.
 
     Rows are modes 1..n_modes (fewer when the model has fewer; the mean alone when it has none),
@@ -434,11 +434,13 @@ def render_modes(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(
     outwards, blue inwards; one symmetric range, shown by the colour bar).
 
     ``size`` is the (width, height) of each panel in pixels; the picture's layout is
-    ``grid_layout("modes", rows, len(standard_deviations), size)``.
+    ``grid_layout("modes", rows, len(standard_deviations), size)``. ``row_labels`` replace the
+    rows' labels (mode number and standard deviation).
     Raises :class:`RenderingError` when offscreen rendering is not available.
     """
-    panels, row_labels, column_labels, half_range = mode_panels(
+    panels, labels, column_labels, half_range = mode_panels(
         model, n_modes, standard_deviations, size)
+    row_labels = labels if row_labels is None else list(row_labels)
     layout = grid_layout("modes", len(panels), len(panels[0]), size)
     colorbar = None if model.n_modes == 0 or n_modes < 1 else (
         _colormap(DISPLACEMENT_COLORMAP), -half_range, half_range, "normal displacement [mm]")

@@ -1,0 +1,236 @@
+"""`mdlshapemodel analyze` end to end: the real command in a subprocess on a real build, every
+number of analysis.json recomputed here, the files read back by VTK, bad tables refused."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import vtk
+from scipy import stats
+from vtk.util.numpy_support import vtk_to_numpy
+
+from mdlshapemodel import BuildConfig, build_model
+from mdlshapemodel.analysis import align
+from mdlshapemodel.model.shape_model import ShapeModel
+from mdlshapemodel.prepare import io
+
+from common import run_cli
+from synthetic import small_mask
+
+N = 12
+
+
+@pytest.fixture(scope="module")
+def build(tmp_path_factory) -> Path:
+    """Twelve small bumpy ellipsoids; the 'thin' half is 8% smaller, so groups differ in size."""
+    folder = tmp_path_factory.mktemp("analyze")
+    paths = []
+    for k, position in enumerate(np.linspace(-0.5, 0.5, N)):
+        mask = small_mask(float(position), 0.92 if k % 2 else 1.0).astype(np.uint8)
+        paths.append(folder / "labels" / f"case_{k:02d}.nii.gz")
+        paths[-1].parent.mkdir(exist_ok=True)
+        sitk.WriteImage(sitk.GetImageFromArray(mask), str(paths[-1]))
+    config = BuildConfig(points=162, strategy="none", baselines=[], workers=1,
+                         evaluation_modes=2, specificity_samples=100, surface_samples=0,
+                         cache_dir="")
+    build_model(paths, folder / "build", config)
+    return folder / "build"
+
+
+def write_table(path: Path, rows: list, header=("case", "group", "age", "sex")) -> Path:
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(header)
+        writer.writerows(rows)
+    return path
+
+
+@pytest.fixture(scope="module")
+def table(build) -> Path:
+    rows = [[f"case_{k:02d}", "thin" if k % 2 else "full", 40 + 3 * k, "F" if k % 3 else "M"]
+            for k in range(N)]
+    rows[5][1] = ""                                          # no group: left out
+    rows.append(["case_99", "full", 50, "F"])                # no such case
+    return write_table(build.parent / "subjects.csv", rows)
+
+
+@pytest.fixture(scope="module")
+def analysed(build, table) -> Path:
+    output = build.parent / "findings"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "-o", output,
+                     "--permutations", "999", "-q")
+    assert result.returncode == 0, result.stderr
+    assert "page:" in result.stdout
+    return output
+
+
+def read_points(path: Path) -> dict:
+    rows = io.read_csv(path)
+    return {key: np.array([row[key] for row in rows]) for key in rows[0]}
+
+
+def shapes_of(build: Path, names: list) -> np.ndarray:
+    return np.stack([io.read_mesh(io.case_file(build / "correspondence", n))[0] for n in names])
+
+
+def vtk_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Point normals computed by VTK's own filter (outward for the model's orientation; it
+    averages unit face normals, where the analysis weights them by area)."""
+    from mdlshapemodel.prepare.surface import arrays_to_polydata
+
+    normals = vtk.vtkPolyDataNormals()
+    normals.SetInputData(arrays_to_polydata(points, triangles))
+    normals.SplittingOff()
+    normals.ConsistencyOff()
+    normals.AutoOrientNormalsOff()
+    normals.ComputePointNormalsOn()
+    normals.Update()
+    return vtk_to_numpy(normals.GetOutput().GetPointData().GetNormals()).astype(np.float64)
+
+
+def test_every_number_of_analysis_json_is_recomputed(build, table, analysed):
+    summary = json.loads((analysed / "analysis.json").read_text())
+    used = [f"case_{k:02d}" for k in range(N) if k != 5]
+    assert summary["n_cases"] == 11
+    assert summary["n_per_group"] == {"full": 6, "thin": 5}
+    assert summary["left_out"] == [{"case": "case_05", "reason": "no value for 'group'"}]
+    assert summary["unmatched_rows"] == ["case_99"]
+    points = read_points(analysed / "points.csv")
+    assert summary["significant_points"] == {
+        "fwer": int(np.sum(points["p_fwer"].astype(float) <= 0.05)),
+        "fdr": int(np.sum(points["q_fdr"].astype(float) <= 0.05)), "of": 162}
+
+    # the per-point statistic: t^2 of the normal displacement, normals from VTK's filter
+    model = ShapeModel.load(build / "model.h5")
+    aligned = align(shapes_of(build, used), model.weights)
+    mean = aligned.mean(axis=0)
+    np.testing.assert_allclose(np.column_stack([points[c].astype(float) for c in "xyz"]), mean,
+                               atol=5e-5 * np.abs(mean).max())
+    thin = np.array([int(n[-2:]) % 2 == 1 for n in used])
+    corners = mean[model.triangles]
+    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    summed = np.zeros_like(mean)
+    for k in range(3):
+        np.add.at(summed, model.triangles[:, k], face)       # area-weighted face normals
+    for normals, tolerance in ((summed, 1e-5), (vtk_normals(mean, model.triangles), 0.05)):
+        unit = normals / np.linalg.norm(normals, axis=1)[:, None]
+        normal = np.einsum("npd,pd->np", aligned - mean, unit)
+        t = stats.ttest_ind(normal[thin], normal[~thin]).statistic
+        np.testing.assert_allclose(points["statistic"].astype(float), t ** 2, rtol=tolerance)
+    difference = aligned[thin].mean(0) - aligned[~thin].mean(0)
+    np.testing.assert_allclose(
+        np.column_stack([points[f"difference_{c}"].astype(float) for c in "xyz"]), difference,
+        atol=1e-5)
+
+    # the global test: Hotelling's T^2 on the principal scores explaining 95 %
+    root = np.sqrt(model.weights)[None, :, None]
+    centred = ((aligned - mean) * root).reshape(len(used), -1)
+    u, s, _ = np.linalg.svd(centred, full_matrices=False)
+    k = summary["global_test"]["modes"]
+    explained = np.cumsum(s ** 2) / np.sum(s ** 2)
+    assert k == min(int(np.searchsorted(explained, 0.95) + 1), len(used) - 3)
+    scores = u[:, :k] * s[:k]
+    a, b = scores[~thin], scores[thin]
+    pooled = ((a - a.mean(0)).T @ (a - a.mean(0)) + (b - b.mean(0)).T @ (b - b.mean(0))) / (
+        len(used) - 2)
+    d = b.mean(0) - a.mean(0)
+    t2 = len(a) * len(b) / len(used) * d @ np.linalg.solve(pooled, d)
+    assert summary["global_test"]["statistic"] == pytest.approx(t2, rel=1e-6)
+    assert 1 / 1000 <= summary["global_test"]["p"] <= 1
+
+    # unusual cases: the threshold of the scaled Beta over the model's own modes
+    unusual = summary["unusual"]
+    n, m = len(model.names), unusual["modes"]
+    assert unusual["threshold"] == pytest.approx(
+        np.sqrt((n - 1) * stats.beta(m / 2, (n - m - 1) / 2).isf(0.01)))
+    rows = io.read_csv(analysed / "unusual.csv")
+    distance = np.sqrt(np.sum(model.scores[:, :m] ** 2 / model.variances[:m], axis=1))
+    np.testing.assert_allclose([float(r["mahalanobis"]) for r in rows], distance, rtol=1e-5)
+    assert unusual["flagged"] == [r["case"] for r in rows if r["flagged"] == "True"]
+
+    classification = summary["classification"]
+    accuracy = classification["accuracy"]
+    assert classification["accuracy_se"] == pytest.approx(np.sqrt(accuracy * (1 - accuracy)
+                                                                  / 11))
+    assert classification["folds"] == 5             # the smaller group has 5 cases
+
+
+def test_the_groups_that_differ_in_size_are_found_with_the_size_kept(analysed):
+    summary = json.loads((analysed / "analysis.json").read_text())
+    assert summary["global_test"]["p"] < 0.01
+    assert summary["significant_points"]["fwer"] > 0
+    normal = read_points(analysed / "points.csv")["normal_difference_mm"].astype(float)
+    assert np.median(normal) < 0               # the thin group lies inside the full one
+
+
+def test_effects_vtp_holds_the_points_csv_values_for_vtk(analysed):
+    polydata = io.read_polydata(analysed / "effects.vtp")
+    points = read_points(analysed / "points.csv")
+    assert polydata.GetNumberOfPoints() == 162 and polydata.GetNumberOfPolys() == 320
+    data = polydata.GetPointData()
+    for name in ("statistic", "p_fwer", "q_fdr", "normal_difference_mm"):
+        np.testing.assert_allclose(vtk_to_numpy(data.GetArray(name)),
+                                   points[name].astype(float), rtol=1e-5)
+    assert data.GetArray("difference").GetNumberOfComponents() == 3
+    significant = vtk_to_numpy(data.GetArray("significant_fwer"))
+    assert significant.sum() == np.sum(points["p_fwer"].astype(float) <= 0.05)
+    assert (analysed / "analysis.html").stat().st_size > 10_000
+    departures = list((analysed / "unusual").iterdir())
+    assert len(departures) == N
+
+
+def test_a_covariate_with_nuisance_writes_its_effect_per_unit(build, table, tmp_path):
+    result = run_cli("analyze", build, "--table", table, "--covariate", "age", "--nuisance",
+                     "sex", "--displacement", "vector", "--permutations", "99", "-o",
+                     tmp_path / "age", "-q")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((tmp_path / "age" / "analysis.json").read_text())
+    assert summary["n_cases"] == 12 and summary["n_per_group"] is None
+    assert summary["tested"] == ["age"] and summary["adjusted_for"] == ["sex"]
+    assert summary["classification"] is None
+
+
+def test_an_earlier_analysis_is_refused_without_overwrite(build, table, analysed):
+    before = (analysed / "analysis.json").read_bytes()
+    refused = run_cli("analyze", build, "--table", table, "--group", "group", "-o", analysed,
+                      "--permutations", "9", "-q")
+    assert refused.returncode == 2 and "--overwrite" in refused.stderr
+    assert (analysed / "analysis.json").read_bytes() == before
+
+
+@pytest.mark.parametrize("content, arguments, message", [
+    ("subject,group\ncase_00,a\n", ["--group", "group"], "no 'case' column"),
+    ("case,group\n" + "".join(f"case_{k:02d},same\n" for k in range(N)), ["--group", "group"],
+     "has one level ('same')"),
+    ("case,group\n" + "".join(f"case_{k:02d},{'a' if k else 'b'}\n" for k in range(N)),
+     ["--group", "group"], "group group='b' has 1 case(s); each group needs at least 3"),
+    ("case,age\n" + "".join(f"case_{k:02d},{'old' if k == 3 else k}\n" for k in range(N)),
+     ["--covariate", "age"], "covariate 'age' is not numeric (value 'old')"),
+    ("case,group\n" + "".join(f"other_{k},a\n" for k in range(N)), ["--group", "group"],
+     "no row matches a case of the build"),
+    ("case,group\ncase_00,a\n", ["--group", "diagnosis"], "no column 'diagnosis'"),
+    (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR", ["--group", "group"], "not a CSV text table"),
+])
+def test_bad_tables_are_refused_in_one_line_and_nothing_is_written(build, tmp_path, content,
+                                                                   arguments, message):
+    path = tmp_path / "table.csv"
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    output = tmp_path / "out"
+    result = run_cli("analyze", build, "--table", path, *arguments, "-o", output, "-q")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], result.stderr
+    assert not output.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["table.csv"]
+
+
+def test_a_folder_that_is_not_a_build_is_refused(table, tmp_path):
+    result = run_cli("analyze", tmp_path, "--table", table, "--group", "group", "-o",
+                     tmp_path / "out", "-q")
+    assert result.returncode == 2 and "not a build folder (no model.h5)" in result.stderr
+    assert not (tmp_path / "out").exists()
