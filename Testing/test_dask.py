@@ -131,12 +131,11 @@ def test_the_scheduler_is_not_part_of_what_a_checkpoint_is_of():
 def test_an_unreachable_scheduler_is_one_line_and_exit_code_2_before_any_work(tmp_path):
     paths = write_population(tmp_path / "inputs", 3)
     address = f"tcp://127.0.0.1:{free_port()}"
-    started = time.monotonic()
     result = build(paths, tmp_path / "out", "--scheduler", address)
     assert result.returncode == 2, result.stderr
+    # the refusal itself, not a retry until the connect timeout ("... answers ... within N s")
     assert result.stderr.splitlines() == [
         f"mdlshapemodel: error: no Dask scheduler reachable at {address} (Connection refused)"]
-    assert time.monotonic() - started < 20   # no retrying until a timeout
     assert not (tmp_path / "out" / "rejected.csv").exists()   # nothing was prepared
 
 
