@@ -39,8 +39,10 @@ def arrays(polydata):
     return surface.polydata_to_arrays(polydata)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def pipeline():
+    """A fresh label map -> surface -> sphere map pipeline, run once; each test gets its own, as
+    one changes the filters' parameters."""
     labels = small_mask(0.3).astype(np.uint8) * 2
     source = image_source(labels, spacing=(1.5, 1.0, 1.0), origin=(5.0, -3.0, 2.0))
     to_surface = LabelMapToClosedSurface()
