@@ -4,9 +4,11 @@ again with --resume gives the uninterrupted build's model, with no half-written 
 
 import copy
 import json
+import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,7 @@ from mdlshapemodel.errors import BuildError
 from mdlshapemodel.outputs import read_checkpoint
 from mdlshapemodel.prepare import io
 
+from common import TIMEOUT, run_cli
 from synthetic import build_objectives, small_mask, small_state
 
 
@@ -102,16 +105,15 @@ def labels(tmp_path_factory):
     return folder
 
 
-def command(labels, output, *extra):
-    return [sys.executable, "-m", "mdlshapemodel.cli", "build", str(labels), "-o", str(output),
-            *QUICK, *extra]
+def command(labels, output, *extra) -> list:
+    """The arguments of the small build of ``labels`` into ``output``."""
+    return ["build", labels, "-o", output, *QUICK, *extra]
 
 
 @pytest.fixture(scope="module")
 def uninterrupted(labels, tmp_path_factory):
     output = tmp_path_factory.mktemp("uninterrupted")
-    done = subprocess.run(command(labels, output, "--workers", "1"), capture_output=True,
-                          text=True)
+    done = run_cli(*command(labels, output, "--workers", "1"))
     assert done.returncode == 0, done.stderr
     return output
 
@@ -119,18 +121,25 @@ def uninterrupted(labels, tmp_path_factory):
 def killed_at(labels, output, reached, workers: str, cache) -> list:
     """Run a build and SIGKILL it as soon as ``reached(output)`` (polled) is true; check that
     its worker processes end with it, and return their pids."""
-    import os
-    import time
-
     environment = {**os.environ, "MDLSHAPEMODEL_CACHE": str(cache)}
-    process = subprocess.Popen(command(labels, output, "--workers", workers),
+    process = subprocess.Popen([sys.executable, "-m", "mdlshapemodel.cli",
+                                *map(str, command(labels, output, "--workers", workers))],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                env=environment)
-    while process.poll() is None and not reached(output):
-        time.sleep(0.005)
-    workers = descendants(process.pid)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    try:
+        deadline = time.monotonic() + TIMEOUT
+        while process.poll() is None and not reached(output):
+            assert time.monotonic() < deadline, f"the build reached no point in {TIMEOUT} s"
+            time.sleep(0.005)
+        # held where it is while its workers are listed: none is started or reaped meanwhile
+        if process.poll() is None:
+            process.send_signal(signal.SIGSTOP)
+        workers = descendants(process.pid)
+        process.send_signal(signal.SIGKILL)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.wait(timeout=60)
     assert process.returncode == -signal.SIGKILL, "the build ended before the point"
     # its worker processes end with it (they would otherwise wait for work for ever)
     deadline = time.monotonic() + 10.0
@@ -194,8 +203,10 @@ def assert_whole_outputs(output):
             assert len(io.read_mesh(path)[0]) == 162, path
         elif path.suffix == ".json":
             json.loads(path.read_text())
-        elif path.suffix == ".csv":
-            assert io.read_csv(path) is not None
+        elif path.suffix == ".csv":   # a header, and every row has its fields, no more
+            assert path.read_text().endswith("\n"), path
+            for row in io.read_csv(path):
+                assert None not in row and None not in row.values(), (path, row)
         elif path.suffix == ".npz":
             np.load(path, allow_pickle=False).files
 
@@ -204,8 +215,6 @@ def assert_whole_outputs(output):
                                             ("integrated", "2"), ("writing outputs", "1")])
 def test_a_build_killed_at_any_stage_resumes_to_the_uninterrupted_model(
         labels, uninterrupted, tmp_path, stage, workers):
-    import os
-
     output, cache = tmp_path / "out", tmp_path / "cache"
     reached = {"preparing": prepared_one(cache), "fixed": checkpoint_at("fixed", 2),
                "integrated": checkpoint_at("integrated", 1),
@@ -214,11 +223,11 @@ def test_a_build_killed_at_any_stage_resumes_to_the_uninterrupted_model(
     if stage == "preparing":
         assert len(pids) >= 2             # the pool's workers were there, and ended
     assert_whole_outputs(output)
-    refused = subprocess.run(command(labels, output), capture_output=True, text=True)
+    refused = run_cli(*command(labels, output))
     assert refused.returncode == 2 and "--overwrite" in refused.stderr   # not without --resume
     environment = {**os.environ, "MDLSHAPEMODEL_CACHE": str(cache)}
-    resumed = subprocess.run([c for c in command(labels, output, "--resume", "--workers", "1")
-                              if c != "-q"], capture_output=True, text=True, env=environment)
+    resumed = run_cli(*[c for c in command(labels, output, "--resume", "--workers", "1")
+                        if c != "-q"], env=environment)
     assert resumed.returncode == 0, resumed.stderr
     if stage == "preparing":   # no checkpoint yet: started over, the prepared case from the cache
         assert "starting over" in resumed.stderr and "reused" in resumed.stderr
@@ -234,7 +243,6 @@ def test_a_build_killed_at_any_stage_resumes_to_the_uninterrupted_model(
 def test_resuming_with_other_settings_is_refused(labels, uninterrupted, tmp_path):
     output = tmp_path / "out"
     killed_at(labels, output, checkpoint_at("integrated"), "1", tmp_path / "cache")
-    other = subprocess.run(command(labels, output, "--resume", "--seed", "3"),
-                           capture_output=True, text=True)
+    other = run_cli(*command(labels, output, "--resume", "--seed", "3"))
     assert other.returncode == 2
     assert "other inputs or settings (seed)" in other.stderr and "Traceback" not in other.stderr
