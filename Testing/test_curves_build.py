@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -17,10 +15,10 @@ from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.outputs import load_checkpoint
 from mdlshapemodel.prepare.io import read_csv
 
+from common import run_cli
 
-def cli(*arguments):
-    return subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", *map(str, arguments)],
-                          capture_output=True, text=True)
+
+cli = run_cli
 
 
 def polyline(path):

@@ -2,8 +2,6 @@
 folder: it is refused unless told to replace it, and then only the earlier build's files go."""
 
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -13,6 +11,7 @@ from mdlshapemodel import ShapeModel
 from mdlshapemodel.outputs import BUILD_FILES, previous_build
 from mdlshapemodel.prepare.io import write_csv, written_whole
 
+from common import run_cli
 from synthetic import small_mask
 
 QUICK = ["--points", "42", "--baselines", "", "--max-sweeps", "2", "--evaluation-modes", "2",
@@ -40,8 +39,7 @@ def labels(tmp_path_factory):
 
 
 def build(labels, output, *extra):
-    return subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "build", str(labels),
-                           "-o", str(output), *QUICK, *extra], capture_output=True, text=True)
+    return run_cli("build", labels, "-o", output, *QUICK, *extra)
 
 
 def test_a_second_build_into_the_same_folder_is_refused_unless_overwrite(labels, tmp_path):

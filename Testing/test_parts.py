@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +23,7 @@ from mdlshapemodel.errors import ConfigError, InputError
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.parts import read_manifest
+from common import run_cli
 from synthetic import split_into_part_files
 
 PARTS = list(DEMO_PARTS)          # left=1, right=2
@@ -183,9 +182,8 @@ def test_cli_builds_a_two_part_model_by_labels_and_by_manifest(two_label_maps, t
     common = ["--points", "162", "--max-sweeps", "2", "--surface-samples", "0",
               "--specificity-samples", "200", "--workers", "1"]
     by_labels = tmp_path / "labels"
-    run = subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "build", *map(str, paths),
-                          "-o", str(by_labels), "--part", "left=1", "--part", "right=2",
-                          *common], capture_output=True, text=True)
+    run = run_cli("build", *paths, "-o", by_labels, "--part", "left=1", "--part", "right=2",
+                  *common)
     assert run.returncode == 0, run.stderr
     model = ShapeModel.load(by_labels / "model.h5")
     assert model.part_names == ["left", "right"] and model.part_sizes == [162, 162]
@@ -209,9 +207,7 @@ def test_cli_builds_a_two_part_model_by_labels_and_by_manifest(two_label_maps, t
     table.write_text((folder / "cases.csv").read_text() + "ghost,left,nowhere.nii.gz\n"
                                                          "ghost,right,split/subject_01_right.nii.gz\n")
     by_files = tmp_path / "files"
-    run = subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "build", "--manifest",
-                          str(table), "-o", str(by_files), *common],
-                         capture_output=True, text=True)
+    run = run_cli("build", "--manifest", table, "-o", by_files, *common)
     assert run.returncode == 0, run.stderr
     assert "nowhere.nii.gz: part left: no such file" in run.stderr
     other = ShapeModel.load(by_files / "model.h5")
@@ -240,18 +236,15 @@ def test_fit_and_compare_take_two_part_models(two_label_maps, tmp_path):
     models = {}
     for strategy in ("fast", "none"):
         models[strategy] = tmp_path / strategy
-        run = subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "build",
-                              *map(str, paths[:5]), "-o", str(models[strategy]), "--part",
-                              "left=1", "--part", "right=2", "--strategy", strategy, *common],
-                             capture_output=True, text=True)
+        run = run_cli("build", *paths[:5], "-o", models[strategy], "--part", "left=1",
+                      "--part", "right=2", "--strategy", strategy, *common)
         assert run.returncode == 0, run.stderr
     table = folder / "held_out.csv"
     table.write_text("case,part,file\nby_files,left,split/subject_06_left.nii.gz\n"
                      "by_files,right,split/subject_06_right.nii.gz\n")
     fitted = tmp_path / "fitted"
-    run = subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "fit",
-                          str(models["fast"]), str(paths[5]), "--manifest", str(table),
-                          "-o", str(fitted), "--max-sweeps", "2"], capture_output=True, text=True)
+    run = run_cli("fit", models["fast"], paths[5], "--manifest", table, "-o", fitted,
+                  "--max-sweeps", "2")
     assert run.returncode == 0, run.stderr
     summary = json.loads((fitted / "fit.json").read_text())
     assert set(summary) == {"subject_06", "by_files"}
@@ -265,11 +258,20 @@ def test_fit_and_compare_take_two_part_models(two_label_maps, tmp_path):
     # the same new case, from one label map or from two files: the same fit
     assert np.allclose(summary["subject_06"]["reconstruction_squared_mm2"],
                        summary["by_files"]["reconstruction_squared_mm2"], rtol=1e-9)
-    run = subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "compare",
-                          str(models["fast"]), str(models["none"]), "-o", str(tmp_path / "cmp"),
-                          "--samples", "200", "--modes", "3"], capture_output=True, text=True)
+    run = run_cli("compare", models["fast"], models["none"], "-o", tmp_path / "cmp",
+                  "--samples", "200", "--modes", "3")
     assert run.returncode == 0, run.stderr
-    assert (tmp_path / "cmp" / "compare.json").exists()
+    result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert result["n_cases"] == 5 and result["reference"] == "fast (fast)"
+    assert set(result["models"]) == {"fast (fast)", "none (none)"}
+    assert set(result["differences"]) == {"none (none)"}
+    # each model is compared whole, both parts: its compactness is its own variances' sums
+    for strategy, folder in models.items():
+        measures = result["models"][f"{strategy} ({strategy})"]
+        variances = ShapeModel.load(folder / "model.h5").variances
+        np.testing.assert_allclose(measures["compactness"], np.cumsum(variances[:3]), rtol=1e-6)
+        for measure in ("generalization", "specificity"):
+            assert len(measures[measure]) == 3 and np.all(np.array(measures[measure]) > 0)
 
 
 def test_a_two_part_model_goes_through_files_and_vtk_whole(tmp_path, rng):
