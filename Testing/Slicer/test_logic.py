@@ -3,8 +3,6 @@ modules use it; see harness.py for what stands in for the Slicer application."""
 
 import dataclasses
 import json
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -19,9 +17,10 @@ import MDLShapeModel as module
 from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.config import SURFACE_POINTS
 from mdlshapemodel.errors import ConfigError
-from mdlshapemodel.prepare import io
+from mdlshapemodel.prepare import io, preprocess
 from mdlshapemodel.prepare.surface import (arrays_to_polydata, mask_to_surface,
                                            point_surface_distances)
+from common import run_cli, run_python
 from synthetic import small_mask
 
 # small and quick: 162 points, a short evaluation
@@ -51,6 +50,17 @@ def load_label_map_node(path):
     return node
 
 
+def load_model_node(path, name):
+    """A model node read by Slicer's model storage node (as 'Add data' does; it honours the
+    file's coordinate system)."""
+    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", name)
+    storage = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelStorageNode")
+    storage.SetFileName(str(path))
+    assert storage.ReadData(node)
+    node.SetAndObserveStorageNodeID(storage.GetID())
+    return node
+
+
 def closed_surface_ras(segmentation_node) -> tuple:
     """Slicer's own closed surface of all segments (RAS): vertices, triangles."""
     segmentation_node.CreateClosedSurfaceRepresentation()
@@ -77,9 +87,9 @@ def test_importing_the_module_loads_none_of_the_librarys_heavy_dependencies():
             "import MDLShapeModel; print(sorted(m for m in ('numba', 'h5py', 'scipy', 'lapy', "
             "'gpytoolbox', 'pycpd', 'matplotlib', 'SimpleITK') if m in sys.modules))"
             % str(harness.HERE))
-    output = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            check=True).stdout
-    assert output.strip().splitlines()[-1] == "[]"
+    done = run_python(code)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "[]"
 
 
 def test_the_parameter_node_holds_the_build_configs_defaults_and_fills_it(scene):
@@ -129,11 +139,10 @@ def test_segmentation_nodes_build_the_same_model_as_the_command_line_and_overlay
     nodes = [logic.LoadSegmentationFromFile(str(f), True, f.name.split(".")[0])
              for f in hippocampus_files]
     result = module.MDLShapeModelLogic().buildModel(nodes, tmp_path / "slicer", config)
-    cli = subprocess.run(
-        [sys.executable, "-m", "mdlshapemodel.cli", "build", *map(str, hippocampus_files),
-         "-o", str(tmp_path / "cli"), "--label", "1,2", "--points", "162", "--baselines", "",
-         "--max-time", "120", "--evaluation-modes", "2", "--specificity-samples", "100",
-         "--workers", "1", "-q"], capture_output=True, text=True)
+    cli = run_cli("build", *hippocampus_files, "-o", tmp_path / "cli", "--label", "1,2",
+                  "--points", "162", "--baselines", "", "--max-time", "120",
+                  "--evaluation-modes", "2", "--specificity-samples", "100", "--workers", "1",
+                  "-q")
     assert cli.returncode == 0, cli.stderr
     ours, theirs = (ShapeModel.load(tmp_path / name / "model.h5") for name in ("slicer", "cli"))
     assert ours.names == theirs.names == [f.name.split(".")[0] for f in hippocampus_files]
@@ -162,7 +171,7 @@ def mixed_build(generated_files, tmp_path_factory):
     volumes = [load_label_map_node(path) for path in generated_files[:2]]
     vertices, faces, _ = mask_to_surface(small_mask(0.1), (1.2, 1.0, 1.0), (5.0, -3.0, 2.0))
     io.write_polydata(folder / "surface.vtp", vertices, faces)
-    model = module._readModel(folder / "surface.vtp", "model_case")
+    model = load_model_node(folder / "surface.vtp", "model_case")
     segmentation = harness.segmentations_logic().LoadSegmentationFromFile(
         str(generated_files[2]), True, "segmentation_case")
     empty = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLSegmentationNode", "empty")
@@ -170,17 +179,19 @@ def mixed_build(generated_files, tmp_path_factory):
     broken.write_bytes(b"not an image")
     inputs = [volumes[0], model, empty, segmentation, broken, volumes[1], generated_files[3]]
     result = module.MDLShapeModelLogic().buildModel(inputs, folder / "out", BuildConfig(**QUICK))
-    return result, inputs
+    return result, inputs, broken
 
 
 def test_every_kind_of_input_goes_in_and_bad_ones_are_rejected_with_their_reason(mixed_build):
-    result, inputs = mixed_build
+    result, inputs, broken = mixed_build
     assert result.caseNames == ["case_0", "model_case", "segmentation_case", "case_1", "case_3"]
     assert [n.GetName() for n in result.correspondenceModelNodes] == result.caseNames
     assert {points_of(n).shape for n in result.correspondenceModelNodes} == {(162, 3)}
     reasons = dict(result.rejected)
     assert reasons["empty"] == "the segmentation has no segments"
-    assert "broken" in reasons and reasons["broken"]
+    # the unreadable file: the library's own reason, as a build of that file alone gives it
+    _, alone = preprocess([broken], BuildConfig(workers=1, cache_dir=""))
+    assert [r.reason for r in alone] == [reasons["broken"]]
     assert len(result.rejected) == 2
     # every node sits in the result's subject-hierarchy folder
     hierarchy = slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(slicer.mrmlScene)
@@ -190,7 +201,7 @@ def test_every_kind_of_input_goes_in_and_bad_ones_are_rejected_with_their_reason
 
 
 def test_the_model_case_overlays_the_model_it_came_from(mixed_build):
-    result, inputs = mixed_build
+    result, inputs, _ = mixed_build
     model = inputs[1]
     corresponded = result.correspondenceModelNodes[1]
     vertices, triangles = io.mesh_arrays(model.GetPolyData())
@@ -232,7 +243,7 @@ def test_nodes_whose_arrays_do_not_fit_their_size_are_rejected_before_they_are_w
 
 
 def test_load_model_and_mode_weights_move_the_explorer_by_the_modes(mixed_build):
-    result, _ = mixed_build
+    result, *_ = mixed_build
     loaded = module.MDLShapeModelLogic().loadModel(result.modelFile)
     model = ShapeModel.load(result.modelFile)
     assert loaded.correspondenceModelNodes == []
@@ -269,7 +280,11 @@ def test_a_background_build_reports_progress_and_cancel_keeps_the_state_reached(
         time.sleep(0.05)
     assert job.wait(300)
     seen += job.messages()
-    assert any("prepar" in message for _, message in seen)
+    messages = [message for _, message in seen]
+    # each case reported prepared, in turn, before the optimisation's first report
+    prepared = [k for k, message in enumerate(messages) if message.startswith("prepared")]
+    assert [messages[k] for k in prepared] == [f"prepared {k}/5" for k in range(1, 6)]
+    assert prepared[-1] < next(k for k, message in enumerate(messages) if "F =" in message)
     result = job.finish()
     assert result.interrupted
     assert json.loads((tmp_path / "metrics.json").read_text())["interrupted"] is True
@@ -311,7 +326,7 @@ def test_the_modules_own_test_runs_here_too(scene):
 
 
 def test_a_new_segmentation_is_fitted_to_a_loaded_model(mixed_build, generated_files, tmp_path):
-    result, _ = mixed_build
+    result, *_ = mixed_build
     segmentation = harness.segmentations_logic().LoadSegmentationFromFile(
         str(generated_files[4]), True, "new_case")
     fitted, reconstruction, fit = module.MDLShapeModelLogic().fitSegmentation(
