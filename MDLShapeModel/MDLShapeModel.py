@@ -44,9 +44,12 @@ from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoada
                                            ScriptedLoadableModuleWidget)
 from slicer.util import VTKObservationMixin
 
-from mdlshapemodel.config import BuildConfig, field_items
+from mdlshapemodel.config import AnalysisConfig, BuildConfig, field_items
 
 MODULE_DIRECTORY = pathlib.Path(__file__).resolve().parent
+# The point arrays of an analysis's effect map that can colour it (effects.vtp): significance
+# (-log10 of the family-wise p-value) and the effect along the outward normal (mm).
+EFFECT_SCALARS = ("minus_log10_p_fwer", "normal_difference_mm")
 # The node types a build takes as inputs.
 INPUT_NODE_TYPES = ("vtkMRMLSegmentationNode", "vtkMRMLLabelMapVolumeNode", "vtkMRMLModelNode")
 # Python packages the library needs that Slicer ships itself and that must never be installed
@@ -129,8 +132,20 @@ def _parameterNodeClass():
         # the result being explored, and the model to fit new cases to
         "explorerModel": slicer.vtkMRMLModelNode,
         "modelFile": pathlib.Path,
+        # the analysis: a subjects table (a CSV file or a table node), the columns tested
+        "analysisTable": pathlib.Path,
+        "analysisTableNode": slicer.vtkMRMLTableNode,
+        "analysisGroup": str,
+        "analysisCovariates": str,
+        "analysisNuisance": str,
+        "analysisPermutations": Annotated[int, WithinRange(1, 10**7)],
+        "analysisColorBy": Annotated[str, Choice(list(EFFECT_SCALARS))],
     }
-    namespace = {"segments": "", "__doc__": "The MDLShapeModel module's parameters."}
+    namespace = {"segments": "", "analysisGroup": "", "analysisCovariates": "",
+                 "analysisNuisance": "",
+                 "analysisPermutations": AnalysisConfig().permutations,
+                 "analysisColorBy": EFFECT_SCALARS[0],
+                 "__doc__": "The MDLShapeModel module's parameters."}
     for name in BUILD_SETTINGS:
         annotations[name], namespace[name] = _settingMember(name, defaults)
     namespace["__annotations__"] = annotations
@@ -174,6 +189,18 @@ class ShapeModelResult:
     rejected: list = field(default_factory=list)  # (name, reason)
     interrupted: bool = False
     reportFile: pathlib.Path | None = None
+
+
+@dataclass
+class AnalysisNodes:
+    """The MRML nodes of an analysis (:meth:`MDLShapeModelLogic.analyzeModel`)."""
+
+    outputDirectory: pathlib.Path
+    folderItemID: int
+    effectModelNode: object           # vtkMRMLModelNode: the mean surface with the effect arrays
+    pointsTableNode: object           # vtkMRMLTableNode: points.csv
+    summary: dict                     # analysis.json
+    pageFile: pathlib.Path            # analysis.html
 
 
 @dataclass
@@ -348,6 +375,133 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                                 modelFile, folder, mean, explorer, metrics, scores,
                                 caseNames=list(model.names), partNames=list(model.part_names))
 
+    # -- analysis ----------------------------------------------------------------------------
+
+    def analysisConfig(self, group=None, covariates=(), nuisance=(), **settings
+                       ) -> AnalysisConfig:
+        """The library's :class:`AnalysisConfig` of these choices (validated)."""
+        return AnalysisConfig(group=group or None, covariates=list(covariates),
+                              nuisance=list(nuisance), **settings).validate()
+
+    def runAnalysis(self, buildDirectory, table, outputDirectory, config: AnalysisConfig,
+                    progress=None, overwrite: bool = True):
+        """The library's analysis on files (no MRML: safe in a background thread); returns the
+        library's ``AnalysisResult``. ``table`` is a CSV file path."""
+        from mdlshapemodel.analyze import analyze_build
+
+        return analyze_build(str(buildDirectory), str(table), str(outputDirectory), config,
+                             progress=progress, overwrite=overwrite)
+
+    def exportTable(self, table, folder) -> pathlib.Path:
+        """A subjects table as a CSV file: a path passes through, a table node is written (its
+        columns as they are, one row per case) to ``folder/subjects.csv``."""
+        if isinstance(table, (str, os.PathLike)):
+            return pathlib.Path(table)
+        if not table.IsA("vtkMRMLTableNode"):
+            raise ValueError(f"a {table.GetClassName()} is not a subjects table")
+        import csv
+
+        folder = pathlib.Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        data = table.GetTable()
+        columns = [data.GetColumn(c) for c in range(data.GetNumberOfColumns())]
+        path = folder / "subjects.csv"
+        with open(path, "w", newline="", encoding="utf-8") as handle:
+            writer = csv.writer(handle)
+            writer.writerow([column.GetName() for column in columns])
+            for row in range(data.GetNumberOfRows()):
+                writer.writerow([data.GetValue(row, c).ToString()
+                                 for c in range(len(columns))])
+        return path
+
+    def startAnalysis(self, buildDirectory, table, group=None, covariates=(), nuisance=(),
+                      outputDirectory=None, **settings) -> "AnalysisJob":
+        """Export the table (here, on the main thread), then run the analysis in a background
+        thread; load its nodes with ``job.finish()`` once ``job.done``."""
+        buildDirectory = pathlib.Path(buildDirectory)
+        outputDirectory = pathlib.Path(outputDirectory or buildDirectory / "analysis")
+        config = self.analysisConfig(group, covariates, nuisance, **settings)
+        path = self.exportTable(table, _temporaryFolder())
+        return AnalysisJob(self, buildDirectory, path, outputDirectory, config)
+
+    def analyzeModel(self, buildDirectory, table, group=None, covariates=(), nuisance=(),
+                     outputDirectory=None, progress=None, **settings) -> AnalysisNodes:
+        """Test a build's shapes against a subjects table and load the findings (blocking).
+
+        Parameters
+        ----------
+        buildDirectory : path
+            A build's output folder.
+        table : path or vtkMRMLTableNode
+            The subjects table: a ``case`` column with the build's case names, other columns
+            variables.
+        group : str, optional
+            The categorical column whose groups are compared.
+        covariates, nuisance : sequence of str
+            Numeric columns tested (adjusted for, with a group), and columns adjusted for.
+        outputDirectory : path, optional
+            The analysis's folder (default ``buildDirectory/analysis``; an earlier analysis
+            there is replaced).
+        progress : callable(fraction or None, message), optional
+            The library's progress protocol; returning False cancels.
+        settings
+            Other :class:`AnalysisConfig` fields (``permutations``, ``size``, ``alpha``, ...).
+
+        Returns
+        -------
+        AnalysisNodes
+            The effect map (coloured by -log10 p, family-wise) and the per-point table.
+        """
+        buildDirectory = pathlib.Path(buildDirectory)
+        outputDirectory = pathlib.Path(outputDirectory or buildDirectory / "analysis")
+        config = self.analysisConfig(group, covariates, nuisance, **settings)
+        path = self.exportTable(table, _temporaryFolder())
+        self.runAnalysis(buildDirectory, path, outputDirectory, config, progress)
+        return self.loadAnalysis(outputDirectory)
+
+    def loadAnalysis(self, outputDirectory) -> AnalysisNodes:
+        """The nodes of an analysis's output folder: the effect map of each part (one part: one
+        node) coloured by significance with a colour legend, and points.csv as a table."""
+        outputDirectory = pathlib.Path(outputDirectory)
+        summary = json.loads((outputDirectory / "analysis.json").read_text())
+        folder = _subjectHierarchy().CreateFolderItem(
+            _subjectHierarchy().GetSceneItemID(), f"{outputDirectory.name} analysis")
+        effects = ([outputDirectory / "effects.vtp"] if (outputDirectory / "effects.vtp").exists()
+                   else sorted((outputDirectory / "effects").glob("*.vtp")))
+        nodes = [_readModel(path, f"{outputDirectory.name} effect {path.stem}") for path in effects]
+        for node in nodes:
+            self.colorEffectMap(node, EFFECT_SCALARS[0])
+            _placeInFolder(node, folder)
+        rows = _readCsv(outputDirectory / "points.csv")
+        columns = {key: ([float(r[key]) for r in rows] if key not in ("point", "part")
+                         else [int(r[key]) for r in rows]) for key in rows[0]}
+        points = _table(f"{outputDirectory.name} points", columns)
+        _placeInFolder(points, folder)
+        return AnalysisNodes(outputDirectory, folder, nodes[0], points, summary,
+                             outputDirectory / "analysis.html")
+
+    def colorEffectMap(self, effectModelNode, scalars: str) -> None:
+        """Colour an effect map by one of :data:`EFFECT_SCALARS`: significance (-log10 of the
+        family-wise p, from 0 to its largest value) or the effect along the normal (a diverging
+        scale symmetric about 0, blue inwards); a colour legend shows the scale."""
+        if scalars not in EFFECT_SCALARS:
+            raise ValueError(f"colour by one of {', '.join(EFFECT_SCALARS)}, not {scalars!r}")
+        display = effectModelNode.GetDisplayNode()
+        array = effectModelNode.GetPolyData().GetPointData().GetArray(scalars)
+        low, high = array.GetRange()
+        if scalars == EFFECT_SCALARS[0]:
+            colors, low = "viridis", 0.0
+        else:
+            colors, high = "coolwarm", max(abs(low), abs(high), 1e-9)
+            low = -high
+        display.SetActiveScalarName(scalars)
+        display.SetAndObserveColorNodeID(_colorNode(colors).GetID())
+        display.SetScalarRangeFlag(display.UseManualScalarRange)
+        display.SetScalarRange(low, high)
+        display.SetScalarVisibility(True)
+        _colorLegend(display, "-log10 p (FWER)" if scalars == EFFECT_SCALARS[0]
+                     else "effect along the normal [mm]")
+
     def setModeWeights(self, explorerModelNode, weights) -> None:
         """Deform a shape explorer node (:meth:`loadModel`) to the mean plus ``weights[k]``
         standard deviations of mode k+1; its ``Displacement`` array (mm from the mean) colours it.
@@ -394,41 +548,35 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         return nodes[0], nodes[1], fitted
 
 
-class BuildJob:
-    """A build running in a background thread, so that Slicer stays responsive.
+class BackgroundJob:
+    """Library work running in a background thread, so that Slicer stays responsive.
 
     The main thread polls :meth:`messages` (progress reports: (fraction or None, text)), may
-    :meth:`cancel` (the optimisation stops at its next report and the model of the state reached
-    is written), and once :attr:`done` calls :meth:`finish` to load the results into the scene
-    (MRML is touched only on the main thread).
+    :meth:`cancel` (the work stops at its next report), and once :attr:`done` calls
+    :meth:`finish` to load the results into the scene (MRML is touched only on the main thread).
+    ``work(progress)`` is the library call; its result is kept in :attr:`result`.
     """
 
-    def __init__(self, logic: MDLShapeModelLogic, exported: ExportedInputs, outputDirectory,
-                 config: BuildConfig | None, overwrite: bool = False):
-        self.logic = logic
-        self.exported = exported
-        self.outputDirectory = pathlib.Path(outputDirectory)
-        self.built = None
+    def __init__(self, work, name: str):
+        self.result = None
         self.error = None
         self._reports = queue.Queue()
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(config, overwrite), daemon=True,
-                                        name="MDLShapeModel build")
+        self._thread = threading.Thread(target=self._run, args=(work,), daemon=True, name=name)
         self._thread.start()
 
     def _progress(self, fraction, message):
         self._reports.put((fraction, message))
         if self._cancel.is_set():
-            # one False per Cancel: the optimisation stops there and the library goes on to write
-            # the model of the state reached (in any other stage the build stops: Cancelled)
+            # one False per Cancel: a build's optimisation stops there and the library goes on
+            # to write the model of the state reached (elsewhere the work stops: Cancelled)
             self._cancel.clear()
             return False
         return True
 
-    def _run(self, config, overwrite):
+    def _run(self, work):
         try:
-            self.built = self.logic.runBuild(self.exported.paths, self.outputDirectory, config,
-                                             self._progress, overwrite)
+            self.result = work(self._progress)
         except BaseException as error:  # handed to the main thread, which reports it
             self.error = error
 
@@ -452,12 +600,55 @@ class BuildJob:
             except queue.Empty:
                 return reports
 
-    def finish(self) -> ShapeModelResult:
-        """The results as nodes (main thread, after :attr:`done`); re-raises the build's error."""
+    def finish(self):
+        """The results in the scene (main thread, after :attr:`done`); re-raises the work's
+        error."""
         if self.error is not None:
             raise self.error
+        return self._load()
+
+    def _load(self):
+        return self.result
+
+
+class BuildJob(BackgroundJob):
+    """A build in a background thread (:class:`BackgroundJob`); Cancel stops the optimisation
+    and the model of the state reached is written; :meth:`finish` loads the build's results."""
+
+    def __init__(self, logic: MDLShapeModelLogic, exported: ExportedInputs, outputDirectory,
+                 config: BuildConfig | None, overwrite: bool = False):
+        self.logic = logic
+        self.exported = exported
+        self.outputDirectory = pathlib.Path(outputDirectory)
+        super().__init__(lambda progress: logic.runBuild(exported.paths, self.outputDirectory,
+                                                         config, progress, overwrite),
+                         "MDLShapeModel build")
+
+    @property
+    def built(self):
+        """The library's BuildResult (None until the build has ended)."""
+        return self.result
+
+    def _load(self) -> ShapeModelResult:
         return self.logic.loadResults(self.outputDirectory, self.exported.rejected,
-                                      self.built.interrupted)
+                                      self.result.interrupted)
+
+
+class AnalysisJob(BackgroundJob):
+    """An analysis in a background thread (:class:`BackgroundJob`); Cancel stops it (nothing is
+    written); :meth:`finish` loads its effect map and table."""
+
+    def __init__(self, logic: MDLShapeModelLogic, buildDirectory, table: pathlib.Path,
+                 outputDirectory, config: AnalysisConfig):
+        self.logic = logic
+        self.outputDirectory = pathlib.Path(outputDirectory)
+        super().__init__(lambda progress: logic.runAnalysis(buildDirectory, table,
+                                                            self.outputDirectory, config,
+                                                            progress),
+                         "MDLShapeModel analysis")
+
+    def _load(self) -> AnalysisNodes:
+        return self.logic.loadAnalysis(self.outputDirectory)
 
 
 def workerPool(config: BuildConfig):
@@ -614,6 +805,42 @@ def _placeInFolder(node, folder: int):
         hierarchy.CreateItem(folder, node)
 
 
+def _temporaryFolder() -> pathlib.Path:
+    """A new folder under Slicer's temporary folder (for a table node written as CSV)."""
+    import tempfile
+
+    base = pathlib.Path(slicer.app.temporaryPath)
+    base.mkdir(parents=True, exist_ok=True)
+    return pathlib.Path(tempfile.mkdtemp(prefix="MDLShapeModel-", dir=base))
+
+
+def _colorNode(colormap: str):
+    """A colour node of the matplotlib colour map ``colormap`` (the colours of the library's
+    report pages), made once per scene."""
+    name = f"MDLShapeModel {colormap}"
+    existing = slicer.mrmlScene.GetFirstNodeByName(name)
+    if existing is not None:
+        return existing
+    import matplotlib
+
+    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLColorTableNode", name)
+    node.SetTypeToUser()          # a lookup table: the display's scalar range spreads over it
+    node.SetNumberOfColors(256)
+    samples = matplotlib.colormaps[colormap]
+    for k in range(256):
+        red, green, blue, _ = samples(k / 255)
+        node.SetColor(k, f"{k}", red, green, blue, 1.0)
+    node.SetAttribute("Category", "MDLShapeModel")
+    return node
+
+
+def _colorLegend(displayNode, title: str):
+    """The colour legend of a display node (the Colors module's default one), titled."""
+    legend = slicer.modules.colors.logic().AddDefaultColorLegendDisplayNode(displayNode)
+    legend.SetTitleText(title)
+    return legend
+
+
 def _toRas(points):
     """LPS <-> RAS (the same map both ways): x and y negated. (n, 3) array-like -> array."""
     import numpy as np
@@ -708,7 +935,7 @@ def _scoresTable(path: pathlib.Path, name: str):
 
 
 class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
-    """The panel: Inputs, Parameters (Advanced collapsed), Run, Results."""
+    """The panel: Inputs, Parameters (Advanced collapsed), Run, Results, Analysis (collapsed)."""
 
     def __init__(self, parent=None):
         ScriptedLoadableModuleWidget.__init__(self, parent)
@@ -720,6 +947,9 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._timer = None
         self._result = None
         self._sliders = []
+        self._analysisJob = None
+        self._analysis = None
+        self._analysisTimer = None
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)
@@ -734,6 +964,10 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.openReportButton.clicked.connect(self.onOpenReport)
         self.ui.loadModelButton.clicked.connect(self.onLoadModel)
         self.ui.fitButton.clicked.connect(self.onFit)
+        self.ui.analyzeButton.clicked.connect(self.onAnalyze)
+        self.ui.cancelAnalysisButton.clicked.connect(self.onCancelAnalysis)
+        self.ui.openAnalysisButton.clicked.connect(self.onOpenAnalysis)
+        self.ui.analysisColorByComboBox.currentTextChanged.connect(self.onColorBy)
         self.ui.inputNodesSelector.checkedNodesChanged.connect(self.updateCaseList)
         self.ui.inputFolderSelector.currentPathChanged.connect(self.updateCaseList)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
@@ -741,12 +975,16 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._timer = qt.QTimer()
         self._timer.setInterval(200)
         self._timer.timeout.connect(self.onPoll)
+        self._analysisTimer = qt.QTimer()
+        self._analysisTimer.setInterval(200)
+        self._analysisTimer.timeout.connect(self.onAnalysisPoll)
         self.initializeParameterNode()
 
     def cleanup(self):
         self.removeObservers()
-        if self._job is not None:
-            self._job.cancel()
+        for job in (self._job, self._analysisJob):
+            if job is not None:
+                job.cancel()
 
     def enter(self):
         self.initializeParameterNode()
@@ -817,12 +1055,18 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._job.cancel()
             self.ui.logText.appendPlainText("cancelling: the state reached will be kept")
 
-    def onPoll(self):
-        for fraction, message in self._job.messages():
+    @staticmethod
+    def _showReports(job, progressBar, logText=None):
+        """A job's progress reports on a progress bar (and in a log)."""
+        for fraction, message in job.messages():
             if fraction is not None:
-                self.ui.progressBar.value = int(100 * fraction)
-            self.ui.progressBar.format = message
-            self.ui.logText.appendPlainText(message)
+                progressBar.value = int(100 * fraction)
+            progressBar.format = message
+            if logText is not None:
+                logText.appendPlainText(message)
+
+    def onPoll(self):
+        self._showReports(self._job, self.ui.progressBar, self.ui.logText)
         if not self._job.done:
             return
         self._timer.stop()
@@ -879,6 +1123,51 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             output = pathlib.Path(str(self._parameterNode.outputDirectory)) / "fitted"
             self.logic.fitSegmentation(node, str(self._parameterNode.modelFile), output,
                                        self._segments())
+
+
+    def onAnalyze(self):
+        if not ensureDependencies(ask=True):
+            return
+        with slicer.util.tryWithErrorDisplay("Could not start the analysis.", waitCursor=True):
+            parameters = self._parameterNode
+            table = parameters.analysisTableNode or str(parameters.analysisTable)
+            if table in ("", "."):
+                raise ValueError("choose a subjects table (a CSV file or a table node)")
+            self._analysisJob = self.logic.startAnalysis(
+                str(parameters.outputDirectory), table, group=parameters.analysisGroup,
+                covariates=segmentNames(parameters.analysisCovariates),
+                nuisance=segmentNames(parameters.analysisNuisance),
+                permutations=parameters.analysisPermutations)
+            self.ui.analyzeButton.enabled = False
+            self.ui.cancelAnalysisButton.enabled = True
+            self._analysisTimer.start()
+
+    def onCancelAnalysis(self):
+        if self._analysisJob is not None:
+            self._analysisJob.cancel()
+
+    def onAnalysisPoll(self):
+        self._showReports(self._analysisJob, self.ui.analysisProgressBar)
+        if not self._analysisJob.done:
+            return
+        self._analysisTimer.stop()
+        job, self._analysisJob = self._analysisJob, None
+        self.ui.analyzeButton.enabled = True
+        self.ui.cancelAnalysisButton.enabled = False
+        with slicer.util.tryWithErrorDisplay("The analysis failed.", waitCursor=True):
+            self._analysis = job.finish()
+            self.ui.analysisTableView.setMRMLTableNode(self._analysis.pointsTableNode)
+            self.ui.openAnalysisButton.enabled = True
+            self.onColorBy()
+
+    def onColorBy(self, *unused):
+        if self._analysis is not None:
+            self.logic.colorEffectMap(self._analysis.effectModelNode,
+                                      self._parameterNode.analysisColorBy)
+
+    def onOpenAnalysis(self):
+        if self._analysis is not None:
+            qt.QDesktopServices.openUrl(qt.QUrl.fromLocalFile(str(self._analysis.pageFile)))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -11,6 +11,9 @@ Stand-ins, each for exactly one thing the application provides:
   :func:`new_scene` (the Segmentations and Subject Hierarchy logics attached, as the
   application attaches them);
 - ``slicer.app``: the application object -> :class:`Application`, its temporary folder only;
+- ``slicer.modules``: the application's registry of loaded modules -> the Colors module's entry
+  only, whose ``logic()`` is the real ``vtkSlicerColorLogic`` of the current scene (without the
+  application it finds no colour-table files: the built-in tables and the colour legends work);
 - ``slicer.ScriptedLoadableModule``: the base classes of scripted modules -> the same four
   classes with the behaviour the module relies on (``getParameterNode`` finds or makes the
   module's singleton ``vtkMRMLScriptedModuleNode`` as Slicer's does; no GUI);
@@ -59,13 +62,20 @@ def new_scene():
     logic (the segmentation conversion rules and node classes) and the Subject Hierarchy module's
     logic (an item for every new data node) attached."""
     import slicer
+    import vtk
 
     scene = slicer.vtkMRMLScene()
     logic = slicer.vtkSlicerSegmentationsModuleLogic()
     logic.SetMRMLScene(scene)
     hierarchy = slicer.vtkSlicerSubjectHierarchyModuleLogic()
     hierarchy.SetMRMLScene(scene)
-    scene._harness_logics = (logic, hierarchy)  # kept alive with the scene
+    colors = slicer.vtkSlicerColorLogic()
+    shown = vtk.vtkObject.GetGlobalWarningDisplay()
+    vtk.vtkObject.GlobalWarningDisplayOff()  # it finds no colour-table files: there are none
+    colors.SetMRMLScene(scene)
+    vtk.vtkObject.SetGlobalWarningDisplay(shown)
+    scene._harness_logics = (logic, hierarchy, colors)  # kept alive with the scene
+    slicer.modules = types.SimpleNamespace(colors=types.SimpleNamespace(logic=lambda: colors))
     slicer.mrmlScene = scene
     return scene
 

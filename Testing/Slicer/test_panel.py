@@ -65,11 +65,12 @@ def test_every_parameter_has_exactly_one_widget_of_its_kind(loaded):
         assert isinstance(widget, expected), name
 
 
-def test_the_sections_are_inputs_parameters_run_results_with_advanced_collapsed(loaded):
+def test_the_sections_are_inputs_parameters_run_results_with_advanced_and_analysis_collapsed(
+        loaded):
     root, _ = loaded
     sections = {w.getText(): w.getCollapsed() for w in root.findChildren(panel.ctkCollapsibleButton)}
     assert sections == {"Inputs": False, "Parameters": False, "Run": False, "Results": False,
-                        "Advanced": True}
+                        "Advanced": True, "Analysis": True}
     advanced = root.findChild(panel.ctkCollapsibleButton, "advancedCollapsibleButton")
     main = set(panel.parameter_widgets(advanced))
     assert main == set(module.ADVANCED_SETTINGS)

@@ -1,0 +1,243 @@
+"""The analysis measured: calibration under the null, power and localisation where an effect is
+planted, and speed.
+
+``null BUILD``: the build's cases split at random into two halves, many times; for each split
+the per-point test with ``--permutations`` permutations. Prints the share of splits with any
+point significant after family-wise correction and after FDR correction, with its standard
+error (both should be alpha), for the normal and the vector displacement.
+
+``plant LABELS --output DIR``: writes label maps in which a smooth inward push (Gaussian of
+``--width`` mm, ``--amplitude`` mm deep) is planted in the first ``--planted`` of ``--cases``
+cases (``--width``: the Gaussian's sigma), at one anatomical place: the tip of the hippocampal head (the label-1 voxel farthest from
+the centroid of label 2). Every case, pushed or not, goes through the same steps: the signed
+distance of its union of labels, resampled to ``--spacing`` mm (linear), pushed (or not) and
+thresholded half an original voxel out (where the Maurer distance puts the boundary).
+``DIR/planted.json`` records each case's push centre (LPS mm) and group.
+
+``power DIR BUILD [BUILD ...]``: builds of the planted label maps (for example the default MDL
+build, ``--strategy none`` and ``--correspondence cpd``), each analysed with the planted and the
+unpushed cases as groups, subsets of ``--group-sizes`` cases per group. The truth per model point:
+the mean push the planted cases' corresponded points received (mm). A significant point is "at
+the push" where that is at least a quarter of the amplitude, "far" where it is below 1% of it.
+Prints, per build, displacement and group size: significant points at the push and far from it,
+the power (the share of subsets with any significant point at the push) and the share with any
+far point.
+
+``speed BUILD``: the wall time of 10,000 permutations on the build's points.
+
+Examples::
+
+    mdlshapemodel build ../shared/data/hippocampus/labels -o /tmp/hip --label 1,2
+    python benchmarks/analysis.py null /tmp/hip --splits 200
+    python benchmarks/analysis.py plant ../shared/data/hippocampus/labels --output /tmp/plant2 \\
+        --amplitude 2
+    mdlshapemodel build /tmp/plant2/labels -o /tmp/plant2/mdl
+    mdlshapemodel build /tmp/plant2/labels -o /tmp/plant2/none --strategy none
+    mdlshapemodel build /tmp/plant2/labels -o /tmp/plant2/cpd --correspondence cpd
+    python benchmarks/analysis.py power /tmp/plant2 /tmp/plant2/mdl /tmp/plant2/none \\
+        /tmp/plant2/cpd
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _split_tests(shapes, weights, cells, labels, permutations, seed, displacement):
+    from mdlshapemodel.analysis import align, permutation_test, vertex_normals
+
+    aligned = align(shapes, weights)
+    mean = aligned.mean(axis=0)
+    normals = vertex_normals(mean, cells)
+    offsets = aligned - mean
+    data = np.einsum("npd,pd->np", offsets, normals) if displacement == "normal" else offsets
+    return permutation_test(data, labels[:, None].astype(float), permutations=permutations,
+                            seed=seed)
+
+
+def null(args):
+    from mdlshapemodel.analysis import read_build
+
+    built = read_build(args.build)
+    rng = np.random.default_rng(args.seed)
+    n = len(built.shapes)
+    counts = {d: {"fwer": 0, "fdr": 0} for d in ("normal", "vector")}
+    started = time.perf_counter()
+    for split in range(args.splits):
+        labels = rng.permutation(n) < n // 2
+        for displacement in counts:
+            result = _split_tests(built.shapes, built.model.weights, built.model.triangles,
+                                  labels, args.permutations, int(rng.integers(1 << 30)),
+                                  displacement)
+            counts[displacement]["fwer"] += bool(np.any(result.p_fwer <= args.alpha))
+            counts[displacement]["fdr"] += bool(np.any(result.q_fdr <= args.alpha))
+    seconds = time.perf_counter() - started
+    se = np.sqrt(args.alpha * (1 - args.alpha) / args.splits)
+    print(f"{args.build}: {n} cases, {args.splits} random half splits, {args.permutations} "
+          f"permutations each, alpha {args.alpha} (SE of a rate {se:.4f}); {seconds:.0f} s")
+    print("displacement  any FWER-significant  any FDR-significant")
+    for displacement, count in counts.items():
+        print(f"{displacement:<12}  {count['fwer'] / args.splits:.3f}"
+              f" ({(count['fwer'] / args.splits - args.alpha) / se:+.1f} SE)"
+              f"       {count['fdr'] / args.splits:.3f}"
+              f" ({(count['fdr'] / args.splits - args.alpha) / se:+.1f} SE)")
+
+
+def _push_centre(labels: np.ndarray, image) -> np.ndarray:
+    """The tip of the head: the label-1 voxel farthest from the centroid of label 2 (LPS mm)."""
+    head = np.argwhere(labels == 1)[:, ::-1].astype(float)      # (x, y, z) indices
+    body = np.argwhere(labels == 2)[:, ::-1].astype(float)
+    tip = head[np.argmax(np.linalg.norm(head - body.mean(axis=0), axis=1))]
+    return np.array(image.TransformContinuousIndexToPhysicalPoint(tuple(tip)))
+
+
+def plant(args):
+    import SimpleITK as sitk
+
+    files = sorted(Path(args.labels).glob("*.nii.gz"))[:args.cases]
+    output = Path(args.output)
+    (output / "labels").mkdir(parents=True, exist_ok=True)
+    record = {"amplitude": args.amplitude, "width": args.width, "spacing": args.spacing,
+              "cases": {}}
+    for k, path in enumerate(files):
+        image = sitk.ReadImage(str(path))
+        labels = sitk.GetArrayFromImage(image)
+        centre = _push_centre(labels, image)
+        mask = sitk.Cast(image > 0, sitk.sitkUInt8)
+        distance = sitk.SignedMaurerDistanceMap(mask, insideIsPositive=False,
+                                                squaredDistance=False, useImageSpacing=True)
+        size = [int(np.ceil(s * sp / args.spacing)) for s, sp in zip(image.GetSize(),
+                                                                       image.GetSpacing())]
+        fine = sitk.Resample(distance, size, sitk.Transform(), sitk.sitkLinear,
+                             image.GetOrigin(), [args.spacing] * 3, image.GetDirection(),
+                             10.0, sitk.sitkFloat32)
+        values = sitk.GetArrayFromImage(fine)
+        planted = k < args.planted
+        if planted:
+            index = np.stack(np.meshgrid(*(np.arange(s) for s in size), indexing="ij"), -1)
+            physical = (np.asarray(fine.GetOrigin()) + (index * args.spacing)
+                        @ np.asarray(fine.GetDirection()).reshape(3, 3).T)
+            push = args.amplitude * np.exp(-0.5 * np.sum((physical - centre) ** 2, axis=-1)
+                                           / args.width ** 2)
+            values = values + np.transpose(push, (2, 1, 0))   # inward: the object shrinks
+        # the Maurer distance is 0 on the object's boundary voxels and 1 voxel outside them:
+        # the surface lies half a voxel out, where it is half the original spacing
+        result = sitk.GetImageFromArray((values <= 0.5 * min(image.GetSpacing()))
+                                        .astype(np.uint8))
+        result.CopyInformation(fine)
+        name = path.name.split(".")[0]
+        sitk.WriteImage(result, str(output / "labels" / f"{name}.nii.gz"))
+        record["cases"][name] = {"planted": planted, "centre": centre.tolist()}
+        print(f"{name}: {'pushed' if planted else 'resampled'} at {np.round(centre, 1)}")
+    (output / "planted.json").write_text(json.dumps(record, indent=2))
+    rows = ["case,group"] + [f"{n},{'pushed' if c['planted'] else 'plain'}"
+                             for n, c in record["cases"].items()]
+    (output / "groups.csv").write_text("\n".join(rows) + "\n")
+
+
+def _truth(built, record) -> np.ndarray:
+    """Per model point, the mean push (mm) that the planted cases' corresponded points
+    received."""
+    from mdlshapemodel.prepare import io
+
+    received = []
+    for name, case in record["cases"].items():
+        if not case["planted"] or name not in built.model.names:
+            continue
+        points = io.read_mesh(io.case_file(built.folder / "correspondence", name))[0]
+        squared = np.sum((points - np.asarray(case["centre"])) ** 2, axis=1)
+        received.append(record["amplitude"] * np.exp(-0.5 * squared / record["width"] ** 2))
+    return np.mean(received, axis=0)
+
+
+def power(args):
+    from mdlshapemodel.analysis import read_build
+
+    record = json.loads((Path(args.planted) / "planted.json").read_text())
+    print(f"planted: {record['amplitude']} mm inward, {record['width']} mm wide; "
+          f"{args.permutations} permutations, alpha {args.alpha}, {args.subsets} subsets per "
+          "group size")
+    print("build        displacement  per group  at push  far   power  any far")
+    for build in args.builds:
+        built = read_build(build)
+        truth = _truth(built, record)
+        near = truth >= 0.25 * record["amplitude"]
+        far = truth < 0.01 * record["amplitude"]
+        pushed = np.array([record["cases"][n]["planted"] for n in built.model.names])
+        rng = np.random.default_rng(args.seed)
+        for displacement in ("normal", "vector"):
+            for size in args.group_sizes:
+                at, beyond, hits, false = [], [], 0, 0
+                subsets = 1 if size >= min(pushed.sum(), (~pushed).sum()) else args.subsets
+                for _ in range(subsets):
+                    chosen = np.concatenate([
+                        rng.choice(np.flatnonzero(pushed), size, replace=False),
+                        rng.choice(np.flatnonzero(~pushed), size, replace=False)])
+                    result = _split_tests(built.shapes[chosen], built.model.weights,
+                                          built.model.triangles, pushed[chosen],
+                                          args.permutations, int(rng.integers(1 << 30)),
+                                          displacement)
+                    significant = result.p_fwer <= args.alpha
+                    at.append(int(np.sum(significant & near)))
+                    beyond.append(int(np.sum(significant & far)))
+                    hits += bool(np.any(significant & near))
+                    false += bool(np.any(significant & far))
+                print(f"{Path(build).name:<12} {displacement:<12}  {size:>9}  "
+                      f"{np.mean(at):7.1f}  {np.mean(beyond):5.1f}  {hits / subsets:5.2f}  "
+                      f"{false / subsets:7.2f}")
+        print(f"{Path(build).name:<12} ({int(near.sum())} points at the push, "
+              f"{int(far.sum())} far from it)")
+
+
+def speed(args):
+    from mdlshapemodel.analysis import permutation_test, read_build
+
+    built = read_build(args.build)
+    labels = (np.arange(len(built.shapes)) < len(built.shapes) // 2).astype(float)[:, None]
+    offsets = built.shapes - built.shapes.mean(axis=0)
+    for name, data in (("normal", offsets[..., 0]), ("vector", offsets)):
+        started = time.perf_counter()
+        permutation_test(data, labels, permutations=args.permutations)
+        print(f"{name}: {len(built.shapes)} cases x {data.shape[1]} points x "
+              f"{args.permutations} permutations: {time.perf_counter() - started:.2f} s")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    p = commands.add_parser("null")
+    p.add_argument("build")
+    p.add_argument("--splits", type=int, default=200)
+    p.add_argument("--permutations", type=int, default=1000)
+    p.add_argument("--alpha", type=float, default=0.05)
+    p.add_argument("--seed", type=int, default=0)
+    p = commands.add_parser("plant")
+    p.add_argument("labels")
+    p.add_argument("--output", required=True)
+    p.add_argument("--cases", type=int, default=80)
+    p.add_argument("--planted", type=int, default=40)
+    p.add_argument("--amplitude", type=float, default=2.0)
+    p.add_argument("--width", type=float, default=2.0)
+    p.add_argument("--spacing", type=float, default=0.5)
+    p = commands.add_parser("power")
+    p.add_argument("planted")
+    p.add_argument("builds", nargs="+")
+    p.add_argument("--group-sizes", type=int, nargs="+", default=[10, 20, 40])
+    p.add_argument("--subsets", type=int, default=10)
+    p.add_argument("--permutations", type=int, default=1000)
+    p.add_argument("--alpha", type=float, default=0.05)
+    p.add_argument("--seed", type=int, default=0)
+    p = commands.add_parser("speed")
+    p.add_argument("build")
+    p.add_argument("--permutations", type=int, default=10_000)
+    args = parser.parse_args()
+    {"null": null, "plant": plant, "power": power, "speed": speed}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()
