@@ -258,3 +258,26 @@ def test_a_new_case_far_away_is_flagged(rng):
     k = score_outliers(model)["modes"]
     result = new_case_distances(model.project(far)[None], model.variances, 20, k)
     assert result.outlier[0] and result.distance[0] == pytest.approx(6.0, rel=1e-9)
+
+
+def test_a_fitted_case_is_scored_against_the_new_case_reference(rng):
+    from mdlshapemodel.correspondence.pose import Pose
+    from mdlshapemodel.model.fitting import FitResult, unusual_fit
+
+    shapes, _ = gaussian_model(rng, 30)
+    model = ShapeModel.from_shapes(shapes, np.full(20, 1 / 20))
+    k = score_outliers(model)["modes"]
+    usual = model.mean + 0.5 * np.sqrt(model.variances[0]) * model.modes[0]
+    far = model.mean + 8 * np.sqrt(model.variances[1]) * model.modes[1]
+    far[3] += [0.0, 0.0, 5.0]                           # and one point off the model
+    found = []
+    for shape in (usual, far):
+        scores = model.project(shape)
+        result = FitResult("new", "new.vtp", shape, shape, Pose(), scores, np.zeros(1),
+                           np.zeros(1))
+        found.append(unusual_fit(model, result))
+    expected = new_case_distances(model.project(far)[None], model.variances, 30, k)
+    assert found[1]["distance"] == pytest.approx(expected.distance[0])
+    assert found[1]["p"] == pytest.approx(expected.p[0]) and found[1]["flagged"]
+    assert not found[0]["flagged"] and found[0]["p"] > 0.5
+    assert found[1]["at_point"] == 3

@@ -7,8 +7,9 @@ point significant after family-wise correction and after FDR correction, with it
 error (both should be alpha), for the normal and the vector displacement.
 
 ``plant LABELS --output DIR``: writes label maps in which a smooth inward push (Gaussian of
-``--width`` mm, ``--amplitude`` mm deep) is planted in the first ``--planted`` of ``--cases``
-cases (``--width``: the Gaussian's sigma), at one anatomical place: the tip of the hippocampal head (the label-1 voxel farthest from
+``--width`` mm, ``--amplitude`` mm deep) is planted in ``--planted`` of ``--cases`` cases
+drawn at random (``--seed``; the files' order follows the source's cohorts, which differ in
+shape), ``--width`` being the Gaussian's sigma, at one anatomical place: the tip of the hippocampal head (the label-1 voxel farthest from
 the centroid of label 2). Every case, pushed or not, goes through the same steps: the signed
 distance of its union of labels, resampled to ``--spacing`` mm (linear), pushed (or not) and
 thresholded half an original voxel out (where the Maurer distance puts the boundary).
@@ -16,12 +17,12 @@ thresholded half an original voxel out (where the Maurer distance puts the bound
 
 ``power DIR BUILD [BUILD ...]``: builds of the planted label maps (for example the default MDL
 build, ``--strategy none`` and ``--correspondence cpd``), each analysed with the planted and the
-unpushed cases as groups, subsets of ``--group-sizes`` cases per group. The truth per model point:
-the mean push the planted cases' corresponded points received (mm). A significant point is "at
-the push" where that is at least a quarter of the amplitude, "far" where it is below 1% of it.
-Prints, per build, displacement and group size: significant points at the push and far from it,
-the power (the share of subsets with any significant point at the push) and the share with any
-far point.
+unpushed cases as groups, subsets of ``--group-sizes`` cases per group. Where the push is on the
+model: each point's mean distance from the planted cases' push centres; a significant point is
+"at the push" within 2 widths plus the amplitude of it, "far" from 20 mm on. Prints, per build,
+displacement and group size: significant points at the push and far from it, the power (the
+share of subsets with any significant point at the push), the share with any far point, and the
+median distance of the significant points from the push.
 
 ``speed BUILD``: the wall time of 10,000 permutations on the build's points.
 
@@ -103,7 +104,9 @@ def plant(args):
     output = Path(args.output)
     (output / "labels").mkdir(parents=True, exist_ok=True)
     record = {"amplitude": args.amplitude, "width": args.width, "spacing": args.spacing,
-              "cases": {}}
+              "seed": args.seed, "cases": {}}
+    # a random half: the files' order follows the source's cohorts, which differ in shape
+    chosen = set(np.random.default_rng(args.seed).permutation(len(files))[:args.planted])
     for k, path in enumerate(files):
         image = sitk.ReadImage(str(path))
         labels = sitk.GetArrayFromImage(image)
@@ -117,7 +120,7 @@ def plant(args):
                              image.GetOrigin(), [args.spacing] * 3, image.GetDirection(),
                              10.0, sitk.sitkFloat32)
         values = sitk.GetArrayFromImage(fine)
-        planted = k < args.planted
+        planted = k in chosen
         if planted:
             index = np.stack(np.meshgrid(*(np.arange(s) for s in size), indexing="ij"), -1)
             physical = (np.asarray(fine.GetOrigin()) + (index * args.spacing)
@@ -140,19 +143,24 @@ def plant(args):
     (output / "groups.csv").write_text("\n".join(rows) + "\n")
 
 
-def _truth(built, record) -> np.ndarray:
-    """Per model point, the mean push (mm) that the planted cases' corresponded points
-    received."""
+def _distances(built, record) -> np.ndarray:
+    """Per model point, its mean distance (mm) over the planted cases from their push centres:
+    where on the model the push was."""
     from mdlshapemodel.prepare import io
 
-    received = []
+    distances = []
     for name, case in record["cases"].items():
         if not case["planted"] or name not in built.model.names:
             continue
         points = io.read_mesh(io.case_file(built.folder / "correspondence", name))[0]
-        squared = np.sum((points - np.asarray(case["centre"])) ** 2, axis=1)
-        received.append(record["amplitude"] * np.exp(-0.5 * squared / record["width"] ** 2))
-    return np.mean(received, axis=0)
+        distances.append(np.linalg.norm(points - np.asarray(case["centre"]), axis=1))
+    return np.mean(distances, axis=0)
+
+
+# a model point is "at the push" when its mean distance from the planted cases' push centres is
+# at most NEAR widths plus the amplitude (the pushed surface lies that much deeper), "far" from
+# FAR mm on
+NEAR, FAR = 2.0, 20.0
 
 
 def power(args):
@@ -162,17 +170,17 @@ def power(args):
     print(f"planted: {record['amplitude']} mm inward, {record['width']} mm wide; "
           f"{args.permutations} permutations, alpha {args.alpha}, {args.subsets} subsets per "
           "group size")
-    print("build        displacement  per group  at push  far   power  any far")
+    print("build        displacement  per group  at push  far   power  any far  median mm")
     for build in args.builds:
         built = read_build(build)
-        truth = _truth(built, record)
-        near = truth >= 0.25 * record["amplitude"]
-        far = truth < 0.01 * record["amplitude"]
+        distance = _distances(built, record)
+        near = distance <= NEAR * record["width"] + record["amplitude"]
+        far = distance >= FAR
         pushed = np.array([record["cases"][n]["planted"] for n in built.model.names])
         rng = np.random.default_rng(args.seed)
         for displacement in ("normal", "vector"):
             for size in args.group_sizes:
-                at, beyond, hits, false = [], [], 0, 0
+                at, beyond, spread, hits, false = [], [], [], 0, 0
                 subsets = 1 if size >= min(pushed.sum(), (~pushed).sum()) else args.subsets
                 for _ in range(subsets):
                     chosen = np.concatenate([
@@ -185,11 +193,13 @@ def power(args):
                     significant = result.p_fwer <= args.alpha
                     at.append(int(np.sum(significant & near)))
                     beyond.append(int(np.sum(significant & far)))
+                    spread.append(np.median(distance[significant]) if significant.any()
+                                  else np.nan)
                     hits += bool(np.any(significant & near))
                     false += bool(np.any(significant & far))
                 print(f"{Path(build).name:<12} {displacement:<12}  {size:>9}  "
                       f"{np.mean(at):7.1f}  {np.mean(beyond):5.1f}  {hits / subsets:5.2f}  "
-                      f"{false / subsets:7.2f}")
+                      f"{false / subsets:7.2f}  {np.nanmedian(spread):8.1f}")
         print(f"{Path(build).name:<12} ({int(near.sum())} points at the push, "
               f"{int(far.sum())} far from it)")
 
@@ -222,7 +232,8 @@ def main():
     p.add_argument("--cases", type=int, default=80)
     p.add_argument("--planted", type=int, default=40)
     p.add_argument("--amplitude", type=float, default=2.0)
-    p.add_argument("--width", type=float, default=2.0)
+    p.add_argument("--width", type=float, default=4.0)
+    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--spacing", type=float, default=0.5)
     p = commands.add_parser("power")
     p.add_argument("planted")

@@ -35,6 +35,7 @@ from ..prepare.parts import CaseInput, case_inputs, prepare_object, read_manifes
 from ..prepare.curve import align_curve_origins, curve_map
 from ..prepare.sphere import SphereMap, align_parameterizations, reference_frames
 from .shape_model import ShapeModel
+from .outliers import modes_explaining, new_case_distances
 
 
 @dataclass
@@ -187,6 +188,24 @@ def reconstruction_errors(model: ShapeModel, aligned: np.ndarray, scores: np.nda
     return np.array(squared), np.array(distance)
 
 
+def unusual_fit(model: ShapeModel, result: FitResult) -> dict | None:
+    """How unusual a fitted case is against the model's training cases: its Mahalanobis
+    distance over the modes explaining 95% of the variance and its p-value against the F
+    distribution of a new case's distance (:func:`~.outliers.new_case_distances`), flagged
+    below p = 0.01; and where it departs most from its reconstruction by those modes (mm, the
+    point's index). None when the model keeps fewer than 3 training cases' scores."""
+    n = len(model.scores)
+    if n < 3 or model.n_modes == 0:
+        return None
+    k = modes_explaining(model.variances, n_cases=n)
+    found = new_case_distances(result.scores[None], model.variances, n, k)
+    departure = np.linalg.norm(result.aligned - model.instance(result.scores[:k]), axis=1)
+    return {"modes": k, "distance": float(found.distance[0]), "p": float(found.p[0]),
+            "flagged": bool(found.outlier[0]), "threshold": found.threshold,
+            "max_departure_mm": float(departure.max()),
+            "at_point": int(departure.argmax())}
+
+
 def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
               max_sweeps: int = 10_000, seed: int = 0, progress=None,
               strategy: str | None = None, manifest=None) -> tuple[list, list]:
@@ -238,6 +257,7 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
                         "reconstruction_squared_mm2": r.squared_error.tolist(),
                         "reconstruction_distance_mm": r.distance_error.tolist(),
                         "mahalanobis": float(np.sqrt(np.sum(r.scores ** 2 / model.variances))),
+                        "unusual": unusual_fit(model, r),
                         "objective": r.objective, "notes": r.notes} for r in results}
     io.write_text(output / "fit.json", json.dumps(summary, indent=2))
     return results, rejected
