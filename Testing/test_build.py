@@ -9,6 +9,8 @@ import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig, ShapeModel, build_model
+from mdlshapemodel.correspondence.strategies.base import PhasePoint
+from mdlshapemodel.outputs import read_checkpoint
 from mdlshapemodel.prepare.io import read_csv
 from mdlshapemodel.errors import BuildError
 
@@ -119,7 +121,12 @@ def test_model_file_scores_and_metrics_agree(built):
     convergence = read_csv(output / "convergence.csv")
     assert float(convergence[-1]["objective"]) == pytest.approx(metrics["objective"]["final"])
     assert (output / "report.html").read_text().count("data:image/png;base64") >= 2
-    assert (output / "checkpoint.npz").exists()
+    # the checkpoint holds the optimisation's end (a --resume has nothing left to do) and its
+    # trace, the rows of convergence.csv
+    checkpoint = read_checkpoint(output / "checkpoint.npz")
+    assert checkpoint.point.phase == PhasePoint.DONE
+    assert [row.objective for row in checkpoint.trace_rows] == pytest.approx(
+        [float(row["objective"]) for row in convergence], rel=1e-9)
 
 
 def test_too_few_usable_cases_is_an_error(population, tmp_path):

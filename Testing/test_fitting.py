@@ -101,8 +101,10 @@ def test_held_back_error_is_close_to_its_leave_one_out_error(models, fitted):
     shapes = full.model.instance(full.model.scores)
     per_case = generalization(shapes, full.model.weights, 3)["squared_per_case"][index]
     fitted_errors = result.squared_error[1:4]
-    assert np.all(fitted_errors < 3.0 * per_case + 0.05)
-    assert np.all(fitted_errors > per_case / 3.0 - 0.05)
+    # within a factor of two either way (measured: about 2/3 of it, the fit also optimising the
+    # case's correspondence)
+    assert np.all(fitted_errors < 2.0 * per_case)
+    assert np.all(fitted_errors > 0.5 * per_case)
 
 
 def test_fit_cases_writes_outputs_and_rejects_bad_inputs(models, tmp_path):
@@ -116,9 +118,14 @@ def test_fit_cases_writes_outputs_and_rejects_bad_inputs(models, tmp_path):
     summary = json.loads((out / "fit.json").read_text())
     entry = summary[f"case_{HELD_BACK}"]
     assert len(entry["reconstruction_squared_mm2"]) == results[0].squared_error.size
-    assert entry["mahalanobis"] > 0
+    # the case's distance from the mean in the model it was fitted to, and its scores there
+    model, _ = load_model(partial.output)
+    assert entry["mahalanobis"] == pytest.approx(
+        np.sqrt(np.sum(results[0].scores ** 2 / model.variances)), rel=1e-12)
     rows = read_csv(out / "scores.csv")
     assert rows[0]["case"] == f"case_{HELD_BACK}"
+    np.testing.assert_allclose([float(v) for k, v in rows[0].items() if k != "case"],
+                               results[0].scores, rtol=1e-5, atol=1e-8)
     assert (out / "correspondence" / f"case_{HELD_BACK}.vtp").is_file()
     assert (out / "reconstruction" / f"case_{HELD_BACK}.vtp").is_file()
     assert read_csv(out / "rejected.csv")[0]["case"] == "bad"
