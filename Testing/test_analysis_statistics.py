@@ -179,6 +179,19 @@ def test_family_wise_and_fdr_rates_under_the_null_are_alpha(rng, nuisance):
     assert fdr / datasets < alpha + 2.5 * se, fdr / datasets
 
 
+def test_on_independent_points_the_fdr_under_the_null_is_alpha(rng):
+    # Benjamini-Hochberg keeps P(any discovery) = alpha under the complete null exactly when the
+    # points are independent (on correlated ones it is lower): this checks the pooled p-values
+    alpha, datasets, found = 0.05, 400, 0
+    for _ in range(datasets):
+        y = rng.normal(size=(20, 100))
+        labels = (rng.permutation(20) < 10).astype(float)[:, None]
+        result = permutation_test(y, labels, permutations=199, seed=int(rng.integers(1 << 30)))
+        found += bool(np.any(result.q_fdr <= alpha))
+    se = np.sqrt(alpha * (1 - alpha) / datasets)
+    assert abs(found / datasets - alpha) < 2.5 * se, found / datasets
+
+
 def test_a_planted_effect_is_found_where_it_was_planted_and_nowhere_far(rng):
     found_at, found_far = [], []
     for _ in range(20):

@@ -12,7 +12,8 @@ drawn at random (``--seed``; the files' order follows the source's cohorts, whic
 shape), ``--width`` being the Gaussian's sigma, at one anatomical place: the tip of the hippocampal head (the label-1 voxel farthest from
 the centroid of label 2). Every case, pushed or not, goes through the same steps: the signed
 distance of its union of labels, resampled to ``--spacing`` mm (linear), pushed (or not) and
-thresholded half an original voxel out (where the Maurer distance puts the boundary).
+thresholded a little less than half an original voxel out (where the Maurer distance puts the
+boundary).
 ``DIR/planted.json`` records each case's push centre (LPS mm) and group.
 
 ``power DIR BUILD [BUILD ...]``: builds of the planted label maps (for example the default MDL
@@ -89,6 +90,10 @@ def null(args):
               f" ({(count['fdr'] / args.splits - args.alpha) / se:+.1f} SE)")
 
 
+# where plant thresholds the resampled signed distance, in original voxels (see plant)
+THRESHOLD = 0.45
+
+
 def _push_centre(labels: np.ndarray, image) -> np.ndarray:
     """The tip of the head: the label-1 voxel farthest from the centroid of label 2 (LPS mm)."""
     head = np.argwhere(labels == 1)[:, ::-1].astype(float)      # (x, y, z) indices
@@ -128,9 +133,11 @@ def plant(args):
             push = args.amplitude * np.exp(-0.5 * np.sum((physical - centre) ** 2, axis=-1)
                                            / args.width ** 2)
             values = values + np.transpose(push, (2, 1, 0))   # inward: the object shrinks
-        # the Maurer distance is 0 on the object's boundary voxels and 1 voxel outside them:
-        # the surface lies half a voxel out, where it is half the original spacing
-        result = sitk.GetImageFromArray((values <= 0.5 * min(image.GetSpacing()))
+        # the Maurer distance is 0 on the object's boundary voxels and 1 voxel outside them, so
+        # the surface lies about half a voxel out; the threshold stays a little below that,
+        # because linear interpolation puts many samples at exactly half (half-way between a
+        # 0 and a 1), where a push of any size, however far away, would flip them all
+        result = sitk.GetImageFromArray((values < THRESHOLD * min(image.GetSpacing()))
                                         .astype(np.uint8))
         result.CopyInformation(fine)
         name = path.name.split(".")[0]
