@@ -19,6 +19,7 @@ from typing import Callable
 from .config import (ANALYSIS_SIZES, DISPLACEMENTS, OPTION_GROUPS, STRATEGIES,
                      AnalysisConfig, BuildConfig, parse_items)
 from .errors import ConfigError, InternalError, MDLShapeModelError
+from .version import __version__
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -351,14 +352,39 @@ def _run_analyze(args, live: bool) -> int:
     return 0
 
 
+def _parse(parser, commands, argv):
+    """Parse the command line; an unrecognized number right after a --label value gets the
+    hint to separate labels by commas (``--label 1 2`` -> ``--label 1,2``)."""
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        words = list(sys.argv[1:] if argv is None else argv)
+        subcommand = commands.choices.get(getattr(args, "command", None), parser)
+        for word in extra:
+            index = words.index(word) if word in words else -1
+            if (word.isdigit() and index >= 2 and words[index - 2] == "--label"
+                    and words[index - 1].replace(",", "").isdigit()):
+                subcommand.error(f"unrecognized argument: {word}; to give several labels, "
+                                 f"write --label {words[index - 1]},{word}")
+        subcommand.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv=None) -> int:
     defaults = BuildConfig()
     parser = argparse.ArgumentParser(
         prog="mdlshapemodel",
         description="Statistical shape models with correspondence by minimum description length.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
-    build = commands.add_parser("build", help="build a model from label maps, meshes or 2-D "
-                                              "curves")
+    build = commands.add_parser(
+        "build", help="build a model from label maps, meshes or 2-D curves",
+        epilog="examples:\n"
+               "  mdlshapemodel build labels/ -o out\n"
+               "  mdlshapemodel build labels/ -o out --label 1,2 --points 642\n"
+               "  mdlshapemodel build femurs/*.stl -o femurs --mirror '*_right*'\n"
+               "  mdlshapemodel build labels/ -o parts --part head=1 --part tail=2\n"
+               "  mdlshapemodel build -o out --resume            (after an interruption)",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     build.add_argument("inputs", nargs="*", help="label maps, meshes, 2-D curves (point lists, "
                                                  "polylines, 2-D label images), or folders of "
                                                  "them")
@@ -469,7 +495,7 @@ def main(argv=None) -> int:
     analyze.add_argument("--overwrite", action="store_true",
                          help="replace an earlier analysis in the output folder")
     analyze.add_argument("-q", "--quiet", action="store_true")
-    args = parser.parse_args(argv)
+    args = _parse(parser, commands, argv)
 
     # a live progress display when a person watches stderr (a terminal), else plain log lines
     live = args.command in ("build", "demo", "analyze") and not args.quiet and sys.stderr.isatty()
