@@ -16,6 +16,9 @@ from mdlshapemodel.errors import BuildError
 
 from synthetic import small_mask
 
+# real builds (the command line or build_model): deselected by -m "not slow"
+pytestmark = pytest.mark.slow
+
 
 def write_mask(path, mask, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)):
     image = sitk.GetImageFromArray(mask.astype(np.uint8))

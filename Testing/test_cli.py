@@ -15,10 +15,14 @@ import termios
 from pathlib import Path
 
 import numpy as np
+import pytest
 import SimpleITK as sitk
 
 from mdlshapemodel.config import BuildConfig
 from synthetic import small_mask
+
+# real builds (the command line or build_model): deselected by -m "not slow"
+pytestmark = pytest.mark.slow
 
 EXECUTABLE = [sys.executable, "-m", "mdlshapemodel.cli"]
 

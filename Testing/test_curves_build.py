@@ -17,6 +17,9 @@ from mdlshapemodel.prepare.io import read_csv
 
 from common import run_cli
 
+# real builds (the command line or build_model): deselected by -m "not slow"
+pytestmark = pytest.mark.slow
+
 
 cli = run_cli
 

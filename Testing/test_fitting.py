@@ -16,6 +16,9 @@ from mdlshapemodel.prepare.surface import point_surface_distances
 
 from synthetic import small_mask
 
+# real builds (the command line or build_model): deselected by -m "not slow"
+pytestmark = pytest.mark.slow
+
 POSITIONS = np.linspace(-0.6, 0.6, 7)
 HELD_BACK = 3
 

@@ -42,6 +42,7 @@ def build(labels, output, *extra):
     return run_cli("build", labels, "-o", output, *QUICK, *extra)
 
 
+@pytest.mark.slow
 def test_a_second_build_into_the_same_folder_is_refused_unless_overwrite(labels, tmp_path):
     output = tmp_path / "out"
     (output / "inputs").mkdir(parents=True)

@@ -177,6 +177,7 @@ def _polydata(path):
     return reader.GetOutput()
 
 
+@pytest.mark.slow
 def test_cli_builds_a_two_part_model_by_labels_and_by_manifest(two_label_maps, tmp_path):
     folder, paths = two_label_maps
     common = ["--points", "162", "--max-sweeps", "2", "--surface-samples", "0",
@@ -227,6 +228,7 @@ def test_demo_population_with_parts_has_two_touching_labels(tmp_path):
     assert Path(paths[0]).name == "subject_01.nii.gz"
 
 
+@pytest.mark.slow
 def test_fit_and_compare_take_two_part_models(two_label_maps, tmp_path):
     """A new case is fitted to a two-part model part by part (split by the model's labels, or
     from a manifest of one file per part); compare evaluates two-part models side by side."""

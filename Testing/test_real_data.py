@@ -49,6 +49,7 @@ def test_single_label_and_missing_label():
     assert "label 3 not present" in missing.reason and "1, 2" in missing.reason
 
 
+@pytest.mark.slow
 def test_small_hippocampus_build_is_faithful_and_fold_free(tmp_path):
     inputs = [hippocampus(n) for n in (1, 3, 4, 6, 7)]
     config = BuildConfig(labels=[1, 2], points=642, max_time=10, specificity_samples=500,
@@ -103,6 +104,7 @@ def test_a_femur_label_map_at_half_a_millimetre_maps_at_the_sampling_grids_resol
     assert np.mean(point_surface_distances(mapped.vertices, bone, bone_faces)) < 0.25  # half a voxel
 
 
+@pytest.mark.slow
 def test_hippocampi_as_head_and_tail_from_labels_and_from_one_file_per_part(tmp_path):
     """The shared hippocampi as two parts, head (label 1) and body/tail (label 2): from the label
     maps with --part, and split into one file per part listed in a manifest: the same model."""

@@ -211,6 +211,7 @@ def assert_whole_outputs(output):
             np.load(path, allow_pickle=False).files
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage, workers", [("preparing", "2"), ("fixed", "1"),
                                             ("integrated", "2"), ("writing outputs", "1")])
 def test_a_build_killed_at_any_stage_resumes_to_the_uninterrupted_model(
@@ -240,6 +241,7 @@ def test_a_build_killed_at_any_stage_resumes_to_the_uninterrupted_model(
     assert not list(output.rglob(".*.partial*"))
 
 
+@pytest.mark.slow
 def test_resuming_with_other_settings_is_refused(labels, uninterrupted, tmp_path):
     output = tmp_path / "out"
     killed_at(labels, output, checkpoint_at("integrated"), "1", tmp_path / "cache")

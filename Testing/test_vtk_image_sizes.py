@@ -67,6 +67,7 @@ def no_vtk_errors(stderr: str):
     assert not lines, lines[:5]
 
 
+@pytest.mark.slow
 @needs_hippocampi
 @pytest.mark.parametrize("reader", ["mha", "nifti"])
 def test_the_readme_pipeline_on_ten_hippocampi_builds_the_model_of_the_cli(reader, tmp_path):
