@@ -106,17 +106,23 @@ def _discriminant_parts(analysis: Analysis, model: ShapeModel) -> list:
             parts.append(_image(_b64(picture), "discriminant change"))
         except (MDLShapeModelError, RuntimeError) as error:
             parts.append(f"<p>Rendering left out: {html.escape(str(error))}</p>")
+    held_out = analysis.classification.predicted
     plt = pyplot()
     figure, axis = plt.subplots(figsize=(5.0, 2.6))
     groups = np.array(analysis.subjects.groups)
     for k, level in enumerate(levels):
-        values = found.scores[groups == level]
+        values = held_out[groups == level]
         axis.scatter(values, np.full(len(values), k) + np.linspace(-0.15, 0.15, len(values)),
                      s=14, label=level)
+    axis.axvline(0.0, color="0.5", linewidth=0.8)
     axis.set_yticks(range(len(levels)), levels)
-    axis.set_xlabel("discriminant score [SD]")
+    axis.set_xlabel("held-out discriminant value (cross-validated; > 0: "
+                    f"{levels[1]})")
     axis.grid(alpha=0.3)
-    parts.append(_image(encoded_png(figure), "scores by group"))
+    parts += ["<p>Each case's discriminant value from the fold that held it out (fitted "
+              "without it): how well the groups separate on new cases. The values of the "
+              "discriminant fitted on all cases separate them better than new cases would.</p>",
+              _image(encoded_png(figure), "held-out discriminant values by group")]
     return parts
 
 
