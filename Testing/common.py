@@ -34,6 +34,13 @@ def run_cli(*arguments, timeout: float = TIMEOUT, **kwargs) -> subprocess.Comple
                           capture_output=True, text=True, timeout=timeout, **kwargs)
 
 
+def run_cli_quietly(*arguments, **kwargs) -> subprocess.CompletedProcess:
+    """:func:`run_cli` with Python's warnings off in the subprocess (``PYTHONWARNINGS=ignore``):
+    its stderr holds only what the command line itself says."""
+    environment = dict(kwargs.pop("env", None) or os.environ, PYTHONWARNINGS="ignore")
+    return run_cli(*arguments, env=environment, **kwargs)
+
+
 def run_python(code: str, *arguments, cwd=None, timeout: float = TIMEOUT
                ) -> subprocess.CompletedProcess:
     """``code`` run as a script in a fresh interpreter (text output captured; not checked): a

@@ -85,3 +85,48 @@ def split_into_part_files(paths, parts: dict, folder, manifest: str = "cases.csv
     table = Path(folder) / manifest
     table.write_text("\n".join(rows) + "\n")
     return table
+
+
+def write_population(folder, n: int = 5) -> list:
+    """``n`` small bumpy ellipsoids (:func:`small_mask`, sizes varying by 3 %) written as label
+    maps ``case_K.nii.gz`` (label 1) into ``folder`` (made); returns their paths."""
+    import SimpleITK as sitk
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k, position in enumerate(np.linspace(-0.6, 0.6, n)):
+        paths.append(folder / f"case_{k}.nii.gz")
+        mask = small_mask(float(position), 1.0 + 0.03 * ((k % 3) - 1)).astype(np.uint8)
+        sitk.WriteImage(sitk.GetImageFromArray(mask), str(paths[-1]))
+    return paths
+
+
+def vertex_areas(vertices, faces):
+    """One third of the area of the triangles around each vertex (written out, as a reference)."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    result = np.zeros(len(vertices))
+    for k in range(3):
+        np.add.at(result, faces[:, k], area / 3.0)
+    return result
+
+
+def radial_population(rng, n_s, n_functions, coarse=162, fine=642, semi_axes=(12.0, 9.0, 7.0),
+                      amplitude=0.08):
+    """Ellipsoids with random radial bumps: (shapes (n_s, coarse, 3), triangles, weights, true
+    surfaces [(vertices, faces)] on the fine icosphere)."""
+    directions, triangles = sphere_grid(coarse)
+    fine_directions, fine_faces = sphere_grid(fine)
+    assert np.allclose(fine_directions[:coarse], directions)          # the coarse vertices reappear
+    frequencies = rng.normal(size=(n_functions, 3)) * 1.5
+    phases = rng.uniform(0, 2 * np.pi, n_functions)
+    coefficients = rng.normal(size=(n_s, n_functions)) * amplitude
+
+    def sample(u, c):
+        return u * (1 + np.sin(u @ frequencies.T + phases) @ c)[:, None] * np.array(semi_axes)
+
+    shapes = np.stack([sample(directions, c) for c in coefficients])
+    surfaces = [(sample(fine_directions, c), fine_faces) for c in coefficients]
+    weights = vertex_areas(shapes.mean(axis=0), triangles)
+    return shapes, triangles, weights / weights.sum(), surfaces

@@ -9,8 +9,8 @@ import SimpleITK as sitk
 from mdlshapemodel.prepare.io import read_csv, read_label_map, write_polydata
 from mdlshapemodel.correspondence.sampling import icosphere
 
+from common import run_cli_quietly as run
 from synthetic import small_mask, torus
-from test_cli import run
 
 
 def write_image(path, array):

@@ -22,8 +22,8 @@ from mdlshapemodel.correspondence.warps import (WARP_KINDS, apply_warps, make_wa
 from mdlshapemodel.prepare.curve import curve_map, read_curve, resample_curve, segment_lengths
 
 from common import DATA, HANDS
+from resuming import assert_same_record, optimised_with_checkpoints, resumed_from
 from synthetic import build_objectives
-from test_resume import assert_same_record, optimised_with_checkpoints, resumed_from
 
 needs_hands = pytest.mark.skipif(not HANDS, reason=f"shared hands not found at {DATA / 'hands2d'}")
 

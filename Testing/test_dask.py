@@ -32,8 +32,11 @@ from mdlshapemodel.prepare.io import read_csv
 
 from dying import square_or_die
 from on_workers import blas_threads, held
-from test_cli import EXECUTABLE
-from test_workers import write_population
+from common import run_cli, run_python
+from synthetic import write_population
+
+# real builds (the command line or build_model): deselected by -m "not slow"
+pytestmark = pytest.mark.slow
 
 DASK = Path(sys.executable).with_name("dask")
 PACKAGE_ROOT = str(Path(mdlshapemodel.__file__).resolve().parents[1])
@@ -99,9 +102,8 @@ def build(inputs: list, output: Path, *options, crash: bool = False):
     environment.pop(TEST_CRASH_VARIABLE, None)
     if crash:
         environment[TEST_CRASH_VARIABLE] = CRASHING
-    return subprocess.run(EXECUTABLE + ["build", *map(str, inputs), "-o", str(output),
-                                        *SMALL_BUILD, *map(str, options)],
-                          capture_output=True, text=True, env=environment, timeout=300)
+    return run_cli("build", *inputs, "-o", output, *SMALL_BUILD, *options, env=environment,
+                   timeout=300)
 
 
 def free_port() -> int:
@@ -114,8 +116,8 @@ def free_port() -> int:
 def test_importing_the_library_and_its_build_imports_no_dask():
     code = ("import sys, mdlshapemodel, mdlshapemodel.build, mdlshapemodel.parallel; "
             "print(','.join(m for m in ('dask', 'distributed') if m in sys.modules))")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            check=True)
+    result = run_python(code)
+    assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == ""
 
 
@@ -144,9 +146,8 @@ def test_without_distributed_the_error_says_what_to_install(tmp_path):
     paths = write_population(tmp_path / "inputs", 3)
     code = ("import sys; sys.modules['distributed'] = None; from mdlshapemodel.cli import main; "
             "sys.exit(main(sys.argv[1:]))")
-    result = subprocess.run([sys.executable, "-c", code, "build", *map(str, paths), "-o",
-                             str(tmp_path / "out"), "--scheduler", "tcp://127.0.0.1:8786"],
-                            capture_output=True, text=True)
+    result = run_python(code, "build", *paths, "-o", tmp_path / "out", "--scheduler",
+                        "tcp://127.0.0.1:8786")
     assert result.returncode == 2, result.stderr
     (line,) = result.stderr.splitlines()
     assert line.startswith("mdlshapemodel: error: scheduler tcp://127.0.0.1:8786: the Dask "

@@ -13,8 +13,9 @@ from mdlshapemodel.model.evaluation import (SURFACE_GENERALIZATION_POINTS, compa
                                       generalization, specificity, surface_generalization,
                                       surface_specificity)
 from mdlshapemodel.parallel import process_pool
-from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.prepare.surface import SurfaceDistance, point_surface_distances
+
+from synthetic import radial_population, vertex_areas
 
 
 def normalised_weights(rng, n_p):
@@ -337,16 +338,6 @@ def brute_point_triangle(points, vertices, faces):
     return result
 
 
-def vertex_areas(vertices, faces):
-    """One third of the area of the triangles around each vertex."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    result = np.zeros(len(vertices))
-    for k in range(3):
-        np.add.at(result, faces[:, k], area / 3.0)
-    return result
-
-
 def brute_symmetric(points, triangles, weights, vertices, faces):
     """(plain, area-weighted, (a) weighted, (b) weighted) symmetric surface distance, brute force."""
     to_surface = brute_point_triangle(points, vertices, faces)         # (a) mesh points -> truth
@@ -356,26 +347,6 @@ def brute_symmetric(points, triangles, weights, vertices, faces):
     b_weighted = from_surface @ areas / areas.sum()
     return np.array([0.5 * (to_surface.mean() + from_surface.mean()),
                      0.5 * (a_weighted + b_weighted), a_weighted, b_weighted])
-
-
-def radial_population(rng, n_s, n_functions, coarse=162, fine=642, semi_axes=(12.0, 9.0, 7.0),
-                      amplitude=0.08):
-    """(shapes (n_s, coarse, 3), triangles, weights, true surfaces [(vertices, faces)] on the fine
-    icosphere)."""
-    directions, triangles = sphere_grid(coarse)
-    fine_directions, fine_faces = sphere_grid(fine)
-    assert np.allclose(fine_directions[:coarse], directions)          # the coarse vertices reappear
-    frequencies = rng.normal(size=(n_functions, 3)) * 1.5
-    phases = rng.uniform(0, 2 * np.pi, n_functions)
-    coefficients = rng.normal(size=(n_s, n_functions)) * amplitude
-
-    def sample(u, c):
-        return u * (1 + np.sin(u @ frequencies.T + phases) @ c)[:, None] * np.array(semi_axes)
-
-    shapes = np.stack([sample(directions, c) for c in coefficients])
-    surfaces = [(sample(fine_directions, c), fine_faces) for c in coefficients]
-    weights = vertex_areas(shapes.mean(axis=0), triangles)
-    return shapes, triangles, weights / weights.sum(), surfaces
 
 
 def test_brute_point_triangle_against_dense_sampling(rng):

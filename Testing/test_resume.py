@@ -2,7 +2,6 @@
 uninterrupted one, for every strategy; and a real build killed with SIGKILL at any stage and run
 again with --resume gives the uninterrupted build's model, with no half-written file left."""
 
-import copy
 import json
 import os
 import signal
@@ -13,51 +12,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
 
 from mdlshapemodel import ShapeModel
 from mdlshapemodel.config import OptimisationSettings
 from mdlshapemodel.correspondence.state import state_record
-from mdlshapemodel.correspondence.strategies import optimise
-from mdlshapemodel.correspondence.strategies.base import PhasePoint, Resumption
-from mdlshapemodel.correspondence.trace import Trace
+from mdlshapemodel.correspondence.strategies.base import PhasePoint
 from mdlshapemodel.errors import BuildError
 from mdlshapemodel.outputs import read_checkpoint
 from mdlshapemodel.prepare import io
 
 from common import TIMEOUT, run_cli
-from synthetic import build_objectives, small_mask, small_state
-
-
-def assert_same_record(a: dict, b: dict):
-    assert a.keys() == b.keys()
-    for key in a:
-        assert np.array_equal(a[key], b[key]), key
-
-
-def optimised_with_checkpoints(state, settings, seed: int = 7):
-    """``optimise`` with a checkpoint keeping, at every step, (point, state record, evaluations,
-    generator state, trace rows): the final F, the trace and those checkpoints."""
-    rng, trace, saved = np.random.default_rng(seed), Trace(), []
-
-    def checkpoint(point):
-        saved.append((point, copy.deepcopy(state_record(state)), state.evaluations,
-                      copy.deepcopy(rng.bit_generator.state), list(trace.rows)))
-
-    final = optimise(state, build_objectives(state), settings, rng, trace, checkpoint=checkpoint)
-    return final, trace, saved
-
-
-def resumed_from(state, settings, saved):
-    """``optimise`` of a fresh ``state`` resumed from one of :func:`optimised_with_checkpoints`'
-    checkpoints: the final F and the trace."""
-    point, record, evaluations, generator, rows = saved
-    rng = np.random.default_rng(0)
-    rng.bit_generator.state = generator
-    trace = Trace(rows=list(rows))
-    value = optimise(state, build_objectives(state), settings, rng, trace,
-                     resume=Resumption(point, record, evaluations, 0.0))
-    return value, trace
+from resuming import assert_same_record, optimised_with_checkpoints, resumed_from
+from synthetic import small_state, write_population
 
 
 @pytest.mark.parametrize("strategy, sweeps", [("fast", 10_000), ("one-at-a-time-pose", 3),
@@ -98,10 +64,7 @@ QUICK = ["--points", "162", "--baselines", "", "--max-time", "600", "--evaluatio
 @pytest.fixture(scope="module")
 def labels(tmp_path_factory):
     folder = tmp_path_factory.mktemp("labels")
-    for k, position in enumerate(np.linspace(-0.6, 0.6, 5)):
-        mask = small_mask(float(position), 1.0 + 0.03 * ((k % 3) - 1))
-        sitk.WriteImage(sitk.GetImageFromArray(mask.astype(np.uint8)),
-                        str(folder / f"case_{k}.nii.gz"))
+    write_population(folder, 5)
     return folder
 
 

@@ -8,11 +8,10 @@ import json
 import logging
 import multiprocessing
 import os
-import subprocess
 from concurrent.futures import Executor, ProcessPoolExecutor
 
 import numpy as np
-import SimpleITK as sitk
+import pytest
 
 from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.parallel import TEST_CRASH_VARIABLE, ProcessPool, Task, map_cases
@@ -20,8 +19,8 @@ from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.io import read_csv
 
 from dying import die, square_or_die
-from synthetic import small_mask
-from test_cli import EXECUTABLE
+from common import run_cli
+from synthetic import write_population
 
 
 def rejected(index: int, how: str) -> str:
@@ -69,7 +68,7 @@ class FirstCallDies(Executor):
 def test_an_evaluation_whose_worker_dies_is_done_here_with_the_same_numbers(rng):
     from mdlshapemodel.model.evaluation import evaluate
     from mdlshapemodel.model.shape_model import ShapeModel as Model
-    from test_evaluation import radial_population
+    from synthetic import radial_population
 
     shapes, triangles, weights, surfaces = radial_population(rng, 5, 3)
     variances = Model.from_shapes(shapes, weights).variances
@@ -93,29 +92,18 @@ def test_an_evaluation_whose_worker_dies_is_done_here_with_the_same_numbers(rng)
     broken.shutdown()
 
 
-def write_population(folder, n=5):
-    folder.mkdir()
-    paths = []
-    for k, position in enumerate(np.linspace(-0.6, 0.6, n)):
-        paths.append(folder / f"case_{k}.nii.gz")
-        mask = small_mask(float(position), 1.0 + 0.03 * ((k % 3) - 1)).astype(np.uint8)
-        sitk.WriteImage(sitk.GetImageFromArray(mask), str(paths[-1]))
-    return paths
-
-
 def build(inputs, output, workers, crash_on=None):
     environment = dict(os.environ, PYTHONWARNINGS="ignore")
     environment.pop(TEST_CRASH_VARIABLE, None)
     if crash_on:
         environment[TEST_CRASH_VARIABLE] = crash_on
-    return subprocess.run(
-        EXECUTABLE + ["build", *map(str, inputs), "-o", str(output), "--points", "162",
-                      "--baselines", "", "--max-sweeps", "1", "--evaluation-modes", "2",
-                      "--specificity-samples", "50", "--surface-samples", "5", "--workers",
-                      str(workers)], capture_output=True, text=True, env=environment,
-        timeout=600)
+    return run_cli("build", *inputs, "-o", output, "--points", "162", "--baselines", "",
+                   "--max-sweeps", "1", "--evaluation-modes", "2", "--specificity-samples", "50",
+                   "--surface-samples", "5", "--workers", workers, env=environment,
+                   timeout=600)
 
 
+@pytest.mark.slow
 def test_a_build_rejects_the_case_that_kills_its_worker_and_models_the_others(tmp_path):
     """``--workers 2``, one input kills its worker whenever it is prepared: the build succeeds,
     rejected.csv says why, and the model is bit for bit that of the other inputs alone (prepared
