@@ -22,6 +22,9 @@ from mdlshapemodel.prepare import io
 from common import run_cli
 from synthetic import small_mask
 
+# every test here works on one real build (build_model) and the real command line
+pytestmark = pytest.mark.slow
+
 N = 12
 
 
