@@ -16,8 +16,8 @@ from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Callable
 
-from .config import (ANALYSIS_SIZES, DISPLACEMENTS, OPTION_GROUPS, STRATEGIES,
-                     AnalysisConfig, BuildConfig, parse_items)
+from .config import (ANALYSIS_SIZES, DISPLACEMENTS, OPTION_GROUPS, PART_ALIGNMENTS,
+                     STRATEGIES, AnalysisConfig, BuildConfig, parse_items)
 from .errors import ConfigError, InternalError, MDLShapeModelError
 from .version import __version__
 
@@ -324,7 +324,7 @@ def _run_analyze(args, live: bool) -> int:
 
     config = AnalysisConfig(group=args.group, covariates=args.covariate,
                             nuisance=args.nuisance, reference=args.reference,
-                            permutations=args.permutations, size=args.size,
+                            permutations=args.permutations, size=args.size, parts=args.parts,
                             displacement=args.displacement, alpha=args.alpha,
                             seed=args.seed).validate()
     with _ProgressDisplay(live) as progress:
@@ -482,6 +482,10 @@ def main(argv=None) -> int:
     analyze.add_argument("--size", choices=ANALYSIS_SIZES, default=analysis_defaults.size,
                          help="kept: aligned by rotation and translation, so size differences "
                               "show; removed: each case scaled to the mean size first "
+                              "(default %(default)s)")
+    analyze.add_argument("--parts", choices=PART_ALIGNMENTS, default=analysis_defaults.parts,
+                         help="multi-part objects: whole, aligned as one (the parts' relative "
+                              "positions count); each, every part aligned on its own "
                               "(default %(default)s)")
     analyze.add_argument("--displacement", choices=DISPLACEMENTS,
                          default=analysis_defaults.displacement,

@@ -499,6 +499,9 @@ DISPLACEMENTS = ("normal", "vector")
 # How the analysis aligns the shapes: size kept (rigid; a loss of volume shows) or removed
 # (each scaled to the mean centroid size first).
 ANALYSIS_SIZES = ("kept", "removed")
+# How the analysis aligns a multi-part object: as one (the parts' relative positions count) or
+# each part on its own (only each part's own shape counts).
+PART_ALIGNMENTS = ("whole", "each")
 
 
 @dataclass
@@ -512,6 +515,7 @@ class AnalysisConfig:
     reference: str | None = None      # the group the others are compared with (default: first)
     permutations: int = 10_000
     size: str = "kept"
+    parts: str = "whole"              # multi-part objects: aligned as one, or each part alone
     displacement: str = "normal"
     alpha: float = 0.05
     seed: int = 0
@@ -525,6 +529,8 @@ class AnalysisConfig:
 
         need(self.permutations >= 1, "permutations", "must be at least 1")
         need(self.size in ANALYSIS_SIZES, "size", f"must be one of {', '.join(ANALYSIS_SIZES)}")
+        need(self.parts in PART_ALIGNMENTS, "parts",
+             f"must be one of {', '.join(PART_ALIGNMENTS)}")
         need(self.displacement in DISPLACEMENTS, "displacement",
              f"must be one of {', '.join(DISPLACEMENTS)}")
         need(0 < self.alpha < 1, "alpha", "must be between 0 and 1")

@@ -93,9 +93,10 @@ def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
         raise InputError(f"size must be one of {', '.join(SIZES)}, not {size!r}")
     shapes = np.asarray(shapes, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
+    weights = weights / weights.sum()          # Procrustes takes weights that sum to 1
     if size == "removed":
         sizes = np.array([centroid_size(x, weights) for x in shapes])
-        centres = np.einsum("p,npd->nd", weights / weights.sum(), shapes)
+        centres = np.einsum("p,npd->nd", weights, shapes)
         shapes = ((shapes - centres[:, None]) * (sizes.mean() / sizes)[:, None, None]
                   + centres[:, None])
     aligned, _ = generalized_procrustes(shapes, weights, scaling=False, planar=planar)

@@ -115,7 +115,13 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     planar = model.of_curves
     used = np.asarray(shapes, dtype=np.float64)[subjects.indices]
     report(progress, 0.0, "aligning the shapes")
-    aligned = align(used, model.weights, config.size, planar=planar)
+    if config.parts == "each" and len(model.part_sizes) > 1:
+        aligned = np.empty_like(used)
+        for rows in model.part_slices():
+            aligned[:, rows] = align(used[:, rows], model.weights[rows], config.size,
+                                     planar=planar)
+    else:
+        aligned = align(used, model.weights, config.size, planar=planar)
     mean = aligned.mean(axis=0)
     normals = vertex_normals(mean, model.triangles)
     offsets = aligned - mean
