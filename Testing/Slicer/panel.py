@@ -155,7 +155,14 @@ def render(panel, destination, width=420):
         raise OSError(f"{destination}: could not be written")
 
 
-def main(destination):
+def show_only(panel, sections):
+    """Expand the sections with these titles and collapse the others."""
+    for section in panel.findChildren(ctkCollapsibleButton):
+        section.setCollapsed(section.getText() not in sections)
+
+
+def main(destination, sections=()):
+    """Render the panel to ``destination``; with ``sections`` (titles), only those expanded."""
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import harness
 
@@ -164,8 +171,11 @@ def main(destination):
 
     panel = load_panel(MDLShapeModel.resourcePath("UI/MDLShapeModel.ui"))
     fill(panel, MDLShapeModel.MDLShapeModelParameterNode)
+    if sections:
+        show_only(panel, sections)
     render(panel, destination)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    # python panel.py OUT.png [SECTION ...]: e.g. panel.png, or analysis.png Analysis
+    main(sys.argv[1], sys.argv[2:])
