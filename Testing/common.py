@@ -41,9 +41,9 @@ def run_cli_quietly(*arguments, **kwargs) -> subprocess.CompletedProcess:
     return run_cli(*arguments, env=environment, **kwargs)
 
 
-def run_python(code: str, *arguments, cwd=None, timeout: float = TIMEOUT
+def run_python(code: str, *arguments, cwd=None, env=None, timeout: float = TIMEOUT
                ) -> subprocess.CompletedProcess:
     """``code`` run as a script in a fresh interpreter (text output captured; not checked): a
     crash in native code ends that process, not the test run."""
-    return subprocess.run([sys.executable, "-c", code, *map(str, arguments)], cwd=cwd,
+    return subprocess.run([sys.executable, "-c", code, *map(str, arguments)], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout)

@@ -26,10 +26,12 @@ import mdlshapemodel
 from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.build import fingerprint
 from mdlshapemodel.errors import ConfigError
-from mdlshapemodel.parallel import TEST_CRASH_VARIABLE, Task, map_cases, on_cluster
+from mdlshapemodel import parallel
+from mdlshapemodel.parallel import Task, map_cases, on_cluster
 from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.io import read_csv
 
+import crash_on_prepare
 from dying import square_or_die
 from on_workers import blas_threads, held
 from common import run_cli, run_python
@@ -83,10 +85,12 @@ def scheduler(tmp_path_factory) -> str:
         while not file.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
         address = json.loads(file.read_text())["address"]
+        # the workers are armed to die on inputs named crashing* (Testing/crash_on_prepare.py)
         started.append(_start(["worker", address, "--nworkers", "2", "--nthreads", "2",
-                               "--no-dashboard", "--local-directory", str(folder)],
+                               "--no-dashboard", "--local-directory", str(folder),
+                               "--preload", "crash_on_prepare"],
                               {**environment, "OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2",
-                               TEST_CRASH_VARIABLE: CRASHING}, folder / "workers.log"))
+                               crash_on_prepare.VARIABLE: CRASHING}, folder / "workers.log"))
         with Client(address, set_as_default=False) as client:
             client.wait_for_workers(2, timeout=90)
         yield address
@@ -95,13 +99,9 @@ def scheduler(tmp_path_factory) -> str:
             _stop(process)
 
 
-def build(inputs: list, output: Path, *options, crash: bool = False):
-    """The real command line's ``build`` of ``inputs`` with the small settings and ``options``;
-    ``crash``: with the test-only crash hook for inputs named ``crashing*``."""
+def build(inputs: list, output: Path, *options):
+    """The real command line's ``build`` of ``inputs`` with the small settings and ``options``."""
     environment = dict(os.environ, PYTHONWARNINGS="ignore")
-    environment.pop(TEST_CRASH_VARIABLE, None)
-    if crash:
-        environment[TEST_CRASH_VARIABLE] = CRASHING
     return run_cli("build", *inputs, "-o", output, *SMALL_BUILD, *options, env=environment,
                    timeout=300)
 
@@ -237,12 +237,15 @@ def test_a_build_on_the_cluster_equals_the_local_builds_bit_for_bit(scheduler, t
 
 def test_an_input_that_kills_its_dask_workers_is_rejected_and_the_others_are_prepared(
         scheduler, tmp_path, monkeypatch, caplog):
-    """The crash hook kills the worker that prepares ``crashing.nii.gz``: the scheduler gives it
+    """crash_on_prepare, preloaded, kills the worker that prepares ``crashing.nii.gz``: the
+    scheduler gives it
     up, it dies again alone in a fresh process here, and is rejected; the other cases (also any
     that the dead worker held) are prepared. Through a caller's client, as from Python."""
     paths = write_population(tmp_path / "inputs", 4)
     culprit = paths[1].rename(paths[1].with_name(f"{CRASHING}.nii.gz"))
-    monkeypatch.setenv(TEST_CRASH_VARIABLE, CRASHING)   # for the fresh process here
+    # the fresh process here is armed too
+    monkeypatch.setenv(crash_on_prepare.VARIABLE, CRASHING)
+    monkeypatch.setattr(parallel, "WORKER_STARTUP", [crash_on_prepare.arm])
     with Client(scheduler, set_as_default=False) as client:
         with caplog.at_level(logging.WARNING, "mdlshapemodel"):
             prepared, rejected = preprocess([paths[0], culprit, *paths[2:]],

@@ -1,25 +1,29 @@
 """A dying worker process is one rejected case, not a dead build (real processes throughout).
 
-Workers are killed by the test-only hook ``MDLSHAPEMODEL_TEST_CRASH_ON`` (preparation) or by
-functions of this module that end their own process, as a segfault in a native library would.
+Workers are killed by Testing/crash_on_prepare.py (armed in a pool's workers through
+``parallel.WORKER_STARTUP``: a worker dies as it opens a matching input) or by the functions of
+Testing/dying.py that end their own process, as a segfault in a native library would.
 """
 
 import json
 import logging
 import multiprocessing
 import os
+from pathlib import Path
 from concurrent.futures import Executor, ProcessPoolExecutor
 
 import numpy as np
 import pytest
 
 from mdlshapemodel import BuildConfig, ShapeModel
-from mdlshapemodel.parallel import TEST_CRASH_VARIABLE, ProcessPool, Task, map_cases
+from mdlshapemodel import parallel
+from mdlshapemodel.parallel import ProcessPool, Task, map_cases
 from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.io import read_csv
 
+import crash_on_prepare
 from dying import die, square_or_die
-from common import run_cli
+from common import run_python
 from synthetic import write_population
 
 
@@ -92,15 +96,20 @@ def test_an_evaluation_whose_worker_dies_is_done_here_with_the_same_numbers(rng)
     broken.shutdown()
 
 
-def build(inputs, output, workers, crash_on=None):
-    environment = dict(os.environ, PYTHONWARNINGS="ignore")
-    environment.pop(TEST_CRASH_VARIABLE, None)
-    if crash_on:
-        environment[TEST_CRASH_VARIABLE] = crash_on
-    return run_cli("build", *inputs, "-o", output, "--points", "162", "--baselines", "",
-                   "--max-sweeps", "1", "--evaluation-modes", "2", "--specificity-samples", "50",
-                   "--surface-samples", "5", "--workers", workers, env=environment,
-                   timeout=600)
+TESTING = Path(__file__).resolve().parent
+
+
+def build(inputs, output, workers, crash_on):
+    """The command line's small build with its pool workers armed to die on inputs whose path
+    contains ``crash_on`` (crash_on_prepare.CLI)."""
+    environment = dict(os.environ, PYTHONWARNINGS="ignore",
+                       PYTHONPATH=os.pathsep.join(filter(None, [str(TESTING),
+                                                                os.environ.get("PYTHONPATH")])))
+    environment[crash_on_prepare.VARIABLE] = crash_on
+    return run_python(crash_on_prepare.CLI, "build", *inputs, "-o", output, "--points", "162",
+                      "--baselines", "", "--max-sweeps", "1", "--evaluation-modes", "2",
+                      "--specificity-samples", "50", "--surface-samples", "5", "--workers",
+                      workers, cwd=TESTING, env=environment, timeout=600)
 
 
 @pytest.mark.slow
@@ -132,9 +141,17 @@ def test_a_build_rejects_the_case_that_kills_its_worker_and_models_the_others(tm
         assert np.array_equal(getattr(survived, name), getattr(reference, name)), name
 
 
-def test_the_crash_hook_never_fires_in_the_main_process(tmp_path, monkeypatch):
-    """With one worker there is no worker process: the case is prepared here, hook or not."""
-    path = write_population(tmp_path / "inputs", 1)[0]
-    monkeypatch.setenv(TEST_CRASH_VARIABLE, path.name)
-    prepared, rejected_cases = preprocess([path], BuildConfig(workers=1, cache_dir=""))
-    assert [case.name for case in prepared] == ["case_0"] and rejected_cases == []
+def test_worker_startup_functions_run_in_every_pool_worker_and_never_here(tmp_path, monkeypatch):
+    """``parallel.WORKER_STARTUP`` is run by each worker a pool starts (also the fresh one that
+    runs a suspect case alone), never by the main process: with one worker the case is prepared
+    here; on a pool of two its worker dies, and again alone, and it is rejected."""
+    paths = write_population(tmp_path / "inputs", 2)
+    monkeypatch.setenv(crash_on_prepare.VARIABLE, paths[1].name)
+    monkeypatch.setattr(parallel, "WORKER_STARTUP", [crash_on_prepare.arm])
+    prepared, rejected_cases = preprocess(paths, BuildConfig(workers=1, cache_dir=""))
+    assert [case.name for case in prepared] == ["case_0", "case_1"] and rejected_cases == []
+    with ProcessPool(2) as pool:
+        prepared, rejected_cases = preprocess(paths, BuildConfig(cache_dir=""), pool)
+    assert [case.name for case in prepared] == ["case_0"]
+    assert [(r.name, r.reason) for r in rejected_cases] == [
+        ("case_1", f"worker process died (signal 9) while preparing {paths[1]}")]

@@ -22,7 +22,6 @@ import logging
 import multiprocessing
 import os
 import re
-import signal
 import socket
 import sys
 import threading
@@ -66,6 +65,21 @@ def _end_with_parent(parent: int, interval: float = 0.5) -> None:
     threading.Thread(target=watch, name="mdlshapemodel-parent-watch", daemon=True).start()
 
 
+#: Functions that every worker process of a :class:`ProcessPool` calls when it starts, in order,
+#: without arguments (a spawned worker imports them by module and name, so module-level
+#: functions or ``functools.partial`` objects of them). Empty in the library; a program (a test,
+#: say, that makes a worker die) may add to it before a pool starts its workers.
+WORKER_STARTUP: list = []
+
+
+def _start_worker(parent: int, startup: tuple = ()) -> None:
+    """Worker initializer of :class:`ProcessPool`: :func:`_end_with_parent`, then ``startup``
+    (:data:`WORKER_STARTUP` when the pool started this worker)."""
+    _end_with_parent(parent)
+    for function in startup:
+        function()
+
+
 class ProcessPool(Executor):
     """A pool of ``workers`` processes started with ``spawn`` (one BLAS thread each) that replaces
     itself when a worker process dies.
@@ -91,7 +105,8 @@ class ProcessPool(Executor):
             self._pool.shutdown(wait=True)
         self._pool = ProcessPoolExecutor(max_workers=self.workers,
                                          mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_end_with_parent, initargs=(os.getpid(),))
+                                         initializer=_start_worker,
+                                         initargs=(os.getpid(), tuple(WORKER_STARTUP)))
         self._processes = {}
         return self._pool
 
@@ -616,17 +631,3 @@ def _check_workers(client, address: str):
                     "sets, its BLAS threads and native libraries' messages, is its process's): "
                     "start workers with --nthreads 1, as many processes as cores (--nworkers)")
 
-
-# ---- test-only --------------------------------------------------------------------------------
-
-TEST_CRASH_VARIABLE = "MDLSHAPEMODEL_TEST_CRASH_ON"
-
-
-def crash_hook_for_tests(subject: str):
-    """TEST-ONLY: kill this process with SIGKILL (as a segfaulting native library would end it)
-    when ``$MDLSHAPEMODEL_TEST_CRASH_ON`` is set and ``subject`` (a file about to be prepared)
-    contains it; only in a worker process, never in the main one. The tests of dying workers set
-    it; nothing else does."""
-    pattern = os.environ.get(TEST_CRASH_VARIABLE)
-    if pattern and pattern in subject and multiprocessing.parent_process() is not None:
-        os.kill(os.getpid(), signal.SIGKILL)

@@ -8,7 +8,7 @@ from concurrent.futures import Executor
 
 from ..config import BuildConfig
 from ..errors import InternalError
-from ..parallel import crash_hook_for_tests, executor_for, map_cases
+from ..parallel import executor_for, map_cases
 from ..progress import Progress
 from . import io
 from .cache import cache_dir_of, prepare_case_cached
@@ -21,7 +21,6 @@ log = logging.getLogger("mdlshapemodel")
 def _prepare_or_bug(path: str, config: BuildConfig, cache_dir: str | None):
     """:func:`cache.prepare_case_cached`, with a bug turned into an :class:`InternalError` that
     names the input (run in worker processes too; the traceback travels with the error)."""
-    crash_hook_for_tests(path)
     try:
         return prepare_case_cached(path, config, cache_dir)
     except Exception as error:
