@@ -1032,12 +1032,12 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onApply(self):
         if not ensureDependencies(ask=True):
             return
-        from mdlshapemodel.outputs import previous_build
+        from mdlshapemodel.outputs import earlier_build
 
         with slicer.util.tryWithErrorDisplay("Could not start the build.", waitCursor=True):
             config = buildConfigOf(self._parameterNode)
             output = pathlib.Path(str(self._parameterNode.outputDirectory))
-            overwrite = bool(previous_build(output))
+            overwrite = bool(earlier_build(output))
             if overwrite and not slicer.util.confirmYesNoDisplay(
                     f"{output} holds an earlier build. Replace it?"):
                 return

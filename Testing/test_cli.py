@@ -143,7 +143,8 @@ def test_clear_errors_and_exit_codes(tmp_path):
     assert too_few.returncode == 2 and "at least 3" in too_few.stderr
     bad_option = run("build", inputs, "-o", tmp_path / "out3", "--points", 5)
     assert bad_option.returncode == 2 and "points" in bad_option.stderr
-    missing_label = run("build", inputs, "-o", tmp_path / "out4", "--label", "7", "--workers", 1)
+    three = write_population(tmp_path / "in3", 3)
+    missing_label = run("build", three, "-o", tmp_path / "out4", "--label", "7", "--workers", 1)
     assert missing_label.returncode == 2
     assert "label 7 not present" in missing_label.stderr
 

@@ -1,9 +1,18 @@
-"""What a new user meets first on the command line: --version, build's examples, the hint for
-labels written apart."""
+"""What a new user meets first: --version, build's examples, the hint for labels written apart,
+inputs checked before anything is written, a build folder refused as input, the rerun after a
+failed start, the main guard of a script, mode weights in standard deviations."""
 
+import textwrap
+
+import numpy as np
+import pytest
+
+from mdlshapemodel import ShapeModel
+from mdlshapemodel.prepare import io
 from mdlshapemodel.version import __version__
 
-from common import run_cli
+from common import run_cli, run_python
+from synthetic import write_population
 
 
 def test_version():
@@ -25,3 +34,71 @@ def test_labels_written_apart_get_the_comma_hint(tmp_path):
     assert not (tmp_path / "out").exists()
     other = run_cli("build", tmp_path, "-o", tmp_path / "out", "--bogus", "3")
     assert other.returncode == 2 and "unrecognized arguments: --bogus 3" in other.stderr
+
+
+
+@pytest.mark.parametrize("count", [0, 1, 2])
+def test_too_few_inputs_or_a_missing_path_leave_nothing_behind(tmp_path, count):
+    inputs = write_population(tmp_path / "in", count) if count else []
+    folder = tmp_path / "in" if count else tmp_path / "missing"
+    result = run_cli("build", folder, "-o", tmp_path / "out", "--workers", 1)
+    assert result.returncode == 2
+    assert ("no such file or folder" if not count else
+            f"{len(inputs)} input file(s) found; a model needs at least 3") in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_a_failed_start_does_not_block_the_rerun_and_a_build_folder_is_not_an_input(tmp_path):
+    write_population(tmp_path / "in", 3)
+    quick = ["--points", 42, "--workers", 1, "--baselines", "", "--no-cache",
+             "--evaluation-modes", 1, "--specificity-samples", 50, "--surface-samples", 0]
+    failed = run_cli("build", tmp_path / "in", "-o", tmp_path / "out", "--label", "9", *quick)
+    assert failed.returncode == 2 and "usable case" in failed.stderr
+    assert (tmp_path / "out" / "build.log").exists()           # what the failed start left
+    rerun = run_cli("build", tmp_path / "in", "-o", tmp_path / "out", *quick)
+    assert rerun.returncode == 0, rerun.stderr                 # not "holds an earlier build"
+    again = run_cli("build", tmp_path / "in", "-o", tmp_path / "out", *quick)
+    assert again.returncode == 2 and "holds an earlier build (model.h5" in again.stderr
+    as_input = run_cli("build", tmp_path / "out", "-o", tmp_path / "other", *quick)
+    assert as_input.returncode == 2
+    assert "a build's output folder (it holds model.h5), not a folder of inputs" in as_input.stderr
+    assert not (tmp_path / "other").exists()
+
+
+UNGUARDED = textwrap.dedent("""
+    import sys
+    from mdlshapemodel import BuildConfig, build_model
+
+    build_model([sys.argv[1]], sys.argv[2], BuildConfig(points=42, workers=2, baselines=[]))
+""")
+
+
+def test_a_script_without_the_main_guard_is_told_to_add_it(tmp_path):
+    write_population(tmp_path / "in", 3)
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED)
+    result = run_python(f"import runpy, sys; sys.argv = [{str(script)!r}, {str(tmp_path / 'in')!r}, "
+                        f"{str(tmp_path / 'out')!r}]; runpy.run_path({str(script)!r}, "
+                        "run_name='__main__')")
+    assert result.returncode != 0
+    assert "put the call under 'if __name__ == \"__main__\":'" in result.stderr
+    assert "worker process died" not in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_model_instances_in_standard_deviations_and_shapes_written_as_vtp(tmp_path, rng):
+    shapes = rng.normal(size=(6, 12, 3))
+    triangles = np.array([[0, 1, 2], [2, 3, 4]])
+    model = ShapeModel.from_shapes(shapes, np.full(12, 1 / 12), triangles=triangles)
+    sd = model.instance(standard_deviations=[2.0, -1.0])
+    raw = model.instance([2.0 * np.sqrt(model.variances[0]), -np.sqrt(model.variances[1])])
+    np.testing.assert_allclose(sd, raw)
+    with pytest.raises(ValueError, match="either scores or standard_deviations"):
+        model.instance([1.0], standard_deviations=[1.0])
+    with pytest.raises(ValueError, match="standard deviations for a model of"):
+        model.instance(standard_deviations=np.ones(model.n_modes + 1))
+    model.save_shape(tmp_path / "plus.vtp", sd)
+    vertices, faces = io.read_mesh(tmp_path / "plus.vtp")
+    np.testing.assert_allclose(vertices, sd, rtol=1e-12)
+    assert np.array_equal(faces, triangles)

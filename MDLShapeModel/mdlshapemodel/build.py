@@ -31,10 +31,10 @@ from .correspondence.state import CorrespondenceState
 from .correspondence.strategies import optimise
 from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import RESTORED_INITIAL, Trace
-from .errors import BuildError, Cancelled, ConfigError, InternalError
+from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
-from .outputs import (BuildResult, Checkpoint, clear_previous_build, previous_build,
+from .outputs import (BuildResult, Checkpoint, clear_previous_build, earlier_build,
                       read_checkpoint, remove_partial_files, save_checkpoint, write_outputs)
 from .parallel import Task, dask_executor, helper_for
 from .prepare import io, preprocess
@@ -74,9 +74,12 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         (``Client.get_executor()``) each call runs as :class:`.parallel.InTurn`. The caller's
         executor is not shut down.
     overwrite : bool
-        Replace an earlier build in ``output`` (its files only: :func:`.outputs.previous_build`);
-        without it, a build into a folder that holds one raises :class:`BuildError` and touches
-        nothing. Every file is written whole or not at all (a temporary name renamed into place).
+        Replace an earlier finished or resumable build in ``output`` (:func:`.outputs.earlier_build`;
+        its files only: :func:`.outputs.previous_build`); without it, a build into a folder that
+        holds one raises :class:`BuildError` and touches nothing. What a failed or cancelled
+        start left there is replaced without asking. The inputs are checked before anything is
+        written: a missing path, a build's output folder given as input, fewer than 3 input
+        files raise and leave ``output`` as it was. Every file is written whole or not at all (a temporary name renamed into place).
     manifest : path, optional
         A CSV table of cases with the columns ``case``, ``part``, ``file``: one file per part
         (:func:`.prepare.parts.read_manifest`), added to ``inputs``.
@@ -102,12 +105,14 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     config = (config or BuildConfig()).validate()
     if executor is not None and config.scheduler is not None:
         raise ConfigError("scheduler: give an executor or a scheduler's address, not both")
+    _refuse_unguarded_call(config, executor)
     output = Path(output)
-    earlier = [] if resume else previous_build(output)
+    cases = _cases(inputs, config, manifest, output)      # before anything is written
+    earlier = [] if resume else earlier_build(output)
     if earlier and not overwrite:
-        more = f" and {len(earlier) - 2} more" if len(earlier) > 2 else ""
-        raise BuildError(f"{output} holds an earlier build ({', '.join(p.name for p in earlier[:2])}"
-                         f"{more}): give --overwrite to replace it, or another output folder")
+        raise BuildError(f"{output} holds an earlier build ({', '.join(p.name for p in earlier)})"
+                         ": give --overwrite to replace it, --resume to carry it on, or another "
+                         "output folder")
     if resume:
         remove_partial_files(output)
     else:
@@ -120,7 +125,7 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     if log.level == logging.NOTSET or log.level > logging.INFO:
         log.setLevel(logging.INFO)
     try:
-        return _build(inputs, output, config, progress, executor, resume, manifest)
+        return _build(cases, output, config, progress, executor, resume)
     except InternalError as error:
         # the user sees the one-line message; the traceback (a worker's too) goes to build.log
         handler.stream.write("".join(traceback.format_exception(error)))
@@ -162,16 +167,70 @@ def _resumption(output: Path, print_of: dict):
     return checkpoint
 
 
-def _build(inputs, output: Path, config: BuildConfig, progress, executor, resume: bool,
-           manifest) -> BuildResult:
-    started = time.perf_counter()
-    io.write_text(output / "config.json", json.dumps(config.to_dict(), indent=2))
-    cases = case_inputs(io.find_inputs(inputs), config)
+# the fewest cases a model is built of (a mean and one mode need three)
+MIN_CASES = 3
+
+
+def _cases(inputs, config: BuildConfig, manifest, output: Path) -> list:
+    """The build's cases from its inputs and manifest, checked before the output folder is
+    touched: a missing path, a build's output folder given as input (or the output folder
+    itself), no input file, fewer than :data:`MIN_CASES` cases are refused."""
+    paths = [Path(p) for p in inputs]
+    for path in paths:
+        if path.is_dir() and path.resolve() == output.resolve():
+            raise InputError(f"{path}: is the output folder; give the inputs' folder")
+    cases = case_inputs(io.find_inputs(paths), config)
     if manifest is not None:
         cases += read_manifest(manifest, config)
     if not cases:
         raise BuildError("no input files found (label maps: .nii/.nii.gz/.nrrd/.mha...; meshes: "
                          ".vtk/.vtp/.stl/.ply/.obj)")
+    if len(cases) < MIN_CASES:
+        raise BuildError(f"{len(cases)} input file(s) found; a model needs at least {MIN_CASES}")
+    return cases
+
+
+def _refuse_unguarded_call(config: BuildConfig, executor):
+    """Refuse a build started by a script's top-level code outside ``if __name__ ==
+    "__main__":`` when it would start worker processes: each spawned worker imports the script
+    again, which would start the build again in every worker (and each of them dies)."""
+    if executor is not None or config.workers <= 1 or config.scheduler is not None:
+        return
+    import inspect
+
+    frame = inspect.currentframe().f_back.f_back            # build_model's caller
+    if frame is None or frame.f_code.co_name != "<module>":
+        return
+    module = frame.f_globals.get("__name__")
+    source = frame.f_globals.get("__file__")
+    if module == "__mp_main__" or (module == "__main__" and source
+                                   and not _guarded(source, frame.f_lineno)):
+        raise BuildError(f"{source}: build_model is called by the script's top-level code; "
+                         "worker processes import the script again, so put the call under "
+                         "'if __name__ == \"__main__\":'")
+
+
+def _guarded(source, line: int) -> bool:
+    """Whether ``line`` of the script ``source`` lies inside an ``if __name__ ==
+    "__main__":`` block (True when the script cannot be read: give it the benefit)."""
+    import ast
+
+    try:
+        tree = ast.parse(Path(source).read_text())
+    except (OSError, SyntaxError, ValueError):
+        return True
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.If) and isinstance(node.test, ast.Compare)
+                and "__name__" in ast.unparse(node.test) and "__main__" in ast.unparse(node.test)
+                and node.lineno <= line <= (node.end_lineno or node.lineno)):
+            return True
+    return False
+
+
+def _build(cases: list, output: Path, config: BuildConfig, progress, executor,
+           resume: bool) -> BuildResult:
+    started = time.perf_counter()
+    io.write_text(output / "config.json", json.dumps(config.to_dict(), indent=2))
     if config.scheduler is None:
         log.info("preprocessing %d cases with %d workers", len(cases), config.workers)
         return _build_from(cases, output, config, progress, executor, resume, started)

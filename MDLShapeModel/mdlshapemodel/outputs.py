@@ -61,6 +61,19 @@ def previous_build(output) -> list:
     return found
 
 
+# The files whose presence makes a folder hold a build that a new one must not replace unasked:
+# a finished build's model, or the checkpoint of one that can be resumed. What a failed or
+# cancelled start leaves (build.log, config.json, rejected.csv, empty folders) is cleared by the
+# next build without asking.
+KEPT_BUILD_FILES = ("model.h5", "checkpoint.npz")
+
+
+def earlier_build(output) -> list:
+    """The files of a finished or resumable build in ``output`` (:data:`KEPT_BUILD_FILES`);
+    empty when there is none, also when a failed start left other files there."""
+    return [Path(output) / name for name in KEPT_BUILD_FILES if (Path(output) / name).is_file()]
+
+
 def clear_previous_build(output) -> None:
     """Remove an earlier build's files and folders from ``output`` (and nothing else)."""
     for path in previous_build(output):

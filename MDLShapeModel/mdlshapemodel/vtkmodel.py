@@ -463,7 +463,7 @@ class ShapeModelInstance(_Filter):
         if len(weights) > model.n_modes:
             raise ConfigError(f"Weights: {len(weights)} weights, but the model has "
                               f"{model.n_modes} mode(s)")
-        points = model.instance(weights * np.sqrt(model.variances[:len(weights)]))
+        points = model.instance(standard_deviations=weights)
         vtk.vtkPolyData.GetData(out_info).ShallowCopy(
             surface.arrays_to_polydata(points, model.triangles))
 

@@ -188,11 +188,54 @@ class ShapeModel:
                              f"{len(self.part_sizes)} parts")
         return self
 
-    def instance(self, scores: np.ndarray) -> np.ndarray:
-        """Shape for scores on the first modes: (m,) -> (n_p, 3); a batch (k, m) -> (k, n_p, 3)
-        (e.g. ``instance(model.scores)`` gives back the training shapes)."""
+    def instance(self, scores: np.ndarray | None = None, *,
+                 standard_deviations: np.ndarray | None = None) -> np.ndarray:
+        """The shape ``mean + sum_m b_m mode_m`` on the first modes.
+
+        Give either ``scores`` b (raw, in the model's units: ``model.scores`` rows are these) or
+        ``standard_deviations`` s, in standard deviations of each mode (b_m = s_m sqrt(lambda_m)),
+        the unit of the VTK ``ShapeModelInstance`` and of the Slicer module's sliders. (m,) ->
+        (n_p, 3); a batch (k, m) -> (k, n_p, 3) (``instance(model.scores)`` gives back the
+        training shapes).
+
+        Examples
+        --------
+        >>> shapes = np.random.default_rng(0).normal(size=(5, 8, 3))
+        >>> model = ShapeModel.from_shapes(shapes, np.full(8, 1 / 8))
+        >>> plus_two = model.instance(standard_deviations=[2.0])
+        >>> bool(np.allclose(plus_two, model.instance([2.0 * np.sqrt(model.variances[0])])))
+        True
+        """
+        if (scores is None) == (standard_deviations is None):
+            raise ValueError("give either scores or standard_deviations")
+        if standard_deviations is not None:
+            weights = np.asarray(standard_deviations, dtype=np.float64)
+            if weights.shape[-1] > self.n_modes:
+                raise ValueError(f"{weights.shape[-1]} standard deviations for a model of "
+                                 f"{self.n_modes} mode(s)")
+            scores = weights * np.sqrt(np.maximum(self.variances[:weights.shape[-1]], 0.0))
         scores = np.asarray(scores, dtype=np.float64)
         return self.mean + np.tensordot(scores, self.modes[:scores.shape[-1]], axes=1)
+
+    def save_shape(self, path, points: np.ndarray | None = None):
+        """Write a shape of the model (``points`` (n_p, 3), default the mean) with the model's
+        triangles (or segments, for 2-D curves) as a mesh file: .vtp, .vtk, .stl or .ply
+        (points in the model's frame; the .vtp and .vtk say LPS for 3D Slicer).
+
+        Examples
+        --------
+        ::
+
+            model = ShapeModel.load("out/model.h5")
+            model.save_shape("plus2.vtp", model.instance(standard_deviations=[2.0]))
+        """
+        from ..prepare import io
+
+        points = self.mean if points is None else np.asarray(points, dtype=np.float64)
+        if points.shape != self.mean.shape:
+            raise ValueError(f"points of shape {points.shape}; the model's are {self.mean.shape}")
+        cells = None if self.triangles is None or len(self.triangles) == 0 else self.triangles
+        io.write_polydata(path, points, cells)
 
     def project(self, shape: np.ndarray, n_modes: int | None = None) -> np.ndarray:
         """Scores of a corresponded, aligned shape (weighted least squares = projection)."""
