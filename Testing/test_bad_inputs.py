@@ -495,23 +495,27 @@ def test_a_case_file_stays_directly_in_its_folder_whatever_the_name(tmp_path):
     assert case_file(tmp_path, "..").name == "__.vtp"
 
 
-def test_names_that_would_leave_out_write_inside_it(tmp_path, monkeypatch):
-    """Case names from anywhere (here: planted in io.case_name, as a caller of the API or a
-    Slicer node could give them) make files only inside OUT; the names are kept in the model."""
+@pytest.mark.slow
+def test_names_that_would_leave_out_write_inside_it(tmp_path):
+    """Case names from anywhere (here: a manifest's case column, as a caller of the API or a
+    Slicer node could give them too) make files only inside OUT; the names are kept in the
+    model."""
     from mdlshapemodel import BuildConfig, ShapeModel, build_model
-    from mdlshapemodel.prepare import io
 
     folder = tmp_path / "inputs"
     folder.mkdir()
     names = {"a": "../../escaped", "b": "sub/dir/x", "c": ".."}
-    for position, stem in zip((-0.5, 0.0, 0.5), names):
+    rows = ["case,part,file"]
+    for position, (stem, name) in zip((-0.5, 0.0, 0.5), names.items()):
         write_image(folder / f"{stem}.nii.gz", small_mask(position))
-    file_name = io.case_name
-    monkeypatch.setattr(io, "case_name", lambda path: names[file_name(path)])
+        rows.append(f"{name},shape,{stem}.nii.gz")
+    manifest = folder / "cases.csv"
+    manifest.write_text("\n".join(rows) + "\n")
     before = set(tmp_path.rglob("*"))
     out = tmp_path / "deep" / "out"
-    build_model([folder], out, BuildConfig(points=42, max_sweeps=1, workers=1, cache_dir="",
-                                           specificity_samples=50, evaluation_modes=1))
+    build_model([], out, BuildConfig(points=42, max_sweeps=1, workers=1, cache_dir="",
+                                     specificity_samples=50, evaluation_modes=1),
+                manifest=manifest)
     written = set(tmp_path.rglob("*")) - before
     assert all(path in (out, out.parent) or out in path.parents for path in written)
     assert sorted(p.name for p in (out / "correspondence").iterdir()) == [

@@ -1,13 +1,10 @@
 """The one-at-a-time strategies with the Appendix warps and the global rotation (``--warps``)."""
 
-import subprocess
-import sys
+import json
 
 import numpy as np
 import pytest
 
-from mdlshapemodel import cli
-from mdlshapemodel.correspondence.strategies import one_at_a_time
 from mdlshapemodel.config import BuildConfig
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.prepare.sphere import orientation
@@ -17,7 +14,8 @@ from mdlshapemodel.correspondence.strategies.one_at_a_time import optimise_warp,
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.warps import ShearTwist
 
-from synthetic import build_objectives, small_state
+from common import run_cli
+from synthetic import build_objectives, small_state, write_population
 
 
 def unfolded(state) -> bool:
@@ -56,18 +54,13 @@ def test_each_kind_alone_is_used_lowers_the_objective_and_never_folds(kind):
         np.testing.assert_allclose(positions, example.parts[0].positions, atol=1e-12)
 
 
-def test_all_kinds_together_are_each_drawn_and_the_pose_strategy_works_with_them(monkeypatch):
-    drawn = []
-
-    def recording(state, i, j, kind, *args, **kwargs):
-        drawn.append(kind)
-        return optimise_warp(state, i, j, kind, *args, **kwargs)
-
-    monkeypatch.setattr(one_at_a_time, "optimise_warp", recording)
+def test_all_kinds_together_are_each_drawn_and_the_pose_strategy_works_with_them():
     state, trace, final = run(WARPS, seed=1, sweeps=3, strategy="one-at-a-time-pose")
-    # one draw per example and sweep, every kind among them (each has probability 1/4 per step)
-    assert len(drawn) == 3 * state.n_shapes and set(drawn) == set(WARPS), drawn
-    assert sum(warp_counts(state).values()) > 0
+    # the state's record of accepted warps: every kind among them (each has probability 1/4
+    # per step), at most one per example and sweep
+    counts = warp_counts(state)
+    assert set(counts) == set(WARPS) and all(counts.values()), counts
+    assert sum(counts.values()) <= 3 * state.n_shapes
     assert final < trace.rows[0][3]
     assert unfolded(state)
 
@@ -174,27 +167,25 @@ def test_config_round_trip_keeps_the_warps():
     assert BuildConfig.from_dict({}).warps == ["symmetric"]  # configs written before the option
 
 
-def test_cli_passes_the_warps_to_the_build(monkeypatch, tmp_path):
-    seen = {}
-
-    def fake_build(inputs, output, config, *display):
-        seen["config"] = config
-        return 0
-
-    monkeypatch.setattr(cli, "_run_build", fake_build)
-    assert cli.main(["build", str(tmp_path), "-o", str(tmp_path / "out"), "-q",
-                     "--strategy", "one-at-a-time-pose",
-                     "--warps", "symmetric, shear,rotation"]) == 0
-    assert seen["config"].warps == ["symmetric", "shear", "rotation"]
-    assert cli.main(["build", str(tmp_path), "-o", str(tmp_path / "out"), "-q"]) == 0
-    assert seen["config"].warps == ["symmetric"]
+@pytest.mark.slow
+def test_cli_passes_the_warps_to_the_build(tmp_path):
+    """The real command line's small builds: config.json holds the warps as given (spaces
+    dropped), or the default."""
+    inputs = write_population(tmp_path / "inputs", 3)
+    small = ["--points", "42", "--max-sweeps", "1", "--baselines", "", "--evaluation-modes", "1",
+             "--specificity-samples", "20", "--surface-samples", "2", "--workers", "1", "-q"]
+    for output, options, expected in (
+            ("given", ["--strategy", "one-at-a-time-pose", "--warps", "symmetric, shear,rotation"],
+             ["symmetric", "shear", "rotation"]),
+            ("default", [], ["symmetric"])):
+        result = run_cli("build", *inputs, "-o", tmp_path / output, *small, *options)
+        assert result.returncode == 0, result.stderr
+        assert json.loads((tmp_path / output / "config.json").read_text())["warps"] == expected
 
 
 def test_cli_rejects_bad_warps_with_exit_code_2(tmp_path):
     def build(*options):
-        return subprocess.run([sys.executable, "-m", "mdlshapemodel.cli", "build", str(tmp_path),
-                               "-o", str(tmp_path / "out"), *options],
-                              capture_output=True, text=True, timeout=120)
+        return run_cli("build", tmp_path, "-o", tmp_path / "out", *options, timeout=120)
 
     unknown = build("--warps", "symmetric,twirl")
     assert unknown.returncode == 2
