@@ -189,6 +189,7 @@ class ShapeModelResult:
     rejected: list = field(default_factory=list)  # (name, reason)
     interrupted: bool = False
     reportFile: pathlib.Path | None = None
+    warnings: list = field(default_factory=list)  # the build's (metrics.json), e.g. absent labels
 
 
 @dataclass
@@ -343,6 +344,9 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         result.interrupted = interrupted
         report = outputDirectory / "report.html"
         result.reportFile = report if report.exists() else None
+        metrics = outputDirectory / "metrics.json"
+        if metrics.exists():
+            result.warnings = list(json.loads(metrics.read_text()).get("warnings", []))
         return result
 
     def loadModel(self, path) -> ShapeModelResult:
@@ -1082,6 +1086,8 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.openReportButton.enabled = result.reportFile is not None
         for name, reason in result.rejected:
             self.ui.logText.appendPlainText(f"rejected {name}: {reason}")
+        for warning in result.warnings:
+            self.ui.logText.appendPlainText(f"warning: {warning}")
         if result.metricsTableNode is not None:
             self.ui.metricsTableView.setMRMLTableNode(result.metricsTableNode)
         layout = self.ui.modeSlidersFrame.layout()

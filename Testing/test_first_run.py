@@ -102,3 +102,19 @@ def test_model_instances_in_standard_deviations_and_shapes_written_as_vtp(tmp_pa
     vertices, faces = io.read_mesh(tmp_path / "plus.vtp")
     np.testing.assert_allclose(vertices, sd, rtol=1e-12)
     assert np.array_equal(faces, triangles)
+
+
+@pytest.mark.slow
+def test_a_label_that_no_case_holds_is_reported(tmp_path):
+    write_population(tmp_path / "in", 3)
+    result = run_cli("build", tmp_path / "in", "-o", tmp_path / "out", "--label", "1,3",
+                     "--points", 42, "--workers", 1, "--baselines", "", "--no-cache",
+                     "--evaluation-modes", 1, "--specificity-samples", 50,
+                     "--surface-samples", 0)
+    assert result.returncode == 0, result.stderr
+    message = "label 3 is in none of the 3 label maps (labels found: 1)"
+    assert f"warning: {message}" in result.stdout                      # the summary
+    assert message in (tmp_path / "out" / "build.log").read_text()
+    metrics = __import__("json").loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["warnings"] == [message]
+    assert message in (tmp_path / "out" / "report.html").read_text()

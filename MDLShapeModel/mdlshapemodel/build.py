@@ -250,6 +250,9 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
                  [(r.name, r.path, r.reason) for r in rejected])
     if rejected and config.strict:
         raise BuildError(f"{len(rejected)} input(s) rejected and --strict is set")
+    warnings = absent_labels(prepared, config)
+    for warning in warnings:
+        log.warning("%s", warning)
     log.info("prepared %d cases in %.1f s", len(prepared), time.perf_counter() - started)
 
     # the baselines are evaluated on the helper while the optimisation runs
@@ -280,10 +283,27 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
             log.info("waited %.1f s for the baselines' evaluation", time.perf_counter() - waited)
 
         report(progress, 0.5, "evaluating the model, writing outputs")
-        result = write_outputs(output, corresponded, prepared, rejected, config, baselines, pool)
+        result = write_outputs(output, corresponded, prepared, rejected, config, baselines, pool,
+                               warnings)
         report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
+
+
+def absent_labels(prepared: list, config: BuildConfig) -> list:
+    """A warning for the labels asked for (``--label``, ``--part``) that none of the prepared
+    label maps holds (a case needs only one of its labels, so such a label is otherwise
+    silently left out of every case)."""
+    wanted = set(config.labels) | {label for spec in config.part_specs() for label in spec.labels}
+    known = [case.labels for case in prepared if case.labels is not None]
+    if not wanted or not known:
+        return []
+    found = set().union(*known)
+    absent = sorted(wanted - found)
+    if not absent:
+        return []
+    return [f"label {', '.join(map(str, absent))} is in none of the {len(known)} label maps "
+            f"(labels found: {', '.join(map(str, sorted(found)))})"]
 
 
 def one_kind(prepared: list) -> tuple[list, list]:

@@ -271,6 +271,7 @@ def _summary(result) -> str:
               f"  report: {result.output / 'report.html'}"]
     if result.rejected:
         lines.append(f"  {len(result.rejected)} input(s) rejected: see {result.output / 'rejected.csv'}")
+    lines += [f"  warning: {warning}" for warning in result.warnings]
     return "\n".join(lines)
 
 

@@ -8,7 +8,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,7 @@ class BuildResult:
     cases: list
     rejected: list
     interrupted: bool = False
+    warnings: list = field(default_factory=list)   # what the user should know (metrics.json)
 
 
 # What a build writes into its output folder. Other entries are not a build's: the inputs/ that the
@@ -202,7 +203,8 @@ def physical_shapes(raw: np.ndarray, prepared: list) -> list:
 
 
 def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
-                  config: BuildConfig, baselines: dict | None = None, pool=None) -> BuildResult:
+                  config: BuildConfig, baselines: dict | None = None, pool=None,
+                  warnings=()) -> BuildResult:
     """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html, of
     the :class:`~mdlshapemodel.build.Correspondence` of the ``prepared`` cases."""
     state, model = corresponded.state, corresponded.model
@@ -269,9 +271,10 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
-               "baselines": baselines or {}}
+               "baselines": baselines or {}, "warnings": list(warnings)}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()
     write_report(output, metrics, cases, rejected, model, aligned, names)
     log.info("wrote the report in %.1f s", time.perf_counter() - started)
-    return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted)
+    return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted,
+                       list(warnings))

@@ -78,7 +78,9 @@ def _load_cached(file: Path, name: str, path: str):
         quality = json.loads(str(data["quality"]))
         facts = json.loads(str(data["facts"]))
         mapped = SphereMap(data["vertices"], data["faces"], data["sphere"], quality)
-        part = PreparedPart("", path, mapped, facts["repair"], facts["smoothing_sigma"])
+        labels = facts.get("labels")          # entries written before labels were kept: unknown
+        part = PreparedPart("", path, mapped, facts["repair"], facts["smoothing_sigma"],
+                            None if labels is None else tuple(labels))
         return PreparedCase(name, [part], float(data["voxel_size"]), facts["mirrored"])
 
 

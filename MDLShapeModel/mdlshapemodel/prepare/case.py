@@ -34,10 +34,12 @@ class PreparedPart:
     map: SphereMap                        # or a curve.CurveMap: a 2-D curve on the circle
     repair: str = ""                      # what was repaired in the input ('' when nothing)
     smoothing_sigma: float | None = None  # label maps: the blur that gave a genus-0 surface
+    labels: tuple | None = None           # label maps: the non-zero labels of the file
 
     def record(self) -> dict:
         """The preprocessing facts as a JSON-ready dict (cache entries, cases.csv)."""
-        return {"repair": self.repair, "smoothing_sigma": self.smoothing_sigma}
+        return {"repair": self.repair, "smoothing_sigma": self.smoothing_sigma,
+                "labels": None if self.labels is None else list(self.labels)}
 
 
 @dataclass
@@ -99,10 +101,17 @@ class PreparedCase:
         return (np.concatenate([p.map.vertices for p in self.parts]),
                 np.concatenate([p.map.faces + offset for p, offset in zip(self.parts, offsets)]))
 
+    @property
+    def labels(self) -> tuple | None:
+        """The non-zero label values of the case's label maps (None: not from label maps)."""
+        known = [p.labels for p in self.parts if p.labels is not None]
+        return tuple(sorted(set().union(*known))) if known else None
+
     def record(self) -> dict:
         """The preprocessing facts as a JSON-ready dict (cache entries, cases.csv)."""
         return {"mirrored": self.mirrored, "repair": self.repair,
-                "smoothing_sigma": self.smoothing_sigma}
+                "smoothing_sigma": self.smoothing_sigma,
+                "labels": None if self.labels is None else list(self.labels)}
 
 
 @dataclass
@@ -148,8 +157,8 @@ def surface_of_mask(mask: np.ndarray, spacing, origin, direction, config: BuildC
 def prepare_surface(vertices: np.ndarray, faces: np.ndarray, name: str, path: str,
                     voxel_size: float | None, config: BuildConfig, mirrored: bool = False,
                     repair: str = "", smoothing_sigma: float | None = None,
-                    area_weight: float = AREA_WEIGHT, max_iterations: int = MAX_ITERATIONS
-                    ) -> PreparedCase:
+                    area_weight: float = AREA_WEIGHT, max_iterations: int = MAX_ITERATIONS,
+                    labels: tuple | None = None) -> PreparedCase:
     """A prepared case from a closed genus-0 surface: mirrored if asked, then sphere-mapped.
 
     ``voxel_size`` None: the surface is a mesh input, cleaned and remeshed first
@@ -171,8 +180,8 @@ def prepare_surface(vertices: np.ndarray, faces: np.ndarray, name: str, path: st
             vertices, faces = surface.mirror(vertices, faces)
         mapped = sphere_map(vertices, faces, area_weight=area_weight,
                             max_iterations=max_iterations)
-    return PreparedCase(name, [PreparedPart("", str(path), mapped, repair, smoothing_sigma)],
-                        float(voxel_size), mirrored)
+    return PreparedCase(name, [PreparedPart("", str(path), mapped, repair, smoothing_sigma,
+                                            labels)], float(voxel_size), mirrored)
 
 
 def prepare_curve(path, config: BuildConfig) -> PreparedCase:
@@ -201,7 +210,7 @@ def _prepare(path, config: BuildConfig) -> PreparedCase:
         vertices, faces, sigma, note = surface_of_mask(
             label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
         return prepare_surface(vertices, faces, name, path, label_map.voxel_size, config,
-                               mirrored, note, sigma)
+                               mirrored, note, sigma, labels=label_map.labels)
     if io.is_mesh(path):
         vertices, faces = io.read_mesh(path)
         return prepare_surface(vertices, faces, name, path, None, config, mirrored)

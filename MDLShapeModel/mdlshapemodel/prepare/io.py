@@ -100,6 +100,7 @@ class LabelMap:
     spacing: tuple
     origin: tuple
     direction: tuple
+    labels: tuple = ()        # the non-zero label values of the file
 
     @property
     def voxel_size(self) -> float:
@@ -136,6 +137,12 @@ def select_labels(array: np.ndarray, labels=()) -> np.ndarray:
     ...
     mdlshapemodel.errors.InputError: label 7 not present (labels found: 1, 5)
     """
+    return selected_labels(array, labels)[0]
+
+
+def selected_labels(array: np.ndarray, labels=()) -> tuple[np.ndarray, tuple]:
+    """:func:`select_labels` and the non-zero label values the array holds (sorted ints), so
+    that a build can say which of its labels no case has."""
     array = np.asarray(array)
     if not np.issubdtype(array.dtype, np.integer):
         rounded = np.round(array)
@@ -146,13 +153,14 @@ def select_labels(array: np.ndarray, labels=()) -> np.ndarray:
     present = present[present != 0]
     if len(present) == 0:
         raise InputError("the label map is empty (no non-zero voxels)")
+    found = tuple(int(v) for v in present)
     if labels:
         if not np.isin(labels, present).any():
-            found = ", ".join(str(int(v)) for v in present[:20])
+            shown = ", ".join(str(v) for v in found[:20])
             raise InputError(f"label {', '.join(str(int(v)) for v in labels)} not present "
-                             f"(labels found: {found})")
-        return np.isin(array, labels)
-    return array != 0
+                             f"(labels found: {shown})")
+        return np.isin(array, labels), found
+    return array != 0, found
 
 
 _NATIVE_STDERR = threading.Lock()
@@ -319,9 +327,9 @@ def read_label_map(path, labels=()) -> LabelMap:
     if image.GetDimension() != 3:
         raise InputError(f"expected a 3-D label map, got a {image.GetDimension()}-D image")
     _require_scalar(image.GetNumberOfComponentsPerPixel())
-    mask = select_labels(sitk.GetArrayViewFromImage(image), labels)
+    mask, found = selected_labels(sitk.GetArrayViewFromImage(image), labels)
     return LabelMap(np.ascontiguousarray(mask), image.GetSpacing(), image.GetOrigin(),
-                    image.GetDirection())
+                    image.GetDirection(), found)
 
 
 def image_values(image) -> np.ndarray:
@@ -382,11 +390,11 @@ def label_map_of_image_data(image, labels=()) -> LabelMap:
     vtkImageData, with the same rules and messages as :func:`read_label_map`; the geometry is
     the image's origin, spacing and direction matrix. The scalars are checked against the
     extent first (:func:`image_values`)."""
-    mask = select_labels(image_values(image), labels)
+    mask, found = selected_labels(image_values(image), labels)
     matrix = image.GetDirectionMatrix()
     direction = tuple(matrix.GetElement(r, c) for r in range(3) for c in range(3))
     return LabelMap(np.ascontiguousarray(mask), tuple(image.GetSpacing()),
-                    tuple(image.GetOrigin()), direction)
+                    tuple(image.GetOrigin()), direction, found)
 
 
 def _reader_for(path):

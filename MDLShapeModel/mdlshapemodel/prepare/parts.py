@@ -168,7 +168,8 @@ def joined(case: CaseInput, results: list):
                          f"part {curve_part.part} is a 2-D curve and part {surface_part.part} a "
                          "surface: the parts of an object are of one kind")
     parts = [PreparedPart(part.part, result.path, result.map, result.repair,
-                          result.smoothing_sigma) for part, result in zip(case.parts, results)]
+                          result.smoothing_sigma, result.labels)
+             for part, result in zip(case.parts, results)]
     return PreparedCase(case.name, parts, float(np.mean([r.voxel_size for r in results])),
                         any(r.mirrored for r in results))
 

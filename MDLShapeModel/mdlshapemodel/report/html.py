@@ -182,6 +182,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
         f"Objective (eq. 14): {objective['initial']:.3f} before, {objective['final']:.3f} after "
         f"optimisation{' (interrupted)' if metrics['interrupted'] else ''}.</p>",
     ]
+    parts += [f"<p class=flag>Warning: {html.escape(warning)}.</p>"
+              for warning in metrics.get("warnings", [])]
     baselines = metrics.get("baselines", {})
     if baselines:
         parts.append("<p>Objective of the baselines on the same cases: " + "; ".join(
