@@ -87,4 +87,23 @@ def test_the_panel_draws(loaded, tmp_path):
     colours = {image.pixel(x, y) for x in range(0, image.width(), 7)
                for y in range(0, image.height(), 7)}
     assert len(colours) > 5
-    assert (harness.HERE.parents[1] / "Resources" / "Screenshots" / "panel.png").is_file()
+
+
+@pytest.mark.parametrize("picture, sections", [("panel.png", ()), ("analysis.png", ("Analysis",))])
+def test_the_committed_pictures_show_the_current_panel(picture, sections, tmp_path):
+    """Resources/Screenshots/PICTURE, drawn again as panel.py draws it (the whole panel; the
+    Analysis section alone open): the same size (every section and widget where the .ui puts
+    it) and nearly every pixel the same (fonts may differ a little between installations).
+    When it fails: python Testing/Slicer/panel.py Resources/Screenshots/PICTURE [SECTION]."""
+    committed = QtGui.QImage(str(harness.HERE.parents[1] / "Resources" / "Screenshots" / picture))
+    assert not committed.isNull(), picture
+    fresh_panel = panel.load_panel(UI)
+    panel.fill(fresh_panel, module.MDLShapeModelParameterNode)
+    if sections:
+        panel.show_only(fresh_panel, sections)
+    panel.render(fresh_panel, tmp_path / picture)
+    fresh = QtGui.QImage(str(tmp_path / picture))
+    assert (committed.width(), committed.height()) == (fresh.width(), fresh.height()), picture
+    grid = [(x, y) for x in range(0, fresh.width(), 3) for y in range(0, fresh.height(), 3)]
+    same = sum(committed.pixel(x, y) == fresh.pixel(x, y) for x, y in grid)
+    assert same >= 0.95 * len(grid), (picture, same / len(grid))
