@@ -1209,13 +1209,35 @@ class MDLShapeModelTest(ScriptedLoadableModuleTest):
                              evaluation_modes=2, specificity_samples=50)
         self.delayDisplay("Building the model")
         result = MDLShapeModelLogic().buildModel(volumes, tempfile.mkdtemp(), config)
+        from mdlshapemodel import ShapeModel
+
+        model = ShapeModel.load(result.modelFile)
+        names = [f"ellipsoid_{k}" for k in range(5)]
+        self.assertEqual(result.caseNames, names)
+        self.assertEqual(list(model.names), names)
+        self.assertEqual(result.rejected, [])
         self.assertEqual(len(result.correspondenceModelNodes), 5)
         counts = {n.GetPolyData().GetNumberOfPoints() for n in result.correspondenceModelNodes}
         self.assertEqual(counts, {162})
-        self.assertIsNotNone(result.metricsTableNode)
+        # the measures table: one row per mode, compactness the model's cumulative variances
+        table = result.metricsTableNode.GetTable()
+        self.assertEqual(table.GetNumberOfRows(), 2)
+        compactness = [table.GetColumnByName("C").GetValue(m) for m in range(2)]
+        np.testing.assert_allclose(compactness, np.cumsum(model.variances[:2]), rtol=1e-6)
+        for title in ("G", "S", "G SE", "S SE"):
+            column = table.GetColumnByName(title)
+            self.assertTrue(all(column.GetValue(m) > 0 for m in range(2)), title)
+        # two standard deviations of mode 1 move each point by 2 sqrt(lambda_1) |mode_1 there|
         before = slicer.util.arrayFromModelPoints(result.explorerModelNode).copy()
         MDLShapeModelLogic().setModeWeights(result.explorerModelNode, [2.0])
         after = slicer.util.arrayFromModelPoints(result.explorerModelNode)
-        self.assertGreater(float(np.abs(after - before).max()), 0.0)
+        moved = np.linalg.norm(after - before, axis=1)
+        expected = np.linalg.norm(model.instance(standard_deviations=np.array([2.0]))
+                                  - model.instance(standard_deviations=np.array([0.0])), axis=1)
+        self.assertGreater(float(expected.max()), 0.0)
+        np.testing.assert_allclose(moved, expected, rtol=1e-5, atol=1e-6)
+        displacement = slicer.util.arrayFromModelPointData(result.explorerModelNode,
+                                                           "Displacement")
+        np.testing.assert_allclose(displacement, expected, rtol=1e-5, atol=1e-6)
         self.delayDisplay("Test passed")
 
