@@ -10,11 +10,8 @@ from mdlshapemodel.prepare.io import read_csv, read_label_map, write_polydata
 from mdlshapemodel.correspondence.sampling import icosphere
 
 from common import run_cli_quietly as run
+from files import write_label_map
 from synthetic import small_mask, torus
-
-
-def write_image(path, array):
-    sitk.WriteImage(sitk.GetImageFromArray(array.astype(np.uint8)), str(path))
 
 
 GOOD = ["good_0", "good_1", "gööd 2 ✓"]       # unicode and spaces are fine in a name
@@ -27,14 +24,14 @@ def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
     folder = tmp_path / "inputs"
     folder.mkdir()
     for name, position in zip(GOOD, (-0.5, 0.0, 0.5)):
-        write_image(folder / f"{name}.nii.gz", small_mask(position))
+        write_label_map(folder / f"{name}.nii.gz", small_mask(position))
     sphere, faces = icosphere(2)
     sphere = sphere * 10.0
     expected = {}
 
-    write_image(folder / "empty.nii.gz", np.zeros((12, 12, 12)))
+    write_label_map(folder / "empty.nii.gz", np.zeros((12, 12, 12)))
     expected["empty"] = "empty"
-    write_image(folder / "other_label.nii.gz", small_mask(0.0) * 5)
+    write_label_map(folder / "other_label.nii.gz", small_mask(0.0) * 5)
     expected["other_label"] = "label 1 not present (labels found: 5)"
     (folder / "not_an_image.nii.gz").write_bytes(b"plain text, not gzip")
     expected["not_an_image"] = "not a readable image"
@@ -56,12 +53,12 @@ def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
     two_blobs = np.zeros((20, 20, 40), bool)
     two_blobs[5:15, 5:15, 3:15] = True
     two_blobs[5:15, 5:15, 25:37] = True
-    write_image(folder / "two_objects.nii.gz", two_blobs)
+    write_label_map(folder / "two_objects.nii.gz", two_blobs)
     expected["two_objects"] = "2 disjoint objects"
     whole = (folder / "good_0.nii.gz").read_bytes()
     (folder / "half.nii.gz").write_bytes(whole[:len(whole) // 2])     # read as good before
     expected["half"] = "compressed data is truncated or corrupt"
-    write_image(folder / "short.nii", small_mask(0.0))
+    write_label_map(folder / "short.nii", small_mask(0.0))
     (folder / "short.nii").write_bytes((folder / "short.nii").read_bytes()[:-500])
     expected["short"] = "the image data is truncated"
     for name in ("huge.nrrd", "zero.mha", "many.mha"):
@@ -107,7 +104,7 @@ def test_a_missing_label_map_is_a_rejection_that_says_so(tmp_path):
     result = prepare_case(str(missing), BuildConfig())
     assert result.name == "gone"
     assert "no such file" in result.reason
-    write_image(missing, small_mask(0.0))
+    write_label_map(missing, small_mask(0.0))
     assert not hasattr(prepare_case(str(missing), BuildConfig(cache_dir="")), "reason")
 
 
@@ -123,7 +120,7 @@ def test_a_bug_while_preparing_stops_the_build_naming_the_case(tmp_path, monkeyp
     folder = tmp_path / "inputs"
     folder.mkdir()
     for k, position in enumerate((-0.5, 0.0, 0.5)):
-        write_image(folder / f"case_{k}.nii.gz", small_mask(position))
+        write_label_map(folder / f"case_{k}.nii.gz", small_mask(position))
 
     def broken_sphere_map(vertices, faces, **options):
         raise ZeroDivisionError("planted")
@@ -204,7 +201,7 @@ def test_a_compressed_stream_far_longer_than_its_header_says_is_refused(tmp_path
 def test_an_uncompressed_label_map_shorter_than_its_header_says_is_rejected(tmp_path, suffix):
     """Before, a .nii (or Analyze .img) cut short was read with zeros for the missing voxels."""
     path = tmp_path / f"case{suffix}"
-    write_image(path, small_mask(0.0))
+    write_label_map(path, small_mask(0.0))
     data = path.with_suffix(".img") if suffix == ".hdr" else path
     data.write_bytes(data.read_bytes()[:-1000])
     reason = prepared_or_reason(path)
@@ -280,7 +277,7 @@ def test_nan_and_zero_in_a_nifti_header_are_taken_as_its_reader_says(tmp_path):
     documented fallback), a NaN in the sform is an error of the reader, named."""
     import struct
 
-    write_image(tmp_path / "case.nii", small_mask(0.0))
+    write_label_map(tmp_path / "case.nii", small_mask(0.0))
     header = bytearray((tmp_path / "case.nii").read_bytes())
     struct.pack_into("<hh", header, 252, 0, 0)                    # no qform, no sform
     struct.pack_into("<4f", header, 76, 1.0, float("nan"), 0.0, 1.0)
@@ -507,7 +504,7 @@ def test_names_that_would_leave_out_write_inside_it(tmp_path):
     names = {"a": "../../escaped", "b": "sub/dir/x", "c": ".."}
     rows = ["case,part,file"]
     for position, (stem, name) in zip((-0.5, 0.0, 0.5), names.items()):
-        write_image(folder / f"{stem}.nii.gz", small_mask(position))
+        write_label_map(folder / f"{stem}.nii.gz", small_mask(position))
         rows.append(f"{name},shape,{stem}.nii.gz")
     manifest = folder / "cases.csv"
     manifest.write_text("\n".join(rows) + "\n")
@@ -540,7 +537,7 @@ def test_a_cache_entry_holding_a_pickle_is_made_anew_not_run(tmp_path):
     from mdlshapemodel.prepare.cache import cache_key, prepare_case_cached
 
     path = tmp_path / "case.nii.gz"
-    write_image(path, small_mask(0.0))
+    write_label_map(path, small_mask(0.0))
     config = BuildConfig(cache_dir=str(tmp_path / "cache"))
     entry = tmp_path / "cache" / f"{cache_key(str(path), config)}.npz"
     entry.parent.mkdir()

@@ -5,8 +5,6 @@ import json
 import numpy as np
 import pytest
 import SimpleITK as sitk
-import vtk
-from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig, ShapeModel, build_model
 from mdlshapemodel.correspondence.strategies.base import PhasePoint
@@ -14,28 +12,11 @@ from mdlshapemodel.outputs import read_checkpoint
 from mdlshapemodel.prepare.io import read_csv
 from mdlshapemodel.errors import BuildError
 
+from files import polydata_triangles, write_label_map
 from synthetic import small_mask
 
 # real builds (the command line or build_model): deselected by -m "not slow"
 pytestmark = pytest.mark.slow
-
-
-def write_mask(path, mask, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)):
-    image = sitk.GetImageFromArray(mask.astype(np.uint8))
-    image.SetSpacing(spacing)
-    image.SetOrigin(origin)
-    sitk.WriteImage(image, str(path))
-    return path
-
-
-def read_vtp(path):
-    reader = vtk.vtkXMLPolyDataReader()
-    reader.SetFileName(str(path))
-    reader.Update()
-    polydata = reader.GetOutput()
-    points = vtk_to_numpy(polydata.GetPoints().GetData())
-    cells = vtk_to_numpy(polydata.GetPolys().GetConnectivityArray()).reshape(-1, 3)
-    return points, cells
 
 
 @pytest.fixture(scope="module")
@@ -49,8 +30,8 @@ def population(tmp_path_factory):
             mask[0:2, 0:2, 0:2] = True
             centre = np.array(mask.shape) // 2
             mask[tuple(slice(c - 1, c + 1) for c in centre)] = False
-        paths.append(write_mask(folder / f"case_{k}.nii.gz", mask, origin=origin))
-    write_mask(folder / "empty.nii.gz", np.zeros((10, 10, 10), bool))
+        paths.append(write_label_map(folder / f"case_{k}.nii.gz", mask, origin=origin))
+    write_label_map(folder / "empty.nii.gz", np.zeros((10, 10, 10), bool))
     (folder / "notes.nrrd").write_text("this is not an image")
     return folder, paths
 
@@ -88,11 +69,11 @@ def test_outputs_have_identical_connectivity_and_physical_placement(built, popul
     result, output = built
     _, paths = population
     names = [f"case_{k}" for k in range(4)]
-    mean_points, mean_cells = read_vtp(output / "mean.vtp")
+    mean_points, mean_cells = polydata_triangles(output / "mean.vtp")
     assert mean_points.shape == (162, 3)
     for k, name in enumerate(names):
-        points, cells = read_vtp(output / "correspondence" / f"{name}.vtp")
-        aligned, aligned_cells = read_vtp(output / "aligned" / f"{name}.vtp")
+        points, cells = polydata_triangles(output / "correspondence" / f"{name}.vtp")
+        aligned, aligned_cells = polydata_triangles(output / "aligned" / f"{name}.vtp")
         assert np.array_equal(cells, mean_cells) and np.array_equal(aligned_cells, mean_cells)
         # correspondence meshes overlay their image: centred near the mask's physical centre
         image = sitk.ReadImage(str(paths[k]))
@@ -109,7 +90,7 @@ def test_model_file_scores_and_metrics_agree(built):
     rows = read_csv(output / "scores.csv")
     scores = np.array([[float(v) for k, v in row.items() if k != "case"] for row in rows])
     np.testing.assert_allclose(scores, model.scores, rtol=1e-5, atol=1e-8)
-    aligned = np.stack([read_vtp(output / "aligned" / f"{n}.vtp")[0] for n in model.names])
+    aligned = np.stack([polydata_triangles(output / "aligned" / f"{n}.vtp")[0] for n in model.names])
     np.testing.assert_allclose(model.instance(model.scores[1]), aligned[1], atol=1e-6)
     metrics = json.loads((output / "metrics.json").read_text())
     assert metrics["modes"] == [1, 2, 3]
@@ -266,8 +247,8 @@ def test_mirrored_inputs_are_modelled_with_their_other_side(tmp_path):
                                                         evaluation_modes=2))
     cases = {row["case"]: row for row in read_csv(output / "cases.csv")}
     assert cases["right_0"]["mirrored"] == "True" and cases["left_0"]["mirrored"] == "False"
-    points, triangles = read_vtp(output / "correspondence" / "right_0.vtp")
+    points, triangles = polydata_triangles(output / "correspondence" / "right_0.vtp")
     assert np.max(point_surface_distances(right, points, triangles)) < 1.0
-    aligned = {n: read_vtp(output / "aligned" / f"{n}.vtp")[0] for n in ("left_0", "right_0")}
+    aligned = {n: polydata_triangles(output / "aligned" / f"{n}.vtp")[0] for n in ("left_0", "right_0")}
     assert np.mean(np.linalg.norm(aligned["left_0"] - aligned["right_0"], axis=1)) < 0.5
     assert result.metrics["n_shapes"] == 4

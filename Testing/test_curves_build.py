@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 import SimpleITK as sitk
-import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel.demo import demo_curve, write_demo_curves
@@ -16,6 +15,7 @@ from mdlshapemodel.outputs import load_checkpoint
 from mdlshapemodel.prepare.io import read_csv
 
 from common import run_cli
+from files import read_polydata
 
 # real builds (the command line or build_model): deselected by -m "not slow"
 pytestmark = pytest.mark.slow
@@ -25,10 +25,8 @@ cli = run_cli
 
 
 def polyline(path):
-    reader = vtk.vtkXMLPolyDataReader()
-    reader.SetFileName(str(path))
-    reader.Update()
-    output = reader.GetOutput()
+    """(points, the vtkPolyData) of a .vtp polyline."""
+    output = read_polydata(path)
     return vtk_to_numpy(output.GetPoints().GetData()), output
 
 

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
 
 import mdlshapemodel
 from mdlshapemodel import BuildConfig
 from mdlshapemodel.prepare import prepare_case, preprocess
 
+from files import write_label_map
 from synthetic import small_mask
 
 from common import HIPPOCAMPI
@@ -39,10 +39,7 @@ def digest_of(case) -> str:
 
 
 def write_mask(path, mask):
-    image = sitk.GetImageFromArray(mask.astype(np.uint8))
-    image.SetSpacing((0.9, 1.0, 1.1))
-    sitk.WriteImage(image, str(path))
-    return path
+    return write_label_map(path, mask, spacing=(0.9, 1.0, 1.1))
 
 
 def label_map(tmp_path) -> Path:

@@ -4,7 +4,6 @@ import json
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
 
 from mdlshapemodel import BuildConfig, build_model
 from mdlshapemodel.errors import InputError
@@ -14,6 +13,7 @@ from mdlshapemodel.prepare.io import read_csv
 from mdlshapemodel.prepare import prepare_case
 from mdlshapemodel.prepare.surface import point_surface_distances
 
+from files import write_label_map
 from synthetic import small_mask
 
 # real builds (the command line or build_model): deselected by -m "not slow"
@@ -24,11 +24,8 @@ HELD_BACK = 3
 
 
 def write_case(folder, k, position, origin=(0.0, 0.0, 0.0)):
-    image = sitk.GetImageFromArray(small_mask(float(position)).astype(np.uint8))
-    image.SetOrigin(origin)
-    path = folder / f"case_{k}.nii.gz"
-    sitk.WriteImage(image, str(path))
-    return path
+    return write_label_map(folder / f"case_{k}.nii.gz", small_mask(float(position)),
+                           origin=origin)
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +110,7 @@ def test_held_back_error_is_close_to_its_leave_one_out_error(models, fitted):
 def test_fit_cases_writes_outputs_and_rejects_bad_inputs(models, tmp_path):
     _, partial, path = models
     bad = tmp_path / "bad.nii.gz"
-    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((8, 8, 8), np.uint8)), str(bad))
+    write_label_map(bad, np.zeros((8, 8, 8)))
     out = tmp_path / "fit"
     results, rejected = fit_cases(partial.output, [path, bad], out, max_time=600, max_sweeps=1)
     assert [r.name for r in results] == [f"case_{HELD_BACK}"]

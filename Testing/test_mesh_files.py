@@ -12,6 +12,8 @@ from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.prepare import io
 from mdlshapemodel.prepare.surface import arrays_to_polydata
 
+from files import read_polydata
+
 VERTICES = np.array([[1.0, 2.0, 3.0], [4.0, 2.0, 3.0], [1.0, 6.0, 3.0], [1.0, 2.0, 9.0]])
 FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
 
@@ -21,10 +23,7 @@ def test_written_meshes_say_lps_and_read_back_unchanged(tmp_path, suffix):
     path = tmp_path / f"mesh{suffix}"
     io.write_polydata(path, VERTICES, FACES)
     if suffix == ".vtp":                       # a field-data string array, as Slicer writes it
-        reader = vtk.vtkXMLPolyDataReader()
-        reader.SetFileName(str(path))
-        reader.Update()
-        assert reader.GetOutput().GetFieldData().GetAbstractArray("SPACE").GetValue(0) == "LPS"
+        assert read_polydata(path).GetFieldData().GetAbstractArray("SPACE").GetValue(0) == "LPS"
     else:                                      # "SPACE=LPS" in the header or a comment
         assert b"SPACE=LPS" in path.read_bytes()[:1000]
     vertices, faces = io.read_mesh(path)

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
-import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig
@@ -24,6 +23,7 @@ from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.parts import read_manifest
 from common import run_cli
+from files import read_polydata
 from synthetic import split_into_part_files
 
 PARTS = list(DEMO_PARTS)          # left=1, right=2
@@ -170,13 +170,6 @@ def test_every_part_is_optimised_and_none_folds(two_part_state, strategy):
     assert any(m[0] for m in moved) and any(m[1] for m in moved)
 
 
-def _polydata(path):
-    reader = vtk.vtkXMLPolyDataReader()
-    reader.SetFileName(str(path))
-    reader.Update()
-    return reader.GetOutput()
-
-
 @pytest.mark.slow
 def test_cli_builds_a_two_part_model_by_labels_and_by_manifest(two_label_maps, tmp_path):
     folder, paths = two_label_maps
@@ -188,18 +181,18 @@ def test_cli_builds_a_two_part_model_by_labels_and_by_manifest(two_label_maps, t
     assert run.returncode == 0, run.stderr
     model = ShapeModel.load(by_labels / "model.h5")
     assert model.part_names == ["left", "right"] and model.part_sizes == [162, 162]
-    mean = _polydata(by_labels / "mean.vtp")
+    mean = read_polydata(by_labels / "mean.vtp")
     part = vtk_to_numpy(mean.GetCellData().GetArray("part"))
     assert mean.GetNumberOfPoints() == 324 and sorted(set(part.tolist())) == [0, 1]
     for name in ("left", "right"):
         for sub in ("correspondence", "aligned"):
             files = sorted(p.name for p in (by_labels / sub / name).iterdir())
             assert files == sorted(p.name.replace(".nii.gz", ".vtp") for p in paths)
-        one = _polydata(by_labels / "correspondence" / name / "subject_01.vtp")
+        one = read_polydata(by_labels / "correspondence" / name / "subject_01.vtp")
         assert one.GetNumberOfPoints() == 162 and one.GetNumberOfPolys() == 320
     # the left part of a case, in its own physical space, is the model's left rows of the case
     index = model.names.index("subject_01")
-    aligned_left = vtk_to_numpy(_polydata(by_labels / "aligned" / "left" /
+    aligned_left = vtk_to_numpy(read_polydata(by_labels / "aligned" / "left" /
                                           "subject_01.vtp").GetPoints().GetData())
     assert np.allclose(aligned_left, model.instance(model.scores[index])[:162], atol=1e-6)
 
@@ -255,7 +248,7 @@ def test_fit_and_compare_take_two_part_models(two_label_maps, tmp_path):
         assert squared[-1] < 0.5 * squared[0], name     # the modes explain the new case
         for part in ("left", "right"):
             for sub in ("correspondence", "reconstruction"):
-                one = _polydata(fitted / sub / part / f"{name}.vtp")
+                one = read_polydata(fitted / sub / part / f"{name}.vtp")
                 assert one.GetNumberOfPoints() == 162
     # the same new case, from one label map or from two files: the same fit
     assert np.allclose(summary["subject_06"]["reconstruction_squared_mm2"],

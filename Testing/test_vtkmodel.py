@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
@@ -17,6 +16,7 @@ from mdlshapemodel.vtkfilters import LabelMapToClosedSurface, SurfaceToSphereMap
 from mdlshapemodel.vtkmodel import (ShapeModelBuilder, ShapeModelInstance, ShapeModelReader,
                                     ShapeModelWriter, model_to_polydata, polydata_to_model)
 
+from files import read_polydata, write_label_map
 from synthetic import small_mask
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -37,10 +37,7 @@ def write_label_maps(folder: Path, names) -> list:
         mask = small_mask(float(position)).astype(np.uint8)
         if name.startswith("right_"):
             mask = mask[:, :, ::-1]                     # x -> -x about the image centre
-        image = sitk.GetImageFromArray(mask)
-        image.SetOrigin((12.0 * k, -4.0, 2.0))
-        paths.append(folder / f"{name}.mha")
-        sitk.WriteImage(image, str(paths[-1]))
+        paths.append(write_label_map(folder / f"{name}.mha", mask, origin=(12.0 * k, -4.0, 2.0)))
     return paths
 
 
@@ -147,7 +144,7 @@ def test_corresponded_surfaces_are_named_in_input_order_and_overlay_their_inputs
         assert np.array_equal(faces, triangles)
         # as build writes them, and over the surface of the input (the right one reflected
         # back from its mirrored preparation)
-        written, _ = surface.polydata_to_arrays(read_vtp(built.output / "correspondence" /
+        written, _ = surface.polydata_to_arrays(read_polydata(built.output / "correspondence" /
                                                          f"{name}.vtp"))
         np.testing.assert_allclose(points, written, rtol=0, atol=1e-12)
         vertices, input_faces = surface.polydata_to_arrays(branches[k][1].GetOutput())
@@ -156,13 +153,6 @@ def test_corresponded_surfaces_are_named_in_input_order_and_overlay_their_inputs
     assert sphere_map.GetFieldData().GetArray("Mirrored").GetValue(0) == 1
     assert np.mean(surface.polydata_to_arrays(sphere_map)[0][:, 0]) < 0 < np.mean(
         surface.polydata_to_arrays(blocks.GetBlock(3))[0][:, 0])
-
-
-def read_vtp(path):
-    reader = vtk.vtkXMLPolyDataReader()
-    reader.SetFileName(str(path))
-    reader.Update()
-    return reader.GetOutput()
 
 
 def test_progress_goes_up_to_the_end_with_the_optimisation_in_the_text(pipeline):

@@ -7,7 +7,6 @@ import time
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
 import slicer
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
@@ -20,6 +19,7 @@ from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.prepare import io, preprocess
 from mdlshapemodel.prepare.surface import (arrays_to_polydata, mask_to_surface,
                                            point_surface_distances)
+import files
 from common import run_cli, run_python
 from synthetic import small_mask
 
@@ -34,11 +34,8 @@ def points_of(node) -> np.ndarray:
 
 
 def write_label_map(path, mask, label=1, origin=(5.0, -3.0, 2.0), spacing=(1.2, 1.0, 1.0)):
-    image = sitk.GetImageFromArray(mask.astype(np.uint8) * label)
-    image.SetOrigin(origin)
-    image.SetSpacing(spacing)
-    sitk.WriteImage(image, str(path))
-    return path
+    """Label maps placed off the origin with anisotropic voxels (files.write_label_map)."""
+    return files.write_label_map(path, mask, label, spacing=spacing, origin=origin)
 
 
 def load_label_map_node(path):

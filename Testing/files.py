@@ -1,0 +1,49 @@
+"""Writing the tests' label maps and reading the meshes a build writes, in one place (SimpleITK
+and VTK's own readers and writers: nothing of the library's, which the tests check)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def write_label_map(path, mask, label: int = 1, spacing=None, origin=None) -> Path:
+    """``mask`` (z, y, x) written by SimpleITK as a uint8 label map, its values times ``label``
+    (a boolean mask: ``label`` inside, 0 outside), with the given spacing and origin (x, y, z;
+    default SimpleITK's 1 mm and 0); the format follows the suffix. Returns the path."""
+    import SimpleITK as sitk
+
+    image = sitk.GetImageFromArray(np.asarray(mask).astype(np.uint8) * np.uint8(label))
+    if spacing is not None:
+        image.SetSpacing(tuple(map(float, spacing)))
+    if origin is not None:
+        image.SetOrigin(tuple(map(float, origin)))
+    sitk.WriteImage(image, str(path))
+    return Path(path)
+
+
+def read_polydata(path):
+    """A .vtp file read by VTK's XML reader: its vtkPolyData."""
+    import vtk
+
+    reader = vtk.vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    return reader.GetOutput()
+
+
+def polydata_points(path) -> np.ndarray:
+    """The points (n, 3) of a .vtp file."""
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    return vtk_to_numpy(read_polydata(path).GetPoints().GetData()).copy()
+
+
+def polydata_triangles(path) -> tuple[np.ndarray, np.ndarray]:
+    """(points (n, 3), triangles (m, 3)) of a .vtp file of triangles."""
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    polydata = read_polydata(path)
+    return (vtk_to_numpy(polydata.GetPoints().GetData()).copy(),
+            vtk_to_numpy(polydata.GetPolys().GetConnectivityArray()).reshape(-1, 3).copy())
