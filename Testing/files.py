@@ -33,13 +33,6 @@ def read_polydata(path):
     return reader.GetOutput()
 
 
-def polydata_points(path) -> np.ndarray:
-    """The points (n, 3) of a .vtp file."""
-    from vtk.util.numpy_support import vtk_to_numpy
-
-    return vtk_to_numpy(read_polydata(path).GetPoints().GetData()).copy()
-
-
 def polydata_triangles(path) -> tuple[np.ndarray, np.ndarray]:
     """(points (n, 3), triangles (m, 3)) of a .vtp file of triangles."""
     from vtk.util.numpy_support import vtk_to_numpy

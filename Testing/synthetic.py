@@ -90,16 +90,13 @@ def split_into_part_files(paths, parts: dict, folder, manifest: str = "cases.csv
 def write_population(folder, n: int = 5) -> list:
     """``n`` small bumpy ellipsoids (:func:`small_mask`, sizes varying by 3 %) written as label
     maps ``case_K.nii.gz`` (label 1) into ``folder`` (made); returns their paths."""
-    import SimpleITK as sitk
+    from files import write_label_map
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for k, position in enumerate(np.linspace(-0.6, 0.6, n)):
-        paths.append(folder / f"case_{k}.nii.gz")
-        mask = small_mask(float(position), 1.0 + 0.03 * ((k % 3) - 1)).astype(np.uint8)
-        sitk.WriteImage(sitk.GetImageFromArray(mask), str(paths[-1]))
-    return paths
+    return [write_label_map(folder / f"case_{k}.nii.gz",
+                            small_mask(float(position), 1.0 + 0.03 * ((k % 3) - 1)))
+            for k, position in enumerate(np.linspace(-0.6, 0.6, n))]
 
 
 def vertex_areas(vertices, faces):
