@@ -172,7 +172,7 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     """Write ``output/report.html`` and return its path.
 
     ``model`` (ShapeModel) and ``shapes`` (aligned corresponded shapes, with ``names``) add the
-    mode and correspondence renderings.
+    mode and correspondence renderings and the interactive viewer (report/viewer.py).
     """
     objective = metrics["objective"]
     parts = [
@@ -204,6 +204,9 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     if convergence:
         parts += ["<h2>Convergence</h2>", _image(convergence, "convergence")]
     parts += _renderings(model, shapes, names)
+    from .viewer import viewer_section     # the interactive 3-D viewer (plotly.js, offline)
+
+    parts += viewer_section(model, shapes, names)
     if cases:
         keys = list(cases[0].keys())
         flags = [[k == "score_outlier" and bool(c.get(k)) for k in keys] for c in cases]

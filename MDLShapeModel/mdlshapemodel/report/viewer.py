@@ -1,0 +1,258 @@
+"""The interactive 3-D viewer of report.html: self-contained, offline, drawn by plotly.js.
+
+The page holds plotly.js itself (``plotly.offline.get_plotlyjs()``, MIT licence) and the model as
+base64 arrays: the mean (float32), the first modes already scaled by their standard deviation
+sqrt(lambda_k) (float32), each scaled mode's component along the mean's outward normals (float32,
+the colour), the triangles of each part (int32) and the aligned training shapes (uint16, quantised
+on the bounding box of all cases: a step below 1/65535 of its size, to keep the page small).
+
+A few lines of JavaScript turn the sliders into ``mean + sum_k s_k sqrt(lambda_k) mode_k`` and the
+colour into the displacement from the mean along the mean's outward normal, and call
+``Plotly.restyle``; the case picker shows one corresponded case instead (coloured the same way).
+One ``mesh3d`` trace per part: the legend toggles the parts. No network request: nothing is loaded
+from anywhere but the page.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+
+import numpy as np
+
+MAX_MODES = 10
+SD_RANGE = 3.0
+
+
+def _b64(array: np.ndarray, dtype) -> str:
+    return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")
+
+
+def _outward_normals(points: np.ndarray, triangles: np.ndarray, part_of: np.ndarray) -> np.ndarray:
+    """Unit area-weighted vertex normals, turned out of the volume each part encloses."""
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    face = np.cross(b - a, c - a)
+    # each part's signed volume (divergence theorem): negative when its triangles turn inwards
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c))
+    sign = np.ones(len(points))
+    for part in np.unique(part_of):
+        if volume[part_of == part].sum() < 0:
+            sign[np.unique(triangles[part_of == part])] = -1.0
+    normals = np.zeros_like(points)
+    for k in range(3):
+        for d in range(3):
+            normals[:, d] += np.bincount(triangles[:, k], weights=face[:, d], minlength=len(points))
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / np.where(length > 0, length, 1.0) * sign[:, None]
+
+
+def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> dict:
+    """What the page's script needs, as JSON-ready values (arrays base64-encoded)."""
+    mean = np.asarray(model.mean, dtype=np.float64)
+    triangles = np.asarray(model.triangles, dtype=np.int64)
+    n_p = len(mean)
+    k = max(0, min(int(n_modes), int(model.n_modes)))
+    sds = np.sqrt(np.maximum(np.asarray(model.variances[:k], dtype=np.float64), 0.0))
+    scaled = np.asarray(model.modes[:k], dtype=np.float64) * sds[:, None, None]   # (k, n_p, 3)
+    part_of = model.part_of_triangles()
+    normals = _outward_normals(mean, triangles, part_of)
+    along = np.einsum("kpd,pd->kp", scaled, normals)                             # (k, n_p)
+
+    # one fixed colour range and one fixed box, so that nothing jumps as the sliders move
+    half = float(SD_RANGE * np.abs(along).max(initial=0.0))
+    extremes = [mean] + [mean + s * SD_RANGE * scaled[j] for j in range(k) for s in (-1, 1)]
+    cases = []
+    if shapes is not None and len(shapes):
+        shapes = np.asarray(shapes, dtype=np.float64)
+        displacement = np.einsum("spd,pd->sp", shapes - mean, normals)
+        half = max(half, float(np.percentile(np.abs(displacement), 99)))
+        extremes.append(shapes.reshape(-1, 3))
+        low, high = shapes.min(axis=(0, 1)), shapes.max(axis=(0, 1))
+        step = np.where(high > low, (high - low) / 65535.0, 1.0)
+        quantised = np.rint((shapes - low) / step).clip(0, 65535)
+        names = list(names) if names is not None else []
+        cases = [str(names[i]) if i < len(names) else f"case {i + 1}" for i in range(len(shapes))]
+    every = np.concatenate([np.reshape(e, (-1, 3)) for e in extremes])
+    low_box, high_box = every.min(axis=0), every.max(axis=0)
+    margin = 0.03 * float(np.max(high_box - low_box) or 1.0)
+    ranges = [[float(low_box[d] - margin), float(high_box[d] + margin)] for d in range(3)]
+
+    parts = []
+    for index, part in enumerate(model.part_meshes()):
+        parts.append({"name": part.name or "shape", "start": int(part.rows.start),
+                      "stop": int(part.rows.stop),
+                      "triangles": _b64(part.triangles, np.int32)})
+    data = {
+        "n_points": n_p, "n_modes": k, "sd_range": SD_RANGE,
+        "sds": [float(s) for s in sds], "half_range": half if half > 0 else 1.0,
+        "ranges": ranges, "parts": parts,
+        "mean": _b64(mean, np.float32), "modes": _b64(scaled, np.float32),
+        "along": _b64(along, np.float32), "normals": _b64(normals, np.float32),
+        "cases": cases,
+    }
+    if cases:
+        data.update(case_low=[float(v) for v in low], case_step=[float(v) for v in step],
+                    case_points=_b64(quantised, np.uint16))
+    return data
+
+
+SCRIPT = r"""
+(function () {
+  var D = JSON.parse(document.getElementById('viewer-data').textContent);
+  function bytes(text) {
+    var raw = atob(text), out = new Uint8Array(raw.length);
+    for (var i = 0; i < raw.length; i++) out[i] = raw.charCodeAt(i);
+    return out.buffer;
+  }
+  var n = D.n_points, K = D.n_modes;
+  var mean = new Float32Array(bytes(D.mean)), modes = new Float32Array(bytes(D.modes));
+  var along = new Float32Array(bytes(D.along)), normals = new Float32Array(bytes(D.normals));
+  var cases = D.cases.length ? new Uint16Array(bytes(D.case_points)) : null;
+  var s = new Float64Array(K), pending = false;
+  var div = document.getElementById('viewer-plot'), picker = document.getElementById('viewer-case');
+
+  function model() {               // mean + sum_k s_k sqrt(lambda_k) mode_k, normal displacement
+    var p = Float64Array.from(mean), c = new Float64Array(n);
+    for (var k = 0; k < K; k++) {
+      if (s[k] === 0) continue;
+      var m = modes.subarray(k * 3 * n, (k + 1) * 3 * n), a = along.subarray(k * n, (k + 1) * n);
+      for (var i = 0; i < 3 * n; i++) p[i] += s[k] * m[i];
+      for (var j = 0; j < n; j++) c[j] += s[k] * a[j];
+    }
+    return [p, c];
+  }
+  function training(index) {       // one aligned case, coloured by its normal displacement
+    var p = new Float64Array(3 * n), c = new Float64Array(n), q = cases.subarray(index * 3 * n);
+    for (var i = 0; i < n; i++) {
+      for (var d = 0; d < 3; d++) p[3 * i + d] = D.case_low[d] + q[3 * i + d] * D.case_step[d];
+      for (var e = 0; e < 3; e++) c[i] += (p[3 * i + e] - mean[3 * i + e]) * normals[3 * i + e];
+    }
+    return [p, c];
+  }
+  function traces(p, c) {
+    var out = {x: [], y: [], z: [], intensity: []};
+    D.parts.forEach(function (part) {
+      var x = [], y = [], z = [], t = [];
+      for (var i = part.start; i < part.stop; i++) {
+        x.push(p[3 * i]); y.push(p[3 * i + 1]); z.push(p[3 * i + 2]); t.push(c[i]);
+      }
+      out.x.push(x); out.y.push(y); out.z.push(z); out.intensity.push(t);
+    });
+    return out;
+  }
+  function current() {
+    var pick = picker ? picker.value : '';
+    return pick === '' ? model() : training(Number(pick));
+  }
+  function draw() {
+    pending = false;
+    var t = traces.apply(null, current());
+    Plotly.restyle(div, t, D.parts.map(function (_, i) { return i; }));
+  }
+  function later() { if (!pending) { pending = true; requestAnimationFrame(draw); } }
+
+  var first = traces.apply(null, model());
+  var data = D.parts.map(function (part, i) {
+    var tri = new Int32Array(bytes(part.triangles)), I = [], J = [], L = [];
+    for (var f = 0; f < tri.length; f += 3) { I.push(tri[f]); J.push(tri[f + 1]); L.push(tri[f + 2]); }
+    return {type: 'mesh3d', name: part.name, x: first.x[i], y: first.y[i], z: first.z[i],
+            i: I, j: J, k: L, intensity: first.intensity[i], intensitymode: 'vertex',
+            coloraxis: 'coloraxis', showlegend: D.parts.length > 1, flatshading: false,
+            hoverinfo: 'skip', lighting: {ambient: 0.6, diffuse: 0.6, specular: 0.1}};
+  });
+  var box = D.ranges, size = box.map(function (r) { return r[1] - r[0]; });
+  var big = Math.max.apply(null, size);
+  var axis = function (r) { return {range: r, visible: false}; };
+  Plotly.newPlot(div, data, {
+    margin: {l: 0, r: 0, t: 0, b: 0}, paper_bgcolor: '#ffffff', uirevision: 'keep',
+    legend: {x: 0, y: 1},
+    coloraxis: {cmin: -D.half_range, cmax: D.half_range, colorscale: 'RdBu', reversescale: true,
+                colorbar: {title: {text: 'normal<br>displacement<br>[mm]'}, len: 0.8}},
+    scene: {xaxis: axis(box[0]), yaxis: axis(box[1]), zaxis: axis(box[2]),
+            aspectmode: 'manual', camera: {eye: {x: 0.8, y: 0.8, z: 0.55}},
+            aspectratio: {x: size[0] / big, y: size[1] / big, z: size[2] / big}}
+  }, {displaylogo: false, responsive: true, modeBarButtonsToRemove: ['toImage']});
+
+  document.querySelectorAll('#viewer input[type=range]').forEach(function (slider) {
+    slider.addEventListener('input', function () {
+      var k = Number(slider.dataset.mode);
+      s[k] = Number(slider.value);
+      document.getElementById('viewer-sd-' + k).textContent = s[k].toFixed(1);
+      if (picker) picker.value = '';
+      later();
+    });
+  });
+  if (picker) picker.addEventListener('change', later);
+  var reset = document.getElementById('viewer-reset');
+  reset.addEventListener('click', function () {
+    document.querySelectorAll('#viewer input[type=range]').forEach(function (slider) {
+      slider.value = 0; s[Number(slider.dataset.mode)] = 0;
+      document.getElementById('viewer-sd-' + slider.dataset.mode).textContent = '0.0';
+    });
+    if (picker) picker.value = '';
+    later();
+  });
+})();
+"""
+
+STYLE = ("#viewer .controls{display:flex;flex-wrap:wrap;gap:4px 18px;margin:0.5em 0}"
+         "#viewer label{font-size:90%;white-space:nowrap}#viewer input[type=range]{width:140px;"
+         "vertical-align:middle}#viewer-plot{width:100%;height:560px;border:1px solid #ddd}"
+         "#viewer .licence{font-size:80%;color:#666}")
+
+
+def _plotly_js() -> str:
+    from plotly.offline import get_plotlyjs
+
+    return get_plotlyjs().replace("</script", "<\\/script")
+
+
+def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> list:
+    """The report's interactive viewer (HTML fragments), or a note where it does not apply."""
+    if model is None:
+        return []
+    heading = "<h2>Interactive viewer</h2>"
+    if model.triangles is None or len(model.triangles) == 0:
+        return [heading, "<p>No interactive viewer: the model has no triangles.</p>"]
+    if model.of_curves:
+        return [heading, "<p>No interactive viewer for a model of 2-D curves: its modes and "
+                         "correspondence are the figures above.</p>"]
+    try:
+        plotly_js = _plotly_js()
+    except ImportError as error:
+        return [heading, f"<p>No interactive viewer: plotly is not installed ({html.escape(str(error))}).</p>"]
+    data = viewer_data(model, shapes, names, n_modes)
+    k = data["n_modes"]
+    sliders = "".join(
+        f"<label>mode {j + 1} <input type=range id='viewer-mode-{j}' data-mode={j} "
+        f"min={-SD_RANGE:g} max={SD_RANGE:g} step=0.1 value=0> <span id='viewer-sd-{j}'>0.0</span>"
+        f" SD</label>" for j in range(k))
+    picker = ""
+    if data["cases"]:
+        options = "".join(f"<option value={i}>{html.escape(name)}</option>"
+                          for i, name in enumerate(data["cases"]))
+        picker = (f"<label>show <select id='viewer-case'><option value='' selected>the model "
+                  f"(sliders)</option>{options}</select></label>")
+    parts_note = (" Click a part's name in the legend to hide or show it."
+                  if len(data["parts"]) > 1 else "")
+    payload = json.dumps(data).replace("</", "<\\/")
+    return [
+        heading,
+        f"<style>{STYLE}</style>",
+        "<div id=viewer>",
+        f"<p>Drag to turn, scroll to zoom. Each slider moves along one of the first {k} modes "
+        f"(-{SD_RANGE:g} to +{SD_RANGE:g} standard deviations); colour: displacement from the "
+        f"mean along the mean's outward normal (mm). The case picker shows a corresponded "
+        f"training case (aligned).{parts_note}</p>",
+        f"<div class=controls>{sliders}</div>",
+        f"<div class=controls>{picker} <button id='viewer-reset' type=button>mean shape"
+        f"</button></div>",
+        "<div id='viewer-plot'></div>",
+        "<p class=licence>Drawn with plotly.js (MIT licence, Copyright (c) Plotly, Inc.), "
+        "embedded in this page: it works offline.</p>",
+        "</div>",
+        f"<script>{plotly_js}</script>",
+        f"<script type='application/json' id='viewer-data'>{payload}</script>",
+        f"<script>{SCRIPT}</script>",
+    ]

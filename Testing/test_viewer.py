@@ -1,0 +1,205 @@
+"""The interactive 3-D viewer of report.html (report/viewer.py), in a real browser.
+
+The page is opened from disk (file://) in headless Chromium through Playwright, with every
+request that is not file: aborted (the viewer must work offline), and checked: no console error,
+the canvas draws, mode 1's slider at +3 SD changes the drawing, the case picker switches the
+mesh. Where /usr/bin/chromium (or the playwright package) is missing these tests are skipped,
+saying why.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.model.shape_model import ShapeModel
+from mdlshapemodel.report.html import html_page, write_report
+from mdlshapemodel.report.viewer import viewer_section
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--no-first-run"]
+SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "viewer.png"
+
+
+def population(n_s=6, n_points=642, seed=0, parts=1):
+    """Deformed ellipsoids on one icosphere grid (one or several parts side by side)."""
+    rng = np.random.default_rng(seed)
+    directions, triangles = sphere_grid(n_points)
+    shapes, all_triangles = [], []
+    for _ in range(n_s):
+        pieces = []
+        for part in range(parts):
+            axes = np.array([14.0, 9.0, 7.0]) * (1 + 0.15 * rng.normal(size=3))
+            bump = 1 + 0.1 * rng.normal() * np.sin(3 * directions[:, 0])
+            pieces.append(directions * axes * bump[:, None] + [30.0 * part, 0, 0])
+        shapes.append(np.concatenate(pieces))
+    for part in range(parts):
+        all_triangles.append(triangles + part * n_points)
+    weights = np.full(n_points * parts, 1.0 / (n_points * parts))
+    names = [f"case_{i:02d}" for i in range(n_s)]
+    model = ShapeModel.from_shapes(
+        np.stack(shapes), weights, names=names, triangles=np.concatenate(all_triangles),
+        part_sizes=[n_points] * parts,
+        part_names=[f"part{p}" for p in range(parts)] if parts > 1 else None)
+    return model, np.stack(shapes), names
+
+
+def test_page_size_of_a_realistic_model():
+    """82 cases x 2562 points, 10 modes: the viewer section stays under 10 MB."""
+    model, shapes, names = population(n_s=82, n_points=2562)
+    size = len("\n".join(viewer_section(model, shapes, names)).encode())
+    assert size < 10e6, size
+
+
+def test_notes_instead_of_a_viewer():
+    model, shapes, names = population(n_s=4, n_points=42)
+    model.triangles = None
+    assert "no triangles" in "".join(viewer_section(model, shapes, names))
+    curve = ShapeModel.from_shapes(
+        np.array([[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]],
+                  [[0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0.0]]]), np.full(4, 0.25),
+        triangles=np.array([[0, 1], [1, 2], [2, 3], [3, 0]]))
+    assert "2-D curves" in "".join(viewer_section(curve))
+    assert viewer_section(None) == []
+
+
+def test_write_report_holds_the_viewer(tmp_path):
+    model, shapes, names = population(n_s=4, n_points=42)
+    metrics = {"objective": {"initial": 1.0, "final": 0.5}, "n_shapes": 4, "n_points": 42,
+               "strategy": "fast", "n_rejected": 0, "interrupted": False,
+               "modes": [1, 2], "compactness": [1.0, 1.5], "compactness_se": [0.1, 0.1],
+               "generalization": [2.0, 1.0], "generalization_se": [0.1, 0.1],
+               "specificity": [2.0, 2.5], "specificity_se": [0.1, 0.1]}
+    page = write_report(tmp_path, metrics, [], [], model, shapes, names).read_text()
+    assert "id='viewer-plot'" in page and "MIT licence" in page
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not os.path.exists(CHROMIUM):
+        pytest.skip(f"{CHROMIUM} is missing: the viewer's browser tests need Debian's chromium "
+                    "(apt-get install chromium)")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("the playwright package is missing: pip install '.[test]'")
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        yield browser
+        browser.close()
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    from matplotlib.image import imread
+
+    return imread(io.BytesIO(png), format="png")[..., :3]
+
+
+def _open(browser, path: Path):
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    errors, requests = [], []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda e: errors.append(str(e)))
+
+    def route(r):
+        if r.request.url.startswith("file:"):
+            r.continue_()
+        else:
+            requests.append(r.request.url)
+            r.abort()
+
+    page.route("**/*", route)
+    page.goto(path.as_uri())
+    page.wait_for_selector("#viewer-plot canvas", timeout=30000)
+    page.wait_for_timeout(500)
+    return page, errors, requests
+
+
+def _slide(page, mode: int, value: float):
+    """Move a slider as a user does: its value, then its input event."""
+    page.eval_on_selector(f"#viewer-mode-{mode}", "(e, v) => { e.value = v; "
+                          "e.dispatchEvent(new Event('input', {bubbles: true})); }", str(value))
+
+
+def _plot_shot(page) -> np.ndarray:
+    page.wait_for_timeout(400)          # one animation frame for the restyle, one to draw
+    return _pixels(page.locator("#viewer-plot").screenshot())
+
+
+def _changed(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.mean(np.any(np.abs(a - b) > 0.02, axis=-1)))
+
+
+def _drawn(image: np.ndarray) -> float:
+    """The fraction of pixels that are not the white background."""
+    return float(np.mean(~np.all(image > 0.97, axis=-1)))
+
+
+def _eventually(page, condition, seconds: float = 10.0) -> np.ndarray:
+    """The plot's screenshot once ``condition(screenshot)`` holds (a busy machine draws late),
+    or the last one."""
+    deadline = time.monotonic() + seconds
+    while True:
+        shot = _plot_shot(page)
+        if condition(shot) or time.monotonic() > deadline:
+            return shot
+
+
+def test_viewer_in_a_browser(browser, tmp_path):
+    model, shapes, names = population(n_s=6, n_points=642)
+    path = tmp_path / "viewer.html"
+    path.write_text(html_page("viewer", viewer_section(model, shapes, names)), encoding="utf-8")
+    started = time.perf_counter()
+    page, errors, requests = _open(browser, path)
+
+    mean = _eventually(page, lambda shot: _drawn(shot) > 0.05)
+    assert _drawn(mean) > 0.05, "the 3-D canvas draws nothing"
+
+    _slide(page, 0, 3)
+    assert page.inner_text("#viewer-sd-0") == "3.0"
+    plus3 = _eventually(page, lambda shot: _changed(mean, shot) > 0.005)
+    assert _changed(mean, plus3) > 0.005, "mode 1 at +3 SD draws the same picture"
+
+    page.select_option("#viewer-case", "2")
+    case = _eventually(page, lambda shot: _changed(plus3, shot) > 0.005)
+    assert _changed(plus3, case) > 0.005, "the case picker does not change the mesh"
+    x = page.evaluate("document.getElementById('viewer-plot').data[0].x.slice(0, 5)")
+    assert np.allclose(x, shapes[2, :5, 0], atol=1e-3)
+
+    page.click("#viewer-reset")
+    x = page.evaluate("document.getElementById('viewer-plot').data[0].x.slice(0, 5)")
+    assert np.allclose(x, model.mean[:5, 0], atol=1e-4)
+
+    if os.environ.get("MDLSHAPEMODEL_VIEWER_SCREENSHOT"):     # docs/viewer.png, on request
+        _slide(page, 0, 2)
+        page.wait_for_timeout(400)
+        page.locator("#viewer").screenshot(path=str(SCREENSHOT))
+    assert not errors, errors
+    assert not requests, requests
+    page.close()
+    assert time.perf_counter() - started < 60
+
+
+def test_multi_part_viewer_in_a_browser(browser, tmp_path):
+    model, shapes, names = population(n_s=4, n_points=162, parts=2)
+    path = tmp_path / "parts.html"
+    path.write_text(html_page("parts", viewer_section(model, shapes, names)), encoding="utf-8")
+    page, errors, requests = _open(browser, path)
+    assert page.evaluate("document.getElementById('viewer-plot').data.length") == 2
+    before = _eventually(page, lambda shot: _drawn(shot) > 0.05)
+    page.locator(".legend .traces").nth(1).locator(".legendtoggle").click()   # hide part1
+    # plotly acts on a legend click once its double-click time has passed
+    page.wait_for_function("document.getElementById('viewer-plot').data[1].visible "
+                           "=== 'legendonly'", timeout=10000)
+    after = _eventually(page, lambda shot: _drawn(shot) < _drawn(before) - 0.005)
+    assert _drawn(after) < _drawn(before) - 0.005, "hiding a part leaves the picture as it was"
+    assert not errors, errors
+    assert not requests, requests
+    page.close()
