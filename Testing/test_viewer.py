@@ -128,6 +128,11 @@ def _slide(page, mode: int, value: float):
                           "e.dispatchEvent(new Event('input', {bubbles: true})); }", str(value))
 
 
+def _frames(page):
+    """Wait two animation frames: the viewer redraws on the next one after an input."""
+    page.evaluate("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+
+
 def _plot_shot(page) -> np.ndarray:
     page.wait_for_timeout(400)          # one animation frame for the restyle, one to draw
     return _pixels(page.locator("#viewer-plot").screenshot())
@@ -170,10 +175,12 @@ def test_viewer_in_a_browser(browser, tmp_path):
     page.select_option("#viewer-case", "2")
     case = _eventually(page, lambda shot: _changed(plus3, shot) > 0.005)
     assert _changed(plus3, case) > 0.005, "the case picker does not change the mesh"
+    _frames(page)
     x = page.evaluate("document.getElementById('viewer-plot').data[0].x.slice(0, 5)")
     assert np.allclose(x, shapes[2, :5, 0], atol=1e-3)
 
     page.click("#viewer-reset")
+    _frames(page)
     x = page.evaluate("document.getElementById('viewer-plot').data[0].x.slice(0, 5)")
     assert np.allclose(x, model.mean[:5, 0], atol=1e-4)
 
