@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
 
 from mdlshapemodel.config import BuildConfig
+from files import write_label_map
 from synthetic import small_mask
 
 # real builds (the command line or build_model): deselected by -m "not slow"
@@ -79,7 +79,7 @@ def write_population(folder: Path, n: int = 4):
         # label 1 = the object, label 2 = a bump of another label, to exercise --label
         mask = small_mask(float(position)).astype(np.uint8)
         mask[:, :, :3] = np.where(mask[:, :, :3] > 0, 2, 0)
-        sitk.WriteImage(sitk.GetImageFromArray(mask), str(folder / f"s{k}.nii.gz"))
+        write_label_map(folder / f"s{k}.nii.gz", mask)
     return folder
 
 
