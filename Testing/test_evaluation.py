@@ -1,4 +1,4 @@
-"""Tests of compactness, generalization and specificity (paper IV-B, METHOD.md section 6).
+"""Tests of compactness, generalization and specificity (paper IV-B, docs/method.md section 6).
 
 The library works in the (n_s - 1)-dimensional model space; the tests recompute everything in full
 point space, (n_s, n_p, 3) arrays, with a PCA written here (eigen-decomposition of the Gram matrix).

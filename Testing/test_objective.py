@@ -1,4 +1,4 @@
-"""Tests of the MDL objective (METHOD.md section 2; paper eq. 13-14)."""
+"""Tests of the MDL objective (docs/method.md section 2; paper eq. 13-14)."""
 
 import math
 
@@ -14,7 +14,7 @@ LN2PI = math.log(2 * math.pi)
 
 
 def written_out_cost(y, delta, data_range, variant="continuous"):
-    """Per-mode description length transcribed from METHOD.md section 2, one scalar at a time."""
+    """Per-mode description length transcribed from docs/method.md section 2, one scalar at a time."""
     y = [float(v) for v in y]
     n_s = len(y)
     sum_squares = sum(v * v for v in y)

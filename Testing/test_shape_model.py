@@ -1,4 +1,4 @@
-"""Tests of the area-weighted point distribution model (METHOD.md section 1) and its file.
+"""Tests of the area-weighted point distribution model (docs/method.md section 1) and its file.
 
 The model file follows the Statismo file format (groups /version, /representer, /model,
 /modelinfo) as Statismo and Scalismo write and read it; the readers and writers below are

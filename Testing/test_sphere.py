@@ -1,4 +1,4 @@
-"""Tests of bijective sphere maps and the alignment of parameterizations (METHOD.md section 5)."""
+"""Tests of bijective sphere maps and the alignment of parameterizations (docs/method.md section 5)."""
 
 import numpy as np
 import pytest

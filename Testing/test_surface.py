@@ -1,4 +1,4 @@
-"""Tests of surfaces: topology checks, label map -> mesh, cleaning (METHOD.md section 5)."""
+"""Tests of surfaces: topology checks, label map -> mesh, cleaning (docs/method.md section 5)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Tests of the symmetric theta transformation (paper eq. 8-12, METHOD.md section 3)."""
+"""Tests of the symmetric theta transformation (paper eq. 8-12, docs/method.md section 3)."""
 
 import numpy as np
 import pytest

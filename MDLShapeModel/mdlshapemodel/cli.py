@@ -403,7 +403,7 @@ def main(argv=None) -> int:
                             "folder, with the same inputs and settings; ends with the model the "
                             "uninterrupted build would have made")
     _add_build_options(build)
-    demo = commands.add_parser("demo", help="build a model of a generated population (about 25 s)")
+    demo = commands.add_parser("demo", help="build a model of a generated population")
     demo.add_argument("-o", "--output", default="mdlshapemodel-demo", help="output folder "
                       "(default %(default)s)")
     demo.add_argument("--subjects", type=int, default=12, help="population size (default 12)")

@@ -5,7 +5,7 @@ A curve S(t) is parameterised by arc length on the unit circle (:func:`~..prepar
 and sampled at n_p equally spaced angles u_k (:func:`circle_grid`). Its reparameterization phi is a
 monotonic homeomorphism of the circle, kept as the sample positions phi(u_k): real numbers (lifts
 of the angles), strictly increasing and spanning less than one turn, so a correspondence can
-never fold. Three kinds of warps make phi (METHOD.md section 3, last bullet):
+never fold. Three kinds of warps make phi (docs/method.md section 3, last bullet):
 
 * :class:`CircleKernel`: the circle analogue of the symmetric theta map (eq. 10), t -> c + f(t - c)
   with f odd, f(x) = [x + A C(x)] / (1 + A) on [0, pi], C the CDF of the wrapped Cauchy of width

@@ -1,4 +1,4 @@
-"""The MDL objective function (section III-B; METHOD.md section 2).
+"""The MDL objective function (section III-B; docs/method.md section 2).
 
 For each mode m of the training set, with coded values Y_im (the n_s projections of the centred shapes
 on mode m, so that (1/n_s) sum_i Y_im^2 = lambda_m = sigma_m^2), the description length is

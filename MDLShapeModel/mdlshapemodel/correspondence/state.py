@@ -295,7 +295,7 @@ class CorrespondenceState:
 
     def shape_gradient(self) -> tuple[float, np.ndarray]:
         """F of the current state and G = dF/dX, (n_s, n_p, 3): the derivative with respect to
-        every example's posed points, with the area weights w held fixed (METHOD.md section 2).
+        every example's posed points, with the area weights w held fixed (docs/method.md section 2).
 
         F = F(D'), D' = f^2 H K H, f = target_size / cs(mean). With Gd = dF/dD' (symmetric,
         :meth:`Objective.gradient`) and M = f^2 H Gd H,

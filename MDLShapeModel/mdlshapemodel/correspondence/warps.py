@@ -12,7 +12,7 @@ The Appendix adds two more families, and a global rotation is a homeomorphism to
   A(psi') of the angle psi around P, a second wrapped Cauchy of width b with minimum zero;
 * shear and twist (eq. 30-31): psi -> psi + g(theta), every circle of latitude about P is rotated
   about the axis through P by an angle g that depends on theta only;
-* a global rotation of the parameter sphere (METHOD.md section 3), Rodrigues' formula.
+* a global rotation of the parameter sphere (docs/method.md section 3), Rodrigues' formula.
 
 Polar coordinates about P: theta = angle from P; psi = angle around P, measured in the tangent plane
 from the projection of a ``reference_direction`` (psi = 0), counter-clockwise seen from outside at P

@@ -36,7 +36,7 @@ CACHE_FORMAT = 2   # 2: the preparation facts as named fields
 #    multilevel initial map instead of the Tutte map where the conformal map folds.
 # 5: mesh files that say their points are RAS (SPACE=RAS, as 3D Slicer may write them) are read
 #    into LPS.
-# 6: files checked before they are read (README "Bad inputs"): valid inputs give the same results,
+# 6: files checked before they are read (docs/inputs.md, "Rejections"): valid inputs give the same results,
 #    but damaged ones that were prepared (a .nii.gz cut short) are rejected now, and a 4-D image
 #    of one volume is prepared: verdicts cached by 5 must not be reused.
 PREPROCESSING_VERSION = 6

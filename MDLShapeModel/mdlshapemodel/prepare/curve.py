@@ -8,7 +8,7 @@ point not repeated, at least :data:`MIN_POINTS` points, finite, enclosing an are
 reason; callers add the file name.
 
 The 2-D counterpart of a sphere map is the arc-length parameterization on the unit circle
-(:func:`curve_map`, METHOD.md section 1): t = 2 pi s / L, s the arc length from the curve's
+(:func:`curve_map`, docs/method.md section 1): t = 2 pi s / L, s the arc length from the curve's
 origin, L its length. :func:`align_curve_origins` moves the origins of a population so that
 equal parameters start as nearly corresponding points.
 """

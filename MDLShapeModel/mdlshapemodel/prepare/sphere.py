@@ -1,4 +1,4 @@
-"""Bijective maps of closed genus-0 surfaces onto the unit sphere (METHOD.md section 5).
+"""Bijective maps of closed genus-0 surfaces onto the unit sphere (docs/method.md section 5).
 
 The map is built in three steps:
 
