@@ -25,7 +25,6 @@ from mdlshapemodel.report.viewer import viewer_section
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--disable-component-update", "--no-first-run"]
-SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "viewer.png"
 
 
 def population(n_s=6, n_points=642, seed=0, parts=1):
@@ -184,10 +183,6 @@ def test_viewer_in_a_browser(browser, tmp_path):
     x = page.evaluate("document.getElementById('viewer-plot').data[0].x.slice(0, 5)")
     assert np.allclose(x, model.mean[:5, 0], atol=1e-4)
 
-    if os.environ.get("MDLSHAPEMODEL_VIEWER_SCREENSHOT"):     # docs/viewer.png, on request
-        _slide(page, 0, 2)
-        page.wait_for_timeout(400)
-        page.locator("#viewer").screenshot(path=str(SCREENSHOT))
     assert not errors, errors
     assert not requests, requests
     page.close()
