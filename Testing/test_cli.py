@@ -258,9 +258,15 @@ NON_DEFAULT_OPTIONS = {
 
 def config_of_command_line(tmp_path: Path, name: str, *options) -> dict:
     """The configuration that ``build`` makes of ``options``: the build writes config.json into
-    its output folder before it looks for its inputs, which here do not exist."""
-    result = run("build", tmp_path / "no-such-input", "-o", tmp_path / name, *options)
-    assert result.returncode == 2 and "no such file" in result.stderr, result.stderr
+    its output folder before it prepares its inputs, which here are three damaged label maps
+    (so it stops there, or at an unreachable --scheduler)."""
+    inputs = tmp_path / "damaged"
+    if not inputs.exists():
+        inputs.mkdir()
+        for k in range(3):
+            (inputs / f"case_{k}.nii.gz").write_bytes(b"not an image")
+    result = run("build", inputs, "-o", tmp_path / name, *options)
+    assert result.returncode == 2, result.stderr
     return json.loads((tmp_path / name / "config.json").read_text())
 
 
