@@ -57,16 +57,40 @@ def test_page_size_of_a_realistic_model():
     assert size < 10e6, size
 
 
+def curves(n_s=5, n_points=64, seed=1):
+    """Closed 2-D outlines (ellipses with a bump), a model of curves (segments)."""
+    rng = np.random.default_rng(seed)
+    angle = 2 * np.pi * np.arange(n_points) / n_points
+    shapes = []
+    for _ in range(n_s):
+        radius = 1 + 0.15 * rng.normal() * np.exp(-((angle - np.pi) ** 2) / 0.3)
+        a, b = 20 * (1 + 0.1 * rng.normal()), 10 * (1 + 0.1 * rng.normal())
+        shapes.append(np.stack([a * radius * np.cos(angle), b * radius * np.sin(angle),
+                                np.zeros(n_points)], axis=1))
+    segments = np.stack([np.arange(n_points), (np.arange(n_points) + 1) % n_points], axis=1)
+    names = [f"outline_{i}" for i in range(n_s)]
+    model = ShapeModel.from_shapes(np.stack(shapes), np.full(n_points, 1.0 / n_points),
+                                   names=names, triangles=segments)
+    return model, np.stack(shapes), names
+
+
 def test_notes_instead_of_a_viewer():
     model, shapes, names = population(n_s=4, n_points=42)
     model.triangles = None
     assert "no triangles" in "".join(viewer_section(model, shapes, names))
-    curve = ShapeModel.from_shapes(
-        np.array([[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]],
-                  [[0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0.0]]]), np.full(4, 0.25),
-        triangles=np.array([[0, 1], [1, 2], [2, 3], [3, 0]]))
-    assert "2-D curves" in "".join(viewer_section(curve))
     assert viewer_section(None) == []
+
+
+def test_curve_normals_point_outward():
+    from mdlshapemodel.report.viewer import viewer_data
+    import base64
+
+    model, shapes, names = curves()
+    data = viewer_data(model, shapes, names)
+    assert data["kind"] == "curve"
+    normals = np.frombuffer(base64.b64decode(data["normals"]), np.float32).reshape(-1, 3)
+    outward = np.einsum("ij,ij->i", normals, model.mean - model.mean.mean(axis=0))
+    assert np.all(outward > 0)
 
 
 def test_write_report_holds_the_viewer(tmp_path):
@@ -101,7 +125,7 @@ def _pixels(png: bytes) -> np.ndarray:
     return imread(io.BytesIO(png), format="png")[..., :3]
 
 
-def _open(browser, path: Path):
+def _open(browser, path: Path, drawn="#viewer-plot canvas"):
     page = browser.new_page(viewport={"width": 1200, "height": 900})
     errors, requests = [], []
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
@@ -116,7 +140,7 @@ def _open(browser, path: Path):
 
     page.route("**/*", route)
     page.goto(path.as_uri())
-    page.wait_for_selector("#viewer-plot canvas", timeout=30000)
+    page.wait_for_selector(drawn, timeout=30000)
     page.wait_for_timeout(500)
     return page, errors, requests
 
@@ -202,6 +226,25 @@ def test_multi_part_viewer_in_a_browser(browser, tmp_path):
                            "=== 'legendonly'", timeout=10000)
     after = _eventually(page, lambda shot: _drawn(shot) < _drawn(before) - 0.005)
     assert _drawn(after) < _drawn(before) - 0.005, "hiding a part leaves the picture as it was"
+    assert not errors, errors
+    assert not requests, requests
+    page.close()
+
+
+def test_curve_viewer_in_a_browser(browser, tmp_path):
+    model, shapes, names = curves()
+    path = tmp_path / "curves.html"
+    path.write_text(html_page("curves", viewer_section(model, shapes, names)), encoding="utf-8")
+    page, errors, requests = _open(browser, path, drawn="#viewer-plot .scatterlayer path")
+    mean = _eventually(page, lambda shot: _drawn(shot) > 0.01)
+    assert _drawn(mean) > 0.01, "the curve is not drawn"
+    _slide(page, 0, 3)
+    plus3 = _eventually(page, lambda shot: _changed(mean, shot) > 0.002)
+    assert _changed(mean, plus3) > 0.002, "mode 1 at +3 SD draws the same picture"
+    page.select_option("#viewer-case", "1")
+    _frames(page)
+    x = page.evaluate("document.getElementById('viewer-plot').data[0].x.slice(0, 2)")
+    assert np.allclose(x, shapes[1, :2, 0], atol=1e-3)
     assert not errors, errors
     assert not requests, requests
     page.close()

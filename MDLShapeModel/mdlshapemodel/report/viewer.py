@@ -9,7 +9,8 @@ on the bounding box of all cases: a step below 1/65535 of its size, to keep the 
 A few lines of JavaScript turn the sliders into ``mean + sum_k s_k sqrt(lambda_k) mode_k`` and the
 colour into the displacement from the mean along the mean's outward normal, and call
 ``Plotly.restyle``; the case picker shows one corresponded case instead (coloured the same way).
-One ``mesh3d`` trace per part: the legend toggles the parts. No network request: nothing is loaded
+One ``mesh3d`` trace per part: the legend toggles the parts. A model of 2-D curves is drawn as its
+segments (a 2-D ``scatter`` per part, the points coloured). No network request: nothing is loaded
 from anywhere but the page.
 """
 
@@ -30,7 +31,10 @@ def _b64(array: np.ndarray, dtype) -> str:
 
 
 def _outward_normals(points: np.ndarray, triangles: np.ndarray, part_of: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals, turned out of the volume each part encloses."""
+    """Unit area-weighted vertex normals, turned out of the volume each part encloses; for
+    segments (2-D curves) the in-plane normals, turned out of the area each part encloses."""
+    if triangles.shape[1] == 2:
+        return _outward_curve_normals(points, triangles, part_of)
     a, b, c = (points[triangles[:, k]] for k in range(3))
     face = np.cross(b - a, c - a)
     # each part's signed volume (divergence theorem): negative when its triangles turn inwards
@@ -45,6 +49,24 @@ def _outward_normals(points: np.ndarray, triangles: np.ndarray, part_of: np.ndar
             normals[:, d] += np.bincount(triangles[:, k], weights=face[:, d], minlength=len(points))
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return normals / np.where(length > 0, length, 1.0) * sign[:, None]
+
+
+def _outward_curve_normals(points, segments, part_of):
+    start, end = points[segments[:, 0]], points[segments[:, 1]]
+    tangent = end - start
+    normal = np.stack([tangent[:, 1], -tangent[:, 0], np.zeros(len(tangent))], axis=1)
+    for part in np.unique(part_of):
+        rows = part_of == part
+        centre = points[np.unique(segments[rows])].mean(axis=0)
+        if np.sum(np.einsum("ij,ij->i", normal[rows], (start + end)[rows] / 2 - centre)) < 0:
+            normal[rows] = -normal[rows]                # clockwise: turn them outward
+    normals = np.zeros_like(points)
+    for k in range(2):
+        for d in range(3):
+            normals[:, d] += np.bincount(segments[:, k], weights=normal[:, d],
+                                         minlength=len(points))
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / np.where(length > 0, length, 1.0)
 
 
 def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> dict:
@@ -84,7 +106,7 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> dic
                       "stop": int(part.rows.stop),
                       "triangles": _b64(part.triangles, np.int32)})
     data = {
-        "n_points": n_p, "n_modes": k, "sd_range": SD_RANGE,
+        "kind": "curve" if model.of_curves else "mesh", "n_points": n_p, "n_modes": k, "sd_range": SD_RANGE,
         "sds": [float(s) for s in sds], "half_range": half if half > 0 else 1.0,
         "ranges": ranges, "parts": parts,
         "mean": _b64(mean, np.float32), "modes": _b64(scaled, np.float32),
@@ -109,7 +131,8 @@ SCRIPT = r"""
   var mean = new Float32Array(bytes(D.mean)), modes = new Float32Array(bytes(D.modes));
   var along = new Float32Array(bytes(D.along)), normals = new Float32Array(bytes(D.normals));
   var cases = D.cases.length ? new Uint16Array(bytes(D.case_points)) : null;
-  var s = new Float64Array(K), pending = false;
+  var s = new Float64Array(K), pending = false, curve = D.kind === 'curve';
+  var cells = D.parts.map(function (part) { return new Int32Array(bytes(part.triangles)); });
   var div = document.getElementById('viewer-plot'), picker = document.getElementById('viewer-case');
 
   function model() {               // mean + sum_k s_k sqrt(lambda_k) mode_k, normal displacement
@@ -130,16 +153,24 @@ SCRIPT = r"""
     }
     return [p, c];
   }
-  function traces(p, c) {
+  function traces(p, c) {          // per part: the points (surfaces) or the segments (curves)
     var out = {x: [], y: [], z: [], intensity: []};
-    D.parts.forEach(function (part) {
+    D.parts.forEach(function (part, j) {
       var x = [], y = [], z = [], t = [];
-      for (var i = part.start; i < part.stop; i++) {
-        x.push(p[3 * i]); y.push(p[3 * i + 1]); z.push(p[3 * i + 2]); t.push(c[i]);
+      if (curve) {                   // a, b, gap for each segment
+        for (var f = 0; f < cells[j].length; f += 2) {
+          var a = part.start + cells[j][f], b = part.start + cells[j][f + 1];
+          x.push(p[3 * a], p[3 * b], null); y.push(p[3 * a + 1], p[3 * b + 1], null);
+          t.push(c[a], c[b], null);
+        }
+      } else {
+        for (var i = part.start; i < part.stop; i++) {
+          x.push(p[3 * i]); y.push(p[3 * i + 1]); z.push(p[3 * i + 2]); t.push(c[i]);
+        }
       }
       out.x.push(x); out.y.push(y); out.z.push(z); out.intensity.push(t);
     });
-    return out;
+    return curve ? {x: out.x, y: out.y, 'marker.color': out.intensity} : out;
   }
   function current() {
     var pick = picker ? picker.value : '';
@@ -154,7 +185,13 @@ SCRIPT = r"""
 
   var first = traces.apply(null, model());
   var data = D.parts.map(function (part, i) {
-    var tri = new Int32Array(bytes(part.triangles)), I = [], J = [], L = [];
+    if (curve) {
+      return {type: 'scatter', mode: 'lines+markers', name: part.name, x: first.x[i],
+              y: first.y[i], line: {color: '#777', width: 1.5}, hoverinfo: 'skip',
+              marker: {color: first['marker.color'][i], coloraxis: 'coloraxis', size: 7},
+              showlegend: D.parts.length > 1};
+    }
+    var tri = cells[i], I = [], J = [], L = [];
     for (var f = 0; f < tri.length; f += 3) { I.push(tri[f]); J.push(tri[f + 1]); L.push(tri[f + 2]); }
     return {type: 'mesh3d', name: part.name, x: first.x[i], y: first.y[i], z: first.z[i],
             i: I, j: J, k: L, intensity: first.intensity[i], intensitymode: 'vertex',
@@ -164,15 +201,23 @@ SCRIPT = r"""
   var box = D.ranges, size = box.map(function (r) { return r[1] - r[0]; });
   var big = Math.max.apply(null, size);
   var axis = function (r) { return {range: r, visible: false}; };
-  Plotly.newPlot(div, data, {
+  var layout = {
     margin: {l: 0, r: 0, t: 0, b: 0}, paper_bgcolor: '#ffffff', uirevision: 'keep',
     legend: {x: 0, y: 1},
     coloraxis: {cmin: -D.half_range, cmax: D.half_range, colorscale: 'RdBu', reversescale: true,
-                colorbar: {title: {text: 'normal<br>displacement<br>[mm]'}, len: 0.8}},
-    scene: {xaxis: axis(box[0]), yaxis: axis(box[1]), zaxis: axis(box[2]),
-            aspectmode: 'manual', camera: {eye: {x: 0.8, y: 0.8, z: 0.55}},
-            aspectratio: {x: size[0] / big, y: size[1] / big, z: size[2] / big}}
-  }, {displaylogo: false, responsive: true, modeBarButtonsToRemove: ['toImage']});
+                colorbar: {title: {text: 'normal<br>displacement<br>[mm]'}, len: 0.8}}};
+  if (curve) {                       // 2-D: equal scales on x and y
+    layout.plot_bgcolor = '#ffffff';
+    layout.xaxis = {range: box[0], visible: false, constrain: 'domain'};
+    layout.yaxis = {range: box[1], visible: false, scaleanchor: 'x', scaleratio: 1,
+                    constrain: 'domain'};
+  } else {
+    layout.scene = {xaxis: axis(box[0]), yaxis: axis(box[1]), zaxis: axis(box[2]),
+                    aspectmode: 'manual', camera: {eye: {x: 0.8, y: 0.8, z: 0.55}},
+                    aspectratio: {x: size[0] / big, y: size[1] / big, z: size[2] / big}};
+  }
+  Plotly.newPlot(div, data, layout,
+                 {displaylogo: false, responsive: true, modeBarButtonsToRemove: ['toImage']});
 
   document.querySelectorAll('#viewer input[type=range]').forEach(function (slider) {
     slider.addEventListener('input', function () {
@@ -215,9 +260,6 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
     heading = "<h2>Interactive viewer</h2>"
     if model.triangles is None or len(model.triangles) == 0:
         return [heading, "<p>No interactive viewer: the model has no triangles.</p>"]
-    if model.of_curves:
-        return [heading, "<p>No interactive viewer for a model of 2-D curves: its modes and "
-                         "correspondence are the figures above.</p>"]
     try:
         plotly_js = _plotly_js()
     except ImportError as error:
@@ -241,7 +283,7 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
         heading,
         f"<style>{STYLE}</style>",
         "<div id=viewer>",
-        f"<p>Drag to turn, scroll to zoom. Each slider moves along one of the first {k} modes "
+        f"<p>{'Drag a box to zoom, double-click to see all' if model.of_curves else 'Drag to turn, scroll to zoom'}. Each slider moves along one of the first {k} modes "
         f"(-{SD_RANGE:g} to +{SD_RANGE:g} standard deviations); colour: displacement from the "
         f"mean along the mean's outward normal (mm). The case picker shows a corresponded "
         f"training case (aligned).{parts_note}</p>",
