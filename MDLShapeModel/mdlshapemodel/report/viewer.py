@@ -106,7 +106,8 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> dic
                       "stop": int(part.rows.stop),
                       "triangles": _b64(part.triangles, np.int32)})
     data = {
-        "kind": "curve" if model.of_curves else "mesh", "n_points": n_p, "n_modes": k, "sd_range": SD_RANGE,
+        "kind": "curve" if model.of_curves else "mesh",
+        "n_points": n_p, "n_modes": k, "sd_range": SD_RANGE,
         "sds": [float(s) for s in sds], "half_range": half if half > 0 else 1.0,
         "ranges": ranges, "parts": parts,
         "mean": _b64(mean, np.float32), "modes": _b64(scaled, np.float32),
@@ -192,7 +193,9 @@ SCRIPT = r"""
               showlegend: D.parts.length > 1};
     }
     var tri = cells[i], I = [], J = [], L = [];
-    for (var f = 0; f < tri.length; f += 3) { I.push(tri[f]); J.push(tri[f + 1]); L.push(tri[f + 2]); }
+    for (var f = 0; f < tri.length; f += 3) {
+      I.push(tri[f]); J.push(tri[f + 1]); L.push(tri[f + 2]);
+    }
     return {type: 'mesh3d', name: part.name, x: first.x[i], y: first.y[i], z: first.z[i],
             i: I, j: J, k: L, intensity: first.intensity[i], intensitymode: 'vertex',
             coloraxis: 'coloraxis', showlegend: D.parts.length > 1, flatshading: false,
@@ -263,7 +266,8 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
     try:
         plotly_js = _plotly_js()
     except ImportError as error:
-        return [heading, f"<p>No interactive viewer: plotly is not installed ({html.escape(str(error))}).</p>"]
+        return [heading, f"<p>No interactive viewer: plotly is not installed "
+                         f"({html.escape(str(error))}).</p>"]
     data = viewer_data(model, shapes, names, n_modes)
     k = data["n_modes"]
     sliders = "".join(
@@ -279,11 +283,13 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
     parts_note = (" Click a part's name in the legend to hide or show it."
                   if len(data["parts"]) > 1 else "")
     payload = json.dumps(data).replace("</", "<\\/")
+    how = ("Drag a box to zoom, double-click to see all" if model.of_curves
+           else "Drag to turn, scroll to zoom")
     return [
         heading,
         f"<style>{STYLE}</style>",
         "<div id=viewer>",
-        f"<p>{'Drag a box to zoom, double-click to see all' if model.of_curves else 'Drag to turn, scroll to zoom'}. Each slider moves along one of the first {k} modes "
+        f"<p>{how}. Each slider moves along one of the first {k} modes "
         f"(-{SD_RANGE:g} to +{SD_RANGE:g} standard deviations); colour: displacement from the "
         f"mean along the mean's outward normal (mm). The case picker shows a corresponded "
         f"training case (aligned).{parts_note}</p>",
