@@ -74,6 +74,16 @@ def curves(n_s=5, n_points=64, seed=1):
     return model, np.stack(shapes), names
 
 
+def test_a_large_population_shows_its_first_cases(monkeypatch):
+    from mdlshapemodel.report import viewer
+
+    model, shapes, names = population(n_s=6, n_points=42)
+    monkeypatch.setattr(viewer, "MAX_CASE_BYTES", 4 * 6 * 42)
+    page = "".join(viewer.viewer_section(model, shapes, names))
+    assert "the first 4 of 6 cases" in page
+    assert "case_03" in page and "case_04" not in page
+
+
 def test_notes_instead_of_a_viewer():
     model, shapes, names = population(n_s=4, n_points=42)
     model.triangles = None

@@ -23,6 +23,9 @@ import json
 import numpy as np
 
 MAX_MODES = 10
+# the case picker's share of the page (bytes before base64: 6 per point and case); a population
+# beyond it is shown by its first cases, said on the page (2562 points: 260 cases)
+MAX_CASE_BYTES = 4_000_000
 SD_RANGE = 3.0
 
 
@@ -84,9 +87,10 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> dic
     # one fixed colour range and one fixed box, so that nothing jumps as the sliders move
     half = float(SD_RANGE * np.abs(along).max(initial=0.0))
     extremes = [mean] + [mean + s * SD_RANGE * scaled[j] for j in range(k) for s in (-1, 1)]
-    cases = []
+    cases, n_cases = [], 0
     if shapes is not None and len(shapes):
-        shapes = np.asarray(shapes, dtype=np.float64)
+        n_cases = len(shapes)
+        shapes = np.asarray(shapes, dtype=np.float64)[:max(1, MAX_CASE_BYTES // (6 * n_p))]
         displacement = np.einsum("spd,pd->sp", shapes - mean, normals)
         half = max(half, float(np.percentile(np.abs(displacement), 99)))
         extremes.append(shapes.reshape(-1, 3))
@@ -112,7 +116,7 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> dic
         "ranges": ranges, "parts": parts,
         "mean": _b64(mean, np.float32), "modes": _b64(scaled, np.float32),
         "along": _b64(along, np.float32), "normals": _b64(normals, np.float32),
-        "cases": cases,
+        "cases": cases, "n_cases": n_cases,
     }
     if cases:
         data.update(case_low=[float(v) for v in low], case_step=[float(v) for v in step],
@@ -283,6 +287,8 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
     parts_note = (" Click a part's name in the legend to hide or show it."
                   if len(data["parts"]) > 1 else "")
     payload = json.dumps(data).replace("</", "<\\/")
+    shown = (f": the first {len(data['cases'])} of {data['n_cases']} cases, to keep the page small"
+             if len(data["cases"]) < data["n_cases"] else "")
     how = ("Drag a box to zoom, double-click to see all" if model.of_curves
            else "Drag to turn, scroll to zoom")
     return [
@@ -292,7 +298,7 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
         f"<p>{how}. Each slider moves along one of the first {k} modes "
         f"(-{SD_RANGE:g} to +{SD_RANGE:g} standard deviations); colour: displacement from the "
         f"mean along the mean's outward normal (mm). The case picker shows a corresponded "
-        f"training case (aligned).{parts_note}</p>",
+        f"training case (aligned){shown}.{parts_note}</p>",
         f"<div class=controls>{sliders}</div>",
         f"<div class=controls>{picker} <button id='viewer-reset' type=button>mean shape"
         f"</button></div>",
