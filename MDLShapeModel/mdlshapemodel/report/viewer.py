@@ -212,7 +212,9 @@ SCRIPT = r"""
   var layout = {
     margin: {l: 0, r: 0, t: 0, b: 0}, paper_bgcolor: '#ffffff', uirevision: 'keep',
     legend: {x: 0, y: 1},
-    coloraxis: {cmin: -D.half_range, cmax: D.half_range, colorscale: 'RdBu', reversescale: true,
+    // plotly.js's RdBu runs from blue (low) to red (high): inward blue, outward red, as the
+    // report's renderings
+    coloraxis: {cmin: -D.half_range, cmax: D.half_range, colorscale: 'RdBu',
                 colorbar: {title: {text: 'normal<br>displacement<br>[mm]'}, len: 0.8}}};
   if (curve) {                       // 2-D: equal scales on x and y
     layout.plot_bgcolor = '#ffffff';
