@@ -1,9 +1,11 @@
 """report.html: one self-contained page per build (images embedded as base64 PNG).
 
-Sections: the quality measures with error bars against the baselines of the same cases, the
-convergence of the objective, the first modes rendered at -2, 0, +2 standard deviations (as the
-paper's Fig. 12-15), the correspondence as a colour map on a few cases (Fig. 22-23) and a per-case
-table (surface fidelity, sphere-map distortion, score outliers).
+Sections: what was run (version, date, command, settings, links to the output files), the quality
+measures with error bars against the baselines of the same cases and how to read them, the
+convergence of the objective, the first modes rendered at -2, 0, +2 standard deviations from
+three sides (as the paper's Fig. 12-15), the correspondence as a colour map on a few cases (Fig.
+22-23), the interactive viewer, and a per-case table (surface fidelity, sphere-map distortion,
+score outliers) with readable headers and units.
 """
 
 from __future__ import annotations
@@ -150,11 +152,14 @@ def _renderings(model, shapes, names) -> list:
 
     parts = []
     try:
-        modes = base64.b64encode(rendering.render_modes(model)).decode("ascii")
         parts += ["<h2>Modes of variation</h2>",
                   "<p>Mean shape ± 2 standard deviations along the first modes; colour: "
-                  "displacement from the mean along its normal (mm).</p>",
-                  _image(modes, "modes of variation")]
+                  "displacement from the mean along its normal (mm; blue inward, red outward), "
+                  "from three sides (looking along the mean's shortest, middle and longest "
+                  "axis).</p>"]
+        for view in rendering.MODE_VIEWS:
+            modes = base64.b64encode(rendering.render_modes(model, view=view)).decode("ascii")
+            parts += [f"<h3>{view}</h3>", _image(modes, f"modes of variation, {view}")]
         if shapes is not None:
             colours = base64.b64encode(rendering.render_correspondence(
                 shapes, model.triangles, names=names)).decode("ascii")
@@ -165,6 +170,74 @@ def _renderings(model, shapes, names) -> list:
         log.warning("report: no renderings (%s)", error)
         parts.append(f"<p>Renderings left out: {html.escape(str(error))}</p>")
     return parts
+
+
+# The per-case table's columns (cases.csv) as the report heads them, with their units.
+CASE_COLUMNS = {
+    "case": "case", "file": "input file", "surface_vertices": "surface vertices",
+    "mean_distance_mm": "mean distance to the input [mm]",
+    "max_distance_mm": "largest distance to the input [mm]",
+    "mean_distance_voxels": "mean distance to the input [voxels]",
+    "sphere_flips": "sphere map: flipped triangles",
+    "sphere_mean_abs_log_area": "sphere map: mean |ln area ratio|",
+    "sphere_p95_abs_log_area": "sphere map: 95th percentile |ln area ratio|",
+    "sphere_seconds": "sphere map [s]", "warps": "warps", "warp_kinds": "warp kinds",
+    "mahalanobis": "Mahalanobis distance", "score_outlier": "outlier (p < 0.01)",
+    "smoothing_sigma": "blur [voxels]", "repair": "repaired", "mirrored": "mirrored"}
+
+# The files of a build's output folder that the report links to, and what each holds.
+OUTPUT_FILES = (
+    ("model.h5", "the model (Statismo/Scalismo format, with this package's exact copy)"),
+    ("mean.vtp", "the mean shape"), ("correspondence/", "each case's corresponded mesh, "
+                                     "in its input's space"),
+    ("aligned/", "each case's corresponded mesh in the model's frame"),
+    ("scores.csv", "each case's scores per mode"), ("cases.csv", "the table below"),
+    ("metrics.json", "every number of this page"), ("convergence.csv", "the objective by time"),
+    ("config.json", "every setting of the build"), ("rejected.csv", "inputs left out and why"),
+    ("build.log", "the build's log"))
+
+
+def _run_parts(output: Path, metrics: dict) -> list:
+    """What was run: version, date, command, settings, and links to the output files."""
+    import shlex
+    import sys
+    import time
+
+    from ..version import __version__
+
+    config = output / "config.json"
+    settings = {}
+    if config.exists():
+        import json
+
+        settings = json.loads(config.read_text())
+    rows = [("version", f"mdlshapemodel {__version__}"), ("date", time.strftime("%Y-%m-%d %H:%M")),
+            ("command", shlex.join(sys.argv))]
+    links = "".join(f"<li><a href='{html.escape(name)}'>{html.escape(name)}</a>: "
+                    f"{html.escape(what)}</li>" for name, what in OUTPUT_FILES
+                    if (output / name.rstrip("/")).exists())
+    return ["<h2>What was run</h2>", table(("", ""), rows),
+            "<details><summary>Settings (config.json)</summary>",
+            table(("setting", "value"), [(k, v if v != "" else "''") for k, v in settings.items()]),
+            "</details>", "<h3>Output files</h3>", f"<ul>{links}</ul>"]
+
+
+HOW_TO_READ = """
+<h3>How to read C(M), G(M) and S(M)</h3>
+<ul>
+<li><b>Compactness C(M)</b>: the variance the first M modes hold (mm²). Lower: the model
+describes the population with less variance in its first modes.</li>
+<li><b>Generalization G(M)</b>: leave one case out, build the model of the others with M modes,
+and measure how far the left-out case is from its best reconstruction (mean squared point
+distance, mm²). Lower: the model reproduces shapes it has not seen.</li>
+<li><b>Specificity S(M)</b>: draw random shapes from the model with M modes and measure how far
+each is from the nearest training shape. Lower: the model makes shapes like the real ones.</li>
+<li>The error bars are ± 1 standard error over the cases (G, C) or the samples (S). Two
+correspondences of the same cases differ where their values differ by more than two standard
+errors of the difference. These point measures depend on where the points lie; G and S measured
+surface to surface (when shown) do not.</li>
+</ul>
+"""
 
 
 def write_report(output: Path, metrics: dict, cases: list, rejected: list, model=None,
@@ -178,7 +251,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     parts = [
         "<h1>MDLShapeModel report</h1>",
         f"<p>{metrics['n_shapes']} shapes, {metrics['n_points']} points each, correspondence "
-        f"<b>{html.escape(metrics['strategy'])}</b>; {metrics['n_rejected']} input(s) rejected. "
+        f"<b>{html.escape(metrics['strategy'])}</b>; {metrics['n_rejected']} input(s) rejected"
+        f"{' (listed at the end)' if metrics['n_rejected'] else ''}. "
         f"Objective (eq. 14): {objective['initial']:.3f} before, {objective['final']:.3f} after "
         f"optimisation{' (interrupted)' if metrics['interrupted'] else ''}.</p>",
     ]
@@ -189,12 +263,13 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
         parts.append("<p>Objective of the baselines on the same cases: " + "; ".join(
             f"{html.escape(BASELINE_NAMES.get(k, k))}: {v['objective']:.3f}"
             for k, v in baselines.items()) + ".</p>")
+    parts += _run_parts(output, metrics)
     parts += ["<h2>Model quality (area-weighted squared distances, ± 1 standard error)</h2>",
               "<p>Lower is better for all three measures. A baseline value marked "
               "'MDL better' exceeds the MDL model's by more than two standard errors of the "
               "difference.</p>",
               _image(measure_plot(_series(metrics)), "quality measures"),
-              _measure_table(metrics)]
+              _measure_table(metrics), HOW_TO_READ]
     if "generalization_surface_mm" in metrics:
         parts += ["<h3>Measured surface to surface, against the true training surfaces</h3>",
                   _image(measure_plot(_series(metrics), keys=("generalization_surface_mm",
@@ -210,13 +285,15 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     if cases:
         keys = list(cases[0].keys())
         flags = [[k == "score_outlier" and bool(c.get(k)) for k in keys] for c in cases]
+        shown = [[Path(str(c.get(k, ""))).name if k == "file" else c.get(k, "") for k in keys]
+                 for c in cases]
         parts += ["<h2>Cases</h2>",
                   "<p>Fidelity: distance from the input surface to the corresponded mesh. Sphere "
                   "map: flipped triangles and |ln area ratio|. Score outlier: the Mahalanobis "
                   "distance of the case's scores (over the modes explaining 95% of the "
                   "variance) has p < 0.01 against the distribution of a training case's own "
                   "distance (a scaled Beta).</p>",
-                  table(keys, [[c.get(k, "") for k in keys] for c in cases], flags)]
+                  table([CASE_COLUMNS.get(k, k) for k in keys], shown, flags)]
     if rejected:
         parts += ["<h2>Rejected inputs</h2>",
                   table(("case", "file", "reason"), [(r.name, r.path, r.reason) for r in rejected])]

@@ -382,7 +382,24 @@ def _sd_label(s: float) -> str:
     return "mean" if s == 0 else f"{s:+g} SD"
 
 
-def mode_panels(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(300, 260)):
+# The views of mode_panels and render_modes: the camera looks along the mean's smallest
+# principal axis ("front"), its middle one ("top") or its largest one ("side").
+MODE_VIEWS = ("front", "top", "side")
+
+
+def _view_axes(axes: np.ndarray, view: str) -> np.ndarray:
+    """Screen right, screen up and towards the viewer for one of :data:`MODE_VIEWS`."""
+    if view == "front":
+        return axes
+    if view == "top":
+        return np.array([axes[0], axes[2], -axes[1]])
+    if view == "side":
+        return np.array([axes[2], axes[1], -axes[0]])
+    raise ValueError(f"view must be one of {', '.join(MODE_VIEWS)}, not {view!r}")
+
+
+def mode_panels(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(300, 260),
+                view: str = "front"):
     """The raw panels of :func:`render_modes`: (panels, row labels, column labels, range), with
     panels[r][c] the (h, w, 3) uint8 image of mean + s_c sqrt(lambda_r) mode_r and ``range`` the
     half-width (mm) of the symmetric displacement colour scale."""
@@ -412,7 +429,8 @@ def mode_panels(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(3
     weights = getattr(model, "weights", None)
     _, axes = principal_axes(mean, weights if weights is not None and len(weights) == len(mean)
                              else None)
-    view = _fit_view([s for row in shapes for s in row], axes, size[0] / size[1])
+    view = _fit_view([s for row in shapes for s in row], _view_axes(axes, view),
+                     size[0] / size[1])
     panels = []
     with _PanelRenderer(triangles, len(mean), size) as renderer:
         for shape_row, displacement_row in zip(shapes, displacement):
@@ -423,7 +441,7 @@ def mode_panels(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(3
 
 
 def render_modes(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(300, 260),
-                 row_labels=None) -> bytes:
+                 row_labels=None, view: str = "front") -> bytes:
     """PNG of the first modes of variation of a :class:`~mdlshapemodel.model.ShapeModel`.
 
     Rows are modes 1..n_modes (fewer when the model has fewer; the mean alone when it has none),
@@ -435,11 +453,12 @@ def render_modes(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(
 
     ``size`` is the (width, height) of each panel in pixels; the picture's layout is
     ``grid_layout("modes", rows, len(standard_deviations), size)``. ``row_labels`` replace the
-    rows' labels (mode number and standard deviation).
+    rows' labels (mode number and standard deviation). ``view``: one of :data:`MODE_VIEWS`
+    (looking along the mean's smallest, middle or largest principal axis).
     Raises :class:`RenderingError` when offscreen rendering is not available.
     """
     panels, labels, column_labels, half_range = mode_panels(
-        model, n_modes, standard_deviations, size)
+        model, n_modes, standard_deviations, size, view)
     row_labels = labels if row_labels is None else list(row_labels)
     layout = grid_layout("modes", len(panels), len(panels[0]), size)
     colorbar = None if model.n_modes == 0 or n_modes < 1 else (

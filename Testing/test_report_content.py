@@ -1,0 +1,56 @@
+"""What report.html tells a reader: what was run, where the files are, the measures with how to
+read them, the modes from three sides, the cases with readable headings."""
+
+import html
+import re
+
+import pytest
+
+from mdlshapemodel.report.html import CASE_COLUMNS
+from mdlshapemodel.version import __version__
+
+from common import run_cli
+from synthetic import write_population
+
+pytestmark = pytest.mark.slow      # a real build through the command line
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("report")
+    write_population(folder / "labels", 4)
+    output = folder / "out"
+    result = run_cli("build", folder / "labels", "-o", output, "--points", 162, "--strategy",
+                     "none", "--baselines", "", "--workers", 1, "--no-cache",
+                     "--evaluation-modes", 2, "--specificity-samples", 100,
+                     "--surface-samples", 0)
+    assert result.returncode == 0, result.stderr
+    return output, html.unescape((output / "report.html").read_text())
+
+
+def test_it_says_what_was_run_and_links_the_files(report):
+    output, page = report
+    assert f"mdlshapemodel {__version__}" in page
+    assert re.search(r"<td>command</td><td>[^<]*mdlshapemodel[^<]* build [^<]*--points 162", page)
+    for setting in ("points", "strategy", "labels", "smoothing_sigma"):
+        assert f"<td>{setting}</td>" in page
+    files = page[page.index("<h3>Output files</h3>"):]
+    links = re.findall(r"<a href='([^']+)'>", files[:files.index("</ul>")])
+    assert {"model.h5", "cases.csv", "config.json", "correspondence/"} <= set(links)
+    assert all((output / link.rstrip("/")).exists() for link in links)
+
+
+def test_the_measures_are_explained_and_the_modes_drawn_from_three_sides(report):
+    _, page = report
+    assert "How to read C(M), G(M) and S(M)" in page
+    views = re.findall(r"alt='modes of variation, (\w+)'", page)
+    assert views == ["front", "top", "side"]
+
+
+def test_the_case_table_has_readable_headings_and_file_names(report):
+    output, page = report
+    cases = page[page.index("<h2>Cases</h2>"):]
+    headings = re.findall(r"<th>(.*?)</th>", cases)
+    assert "mean distance to the input [mm]" in headings and "outlier (p < 0.01)" in headings
+    assert not set(headings) & (set(CASE_COLUMNS) - {"case", "warps", "mirrored"})
+    assert "case_0.nii.gz" in cases and str(output.parent / "labels") not in cases
