@@ -258,3 +258,37 @@ def test_curve_viewer_in_a_browser(browser, tmp_path):
     assert not errors, errors
     assert not requests, requests
     page.close()
+
+
+def test_the_analysis_effect_maps_turn_and_threshold_in_a_browser(browser, tmp_path):
+    from mdlshapemodel.report.viewer import effects_section
+
+    model, _, _ = population(n_s=4, n_points=642)
+    mean = model.mean
+    # a significance map high at one end, and a signed effect negative there
+    significance = 3.0 * np.exp(-np.sum((mean - mean[np.argmax(mean[:, 0])]) ** 2, axis=1) / 40)
+    effect = -0.5 * significance + 0.1 * mean[:, 1] / np.abs(mean[:, 1]).max()
+    section = effects_section(mean, model.triangles, [("-log10 p", significance, False),
+                                                      ("effect [mm]", effect, True)])
+    path = tmp_path / "effects.html"
+    path.write_text(html_page("effects", section), encoding="utf-8")
+    page, errors, requests = _open(browser, path, drawn="#effects-plot canvas")
+
+    def shot():
+        page.wait_for_timeout(400)
+        return _pixels(page.locator("#effects-plot").screenshot())
+
+    first = shot()
+    assert _drawn(first) > 0.05
+    page.eval_on_selector("#effects-threshold", "(e) => { e.value = 0.5; "
+                          "e.dispatchEvent(new Event('input', {bubbles: true})); }")
+    thresholded = shot()
+    assert _changed(first, thresholded) > 0.005
+    assert float(page.inner_text("#effects-threshold-value")) == pytest.approx(1.5, rel=1e-2)
+    page.select_option("#effects-map", "1")
+    diverging = shot()
+    assert _changed(thresholded, diverging) > 0.005
+    title = page.evaluate("document.getElementById('effects-plot').data[0].colorbar.title.text")
+    assert title == "effect [mm]"
+    assert errors == [] and requests == []
+    page.close()

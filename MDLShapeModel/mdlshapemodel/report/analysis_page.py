@@ -21,6 +21,7 @@ from ..prepare import io
 from .figures import encoded_png, pyplot
 from .html import _image, html_page, table
 from .rendering import render_maps, render_modes
+from .viewer import effects_section
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -61,6 +62,9 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     for row in rows:
         png = render_maps(analysis.mean, cells, [row], outlined=significant)
         parts.append(_image(_b64(png), row[0]))
+    parts += effects_section(analysis.mean, cells,
+                             [(label, values, cmap == "coolwarm")
+                              for label, values, cmap, _, _, _ in rows])
     return parts
 
 

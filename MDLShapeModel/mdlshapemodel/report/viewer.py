@@ -313,3 +313,105 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
         f"<script type='application/json' id='viewer-data'>{payload}</script>",
         f"<script>{SCRIPT}</script>",
     ]
+
+
+# ---------------------------------------------------------------------------------------------
+# the analysis page: effect maps on the mean surface, with a threshold
+
+EFFECT_SCRIPT = r"""
+(function () {
+  var D = JSON.parse(document.getElementById('effects-data').textContent);
+  function floats(text) {
+    var bytes = Uint8Array.from(atob(text), function (c) { return c.charCodeAt(0); });
+    return new Float32Array(bytes.buffer);
+  }
+  function ints(text) {
+    var bytes = Uint8Array.from(atob(text), function (c) { return c.charCodeAt(0); });
+    return new Int32Array(bytes.buffer);
+  }
+  var mean = floats(D.mean), cells = ints(D.triangles), n = D.n_points;
+  var maps = D.maps.map(function (m) { return {name: m.name, values: floats(m.values),
+                                              diverging: m.diverging, limit: m.limit}; });
+  var x = [], y = [], z = [], I = [], J = [], K = [];
+  for (var p = 0; p < n; p++) { x.push(mean[3 * p]); y.push(mean[3 * p + 1]);
+                                z.push(mean[3 * p + 2]); }
+  for (var t = 0; t < cells.length; t += 3) { I.push(cells[t]); J.push(cells[t + 1]);
+                                              K.push(cells[t + 2]); }
+  var choice = document.getElementById('effects-map');
+  var threshold = document.getElementById('effects-threshold');
+  var shown = document.getElementById('effects-threshold-value');
+  function colours() {
+    var map = maps[+choice.value], level = +threshold.value * map.limit, out = [];
+    for (var p = 0; p < n; p++) {
+      var v = map.values[p];
+      out.push(Math.abs(v) >= level ? v : 0);   // below the threshold: the neutral colour
+    }
+    shown.textContent = (level).toPrecision(3);
+    return out;
+  }
+  function scale() {
+    var map = maps[+choice.value];
+    return map.diverging ? {cmin: -map.limit, cmax: map.limit, colorscale: 'RdBu'}
+                         : {cmin: 0, cmax: map.limit, colorscale: 'Viridis'};
+  }
+  var layout = {margin: {l: 0, r: 0, t: 0, b: 0}, uirevision: 'keep',
+                scene: {xaxis: {visible: false}, yaxis: {visible: false},
+                        zaxis: {visible: false}, aspectmode: 'data',
+                        camera: {eye: {x: D.eye[0], y: D.eye[1], z: D.eye[2]}}}};
+  var trace = {type: 'mesh3d', x: x, y: y, z: z, i: I, j: J, k: K, intensity: colours(),
+               intensitymode: 'vertex', hoverinfo: 'skip', flatshading: false,
+               colorbar: {title: {text: maps[0].name}, len: 0.8},
+               lighting: {ambient: 0.6, diffuse: 0.6, specular: 0.1}};
+  Object.assign(trace, scale());
+  Plotly.newPlot('effects-plot', [trace], layout, {displaylogo: false, responsive: true});
+  function update() {
+    var s = scale();
+    Plotly.restyle('effects-plot', {intensity: [colours()], cmin: [s.cmin], cmax: [s.cmax],
+                                    colorscale: [s.colorscale],
+                                    'colorbar.title.text': [maps[+choice.value].name]});
+  }
+  choice.addEventListener('change', update);
+  threshold.addEventListener('input', update);
+})();
+"""
+
+
+def effects_section(mean: np.ndarray, triangles: np.ndarray, maps: list) -> list:
+    """An interactive 3-D view of effect maps on the mean surface (HTML fragments): a picker of
+    the ``maps`` (``(name, values (p,), diverging)``: a diverging map is coloured symmetrically
+    about 0, blue negative; else from 0 up) and a threshold below which a point shows the neutral
+    colour (a fraction of the map's largest absolute value). Offline: plotly.js inlined."""
+    if triangles is None or len(triangles) == 0 or np.shape(triangles)[1] != 3:
+        return []
+    try:
+        plotly_js = _plotly_js()
+    except ImportError:
+        return []
+    # the camera looks at the first map's strongest point, from outside the surface
+    strongest = np.asarray(mean)[int(np.argmax(np.abs(maps[0][1])))] - np.mean(mean, axis=0)
+    eye = 2.0 * strongest / (np.linalg.norm(strongest) or 1.0)
+    data = {"eye": [float(v) for v in eye],
+            "n_points": int(len(mean)), "mean": _b64(np.asarray(mean), np.float32),
+            "triangles": _b64(np.asarray(triangles), np.int32),
+            "maps": [{"name": name, "values": _b64(np.asarray(values), np.float32),
+                      "diverging": bool(diverging),
+                      "limit": float(np.max(np.abs(values))) or 1.0}
+                     for name, values, diverging in maps]}
+    options = "".join(f"<option value={k}>{html.escape(name)}</option>"
+                      for k, (name, _, _) in enumerate(maps))
+    payload = json.dumps(data).replace("</", "<\\/")
+    return [
+        "<h3>Turn it yourself</h3>",
+        "<p>Drag to turn, scroll to zoom; choose the map, and grey out the points whose value "
+        "is below the threshold (a share of the map's largest value).</p>",
+        "<div id=effects><div class=controls>"
+        f"<label>map <select id='effects-map'>{options}</select></label> "
+        "<label>threshold <input type=range id='effects-threshold' min=0 max=1 step=0.01 "
+        "value=0> <span id='effects-threshold-value'>0</span></label></div>",
+        "<div id='effects-plot' style='width:100%;height:520px;border:1px solid #ddd'></div>",
+        "<p style='font-size:80%;color:#666'>Drawn with plotly.js (MIT licence, Copyright (c) "
+        "Plotly, Inc.), embedded in this page: it works offline.</p></div>",
+        f"<script>{plotly_js}</script>",
+        f"<script type='application/json' id='effects-data'>{payload}</script>",
+        f"<script>{EFFECT_SCRIPT}</script>",
+    ]
