@@ -1,5 +1,5 @@
-"""What report.html tells a reader: what was run, where the files are, the measures with how to
-read them, the modes from three sides, the cases with readable headings."""
+"""What report.html and compare.html tell a reader: what was run, where the files are, the
+measures with how to read them, the modes from three sides, the cases with readable headings."""
 
 import html
 import re
@@ -54,3 +54,17 @@ def test_the_case_table_has_readable_headings_and_file_names(report):
     assert "mean distance to the input [mm]" in headings and "outlier (p < 0.01)" in headings
     assert not set(headings) & (set(CASE_COLUMNS) - {"case", "warps", "mirrored"})
     assert "case_0.nii.gz" in cases and str(output.parent / "labels") not in cases
+
+
+def test_compare_html_says_what_was_run_and_links_each_models_report(report, tmp_path):
+    output, _ = report
+    result = run_cli("compare", output, output, "-o", tmp_path / "cmp", "--modes", 2,
+                     "--samples", 100)
+    assert result.returncode == 0, result.stderr
+    page = html.unescape((tmp_path / "cmp" / "compare.html").read_text())
+    assert f"mdlshapemodel {__version__}" in page and "How to read C(M), G(M) and S(M)" in page
+    assert re.search(r"<td>command</td><td>[^<]*mdlshapemodel[^<]* compare ", page)
+    links = re.findall(r"<a href='([^']+)'>its report</a>", page)
+    assert len(links) == 2
+    assert all((tmp_path / "cmp" / link).resolve() == (output / "report.html").resolve()
+               for link in links)

@@ -45,6 +45,7 @@ class Population:
     names: list
     shapes: np.ndarray
     weights: np.ndarray
+    folder: str = ""          # the build's output folder it was read from ("" when none)
 
 
 def load_population(output, label: str | None = None) -> Population:
@@ -62,7 +63,7 @@ def load_population(output, label: str | None = None) -> Population:
             strategy = json.loads(metrics.read_text()).get("strategy", strategy)
         label = f"{folder.name} ({strategy})" if strategy else folder.name
     shapes = model.instance(model.scores)
-    return Population(label, list(model.names), shapes, model.weights)
+    return Population(label, list(model.names), shapes, model.weights, str(folder.resolve()))
 
 
 def compare_populations(populations: list, max_modes: int = 10, n_samples: int = 10_000,
@@ -112,7 +113,8 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
     return {"reference": reference, "cases": shared, "n_cases": len(shared),
             "excluded_cases": {p.label: [n for n in p.names if n not in shared]
                                for p in populations},
-            "models": models, "differences": differences}
+            "models": models, "differences": differences,
+            "folders": {p.label: p.folder for p in populations}}
 
 
 def _verdict(difference: float, significant: bool) -> str:
@@ -146,7 +148,9 @@ ROW_HEADER = ("measure", "M", "model", "value_mm2", "se", "difference", "differe
 
 def write_comparison(result: dict, destination) -> Path:
     """compare.json, compare.csv and a self-contained compare.html with the plot."""
-    from .html import html_page, measure_plot, table
+    import os
+
+    from .html import HOW_TO_READ, html_page, measure_plot, run_table, table
 
     destination = Path(destination)
     destination.mkdir(parents=True, exist_ok=True)
@@ -160,7 +164,16 @@ def write_comparison(result: dict, destination) -> Path:
             f"<b>{html.escape(result['reference'])}</b> and called significant beyond two "
             "standard errors of the difference (for generalization, of the per-case differences: "
             "the cases are the same). Lower is better for all three measures.</p>",
-            f"<img src='data:image/png;base64,{plot}' alt='measures'>"]
+            f"<img src='data:image/png;base64,{plot}' alt='measures'>", HOW_TO_READ,
+            "<h2>What was run</h2>", run_table()]
+    models = []
+    for label, folder in result.get("folders", {}).items():
+        report = Path(folder) / "report.html" if folder else None
+        link = (f" (<a href='{html.escape(os.path.relpath(report, destination))}'>its report"
+                f"</a>)" if report is not None and report.exists() else "")
+        models.append(f"<li>{html.escape(label)}: <code>{html.escape(folder)}</code>{link}</li>")
+    if models:
+        body += ["<h3>The models</h3>", f"<ul>{''.join(models)}</ul>"]
     for measure in MEASURES:
         body += [f"<h2>{measure}</h2>", table(ROW_HEADER[1:], [r[1:] for r in rows
                                                                if r[0] == measure])]

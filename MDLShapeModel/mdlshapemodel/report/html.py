@@ -197,26 +197,31 @@ OUTPUT_FILES = (
     ("build.log", "the build's log"))
 
 
-def _run_parts(output: Path, metrics: dict) -> list:
-    """What was run: version, date, command, settings, and links to the output files."""
+def run_table() -> str:
+    """A table of what is running: this package's version, the date and the command line."""
     import shlex
     import sys
     import time
 
     from ..version import __version__
 
+    return table(("", ""), [("version", f"mdlshapemodel {__version__}"),
+                            ("date", time.strftime("%Y-%m-%d %H:%M")),
+                            ("command", shlex.join(sys.argv))])
+
+
+def _run_parts(output: Path, metrics: dict) -> list:
+    """What was run: version, date, command, settings, and links to the output files."""
     config = output / "config.json"
     settings = {}
     if config.exists():
         import json
 
         settings = json.loads(config.read_text())
-    rows = [("version", f"mdlshapemodel {__version__}"), ("date", time.strftime("%Y-%m-%d %H:%M")),
-            ("command", shlex.join(sys.argv))]
     links = "".join(f"<li><a href='{html.escape(name)}'>{html.escape(name)}</a>: "
                     f"{html.escape(what)}</li>" for name, what in OUTPUT_FILES
                     if (output / name.rstrip("/")).exists())
-    return ["<h2>What was run</h2>", table(("", ""), rows),
+    return ["<h2>What was run</h2>", run_table(),
             "<details><summary>Settings (config.json)</summary>",
             table(("setting", "value"), [(k, v if v != "" else "''") for k, v in settings.items()]),
             "</details>", "<h3>Output files</h3>", f"<ul>{links}</ul>"]
