@@ -74,7 +74,7 @@ MAX_SMOOTHING_SIGMA = 2.0
 
 
 # Unless set (``BuildConfig.points``), the sample points of each part: on the sphere for a
-# surface (an icosphere of 2562 vertices), on the circle for a 2-D curve (the 128).
+# surface (an icosphere of 2562 vertices), on the circle for a 2-D curve (128).
 SURFACE_POINTS = 2562
 CURVE_POINTS = 128
 

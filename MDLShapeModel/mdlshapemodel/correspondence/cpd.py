@@ -30,39 +30,17 @@ no (M, N, D) array) and (b) the deformable M-step by the paper's fast low-rank f
 finder, Halko et al. 2011), solved with the Woodbury identity in O(M K^2). With exact solves they
 reproduce pycpd's own classes (``Testing/test_registration.py``).
 
-Measurements (``benchmarks/cpd_baseline.py``; template: the 2,562 equal-spacing points of
-hippocampus_001; targets: the next hippocampi, 1,600-2,100 vertices; 2-core machine shared with
-other jobs, one BLAS thread; "fit": distance of the deformed points to the target surface before
-projection; "folded": corresponded-mesh triangles whose normal opposes the target's):
-
-======================================  ========  =========  =========  =========
-setting (others default), 7 targets      s/case   fit mean   fit p95    folded
-======================================  ========  =========  =========  =========
-defaults                                   2.0     0.065 mm   0.16 mm    0.04 %
-``num_eig=None`` (exact solves)           13.0     0.038 mm   0.10 mm    0.05 %
-``sigma2_factor=None`` (pycpd's start)     3.8     0.23 mm    0.92 mm   29.8 %
-``beta=0.2, num_eig=300``                  3.4     0.043 mm   0.11 mm
-``beta=0.5, num_eig=80``                   2.1     0.10 mm    0.26 mm
-defaults, 20 targets (003-036)             2.2     0.066 mm   0.17 mm    0.08 %
-======================================  ========  =========  =========  =========
-
-On the 20 targets the worst point was 0.93 mm off the surface before projection and the
-target's vertices lie 0.030 mm (max 0.31 mm) from the corresponded mesh; 27 deformable
-iterations on average. Through :func:`cpd_case` in a 2-process pool: 1.2 s of wall time per case.
-
-pycpd's start is far too wide for shapes that are already aligned: in the first iterations the
-flexible field collapses the template towards its centre and it comes back folded and slid along
-the surface (on identical point sets it leaves a 0.9 mm error; on hippocampi with a known smooth
-deformation, the error to the true correspondence is 3.8-4.1 mm against 0.9-1.0 mm with the
-default start, and 1.1-1.2 mm for the similarity alone). A coarse-to-fine variant (beta = 1 from
-pycpd's start, then beta = 0.3) helps on strongly bent synthetic ellipsoids but folds 80 % of
-the hippocampus triangles. The price of the narrow start: large deformations (strong bending) are
-recovered less well; raise ``sigma2_factor`` (16) for such data. alpha hardly matters with it
-(0.5-8 change the fit by < 0.005 mm).
+Why the defaults (``sigma2_factor``, ``num_eig``, ``beta``) are what they are, with the
+measurements behind them: docs/benchmarks.md, "The template + CPD baseline". In short, pycpd's own
+start is far too wide for shapes that are already aligned: in the first iterations the flexible
+field collapses the template towards its centre and it comes back folded and slid along the
+surface; the narrow start recovers large deformations (strong bending) less well, for which
+``sigma2_factor`` can be raised.
 
 Run it in a process pool with :func:`cpd_case`. Give each worker one BLAS thread
 (``OPENBLAS_NUM_THREADS=1`` / ``OMP_NUM_THREADS=1`` in the environment before the pool starts):
-multi-threaded OpenBLAS on a busy machine made the same registration 3-6 times slower.
+multi-threaded BLAS in several processes at once slows the same registration down several
+times.
 """
 
 from __future__ import annotations
