@@ -68,3 +68,27 @@ def test_compare_html_says_what_was_run_and_links_each_models_report(report, tmp
     assert len(links) == 2
     assert all((tmp_path / "cmp" / link).resolve() == (output / "report.html").resolve()
                for link in links)
+
+
+def test_the_viewer_colours_a_case_by_its_distance_to_its_input(report):
+    import base64
+    import json
+
+    import numpy as np
+
+    from mdlshapemodel.prepare import io
+
+    output, page = report
+    raw = (output / "report.html").read_text()
+    payload = re.search(r"<script type='application/json' id='viewer-data'>(.*?)</script>",
+                        raw, re.S).group(1).replace("<\\/", "</")
+    data = json.loads(payload)
+    top = data["distance_max"]
+    values = np.frombuffer(base64.b64decode(data["case_distance"]), np.uint8).reshape(
+        len(data["cases"]), -1) / 255 * top
+    fidelity = {row["case"]: float(row["max_distance_mm"]) for row in
+                io.read_csv(output / "cases.csv")}
+    for name, per_point in zip(data["cases"], values):
+        # the largest per-point value is the case's largest input-to-mesh distance (cases.csv)
+        assert abs(per_point.max() - min(fidelity[name], top)) <= top / 255 + 1e-9, name
+    assert "a case's distance to its input surface" in page

@@ -292,3 +292,28 @@ def test_the_analysis_effect_maps_turn_and_threshold_in_a_browser(browser, tmp_p
     assert title == "effect [mm]"
     assert errors == [] and requests == []
     page.close()
+
+
+def test_the_colour_picker_shows_the_point_index_and_a_cases_distance(browser, tmp_path):
+    model, shapes, names = population(n_s=4, n_points=642)
+    distances = np.abs(np.random.default_rng(2).normal(0.1, 0.05, size=(4, len(model.mean))))
+    path = tmp_path / "colours.html"
+    path.write_text(html_page("viewer", viewer_section(model, shapes, names,
+                                                       distances=distances)), encoding="utf-8")
+    page, errors, requests = _open(browser, path)
+    normal = _eventually(page, lambda shot: _drawn(shot) > 0.05)
+    page.select_option("#viewer-colour", "index")
+    index = _eventually(page, lambda shot: _changed(normal, shot) > 0.01)
+    assert _changed(normal, index) > 0.01
+    title = "document.getElementById('viewer-plot').layout.coloraxis.colorbar.title.text"
+    assert page.evaluate(title) == "point<br>index"
+    page.select_option("#viewer-case", "1")
+    page.select_option("#viewer-colour", "distance")
+    far = _eventually(page, lambda shot: _changed(index, shot) > 0.01)
+    assert _changed(index, far) > 0.01
+    assert "distance" in page.evaluate(title)
+    shown = page.evaluate("document.getElementById('viewer-plot').data[0].intensity")
+    top = np.percentile(distances, 99.5)          # the colour scale's top, beyond which: clipped
+    np.testing.assert_allclose(shown, np.minimum(distances[1], top), atol=top / 255 * 1.01)
+    assert errors == [] and requests == []
+    page.close()

@@ -194,6 +194,26 @@ def sphere_quality(case) -> dict:
                            sum(q["seconds"] for q in qualities))))
 
 
+def corresponded_distances(raw: np.ndarray, prepared: list, parts: list) -> np.ndarray | None:
+    """How far each case's corresponded mesh is from its input surface, as a value per
+    corresponded point (n_s, n_p), mm: every input vertex's distance to the corresponded mesh
+    (as cases.csv measures fidelity), the largest of those nearest to each point (0 where none
+    is). The points themselves lie on the input surface; the mesh between them need not. The
+    viewer colours a case by it; None for 2-D curves."""
+    from scipy.spatial import cKDTree
+
+    if any(case.is_curve for case in prepared):
+        return None
+    result = np.zeros((len(prepared), len(raw[0])))
+    for i, case in enumerate(prepared):
+        for prepared_part, part in zip(case.parts, parts):
+            points = raw[i][part.rows]
+            away = input_distances(prepared_part.map, points, part.triangles)
+            _, nearest = cKDTree(points).query(prepared_part.map.vertices)
+            np.maximum.at(result[i, part.rows], nearest, away)
+    return result
+
+
 def physical_shapes(raw: np.ndarray, prepared: list) -> list:
     """The corresponded shapes in the physical space of their inputs, so that they overlay them:
     ``raw`` (the state's samples of the prepared surfaces) with those of mirrored cases
@@ -274,7 +294,8 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "baselines": baselines or {}, "warnings": list(warnings)}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()
-    write_report(output, metrics, cases, rejected, model, aligned, names)
+    write_report(output, metrics, cases, rejected, model, aligned, names,
+                 corresponded_distances(raw, prepared, parts))
     log.info("wrote the report in %.1f s", time.perf_counter() - started)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted,
                        list(warnings))

@@ -246,11 +246,13 @@ surface to surface (when shown) do not.</li>
 
 
 def write_report(output: Path, metrics: dict, cases: list, rejected: list, model=None,
-                 shapes=None, names=None) -> Path:
+                 shapes=None, names=None, distances=None) -> Path:
     """Write ``output/report.html`` and return its path.
 
     ``model`` (ShapeModel) and ``shapes`` (aligned corresponded shapes, with ``names``) add the
-    mode and correspondence renderings and the interactive viewer (report/viewer.py).
+    mode and correspondence renderings and the interactive viewer (report/viewer.py);
+    ``distances`` (n_s, n_p), each corresponded point's distance to its input surface, colour a
+    case there.
     """
     objective = metrics["objective"]
     parts = [
@@ -286,7 +288,7 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     parts += _renderings(model, shapes, names)
     from .viewer import viewer_section     # the interactive 3-D viewer (plotly.js, offline)
 
-    parts += viewer_section(model, shapes, names)
+    parts += viewer_section(model, shapes, names, distances=distances)
     if cases:
         keys = list(cases[0].keys())
         flags = [[k == "score_outlier" and bool(c.get(k)) for k in keys] for c in cases]

@@ -73,8 +73,24 @@ def _outward_curve_normals(points, segments, part_of):
     return normals / np.where(length > 0, length, 1.0)
 
 
-def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> dict:
-    """What the page's script needs, as JSON-ready values (arrays base64-encoded)."""
+def correspondence_values(reference: np.ndarray) -> np.ndarray:
+    """A value in [0, 1] per point, defined on the point index through ``reference`` (the
+    mean): rising along its longest principal axis, with a light checker of bands and sectors
+    around it, so that the same region gets the same colour on every corresponded case."""
+    from .rendering import principal_axes
+
+    centre, axes = principal_axes(reference)
+    local = (np.asarray(reference, float) - centre) @ axes.T
+    along = (local[:, 0] - local[:, 0].min()) / max(float(np.ptp(local[:, 0])), 1e-12)
+    checker = np.cos(8 * np.pi * along) * np.cos(4 * np.arctan2(local[:, 2], local[:, 1]))
+    return np.clip(0.9 * along + 0.05 + 0.05 * np.tanh(2.5 * checker), 0.0, 1.0)
+
+
+def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES,
+                distances=None) -> dict:
+    """What the page's script needs, as JSON-ready values (arrays base64-encoded).
+    ``distances`` (n_cases, n_p): each corresponded point's distance to its case's own input
+    surface (mm), which colours a case in the picker."""
     mean = np.asarray(model.mean, dtype=np.float64)
     triangles = np.asarray(model.triangles, dtype=np.int64)
     n_p = len(mean)
@@ -118,10 +134,16 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> dic
         "mean": _b64(mean, np.float32), "modes": _b64(scaled, np.float32),
         "along": _b64(along, np.float32), "normals": _b64(normals, np.float32),
         "cases": cases, "n_cases": n_cases,
+        "pattern": _b64(correspondence_values(mean), np.float32),
     }
     if cases:
         data.update(case_low=[float(v) for v in low], case_step=[float(v) for v in step],
                     case_points=_b64(quantised, np.uint16))
+        if distances is not None and np.shape(distances) == (n_cases, n_p):
+            kept = np.asarray(distances, dtype=np.float64)[:len(cases)]
+            top = float(np.percentile(kept, 99.5)) or 1.0
+            data.update(distance_max=top,
+                        case_distance=_b64(np.rint(np.clip(kept / top, 0, 1) * 255), np.uint8))
     return data
 
 
@@ -137,6 +159,16 @@ SCRIPT = r"""
   var mean = new Float32Array(bytes(D.mean)), modes = new Float32Array(bytes(D.modes));
   var along = new Float32Array(bytes(D.along)), normals = new Float32Array(bytes(D.normals));
   var cases = D.cases.length ? new Uint16Array(bytes(D.case_points)) : null;
+  var pattern = new Float32Array(bytes(D.pattern));
+  var distance = D.case_distance ? new Uint8Array(bytes(D.case_distance)) : null;
+  var colouring = document.getElementById('viewer-colour');
+  var SCALES = {   // plotly.js's RdBu runs from blue (low) to red (high): inward blue, as the
+                   // report's renderings
+    normal: {cmin: -D.half_range, cmax: D.half_range, colorscale: 'RdBu',
+             title: 'normal<br>displacement<br>[mm]'},
+    index: {cmin: 0, cmax: 1, colorscale: 'Rainbow', title: 'point<br>index'},
+    distance: {cmin: 0, cmax: D.distance_max || 1, colorscale: 'Viridis',
+               title: 'distance to<br>the input<br>[mm]'}};
   var s = new Float64Array(K), pending = false, curve = D.kind === 'curve';
   var cells = D.parts.map(function (part) { return new Int32Array(bytes(part.triangles)); });
   var div = document.getElementById('viewer-plot'), picker = document.getElementById('viewer-case');
@@ -179,8 +211,25 @@ SCRIPT = r"""
     return curve ? {x: out.x, y: out.y, 'marker.color': out.intensity} : out;
   }
   function current() {
-    var pick = picker ? picker.value : '';
-    return pick === '' ? model() : training(Number(pick));
+    var pick = picker ? picker.value : '', mode = colouring ? colouring.value : 'normal';
+    var shape = pick === '' ? model() : training(Number(pick));
+    if (mode === 'index') shape[1] = pattern;
+    if (mode === 'distance') {          // a case's own distances; none for the model itself
+      var c = new Float64Array(n);
+      if (pick !== '' && distance) {
+        var q = distance.subarray(Number(pick) * n, (Number(pick) + 1) * n);
+        for (var i = 0; i < n; i++) c[i] = q[i] / 255 * D.distance_max;
+      }
+      shape[1] = c;
+    }
+    return shape;
+  }
+  function recolour() {
+    var scale = SCALES[colouring.value];
+    Plotly.relayout(div, {'coloraxis.cmin': scale.cmin, 'coloraxis.cmax': scale.cmax,
+                          'coloraxis.colorscale': scale.colorscale,
+                          'coloraxis.colorbar.title.text': scale.title});
+    later();
   }
   function draw() {
     pending = false;
@@ -212,10 +261,9 @@ SCRIPT = r"""
   var layout = {
     margin: {l: 0, r: 0, t: 0, b: 0}, paper_bgcolor: '#ffffff', uirevision: 'keep',
     legend: {x: 0, y: 1},
-    // plotly.js's RdBu runs from blue (low) to red (high): inward blue, outward red, as the
-    // report's renderings
-    coloraxis: {cmin: -D.half_range, cmax: D.half_range, colorscale: 'RdBu',
-                colorbar: {title: {text: 'normal<br>displacement<br>[mm]'}, len: 0.8}}};
+    coloraxis: {cmin: SCALES.normal.cmin, cmax: SCALES.normal.cmax,
+                colorscale: SCALES.normal.colorscale,
+                colorbar: {title: {text: SCALES.normal.title}, len: 0.8}}};
   if (curve) {                       // 2-D: equal scales on x and y
     layout.plot_bgcolor = '#ffffff';
     layout.xaxis = {range: box[0], visible: false, constrain: 'domain'};
@@ -239,6 +287,7 @@ SCRIPT = r"""
     });
   });
   if (picker) picker.addEventListener('change', later);
+  if (colouring) colouring.addEventListener('change', recolour);
   var reset = document.getElementById('viewer-reset');
   reset.addEventListener('click', function () {
     document.querySelectorAll('#viewer input[type=range]').forEach(function (slider) {
@@ -263,8 +312,11 @@ def _plotly_js() -> str:
     return get_plotlyjs().replace("</script", "<\\/script")
 
 
-def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> list:
-    """The report's interactive viewer (HTML fragments), or a note where it does not apply."""
+def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES,
+                   distances=None) -> list:
+    """The report's interactive viewer (HTML fragments), or a note where it does not apply.
+    ``distances`` (n_cases, n_p, optional): each corresponded point's distance to its case's
+    input surface, offered as the colour of a case."""
     if model is None:
         return []
     heading = "<h2>Interactive viewer</h2>"
@@ -275,7 +327,7 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
     except ImportError as error:
         return [heading, f"<p>No interactive viewer: plotly is not installed "
                          f"({html.escape(str(error))}).</p>"]
-    data = viewer_data(model, shapes, names, n_modes)
+    data = viewer_data(model, shapes, names, n_modes, distances)
     k = data["n_modes"]
     sliders = "".join(
         f"<label>mode {j + 1} <input type=range id='viewer-mode-{j}' data-mode={j} "
@@ -287,6 +339,13 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
                           for i, name in enumerate(data["cases"]))
         picker = (f"<label>show <select id='viewer-case'><option value='' selected>the model "
                   f"(sliders)</option>{options}</select></label>")
+    choices = [("normal", "displacement along the normal"),
+               ("index", "point index (the correspondence)")]
+    if "case_distance" in data:
+        choices.append(("distance", "a case's distance to its input surface"))
+    colour = ("<label>colour <select id='viewer-colour'>" + "".join(
+        f"<option value={value}>{html.escape(text)}</option>" for value, text in choices)
+        + "</select></label>")
     parts_note = (" Click a part's name in the legend to hide or show it."
                   if len(data["parts"]) > 1 else "")
     payload = json.dumps(data).replace("</", "<\\/")
@@ -300,11 +359,12 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES) -> 
         "<div id=viewer>",
         f"<p>{how}. Each slider moves along one of the first {k} modes "
         f"(-{SD_RANGE:g} to +{SD_RANGE:g} standard deviations); colour: displacement from the "
-        f"mean along the mean's outward normal (mm). The case picker shows a corresponded "
-        f"training case (aligned){shown}.{parts_note}</p>",
+        f"mean along the mean's outward normal (mm), or the point index (the same colour is "
+        f"the same model point on every case), or a case's distance to its own input surface. "
+        f"The case picker shows a corresponded training case (aligned){shown}.{parts_note}</p>",
         f"<div class=controls>{sliders}</div>",
-        f"<div class=controls>{picker} <button id='viewer-reset' type=button>mean shape"
-        f"</button></div>",
+        f"<div class=controls>{picker} {colour} <button id='viewer-reset' type=button>mean "
+        f"shape</button></div>",
         "<div id='viewer-plot'></div>",
         "<p class=licence>Drawn with plotly.js (MIT licence, Copyright (c) Plotly, Inc.), "
         "embedded in this page: it works offline.</p>",
