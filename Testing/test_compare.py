@@ -147,7 +147,7 @@ def test_write_comparison_and_load_population(tmp_path):
     np.testing.assert_allclose(populations[0].shapes, shapes, atol=1e-9)
     result = compare_populations(populations, 2, 200)
     page = write_comparison(result, tmp_path / "cmp")
-    assert page.read_text().count("data:image/png;base64") == 1
+    assert page.read_text().count("<img src='data:image/png;base64") == 1    # the measures' plot
     assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["n_cases"] == 8
     assert (tmp_path / "cmp" / "compare.csv").read_text().startswith("measure,M,model")
     with pytest.raises(InputError, match="no model.h5"):

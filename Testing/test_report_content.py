@@ -68,6 +68,7 @@ def test_compare_html_says_what_was_run_and_links_each_models_report(report, tmp
     assert len(links) == 2
     assert all((tmp_path / "cmp" / link).resolve() == (output / "report.html").resolve()
                for link in links)
+    assert "id='viewer0-plot'" in page and "id='viewer1-plot'" in page   # a viewer per model
 
 
 def test_the_viewer_colours_a_case_by_its_distance_to_its_input(report):

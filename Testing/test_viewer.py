@@ -317,3 +317,28 @@ def test_the_colour_picker_shows_the_point_index_and_a_cases_distance(browser, t
     np.testing.assert_allclose(shown, np.minimum(distances[1], top), atol=top / 255 * 1.01)
     assert errors == [] and requests == []
     page.close()
+
+
+def test_two_viewers_on_one_page_move_independently(browser, tmp_path):
+    first, _, _ = population(n_s=4, n_points=642, seed=3)
+    second, _, _ = population(n_s=4, n_points=642, seed=4)
+    body = (viewer_section(first, prefix="viewer0", heading="<h3>a</h3>")
+            + viewer_section(second, prefix="viewer1", heading="<h3>b</h3>", with_plotly=False))
+    assert "".join(body).count("* plotly.js v") == 1            # plotly.js once for both
+    path = tmp_path / "two.html"
+    path.write_text(html_page("two viewers", body), encoding="utf-8")
+    page, errors, requests = _open(browser, path, drawn="#viewer1-plot canvas")
+
+    def shot(prefix):
+        page.wait_for_timeout(400)
+        return _pixels(page.locator(f"#{prefix}-plot").screenshot())
+
+    before = [shot("viewer0"), shot("viewer1")]
+    assert min(_drawn(image) for image in before) > 0.05
+    page.eval_on_selector("#viewer1-mode-0", "(e) => { e.value = 3; "
+                          "e.dispatchEvent(new Event('input', {bubbles: true})); }")
+    after = [shot("viewer0"), shot("viewer1")]
+    assert _changed(before[1], after[1]) > 0.01 and _changed(before[0], after[0]) < 0.001
+    assert page.inner_text("#viewer1-sd-0") == "3.0" and page.inner_text("#viewer0-sd-0") == "0.0"
+    assert errors == [] and requests == []
+    page.close()

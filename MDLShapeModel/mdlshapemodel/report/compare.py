@@ -174,6 +174,7 @@ def write_comparison(result: dict, destination) -> Path:
         models.append(f"<li>{html.escape(label)}: <code>{html.escape(folder)}</code>{link}</li>")
     if models:
         body += ["<h3>The models</h3>", f"<ul>{''.join(models)}</ul>"]
+    body += _viewers(result)
     for measure in MEASURES:
         body += [f"<h2>{measure}</h2>", table(ROW_HEADER[1:], [r[1:] for r in rows
                                                                if r[0] == measure])]
@@ -184,6 +185,26 @@ def write_comparison(result: dict, destination) -> Path:
     path = destination / "compare.html"
     io.write_text(path, html_page("MDLShapeModel comparison", body))
     return path
+
+
+def _viewers(result: dict) -> list:
+    """An interactive viewer of each model's mean and modes (plotly.js once for all)."""
+    from .viewer import viewer_section
+
+    parts = []
+    for label, folder in result.get("folders", {}).items():
+        file = Path(folder) / "model.h5" if folder else None
+        if file is None or not file.exists():
+            continue
+        section = viewer_section(ShapeModel.load(file), prefix=f"viewer{len(parts)}",
+                                 heading=f"<h3>{html.escape(label)}</h3>",
+                                 with_plotly=not parts)
+        if any("id='viewer" in fragment for fragment in section):
+            parts.append(section)
+    if not parts:
+        return []
+    return ["<h2>The models in 3-D</h2>", "<p>Each model's mean, with its first modes on the "
+            "sliders (drag to turn, scroll to zoom).</p>"] + [f for p in parts for f in p]
 
 
 def summary_lines(result: dict, max_rows: int = 10) -> list:

@@ -313,13 +313,15 @@ def _plotly_js() -> str:
 
 
 def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES,
-                   distances=None) -> list:
+                   distances=None, prefix: str = "viewer",
+                   heading: str = "<h2>Interactive viewer</h2>", with_plotly: bool = True) -> list:
     """The report's interactive viewer (HTML fragments), or a note where it does not apply.
     ``distances`` (n_cases, n_p, optional): each corresponded point's distance to its case's
-    input surface, offered as the colour of a case."""
+    input surface, offered as the colour of a case. Several viewers share a page when each has
+    its own ``prefix`` (of its element ids) and only the first carries plotly.js
+    (``with_plotly``)."""
     if model is None:
         return []
-    heading = "<h2>Interactive viewer</h2>"
     if model.triangles is None or len(model.triangles) == 0:
         return [heading, "<p>No interactive viewer: the model has no triangles.</p>"]
     try:
@@ -353,7 +355,7 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES,
              if len(data["cases"]) < data["n_cases"] else "")
     how = ("Drag a box to zoom, double-click to see all" if model.of_curves
            else "Drag to turn, scroll to zoom")
-    return [
+    fragments = [
         heading,
         f"<style>{STYLE}</style>",
         "<div id=viewer>",
@@ -369,10 +371,14 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES,
         "<p class=licence>Drawn with plotly.js (MIT licence, Copyright (c) Plotly, Inc.), "
         "embedded in this page: it works offline.</p>",
         "</div>",
-        f"<script>{plotly_js}</script>",
+        f"<script>{plotly_js}</script>" if with_plotly else "",
         f"<script type='application/json' id='viewer-data'>{payload}</script>",
         f"<script>{SCRIPT}</script>",
     ]
+    if prefix == "viewer":
+        return fragments
+    return [fragment.replace("'viewer-", f"'{prefix}-").replace("#viewer", f"#{prefix}")
+            .replace("id=viewer>", f"id={prefix}>") for fragment in fragments]
 
 
 # ---------------------------------------------------------------------------------------------
