@@ -103,10 +103,43 @@ def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
     return aligned
 
 
-def vertex_normals(points: np.ndarray, cells: np.ndarray | None) -> np.ndarray:
-    """Unit outward normals at the points of a mean shape: the area-weighted normals of its
-    triangles (outward as the model's triangles are oriented), or for a model of 2-D curves
-    (cells are segments) the in-plane normals of the closed curve, outward.
+def outward_normals(points: np.ndarray, cells: np.ndarray, part_of=None) -> np.ndarray:
+    """Unit normals at the points of a shape, turned out of what each part encloses: the
+    area-weighted normals of its triangles (a part whose signed volume is negative is turned
+    round), or for segments (2-D curves) the in-plane normals, a part turned round when they
+    point into the area it encloses. ``part_of`` gives each cell's part (default: one part).
+    A point in no cell gets a zero vector."""
+    points = np.asarray(points, dtype=np.float64)
+    cells = np.asarray(cells)
+    part_of = np.zeros(len(cells), dtype=np.int64) if part_of is None else np.asarray(part_of)
+    if cells.shape[1] == 3:
+        a, b, c = (points[cells[:, k]] for k in range(3))
+        face = np.cross(b - a, c - a)                  # length: twice the area
+        inward = np.einsum("ij,ij->i", a, np.cross(b, c))     # 6 x signed volume per cell
+    else:
+        start, end = points[cells[:, 0]], points[cells[:, 1]]
+        tangent = end - start
+        face = np.stack([tangent[:, 1], -tangent[:, 0], np.zeros(len(tangent))], axis=1)
+        inward = np.empty(len(cells))
+        for part in np.unique(part_of):
+            rows = part_of == part
+            centre = points[np.unique(cells[rows])].mean(axis=0)
+            inward[rows] = np.einsum("ij,ij->i", face[rows], (start + end)[rows] / 2 - centre)
+    for part in np.unique(part_of):
+        rows = part_of == part
+        if inward[rows].sum() < 0:
+            face[rows] = -face[rows]
+    normals = np.zeros_like(points)
+    for k in range(cells.shape[1]):
+        for d in range(3):
+            normals[:, d] += np.bincount(cells[:, k], weights=face[:, d], minlength=len(points))
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / np.where(length > 0, length, 1.0)
+
+
+def vertex_normals(points: np.ndarray, cells: np.ndarray | None, part_of=None) -> np.ndarray:
+    """Unit outward normals at the points of a mean shape (:func:`outward_normals`), each
+    point's defined: InputError when the model has no cells or a point lies in none.
 
     Examples
     --------
@@ -115,27 +148,9 @@ def vertex_normals(points: np.ndarray, cells: np.ndarray | None) -> np.ndarray:
     >>> vertex_normals(square, segments)[0].round(3).tolist()
     [-0.707, -0.707, 0.0]
     """
-    points = np.asarray(points, dtype=np.float64)
     if cells is None or len(cells) == 0:
         raise InputError("the model has no triangles or segments: no normals to measure along")
-    cells = np.asarray(cells)
-    normals = np.zeros_like(points)
-    if cells.shape[1] == 3:
-        a, b, c = (points[cells[:, k]] for k in range(3))
-        face = np.cross(b - a, c - a)                  # length: twice the area
-        for k in range(3):
-            np.add.at(normals, cells[:, k], face)
-    else:
-        start, end = points[cells[:, 0]], points[cells[:, 1]]
-        tangent = end - start
-        normal = np.stack([tangent[:, 1], -tangent[:, 0], np.zeros(len(tangent))], axis=1)
-        centre = points.mean(axis=0)
-        middle = (start + end) / 2
-        if np.sum(np.einsum("ij,ij->i", normal, middle - centre)) < 0:
-            normal = -normal                           # clockwise curve: turn them outward
-        for k in range(2):
-            np.add.at(normals, cells[:, k], normal)
-    length = np.linalg.norm(normals, axis=1)
-    if np.any(length == 0):
+    normals = outward_normals(points, cells, part_of)
+    if np.any(np.linalg.norm(normals, axis=1) == 0):
         raise InputError("the mean shape has points with no normal (degenerate cells)")
-    return normals / length[:, None]
+    return normals

@@ -123,7 +123,7 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     else:
         aligned = align(used, model.weights, config.size, planar=planar)
     mean = aligned.mean(axis=0)
-    normals = vertex_normals(mean, model.triangles)
+    normals = vertex_normals(mean, model.triangles, model.part_of_triangles())
     offsets = aligned - mean
     if config.displacement == "normal":
         data = np.einsum("npd,pd->np", offsets, normals)

@@ -23,6 +23,8 @@ import json
 
 import numpy as np
 
+from ..analysis.shapes import outward_normals
+
 MAX_MODES = 10
 # the case picker's share of the page (bytes before base64: 6 per point and case); a population
 # beyond it is shown by its first cases, said on the page (2562 points: 260 cases)
@@ -32,45 +34,6 @@ SD_RANGE = 3.0
 
 def _b64(array: np.ndarray, dtype) -> str:
     return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")
-
-
-def _outward_normals(points: np.ndarray, triangles: np.ndarray, part_of: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals, turned out of the volume each part encloses; for
-    segments (2-D curves) the in-plane normals, turned out of the area each part encloses."""
-    if triangles.shape[1] == 2:
-        return _outward_curve_normals(points, triangles, part_of)
-    a, b, c = (points[triangles[:, k]] for k in range(3))
-    face = np.cross(b - a, c - a)
-    # each part's signed volume (divergence theorem): negative when its triangles turn inwards
-    volume = np.einsum("ij,ij->i", a, np.cross(b, c))
-    sign = np.ones(len(points))
-    for part in np.unique(part_of):
-        if volume[part_of == part].sum() < 0:
-            sign[np.unique(triangles[part_of == part])] = -1.0
-    normals = np.zeros_like(points)
-    for k in range(3):
-        for d in range(3):
-            normals[:, d] += np.bincount(triangles[:, k], weights=face[:, d], minlength=len(points))
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.where(length > 0, length, 1.0) * sign[:, None]
-
-
-def _outward_curve_normals(points, segments, part_of):
-    start, end = points[segments[:, 0]], points[segments[:, 1]]
-    tangent = end - start
-    normal = np.stack([tangent[:, 1], -tangent[:, 0], np.zeros(len(tangent))], axis=1)
-    for part in np.unique(part_of):
-        rows = part_of == part
-        centre = points[np.unique(segments[rows])].mean(axis=0)
-        if np.sum(np.einsum("ij,ij->i", normal[rows], (start + end)[rows] / 2 - centre)) < 0:
-            normal[rows] = -normal[rows]                # clockwise: turn them outward
-    normals = np.zeros_like(points)
-    for k in range(2):
-        for d in range(3):
-            normals[:, d] += np.bincount(segments[:, k], weights=normal[:, d],
-                                         minlength=len(points))
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.where(length > 0, length, 1.0)
 
 
 def correspondence_values(reference: np.ndarray) -> np.ndarray:
@@ -98,7 +61,7 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES,
     sds = np.sqrt(np.maximum(np.asarray(model.variances[:k], dtype=np.float64), 0.0))
     scaled = np.asarray(model.modes[:k], dtype=np.float64) * sds[:, None, None]   # (k, n_p, 3)
     part_of = model.part_of_triangles()
-    normals = _outward_normals(mean, triangles, part_of)
+    normals = outward_normals(mean, triangles, part_of)
     along = np.einsum("kpd,pd->kp", scaled, normals)                             # (k, n_p)
 
     # one fixed colour range and one fixed box, so that nothing jumps as the sliders move
