@@ -21,10 +21,12 @@ import argparse
 import csv
 import json
 import re
+import shutil
 import statistics
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,11 +54,17 @@ def install(version: str, folder: Path) -> Path:
         source = ROOT
     else:
         source = folder / "source"
-        source.mkdir(exist_ok=True)
+        shutil.rmtree(source, ignore_errors=True)   # files (and build/) of another commit
+        source.mkdir()
         archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit],
                                  check=True, capture_output=True).stdout
         subprocess.run(["tar", "-x", "-C", str(source)], input=archive, check=True)
     run([pip, "install", "--quiet", str(source)], timeout=3600)
+    if version != "new":
+        # an older commit may import a package it did not declare (bfba680 uses gpytoolbox):
+        # this tree's dependencies, a superset, go in beside it
+        declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+        run([pip, "install", "--quiet", *declared], timeout=3600)
     stamp.write_text(commit)
     return command
 
@@ -103,7 +111,8 @@ def main():
         for version, command in commands.items():
             folder = output / f"{version}-{repeat}"
             started = time.perf_counter()
-            run([command, "build", inputs, "-o", folder, "--overwrite", "--no-cache", "-q",
+            shutil.rmtree(folder, ignore_errors=True)   # (older commits lack --overwrite)
+            run([command, "build", inputs, "-o", folder, "--no-cache", "-q",
                  *extra], timeout=7200)
             wall = time.perf_counter() - started
             times[version].append(wall)
