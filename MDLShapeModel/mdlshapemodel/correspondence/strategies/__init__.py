@@ -3,10 +3,15 @@
 Each strategy is a *phase function* with one signature,
 ``phase(state, objective, settings, rng, trace, phase, deadline, progress, checkpoint, active,
 resume)``, that optimises the state for one objective until convergence or ``deadline`` and returns
-the final F, calls ``checkpoint(point)`` after every step with the :class:`~.base.PhasePoint`
-reached, and given one as ``resume`` carries on from it. :func:`optimise` runs the paper's two phases (III-B) with the chosen one: the fixed-Delta
-objective (eq. 13) first, then the full objective (eq. 14). ``none`` has no phase: it keeps the
-initial correspondence.
+the final F, sets ``trace.stopped_by`` to why it ended (:class:`~..trace.Stop`), calls
+``checkpoint(point)`` after every step with the :class:`~.base.PhasePoint` reached, and given one
+as ``resume`` carries on from it. :func:`optimise` runs the paper's two phases (III-B) with the
+chosen one: the fixed-Delta objective (eq. 13) first, then the full objective (eq. 14). ``none``
+has no phase: it keeps the initial correspondence (``trace.stopped_by`` stays None).
+
+Whether the optimisation converged is the full objective's phase's to say. The fixed-Delta phase
+is a warm start that ends at its share of the time (``fixed_fraction``) by design; being cut
+there says nothing about the model, whose objective is the full one.
 
 - ``one-at-a-time`` (III-D3) and ``one-at-a-time-pose`` (III-D4): :mod:`.one_at_a_time`;
 - ``multiresolution`` (III-D1) and ``multiscale`` (III-D2): :mod:`.simplex`;
@@ -32,7 +37,7 @@ import numpy as np
 
 from ...config import STRATEGIES, OptimisationSettings
 from ..state import CorrespondenceState, replay_record
-from ..trace import RESTORED_INITIAL, Trace
+from ..trace import RESTORED_INITIAL, Stop, Trace
 from .base import PhasePoint, Resumption
 from .fast import optimise_fast
 # (imported under another name: the package's attribute one_at_a_time stays the module)
@@ -56,7 +61,8 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
     """Run ``settings.strategy``: the fixed-Delta phase, then the full objective.
 
     ``objectives`` is (fixed, integrated); ``active`` the indices of the examples to optimise
-    (default all). Returns the final value of the full objective.
+    (default all). Returns the final value of the full objective; ``trace.stopped_by`` says why
+    the full objective's phase ended (None for ``none``, which optimises nothing).
     Raises :class:`Cancelled` (from ``progress``) with the state left consistent.
 
     ``checkpoint(point)`` is called after every sweep, round, level or iteration with the
@@ -81,6 +87,7 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
               resume: Resumption | None) -> float:
     fixed, integrated = objectives
     start = time.perf_counter() - (resume.elapsed if resume is not None else 0.0)
+    trace.stopped_by = None
     if settings.strategy == KEEP_INITIAL:
         state.objective = integrated
         value = state.value()
@@ -102,7 +109,8 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         replay_record(state, resume.record)
         state.evaluations = resume.evaluations
         point = resume.point
-        if point.phase == PhasePoint.DONE:
+        if point.phase == PhasePoint.DONE:      # checkpointed once it had converged
+            trace.stopped_by = Stop.CONVERGED
             return state.value()
         names = [name for name, _, _ in phases]
         if point.phase not in names:
@@ -111,6 +119,7 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         phases = phases[names.index(point.phase):]
     try:
         for name, objective, deadline in phases:
+            trace.stopped_by = None      # the phase sets it as it ends
             value = run(state, objective, settings, rng, trace, name, deadline, progress,
                         checkpoint, active, point if point is not None and name == point.phase
                         else None)

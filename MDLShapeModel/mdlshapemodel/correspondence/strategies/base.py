@@ -1,5 +1,6 @@
-"""What every strategy shares: starting a phase, the convergence test, rebuilding between sweeps,
-recording the trace, and the point a phase has reached (for checkpoints and resuming)."""
+"""What every strategy shares: starting a phase, the convergence test, why a phase stops,
+rebuilding between sweeps, recording the trace, and the point a phase has reached (for
+checkpoints and resuming)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from ...config import OptimisationSettings
 from ...progress import report
 from ..objective import Objective
 from ..state import CorrespondenceState
-from ..trace import Trace
+from ..trace import Stop, Trace
 
 
 @dataclass(frozen=True)
@@ -20,7 +21,9 @@ class PhasePoint:
     exactly as the uninterrupted run would (with the state of that moment and the random
     generator's state, which the checkpoint holds beside it).
 
-    ``phase`` is "fixed" or "integrated" (:data:`DONE` once the optimisation has ended),
+    ``phase`` is "fixed" or "integrated" (:data:`DONE` once the optimisation has converged: one
+    stopped by a limit or interrupted keeps its last step's point, from which ``--resume``
+    carries on),
     ``sweep`` the step's number in the phase, ``counters`` the strategy's loop position and
     ``values`` the objective values its decisions still need (e.g. the fast strategy's pass,
     level and round; the start of the phase and of the pass, and F before and after the step).
@@ -63,17 +66,27 @@ def stalled(before: float, value: float, start_value: float, settings: Optimisat
     return before - value <= settings.tolerance * max(start_value - value, 1e-12)
 
 
+def budget_spent(deadline: float, sweep: int, settings: OptimisationSettings) -> Stop | None:
+    """Which limit ends a phase after step ``sweep``: :attr:`Stop.TIME_LIMIT` past ``deadline``,
+    :attr:`Stop.SWEEP_LIMIT` at ``settings.max_sweeps`` steps, None while neither is reached."""
+    if time.perf_counter() > deadline:
+        return Stop.TIME_LIMIT
+    if sweep >= settings.max_sweeps:
+        return Stop.SWEEP_LIMIT
+    return None
+
+
 @dataclass
 class Sweeps:
     """Where a phase of sweeps that stops after ``patience`` quiet ones (one-at-a-time,
     multiscale) starts: F now and at the phase's start, the quiet sweeps so far, the first sweep
-    to run, and whether a resumed phase has nothing left to do."""
+    to run, and why a resumed phase has nothing left to do (None: it has)."""
 
     value: float
     start: float
     quiet: int
     first: int
-    over: bool = False
+    over: Stop | None = None
 
 
 def begin_sweeps(state: CorrespondenceState, objective: Objective, trace: Trace, phase: str,
@@ -85,8 +98,20 @@ def begin_sweeps(state: CorrespondenceState, objective: Objective, trace: Trace,
         return Sweeps(value, value, 0, 1)
     state.objective = objective
     quiet = resume.counters["quiet"]
-    over = time.perf_counter() > deadline or quiet >= settings.patience
+    over = (Stop.CONVERGED if quiet >= settings.patience
+            else Stop.TIME_LIMIT if time.perf_counter() > deadline else None)
     return Sweeps(resume.values["value"], resume.values["start"], quiet, resume.sweep + 1, over)
+
+
+def stop_after_sweep(sweeps: Sweeps, before: float, value: float, deadline: float,
+                     settings: OptimisationSettings) -> Stop | None:
+    """After a sweep of a patient phase (F from ``before`` to ``value``, the state rebuilt):
+    :attr:`Stop.TIME_LIMIT` past ``deadline`` (the sweep may have been cut short), else the quiet
+    sweeps counted on and :attr:`Stop.CONVERGED` at ``patience`` of them; None: sweep on."""
+    if time.perf_counter() > deadline:
+        return Stop.TIME_LIMIT
+    sweeps.quiet = sweeps.quiet + 1 if stalled(before, value, sweeps.start, settings) else 0
+    return Stop.CONVERGED if sweeps.quiet >= settings.patience else None
 
 
 def sweep_point(phase: str, sweep: int, before: float, sweeps: Sweeps,

@@ -30,7 +30,8 @@ from ..state import CorrespondenceState
 from ..fields import FieldBasis
 from ..pose import Pose, weighted_centroid
 from ..warps import FieldWarp
-from .base import PhasePoint, stalled, start_phase
+from ..trace import Stop
+from .base import PhasePoint, budget_spent, stalled, start_phase
 
 
 #: The bound of the log scale of an example's pose in a round: 0, the size of every example stays
@@ -399,6 +400,8 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
     After every round ``checkpoint(point)`` gets a :class:`PhasePoint` (pass, level and round;
     the F at the start of the phase and of the pass, before and after the round); given one as
     ``resume``, with the state of that moment, the phase carries on exactly from there.
+    ``trace.stopped_by`` says why the phase ended (a limit reached after the last round of the
+    schedule counts as the limit: that round may have been cut short).
     """
     active = range(state.n_shapes) if active is None else active
     if objective.kind == "fixed" and objective.free_below_delta:
@@ -428,7 +431,8 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
     else:
         state.objective = objective
         sweep, values, value = resume.sweep, dict(resume.values), resume.values["value"]
-        if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
+        trace.stopped_by = budget_spent(deadline, sweep, settings)
+        if trace.stopped_by is not None:
             return value
         at = following(resume.counters, values)
         if at is not None and at["pass"] != resume.counters["pass"]:
@@ -445,9 +449,11 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
                                    f"F = {value:.3f}")
             if checkpoint is not None:
                 checkpoint(PhasePoint(phase, sweep, dict(at), dict(values)))
-            if time.perf_counter() > deadline or sweep >= settings.max_sweeps:
+            trace.stopped_by = budget_spent(deadline, sweep, settings)
+            if trace.stopped_by is not None:
                 return value
             previous, at = at, following(at, values)
             if at is not None and at["pass"] != previous["pass"]:
                 values["pass_start"] = value
+        trace.stopped_by = Stop.CONVERGED
         return value

@@ -20,12 +20,12 @@ from ...progress import report
 from ..objective import Objective
 from ..pose import Pose, pose_from_parameters, weighted_centroid
 from ..state import CorrespondenceState
-from ..trace import Trace
+from ..trace import Stop, Trace
 from ..warps import (AsymmetricTheta, Rotation, ShearTwist, SymmetricTheta,
                      random_asymmetric_theta, random_shear_twist, random_unit_vector,
                      random_width)
-from .base import (PhasePoint, begin_sweeps, improvements, rebuilt, recorder, stalled,
-                   sweep_point)
+from .base import (PhasePoint, begin_sweeps, improvements, rebuilt, recorder,
+                   stop_after_sweep, sweep_point)
 
 #: the warp kind (warps.WARP_KINDS) that each ``--warps`` option draws
 KIND_OF_OPTION = {"symmetric": SymmetricTheta.kind, "asymmetric": AsymmetricTheta.kind,
@@ -274,7 +274,8 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
     ``active``: indices of the examples to optimise (default all); the others stay as they are.
 
     Converged means: for ``patience`` consecutive sweeps, the sweep lowered F by less than
-    ``tolerance`` times the total decrease of this phase so far.
+    ``tolerance`` times the total decrease of this phase so far. Why the phase ended goes to
+    ``trace.stopped_by``: converged, the deadline, or ``max_sweeps`` sweeps.
 
     ``checkpoint(point)`` after every sweep; ``resume`` (a :class:`PhasePoint`, with the state and
     the random generator of that moment) carries on from there.
@@ -289,7 +290,8 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
     active = np.arange(state.n_shapes) if active is None else np.asarray(active)
     sweeps = begin_sweeps(state, objective, trace, phase, deadline, settings, resume)
     value = sweeps.value
-    if sweeps.over:
+    if sweeps.over is not None:
+        trace.stopped_by = sweeps.over
         return value
     for sweep in range(sweeps.first, settings.max_sweeps + 1):
         before = value
@@ -310,11 +312,12 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
                 break
         value = rebuilt(state, trace, phase, sweep, checkpoint,
                         sweep_point(phase, sweep, before, sweeps, settings))
-        if time.perf_counter() > deadline:
+        stop = stop_after_sweep(sweeps, before, value, deadline, settings)
+        if stop is not None:
             break
-        sweeps.quiet = sweeps.quiet + 1 if stalled(before, value, sweeps.start, settings) else 0
-        if sweeps.quiet >= settings.patience:
-            break
+    else:
+        stop = Stop.SWEEP_LIMIT
+    trace.stopped_by = stop
     return value
 
 

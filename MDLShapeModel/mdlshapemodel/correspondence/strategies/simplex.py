@@ -21,10 +21,10 @@ from ...config import OptimisationSettings
 from ...progress import report
 from ..objective import Objective
 from ..state import CorrespondenceState, PartState
-from ..trace import Trace
+from ..trace import Stop, Trace
 from ..warps import random_width
 from .base import (PhasePoint, active_parts, begin_sweeps, end_of_iteration, recorder,
-                   start_phase, stalled, sweep_point)
+                   start_phase, stop_after_sweep, sweep_point)
 
 
 def population_value(state: CorrespondenceState, shapes: np.ndarray) -> float:
@@ -159,19 +159,23 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
     """III-D1: one downhill simplex per level over the amplitudes of that level's kernels in all
     active examples and parts; the level's amplitudes are then fixed. Stops after
     ``min(max_levels, max_sweeps)`` levels or at ``deadline`` (the ``sweep`` of the trace is the
-    level, from 1). Deterministic: ``rng`` is not used. ``checkpoint(point)`` after every level;
-    ``resume`` carries on after the level it names."""
+    level, from 1): converged once all ``max_levels`` are done (``trace.stopped_by``).
+    Deterministic: ``rng`` is not used. ``checkpoint(point)`` after every level; ``resume``
+    carries on after the level it names."""
     parts = active_parts(state, active)
     widths = [settings.omega_1 / 2.0 ** k for k in range(min(settings.max_levels,
                                                               settings.max_sweeps))]
+    # the schedule's end: all its levels, unless max_sweeps cut it shorter
+    scheduled = Stop.CONVERGED if len(widths) == settings.max_levels else Stop.SWEEP_LIMIT
+    done = 0 if resume is None else resume.sweep
     if resume is None:
         value = start_phase(state, objective, trace, phase)
     else:
         state.objective = objective
         value = resume.values["value"]
-        if time.perf_counter() > deadline:
+        if done < len(widths) and time.perf_counter() > deadline:
+            trace.stopped_by = Stop.TIME_LIMIT
             return value
-    done = 0 if resume is None else resume.sweep
     for level, omega in enumerate(widths, start=1):
         if level <= done:
             continue
@@ -189,7 +193,10 @@ def multiresolution(state: CorrespondenceState, objective: Objective,
         value = end_of_iteration(state, trace, phase, level, value, label, progress, checkpoint,
                                  lambda after: PhasePoint(phase, level, {}, {"value": after}))
         if time.perf_counter() > deadline:
-            break
+            # the level may have been cut short: even the last is not a finished schedule
+            trace.stopped_by = Stop.TIME_LIMIT
+            return value
+    trace.stopped_by = scheduled
     return value
 
 
@@ -203,13 +210,15 @@ def multiscale(state: CorrespondenceState, objective: Objective, settings: Optim
 
     Converged as in :func:`one_at_a_time`, an iteration playing the part of a sweep: for
     ``patience`` consecutive iterations, the gain was below ``tolerance`` times the total gain of
-    this phase; or ``max_sweeps`` iterations, or ``deadline``. ``checkpoint(point)`` after every
-    iteration; ``resume`` (with the state and random generator of that moment) carries on.
+    this phase; or ``max_sweeps`` iterations, or ``deadline`` (``trace.stopped_by`` says which).
+    ``checkpoint(point)`` after every iteration; ``resume`` (with the state and random generator
+    of that moment) carries on.
     """
     parts = active_parts(state, active)
     sweeps = begin_sweeps(state, objective, trace, phase, deadline, settings, resume)
     value = sweeps.value
-    if sweeps.over:
+    if sweeps.over is not None:
+        trace.stopped_by = sweeps.over
         return value
     for iteration in range(sweeps.first, settings.max_sweeps + 1):
         before = value
@@ -227,9 +236,10 @@ def multiscale(state: CorrespondenceState, objective: Objective, settings: Optim
         value = end_of_iteration(state, trace, phase, iteration, value, label, progress,
                                   checkpoint, sweep_point(phase, iteration, before, sweeps,
                                                           settings))
-        if time.perf_counter() > deadline:
+        stop = stop_after_sweep(sweeps, before, value, deadline, settings)
+        if stop is not None:
             break
-        sweeps.quiet = sweeps.quiet + 1 if stalled(before, value, sweeps.start, settings) else 0
-        if sweeps.quiet >= settings.patience:
-            break
+    else:
+        stop = Stop.SWEEP_LIMIT
+    trace.stopped_by = stop
     return value
