@@ -190,6 +190,9 @@ class ShapeModelResult:
     interrupted: bool = False
     reportFile: pathlib.Path | None = None
     warnings: list = field(default_factory=list)  # the build's (metrics.json), e.g. absent labels
+    # the optimisation ended by its stopping rule (None: nothing was optimised); when False, a
+    # warning says what stopped it and how to carry it on
+    converged: bool | None = None
 
 
 @dataclass
@@ -346,7 +349,9 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         result.reportFile = report if report.exists() else None
         metrics = outputDirectory / "metrics.json"
         if metrics.exists():
-            result.warnings = list(json.loads(metrics.read_text()).get("warnings", []))
+            written = json.loads(metrics.read_text())
+            result.warnings = list(written.get("warnings", []))
+            result.converged = written.get("optimisation", {}).get("converged")
         return result
 
     def loadModel(self, path) -> ShapeModelResult:

@@ -176,6 +176,22 @@ def test_settings_start_at_the_build_defaults():
                                               target_vertices=defaults.target_vertices)
 
 
+def test_the_builder_says_why_its_optimisation_stopped(pipeline, quick):
+    """Field data ``StoppedBy``: "converged", or the limit that came first; absent when
+    nothing was optimised."""
+    _, builder, _ = pipeline
+    assert builder.GetOutput(0).GetFieldData().GetAbstractArray("StoppedBy").GetValue(0) == \
+        "converged"
+    assert quick.GetOutput(0).GetFieldData().GetAbstractArray("StoppedBy") is None
+    branches, _, _ = pipeline
+    hurried = builder_of(branches, BuildConfig(points=42, strategy="fast", max_time=0,
+                                               baselines=[], workers=1))
+    hurried.Update()
+    assert hurried.GetErrorText() == ""
+    assert hurried.GetOutput(0).GetFieldData().GetAbstractArray("StoppedBy").GetValue(0) == \
+        "time limit"
+
+
 def test_the_builder_reexecutes_only_when_an_input_or_a_setting_changes(quick, pipeline):
     builder = quick
     runs = builder.executions
@@ -270,13 +286,15 @@ def test_writer_and_reader_round_trips(pipeline, tmp_path):
     second.Update()
     first_output, second_output = reader.GetOutput(), second.GetOutput()
     assert_same_model(polydata_to_model(second_output), built)
-    # every array, bit for bit, and the builder's output but for its InitialObjective
+    # every array, bit for bit, and the builder's output but for its InitialObjective and
+    # StoppedBy (the build's, not the model's)
     for data in ("GetPointData", "GetFieldData"):
         arrays = [getattr(output, data)() for output in (first_output, second_output,
                                                          builder.GetOutput(0))]
         names = [[a.GetAbstractArray(i).GetName() for i in range(a.GetNumberOfArrays())]
                  for a in arrays]
-        assert names[0] == names[1] == [n for n in names[2] if n != "InitialObjective"]
+        assert names[0] == names[1] == [n for n in names[2]
+                                        if n not in ("InitialObjective", "StoppedBy")]
         for name in names[0]:
             values = [a.GetAbstractArray(name) for a in arrays]
             if isinstance(values[0], vtk.vtkStringArray):

@@ -9,7 +9,9 @@ that cannot be used is *rejected* with a one-line reason (logged, and listed in 
 and the build goes on; a bug stops the build with a message that names the case (traceback in
 build.log). The optimisation state is checkpointed after every sweep or round, and an interrupted
 optimisation (Ctrl-C, a cancelling progress callback, or the time limit) still writes a model of
-the state reached.
+the state reached. One that ended before it converged says so, and how to carry it on
+(``--resume`` with a larger budget), in build.log, metrics.json, the report and the summary
+(:class:`OptimisationEnd`).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from .correspondence.initial import initial_state
 from .correspondence.state import CorrespondenceState
 from .correspondence.strategies import optimise
 from .correspondence.strategies.base import PhasePoint, Resumption
-from .correspondence.trace import RESTORED_INITIAL, Trace
+from .correspondence.trace import RESTORED_INITIAL, Stop, Trace, stop_summary
 from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
@@ -44,8 +46,8 @@ from .progress import Progress, report
 
 log = logging.getLogger("mdlshapemodel")
 
-__all__ = ["BuildError", "BuildResult", "Correspondence", "build_model", "correspond",
-           "shape_model_of"]
+__all__ = ["BuildError", "BuildResult", "Correspondence", "OptimisationEnd", "build_model",
+           "correspond", "shape_model_of"]
 
 
 def build_model(inputs, output, config: BuildConfig | None = None,
@@ -84,11 +86,12 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         A CSV table of cases with the columns ``case``, ``part``, ``file``: one file per part
         (:func:`.prepare.parts.read_manifest`), added to ``inputs``.
     resume : bool
-        Carry on from the checkpoint of an interrupted build in ``output`` (killed, or out of
-        power) and end with the model the uninterrupted build would have made; refused when the
-        inputs or the settings that shape the result differ (:func:`fingerprint`). Without a
-        checkpoint (interrupted while preparing) the build starts over, its prepared cases coming
-        from the preprocessing cache.
+        Carry on from the checkpoint of an interrupted build in ``output`` (killed, out of power,
+        cancelled, or stopped by ``max_time`` or ``max_sweeps`` before it converged: give those
+        a larger value) and end with the model the uninterrupted build would have made; refused
+        when the inputs or the settings that shape the result differ (:func:`fingerprint`).
+        Without a checkpoint (interrupted while preparing) the build starts over, its prepared
+        cases coming from the preprocessing cache.
 
     Returns
     -------
@@ -137,10 +140,11 @@ def build_model(inputs, output, config: BuildConfig | None = None,
 
 def fingerprint(prepared: list, config: BuildConfig) -> dict:
     """What a checkpoint is of: the settings that shape the result (all but ``workers``,
-    ``scheduler``, ``cache_dir`` and ``max_time``) and every prepared case's name and the
-    digests of its files."""
+    ``scheduler``, ``cache_dir`` and the budget, ``max_time`` and ``max_sweeps``, which a
+    resumed build may raise to carry on an optimisation that they stopped) and every prepared
+    case's name and the digests of its files."""
     settings = {key: value for key, value in config.to_dict().items()
-                if key not in ("workers", "scheduler", "cache_dir", "max_time")}
+                if key not in ("workers", "scheduler", "cache_dir", "max_time", "max_sweeps")}
     return {"settings": settings,
             "cases": [[case.name, *map(io.file_digest, case.paths)] for case in prepared]}
 
@@ -272,6 +276,10 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
                                   evaluate_baseline, resumed)
         if corresponded.interrupted:
             log.warning("optimisation interrupted: writing the model of the state reached")
+        unfinished = corresponded.optimisation.warning(output)
+        if unfinished is not None:
+            log.warning("%s", unfinished)
+            warnings = [*warnings, unfinished]
         io.write_csv(output / "convergence.csv", Trace.HEADER, corresponded.trace.rows)
         # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
         # then the model's, with the outputs
@@ -320,6 +328,58 @@ def one_kind(prepared: list) -> tuple[list, list]:
              for case in prepared if case.is_curve != keep_curves])
 
 
+@dataclass(frozen=True)
+class OptimisationEnd:
+    """How a build's optimisation ended: whether it converged, what stopped it, and its budget
+    (metrics.json ``optimisation``).
+
+    Converged means the strategy's own stopping rule ended the full objective's phase (the
+    fixed-Delta phase before it ends at its share of the time by design:
+    :mod:`~.correspondence.strategies`). A limit reached, or an interruption, leaves the
+    checkpoint of the last step, from which ``--resume`` with a larger budget carries on.
+    """
+
+    stopped_by: Stop | None   # None: nothing was optimised (strategy none, CPD correspondence)
+    max_time: float           # s, the budget (``--max-time``), the time before a resume included
+    max_sweeps: int           # ``--max-sweeps``
+    seconds: float            # the optimisation's wall time, the time before a resume included
+
+    @property
+    def converged(self) -> bool | None:
+        """Whether the strategy's stopping rule ended it (None: nothing was optimised)."""
+        return None if self.stopped_by is None else self.stopped_by is Stop.CONVERGED
+
+    def to_json(self) -> dict:
+        """metrics.json's ``optimisation``: converged (true, false, or null when nothing was
+        optimised), stopped_by (:class:`Stop`'s value or null), the budget and the seconds."""
+        return {"converged": self.converged,
+                "stopped_by": None if self.stopped_by is None else self.stopped_by.value,
+                "max_time": self.max_time, "max_sweeps": self.max_sweeps,
+                "seconds": self.seconds}
+
+    def warning(self, output) -> str | None:
+        """What the user is told of an optimisation that ended before it converged, with how to
+        carry it on into the build folder ``output``; None when it converged or nothing was
+        optimised."""
+        if self.converged is not False:
+            return None
+        carry_on = f"run the same build (inputs and options) with -o {output} --resume"
+        if self.stopped_by is Stop.TIME_LIMIT:
+            # --max-time counts the time before a resume: the new budget must exceed it
+            larger = max(2.0 * self.max_time, BuildConfig.max_time)
+            cause = f"stopped at the time limit (--max-time {self.max_time:g} s)"
+            carry_on += f" --max-time {larger:g}"
+        elif self.stopped_by is Stop.SWEEP_LIMIT:
+            cause = f"stopped at the sweep limit (--max-sweeps {self.max_sweeps})"
+            carry_on += f" --max-sweeps {2 * self.max_sweeps}"
+        else:
+            cause = "was interrupted"
+            carry_on += (f" (with a --max-time larger than {self.max_time:g} s if most of it "
+                         "is spent)")
+        return (f"the optimisation {cause} after {self.seconds:.1f} s, before it converged: the "
+                f"model is of the correspondence reached so far; to carry it on, {carry_on}")
+
+
 @dataclass
 class Correspondence:
     """The correspondence of prepared cases and its model: what :func:`correspond` returns."""
@@ -331,7 +391,12 @@ class Correspondence:
     voxel_size: float            # mm, the mean over the cases: the unit of the coding accuracy
     data_range: float            # mm, of the initially aligned shapes
     trace: Trace                 # the optimisation's rows (convergence.csv)
-    interrupted: bool = False    # the optimisation was cancelled; ``state`` is the one reached
+    optimisation: OptimisationEnd   # converged or what stopped it
+
+    @property
+    def interrupted(self) -> bool:
+        """The optimisation was cancelled; ``state`` is the one reached."""
+        return self.optimisation.stopped_by is Stop.INTERRUPTED
 
 
 def correspond(prepared: list, config: BuildConfig, progress: Progress | None = None,
@@ -360,7 +425,8 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         Called after every sweep or round of the optimisation with the
         :class:`~.correspondence.strategies.base.PhasePoint` reached, the random generator and
         the trace (what :func:`~.outputs.save_checkpoint` keeps), and once at its end
-        (``PhasePoint.DONE``).
+        (``PhasePoint.DONE``) if it converged: otherwise the last step's checkpoint stays, to
+        be carried on from.
     baselines : callable(name, state, notes), optional
         Called with each baseline correspondence of ``config.baselines`` as soon as it is made,
         before the optimisation moves anything (``notes``: its objective, the CPD template);
@@ -424,7 +490,6 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                                    "template": template})
 
     trace = Trace()
-    interrupted = False
     if config.correspondence == "cpd":
         state = cpd
         state.objective = integrated
@@ -450,19 +515,23 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
             optimise(state, (fixed, integrated), config.optimisation_settings(), rng, trace,
                      progress, save, resume=resumption)
         except (KeyboardInterrupt, Cancelled):
-            interrupted = True
+            trace.stopped_by = Stop.INTERRUPTED
         if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
             log.warning("the optimisation did not lower the objective within --max-time "
                         "(%.0f s): keeping the initial correspondence", config.max_time)
         if resume is None or resume.point.phase != PhasePoint.DONE:
             state.rebuild()  # also makes the state consistent after an interruption mid-step
         final = integrated(state.covariance())
-        log.info("final objective %.4f after %.1f s, %d evaluations", final,
-                 trace.last.wall_seconds if trace.rows else 0.0, state.evaluations)
-        save(PhasePoint(PhasePoint.DONE, trace.last.sweep if trace.rows else 0))
+        log.info("final objective %.4f after %.1f s, %d evaluations; optimisation %s", final,
+                 trace.last.wall_seconds if trace.rows else 0.0, state.evaluations,
+                 stop_summary(trace.stopped_by))
+        if trace.stopped_by in (None, Stop.CONVERGED):   # else its last step's checkpoint stays
+            save(PhasePoint(PhasePoint.DONE, trace.last.sweep if trace.rows else 0))
     named = parts if len(parts) > 1 else ()
+    ending = OptimisationEnd(trace.stopped_by, config.max_time, config.max_sweeps,
+                             trace.last.wall_seconds if trace.rows else 0.0)
     return Correspondence(state, shape_model_of(state, config, final, voxel, data_range, named),
-                          initial, final, voxel, data_range, trace, interrupted)
+                          initial, final, voxel, data_range, trace, ending)
 
 
 def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: float,

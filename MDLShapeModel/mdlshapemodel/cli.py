@@ -18,6 +18,7 @@ from typing import Callable
 
 from .config import (ANALYSIS_SIZES, DISPLACEMENTS, OPTION_GROUPS, PART_ALIGNMENTS,
                      STRATEGIES, AnalysisConfig, BuildConfig, parse_items)
+from .correspondence.trace import stop_summary
 from .errors import ConfigError, InternalError, MDLShapeModelError
 from .version import __version__
 
@@ -260,7 +261,8 @@ def _summary(result) -> str:
     m = result.metrics
     lines = [f"model of {m['n_shapes']} cases written to {result.output}",
              f"  objective (eq. 14): {result.initial_objective:.3f} -> {result.final_objective:.3f}"
-             f" nats ({m['strategy']})"]
+             f" nats ({m['strategy']})",
+             f"  optimisation: {stop_summary(m['optimisation']['stopped_by'])}"]
     for key, symbol in (("generalization", "G"), ("specificity", "S")):
         shown = ", ".join(f"{v:.3f}" for v in m[key][:3])
         for name, values in m.get("baselines", {}).items():
@@ -401,7 +403,8 @@ def main(argv=None) -> int:
     again.add_argument("--resume", action="store_true",
                        help="carry on from the checkpoint of an interrupted build in the output "
                             "folder, with the same inputs and settings; ends with the model the "
-                            "uninterrupted build would have made")
+                            "uninterrupted build would have made. A build stopped by --max-time "
+                            "or --max-sweeps before it converged carries on with a larger one")
     _add_build_options(build)
     demo = commands.add_parser("demo", help="build a model of a generated population")
     demo.add_argument("-o", "--output", default="mdlshapemodel-demo", help="output folder "

@@ -41,6 +41,9 @@ class BuildResult:
     rejected: list
     interrupted: bool = False
     warnings: list = field(default_factory=list)   # what the user should know (metrics.json)
+    # the optimisation ended by its stopping rule (None: nothing was optimised); metrics.json's
+    # ``optimisation`` says more
+    converged: bool | None = None
 
 
 # What a build writes into its output folder. Other entries are not a build's: the inputs/ that the
@@ -284,7 +287,9 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "strategy": model.metadata["strategy"], "n_shapes": state.n_shapes,
                "n_points": state.n_points,
                "n_rejected": len(rejected), "voxel_size_mm": voxel, "data_range_mm": data_range,
-               "interrupted": interrupted, "evaluations": state.evaluations,
+               "interrupted": interrupted,
+               "optimisation": corresponded.optimisation.to_json(),
+               "evaluations": state.evaluations,
                "variances": model.variances.tolist(), **quality,
                "score_outliers": {"modes": outlier["modes"], "threshold": outlier["threshold"],
                                   "cases": [n for n, o in zip(names, outlier["outlier"]) if o]},
@@ -298,4 +303,4 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                  corresponded_distances(raw, prepared, parts))
     log.info("wrote the report in %.1f s", time.perf_counter() - started)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted,
-                       list(warnings))
+                       list(warnings), corresponded.optimisation.converged)

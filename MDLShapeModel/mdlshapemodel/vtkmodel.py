@@ -31,7 +31,10 @@ One vtkPolyData holds a :class:`~mdlshapemodel.model.shape_model.ShapeModel` exa
   component per mode), ``CaseNames``, ``PartSizes``, for a multi-part model ``PartNames`` (and
   the cell data ``part``: each triangle's part, 0, 1, ...), and ``Metadata`` (JSON: the
   objective, the strategy, the voxel size, the data range and the build configuration of a
-  built model). The builder adds ``InitialObjective`` (eq. 14 of the initial correspondence).
+  built model). The builder adds ``InitialObjective`` (eq. 14 of the initial correspondence)
+  and ``StoppedBy``: why the optimisation ended, "converged" or the limit that came first, "time
+  limit" (``MaxTime``) or "sweep limit" (``MaxSweeps``), the model then being of the
+  correspondence reached so far; absent when nothing was optimised (strategy ``none``, CPD).
 
 All four follow the conventions of :mod:`~mdlshapemodel.vtkfilters`: Set/Get methods that call
 ``Modified()`` only when a value changes, an ``executions`` counter, progress through
@@ -75,6 +78,7 @@ PART_NAMES = "PartNames"
 PART = "part"
 METADATA = "Metadata"
 INITIAL_OBJECTIVE = "InitialObjective"
+STOPPED_BY = "StoppedBy"          # field data of the builder's model: why the optimisation ended
 CASE_NAME = "CaseName"            # field data of a builder input: its case name
 # the builder's progress: reading its inputs up to here, the model and its outputs after END
 START, END = 0.05, 0.95
@@ -308,7 +312,8 @@ class ShapeModelBuilder(_Filter):
 
     Output 0: the model polydata (see :mod:`mdlshapemodel.vtkmodel`): the mean shape with
     ``mode_1``, ``mode_2``, ... at one standard deviation, ``Variances`` and the rest of the model,
-    plus ``InitialObjective``. Output 1 (``GetCorrespondenceOutputPort``): a vtkMultiBlockDataSet
+    plus ``InitialObjective`` and ``StoppedBy`` ("converged", "time limit" or "sweep limit").
+    Output 1 (``GetCorrespondenceOutputPort``): a vtkMultiBlockDataSet
     with the corresponded surface of each input, in input order, named by case
     (``vtkCompositeDataSet.NAME()``), all with the triangles of output 0, in the inputs'
     physical space (mirrored cases reflected back), as ``build`` writes ``correspondence/*.vtp``.
@@ -401,6 +406,9 @@ class ShapeModelBuilder(_Filter):
         model = corresponded.model
         result = model_to_polydata(model)
         _add_field(result, INITIAL_OBJECTIVE, corresponded.initial_objective)
+        stopped_by = corresponded.optimisation.stopped_by
+        if stopped_by is not None:
+            _add_field(result, STOPPED_BY, stopped_by.value)
         blocks = vtk.vtkMultiBlockDataSet()
         shapes = physical_shapes(corresponded.state.raw_shapes(), prepared)
         for i, (name, points) in enumerate(zip(names, shapes)):

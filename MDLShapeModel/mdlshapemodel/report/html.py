@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..correspondence.trace import stop_summary
 from ..errors import MDLShapeModelError
 from ..prepare import io
 from .figures import encoded_png, pyplot
@@ -255,13 +256,14 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     case there.
     """
     objective = metrics["objective"]
+    ending = metrics.get("optimisation", {})    # how it ended; an unconverged one has a warning
     parts = [
         "<h1>MDLShapeModel report</h1>",
         f"<p>{metrics['n_shapes']} shapes, {metrics['n_points']} points each, correspondence "
         f"<b>{html.escape(metrics['strategy'])}</b>; {metrics['n_rejected']} input(s) rejected"
         f"{' (listed at the end)' if metrics['n_rejected'] else ''}. "
-        f"Objective (eq. 14): {objective['initial']:.3f} before, {objective['final']:.3f} after "
-        f"optimisation{' (interrupted)' if metrics['interrupted'] else ''}.</p>",
+        f"Objective (eq. 14): {objective['initial']:.3f} before, {objective['final']:.3f} after. "
+        f"Optimisation: <b>{html.escape(stop_summary(ending.get('stopped_by')))}</b>.</p>",
     ]
     parts += [f"<p class=flag>Warning: {html.escape(warning)}.</p>"
               for warning in metrics.get("warnings", [])]
