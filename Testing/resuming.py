@@ -27,8 +27,8 @@ def optimised_with_checkpoints(state, settings, seed: int = 7):
     generator state, trace rows): the final F, the trace and those checkpoints."""
     rng, trace, saved = np.random.default_rng(seed), Trace(), []
 
-    def checkpoint(point):
-        saved.append((point, copy.deepcopy(state_record(state)), state.evaluations,
+    def checkpoint(point, current):
+        saved.append((point, copy.deepcopy(state_record(current)), current.evaluations,
                       copy.deepcopy(rng.bit_generator.state), list(trace.rows)))
 
     final = optimise(state, build_objectives(state), settings, rng, trace, checkpoint=checkpoint)

@@ -247,11 +247,11 @@ def test_the_fast_gradient_on_a_curve_state_matches_finite_differences(rng):
     state = blobs_state()
     state.objective = build_objectives(state)[1]
     round_ = FieldRound(state, range(state.n_shapes), 1, 2.0)
-    x = rng.uniform(-0.3, 0.3, round_.size) * np.minimum(round_.bounds.ub, 1.0)
+    x = rng.uniform(-0.3, 0.3, round_.size) * np.minimum(round_.limit, 1.0)
     trial = round_.trial(x)
     value, shape_gradient = gradient_at(state, trial.shapes)
     gradient = round_.gradient(trial, shape_gradient)
-    free = np.flatnonzero(round_.bounds.ub > round_.bounds.lb)
+    free = np.flatnonzero(round_.limit > 0)
     assert len(free) < round_.size          # the out-of-plane pose parameters are held at zero
     for k in rng.choice(free, 25, replace=False):
         step = 1e-6 * max(1.0, abs(x[k]))

@@ -388,7 +388,7 @@ def test_simplex_strategies_honour_deadline_progress_and_checkpoint(strategy):
     settings = OptimisationSettings(strategy=strategy, max_time=1.5, fixed_fraction=0.5)
     trace = Trace()
     final = optimise(state, build_objectives(state), settings, np.random.default_rng(0), trace,
-                     progress, lambda point: saved.append((point.phase, point.sweep)))
+                     progress, lambda point, state: saved.append((point.phase, point.sweep)))
     # the simplex stops at the deadline itself; only its row and the rebuild's remain (a phase
     # may end sooner: converged, or after the last level of multiresolution)
     assert_phases_end_at_their_deadlines(trace, settings, late_rows=2, budget_ends=False)
@@ -470,7 +470,7 @@ def test_fast_round_gradient_matches_finite_differences():
     state.objective = build_objectives(state)[1]
     round_ = FieldRound(state, [0, 2], level=1, support=2.0)
     rng = np.random.default_rng(3)
-    upper = round_.bounds.ub
+    upper = round_.limit
     x = rng.uniform(-0.3, 0.3, round_.size) * np.where(np.isfinite(upper), upper, 0.05)
 
     def value(x):

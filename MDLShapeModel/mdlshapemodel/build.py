@@ -507,9 +507,11 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
             trace.start_cpu -= trace.rows[-1].cpu_seconds if trace.rows else 0.0
             resumption = Resumption(resume.point, resume.record, resume.evaluations, elapsed)
 
-        def save(point):
+        def save(point, current=None):
+            """Checkpoint ``point``, reached in ``current`` (the optimisation's coarse stage's
+            own state; by default ``state``)."""
             if checkpoint is not None:
-                checkpoint(state, point, rng, trace)
+                checkpoint(state if current is None else current, point, rng, trace)
 
         try:
             optimise(state, (fixed, integrated), config.optimisation_settings(), rng, trace,

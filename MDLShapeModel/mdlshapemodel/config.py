@@ -51,6 +51,12 @@ class OptimisationSettings:
     # ground-truth error of a femur population with no sliding from 1.134 to 0.992 mm, with each
     # example's size free in the pose)
     field_passes: int = 2
+    # the fast strategy's coarse stage (correspondence/coarse.py): both objectives first on this
+    # many sample points per part (an icosphere: 10 * 4**k + 2), with ``coarse_passes`` passes over
+    # the field levels, then a finishing phase on the build's own points; 0, or a build with no
+    # more points than this, has no coarse stage
+    coarse_points: int = 642
+    coarse_passes: int = 3
     # the simplex strategies (III-D1, III-D2)
     omega_1: float = 0.25          # multiresolution: width of the level-0 kernels (Table I)
     max_levels: int = 4            # multiresolution: levels per phase (12, 30, 120, 480 kernels)
@@ -361,6 +367,10 @@ class BuildConfig:
         _CORRESPONDENCE, "at most N sweeps over the examples (fast: rounds) per phase; unlike "
                          "--max-time, a budget that repeats exactly (default %(default)s)",
         metavar="N"))
+    coarse_points: int = field(default=OptimisationSettings.coarse_points, metadata=option(
+        _CORRESPONDENCE, "fast strategy: optimise first on this many sample points per part, "
+                         "then finish on --points; 0: all on --points (default %(default)s)",
+        metavar="N"))
     seed: int = field(default=0, metadata=option(
         _CORRESPONDENCE, "random seed of the paper's strategies (fast draws no random "
                          "numbers): the same seed and inputs give the same model bit for bit, "
@@ -446,6 +456,8 @@ class BuildConfig:
         need(0 <= self.fixed_fraction <= 1, "fixed_fraction", "must be between 0 and 1")
         need(0 < self.tolerance < 1, "tolerance", "must be between 0 and 1")
         need(self.max_sweeps >= 1, "max_sweeps", "must be at least 1")
+        need(self.coarse_points == 0 or self.coarse_points >= 12, "coarse_points",
+             "must be 0 (no coarse stage) or at least 12")
         need(self.evaluation_modes >= 1, "evaluation_modes", "must be at least 1")
         need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")
         need(self.surface_samples == 0 or self.surface_samples >= 2, "surface_samples",
@@ -473,6 +485,7 @@ class BuildConfig:
                                     max_amplitude=self.max_amplitude, max_time=self.max_time,
                                     fixed_fraction=self.fixed_fraction,
                                     tolerance=self.tolerance, max_sweeps=self.max_sweeps,
+                                    coarse_points=self.coarse_points,
                                     warps=tuple(self.warps), threads=self.workers)
 
     def to_dict(self) -> dict:

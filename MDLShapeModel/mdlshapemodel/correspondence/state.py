@@ -50,6 +50,39 @@ class PartState:
         self.cumulative_area = np.cumsum(areas) / areas.sum()
         self.start_at(grid, grid_triangles)
 
+    def on_grid(self, grid: np.ndarray, grid_cells: np.ndarray) -> "PartState":
+        """The same surface and map sampled on another grid, with the same warps: a new part
+        that shares this one's surface, sphere map and locator (read-only there)."""
+        view = object.__new__(type(self))
+        view.__dict__.update(self.__dict__)
+        view.start_at(grid, grid_cells)
+        if self.warps:
+            view.replay(self.warps)
+        return view
+
+    def replay_unfolded(self, warps: list) -> int:
+        """Set the reparameterization to the longest first part of ``warps`` that, applied to
+        the grid one after the other, flips no grid triangle; returns how many warps that is.
+
+        Every warp is a homeomorphism of the sphere, so a grid triangle can only turn over where
+        a warp varies faster than the grid resolves: warps accepted on a coarser grid are
+        carried over to a finer one with this check. (Only where the whole composition folds
+        are the warps checked one by one.)"""
+        positions = apply_warps(self.grid, warps)
+        kept = list(warps)
+        if self.folds(positions):
+            positions, kept = self.grid, []
+            for warp in warps:
+                moved = warp.apply(positions)
+                if self.folds(moved):
+                    break
+                positions = moved
+                kept.append(warp)
+        self.warps = kept
+        self.positions = np.array(positions, dtype=np.float64)
+        self.points, self.hint = self.sample(self.positions)
+        return len(kept)
+
     def start_at(self, grid: np.ndarray, grid_cells: np.ndarray):
         """No warp yet: the sample positions are the grid's (its triangles, or segments on a
         circle), and the samples are taken there."""

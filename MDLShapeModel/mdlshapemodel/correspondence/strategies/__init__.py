@@ -31,11 +31,16 @@ optimisation.
 
 from __future__ import annotations
 
+import functools
+import logging
 import time
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ...config import STRATEGIES, OptimisationSettings
+from ...parallel import Threads
+from ..coarse import carry_over, coarse_grid_applies, coarse_view
 from ..state import CorrespondenceState, replay_record
 from ..trace import RESTORED_INITIAL, Stop, Trace
 from .base import PhasePoint, Resumption
@@ -54,6 +59,8 @@ PHASES = {
 }
 KEEP_INITIAL = "none"
 
+log = logging.getLogger("mdlshapemodel")
+
 
 def optimise(state: CorrespondenceState, objectives: tuple, settings: OptimisationSettings,
              rng: np.random.Generator, trace: Trace, progress=None, checkpoint=None,
@@ -65,7 +72,8 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
     the full objective's phase ended (None for ``none``, which optimises nothing).
     Raises :class:`Cancelled` (from ``progress``) with the state left consistent.
 
-    ``checkpoint(point)`` is called after every sweep, round, level or iteration with the
+    ``checkpoint(point, state)`` is called after every sweep, round, level or iteration with the
+    state it was reached in (the coarse stage's own, :mod:`..coarse`, during that stage) and the
     :class:`PhasePoint` reached. ``resume``: the initial state is given the checkpoint's state
     and the optimisation carries on from its point (``rng`` must be in the state it had then); a
     run resumed from any checkpoint ends as the uninterrupted run does (bit for bit while the time
@@ -98,32 +106,45 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
                          f"choose one of {', '.join(STRATEGIES)}")
     run = PHASES[settings.strategy]
 
-    phases = [("integrated", integrated, start + settings.max_time)]
-    if settings.fixed_fraction > 0:
-        phases.insert(0, ("fixed", fixed, start + settings.fixed_fraction * settings.max_time))
+    phases = _phases(state, objectives, settings, start, active)
     state.objective = integrated
     initial_value = state.value()
     initial = state.snapshot()
-    point = None
+    point, coarse = None, None
     if resume is not None:
-        replay_record(state, resume.record)
-        state.evaluations = resume.evaluations
         point = resume.point
         if point.phase == PhasePoint.DONE:      # checkpointed once it had converged
+            replay_record(state, resume.record)
+            state.evaluations = resume.evaluations
             trace.stopped_by = Stop.CONVERGED
             return state.value()
-        names = [name for name, _, _ in phases]
+        names = [phase.name for phase in phases]
         if point.phase not in names:
             raise ValueError(f"the checkpoint is of a phase ({point.phase!r}) that these settings "
                              "do not run")
         phases = phases[names.index(point.phase):]
+        resumed = coarse_view(state, settings.coarse_points) if phases[0].coarse else state
+        replay_record(resumed, resume.record)
+        resumed.evaluations = resume.evaluations
+        coarse = resumed if phases[0].coarse else None
+    elif phases[0].coarse:
+        coarse = coarse_view(state, settings.coarse_points)
     try:
-        for name, objective, deadline in phases:
+        for phase in phases:
+            if coarse is not None and not phase.coarse:
+                _finish_coarse_stage(coarse, state, settings)
+                coarse = None
+            current = coarse if phase.coarse else state
             trace.stopped_by = None      # the phase sets it as it ends
-            value = run(state, objective, settings, rng, trace, name, deadline, progress,
-                        checkpoint, active, point if point is not None and name == point.phase
-                        else None)
+            saver = None if checkpoint is None else functools.partial(_checkpoint_of, checkpoint,
+                                                                      current)
+            value = run(current, phase.objective, phase.settings, rng, trace, phase.name,
+                        phase.deadline, progress, saver, active,
+                        point if point is not None and phase.name == point.phase else None,
+                        **phase.options)
     finally:
+        if coarse is not None:      # stopped within the coarse stage: keep what it reached
+            _finish_coarse_stage(coarse, state, settings)
         state.objective = integrated
     if value > initial_value:
         # The fixed-Delta phase optimises another function; with a short budget the full
@@ -132,3 +153,68 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         value = state.value()
         trace.record(state, value, RESTORED_INITIAL, trace.last.sweep if trace.rows else 0)
     return value
+
+
+#: The share of ``max_time`` by which the coarse stage (:mod:`..coarse`) ends, if it has not
+#: converged before; the rest is the finishing phase's on the build's grid.
+COARSE_SHARE = 0.8
+#: The finishing phase on the build's grid after a coarse stage: the fast strategy's two finest
+#: field levels, one pass (the large-scale maps are the coarse stage's).
+FINISHING_LEVELS = (2, 3)
+
+
+@dataclass(frozen=True)
+class Phase:
+    """One phase of :func:`optimise`: its name (the trace's and the checkpoints'), objective,
+    deadline (``time.perf_counter()`` seconds), whether it runs on the coarse grid, the
+    settings it runs with and further keyword options of the phase function."""
+
+    name: str
+    objective: object
+    deadline: float
+    settings: OptimisationSettings
+    coarse: bool = False
+    options: dict = field(default_factory=dict)
+
+
+def _phases(state: CorrespondenceState, objectives: tuple, settings: OptimisationSettings,
+            start: float, active) -> list:
+    """The phases of a run: the fixed-Delta objective's (unless ``fixed_fraction`` is 0), then
+    the full objective's; for the fast strategy on all examples of surfaces sampled more finely
+    than ``coarse_points``, both first on the coarse grid, then a finishing phase of the full
+    objective on the state's own grid."""
+    fixed, integrated = objectives
+    total = settings.max_time
+    staged = (settings.strategy == "fast" and active is None
+              and coarse_grid_applies(state, settings.coarse_points))
+    if not staged:
+        phases = [Phase("integrated", integrated, start + total, settings)]
+        if settings.fixed_fraction > 0:
+            phases.insert(0, Phase("fixed", fixed, start + settings.fixed_fraction * total,
+                                   settings))
+        return phases
+    coarse = replace(settings, field_passes=settings.coarse_passes)
+    phases = [Phase("coarse integrated", integrated, start + COARSE_SHARE * total, coarse, True),
+              Phase("integrated", integrated, start + total, replace(settings, field_passes=1),
+                    options={"levels": FINISHING_LEVELS})]
+    if settings.fixed_fraction > 0:
+        phases.insert(0, Phase("coarse fixed", fixed,
+                               start + settings.fixed_fraction * COARSE_SHARE * total, coarse,
+                               True))
+    return phases
+
+
+def _checkpoint_of(checkpoint, state: CorrespondenceState, point: PhasePoint):
+    """``checkpoint(point, state)``: the point reached and the state it was reached in (the
+    coarse stage's own, during that stage)."""
+    checkpoint(point, state)
+
+
+def _finish_coarse_stage(coarse: CorrespondenceState, state: CorrespondenceState,
+                         settings: OptimisationSettings):
+    """The coarse stage's correspondence carried over to ``state``'s grid."""
+    with Threads(settings.threads) as threads:
+        dropped = carry_over(coarse, state, threads)
+    if dropped:
+        log.warning("%d warp(s) of the coarse stage turned a triangle of the %d-point grid over "
+                    "and were left out", dropped, state.n_points)

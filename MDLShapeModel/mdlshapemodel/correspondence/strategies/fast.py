@@ -2,12 +2,13 @@
 
 One *round* optimises, for all active examples at once, the coefficients of a smooth tangent
 displacement field per part (:mod:`mdlshapemodel.fields`, bumps at the vertices of an icosphere of
-one level) and the example's pose (rotation about its centroid, translation, log scale), by L-BFGS-B
-with box bounds that keep every field a homeomorphism. The gradient of the objective with respect
-to all of them comes from one evaluation of dF/dX (the shapes) chained through the pose, the surface
-(dS/du of the barycentric interpolation) and the field. The round's maps are then composed into the
-sample positions, the state is rebuilt (new area weights), and the next round starts at the same or
-a finer level (coarse to fine), until the objective stops falling or the time is up.
+one level) and the example's pose (rotation about its centroid, translation, log scale), by a
+projected L-BFGS (:mod:`.quasi_newton`) with box bounds that keep every field a homeomorphism.
+The gradient of the objective with respect to all of them comes from one evaluation of dF/dX (the
+shapes) chained through the pose, the surface (dS/du of the barycentric interpolation) and the
+field. The round's maps are then composed into the sample positions, the state is rebuilt (new
+area weights), and the next round starts at the same or a finer level (coarse to fine), until the
+objective stops falling or the time is up.
 
 The per-example steps of an evaluation (the field map, point location and surface Jacobian, and
 their chain rule) run on ``settings.threads`` threads (:class:`~mdlshapemodel.parallel.Threads`),
@@ -20,7 +21,6 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import Bounds, minimize
 
 from ...parallel import Threads
 from ...progress import report
@@ -32,6 +32,7 @@ from ..pose import Pose, weighted_centroid
 from ..warps import FieldWarp
 from ..trace import Stop
 from .base import PhasePoint, budget_spent, stalled, start_phase
+from .quasi_newton import minimize_box
 
 
 #: The bound of the log scale of an example's pose in a round: 0, the size of every example stays
@@ -251,7 +252,7 @@ class FieldRound:
                 limits.append(pose_limits)
         self.size = offset
         limit = np.concatenate(limits)
-        self.bounds = Bounds(-limit, limit)
+        self.limit = limit          # |x| <= limit, element by element
         self.pose_index = np.array(pose_slices).reshape(-1, 7)
         self.scale_of_length = state.target_size
         poses = [state.examples[i].pose for i in self.active]
@@ -343,7 +344,7 @@ class _RoundOutOfTime(Exception):
 def optimise_round(state: CorrespondenceState, objective, active, level: int,
                    max_iterations: int = 30, support: float = 2.0,
                    deadline: float = float("inf"), threads: Threads | None = None) -> float:
-    """One L-BFGS-B round at one field level; returns F after it.
+    """One projected L-BFGS round at one field level; returns F after it.
 
     At ``deadline`` the round stops and keeps the best point it has evaluated.
     """
@@ -363,8 +364,8 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
 
     start_value = fun(np.zeros(round_.size))[0]
     try:
-        minimize(fun, np.zeros(round_.size), jac=True, method="L-BFGS-B", bounds=round_.bounds,
-                 options={"maxiter": max_iterations, "ftol": 1e-9, "gtol": 1e-10})
+        minimize_box(fun, np.zeros(round_.size), -round_.limit, round_.limit, max_iterations,
+                     ftol=1e-9, gtol=1e-10)
     except _RoundOutOfTime:
         pass
     value, x, trial = cache["best"]

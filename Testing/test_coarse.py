@@ -1,0 +1,126 @@
+"""The fast strategy's coarse stage: optimised on fewer sample points, carried over to the build's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mdlshapemodel.config import BuildConfig, OptimisationSettings
+from mdlshapemodel.correspondence.coarse import carry_over, coarse_grid_applies, coarse_view
+from mdlshapemodel.correspondence.fields import FieldBasis
+from mdlshapemodel.correspondence.state import state_record
+from mdlshapemodel.correspondence.strategies import optimise
+from mdlshapemodel.correspondence.trace import Trace
+from mdlshapemodel.correspondence.warps import FieldWarp, apply_warps
+from mdlshapemodel.errors import ConfigError
+from mdlshapemodel.parallel import Threads
+
+from resuming import assert_same_record, optimised_with_checkpoints, resumed_from
+from synthetic import build_objectives, small_state
+
+STAGED = OptimisationSettings(strategy="fast", max_time=1e6, fixed_fraction=0.5, coarse_points=42,
+                              max_sweeps=6)
+
+
+def test_a_coarse_view_samples_the_same_surfaces_on_its_own_grid():
+    state = small_state(points=162)
+    coarse = coarse_view(state, 42)
+    assert coarse.n_points == 42 and coarse.n_shapes == state.n_shapes
+    for example, source in zip(coarse.examples, state.examples):
+        part, fine = example.parts[0], source.parts[0]
+        assert part.vertices is fine.vertices and part.locator is fine.locator   # shared
+        assert np.array_equal(part.positions, part.grid) and len(part.grid) == 42
+        # the samples lie on the example's surface where the sphere map sends the grid
+        assert np.allclose(part.points, part.sample(part.grid)[0])
+    assert coarse.target_size == state.target_size
+    assert fine.positions.shape == (162, 3)            # the state's own parts are untouched
+
+
+def test_carrying_over_gives_the_fine_grid_the_coarse_maps_and_poses():
+    state = small_state(points=162)
+    coarse = coarse_view(state, 42)
+    rng = np.random.default_rng(2)
+    for example in coarse.examples:   # a map per part, as a round of the fast strategy commits
+        part = example.parts[0]
+        basis = FieldBasis.icosphere_level(1, part.positions, 2.0)
+        coefficients = rng.uniform(-0.3, 0.3, (basis.n_centres, 3)) * basis.max_coefficient()
+        warp = FieldWarp(1, 2.0, coefficients)
+        moved = warp.apply(part.positions)
+        part.commit(warp, moved, *part.sample(moved))
+        example.pose.translation = example.pose.translation + rng.normal(0, 0.1, 3)
+    coarse.evaluations = 17
+    with Threads(2) as threads:
+        assert carry_over(coarse, state, threads) == 0
+    assert state.evaluations == 17
+    for example, source in zip(state.examples, coarse.examples):
+        part = example.parts[0]
+        assert part.warps == source.parts[0].warps
+        assert np.array_equal(part.positions, apply_warps(part.grid, part.warps))
+        assert np.allclose(part.points, part.sample(part.positions)[0])
+    # the poses are the coarse ones up to the rescaling every rebuild applies
+    ratio = [e.pose.scale / s.pose.scale for e, s in zip(state.examples, coarse.examples)]
+    assert np.allclose(ratio, ratio[0])
+
+
+def test_a_warp_that_turns_a_fine_grid_triangle_over_is_left_out_with_the_ones_after_it():
+    state = small_state(points=162)
+    part = state.examples[0].parts[0]
+    basis = FieldBasis.icosphere_level(2, part.grid, 2.0)
+    gentle = FieldWarp(2, 2.0, np.full((basis.n_centres, 3), 0.2 * basis.max_coefficient()))
+    violent = FieldWarp(2, 2.0, np.random.default_rng(0).normal(0, 2.0, (basis.n_centres, 3)))
+    assert part.folds(violent.apply(gentle.apply(part.grid)))
+    assert part.replay_unfolded([gentle, violent, gentle]) == 1
+    assert part.warps == [gentle] and not part.folds(part.positions)
+
+
+def test_the_staged_optimisation_runs_both_objectives_coarse_then_finishes_on_the_build_grid():
+    state = small_state(points=162)
+    objectives = build_objectives(state)
+    state.objective = objectives[1]
+    start = state.value()
+    trace = Trace()
+    final = optimise(state, objectives, STAGED, np.random.default_rng(0), trace)
+    phases = list(dict.fromkeys(row.phase for row in trace.rows))
+    assert phases == ["coarse fixed", "coarse integrated", "integrated"]
+    assert final < start and final == pytest.approx(state.value())
+    # every part's map is a recorded composition of warps, as a state record needs
+    for example in state.examples:
+        part = example.parts[0]
+        assert len(part.warps) > 0
+        assert np.array_equal(part.positions, apply_warps(part.grid, part.warps))
+    assert [row.evaluations for row in trace.rows] == sorted(row.evaluations for row in trace.rows)
+
+
+def test_no_coarse_stage_where_it_cannot_help():
+    state = small_state(points=162)
+    assert coarse_grid_applies(state, 42) and not coarse_grid_applies(state, 162)
+    assert not coarse_grid_applies(state, 0)
+    for settings in (OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=2,
+                                          coarse_points=0),                 # switched off
+                     OptimisationSettings(strategy="one-at-a-time", max_time=1e6, max_sweeps=1,
+                                          coarse_points=42)):                # not the fast one
+        trace = Trace()
+        fresh = small_state(points=162)
+        optimise(fresh, build_objectives(fresh), settings, np.random.default_rng(0), trace)
+        assert not any(row.phase.startswith("coarse") for row in trace.rows)
+        assert "integrated" in {row.phase for row in trace.rows}
+    with pytest.raises(ConfigError, match="coarse_points"):
+        BuildConfig(coarse_points=5).validate()
+
+
+def test_resumed_from_any_checkpoint_of_either_stage_it_ends_as_the_uninterrupted_run():
+    state = small_state(points=162)
+    final, trace, saved = optimised_with_checkpoints(state, STAGED)
+    expected = state_record(state)
+    phases = [point.phase for point, *_ in saved]
+    assert {"coarse fixed", "coarse integrated", "integrated"} <= set(phases)
+    # the last checkpoint of the coarse stage, the first of the finishing phase, and the end
+    chosen = [saved[phases.index("coarse integrated")],
+              saved[len(phases) - 1 - phases[::-1].index("coarse integrated")],
+              saved[phases.index("integrated")], saved[-1]]
+    for entry in chosen:
+        resumed = small_state(points=162)
+        value, resumed_trace = resumed_from(resumed, STAGED, entry)
+        assert value == final, (entry[0].phase, entry[0].sweep)
+        assert_same_record(state_record(resumed), expected)
+        assert [r[2:] for r in resumed_trace.rows] == [r[2:] for r in trace.rows]

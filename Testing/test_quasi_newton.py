@@ -1,0 +1,111 @@
+"""The projected L-BFGS of the fast strategy's rounds against SciPy's L-BFGS-B and known minima."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from mdlshapemodel.correspondence.strategies.quasi_newton import (minimize_box,
+                                                                   projected_gradient)
+
+
+def bounded_problem(n: int, seed: int):
+    """A smooth convex function whose unconstrained minimum lies partly outside the box."""
+    rng = np.random.default_rng(seed)
+    scale = rng.uniform(1.0, 10.0, n)
+    centre = rng.normal(0.0, 0.1, n)
+    limit = np.full(n, 0.08)
+    limit[::7] = np.inf
+
+    def fun(x):
+        r = x - centre
+        return float(0.5 * np.sum(scale * r * r) + 0.25 * np.sum(r ** 4)), scale * r + r ** 3
+    return fun, -limit, limit, centre
+
+
+def test_reaches_the_box_minimum_that_scipy_finds():
+    fun, lower, upper, centre = bounded_problem(500, 1)
+    ours = minimize_box(fun, np.zeros(500), lower, upper, max_iterations=200, ftol=1e-15,
+                        gtol=1e-10)
+    theirs = minimize(fun, np.zeros(500), jac=True, method="L-BFGS-B",
+                      bounds=list(zip(lower, upper)), options={"ftol": 1e-15, "gtol": 1e-10})
+    assert np.allclose(ours.x, theirs.x, atol=1e-6)
+    # the separable problem's minimum: the unconstrained one clipped into the box
+    assert np.allclose(ours.x, np.clip(centre, lower, upper), atol=1e-6)
+    assert ours.value <= theirs.fun + 1e-9
+    assert np.max(np.abs(projected_gradient(ours.x, ours.gradient, lower, upper))) < 1e-5
+
+
+def test_never_evaluates_outside_the_box():
+    fun, lower, upper, _ = bounded_problem(300, 2)
+    seen = []
+
+    def recorded(x):
+        seen.append(x.copy())
+        return fun(x)
+
+    minimize_box(recorded, np.full(300, 5.0), lower, upper, max_iterations=50)
+    points = np.array(seen)
+    assert len(points) > 10
+    assert np.all(points >= lower) and np.all(points <= upper)
+
+
+def test_minimises_rosenbrock_without_bounds():
+    def rosenbrock(x):
+        value = np.sum(100.0 * (x[1:] - x[:-1] ** 2) ** 2 + (1.0 - x[:-1]) ** 2)
+        gradient = np.zeros_like(x)
+        gradient[:-1] = -400.0 * x[:-1] * (x[1:] - x[:-1] ** 2) - 2.0 * (1.0 - x[:-1])
+        gradient[1:] += 200.0 * (x[1:] - x[:-1] ** 2)
+        return float(value), gradient
+
+    result = minimize_box(rosenbrock, np.full(6, -1.2), np.full(6, -np.inf),
+                          np.full(6, np.inf), max_iterations=500, ftol=0.0, gtol=1e-8)
+    assert np.allclose(result.x, 1.0, atol=1e-4)
+    assert result.stop == "gtol"
+
+
+def test_stops_on_its_iteration_limit_and_its_tolerances():
+    fun, lower, upper, centre = bounded_problem(100, 3)
+    limited = minimize_box(fun, np.zeros(100), lower, upper, max_iterations=3, ftol=0.0,
+                           gtol=0.0)
+    assert (limited.iterations, limited.stop) == (3, "iterations")
+    at_minimum = np.clip(centre, lower, upper)
+    assert minimize_box(fun, at_minimum, lower, upper, gtol=1e-9).stop == "gtol"
+    relaxed = minimize_box(fun, np.zeros(100), lower, upper, max_iterations=1000, ftol=1e-3)
+    assert relaxed.stop == "ftol" and relaxed.iterations < 1000
+
+
+def test_a_wrong_gradient_ends_in_a_failed_line_search_without_moving():
+    def uphill(x):      # the gradient's sign is wrong: no step along -g lowers F
+        return float(np.sum(x ** 2)), -2.0 * x
+
+    start = np.array([1.0, -2.0, 0.5])
+    result = minimize_box(uphill, start, np.full(3, -10.0), np.full(3, 10.0))
+    assert result.stop == "line search"
+    assert np.array_equal(result.x, start)
+
+
+def test_the_same_inputs_give_the_same_iterates_bit_for_bit():
+    fun, lower, upper, _ = bounded_problem(2000, 4)
+    first = minimize_box(fun, np.zeros(2000), lower, upper)
+    second = minimize_box(fun, np.zeros(2000), lower, upper)
+    assert np.array_equal(first.x, second.x) and first.value == second.value
+
+
+def test_exceptions_of_the_function_pass_through_and_bad_bounds_are_refused():
+    class Stop(Exception):
+        pass
+
+    calls = []
+
+    def stops_on_the_third_call(x):
+        calls.append(1)
+        if len(calls) == 3:
+            raise Stop
+        return float(np.sum(x ** 2)), 2.0 * x
+
+    with pytest.raises(Stop):
+        minimize_box(stops_on_the_third_call, np.ones(4), np.full(4, -5.0), np.full(4, 5.0))
+    with pytest.raises(ValueError, match="lower bound exceeds"):
+        minimize_box(stops_on_the_third_call, np.ones(2), np.array([0.0, 2.0]), np.ones(2))
