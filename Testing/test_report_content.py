@@ -93,3 +93,23 @@ def test_the_viewer_colours_a_case_by_its_distance_to_its_input(report):
         # the largest per-point value is the case's largest input-to-mesh distance (cases.csv)
         assert abs(per_point.max() - min(fidelity[name], top)) <= top / 255 + 1e-9, name
     assert "a case's distance to its input surface" in page
+
+
+def test_the_convergence_plot_has_a_panel_per_phase_the_coarse_stage_included(tmp_path):
+    import base64
+    import struct
+
+    from mdlshapemodel.prepare import io
+    from mdlshapemodel.report.html import convergence_plot
+
+    def width(phases) -> int:
+        path = tmp_path / f"{len(phases)}.csv"
+        io.write_csv(path, ("wall_seconds", "objective", "phase"),
+                     [(float(k), 100.0 - k, phase) for phase in phases for k in range(3)])
+        png = base64.b64decode(convergence_plot(path))
+        return struct.unpack(">I", png[16:20])[0]          # the IHDR chunk's width
+
+    one = width(["integrated"])
+    # three panels side by side (the page's margins are cropped: less than 3 times as wide)
+    assert 2.4 * one < width(["coarse fixed", "coarse integrated", "integrated"]) < 3.1 * one
+    assert 1.6 * one < width(["fixed", "integrated"]) < 2.1 * one

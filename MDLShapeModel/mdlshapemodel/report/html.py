@@ -59,7 +59,9 @@ def convergence_plot(path: Path) -> str | None:
     if len(rows) < 2:
         return None
     plt = pyplot()
-    titles = {"fixed": "fixed-Delta objective (eq. 13)", "integrated": "objective (eq. 14)"}
+    titles = {"coarse fixed": "fixed-Delta objective (eq. 13), coarse grid",
+              "coarse integrated": "objective (eq. 14), coarse grid",
+              "fixed": "fixed-Delta objective (eq. 13)", "integrated": "objective (eq. 14)"}
     phases = [p for p in titles if any(r["phase"] == p for r in rows)]
     figure, axes = plt.subplots(1, len(phases), figsize=(5.5 * len(phases), 3.4), squeeze=False)
     for axis, phase in zip(axes[0], phases):
