@@ -281,10 +281,14 @@ class FieldRound:
                                      self.translation0 - self.centres)
         posed = hotloops.apply_poses(about, scale, rotation,
                                      self.centres + self.scale_of_length * p[:, 3:6])
-        shapes = self.state.shapes.copy()
-        shapes[self.active] = posed
-        return _Trial(x=np.array(x, copy=True), located=located, raw=raw, about=about, rotation=rotation,
-                      jacobian=jacobian, scale=scale, shapes=shapes, pose=p)
+        if len(self.active) == self.state.n_shapes and np.array_equal(
+                self.active, np.arange(self.state.n_shapes)):
+            shapes = posed          # every example moves (a round of the whole population)
+        else:
+            shapes = self.state.shapes.copy()
+            shapes[self.active] = posed
+        return _Trial(x=np.array(x, copy=True), located=located, raw=raw, about=about,
+                      rotation=rotation, jacobian=jacobian, scale=scale, shapes=shapes, pose=p)
 
     def gradient(self, trial: _Trial, shape_gradient: np.ndarray) -> np.ndarray:
         """dF/dx from dF/dX (n_s, n_p, 3)."""
