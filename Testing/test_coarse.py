@@ -124,3 +124,14 @@ def test_resumed_from_any_checkpoint_of_either_stage_it_ends_as_the_uninterrupte
         assert value == final, (entry[0].phase, entry[0].sweep)
         assert_same_record(state_record(resumed), expected)
         assert [r[2:] for r in resumed_trace.rows] == [r[2:] for r in trace.rows]
+
+
+def test_the_staged_optimisation_gives_the_same_correspondence_on_any_number_of_threads():
+    records = []
+    for threads in (1, 3):
+        state = small_state(points=162)
+        settings = OptimisationSettings(strategy="fast", max_time=1e6, fixed_fraction=0.5,
+                                        coarse_points=42, max_sweeps=4, threads=threads)
+        optimise(state, build_objectives(state), settings, np.random.default_rng(0), Trace())
+        records.append(state_record(state))
+    assert_same_record(*records)
