@@ -47,7 +47,7 @@ def _measure(path: str, labels: list, mirror: list, method: str):
 
 
 def _baseline_mb():
-    import mdlshapemodel.build  # noqa: F401  (imports VTK, SimpleITK, pymeshlab, lapy)
+    import mdlshapemodel.build  # noqa: F401  (imports VTK, SimpleITK, SciPy, numba)
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
