@@ -252,7 +252,7 @@ def test_decimate_and_remesh_keep_a_sphere():
 
 
 def test_resample_coarsens_a_fine_surface_to_the_target_and_keeps_its_shape():
-    # 40,962 vertices, more than PRE_DECIMATION x the target: decimated, then remeshed
+    # 40,962 vertices, 20 times the target: remeshed to it
     points, faces = icosphere(6)
     points = points * np.array([30.0, 10.0, 10.0])
     vertices, resampled = resample(points, faces, target_vertices=2000, edge_length=0.01)
@@ -431,3 +431,34 @@ def test_mesh_with_scrambled_orientation_is_repaired_in_the_pipeline(tmp_path):
     assert not hasattr(case, "reason"), getattr(case, "reason", "")
     assert "made the orientation of" in case.repair
     assert case.map.quality["flipped_triangles"] == 0
+
+
+def test_fill_holes_is_scipy_s_binary_fill_holes():
+    from scipy import ndimage
+
+    from mdlshapemodel.prepare.surface import fill_holes
+
+    rng = np.random.default_rng(11)
+    for density in (0.2, 0.5, 0.7):             # many cavities, of all shapes, some at the border
+        mask = rng.random((14, 17, 19)) < density
+        np.testing.assert_array_equal(fill_holes(mask), ndimage.binary_fill_holes(mask))
+    shell = np.zeros((9, 9, 9), dtype=bool)
+    shell[1:8, 1:8, 1:8] = True
+    shell[3:6, 3:6, 3:6] = False
+    np.testing.assert_array_equal(fill_holes(shell)[1:8, 1:8, 1:8], True)
+    np.testing.assert_array_equal(fill_holes(np.ones((3, 3, 3), dtype=bool)), True)
+    np.testing.assert_array_equal(fill_holes(np.zeros((3, 3, 3), dtype=bool)), False)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 1.5])
+def test_the_blur_sampled_on_every_second_voxel_is_the_full_blur_sampled(sigma):
+    from scipy import ndimage
+
+    from mdlshapemodel.prepare.surface import blurred
+
+    field = (np.random.default_rng(2).random((21, 18, 25)) < 0.4).astype(np.float32)
+    full = ndimage.gaussian_filter(field, sigma) if sigma else field
+    for step in (1, 2):
+        sampled = blurred(field, sigma, step)
+        assert sampled.dtype == np.float32
+        np.testing.assert_array_equal(sampled, full[::step, ::step, ::step])   # bit for bit

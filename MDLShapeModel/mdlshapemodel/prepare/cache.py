@@ -39,7 +39,9 @@ CACHE_FORMAT = 2   # 2: the preparation facts as named fields
 # 6: files checked before they are read (docs/inputs.md, "Rejections"): valid inputs give the same results,
 #    but damaged ones that were prepared (a .nii.gz cut short) are rejected now, and a 4-D image
 #    of one volume is prepared: verdicts cached by 5 must not be reused.
-PREPROCESSING_VERSION = 6
+# 7: the compiled remesher of prepare/remesh.py, the harmonic conformal map of prepare/conformal.py
+#    and a Laplacian-preconditioned distortion minimisation (surfaces and maps differ).
+PREPROCESSING_VERSION = 7
 PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
                         "smoothing_sigma", "max_smoothing_sigma", "edge_length",
                         "target_vertices")

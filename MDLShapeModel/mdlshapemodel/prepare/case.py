@@ -129,13 +129,24 @@ def is_mirrored(path, config: BuildConfig) -> bool:
     return any(fnmatch.fnmatch(name, pattern) for pattern in config.mirror)
 
 
+_BLAS_CONTROLLER = []      # the process's threadpoolctl controller, made on first use
+
+
 @contextmanager
 def one_blas_thread():
     """One BLAS thread while preparing a case: the same arithmetic, bit for bit, in a worker
-    process, in the main process and in a VTK pipeline."""
-    from threadpoolctl import threadpool_limits
+    process, in the main process and in a VTK pipeline.
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    The BLAS libraries are looked up once per process (a look-up lists every loaded shared
+    library, several milliseconds), after loading SciPy's, so that the controller knows both
+    NumPy's and SciPy's.
+    """
+    if not _BLAS_CONTROLLER:
+        import scipy.linalg  # noqa: F401  (loads SciPy's BLAS)
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS_CONTROLLER.append(ThreadpoolController())
+    with _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas"):
         yield
 
 

@@ -22,8 +22,10 @@ MAX_CELLS_PER_TRIANGLE = 8.0
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
-    """The point of triangle abc nearest to p, into ``out`` (3,); returns its squared distance.
+def closest_point_and_region(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
+    """The point of triangle abc nearest to p, into ``out`` (3,); returns its squared distance
+    and where it lies: -1 inside the triangle, k = 0, 1, 2 at corner k (a, b, c), 3 + k on the
+    edge opposite corner k.
 
     With ab = b - a, ac = c - a, ap = p - a and d1 = ab.ap, d2 = ac.ap (and the same from b and
     c), the sign of these dot products and of the barycentric numerators tells which vertex, edge
@@ -33,8 +35,10 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
     apx, apy, apz = px - ax, py - ay, pz - az
     d1 = abx * apx + aby * apy + abz * apz
     d2 = acx * apx + acy * apy + acz * apz
+    region = -1
     if d1 <= 0.0 and d2 <= 0.0:                       # vertex a
         qx, qy, qz = ax, ay, az
+        region = 0
     else:
         bpx, bpy, bpz = px - bx, py - by, pz - bz
         d3 = abx * bpx + aby * bpy + abz * bpz
@@ -42,9 +46,11 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
         vc = d1 * d4 - d3 * d2
         if d3 >= 0.0 and d4 <= d3:                    # vertex b
             qx, qy, qz = bx, by, bz
+            region = 1
         elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:   # edge ab
             t = d1 / (d1 - d3)
             qx, qy, qz = ax + t * abx, ay + t * aby, az + t * abz
+            region = 5
         else:
             cpx, cpy, cpz = px - cx, py - cy, pz - cz
             d5 = abx * cpx + aby * cpy + abz * cpz
@@ -53,16 +59,20 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
             va = d3 * d6 - d5 * d4
             if d6 >= 0.0 and d5 <= d6:                # vertex c
                 qx, qy, qz = cx, cy, cz
+                region = 2
             elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:   # edge ac
                 t = d2 / (d2 - d6)
                 qx, qy, qz = ax + t * acx, ay + t * acy, az + t * acz
+                region = 4
             elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:   # edge bc
                 t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
                 qx, qy, qz = bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz)
+                region = 3
             else:                                     # inside: barycentric (u, v, w)
                 total = va + vb + vc
                 if total <= 0.0:                      # zero area, no edge region met: a
                     qx, qy, qz = ax, ay, az
+                    region = 0
                 else:
                     v = vb / total
                     w = vc / total
@@ -71,7 +81,14 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
                     qz = az + abz * v + acz * w
     out[0], out[1], out[2] = qx, qy, qz
     dx, dy, dz = px - qx, py - qy, pz - qz
-    return dx * dx + dy * dy + dz * dz
+    return dx * dx + dy * dy + dz * dz, region
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
+    """The point of triangle abc nearest to p, into ``out`` (3,); returns its squared distance
+    (:func:`closest_point_and_region`)."""
+    return closest_point_and_region(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out)[0]
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -10,6 +10,12 @@ import numba
 import numpy as np
 
 
+def no_factor() -> tuple:
+    """The ``factor`` argument of :func:`lbfgs` for no preconditioner."""
+    return (np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0),
+            np.zeros(0), np.zeros(0, dtype=np.int64))
+
+
 @numba.njit(cache=True)
 def distortion_energy(x, faces, cot, area, area_weight, grad):
     """Energy of the sphere points ``x``; fills ``grad`` (n, 3) when it has rows (else skips it).
@@ -64,6 +70,93 @@ def distortion_energy(x, faces, cot, area, area_weight, grad):
 
 
 @numba.njit(cache=True)
+def balance_objective(v, points, faces, target_log_share, smoothing, gradient):
+    """Smoothed mean |ln area ratio| of the triangles after the Moebius transformation with
+    centre c = v / sqrt(1 + |v|^2) (see :func:`.sphere.balance_objective`); its gradient with
+    respect to ``v`` into ``gradient`` (3,).
+
+    Each point x goes to y = (1 - |c|^2) (x - c) / |x - c|^2 - c. The ratio of a triangle is
+    its share of the chord triangles' total area over ``exp(target_log_share)``; the gradient
+    runs back through the areas (d|n| / dp0 = (p1 - p2) x n / |n|, cyclically) and y.
+    """
+    n = points.shape[0]
+    m = faces.shape[0]
+    scale = np.sqrt(1.0 + v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    c0, c1, c2 = v[0] / scale, v[1] / scale, v[2] / scale
+    factor = 1.0 - (c0 * c0 + c1 * c1 + c2 * c2)
+    y = np.empty((n, 3))
+    dd = np.empty(n)
+    for i in range(n):
+        d0, d1, d2 = points[i, 0] - c0, points[i, 1] - c1, points[i, 2] - c2
+        dd[i] = d0 * d0 + d1 * d1 + d2 * d2
+        y[i, 0] = factor * d0 / dd[i] - c0
+        y[i, 1] = factor * d1 / dd[i] - c1
+        y[i, 2] = factor * d2 / dd[i] - c2
+    normal = np.empty((m, 3))
+    twice_area = np.empty(m)
+    total = 0.0
+    for t in range(m):
+        i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+        ux, uy, uz = y[i1, 0] - y[i0, 0], y[i1, 1] - y[i0, 1], y[i1, 2] - y[i0, 2]
+        wx, wy, wz = y[i2, 0] - y[i0, 0], y[i2, 1] - y[i0, 1], y[i2, 2] - y[i0, 2]
+        nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        normal[t, 0], normal[t, 1], normal[t, 2] = nx, ny, nz
+        twice_area[t] = max(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-300)
+        total += twice_area[t]
+    log_total = np.log(total)
+    value = 0.0
+    h = np.empty(m)
+    h_sum = 0.0
+    for t in range(m):
+        log_ratio = np.log(twice_area[t]) - log_total - target_log_share[t]
+        smooth = np.sqrt(log_ratio * log_ratio + smoothing * smoothing)
+        value += smooth
+        h[t] = log_ratio / smooth / m
+        h_sum += h[t]
+    g_y = np.zeros((n, 3))
+    for t in range(m):
+        i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+        d_area = h[t] / twice_area[t] - h_sum / total
+        ux = normal[t, 0] * d_area / twice_area[t]
+        uy = normal[t, 1] * d_area / twice_area[t]
+        uz = normal[t, 2] * d_area / twice_area[t]
+        for corner, j1, j2 in ((i0, i1, i2), (i1, i2, i0), (i2, i0, i1)):
+            ex, ey, ez = y[j1, 0] - y[j2, 0], y[j1, 1] - y[j2, 1], y[j1, 2] - y[j2, 2]
+            g_y[corner, 0] += ey * uz - ez * uy
+            g_y[corner, 1] += ez * ux - ex * uz
+            g_y[corner, 2] += ex * uy - ey * ux
+    # through y = factor d / dd - c, d = x - c:
+    # dy/dc^T g = -2 c (d.g)/dd - factor (g - 2 d (d.g)/dd) / dd - g
+    dg_sum = 0.0
+    s0 = s1 = s2 = 0.0       # sum g / dd
+    r0 = r1 = r2 = 0.0       # sum d (d.g) / dd^2
+    t0 = t1 = t2 = 0.0       # sum g
+    for i in range(n):
+        d0, d1, d2 = points[i, 0] - c0, points[i, 1] - c1, points[i, 2] - c2
+        dg = (d0 * g_y[i, 0] + d1 * g_y[i, 1] + d2 * g_y[i, 2]) / dd[i]
+        dg_sum += dg
+        s0 += g_y[i, 0] / dd[i]
+        s1 += g_y[i, 1] / dd[i]
+        s2 += g_y[i, 2] / dd[i]
+        r0 += d0 * (dg / dd[i])
+        r1 += d1 * (dg / dd[i])
+        r2 += d2 * (dg / dd[i])
+        t0 += g_y[i, 0]
+        t1 += g_y[i, 1]
+        t2 += g_y[i, 2]
+    g0 = -2.0 * c0 * dg_sum - factor * (s0 - 2.0 * r0) - t0
+    g1 = -2.0 * c1 * dg_sum - factor * (s1 - 2.0 * r1) - t1
+    g2 = -2.0 * c2 * dg_sum - factor * (s2 - 2.0 * r2) - t2
+    # c = v / scale: dc/dv = I / scale - v v^T / scale^3 (symmetric)
+    vg = v[0] * g0 + v[1] * g1 + v[2] * g2
+    cube = scale * scale * scale
+    gradient[0] = g0 / scale - v[0] * vg / cube
+    gradient[1] = g1 / scale - v[1] * vg / cube
+    gradient[2] = g2 / scale - v[2] * vg / cube
+    return value / m
+
+
+@numba.njit(cache=True)
 def _tangent(x, v, out):
     """out = v minus its component along x, row by row (out may be v)."""
     for i in range(x.shape[0]):
@@ -75,11 +168,16 @@ def _tangent(x, v, out):
 
 @numba.njit(cache=True)
 def _dot(a, b):
-    """Sum of a * b over two (n, 3) arrays, without temporaries."""
-    total = 0.0
+    """Sum of a * b over two (n, 3) arrays, without temporaries (one running sum per column, so
+    that the three chains of additions overlap)."""
+    total_x = 0.0
+    total_y = 0.0
+    total_z = 0.0
     for i in range(a.shape[0]):
-        total += a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1] + a[i, 2] * b[i, 2]
-    return total
+        total_x += a[i, 0] * b[i, 0]
+        total_y += a[i, 1] * b[i, 1]
+        total_z += a[i, 2] * b[i, 2]
+    return total_x + total_y + total_z
 
 
 @numba.njit(cache=True)
@@ -92,9 +190,78 @@ def _add_scaled(out, factor, v):
 
 
 @numba.njit(cache=True)
-def _line_search(faces, cot, area, area_weight, x, energy, direction, slope, trial, no_gradient,
+def _largest_magnitude(v):
+    """max |v_ij| of an (n, 3) array."""
+    largest = 0.0
+    for i in range(v.shape[0]):
+        for k in range(3):
+            largest = max(largest, abs(v[i, k]))
+    return largest
+
+
+@numba.njit(cache=True)
+def solve_factor(lower_start, lower_row, lower_value, pivot, permutation, b, work):
+    """b <- A^-1 b for the six columns of ``b`` (n, 6): two vector fields at once, which costs
+    less than two solves (the factor is read once). A = P^T L D L^T P.
+
+    ``L`` is unit lower triangular, given by its entries below the diagonal in compressed
+    columns (``lower_start``, ``lower_row``, ``lower_value``), ``D`` = diag(``pivot``), and P
+    the permutation with (P b)[permutation[i]] = b[i]. ``work`` is a scratch array like ``b``.
+    The six columns are written out: a loop over them runs at half the speed.
+    """
+    n = b.shape[0]
+    if b.shape[1] != 6 or work.shape[0] != n or work.shape[1] != 6:
+        raise ValueError("solve_factor solves (n, 6) arrays")
+    for i in range(n):
+        p = permutation[i]
+        for c in range(6):
+            work[p, c] = b[i, c]
+    for j in range(n):                     # L y = P b, by columns of L
+        w0, w1, w2 = work[j, 0], work[j, 1], work[j, 2]
+        w3, w4, w5 = work[j, 3], work[j, 4], work[j, 5]
+        for k in range(lower_start[j], lower_start[j + 1]):
+            i = lower_row[k]
+            value = lower_value[k]
+            work[i, 0] -= value * w0
+            work[i, 1] -= value * w1
+            work[i, 2] -= value * w2
+            work[i, 3] -= value * w3
+            work[i, 4] -= value * w4
+            work[i, 5] -= value * w5
+    for j in range(n):
+        inverse = 1.0 / pivot[j]
+        for c in range(6):
+            work[j, c] *= inverse
+    for j in range(n - 1, -1, -1):         # L^T z = D^-1 y: column j of L is row j of L^T
+        s0, s1, s2 = work[j, 0], work[j, 1], work[j, 2]
+        s3, s4, s5 = work[j, 3], work[j, 4], work[j, 5]
+        for k in range(lower_start[j], lower_start[j + 1]):
+            i = lower_row[k]
+            value = lower_value[k]
+            s0 -= value * work[i, 0]
+            s1 -= value * work[i, 1]
+            s2 -= value * work[i, 2]
+            s3 -= value * work[i, 3]
+            s4 -= value * work[i, 4]
+            s5 -= value * work[i, 5]
+        work[j, 0] = s0
+        work[j, 1] = s1
+        work[j, 2] = s2
+        work[j, 3] = s3
+        work[j, 4] = s4
+        work[j, 5] = s5
+    for i in range(n):
+        p = permutation[i]
+        for c in range(6):
+            b[i, c] = work[p, c]
+
+
+@numba.njit(cache=True)
+def _line_search(faces, cot, area, area_weight, x, energy, direction, slope, trial, trial_raw,
                  max_halvings=30):
-    """Backtracking (Armijo) along ``direction`` with retraction into ``trial``.
+    """Backtracking (Armijo) along ``direction`` with retraction into ``trial``; the energy's
+    gradient at the accepted trial point is left in ``trial_raw`` (computed with each trial
+    energy: the first step is usually taken).
 
     Returns the accepted trial energy, or infinity when no step is accepted.
     """
@@ -108,7 +275,7 @@ def _line_search(faces, cot, area, area_weight, x, energy, direction, slope, tri
             trial[i, 0] = tx / norm
             trial[i, 1] = ty / norm
             trial[i, 2] = tz / norm
-        trial_energy = distortion_energy(trial, faces, cot, area, area_weight, no_gradient)
+        trial_energy = distortion_energy(trial, faces, cot, area, area_weight, trial_raw)
         if np.isfinite(trial_energy) and trial_energy <= energy + 1e-4 * step * slope:
             return trial_energy
         step *= 0.5
@@ -116,13 +283,40 @@ def _line_search(faces, cot, area, area_weight, x, energy, direction, slope, tri
 
 
 @numba.njit(cache=True)
-def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory):
+def _steepest(x, grad, factor, direction, joint, joint_work):
+    """A small first step: minus the (preconditioned, when ``factor`` has pivots) gradient,
+    scaled so that no coordinate moves by more than 1e-3; returns its slope. ``joint`` and
+    ``joint_work`` are (n, 6) scratch arrays."""
+    direction[:] = grad
+    if factor[3].shape[0] > 0:
+        joint[:, :3] = grad
+        joint[:, 3:] = 0.0
+        solve_factor(factor[0], factor[1], factor[2], factor[3], factor[4], joint, joint_work)
+        _tangent(x, joint[:, :3], direction)
+    direction *= -1e-3 / max(_largest_magnitude(direction), 1e-300)
+    return _dot(direction, grad)
+
+
+@numba.njit(cache=True)
+def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory, factor,
+          window):
     """Riemannian L-BFGS of :func:`distortion_energy` from the fold-free ``x`` (modified in place).
+
+    ``factor`` is a preconditioner (the arguments of :func:`solve_factor` after the matrix, a
+    Laplacian of the surface: see :func:`.sphere.laplacian_factor`), or arrays of length 0 for
+    none. With it, the inverse Hessian the two-loop recursion starts from is gamma A^-1 (gamma
+    from the newest pair: s.y / y.A^-1 y, solved with the step's own system) instead of the
+    scaled identity: smooth, far-reaching
+    moves, which the energy's slow global modes need. When a quasi-Newton step fails, the
+    memory is dropped and a small steepest-descent step is tried, preconditioned first, then
+    plain; when that fails too, or the energy fell by less than ``tolerance`` (relative) per
+    iteration over the last ``window``, or after ``max_iterations``, it stops.
 
     Returns the number of iterations done.
     """
     n = x.shape[0]
-    no_gradient = np.empty((0, 3))
+    preconditioned = factor[3].shape[0] > 0
+    plain = (factor[0][:0], factor[1][:0], factor[2][:0], factor[3][:0], factor[4][:0])
     raw = np.empty((n, 3))
     grad = np.empty((n, 3))
     energy = distortion_energy(x, faces, cot, area, area_weight, raw)
@@ -133,47 +327,58 @@ def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory):
     alpha = np.empty(memory)
     stored = 0
     newest = -1
+    gamma = 1.0
     q = np.empty((n, 3))
     direction = np.empty((n, 3))
+    joint = np.empty((n, 6))             # [q, newest y], solved together
+    joint_work = np.empty((n, 6))
     trial = np.empty((n, 3))
     trial_grad = np.empty((n, 3))
     history = np.empty(max_iterations + 1)
     history[0] = energy
     iterations = 0
     while iterations < max_iterations:
-        # two-loop recursion: q = H grad
-        q[:] = grad
-        for k in range(stored):
-            slot = (newest - k) % memory
-            alpha[slot] = rho[slot] * _dot(pairs_s[slot], q)
-            _add_scaled(q, -alpha[slot], pairs_y[slot])
         if stored:
-            q *= (_dot(pairs_s[newest], pairs_y[newest])
-                  / _dot(pairs_y[newest], pairs_y[newest]))
-        else:
-            q *= 1e-3 / max(np.abs(q).max(), 1e-300)
-        for k in range(stored - 1, -1, -1):
-            slot = (newest - k) % memory
-            beta = rho[slot] * _dot(pairs_y[slot], q)
-            _add_scaled(q, alpha[slot] - beta, pairs_s[slot])
-        _tangent(x, q, direction)
-        direction *= -1.0
-        slope = _dot(direction, grad)
-        if slope >= 0:
-            direction[:] = -grad
-            slope = -_dot(grad, grad)
-            stored = 0
+            # two-loop recursion: q = H grad
+            q[:] = grad
+            for k in range(stored):
+                slot = (newest - k) % memory
+                alpha[slot] = rho[slot] * _dot(pairs_s[slot], q)
+                _add_scaled(q, -alpha[slot], pairs_y[slot])
+            if preconditioned:
+                joint[:, :3] = q
+                joint[:, 3:] = pairs_y[newest]
+                solve_factor(factor[0], factor[1], factor[2], factor[3], factor[4], joint,
+                             joint_work)
+                q[:] = joint[:, :3]
+                _tangent(x, q, q)
+                gamma = 1.0 / (rho[newest] * _dot(pairs_y[newest], joint[:, 3:]))
+            q *= gamma
+            for k in range(stored - 1, -1, -1):
+                slot = (newest - k) % memory
+                beta = rho[slot] * _dot(pairs_y[slot], q)
+                _add_scaled(q, alpha[slot] - beta, pairs_s[slot])
+            _tangent(x, q, direction)
+            direction *= -1.0
+            slope = _dot(direction, grad)
+            if slope >= 0:
+                stored = 0
+        if not stored:
+            slope = _steepest(x, grad, factor, direction, joint, joint_work)
         trial_energy = _line_search(faces, cot, area, area_weight, x, energy, direction, slope,
-                                    trial, no_gradient)
+                                    trial, raw)
         if not np.isfinite(trial_energy) and stored:
-            # the quasi-Newton step failed: restart from (scaled) steepest descent
+            # the quasi-Newton step failed: restart from a small steepest-descent step
             stored = 0
-            direction[:] = grad * (-1e-3 / max(np.abs(grad).max(), 1e-300))
+            slope = _steepest(x, grad, factor, direction, joint, joint_work)
             trial_energy = _line_search(faces, cot, area, area_weight, x, energy, direction,
-                                        _dot(direction, grad), trial, no_gradient)
+                                        slope, trial, raw)
+        if not np.isfinite(trial_energy) and preconditioned:
+            slope = _steepest(x, grad, plain, direction, joint, joint_work)
+            trial_energy = _line_search(faces, cot, area, area_weight, x, energy, direction,
+                                        slope, trial, raw)
         if not np.isfinite(trial_energy):
             break
-        trial_energy = distortion_energy(trial, faces, cot, area, area_weight, raw)
         _tangent(trial, raw, trial_grad)
         # s = trial - x, y = trial_grad - (grad transported to the tangent plane at trial)
         slot = (newest + 1) % memory
@@ -186,6 +391,7 @@ def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory):
         curvature = _dot(pairs_s[slot], y)
         if curvature > 1e-12:
             rho[slot] = 1.0 / curvature
+            gamma = curvature / _dot(y, y)   # the preconditioned scale is found with the solve
             newest = slot
             stored = min(stored + 1, memory)
         x[:] = trial
@@ -193,6 +399,7 @@ def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory):
         energy = trial_energy
         iterations += 1
         history[iterations] = energy
-        if iterations >= 20 and history[iterations - 20] - energy < tolerance * abs(energy) * 20:
+        if iterations >= window and (history[iterations - window] - energy
+                                     < tolerance * abs(energy) * window):
             break
     return iterations
