@@ -7,6 +7,8 @@ point-to-point distance is sum_k w_k |a_k - b_k| (mm).
 Everything is computed in model space: the n_s training shapes span an (n_s - 1)-dimensional
 affine space, and the leave-one-out models and the specificity samples all live in it, so squared
 distances are computed from (n_s - 1)-vectors. Only the mm point-to-point distances need the points.
+:func:`evaluate` computes the :class:`ModelSpace` once for all its measures, with BLAS on one
+thread.
 
 Beyond the paper, :func:`surface_generalization` and :func:`surface_specificity` measure the same
 reconstructions and samples surface to surface against the true training surfaces, which does not
@@ -14,16 +16,21 @@ depend on the correspondence being judged. The symmetric surface distance of a m
 corresponded connectivity) and a true surface S is the mean of (a) the mean distance from the points
 of X to S and (b) the mean distance from the vertices of S to X; its area-weighted version weights
 (a) by the area measure ``weights`` and (b) by the vertex areas of S. Point-to-triangle distances
-are exact (:class:`SurfaceDistance`).
+are exact (:class:`MeshSearch`: the distances of
+:class:`~mdlshapemodel.prepare.surface.SurfaceDistance`, each search started from the triangle
+found nearest to the same point the last time).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..correspondence import hotloops
 from ..parallel import Task
-from ..prepare.surface import SurfaceDistance
+from ..prepare.nearest import TriangleGrid
+from . import evaluation_kernels
 from .shape_model import ShapeModel
 
 #: :func:`evaluate` measures surface generalization on at most this many points per side (exact
@@ -32,16 +39,34 @@ from .shape_model import ShapeModel
 SURFACE_GENERALIZATION_POINTS = 5000
 
 
-def _model_space(shapes: np.ndarray, weights: np.ndarray):
-    """Coordinates of the centred, weighted shapes in an orthonormal basis of their span, and the
-    map from model-space differences back to point displacements (r, 3 n_p)."""
+@dataclass(frozen=True)
+class ModelSpace:
+    """The training shapes in model space.
+
+    ``coordinates`` (n_s, r): the centred, area-weighted shapes in an orthonormal basis of their
+    span (principal component scores: orthogonal columns, sums of squares descending);
+    ``to_points`` (r, 3 n_p): the map from model-space differences back to point displacements.
+    Every measure of :func:`evaluate` works from one :func:`model_space` of the shapes.
+    """
+
+    coordinates: np.ndarray
+    to_points: np.ndarray
+
+
+def model_space(shapes: np.ndarray, weights: np.ndarray) -> ModelSpace:
+    """The :class:`ModelSpace` of aligned, corresponded shapes (n_s, n_p, 3) with area weights."""
     n_s, n_p, _ = shapes.shape
     root = np.sqrt(weights)
     z = ((shapes - shapes.mean(axis=0)) * root[None, :, None]).reshape(n_s, -1)
     u, singular, vt = np.linalg.svd(z, full_matrices=False)
     keep = singular > 1e-10 * max(singular.max(initial=0.0), 1e-300)
-    coordinates = u[:, keep] * singular[keep]
-    return coordinates, vt[keep] / np.repeat(root, 3)
+    return ModelSpace(u[:, keep] * singular[keep], vt[keep] / np.repeat(root, 3))
+
+
+def _space(shapes: np.ndarray, weights: np.ndarray, space: ModelSpace | None):
+    """(coordinates, to_points) of ``space``, or of the shapes' model space when it is None."""
+    space = model_space(shapes, weights) if space is None else space
+    return space.coordinates, space.to_points
 
 
 def _displacements(difference: np.ndarray, to_points: np.ndarray) -> np.ndarray:
@@ -137,15 +162,16 @@ def _downdated_modes(d: np.ndarray, v: np.ndarray, rho: float, count: int):
     return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
 
 
-def generalization(shapes: np.ndarray, weights: np.ndarray, max_modes: int):
+def generalization(shapes: np.ndarray, weights: np.ndarray, max_modes: int,
+                   space: ModelSpace | None = None):
     """Leave-one-out reconstruction error G(M) for M = 1..max_modes (eq. 20-21).
 
     Returns a dict of arrays (max_modes,): ``squared`` and ``squared_se`` (mm^2), ``distance`` and
     ``distance_se`` (mean point-to-point, mm); and the errors of each left-out shape,
     ``squared_per_case`` and ``distance_per_case`` (n_s, max_modes), whose means over the shapes
-    are ``squared`` and ``distance``.
+    are ``squared`` and ``distance``. ``space``: the shapes' :func:`model_space`, when known.
     """
-    coordinates, to_points = _model_space(shapes, weights)
+    coordinates, to_points = _space(shapes, weights, space)
     n_s = len(coordinates)
     squared = np.zeros((n_s, max_modes))
     distance = np.zeros((n_s, max_modes))
@@ -159,37 +185,47 @@ def generalization(shapes: np.ndarray, weights: np.ndarray, max_modes: int):
 
 
 def specificity(shapes: np.ndarray, weights: np.ndarray, max_modes: int, n_samples: int = 10_000,
-                rng: np.random.Generator | None = None, chunk: int = 256):
+                rng: np.random.Generator | None = None, chunk: int = 256,
+                space: ModelSpace | None = None):
     """Specificity S(M): distance of model samples to their nearest training shape (eq. 22-23).
 
     Samples have scores b_m ~ N(0, lambda_m) on the first M modes (lambda_m the model variances,
     divisor n_s). Returns the same dict as :func:`generalization`.
+
+    The nearest training shape is found in model space, ``chunk`` samples at a time (squared
+    distances |a|^2 - 2 a.b + |b|^2 with one matrix product), and the squared distance to it
+    recomputed from the difference; the point-to-point distances (mm) are then measured for every
+    M in one pass per sample over its points (:func:`~.evaluation_kernels.sample_distances`).
+    ``space``: the shapes' :func:`model_space`, when known.
     """
     rng = np.random.default_rng(0) if rng is None else rng
-    coordinates, to_points = _model_space(shapes, weights)
+    coordinates, to_points = _space(shapes, weights, space)
     n_s, rank = coordinates.shape
     # the model-space coordinates are principal component scores: axis m has variance lambda_m
     sd = np.sqrt(np.sum(coordinates ** 2, axis=0) / n_s)
     squared = np.zeros((n_samples, max_modes))
     distance = np.zeros((n_samples, max_modes))
+    nearest = np.zeros((n_samples, max_modes), dtype=np.int64)
     normal = rng.standard_normal((n_samples, rank))
     train_sq = np.sum(coordinates ** 2, axis=1)
-    # the training shapes' point displacements from the mean, once: a sample's displacements
-    # then cost O(M n_p), not O(n_s n_p)
-    train_points = coordinates @ to_points
+    kept = np.minimum(np.arange(1, max_modes + 1), rank)
+    scores = normal[:, :kept[-1]] * sd[:kept[-1]]
     for m in range(1, max_modes + 1):
-        kept = min(m, rank)
+        used = kept[m - 1]
         for start in range(0, n_samples, chunk):
             stop = min(start + chunk, n_samples)
-            sample = normal[start:stop, :kept] * sd[:kept]
-            d2 = (np.sum(sample ** 2, axis=1)[:, None] - 2 * sample @ coordinates[:, :kept].T
+            sample = np.ascontiguousarray(scores[start:stop, :used])
+            d2 = (np.sum(sample ** 2, axis=1)[:, None] - 2 * sample @ coordinates[:, :used].T
                   + train_sq[None, :])
-            nearest = np.argmin(d2, axis=1)
-            offset = -coordinates[nearest]
-            offset[:, :kept] += sample
+            nearest[start:stop, m - 1] = np.argmin(d2, axis=1)
+            offset = -coordinates[nearest[start:stop, m - 1]]
+            offset[:, :used] += sample
             squared[start:stop, m - 1] = np.sum(offset ** 2, axis=1)
-            difference = sample @ to_points[:kept] - train_points[nearest]
-            distance[start:stop, m - 1] = hotloops.weighted_point_norms(difference, weights)
+    # the training shapes' point displacements from the mean, once: a sample's distances then
+    # cost O(M n_p), not O(n_s n_p)
+    train_points = coordinates @ to_points
+    evaluation_kernels.sample_distances(scores, np.ascontiguousarray(to_points[:kept[-1]]),
+                                        train_points, nearest, kept, weights, distance)
     return _mean_and_error(squared, distance, n_samples)
 
 
@@ -199,15 +235,80 @@ def _mean_and_error(squared: np.ndarray, distance: np.ndarray, n: int) -> dict:
             "distance": distance.mean(axis=0), "distance_se": distance.std(axis=0, ddof=1) * scale}
 
 
+#: Points without a guessed triangle are searched on the grid from scratch until this many have
+#: been, since the mesh last moved; from then on they start from the triangle whose centroid is
+#: nearest (a k-d tree of the centroids, which costs about as much to build as this many grid
+#: searches).
+CENTROID_TREE_POINTS = 500
+
+
+class MeshSearch:
+    """Exact squared distances from points to a triangle mesh, each point's search started from a
+    guessed nearest triangle (:func:`~.evaluation_kernels.closest_from`).
+
+    The distances are those of :class:`~mdlshapemodel.prepare.surface.SurfaceDistance` (the same
+    point-to-triangle arithmetic, the exact minimum), bit for bit; the guesses only decide how
+    much of the mesh is searched. The evaluation asks about points and meshes that move a little
+    between two questions, so the triangle found for a point the last time is a good guess.
+
+    Parameters
+    ----------
+    vertices : ndarray (n, 3)
+    faces : ndarray (m, 3)
+        Triangles, m >= 1.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        self.faces = np.ascontiguousarray(faces, dtype=np.int64)
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
+            raise ValueError(f"need at least one triangle, got faces of shape {self.faces.shape}")
+        self.grid = TriangleGrid(vertices, self.faces)
+        self._moved()
+
+    def move(self, vertices: np.ndarray):
+        """New vertex positions (the same triangles)."""
+        self.grid.move(vertices)
+        self._moved()
+
+    def _moved(self):
+        self.boxes, self._extent = evaluation_kernels.triangle_boxes(self.grid.vertices,
+                                                                     self.faces)
+        self._centroids = None
+        self._unguessed = 0           # points asked about without a guess since the last move
+
+    def squared(self, points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Squared distances (k,) of ``points`` (k, 3) and a nearest triangle of each (k,),
+        from the guessed triangles ``guess`` (k,), -1 where there is none."""
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        guess = np.array(guess, dtype=np.int64)
+        unknown = np.flatnonzero(guess < 0)
+        self._unguessed += len(unknown)
+        if len(unknown) and self._unguessed >= CENTROID_TREE_POINTS:
+            if self._centroids is None:
+                from scipy.spatial import cKDTree
+
+                self._centroids = cKDTree(self.grid.vertices[self.faces].mean(axis=1))
+            guess[unknown] = self._centroids.query(points[unknown])[1]
+        elif len(unknown):
+            _, squared, faces = self.grid.closest(points[unknown])
+            if len(unknown) == len(points):
+                return squared, faces
+            guess[unknown] = faces
+        grid = self.grid
+        return evaluation_kernels.closest_from(points, guess, grid.vertices, self.faces,
+                                               self.boxes, grid.origin, grid.cell, grid.shape,
+                                               grid.start, grid.triangles, self._extent)
+
+
 class _TrueSurface:
-    """A true training surface: its locator, vertices and vertex areas (eq. 17 on its mesh)."""
+    """A true training surface: its search, vertices and vertex areas (eq. 17 on its mesh)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         from ..prepare.surface import triangle_vertex_areas
 
         self.vertices = np.asarray(vertices, dtype=np.float64)
         faces = np.asarray(faces, dtype=np.int64)
-        self.distance = SurfaceDistance(self.vertices, faces)
+        self.search = MeshSearch(self.vertices, faces)
         self.areas = triangle_vertex_areas(self.vertices, faces)
 
 
@@ -241,12 +342,8 @@ class StratifiedPoints:
     def __init__(self, points: np.ndarray, size: int):
         from scipy.spatial import cKDTree
 
-        points = np.asarray(points, dtype=np.float64)
-        centres = np.zeros(size, dtype=np.int64)
-        distance = np.linalg.norm(points - points[0], axis=1)
-        for h in range(1, size):
-            centres[h] = np.argmax(distance)
-            np.minimum(distance, np.linalg.norm(points - points[centres[h]], axis=1), out=distance)
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        centres = evaluation_kernels.farthest_points(points, size)
         _, label = cKDTree(points[centres]).query(points)
         counts = np.bincount(label, minlength=size)
         self.order = np.argsort(label, kind="stable")
@@ -276,18 +373,36 @@ def weighted_means(values: np.ndarray, fraction: np.ndarray | None, weights: np.
     return plain, (float(share @ values / total) if total > 0 else plain)
 
 
-def _symmetric(points: np.ndarray, weights: np.ndarray, mesh: SurfaceDistance,
-               true: _TrueSurface, points_sampler, true_sampler, rng: np.random.Generator):
+def _symmetric(points: np.ndarray, weights: np.ndarray, mesh: MeshSearch, true: _TrueSurface,
+               points_sampler, true_sampler, rng: np.random.Generator, on_true: np.ndarray,
+               on_mesh: np.ndarray):
     """Plain and area-weighted symmetric distance of a mesh and a true surface, and directions.
+
+    ``on_true`` (n_p,) and ``on_mesh`` (n_v,) hold the triangle of the true surface last found
+    nearest to each point of the mesh, and the triangle of the mesh last found nearest to each
+    vertex of the true surface (-1: none yet): the searches start there, and they are updated.
 
     Returns (plain, weighted, to_surface, from_surface): the last two are the area-weighted means
     of (a) points -> true surface and (b) true vertices -> mesh.
     """
     a_index, a_fraction = points_sampler.draw(rng)
     b_index, b_fraction = true_sampler.draw(rng)
-    a_plain, to_surface = weighted_means(true.distance(points[a_index]), a_fraction, weights[a_index])
-    b_plain, from_surface = weighted_means(mesh(true.vertices[b_index]), b_fraction, true.areas[b_index])
+    a_squared, on_true[a_index] = true.search.squared(points[a_index], on_true[a_index])
+    b_squared, on_mesh[b_index] = mesh.squared(true.vertices[b_index], on_mesh[b_index])
+    a_plain, to_surface = weighted_means(np.sqrt(a_squared), a_fraction, weights[a_index])
+    b_plain, from_surface = weighted_means(np.sqrt(b_squared), b_fraction, true.areas[b_index])
     return 0.5 * (a_plain + b_plain), 0.5 * (to_surface + from_surface), to_surface, from_surface
+
+
+def _faces_near(shape: np.ndarray, triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """For each of ``points`` (k, 3), a triangle of the corresponded mesh (``shape``,
+    ``triangles``) at the mesh's point nearest to it: where a search on a mesh of the same
+    triangles and of a shape near ``shape`` starts (:meth:`MeshSearch.squared`)."""
+    from scipy.spatial import cKDTree
+
+    incident = np.empty(len(shape), dtype=np.int64)
+    incident[triangles.ravel()] = np.repeat(np.arange(len(triangles)), 3)
+    return incident[cKDTree(shape).query(points)[1]]
 
 
 def _true_surfaces(surfaces, n_s: int) -> list:
@@ -304,7 +419,8 @@ def _mean_se(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: np.ndarray,
                            surfaces, max_modes: int, max_points: int | None = None,
-                           rng: np.random.Generator | None = None) -> dict:
+                           rng: np.random.Generator | None = None,
+                           space: ModelSpace | None = None) -> dict:
     """Leave-one-out generalization measured surface to surface against the true surfaces.
 
     For each training shape i and M = 1..max_modes, the reconstruction x_i'(M) of
@@ -312,7 +428,8 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     and meshed with ``triangles``; it is compared with the TRUE surface i by the symmetric surface
     distance: the mean of (a) the mean distance from the reconstruction's points to surface i and
     (b) the mean distance from surface i's vertices to the reconstruction mesh. Distances are
-    exact point-to-triangle distances.
+    exact point-to-triangle distances (:class:`MeshSearch`; with each further mode, every point's
+    search starts from the triangle found nearest with the previous one).
 
     Parameters
     ----------
@@ -329,10 +446,11 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     max_points : int, optional
         Use at most this many points on each side of each comparison (a fresh uniform random
         subset, drawn from ``rng``): an unbiased Monte Carlo estimate that bounds the cost for very
-        large surfaces. Default: all points (exact). The cost is about 5-7 us per point and side
-        for each case and distinct M (exact closest points, :class:`SurfaceDistance`).
+        large surfaces. Default: all points (exact).
     rng : numpy.random.Generator, optional
         Only used with ``max_points`` (default: ``numpy.random.default_rng(0)``).
+    space : ModelSpace, optional
+        The shapes' :func:`model_space`, when known.
 
     Returns
     -------
@@ -349,8 +467,8 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     shapes = np.asarray(shapes, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
-    coordinates, to_points = _model_space(shapes, weights)
-    n_s = len(coordinates)
+    coordinates, to_points = _space(shapes, weights, space)
+    n_s, n_p = len(coordinates), shapes.shape[1]
     true = _true_surfaces(surfaces, n_s)
     points_sampler = _sampler(shapes[0], max_points, stratified=False)
     true_samplers = [_sampler(t.vertices, max_points, stratified=False) for t in true]
@@ -358,16 +476,20 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     mesh = None
     for i, residuals, used in _leave_one_out(coordinates, max_modes):
         rebuilt = shapes[i] - _displacements(residuals, to_points)
+        # the reconstructions with more modes move little: each search starts where the last
+        # one for the same point or vertex ended, the first from shape i's mesh
+        on_true = np.full(n_p, -1, dtype=np.int64)
+        on_mesh = _faces_near(shapes[i], triangles, true[i].vertices)
         for m in range(max_modes):
             if m > 0 and used[m] == used[m - 1]:        # the same reconstruction as with m modes
                 values[:, i, m] = values[:, i, m - 1]
                 continue
             if mesh is None:
-                mesh = SurfaceDistance(rebuilt[m], triangles)
+                mesh = MeshSearch(rebuilt[m], triangles)
             else:
                 mesh.move(rebuilt[m])
             values[:, i, m] = _symmetric(rebuilt[m], weights, mesh, true[i], points_sampler,
-                                         true_samplers[i], rng)
+                                         true_samplers[i], rng, on_true, on_mesh)
     distance, distance_se = _mean_se(values[0])
     weighted, weighted_se = _mean_se(values[1])
     return {"distance": distance, "distance_se": distance_se,
@@ -379,7 +501,7 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
 def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.ndarray, surfaces,
                         max_modes: int, n_samples: int = 1000,
                         rng: np.random.Generator | None = None, candidates: int = 3,
-                        max_points: int | None = 64) -> dict:
+                        max_points: int | None = 64, space: ModelSpace | None = None) -> dict:
     """Specificity measured surface to surface: model samples against the true training surfaces.
 
     Samples are drawn as :func:`specificity` draws them: scores b_m ~ N(0, lambda_m) on the first
@@ -405,8 +527,9 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
     on 40 shapes of 2,562 points (true surfaces of 2,562 vertices) by about 0.5% with 64 strata
     (2% with 64 uniformly random points), with about 3% rms noise per sample.
     ``max_points=None`` uses all points: exact symmetric distances and their exact minimum. The
-    cost is about ``n_samples * (distinct M) * (1.5 ms + candidates * 2 * max_points * 10 us)``
-    (about 60 s for N = 1,000, M = 1..10, 3 candidates, 64 points on a 2-core machine).
+    search for a point's closest triangle starts from the one found for the same point (of the
+    sample's mesh, or of the true surface) the last time it was asked about on the same true
+    surface (:class:`MeshSearch`).
 
     Parameters
     ----------
@@ -422,6 +545,8 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
     max_points : int or None
         Strata, i.e. points per side of each measured distance (see above); None: all points,
         exact.
+    space : ModelSpace, optional
+        The shapes' :func:`model_space`, when known.
 
     Returns
     -------
@@ -436,7 +561,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
     shapes = np.asarray(shapes, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
-    coordinates, to_points = _model_space(shapes, weights)
+    coordinates, to_points = _space(shapes, weights, space)
     n_s, rank = coordinates.shape
     # exactly as specificity(): axis m of the model-space coordinates has variance lambda_m
     sd = np.sqrt(np.sum(coordinates ** 2, axis=0) / n_s)
@@ -450,6 +575,10 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
     distance = np.zeros((n_samples, max_modes))
     weighted = np.zeros((n_samples, max_modes))
     nearest = np.zeros((n_samples, max_modes), dtype=np.int64)
+    # per true surface, the triangles last found nearest (see _symmetric); on the samples' mesh
+    # first those of the training shape's own mesh, which the samples it is a candidate for are near
+    on_true = [np.full(len(mean), -1, dtype=np.int64) for _ in true]
+    on_mesh = [None] * n_s
     mesh = None
     for m in range(1, max_modes + 1):
         kept = min(m, rank)
@@ -462,16 +591,21 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
         d2 = (np.sum(sample ** 2, axis=1)[:, None] - 2 * sample @ coordinates.T
               + train_sq[None, :])
         order = np.argsort(d2, axis=1, kind="stable")[:, :candidates]
+        samples = mean + _displacements(sample[:, :kept], to_points[:kept])
         for s in range(n_samples):
-            points = mean + _displacements(sample[s:s + 1], to_points)[0]
+            points = samples[s]
             if mesh is None:
-                mesh = SurfaceDistance(points, triangles)
+                mesh = MeshSearch(points, triangles)
             else:
                 mesh.move(points)
             best, j = None, -1
             for candidate in order[s]:
+                if on_mesh[candidate] is None:
+                    on_mesh[candidate] = _faces_near(shapes[candidate], triangles,
+                                                     true[candidate].vertices)
                 values = _symmetric(points, weights, mesh, true[candidate], points_sampler,
-                                    true_samplers[candidate], rng)
+                                    true_samplers[candidate], rng, on_true[candidate],
+                                    on_mesh[candidate])
                 if best is None or values[0] < best[0]:
                     best, j = values, candidate
             distance[s, m - 1], weighted[s, m - 1], nearest[s, m - 1] = best[0], best[1], j
@@ -526,24 +660,39 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         (point-to-point) versions, each with ``_se``, ``specificity_samples``, and the surface
         measures above when ``surfaces`` is given.
     """
-    import copy
+    from threadpoolctl import threadpool_limits
 
     n_s = len(shapes)
     max_modes = max(1, min(max_modes, n_s - 1))
     if surfaces is not None and triangles is None:
         raise ValueError("surface measures need the triangles of the corresponded points")
     rng = np.random.default_rng(0) if rng is None else rng
+    # BLAS on one thread, as in a pool's worker: the surface generalization may have the other
+    # core, where threaded BLAS costs many times what it gains, and the numbers are then those a
+    # worker computes, whatever the number of cores
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles,
+                         surfaces, surface_samples, pool)
+
+
+def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, surfaces,
+              surface_samples, pool) -> dict:
+    import copy
+
+    n_s = len(shapes)
     surface_rng = copy.deepcopy(rng)            # the surface samples repeat the first point samples
+    # one model space for every measure, wherever it runs
+    space = model_space(shapes, weights)
     g_surface = None
     if surfaces is not None:
         # the longest part: started first, elsewhere when there is a pool
         arguments = (shapes, weights, triangles, surfaces, max_modes,
-                     SURFACE_GENERALIZATION_POINTS)
+                     SURFACE_GENERALIZATION_POINTS, None, space)
         g_surface = Task(pool, surface_generalization, *arguments,
                          what="the surface generalization")
     c, c_se = compactness(variances, n_s, max_modes)
-    g = generalization(shapes, weights, max_modes)
-    s = specificity(shapes, weights, max_modes, n_samples, rng)
+    g = generalization(shapes, weights, max_modes, space)
+    s = specificity(shapes, weights, max_modes, n_samples, rng, space=space)
     as_list = {"modes": list(range(1, max_modes + 1)),
                "compactness": c.tolist(), "compactness_se": c_se.tolist()}
     for name, result in (("generalization", g), ("specificity", s)):
@@ -554,7 +703,7 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
     as_list["specificity_samples"] = int(n_samples)
     if surfaces is not None:
         s_surface = surface_specificity(shapes, weights, triangles, surfaces, max_modes,
-                                        surface_samples, surface_rng)
+                                        surface_samples, surface_rng, space=space)
         for name, result in (("generalization", g_surface.result()),
                              ("specificity", s_surface)):
             as_list[name + "_surface_mm"] = result["distance"].tolist()
