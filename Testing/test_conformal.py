@@ -71,3 +71,24 @@ def test_elongated_surfaces_crowd_the_ends(stretch):
     a, b, c = (sphere[faces[:, k]] for k in range(3))
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     assert area.max() / area.min() > stretch ** 2
+
+
+def test_the_cotangent_laplacian_is_symmetric_with_zero_row_sums(bump_surface):
+    from mdlshapemodel.prepare.conformal import cotangent_laplacian, diagonal_positions
+
+    vertices, faces = bump_surface
+    laplacian = cotangent_laplacian(faces, cotangents(vertices, faces), len(vertices))
+    dense = laplacian.toarray()
+    np.testing.assert_allclose(dense, dense.T, atol=1e-12)
+    np.testing.assert_allclose(dense.sum(axis=1), 0.0, atol=1e-10)
+    assert np.linalg.eigvalsh(dense)[0] > -1e-9                       # positive semi-definite
+    np.testing.assert_array_equal(laplacian.data[diagonal_positions(laplacian)],
+                                  np.diag(dense))
+    # x^T L x is the Dirichlet energy: zero for constants, |grad x|^2 area for a linear field
+    x = vertices[:, 0]
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    tangential = 1.0 - normal[:, 0] ** 2       # |grad x|^2 on each triangle's plane
+    assert x @ (laplacian @ x) == pytest.approx(np.sum(area * tangential), rel=1e-9)

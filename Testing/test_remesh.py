@@ -63,10 +63,9 @@ def test_remeshing_keeps_the_triangles_regular_and_the_valences_near_six():
     assert np.mean(valence == 6) > 0.7 and valence.min() >= 3
 
 
-def test_a_contour_of_slivers_becomes_well_shaped():
-    # the raw contour of a blurred mask: many slivers where the isosurface passes near voxels
-    z, y, x = np.mgrid[:30, :36, :44]
-    mask = (((x - 22) / 17.0) ** 2 + ((y - 18) / 11.0) ** 2 + ((z - 15) / 8.0) ** 2) < 1
+def raw_contour(mask):
+    """The surface mask_to_surface makes of ``mask`` before it is remeshed: the contour of the
+    blurred mask, with slivers where the isosurface passes near voxels."""
     from mdlshapemodel.prepare import surface
 
     captured = []
@@ -76,7 +75,13 @@ def test_a_contour_of_slivers_becomes_well_shaped():
         mask_to_surface(mask)
     finally:
         surface.resample = original
-    contour = captured[0]
+    return captured[0]
+
+
+def test_a_contour_of_slivers_becomes_well_shaped():
+    z, y, x = np.mgrid[:30, :36, :44]
+    mask = (((x - 22) / 17.0) ** 2 + ((y - 18) / 11.0) ** 2 + ((z - 15) / 8.0) ** 2) < 1
+    contour = raw_contour(mask)
     assert np.percentile(minimum_angles(*contour), 5) < 10
     vertices, triangles = check_remeshed(remesh_isotropic(*contour, 1.0), contour, 1.0)
     assert minimum_angles(vertices, triangles).min() > 20

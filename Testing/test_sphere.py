@@ -482,3 +482,45 @@ def test_the_multilevel_map_needs_only_the_topology():
 def test_the_multilevel_map_refuses_a_torus():
     with pytest.raises(SphereMapError, match="tetrahedron"):
         multilevel_map(*torus())
+
+
+def test_bfgs_finds_the_minimum_of_small_smooth_functions():
+    from mdlshapemodel.prepare.sphere import bfgs
+
+    matrix = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
+    centre = np.array([1.0, -2.0, 0.5])
+
+    def quadratic(x):
+        return 0.5 * (x - centre) @ matrix @ (x - centre), matrix @ (x - centre)
+
+    np.testing.assert_allclose(bfgs(quadratic, np.zeros(3)), centre, atol=1e-6)
+
+    def rosenbrock(x):
+        value = sum(100 * (x[1:] - x[:-1] ** 2) ** 2 + (1 - x[:-1]) ** 2)
+        gradient = np.zeros_like(x)
+        gradient[:-1] = -400 * x[:-1] * (x[1:] - x[:-1] ** 2) - 2 * (1 - x[:-1])
+        gradient[1:] += 200 * (x[1:] - x[:-1] ** 2)
+        return value, gradient
+
+    np.testing.assert_allclose(bfgs(rosenbrock, np.array([-1.2, 1.0, 0.8]), gtol=1e-9),
+                               np.ones(3), atol=1e-5)
+    # at the minimum already: unchanged
+    np.testing.assert_array_equal(bfgs(quadratic, centre), centre)
+
+
+def test_the_sphere_map_of_a_raw_contour_full_of_slivers_is_bijective():
+    # the contour of a blurred mask before remeshing: slivers and nearly degenerate triangles,
+    # whose cotangents reach hundreds (a hostile input for the energy and its preconditioner)
+    from mdlshapemodel.prepare.surface import orient_outwards
+    from test_remesh import raw_contour
+
+    z, y, x = np.indices((26, 30, 44), dtype=float)
+    mask = (((x - 21.5) / 17) ** 2 + ((y - 14.5) / 9) ** 2 + ((z - 12.5) / 7) ** 2 <= 1) | (
+        ((x - 30) ** 2 + (y - 20) ** 2 + (z - 12.5) ** 2) <= 25)
+    vertices, faces = raw_contour(mask)
+    faces = orient_outwards(vertices, faces)
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    assert area.min() < 1e-3 * np.median(area)                          # slivers there are
+    result = sphere_map(vertices, faces)
+    check_map(result, vertices, faces)

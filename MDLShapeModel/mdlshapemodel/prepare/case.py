@@ -187,6 +187,17 @@ def prepare_surface(vertices: np.ndarray, faces: np.ndarray, name: str, path: st
         else:
             surface.require_sphere_like(vertices, faces)
             faces = surface.orient_outwards(vertices, faces)
+    return _mapped_case(vertices, faces, name, path, voxel_size, mirrored, repair,
+                        smoothing_sigma, labels, area_weight, max_iterations)
+
+
+def _mapped_case(vertices: np.ndarray, faces: np.ndarray, name: str, path: str,
+                 voxel_size: float, mirrored: bool, repair: str, smoothing_sigma: float | None,
+                 labels: tuple | None, area_weight: float = AREA_WEIGHT,
+                 max_iterations: int = MAX_ITERATIONS) -> PreparedCase:
+    """The prepared case of a checked closed genus-0 surface with outward normals: mirrored if
+    asked, then sphere-mapped."""
+    with one_blas_thread():
         if mirrored:
             vertices, faces = surface.mirror(vertices, faces)
         mapped = sphere_map(vertices, faces, area_weight=area_weight,
@@ -220,8 +231,9 @@ def _prepare(path, config: BuildConfig) -> PreparedCase:
         label_map = io.read_label_map(path, config.labels)
         vertices, faces, sigma, note = surface_of_mask(
             label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
-        return prepare_surface(vertices, faces, name, path, label_map.voxel_size, config,
-                               mirrored, note, sigma, labels=label_map.labels)
+        # surface_of_mask's surface is checked and oriented outwards already
+        return _mapped_case(vertices, faces, name, path, label_map.voxel_size, mirrored, note,
+                            sigma, label_map.labels)
     if io.is_mesh(path):
         vertices, faces = io.read_mesh(path)
         return prepare_surface(vertices, faces, name, path, None, config, mirrored)

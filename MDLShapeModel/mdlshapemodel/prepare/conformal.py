@@ -41,34 +41,13 @@ def cotangents(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return cot
 
 
-def _symmetric_solve(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, n: int,
-                     fixed: np.ndarray, target: np.ndarray) -> np.ndarray | None:
-    """Solve A x = 0 on the free vertices with x = ``target`` on the ``fixed`` ones, for the
-    symmetric positive definite A given by its entries (duplicates summed); None when the
-    system cannot be factored."""
+def cotangent_laplacian(faces: np.ndarray, cot: np.ndarray, n: int):
+    """The cotangent Laplacian L (n x n, scipy.sparse CSC, indices sorted): -(cot a + cot b) / 2
+    for an edge with opposite angles a and b, the row sums on the diagonal (positive
+    semi-definite, every vertex's diagonal entry present). Both the harmonic map and the
+    preconditioner of the distortion minimisation are made from it."""
     from scipy import sparse
-    from scipy.sparse.linalg import splu
 
-    matrix = sparse.csc_matrix((values, (rows, cols)), shape=(n, n))
-    free = np.ones(n, dtype=bool)
-    free[fixed] = False
-    rhs = np.zeros((n, target.shape[1]))
-    rhs[free] = -(matrix[:, fixed] @ target)[free]
-    keep = free[rows] & free[cols]
-    system = sparse.csc_matrix((np.concatenate([values[keep], np.ones(len(fixed))]),
-                                (np.concatenate([rows[keep], fixed]),
-                                 np.concatenate([cols[keep], fixed]))), shape=(n, n))
-    rhs[fixed] = target
-    try:
-        lu = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
-    except RuntimeError:                 # exactly singular
-        return None
-    return lu.solve(rhs)
-
-
-def _laplace_entries(faces: np.ndarray, cot: np.ndarray):
-    """Row, column and value of every entry of the cotangent Laplacian (duplicates to sum)."""
     rows, cols, values = [], [], []
     for k in range(3):  # the edge opposite corner k, weighted by half its cotangent
         i, j = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3]
@@ -76,7 +55,42 @@ def _laplace_entries(faces: np.ndarray, cot: np.ndarray):
         rows += [i, j, i, j]
         cols += [j, i, i, j]
         values += [-w, -w, w, w]
-    return np.concatenate(rows), np.concatenate(cols), np.concatenate(values)
+    laplacian = sparse.csc_matrix((np.concatenate(values),
+                                   (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    laplacian.sort_indices()
+    return laplacian
+
+
+def diagonal_positions(matrix) -> np.ndarray:
+    """Where each column's diagonal entry is in ``matrix.data`` (a CSC matrix that has them
+    all)."""
+    column = np.repeat(np.arange(matrix.shape[1]), np.diff(matrix.indptr))
+    return np.flatnonzero(matrix.indices == column)
+
+
+def _harmonic_solve(laplacian, fixed: np.ndarray, target: np.ndarray) -> np.ndarray | None:
+    """The solution of L x = 0 on the free vertices with x = ``target`` on the ``fixed`` ones
+    (the fixed rows and columns of L replaced by the identity, their known values moved to the
+    right-hand side: a symmetric positive definite system); None when it cannot be factored."""
+    from scipy.sparse.linalg import splu
+
+    n = laplacian.shape[0]
+    known = np.zeros((n, target.shape[1]))
+    known[fixed] = target
+    rhs = -(laplacian @ known)
+    rhs[fixed] = target
+    is_fixed = np.zeros(n, dtype=bool)
+    is_fixed[fixed] = True
+    column = np.repeat(np.arange(n), np.diff(laplacian.indptr))
+    system = laplacian.copy()
+    system.data[is_fixed[laplacian.indices] | is_fixed[column]] = 0.0
+    system.data[diagonal_positions(laplacian)[fixed]] = 1.0
+    try:
+        lu = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                  options={"SymmetricMode": True})
+    except RuntimeError:                 # exactly singular
+        return None
+    return lu.solve(rhs)
 
 
 def _big_triangle(vertices: np.ndarray, faces: np.ndarray) -> int:
@@ -95,7 +109,7 @@ def _inverse_stereographic(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def spherical_conformal_map(vertices: np.ndarray, faces: np.ndarray,
-                            cot: np.ndarray | None = None) -> np.ndarray | None:
+                            cot: np.ndarray | None = None, laplacian=None) -> np.ndarray | None:
     """The spherical conformal map of a closed genus-0 mesh (see the module's docstring).
 
     Parameters
@@ -105,6 +119,8 @@ def spherical_conformal_map(vertices: np.ndarray, faces: np.ndarray,
         A closed genus-0 triangle mesh with outward normals.
     cot : ndarray (m, 3), optional
         The cotangents of its angles (:func:`cotangents`), when known already.
+    laplacian : scipy.sparse matrix, optional
+        Its :func:`cotangent_laplacian`, when known already.
 
     Returns
     -------
@@ -137,10 +153,11 @@ def spherical_conformal_map(vertices: np.ndarray, faces: np.ndarray,
     y2 = float(np.linalg.norm(np.cross(a, b))) / length_a ** 2
     if not y2 > 0:
         return None
-    rows, cols, values = _laplace_entries(faces, cot)
+    if laplacian is None:
+        laplacian = cotangent_laplacian(faces, cot, n)
     with np.errstate(all="ignore"):
-        solution = _symmetric_solve(rows, cols, values, n, faces[big],
-                                    np.array([[0.0, 0.0], [1.0, 0.0], [x2, y2]]))
+        solution = _harmonic_solve(laplacian, faces[big],
+                                   np.array([[0.0, 0.0], [1.0, 0.0], [x2, y2]]))
         if solution is None or not np.all(np.isfinite(solution)):
             return None
         z = solution[:, 0] + 1j * solution[:, 1]

@@ -100,27 +100,65 @@ def balance_area(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
 
     Minimises the mean over triangles of sqrt(ln(r)^2 + smoothing^2), r = chord-triangle area share
     / surface area share, over the 3-parameter family :func:`mobius` (rotations do not change the
-    areas), by BFGS with the analytic gradient.
+    areas), by BFGS with the analytic gradient (:func:`bfgs`).
     """
-    from scipy.optimize import minimize
-
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     surface_area = np.maximum(face_areas(vertices, faces), 1e-300)
     target = np.log(surface_area / surface_area.sum())
     points = np.ascontiguousarray(sphere, dtype=np.float64)
-    result = minimize(balance_objective, np.zeros(3), jac=True, method="BFGS",
-                      args=(points, faces, target, smoothing), options={"gtol": 1e-6})
-    v = result.x
+    v = bfgs(lambda v: balance_objective(v, points, faces, target, smoothing), np.zeros(3))
     return mobius(sphere, v / np.sqrt(1.0 + v @ v))
 
 
-def _conformal_map(vertices: np.ndarray, faces: np.ndarray, cot: np.ndarray | None = None
-                   ) -> np.ndarray | None:
+def bfgs(function, x: np.ndarray, gtol: float = 1e-6, max_iterations: int = 200) -> np.ndarray:
+    """The minimiser of a smooth function of a few variables, ``function(x)`` -> (value,
+    gradient), from ``x``: BFGS on the inverse Hessian, the first one scaled by the first step
+    (Nocedal and Wright, eq. 6.20), with Armijo backtracking; until the largest gradient
+    component is below ``gtol``, no step lowers the value, or after ``max_iterations``.
+
+    (SciPy's ``minimize`` does the same with a Wolfe line search; importing ``scipy.optimize``
+    for three variables costs a worker process more than the minimisation itself.)
+    """
+    x = np.array(x, dtype=np.float64)
+    value, gradient = function(x)
+    inverse = np.eye(len(x))
+    scaled = False
+    for _ in range(max_iterations):
+        if not np.max(np.abs(gradient)) > gtol:
+            break
+        direction = -inverse @ gradient
+        slope = float(direction @ gradient)
+        if not slope < 0:                       # not a descent direction: start afresh
+            inverse, scaled = np.eye(len(x)), False
+            direction, slope = -gradient, -float(gradient @ gradient)
+        step = 1.0
+        for _ in range(60):
+            trial = x + step * direction
+            trial_value, trial_gradient = function(trial)
+            if np.isfinite(trial_value) and trial_value <= value + 1e-4 * step * slope:
+                break
+            step *= 0.5
+        else:
+            break
+        s, y = trial - x, trial_gradient - gradient
+        curvature = float(s @ y)
+        if curvature > 1e-12 * float(np.sqrt((s @ s) * (y @ y))):
+            if not scaled:
+                inverse, scaled = np.eye(len(x)) * (curvature / float(y @ y)), True
+            rho = 1.0 / curvature
+            left = np.eye(len(x)) - rho * np.outer(s, y)
+            inverse = left @ inverse @ left.T + rho * np.outer(s, s)
+        x, value, gradient = trial, trial_value, trial_gradient
+    return x
+
+
+def _conformal_map(vertices: np.ndarray, faces: np.ndarray, cot: np.ndarray | None = None,
+                   laplacian=None) -> np.ndarray | None:
     """The spherical conformal map (FLASH, :mod:`.conformal`), Moebius-balanced; None when it
     breaks down or is not fold-free (on badly shaped or strongly elongated surfaces)."""
     from .conformal import spherical_conformal_map
 
-    sphere = spherical_conformal_map(vertices, faces, cot)
+    sphere = spherical_conformal_map(vertices, faces, cot, laplacian)
     if sphere is None:
         return None
     with np.errstate(all="ignore"):
@@ -138,14 +176,14 @@ def _conformal_map(vertices: np.ndarray, faces: np.ndarray, cot: np.ndarray | No
     return sphere
 
 
-def _initial_map(vertices: np.ndarray, faces: np.ndarray, cot: np.ndarray | None = None
-                 ) -> np.ndarray:
+def _initial_map(vertices: np.ndarray, faces: np.ndarray, cot: np.ndarray | None = None,
+                 laplacian=None) -> np.ndarray:
     """Fold-free initial map: the conformal map when it is fold-free (about 8 microseconds per
     vertex), else the multilevel map, fold-free by construction (about 50 microseconds per
     vertex, most of it spreading each level's map)."""
     from .multilevel import multilevel_map
 
-    sphere = _conformal_map(vertices, faces, cot)
+    sphere = _conformal_map(vertices, faces, cot, laplacian)
     return multilevel_map(vertices, faces) if sphere is None else sphere
 
 
@@ -205,28 +243,28 @@ PRECONDITIONER_MASS = 0.15
 
 
 def laplacian_factor(faces: np.ndarray, cot: np.ndarray, area: np.ndarray,
-                     mass_weight: float = PRECONDITIONER_MASS) -> tuple:
+                     mass_weight: float = PRECONDITIONER_MASS, laplacian=None) -> tuple:
     """The preconditioner of the distortion minimisation: A = L + ``mass_weight`` M, factored.
 
     L is the cotangent Laplacian (weights ``cot``, one row per triangle, the cotangent at each
-    corner) and M the lumped mass matrix (a third of each triangle's ``area`` to each corner).
-    A is symmetric positive definite; SuperLU (minimum-degree ordering on A + A^T, diagonal
-    pivots) factors it as P^T L D L^T P, deterministically. Returns the arguments of
+    corner; :func:`.conformal.cotangent_laplacian`, or ``laplacian`` when made already) and M the
+    lumped mass matrix (a third of each triangle's ``area`` to each corner). A is symmetric
+    positive definite; SuperLU (minimum-degree ordering on A + A^T, diagonal pivots) factors it
+    as P^T L D L^T P, deterministically. Returns the arguments of
     :func:`.sphere_kernels.solve_factor` before ``b``, or :func:`.sphere_kernels.no_factor`
     when the factor is not of that form (never seen).
     """
-    from scipy import sparse
     from scipy.sparse.linalg import splu
 
-    from .conformal import _laplace_entries
+    from .conformal import cotangent_laplacian, diagonal_positions
     from .sphere_kernels import no_factor
 
     n = int(faces.max()) + 1
-    rows, cols, weights = _laplace_entries(faces, cot)
+    if laplacian is None:
+        laplacian = cotangent_laplacian(faces, cot, n)
+    matrix = laplacian.copy()
     mass = np.bincount(faces.ravel(), np.repeat(area / 3.0, 3), minlength=n)
-    matrix = sparse.csc_matrix((np.concatenate([weights, mass_weight * mass]),
-                                (np.concatenate([rows, np.arange(n)]),
-                                 np.concatenate([cols, np.arange(n)]))), shape=(n, n))
+    matrix.data[diagonal_positions(matrix)] += mass_weight * mass
     try:
         lu = splu(matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                   options={"SymmetricMode": True})
@@ -249,8 +287,8 @@ def laplacian_factor(faces: np.ndarray, cot: np.ndarray, area: np.ndarray,
 
 def minimise_distortion(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
                         area_weight: float = AREA_WEIGHT, max_iterations: int = MAX_ITERATIONS,
-                        tolerance: float = 1e-7, memory: int = 5, window: int = 20,
-                        cot: np.ndarray | None = None) -> np.ndarray:
+                        tolerance: float = 1e-7, memory: int = 5, window: int = 10,
+                        cot: np.ndarray | None = None, laplacian=None) -> np.ndarray:
     """Lower the distortion of a fold-free sphere map, never flipping a triangle.
 
     Riemannian L-BFGS with the projection retraction, preconditioned by the surface's Laplacian
@@ -258,7 +296,8 @@ def minimise_distortion(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndar
     is infinite there), so each accepted iterate is fold-free (compiled:
     :func:`.sphere_kernels.lbfgs`). It stops when the energy fell by less than ``tolerance``
     (relative) per iteration over the last ``window``, when no step lowers the energy, or after
-    ``max_iterations``. ``cot``: the cotangents of the surface's angles, when known already.
+    ``max_iterations``. ``cot``, ``laplacian``: the cotangents of the surface's angles and its
+    cotangent Laplacian, when known already.
     """
     from .sphere_kernels import lbfgs
 
@@ -267,7 +306,8 @@ def minimise_distortion(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndar
     energy, _ = energy_of(x, gradient=False)
     if not np.isfinite(energy):
         raise SphereMapError("the initial sphere map has flipped triangles")
-    factor = laplacian_factor(energy_of.faces, energy_of.cot, energy_of.area)
+    factor = laplacian_factor(energy_of.faces, energy_of.cot, energy_of.area,
+                              laplacian=laplacian)
     lbfgs(x, energy_of.faces, energy_of.cot, energy_of.area, energy_of.area_weight,
           int(max_iterations), float(tolerance), int(memory), factor, int(window))
     return x
@@ -300,12 +340,13 @@ def sphere_map(vertices: np.ndarray, faces: np.ndarray, area_weight: float = ARE
     start = time.perf_counter()
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
-    from .conformal import cotangents
+    from .conformal import cotangent_laplacian, cotangents
 
     cot = cotangents(vertices, faces)
-    sphere = _initial_map(vertices, faces, cot)
+    laplacian = cotangent_laplacian(faces, cot, len(vertices))
+    sphere = _initial_map(vertices, faces, cot, laplacian)
     sphere = minimise_distortion(vertices, faces, sphere, area_weight=area_weight,
-                                 max_iterations=max_iterations, cot=cot)
+                                 max_iterations=max_iterations, cot=cot, laplacian=laplacian)
     flips = check_bijective(sphere, faces)
     if flips:
         raise SphereMapError(f"the sphere map has {flips} flipped triangles")
