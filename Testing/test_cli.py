@@ -245,6 +245,7 @@ NON_DEFAULT_OPTIONS = {
     "fixed_fraction": (["--fixed-fraction", "0.5"], 0.5),
     "tolerance": (["--tolerance", "0.01"], 0.01),
     "max_sweeps": (["--max-sweeps", "7"], 7),
+    "coarse_points": (["--coarse-points", "162"], 162),
     "seed": (["--seed", "5"], 5),
     "evaluation_modes": (["--evaluation-modes", "3"], 3),
     "specificity_samples": (["--specificity-samples", "300"], 300),

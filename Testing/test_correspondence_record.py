@@ -27,7 +27,7 @@ STRATEGY_KINDS = {
 def optimised(strategy):
     state = small_state()
     options = dict(max_time=1e6, max_sweeps=3, fixed_fraction=0.0, pose_evaluations=20,
-                   simplex_evaluations=300, simplex_step=0.3)
+                   simplex_evaluations=300, simplex_step=0.1)
     if strategy == "one-at-a-time-pose":
         options["warps"] = ("symmetric", "asymmetric", "shear", "rotation")
     settings = OptimisationSettings(strategy=strategy, **options)

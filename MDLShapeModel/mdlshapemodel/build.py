@@ -351,11 +351,12 @@ class OptimisationEnd:
 
     def to_json(self) -> dict:
         """metrics.json's ``optimisation``: converged (true, false, or null when nothing was
-        optimised), stopped_by (:class:`Stop`'s value or null), the budget and the seconds."""
+        optimised), stopped_by (:class:`Stop`'s value or null) and the budget; not the seconds,
+        so that the same build gives the same metrics.json wherever it runs (build.log has
+        them)."""
         return {"converged": self.converged,
                 "stopped_by": None if self.stopped_by is None else self.stopped_by.value,
-                "max_time": self.max_time, "max_sweeps": self.max_sweeps,
-                "seconds": self.seconds}
+                "max_time": self.max_time, "max_sweeps": self.max_sweeps}
 
     def warning(self, output) -> str | None:
         """What the user is told of an optimisation that ended before it converged, with how to
