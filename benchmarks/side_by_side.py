@@ -31,6 +31,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "hippocampus" / "labels"
+# packages that older commits import and this tree no longer needs (the remesher and the conformal
+# map of commits before 3ee7f0c)
+OLDER_PACKAGES = ["gpytoolbox>=0.3", "lapy>=1.1"]
 
 
 def run(command, **kwargs) -> subprocess.CompletedProcess:
@@ -62,9 +65,9 @@ def install(version: str, folder: Path) -> Path:
     run([pip, "install", "--quiet", str(source)], timeout=3600)
     if version != "new":
         # an older commit may import a package it did not declare (bfba680 uses gpytoolbox):
-        # this tree's dependencies, a superset, go in beside it
+        # this tree's dependencies and the packages older ones used go in beside it
         declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
-        run([pip, "install", "--quiet", *declared], timeout=3600)
+        run([pip, "install", "--quiet", *declared, *OLDER_PACKAGES], timeout=3600)
     stamp.write_text(commit)
     return command
 
