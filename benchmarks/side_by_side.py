@@ -6,7 +6,9 @@ exported with ``git archive``; ``new``: this working tree), then the same ``mdls
 runs with each on the same inputs, ``--repeat`` times in turn (old, new, old, new, ...), each with
 an empty preprocessing cache. Printed per run: the wall time, the preparation and optimisation
 times (from build.log and convergence.csv), the evaluations, and G(1) and S(1) with their SEs
-(metrics.json); then the median wall times and their ratio.
+(metrics.json); then the median wall times and their ratio. Before the timed runs, each version
+builds the first five cases once, untimed: the first build after installing compiles the numba
+loops into their cache, which a user pays once, not per build (``--no-warm-up`` times it too).
 
     python benchmarks/side_by_side.py bfba680 --cases 82 --output /tmp/sbs
     python benchmarks/side_by_side.py HEAD~5 --cases 20 --output /tmp/sbs -- --points 642
@@ -92,6 +94,8 @@ def main():
     parser.add_argument("--cases", type=int, default=82)
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--output", required=True)
+    parser.add_argument("--no-warm-up", dest="warm_up", action="store_false",
+                        help="time the first build after installing too (numba compiles then)")
     words = sys.argv[1:]
     mine, extra = (words[:words.index("--")], words[words.index("--") + 1:]) if "--" in words \
         else (words, [])
@@ -106,6 +110,17 @@ def main():
             link.symlink_to(path)
     commands = {"old": install(args.old, output / "old"), "new": install("new", output / "new")}
     times = {"old": [], "new": []}
+    if args.warm_up:
+        warm_inputs = output / "warm-up-inputs"
+        warm_inputs.mkdir(exist_ok=True)
+        for path in sorted(inputs.iterdir())[:5]:
+            if not (warm_inputs / path.name).exists():
+                (warm_inputs / path.name).symlink_to(path.resolve())
+        for version, command in commands.items():
+            folder = output / f"{version}-warm-up"
+            shutil.rmtree(folder, ignore_errors=True)
+            run([command, "build", warm_inputs, "-o", folder, "--no-cache", "-q",
+                 "--max-time", "5", *extra], timeout=7200)
     print(f"{args.cases} hippocampi, build options {' '.join(extra)}; old = {args.old}, "
           "new = this tree")
     print("version  run  wall_s  prepare_s  optimise_s  evaluations  G(1) +- SE        "
