@@ -86,6 +86,22 @@ def test_a_wrong_gradient_ends_in_a_failed_line_search_without_moving():
     assert np.array_equal(result.x, start)
 
 
+def test_a_steep_gradient_valid_over_a_tiny_length_still_gives_a_step():
+    """F falls with slope g only up to a kink at x = a, far shorter than the first step of unit
+    length, then rises with slope g again (as eq. 14 with many small modes). Every trial beyond
+    the kink is above the start: the step must shrink tenfold each time (halving would leave it
+    beyond the kink after all its backtracks) and end at the kink."""
+    g, a = 1e5, 1e-7
+
+    def kinked(x):
+        beyond = x[0] > a
+        return float(-g * x[0] + 2 * g * max(x[0] - a, 0.0)), np.array([g if beyond else -g])
+
+    result = minimize_box(kinked, np.zeros(1), np.full(1, -1.0), np.full(1, 1.0))
+    assert 0 < result.x[0] <= a * (1 + 1e-9)
+    assert result.value < 0
+
+
 def test_the_same_inputs_give_the_same_iterates_bit_for_bit():
     fun, lower, upper, _ = bounded_problem(2000, 4)
     first = minimize_box(fun, np.zeros(2000), lower, upper)

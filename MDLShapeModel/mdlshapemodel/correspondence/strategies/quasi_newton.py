@@ -3,9 +3,9 @@
 A projected L-BFGS: the search direction is the two-loop recursion of L-BFGS (Nocedal 1980)
 applied to the projected gradient (0 on the variables held at a bound by a gradient pushing
 outwards) and kept at 0 on those variables; the step is projected back into the box and accepted
-by the Armijo condition along the projected path, each rejected step shortened to the minimiser of
-the parabola that fits it (within [0.1, 0.5] of it). Curvature pairs (s, y) are kept only where
-s.y > 0, so the implied inverse Hessian stays positive definite.
+by the Armijo condition along the projected path, each rejected step shortened tenfold where F
+rose, else to the minimiser of the parabola that fits it (within [0.1, 0.5] of it). Curvature
+pairs (s, y) are kept only where s.y > 0, so the implied inverse Hessian stays positive definite.
 
 Why not SciPy's L-BFGS-B: a round of the fast strategy has up to about 160,000 parameters (field
 coefficients of every example at the finest level), and there SciPy's routine spends tens of
@@ -29,14 +29,17 @@ MAX_BACKTRACKS = 10
 
 
 def _backtrack(value: float, trial_value: float, predicted: float) -> float:
-    """The factor of the next, shorter step: the minimiser of the parabola through F at the start,
-    its slope there (``predicted``: the linear change to the rejected trial) and F at the trial,
-    kept within [0.1, 0.5] (0.1 when F there is not finite). Where the objective is much more
-    curved than the first step assumed (a small mode's cost, whose slope grows as 1/sigma), this
-    shrinks the step tenfold per evaluation instead of halving it."""
+    """The factor of the next, shorter step. Where F at the trial is above F at the start (or not
+    finite), 0.1: the linear model is wrong at that length, and a parabola through the two values
+    and the slope would put its minimum near half of it whenever the predicted decrease is large,
+    which on a kinked objective (eq. 14's range terms with hundreds of small modes, or a small
+    mode's cost, whose slope grows as 1/sigma) halves the step for many evaluations. Otherwise
+    (F lower, but not by enough) the minimiser of that parabola, kept within [0.1, 0.5]."""
+    if not np.isfinite(trial_value) or trial_value > value:
+        return 0.1
     curvature = trial_value - value - predicted
-    if not np.isfinite(trial_value) or curvature <= 0.0:
-        return 0.1 if not np.isfinite(trial_value) else 0.5
+    if curvature <= 0.0:
+        return 0.5
     return min(max(-predicted / (2.0 * curvature), 0.1), 0.5)
 
 
