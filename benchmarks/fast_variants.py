@@ -2,10 +2,13 @@
 time, evaluations, eq. 14 and G, S (M = 1..3) of each.
 
 Variants: ``default``; ``rounds2`` (at most two rounds per level instead of three); ``fixed1`` (one
-pass over the levels in the fixed-Delta phase instead of two). The phase function registered for
+pass over the levels in the fixed-Delta phase instead of two); ``finish3`` (the finishing phase
+after the coarse stage at the finest level only); ``finish1`` (the finishing phase one round per
+level). The phase function registered for
 ``fast`` is wrapped for the variant; the preprocessing cache is reused between runs.
 
     python benchmarks/fast_variants.py default rounds2 fixed1
+    python benchmarks/fast_variants.py default finish3 finish1
 """
 
 from __future__ import annotations
@@ -33,6 +36,13 @@ def use_variant(name: str) -> None:
             if objective.kind == "fixed":
                 settings = replace(settings, field_passes=1)
             return original(state, objective, settings, *a, **k)
+        strategies.PHASES["fast"] = phase
+    elif name == "finish3":
+        strategies.FINISHING_LEVELS = (3,)
+    elif name == "finish1":
+        def phase(*a, levels=(0, 1, 2, 3), **k):
+            rounds = 1 if levels == strategies.FINISHING_LEVELS else 3
+            return original(*a, levels=levels, rounds_per_level=rounds, **k)
         strategies.PHASES["fast"] = phase
     elif name != "default":
         raise SystemExit(f"unknown variant {name!r}")
