@@ -4,11 +4,12 @@ time, evaluations, eq. 14 and G, S (M = 1..3) of each.
 Variants: ``default``; ``rounds2`` (at most two rounds per level instead of three); ``fixed1`` (one
 pass over the levels in the fixed-Delta phase instead of two); ``finish3`` (the finishing phase
 after the coarse stage at the finest level only); ``finish1`` (the finishing phase one round per
-level). The phase function registered for
+level); ``nofinish`` (no finishing phase: the coarse stage's maps on the build's points as they
+are). The phase function registered for
 ``fast`` is wrapped for the variant; the preprocessing cache is reused between runs.
 
     python benchmarks/fast_variants.py default rounds2 fixed1
-    python benchmarks/fast_variants.py default finish3 finish1
+    python benchmarks/fast_variants.py default finish3 finish1 nofinish
 """
 
 from __future__ import annotations
@@ -43,6 +44,19 @@ def use_variant(name: str) -> None:
         def phase(*a, levels=(0, 1, 2, 3), **k):
             rounds = 1 if levels == strategies.FINISHING_LEVELS else 3
             return original(*a, levels=levels, rounds_per_level=rounds, **k)
+        strategies.PHASES["fast"] = phase
+    elif name == "nofinish":
+        from mdlshapemodel.correspondence.strategies.base import start_phase
+        from mdlshapemodel.correspondence.trace import Stop
+
+        def phase(state, objective, settings, rng, trace, name, deadline, *a,
+                  levels=(0, 1, 2, 3), **k):
+            if levels != strategies.FINISHING_LEVELS:
+                return original(state, objective, settings, rng, trace, name, deadline, *a,
+                                levels=levels, **k)
+            value = start_phase(state, objective, trace, name)
+            trace.stopped_by = Stop.CONVERGED
+            return value
         strategies.PHASES["fast"] = phase
     elif name != "default":
         raise SystemExit(f"unknown variant {name!r}")
