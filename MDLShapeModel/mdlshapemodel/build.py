@@ -520,12 +520,8 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         except (KeyboardInterrupt, Cancelled):
             trace.stopped_by = Stop.INTERRUPTED
         if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
-            cause = {Stop.TIME_LIMIT: f"within --max-time ({config.max_time:.0f} s)",
-                     Stop.SWEEP_LIMIT: f"within --max-sweeps ({config.max_sweeps})",
-                     Stop.INTERRUPTED: "before it was interrupted"}.get(
-                         trace.stopped_by, "by the time it converged")
-            log.warning("the optimisation had not lowered the objective %s: keeping the "
-                        "initial correspondence", cause)
+            log.warning("the optimisation had not lowered the objective when it ended (%s): "
+                        "keeping the initial correspondence", stop_summary(trace.stopped_by))
         if resume is None or resume.point.phase != PhasePoint.DONE:
             state.rebuild()  # also makes the state consistent after an interruption mid-step
         final = integrated(state.covariance())
