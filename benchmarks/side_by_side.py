@@ -74,6 +74,22 @@ def install(version: str, folder: Path) -> Path:
     return command
 
 
+def linked(paths, folder: Path) -> Path:
+    """``folder`` (made) holding a symbolic link to each of ``paths``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for path in paths:
+        link = folder / path.name
+        if not link.exists():
+            link.symlink_to(path)
+    return folder
+
+
+def build(command: Path, inputs: Path, folder: Path, *options):
+    """``command build inputs -o folder`` with an empty cache, quietly, into a fresh folder."""
+    shutil.rmtree(folder, ignore_errors=True)   # (older commits lack --overwrite)
+    run([command, "build", inputs, "-o", folder, "--no-cache", "-q", *options], timeout=7200)
+
+
 def stages(output: Path) -> dict:
     """Preparation and optimisation seconds, evaluations, G(1), S(1) and their SEs."""
     log = (output / "build.log").read_text()
@@ -102,25 +118,14 @@ def main():
     args = parser.parse_args(mine)
     output = Path(args.output)
     extra = extra or ["--label", "1,2"]     # after --: build options for both
-    inputs = output / "inputs"
-    inputs.mkdir(parents=True, exist_ok=True)
-    for path in sorted(DATA.glob("*.nii.gz"))[:args.cases]:
-        link = inputs / path.name
-        if not link.exists():
-            link.symlink_to(path)
+    cases = sorted(DATA.glob("*.nii.gz"))[:args.cases]
+    inputs = linked(cases, output / "inputs")
     commands = {"old": install(args.old, output / "old"), "new": install("new", output / "new")}
     times = {"old": [], "new": []}
     if args.warm_up:
-        warm_inputs = output / "warm-up-inputs"
-        warm_inputs.mkdir(exist_ok=True)
-        for path in sorted(inputs.iterdir())[:5]:
-            if not (warm_inputs / path.name).exists():
-                (warm_inputs / path.name).symlink_to(path.resolve())
+        warm_inputs = linked(cases[:5], output / "warm-up-inputs")
         for version, command in commands.items():
-            folder = output / f"{version}-warm-up"
-            shutil.rmtree(folder, ignore_errors=True)
-            run([command, "build", warm_inputs, "-o", folder, "--no-cache", "-q",
-                 "--max-time", "5", *extra], timeout=7200)
+            build(command, warm_inputs, output / f"{version}-warm-up", "--max-time", "5", *extra)
     print(f"{args.cases} hippocampi, build options {' '.join(extra)}; old = {args.old}, "
           "new = this tree")
     print("version  run  wall_s  prepare_s  optimise_s  evaluations  G(1) +- SE        "
@@ -129,9 +134,7 @@ def main():
         for version, command in commands.items():
             folder = output / f"{version}-{repeat}"
             started = time.perf_counter()
-            shutil.rmtree(folder, ignore_errors=True)   # (older commits lack --overwrite)
-            run([command, "build", inputs, "-o", folder, "--no-cache", "-q",
-                 *extra], timeout=7200)
+            build(command, inputs, folder, *extra)
             wall = time.perf_counter() - started
             times[version].append(wall)
             s = stages(folder)
