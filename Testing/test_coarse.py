@@ -1,6 +1,8 @@
-"""The fast strategy's coarse stage: optimised on fewer sample points, carried over to the build's."""
+"""The fast strategy's coarse grid: optimised on fewer sample points, carried over to the build's."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -8,8 +10,9 @@ import pytest
 from mdlshapemodel.config import BuildConfig, OptimisationSettings
 from mdlshapemodel.correspondence.coarse import carry_over, coarse_grid_applies, coarse_view
 from mdlshapemodel.correspondence.fields import FieldBasis
-from mdlshapemodel.correspondence.state import state_record
-from mdlshapemodel.correspondence.strategies import optimise
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.correspondence.state import CorrespondenceState, FixedExample, state_record
+from mdlshapemodel.correspondence.strategies import measured_state, optimise
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.warps import FieldWarp, apply_warps
 from mdlshapemodel.errors import ConfigError
@@ -73,22 +76,59 @@ def test_a_warp_that_turns_a_fine_grid_triangle_over_is_left_out_with_the_ones_a
     assert part.warps == [gentle] and not part.folds(part.positions)
 
 
-def test_the_staged_optimisation_runs_both_objectives_coarse_then_finishes_on_the_build_grid():
+def test_the_staged_optimisation_runs_both_objectives_on_the_coarse_grid_and_carries_them_over():
     state = small_state(points=162)
     objectives = build_objectives(state)
-    state.objective = objectives[1]
-    start = state.value()
+    start = measured_state(state, STAGED, objective=objectives[1]).value()
     trace = Trace()
     final = optimise(state, objectives, STAGED, np.random.default_rng(0), trace)
     phases = list(dict.fromkeys(row.phase for row in trace.rows))
-    assert phases == ["coarse fixed", "coarse integrated", "integrated"]
-    assert final < start and final == pytest.approx(state.value())
+    assert phases == ["coarse fixed", "coarse integrated"]
+    assert final < start
+    # the value returned is eq. 14 of the carried-over state, measured on the coarse grid
+    assert final == pytest.approx(measured_state(state, STAGED, objective=objectives[1]).value(),
+                                  rel=1e-9)
     # every part's map is a recorded composition of warps, as a state record needs
     for example in state.examples:
         part = example.parts[0]
         assert len(part.warps) > 0
         assert np.array_equal(part.positions, apply_warps(part.grid, part.warps))
     assert [row.evaluations for row in trace.rows] == sorted(row.evaluations for row in trace.rows)
+
+
+def test_the_objective_is_measured_where_the_optimisation_starts_from():
+    state = small_state(points=162)
+    objectives = build_objectives(state)
+    settings = replace(STAGED, fixed_fraction=0.0, max_sweeps=1)
+    view = measured_state(state, settings, objective=objectives[1])
+    assert view.n_points == 42 and measured_state(state, replace(settings, coarse_points=0)) is state
+    trace = Trace()
+    optimise(state, objectives, settings, np.random.default_rng(0), trace)
+    first = trace.rows[0]
+    assert (first.phase, first.sweep) == ("coarse integrated", 0)
+    assert first.objective == pytest.approx(view.value(), rel=1e-12)
+
+
+def test_a_coarse_view_keeps_the_poses_and_the_given_points_of_a_nested_grid():
+    state = small_state(points=162)
+    rng = np.random.default_rng(3)
+    for example in state.examples:
+        example.pose.translation = example.pose.translation + rng.normal(0, 0.2, 3)
+    state.rebuild()
+    view = coarse_view(state, 42)
+    for example, source in zip(view.examples, state.examples):
+        assert np.allclose(example.pose.rotation, source.pose.rotation)
+    given = CorrespondenceState([FixedExample(e.name, e.raw_points()) for e in state.examples],
+                                state.grids)
+    fixed_view = coarse_view(given, 42)
+    grid, _ = sphere_grid(42)
+    assert np.array_equal(grid, state.grids[0][0][:42])      # nested icospheres
+    for example, source in zip(fixed_view.examples, given.examples):
+        assert np.array_equal(example.points, source.points[:42])
+    fibonacci = CorrespondenceState([FixedExample(e.name, e.raw_points()[:100])
+                                     for e in state.examples], [sphere_grid(100)])
+    with pytest.raises(ValueError, match="not the first points"):
+        coarse_view(fibonacci, 42)
 
 
 def test_no_coarse_stage_where_it_cannot_help():
@@ -113,11 +153,10 @@ def test_resumed_from_any_checkpoint_of_either_stage_it_ends_as_the_uninterrupte
     final, trace, saved = optimised_with_checkpoints(state, STAGED)
     expected = state_record(state)
     phases = [point.phase for point, *_ in saved]
-    assert {"coarse fixed", "coarse integrated", "integrated"} <= set(phases)
-    # the last checkpoint of the coarse stage, the first of the finishing phase, and the end
-    chosen = [saved[phases.index("coarse integrated")],
-              saved[len(phases) - 1 - phases[::-1].index("coarse integrated")],
-              saved[phases.index("integrated")], saved[-1]]
+    assert {"coarse fixed", "coarse integrated"} <= set(phases)
+    # the first checkpoint of each phase, the last of the coarse integrated one, and the end
+    chosen = [saved[phases.index("coarse fixed")], saved[phases.index("coarse integrated")],
+              saved[len(phases) - 1 - phases[::-1].index("coarse integrated")], saved[-1]]
     for entry in chosen:
         resumed = small_state(points=162)
         value, resumed_trace = resumed_from(resumed, STAGED, entry)

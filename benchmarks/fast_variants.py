@@ -1,20 +1,22 @@
-"""Shorter searches of the fast strategy against the default, on the first 82 shared hippocampi:
-time, evaluations, eq. 14 and G, S (M = 1..3) of each.
+"""Shorter searches of the fast strategy against the default: time, evaluations, eq. 14 (initial
+and final, on the points the optimisation measures it on) and G, S (M = 1..3) of each, on the
+first 82 shared hippocampi (or ``--cases`` label maps of ``--data``).
 
-Variants: ``default``; ``rounds2`` (at most two rounds per level instead of three); ``fixed1`` (one
-pass over the levels in the fixed-Delta phase instead of two); ``finish3`` (the finishing phase
-after the coarse stage at the finest level only); ``finish1`` (the finishing phase one round per
-level); ``nofinish`` (no finishing phase: the coarse stage's maps on the build's points as they
-are). The phase function registered for
-``fast`` is wrapped for the variant; the preprocessing cache is reused between runs.
+Variants: ``default``; ``rounds2`` (at most two rounds per level instead of three); ``fixedN`` and
+``integratedN`` (N passes over the levels in the fixed-Delta or the full objective's phase);
+``iterationsN`` (at most N quasi-Newton iterations per round); ``norestore`` (the
+optimised correspondence kept even where eq. 14 ended above its start). Variants joined by "+"
+apply together (``fixed1+norestore``). Each variant runs in a fresh process; the preprocessing
+cache is reused between runs.
 
-    python benchmarks/fast_variants.py default rounds2 fixed1
-    python benchmarks/fast_variants.py default finish3 finish1 nofinish
+    python benchmarks/fast_variants.py default rounds2 fixed1 iterations30+integrated3
+    python benchmarks/fast_variants.py default --data /tmp/pop1000/labels --cases 250 --label 1
 """
 
 from __future__ import annotations
 
 import json
+import re
 import sys
 import time
 from dataclasses import replace
@@ -25,61 +27,63 @@ import numpy as np
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "hippocampus" / "labels"
 
 
-def use_variant(name: str) -> None:
-    from mdlshapemodel.correspondence import strategies
-    from mdlshapemodel.correspondence.strategies import fast
+def use_variant(names: str) -> None:
+    """Apply each of the variants joined by "+" (e.g. ``coarse2+nofinish``)."""
+    for name in names.split("+"):
+        _use(name)
 
-    original = fast.optimise_fast
+
+def _use(name: str) -> None:
+    from mdlshapemodel.correspondence import strategies
+
+    original = strategies.PHASES["fast"]
+    numbered = re.fullmatch(r"(fixed|integrated|iterations)(\d+)", name)
     if name == "rounds2":
         strategies.PHASES["fast"] = lambda *a, **k: original(*a, rounds_per_level=2, **k)
-    elif name == "fixed1":
+    elif numbered:
+        kind, number = numbered.group(1), int(numbered.group(2))
+
         def phase(state, objective, settings, *a, **k):
-            if objective.kind == "fixed":
-                settings = replace(settings, field_passes=1)
+            if kind == "iterations":
+                settings = replace(settings, round_iterations=number)
+            elif objective.kind == kind:
+                settings = replace(settings, field_passes=number)
             return original(state, objective, settings, *a, **k)
         strategies.PHASES["fast"] = phase
-    elif name == "finish3":
-        strategies.FINISHING_LEVELS = (3,)
-    elif name == "finish1":
-        def phase(*a, levels=(0, 1, 2, 3), **k):
-            rounds = 1 if levels == strategies.FINISHING_LEVELS else 3
-            return original(*a, levels=levels, rounds_per_level=rounds, **k)
-        strategies.PHASES["fast"] = phase
-    elif name == "nofinish":
-        from mdlshapemodel.correspondence.strategies.base import start_phase
-        from mdlshapemodel.correspondence.trace import Stop
-
-        def phase(state, objective, settings, rng, trace, name, deadline, *a,
-                  levels=(0, 1, 2, 3), **k):
-            if levels != strategies.FINISHING_LEVELS:
-                return original(state, objective, settings, rng, trace, name, deadline, *a,
-                                levels=levels, **k)
-            value = start_phase(state, objective, trace, name)
-            trace.stopped_by = Stop.CONVERGED
-            return value
-        strategies.PHASES["fast"] = phase
+    elif name == "norestore":     # keep the optimised state even where eq. 14 ended higher
+        from mdlshapemodel.correspondence.state import CorrespondenceState
+        CorrespondenceState.restore = lambda self, snapshot: None
     elif name != "default":
         raise SystemExit(f"unknown variant {name!r}")
 
 
-def run(name: str) -> dict:
+def run(name: str, data: Path = DATA, cases: int = 82, labels=(1, 2), max_time: float = 600.0) -> dict:
     from mdlshapemodel.build import correspond
     from mdlshapemodel.config import BuildConfig
+    from mdlshapemodel.correspondence.trace import RESTORED_INITIAL
     from mdlshapemodel.model.evaluation import generalization, specificity
     from mdlshapemodel.prepare.batch import preprocess
 
     use_variant(name)
-    config = BuildConfig(labels=(1, 2), workers=2)
-    prepared, _ = preprocess(sorted(DATA.glob("*.nii.gz"))[:82], config)
+    config = BuildConfig(labels=tuple(labels), workers=2, max_time=max_time)
+    prepared, _ = preprocess(sorted(Path(data).glob("*.nii.gz"))[:cases], config)
     started = time.perf_counter()
-    state = correspond(prepared, config).state
+    result = correspond(prepared, config)
     seconds = time.perf_counter() - started
+    state = result.state
+    phases = {}
+    for row in result.trace.rows:
+        phases[row.phase] = [round(row.wall_seconds, 1), round(row.objective, 2)]
     aligned = state.aligned_shapes()
     g = generalization(aligned, state.weights, 3)
     s = specificity(aligned, state.weights, 3, config.specificity_samples,
                     np.random.default_rng(config.seed))
-    return {"variant": name, "seconds": round(seconds, 1), "evaluations": state.evaluations,
+    return {"variant": name, "cases": len(prepared), "seconds": round(seconds, 1),
+            "evaluations": state.evaluations, "phases_end": phases,   # seconds and F (on its grid) at the end
+            "initial_eq14": round(float(result.initial_objective), 2),
             "eq14": round(float(state.value()), 2),
+            "initial_kept": bool(result.trace.rows
+                                 and result.trace.rows[-1].phase == RESTORED_INITIAL),
             "G": [round(float(x), 4) for x in g["squared"]],
             "G_se": [round(float(x), 4) for x in g["squared_se"]],
             "S": [round(float(x), 4) for x in s["squared"]],
@@ -87,9 +91,22 @@ def run(name: str) -> dict:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 2:
-        print(json.dumps(run(sys.argv[1])))
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("variants", nargs="*", default=["default", "rounds2", "fixed1"])
+    parser.add_argument("--data", default=str(DATA), help="a folder of label maps")
+    parser.add_argument("--cases", type=int, default=82, help="the first N (default 82)")
+    parser.add_argument("--label", default="1,2", help="labels of the object (default 1,2)")
+    parser.add_argument("--max-time", type=float, default=600.0)
+    args = parser.parse_args()
+    labels = tuple(int(x) for x in args.label.split(","))
+    if len(args.variants) == 1:
+        print(json.dumps(run(args.variants[0], Path(args.data), args.cases, labels,
+                             args.max_time)), flush=True)
     else:   # each variant in a fresh process: the wrapped phase stays in its own run
         import subprocess
-        for variant in sys.argv[1:] or ["default", "rounds2", "fixed1"]:
-            subprocess.run([sys.executable, __file__, variant], check=True)
+        for variant in args.variants:
+            subprocess.run([sys.executable, __file__, variant, "--data", args.data,
+                            "--cases", str(args.cases), "--label", args.label,
+                            "--max-time", str(args.max_time)], check=True)

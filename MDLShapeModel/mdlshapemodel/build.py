@@ -30,7 +30,8 @@ from .config import BuildConfig
 from .correspondence.cpd import cpd_state
 from .correspondence.initial import initial_state
 from .correspondence.state import CorrespondenceState
-from .correspondence.strategies import optimise
+from .correspondence.coarse import coarse_view
+from .correspondence.strategies import optimise, runs_coarse
 from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import RESTORED_INITIAL, Stop, Trace, stop_summary
 from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
@@ -393,6 +394,7 @@ class Correspondence:
     data_range: float            # mm, of the initially aligned shapes
     trace: Trace                 # the optimisation's rows (convergence.csv)
     optimisation: OptimisationEnd   # converged or what stopped it
+    objective_points: int        # the sample points (all parts) the objectives are measured on
 
     @property
     def interrupted(self) -> bool:
@@ -472,9 +474,20 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     if curves and config.correspondence == "cpd":
         raise BuildError("--correspondence cpd registers surfaces; these inputs are 2-D curves")
     state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)
-    initial = integrated(state.covariance())
-    log.info("initial objective %.4f (n_s=%d, n_p=%d, voxel %.3f mm, range %.2f mm)", initial,
-             state.n_shapes, state.n_points, voxel, data_range)
+    settings = config.optimisation_settings()
+    # eq. 14 is measured where the optimisation minimises it (the fast strategy's coarse grid)
+    coarse = (settings.coarse_points if config.correspondence != "cpd"
+              and runs_coarse(state, settings) else None)
+
+    def measured(current: CorrespondenceState) -> float:
+        return integrated((current if coarse is None
+                           else coarse_view(current, coarse)).covariance())
+
+    initial = measured(state)
+    log.info("initial objective %.4f (n_s=%d, n_p=%d%s, voxel %.3f mm, range %.2f mm)", initial,
+             state.n_shapes, state.n_points,
+             "" if coarse is None else f", measured on {coarse} points per part", voxel,
+             data_range)
     wanted = config.baselines if baselines is not None else []
     if "none" in wanted and (config.strategy != "none" or config.correspondence == "cpd"):
         log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
@@ -487,7 +500,13 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         cpd, template = cpd_state(state, prepared, config, executor, progress)
         if config.correspondence != "cpd":
             log.info("evaluating the CPD template correspondence as a baseline")
-            baselines("cpd", cpd, {"objective": integrated(cpd.covariance()),
+            try:
+                objective = measured(cpd)
+            except ValueError:      # the coarse grid is not within the build's (not icospheres)
+                objective = integrated(cpd.covariance())
+                log.info("the CPD baseline's objective is measured on its %d points per part",
+                         len(cpd.grids[0][0]))
+            baselines("cpd", cpd, {"objective": objective,
                                    "template": template})
 
     trace = Trace()
@@ -515,8 +534,8 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                 checkpoint(state if current is None else current, point, rng, trace)
 
         try:
-            optimise(state, (fixed, integrated), config.optimisation_settings(), rng, trace,
-                     progress, save, resume=resumption)
+            optimise(state, (fixed, integrated), settings, rng, trace, progress, save,
+                     resume=resumption)
         except (KeyboardInterrupt, Cancelled):
             trace.stopped_by = Stop.INTERRUPTED
         if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
@@ -524,7 +543,7 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                         "keeping the initial correspondence", stop_summary(trace.stopped_by))
         if resume is None or resume.point.phase != PhasePoint.DONE:
             state.rebuild()  # also makes the state consistent after an interruption mid-step
-        final = integrated(state.covariance())
+        final = measured(state)
         log.info("final objective %.4f after %.1f s, %d evaluations; optimisation %s", final,
                  trace.last.wall_seconds if trace.rows else 0.0, state.evaluations,
                  stop_summary(trace.stopped_by))
@@ -534,7 +553,8 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     ending = OptimisationEnd(trace.stopped_by, config.max_time, config.max_sweeps,
                              trace.last.wall_seconds if trace.rows else 0.0)
     return Correspondence(state, shape_model_of(state, config, final, voxel, data_range, named),
-                          initial, final, voxel, data_range, trace, ending)
+                          initial, final, voxel, data_range, trace, ending,
+                          state.n_points if coarse is None else coarse * len(state.grids))
 
 
 def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: float,

@@ -259,9 +259,11 @@ class _TerminalHandler(logging.StreamHandler):
 
 def _summary(result) -> str:
     m = result.metrics
+    measured = m["objective"].get("n_points", m["n_points"])
     lines = [f"model of {m['n_shapes']} cases written to {result.output}",
              f"  objective (eq. 14): {result.initial_objective:.3f} -> {result.final_objective:.3f}"
-             f" nats ({m['strategy']})",
+             f" nats ({m['strategy']}"
+             f"{'' if measured == m['n_points'] else f', on {measured} sample points'})",
              f"  optimisation: {stop_summary(m['optimisation']['stopped_by'])}"]
     for key, symbol in (("generalization", "G"), ("specificity", "S")):
         shown = ", ".join(f"{v:.3f}" for v in m[key][:3])

@@ -51,10 +51,16 @@ class OptimisationSettings:
     # ground-truth error of a femur population with no sliding from 1.134 to 0.992 mm, with each
     # example's size free in the pose)
     field_passes: int = 2
-    # the fast strategy's coarse stage (correspondence/coarse.py): both objectives first on this
-    # many sample points per part (an icosphere: 10 * 4**k + 2), with ``coarse_passes`` passes over
-    # the field levels, then a finishing phase on the build's own points; 0, or a build with no
-    # more points than this, has no coarse stage
+    # the fast strategy: quasi-Newton iterations per round at most. Each round ends with a rebuild
+    # (area weights of the new mean, the next fields centred where the points now are): shorter
+    # rounds gave lower G and S in fewer evaluations (benchmarks/fast_variants.py iterationsN)
+    round_iterations: int = 15
+    # the fast strategy's coarse grid (correspondence/coarse.py): both objectives on this many
+    # sample points per part (an icosphere: 10 * 4**k + 2), and the maps then carried over to
+    # the build's own points; 0, or a build with no more points than this, optimises on the
+    # build's points. There the fixed-Delta phase makes ``coarse_passes`` passes over the field
+    # levels and the full objective's phase one (further passes lowered eq. 14, not G or S:
+    # fast_variants.py integrated1)
     coarse_points: int = 642
     coarse_passes: int = 3
     # the simplex strategies (III-D1, III-D2)
@@ -368,8 +374,9 @@ class BuildConfig:
                          "--max-time, a budget that repeats exactly (default %(default)s)",
         metavar="N"))
     coarse_points: int = field(default=OptimisationSettings.coarse_points, metadata=option(
-        _CORRESPONDENCE, "fast strategy: optimise first on this many sample points per part, "
-                         "then finish on --points; 0: all on --points (default %(default)s)",
+        _CORRESPONDENCE, "fast strategy: optimise on this many sample points per part (the "
+                         "objective is measured there) and carry the maps over to --points; 0: "
+                         "optimise on --points (default %(default)s)",
         metavar="N"))
     seed: int = field(default=0, metadata=option(
         _CORRESPONDENCE, "random seed of the paper's strategies (fast draws no random "

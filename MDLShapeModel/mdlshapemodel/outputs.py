@@ -283,6 +283,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
     log.info("evaluated the model in %.1f s", time.perf_counter() - started)
     metrics = {"objective": {"initial": initial, "final": final,
+                             "n_points": corresponded.objective_points,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
                "strategy": model.metadata["strategy"], "n_shapes": state.n_shapes,
                "n_points": state.n_points,

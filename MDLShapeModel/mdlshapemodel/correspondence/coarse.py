@@ -1,21 +1,27 @@
-"""Coarse to fine in sample points: the fast strategy's first stage optimises the correspondence
-on a coarser grid of sample points on the same surfaces, then carries its maps over to the build's
-grid and finishes there.
+"""The fast strategy's coarse grid: the correspondence is optimised on fewer sample points per part
+(``coarse_points``, 642 by default) than the model is sampled at (``points``), and its maps are
+then carried over to the model's grid.
 
 A reparameterization is a composition of maps of the sphere (warps), not a set of point
-positions, so the maps found on the coarse grid apply unchanged to the build's grid. An evaluation
-on the coarse grid costs about n_p(coarse) / n_p of one on the build's grid (the per-point field
+positions, so the maps found on the coarse grid apply unchanged to the model's grid. An evaluation
+on the coarse grid costs about n_p(coarse) / n_p of one on the model's grid (the per-point field
 sampling and chain rule, and the O(n_s^2 n_p) Gram matrix and gradient, all scale with n_p).
-The description length on the coarse grid approximates the one on the build's grid (the area
-weights of eq. 17 make both integrals over the mean surface), so the large-scale part of the
-search is done there and the build's grid only refines it.
+
+Eq. 14 is then the description length of the training set sampled at the coarse grid's points,
+and a build reports it there (:func:`coarse_view` of the initial and of the final state). On the
+model's grid its value differs: the smallest of the n_s - 1 modes there also hold the variation
+between the coarse points, which the optimisation does not see and which eq. 14's log terms
+weigh heavily when n_s is large. Measured (docs/benchmarks.md), a further phase on the model's
+grid lowers eq. 14 there without changing generalization or specificity, so there is none.
 """
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..parallel import Threads
 from .sampling import sphere_grid
-from .state import CorrespondenceState, Example
+from .state import CorrespondenceState, Example, FixedExample
 
 
 def coarse_grid_applies(state: CorrespondenceState, n_points: int) -> bool:
@@ -30,15 +36,33 @@ def coarse_grid_applies(state: CorrespondenceState, n_points: int) -> bool:
 
 
 def coarse_view(state: CorrespondenceState, n_points: int) -> CorrespondenceState:
-    """The same examples sampled at ``n_points`` per part (:func:`.sampling.sphere_grid`), with
-    their current warps, aligned afresh (Procrustes) and rescaled to ``state``'s target size.
-    The parts share the surfaces, sphere maps and locators of ``state``'s."""
+    """The same correspondence sampled at ``n_points`` per part (:func:`.sampling.sphere_grid`),
+    with the same poses, rebuilt (area weights of the coarse grid, rescaled to ``state``'s target
+    size): eq. 14 of the view is eq. 14 of ``state`` on the coarse grid.
+
+    Sphere parts are resampled with their warps (they share the surfaces, sphere maps and
+    locators of ``state``'s). An example whose correspondence is given (:class:`FixedExample`,
+    e.g. the CPD baseline's) keeps the points of each part where its grid starts with the coarse
+    grid (nested icospheres: 642 in 2562); raises ValueError where it does not."""
     grid, cells = sphere_grid(n_points)
-    examples = [Example(example.name, [part.on_grid(grid, cells) for part in example.parts])
-                for example in state.examples]
+    examples = []
+    for example in state.examples:
+        if isinstance(example, FixedExample):
+            if not all(len(points) >= n_points and np.array_equal(points[:n_points], grid)
+                       for points, _ in state.grids):
+                raise ValueError(f"the grid of {n_points} points is not the first points of "
+                                 "the state's grids: a given correspondence has no samples there")
+            points = np.concatenate([example.points[part][:n_points]
+                                     for part in state.part_slices])
+            examples.append(FixedExample(example.name, points))
+        else:
+            examples.append(Example(example.name,
+                                    [part.on_grid(grid, cells) for part in example.parts]))
     coarse = CorrespondenceState(examples, [(grid, cells)] * len(state.grids), state.objective,
                                  scaling=state.scaling, planar=state.planar)
     coarse.target_size = state.target_size
+    for view, example in zip(coarse.examples, state.examples):
+        view.pose = example.pose.copy()
     coarse.rebuild()
     coarse.evaluations = state.evaluations
     return coarse

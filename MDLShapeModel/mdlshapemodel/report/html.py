@@ -213,6 +213,12 @@ def run_table() -> str:
                             ("command", shlex.join(sys.argv))])
 
 
+def _measured_on(objective: dict, n_points: int) -> str:
+    """", on the N sample points the optimisation ran on" where they are not the model's."""
+    measured = objective.get("n_points", n_points)
+    return "" if measured == n_points else f", on the {measured} sample points it was optimised on"
+
+
 def _run_parts(output: Path, metrics: dict) -> list:
     """What was run: version, date, command, settings, and links to the output files."""
     config = output / "config.json"
@@ -264,7 +270,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
         f"<p>{metrics['n_shapes']} shapes, {metrics['n_points']} points each, correspondence "
         f"<b>{html.escape(metrics['strategy'])}</b>; {metrics['n_rejected']} input(s) rejected"
         f"{' (listed at the end)' if metrics['n_rejected'] else ''}. "
-        f"Objective (eq. 14): {objective['initial']:.3f} before, {objective['final']:.3f} after. "
+        f"Objective (eq. 14{_measured_on(objective, metrics['n_points'])}): "
+        f"{objective['initial']:.3f} before, {objective['final']:.3f} after. "
         f"Optimisation: <b>{html.escape(stop_summary(ending.get('stopped_by')))}</b>.</p>",
     ]
     parts += [f"<p class=flag>Warning: {html.escape(warning)}.</p>"

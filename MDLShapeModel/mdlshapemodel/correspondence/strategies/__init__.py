@@ -68,7 +68,8 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
     """Run ``settings.strategy``: the fixed-Delta phase, then the full objective.
 
     ``objectives`` is (fixed, integrated); ``active`` the indices of the examples to optimise
-    (default all). Returns the final value of the full objective; ``trace.stopped_by`` says why
+    (default all). Returns the final value of the full objective, of :func:`measured_state`
+    (on the coarse grid where the optimisation runs there); ``trace.stopped_by`` says why
     the full objective's phase ended (None for ``none``, which optimises nothing).
     Raises :class:`Cancelled` (from ``progress``) with the state left consistent.
 
@@ -107,34 +108,34 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
     run = PHASES[settings.strategy]
 
     phases = _phases(state, objectives, settings, start, active)
-    state.objective = integrated
-    initial_value = state.value()
+    staged = phases[0].coarse
     initial = state.snapshot()
     point, coarse = None, None
+    if resume is not None and resume.point.phase == PhasePoint.DONE:   # it had converged
+        replay_record(state, resume.record)
+        state.evaluations = resume.evaluations
+        trace.stopped_by = Stop.CONVERGED
+        return measured_state(state, settings, active, integrated).value()
+    if staged:
+        coarse = coarse_view(state, settings.coarse_points)
+        coarse.objective = integrated
+        initial_value = coarse.value()
+    else:
+        state.objective = integrated
+        initial_value = state.value()
     if resume is not None:
         point = resume.point
-        if point.phase == PhasePoint.DONE:      # checkpointed once it had converged
-            replay_record(state, resume.record)
-            state.evaluations = resume.evaluations
-            trace.stopped_by = Stop.CONVERGED
-            return state.value()
         names = [phase.name for phase in phases]
         if point.phase not in names:
             raise ValueError(f"the checkpoint is of a phase ({point.phase!r}) that these settings "
                              "do not run")
         phases = phases[names.index(point.phase):]
-        resumed = coarse_view(state, settings.coarse_points) if phases[0].coarse else state
+        resumed = coarse if staged else state
         replay_record(resumed, resume.record)
         resumed.evaluations = resume.evaluations
-        coarse = resumed if phases[0].coarse else None
-    elif phases[0].coarse:
-        coarse = coarse_view(state, settings.coarse_points)
     try:
         for phase in phases:
-            if coarse is not None and not phase.coarse:
-                _finish_coarse_stage(coarse, state, settings)
-                coarse = None
-            current = coarse if phase.coarse else state
+            current = coarse if staged else state
             trace.stopped_by = None      # the phase sets it as it ends
             saver = None if checkpoint is None else functools.partial(_checkpoint_of, checkpoint,
                                                                       current)
@@ -143,24 +144,40 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
                         point if point is not None and phase.name == point.phase else None,
                         **phase.options)
     finally:
-        if coarse is not None:      # stopped within the coarse stage: keep what it reached
+        if staged:      # also when stopped within it: keep what it reached
             _finish_coarse_stage(coarse, state, settings)
         state.objective = integrated
     if value > initial_value:
         # The fixed-Delta phase optimises another function; with a short budget the full
         # objective may end above its start. Never return a worse correspondence than the start.
         state.restore(initial)
-        value = state.value()
+        value = initial_value
         trace.record(state, value, RESTORED_INITIAL, trace.last.sweep if trace.rows else 0)
     return value
 
 
-#: The share of ``max_time`` by which the coarse stage (:mod:`..coarse`) ends, if it has not
-#: converged before; the rest is the finishing phase's on the build's grid.
-COARSE_SHARE = 0.8
-#: The finishing phase on the build's grid after a coarse stage: the fast strategy's two finest
-#: field levels, one pass (the large-scale maps are the coarse stage's).
-FINISHING_LEVELS = (2, 3)
+def runs_coarse(state: CorrespondenceState, settings: OptimisationSettings,
+                active=None) -> bool:
+    """Whether :func:`optimise` with ``settings`` runs on the coarse grid of
+    :mod:`..coarse` (the fast strategy on all examples of surfaces sampled more finely than
+    ``settings.coarse_points``)."""
+    return (settings.strategy == "fast" and active is None
+            and coarse_grid_applies(state, settings.coarse_points))
+
+
+def measured_state(state: CorrespondenceState, settings: OptimisationSettings, active=None,
+                   objective=None) -> CorrespondenceState:
+    """The state whose eq. 14 :func:`optimise` minimises for ``state``: its
+    :func:`~..coarse.coarse_view` where the optimisation runs on the coarse grid
+    (:func:`runs_coarse`), else ``state`` itself; with ``objective`` set as its objective.
+
+    A build measures the objective of its initial and final correspondence, and of the
+    baselines (their grids permitting), on this one."""
+    view = (coarse_view(state, settings.coarse_points) if runs_coarse(state, settings, active)
+            else state)
+    if objective is not None:
+        view.objective = objective
+    return view
 
 
 @dataclass(frozen=True)
@@ -181,26 +198,20 @@ def _phases(state: CorrespondenceState, objectives: tuple, settings: Optimisatio
             start: float, active) -> list:
     """The phases of a run: the fixed-Delta objective's (unless ``fixed_fraction`` is 0), then
     the full objective's; for the fast strategy on all examples of surfaces sampled more finely
-    than ``coarse_points``, both first on the coarse grid, then a finishing phase of the full
-    objective on the state's own grid."""
+    than ``coarse_points`` (:func:`runs_coarse`), both on the coarse grid (named "coarse fixed"
+    and "coarse integrated"; ``coarse_passes`` passes over the field levels in the first, one in
+    the second), whose maps are then carried over to the state's own grid."""
     fixed, integrated = objectives
     total = settings.max_time
-    staged = (settings.strategy == "fast" and active is None
-              and coarse_grid_applies(state, settings.coarse_points))
-    if not staged:
-        phases = [Phase("integrated", integrated, start + total, settings)]
-        if settings.fixed_fraction > 0:
-            phases.insert(0, Phase("fixed", fixed, start + settings.fixed_fraction * total,
-                                   settings))
-        return phases
-    coarse = replace(settings, field_passes=settings.coarse_passes)
-    phases = [Phase("coarse integrated", integrated, start + COARSE_SHARE * total, coarse, True),
-              Phase("integrated", integrated, start + total, replace(settings, field_passes=1),
-                    options={"levels": FINISHING_LEVELS})]
+    coarse = runs_coarse(state, settings, active)
+    names = ("coarse fixed", "coarse integrated") if coarse else ("fixed", "integrated")
+    passes = ((settings.coarse_passes, 1) if coarse
+              else (settings.field_passes, settings.field_passes))
+    phases = [Phase(names[1], integrated, start + total,
+                    replace(settings, field_passes=passes[1]), coarse)]
     if settings.fixed_fraction > 0:
-        phases.insert(0, Phase("coarse fixed", fixed,
-                               start + settings.fixed_fraction * COARSE_SHARE * total, coarse,
-                               True))
+        phases.insert(0, Phase(names[0], fixed, start + settings.fixed_fraction * total,
+                               replace(settings, field_passes=passes[0]), coarse))
     return phases
 
 

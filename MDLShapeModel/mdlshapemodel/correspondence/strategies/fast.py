@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ...config import OptimisationSettings
 from ...parallel import Threads
 from ...progress import report
 from .. import hotloops
@@ -346,7 +347,8 @@ class _RoundOutOfTime(Exception):
 
 
 def optimise_round(state: CorrespondenceState, objective, active, level: int,
-                   max_iterations: int = 30, support: float = 2.0,
+                   max_iterations: int = OptimisationSettings.round_iterations,
+                   support: float = 2.0,
                    deadline: float = float("inf"), threads: Threads | None = None) -> float:
     """One projected L-BFGS round at one field level; returns F after it.
 
@@ -447,6 +449,7 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
             sweep += 1
             values["before"] = value
             value = optimise_round(state, objective, active, levels[at["level"]],
+                                   max_iterations=settings.round_iterations,
                                    deadline=deadline, threads=threads)
             values["value"] = value
             trace.record(state, value, phase, sweep)
