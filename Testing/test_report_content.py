@@ -31,7 +31,7 @@ def report(tmp_path_factory):
 def test_it_says_what_was_run_and_links_the_files(report):
     output, page = report
     assert f"mdlshapemodel {__version__}" in page
-    assert re.search(r"<td>command</td><td>[^<]*mdlshapemodel[^<]* build [^<]*--points 162", page)
+    assert re.search(r"<pre class=command>[^<]*mdlshapemodel[^<]* build [^<]*--points 162", page)
     for setting in ("points", "strategy", "labels", "smoothing_sigma"):
         assert f"<td>{setting}</td>" in page
     files = page[page.index("<h3>Output files</h3>"):]
@@ -63,7 +63,7 @@ def test_compare_html_says_what_was_run_and_links_each_models_report(report, tmp
     assert result.returncode == 0, result.stderr
     page = html.unescape((tmp_path / "cmp" / "compare.html").read_text())
     assert f"mdlshapemodel {__version__}" in page and "How to read C(M), G(M) and S(M)" in page
-    assert re.search(r"<td>command</td><td>[^<]*mdlshapemodel[^<]* compare ", page)
+    assert re.search(r"<pre class=command>[^<]*mdlshapemodel[^<]* compare ", page)
     links = re.findall(r"<a href='([^']+)'>its report</a>", page)
     assert len(links) == 2
     assert all((tmp_path / "cmp" / link).resolve() == (output / "report.html").resolve()

@@ -342,3 +342,25 @@ def test_two_viewers_on_one_page_move_independently(browser, tmp_path):
     assert page.inner_text("#viewer1-sd-0") == "3.0" and page.inner_text("#viewer0-sd-0") == "0.0"
     assert errors == [] and requests == []
     page.close()
+
+
+def test_a_long_command_line_wraps_in_a_small_box(browser, tmp_path, monkeypatch):
+    """A build of hundreds of files: the command stays within the page's width and a few lines."""
+    model, shapes, names = population(n_s=4, n_points=42)
+    metrics = {"objective": {"initial": 1.0, "final": 0.5}, "n_shapes": 4, "n_points": 42,
+               "strategy": "fast", "n_rejected": 0, "interrupted": False,
+               "modes": [1, 2], "compactness": [1.0, 1.5], "compactness_se": [0.1, 0.1],
+               "generalization": [2.0, 1.0], "generalization_se": [0.1, 0.1],
+               "specificity": [2.0, 2.5], "specificity_se": [0.1, 0.1]}
+    paths = [f"/data/study/labels/subject_{k:04d}_hippocampus_left.nii.gz" for k in range(300)]
+    monkeypatch.setattr("sys.argv", ["mdlshapemodel", "build", *paths, "-o", "/tmp/model"])
+    path = write_report(tmp_path, metrics, [], [], model, shapes, names)
+    page, errors, _ = _open(browser, path)
+    assert errors == []
+    widths = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
+    assert widths[0] <= widths[1], widths
+    box = page.locator("pre.command")
+    assert "subject_0299_hippocampus_left.nii.gz" in box.inner_text()     # all of it is there
+    height = box.bounding_box()["height"]
+    line = page.evaluate("parseFloat(getComputedStyle(document.body).fontSize)")
+    assert height < 10 * line, (height, line)

@@ -28,7 +28,11 @@ BASELINE_NAMES = {"none": "initial correspondence (--strategy none)",
                   "cpd": "CPD template registration"}
 STYLE = ("body{font-family:sans-serif;margin:2em;max-width:1150px}table{border-collapse:collapse;"
          "margin:1em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}"
-         "th{background:#eee}td.flag{color:#b00;font-weight:bold}img{max-width:100%}")
+         "th{background:#eee}td.flag{color:#b00;font-weight:bold}img{max-width:100%}"
+         # a long command line (hundreds of input paths) wraps in a box of a few lines that
+         # scrolls, instead of widening the page
+         "pre.command{white-space:pre-wrap;overflow-wrap:anywhere;max-height:7.5em;"
+         "overflow:auto;background:#f6f6f6;border:1px solid #ccc;padding:4px 8px;margin:0}")
 
 
 def measure_plot(series: list, keys=("compactness", "generalization", "specificity")) -> str:
@@ -201,16 +205,17 @@ OUTPUT_FILES = (
 
 
 def run_table() -> str:
-    """A table of what is running: this package's version, the date and the command line."""
+    """What is running: this package's version and the date (a table), and the command line
+    (wrapped, scrolling when long)."""
     import shlex
     import sys
     import time
 
     from ..version import __version__
 
-    return table(("", ""), [("version", f"mdlshapemodel {__version__}"),
-                            ("date", time.strftime("%Y-%m-%d %H:%M")),
-                            ("command", shlex.join(sys.argv))])
+    return (table(("", ""), [("version", f"mdlshapemodel {__version__}"),
+                             ("date", time.strftime("%Y-%m-%d %H:%M"))])
+            + f"<p>Command:</p><pre class=command>{html.escape(shlex.join(sys.argv))}</pre>")
 
 
 def _measured_on(objective: dict, n_points: int) -> str:
