@@ -56,12 +56,13 @@ def _rss_mb(pid: int) -> float:
 
 
 class MemoryWatch(threading.Thread):
-    """Peak summed RSS of a process tree, and of its largest process (sampled)."""
+    """Peak summed RSS of a process tree, and of its largest process (sampled), and when the
+    summed peak was reached (``time.time()``)."""
 
     def __init__(self, pid: int, interval: float = 0.1):
         super().__init__(daemon=True)
         self.pid, self.interval = pid, interval
-        self.peak_total = self.peak_single = 0.0
+        self.peak_total = self.peak_single = self.peak_time = 0.0
         self.done = threading.Event()
 
     def run(self):
@@ -72,13 +73,21 @@ class MemoryWatch(threading.Thread):
                 pids.append(pid)
                 queue += _children(pid)
             sizes = [_rss_mb(p) for p in pids]
-            self.peak_total = max(self.peak_total, sum(sizes))
+            if sum(sizes) > self.peak_total:
+                self.peak_total, self.peak_time = sum(sizes), time.time()
             self.peak_single = max(self.peak_single, max(sizes, default=0.0))
             self.done.wait(self.interval)
 
 
 def _stamp(line: str) -> float:
     return datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+
+
+def stage_at(log: Path, moment: float) -> str:
+    """The last line of a build.log written before ``moment`` (``time.time()``)."""
+    lines = [line for line in log.read_text().splitlines() if line[:4].isdigit()]
+    before = [line for line in lines if _stamp(line) <= moment]
+    return before[-1][24:] if before else "(before the first line)"
 
 
 def preprocessing_seconds(log: Path) -> float:
@@ -153,6 +162,8 @@ def main() -> int:
               f"preprocessing {prep:.1f}, optimisation {optimisation:.1f}, "
               + ", ".join(f"{name} {value:.1f}" for name, value in stages.items())
               + f", the rest (start-up, initial correspondence, ...) {other:.1f}", flush=True)
+        print(f"  the memory peak came after the log line: "
+              f"{stage_at(output / 'build.log', watch.peak_time)}", flush=True)
     print(f"\n{'n_s':>4} {'points':>6} {'strategy':<20} {'wall s':>7} {'prep s':>7} {'opt s':>7} "
           f"{'opt s/shape':>11} {'rest s':>7} {'peak MB (all)':>13} {'(largest)':>9} "
           f"{'eq.14 initial':>13} {'final':>8}")
