@@ -587,36 +587,3 @@ def test_pose_optimisation_never_changes_one_example_size_against_another(strate
         assert np.allclose(ratio, ratio[0], rtol=1e-12)
     else:   # III-D4's simplex does move the scale of an example against the others
         assert not np.allclose(ratio, ratio[0], rtol=1e-6)
-
-
-class _Opposite:
-    """A first-phase objective that rewards what eq. 14 penalises: minus eq. 14."""
-
-    kind = "opposite"
-
-    def __init__(self, objective):
-        self.objective = objective
-
-    def __call__(self, covariance):
-        return -self.objective(covariance)
-
-    def gradient(self, covariance):
-        value, gradient = self.objective.gradient(covariance)
-        return -value, -gradient
-
-
-def test_the_full_objective_starts_from_the_initial_correspondence_if_the_warm_start_is_worse():
-    state = small_state()
-    _, integrated = build_objectives(state)
-    state.objective = integrated
-    initial = state.value()
-    settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=2,
-                                    fixed_fraction=0.5)
-    trace = Trace()
-    final = optimise(state, (_Opposite(integrated), integrated), settings,
-                     np.random.default_rng(0), trace)
-    first = [row for row in trace.rows if row.phase == "fixed"]
-    second = [row for row in trace.rows if row.phase == "integrated"]
-    assert -first[-1].objective > 1.01 * initial        # the first phase raised eq. 14
-    assert second[0].objective == pytest.approx(initial, rel=1e-9)    # the second began anew
-    assert final < initial

@@ -123,7 +123,6 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
     else:
         state.objective = integrated
         initial_value = state.value()
-    start_of = (coarse if staged else state).snapshot()   # where the optimisation starts
     if resume is not None:
         point = resume.point
         names = [phase.name for phase in phases]
@@ -137,8 +136,6 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
     try:
         for phase in phases:
             current = coarse if staged else state
-            if phase.objective is integrated and phase is not phases[0]:
-                _warm_start_or_initial(current, integrated, initial_value, start_of)
             trace.stopped_by = None      # the phase sets it as it ends
             saver = None if checkpoint is None else functools.partial(_checkpoint_of, checkpoint,
                                                                       current)
@@ -157,21 +154,6 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         value = initial_value
         trace.record(state, value, RESTORED_INITIAL, trace.last.sweep if trace.rows else 0)
     return value
-
-
-def _warm_start_or_initial(state: CorrespondenceState, integrated, initial_value: float,
-                           start: list):
-    """Before the full objective's phase: keep the fixed-Delta phase's correspondence (its warm
-    start) where its eq. 14 is below the initial correspondence's, else go back to the initial
-    one. Eq. 13 and eq. 14 weigh the modes differently: with many shapes the fixed-Delta phase
-    can end with eq. 14 further above its start than the full objective's phase then takes
-    back (docs/benchmarks.md, 1000 shapes)."""
-    state.objective = integrated
-    value = state.value()
-    if value > initial_value:
-        log.info("the fixed-Delta phase left eq. 14 at %.4f, above the initial %.4f: the full "
-                 "objective's phase starts from the initial correspondence", value, initial_value)
-        state.restore(start)
 
 
 def runs_coarse(state: CorrespondenceState, settings: OptimisationSettings,
