@@ -103,13 +103,18 @@ def test_curve_normals_point_outward():
     assert np.all(outward > 0)
 
 
+def report_metrics() -> dict:
+    """The metrics of a build of 4 cases and 42 points that write_report needs."""
+    return {"objective": {"initial": 1.0, "final": 0.5}, "n_shapes": 4, "n_points": 42,
+            "strategy": "fast", "n_rejected": 0, "interrupted": False,
+            "modes": [1, 2], "compactness": [1.0, 1.5], "compactness_se": [0.1, 0.1],
+            "generalization": [2.0, 1.0], "generalization_se": [0.1, 0.1],
+            "specificity": [2.0, 2.5], "specificity_se": [0.1, 0.1]}
+
+
 def test_write_report_holds_the_viewer(tmp_path):
     model, shapes, names = population(n_s=4, n_points=42)
-    metrics = {"objective": {"initial": 1.0, "final": 0.5}, "n_shapes": 4, "n_points": 42,
-               "strategy": "fast", "n_rejected": 0, "interrupted": False,
-               "modes": [1, 2], "compactness": [1.0, 1.5], "compactness_se": [0.1, 0.1],
-               "generalization": [2.0, 1.0], "generalization_se": [0.1, 0.1],
-               "specificity": [2.0, 2.5], "specificity_se": [0.1, 0.1]}
+    metrics = report_metrics()
     page = write_report(tmp_path, metrics, [], [], model, shapes, names).read_text()
     assert "id='viewer-plot'" in page and "MIT licence" in page
 
@@ -347,11 +352,7 @@ def test_two_viewers_on_one_page_move_independently(browser, tmp_path):
 def test_a_long_command_line_wraps_in_a_small_box(browser, tmp_path, monkeypatch):
     """A build of hundreds of files: the command stays within the page's width and a few lines."""
     model, shapes, names = population(n_s=4, n_points=42)
-    metrics = {"objective": {"initial": 1.0, "final": 0.5}, "n_shapes": 4, "n_points": 42,
-               "strategy": "fast", "n_rejected": 0, "interrupted": False,
-               "modes": [1, 2], "compactness": [1.0, 1.5], "compactness_se": [0.1, 0.1],
-               "generalization": [2.0, 1.0], "generalization_se": [0.1, 0.1],
-               "specificity": [2.0, 2.5], "specificity_se": [0.1, 0.1]}
+    metrics = report_metrics()
     paths = [f"/data/study/labels/subject_{k:04d}_hippocampus_left.nii.gz" for k in range(300)]
     monkeypatch.setattr("sys.argv", ["mdlshapemodel", "build", *paths, "-o", "/tmp/model"])
     path = write_report(tmp_path, metrics, [], [], model, shapes, names)
