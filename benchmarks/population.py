@@ -6,8 +6,15 @@ few Gaussian bumps, largest displacement ``--noise`` mm), then a random rigid po
 is voxelised at ``--spacing`` mm (the library's ``mesh_to_mask``), so a build sees only label
 maps. Cases are written in parallel (``--workers`` processes).
 
+The true surfaces are written too, in the layout of ``ground_truth.py``: ``meshes/<case>.vtp``
+(vertex k of every case is vertex k of the model's mean, ``template.vtp``), so that
+``ground_truth.py evaluate`` measures a build's correspondence against the truth.
+``--meshes-only`` writes them (and ``truth.json``) for a population made before, without
+voxelising again: every case is drawn from its own seeded generator.
+
     mdlshapemodel build ../shared/data/hippocampus/labels --label 1,2 -o /tmp/h100
     python benchmarks/population.py --model /tmp/h100/model.h5 --cases 1000 --output /tmp/pop1000
+    python benchmarks/ground_truth.py evaluate /tmp/pop1000 BUILD [BUILD ...]
 
 The label maps are ``labels/synth_0000.nii.gz`` ... (label 1), the shapes' scores and poses are in
 ``truth.json``.
@@ -63,18 +70,24 @@ def write_case(arguments) -> dict:
     from mdlshapemodel.model.shape_model import ShapeModel
     from mdlshapemodel.prepare import surface
 
-    model_path, index, seed, output, spacing, noise = arguments
+    from mdlshapemodel.prepare.io import write_polydata
+
+    model_path, index, seed, output, spacing, noise, voxelise = arguments
     model = ShapeModel.load(model_path)
     rng = np.random.default_rng([seed, index])
     shape, record = draw_case(model, rng, noise, bumps=8, width=6.0, rotation_deg=10.0,
                               translation=3.0)
+    name = f"synth_{index:04d}"
+    write_polydata(Path(output) / "meshes" / f"{name}.vtp", shape, np.asarray(model.triangles))
+    record.update(name=name)
+    if not voxelise:
+        return record
     mask, origin = surface.mesh_to_mask(shape, np.asarray(model.triangles), spacing)
     image = sitk.GetImageFromArray(mask)
     image.SetSpacing((spacing,) * 3)
     image.SetOrigin(tuple(float(o) for o in origin))
-    name = f"synth_{index:04d}"
     sitk.WriteImage(image, str(Path(output) / "labels" / f"{name}.nii.gz"), useCompression=True)
-    record.update(name=name, voxels=list(mask.shape[::-1]))
+    record.update(voxels=list(mask.shape[::-1]))
     return record
 
 
@@ -88,18 +101,32 @@ def main():
                         help="largest per-case displacement along the normals, mm")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--meshes-only", action="store_true",
+                        help="write the true meshes (and truth.json) only, not the label maps")
     args = parser.parse_args()
+    from mdlshapemodel.model.shape_model import ShapeModel
+    from mdlshapemodel.prepare.io import write_polydata
+
     output = Path(args.output)
-    (output / "labels").mkdir(parents=True, exist_ok=True)
+    for folder in ("labels", "meshes"):
+        (output / folder).mkdir(parents=True, exist_ok=True)
+    model = ShapeModel.load(args.model)
+    write_polydata(output / "template.vtp", model.mean, np.asarray(model.triangles))
     started = time.perf_counter()
-    jobs = [(args.model, i, args.seed, str(output), args.spacing, args.noise)
-            for i in range(args.cases)]
+    jobs = [(args.model, i, args.seed, str(output), args.spacing, args.noise,
+             not args.meshes_only) for i in range(args.cases)]
     with ProcessPoolExecutor(args.workers) as pool:
         records = list(pool.map(write_case, jobs, chunksize=8))
+    if args.meshes_only:    # keep the voxel sizes recorded when the label maps were written
+        before = {case["name"]: case for case in
+                  json.loads((output / "truth.json").read_text())["cases"]}
+        for record in records:
+            record["voxels"] = before[record["name"]]["voxels"]
     (output / "truth.json").write_text(json.dumps({
         "model": str(args.model), "spacing_mm": args.spacing, "noise_mm": args.noise,
         "seed": args.seed, "cases": records}, indent=1))
-    print(f"{args.cases} label maps in {time.perf_counter() - started:.0f} s -> {output / 'labels'}")
+    written = "true meshes" if args.meshes_only else "label maps and true meshes"
+    print(f"{args.cases} cases' {written} in {time.perf_counter() - started:.0f} s -> {output}")
 
 
 if __name__ == "__main__":
