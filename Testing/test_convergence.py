@@ -354,7 +354,7 @@ def trace_rows(alpha=1.0, a=0.0, b=1.0, steps=400):
         phase = "fixed" if k < 40 else "integrated"
         value = 1e3 - k if phase == "fixed" else a + b * float(f_b(alpha * cpu))
         rows.append((0.3 * k, cpu, 7 * k, value, phase, k // 10))
-    rows.append((0.3 * steps, 0.25 * steps, 7 * steps, 1e4, "restored-initial", steps // 10))
+    rows.append((0.3 * steps, 0.25 * steps, 7 * steps, 1e4, "coarse integrated", steps // 10))
     return rows
 
 
@@ -369,7 +369,7 @@ def test_trace_curve_reads_convergence_csv(tmp_path):
     times, values = trace_curve(read)  # every row, CPU seconds
     assert times.size == len(rows) and values[-1] == 1e4
     np.testing.assert_allclose(times[:3], [0.0, 0.25, 0.5])
-    times, _ = trace_curve(read, time="wall_seconds", phase=("fixed", "restored-initial"))
+    times, _ = trace_curve(read, time="wall_seconds", phase=("fixed", "coarse integrated"))
     assert times.size == 41
     # Trace.rows themselves (tuples in HEADER order) give the same curve
     for got, want in zip(trace_curve(rows, phase="integrated"), trace_curve(read, phase="integrated")):

@@ -10,12 +10,12 @@ from mdlshapemodel.correspondence.warps import SymmetricTheta
 from mdlshapemodel.correspondence.sampling import icosphere, sphere_grid
 from mdlshapemodel.prepare.sphere import orientation
 from mdlshapemodel.config import STRATEGIES, BuildConfig, OptimisationSettings
-from mdlshapemodel.correspondence.strategies import optimise
+from mdlshapemodel.correspondence.strategies import PHASES, optimise
 from mdlshapemodel.correspondence.strategies.one_at_a_time import (optimise_amplitude,
                                                                     optimise_pose)
 from mdlshapemodel.correspondence.strategies.simplex import (population_value,
                                                              multiresolution_levels)
-from mdlshapemodel.correspondence.trace import Trace
+from mdlshapemodel.correspondence.trace import Stop, Trace
 from mdlshapemodel.errors import Cancelled
 
 from synthetic import build_objectives, small_maps, small_state
@@ -63,9 +63,37 @@ def test_optimisation_lowers_the_objective_and_keeps_grids_unfolded():
     assert np.all(np.diff(columns, axis=0) >= 0)
 
 
+def test_the_correspondence_where_the_phases_end_is_returned_even_above_the_start(monkeypatch):
+    # a registered phase function that moves every example's points at random (eq. 14 rises):
+    # optimise returns where the phases end, as the paper's two phases do, not the start
+    def scramble(state, objective, settings, rng, trace, phase, *args):
+        for i in range(state.n_shapes):
+            part = state.examples[i].parts[0]
+            kernel = SymmetricTheta(part.random_surface_parameter(rng), 0.3, 0.5)
+            part.commit(kernel, *part.propose(kernel, check_folds=False))
+            state.commit_shape(i)
+        state.objective = objective
+        value = state.value()
+        trace.record(state, value, phase, 1)
+        trace.stopped_by = Stop.CONVERGED
+        return value
+
+    monkeypatch.setitem(PHASES, "scramble", scramble)
+    state = small_state()
+    objectives = build_objectives(state)
+    state.objective = objectives[1]
+    start = state.value()
+    trace = Trace()
+    final = optimise(state, objectives, OptimisationSettings(strategy="scramble"),
+                     np.random.default_rng(0), trace)
+    assert final > start
+    assert state.value() == pytest.approx(final, rel=1e-12)
+    assert all(len(example.parts[0].warps) == 2 for example in state.examples)
+    assert [row.phase for row in trace.rows] == ["fixed", "integrated"]
+
+
 def test_same_seed_same_result_bit_for_bit():
-    # eq. 14 alone: two sweeps of the fixed-Delta phase can leave eq. 14 above its start on these
-    # small shapes, and then both seeds end restored to the initial correspondence
+    # eq. 14 alone: one phase is enough to see the seed's draws
     a, _, final_a = run("one-at-a-time", seed=7, fixed_fraction=0.0)
     b, _, final_b = run("one-at-a-time", seed=7, fixed_fraction=0.0)
     c, _, _ = run("one-at-a-time", seed=8, fixed_fraction=0.0)
@@ -394,7 +422,7 @@ def test_simplex_strategies_honour_deadline_progress_and_checkpoint(strategy):
     assert_phases_end_at_their_deadlines(trace, settings, late_rows=2, budget_ends=False)
     assert calls and saved and {phase for phase, _ in saved} <= {"fixed", "integrated"}
     assert {"fixed", "integrated"} <= {row[4] for row in trace.rows}
-    assert_steps_never_increase(Trace(rows=[r for r in trace.rows if r[4] != "restored-initial"]))
+    assert_steps_never_increase(trace)
     assert state.value() == pytest.approx(final, rel=1e-9)
     assert_unfolded(state)
 

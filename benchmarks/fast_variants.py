@@ -4,9 +4,8 @@ first 82 shared hippocampi (or ``--cases`` label maps of ``--data``).
 
 Variants: ``default``; ``rounds2`` (at most two rounds per level instead of three); ``fixedN`` and
 ``integratedN`` (N passes over the levels in the fixed-Delta or the full objective's phase);
-``iterationsN`` (at most N quasi-Newton iterations per round); ``norestore`` (the
-optimised correspondence kept even where eq. 14 ended above its start). Variants joined by "+"
-apply together (``fixed1+norestore``). Each variant runs in a fresh process; the preprocessing
+``iterationsN`` (at most N quasi-Newton iterations per round). Variants joined by "+"
+apply together (``fixed1+integrated2``). Each variant runs in a fresh process; the preprocessing
 cache is reused between runs.
 
     python benchmarks/fast_variants.py default rounds2 fixed1 iterations30+integrated3
@@ -28,7 +27,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "hippocampus" /
 
 
 def use_variant(names: str) -> None:
-    """Apply each of the variants joined by "+" (e.g. ``coarse2+nofinish``)."""
+    """Apply each of the variants joined by "+" (e.g. ``fixed1+integrated2``)."""
     for name in names.split("+"):
         _use(name)
 
@@ -50,9 +49,6 @@ def _use(name: str) -> None:
                 settings = replace(settings, field_passes=number)
             return original(state, objective, settings, *a, **k)
         strategies.PHASES["fast"] = phase
-    elif name == "norestore":     # keep the optimised state even where eq. 14 ended higher
-        from mdlshapemodel.correspondence.state import CorrespondenceState
-        CorrespondenceState.restore = lambda self, snapshot: None
     elif name != "default":
         raise SystemExit(f"unknown variant {name!r}")
 
@@ -60,7 +56,6 @@ def _use(name: str) -> None:
 def run(name: str, data: Path = DATA, cases: int = 82, labels=(1, 2), max_time: float = 600.0) -> dict:
     from mdlshapemodel.build import correspond
     from mdlshapemodel.config import BuildConfig
-    from mdlshapemodel.correspondence.trace import RESTORED_INITIAL
     from mdlshapemodel.model.evaluation import generalization, specificity
     from mdlshapemodel.prepare.batch import preprocess
 
@@ -82,8 +77,6 @@ def run(name: str, data: Path = DATA, cases: int = 82, labels=(1, 2), max_time: 
             "evaluations": state.evaluations, "phases_end": phases,   # seconds and F (on its grid) at the end
             "initial_eq14": round(float(result.initial_objective), 2),
             "eq14": round(float(state.value()), 2),
-            "initial_kept": bool(result.trace.rows
-                                 and result.trace.rows[-1].phase == RESTORED_INITIAL),
             "G": [round(float(x), 4) for x in g["squared"]],
             "G_se": [round(float(x), 4) for x in g["squared_se"]],
             "S": [round(float(x), 4) for x in s["squared"]],

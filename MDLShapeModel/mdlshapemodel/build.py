@@ -33,7 +33,7 @@ from .correspondence.state import CorrespondenceState
 from .correspondence.coarse import coarse_view
 from .correspondence.strategies import optimise, runs_coarse
 from .correspondence.strategies.base import PhasePoint, Resumption
-from .correspondence.trace import RESTORED_INITIAL, Stop, Trace, stop_summary
+from .correspondence.trace import Stop, Trace, stop_summary
 from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
@@ -538,15 +538,17 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                      resume=resumption)
         except (KeyboardInterrupt, Cancelled):
             trace.stopped_by = Stop.INTERRUPTED
-        if trace.last is not None and trace.last.phase == RESTORED_INITIAL:
-            log.warning("the optimisation had not lowered the objective when it ended (%s): "
-                        "keeping the initial correspondence", stop_summary(trace.stopped_by))
         if resume is None or resume.point.phase != PhasePoint.DONE:
             state.rebuild()  # also makes the state consistent after an interruption mid-step
         final = measured(state)
         log.info("final objective %.4f after %.1f s, %d evaluations; optimisation %s", final,
                  trace.last.wall_seconds if trace.rows else 0.0, state.evaluations,
                  stop_summary(trace.stopped_by))
+        if final > initial:
+            log.info("eq. 14 ended above the initial correspondence's (%.4f): the fixed-Delta "
+                     "phase trades the smallest modes' description length for a more compact "
+                     "model; generalization and specificity against the initial correspondence's "
+                     "(the report) say which model is better", initial)
         if trace.stopped_by in (None, Stop.CONVERGED):   # else its last step's checkpoint stays
             save(PhasePoint(PhasePoint.DONE, trace.last.sweep if trace.rows else 0))
     named = parts if len(parts) > 1 else ()

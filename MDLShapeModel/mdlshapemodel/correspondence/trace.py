@@ -15,11 +15,9 @@ class TraceRow(NamedTuple):
     cpu_seconds: float
     evaluations: int
     objective: float
-    phase: str      # "fixed" (eq. 13), "integrated" (eq. 14) or "restored-initial"
+    phase: str      # "fixed" (eq. 13) or "integrated" (eq. 14), "coarse " before either on
+                    # the coarse grid
     sweep: int      # sweep, level, iteration or round within the phase (0: its start)
-
-
-RESTORED_INITIAL = "restored-initial"
 
 
 class Stop(str, Enum):

@@ -548,8 +548,8 @@ def trace_curve(rows, time="cpu_seconds", phase=None):
     time : {"cpu_seconds", "evaluations", "wall_seconds"}
         Column giving t.
     phase : str, collection of str, or None
-        Keep only rows of these phases ("fixed": eq. 13; "integrated": eq. 14;
-        "restored-initial"); None keeps every row. Phases optimise differently scaled
+        Keep only rows of these phases ("fixed": eq. 13; "integrated": eq. 14; "coarse fixed"
+        and "coarse integrated" on the coarse grid); None keeps every row. Phases optimise differently scaled
         objectives, so compare one phase at a time.
 
     Returns
