@@ -19,6 +19,7 @@ from .correspondence.strategies.base import PhasePoint
 from .correspondence.trace import TraceRow
 from .errors import BuildError
 from .model.evaluation import evaluate_state
+from .model.normals import OFF_DEGREES, SPREAD_DEGREES, normal_agreement
 from .model.shape_model import ShapeModel, score_outliers
 from .prepare import io
 from .prepare.curve import CurveMap, point_curve_distances
@@ -241,7 +242,12 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     started = time.perf_counter()
     model.save(output / "model.h5")
     parts = model.part_meshes()
+    normals = None if triangles is None else normal_agreement(aligned, triangles,
+                                                              model.part_of_triangles())
     io.write_polydata(output / "mean.vtp", model.mean, triangles,
+                      point_data=None if normals is None else {
+                          "normal_spread_degrees": normals.spread_degrees,
+                          "normal_agreement": normals.resultant},
                       cell_data={"part": model.part_of_triangles()} if model.part_names else None)
     outlier = score_outliers(model)
     cases = []
@@ -268,6 +274,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                       "warps": int(sum(len(p.warps) for p in getattr(state.examples[i], "parts",
                                                                       []))),
                       "warp_kinds": warp_summary(state.examples[i]),
+                      "normals_off": "" if normals is None else int(normals.cases_off()[i]),
                       "mahalanobis": float(outlier["distance"][i]),
                       "score_outlier": bool(outlier["outlier"][i]),
                       "smoothing_sigma": ("" if case.smoothing_sigma is None
@@ -294,6 +301,12 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "variances": model.variances.tolist(), **quality,
                "score_outliers": {"modes": outlier["modes"], "threshold": outlier["threshold"],
                                   "cases": [n for n, o in zip(names, outlier["outlier"]) if o]},
+               "normals": None if normals is None else {
+                   "spread_degrees_median": float(np.median(normals.spread_degrees)),
+                   "flagged_points": int(np.count_nonzero(normals.flagged)),
+                   "flagged_fraction": float(np.mean(normals.flagged)),
+                   "spread_threshold_degrees": SPREAD_DEGREES,
+                   "off_degrees": OFF_DEGREES},
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
@@ -301,7 +314,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()
     write_report(output, metrics, cases, rejected, model, aligned, names,
-                 corresponded_distances(raw, prepared, parts))
+                 corresponded_distances(raw, prepared, parts), normals)
     log.info("wrote the report in %.1f s", time.perf_counter() - started)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted,
                        list(warnings), corresponded.optimisation.converged)

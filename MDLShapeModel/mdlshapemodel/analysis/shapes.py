@@ -21,6 +21,7 @@ import numpy as np
 
 from ..correspondence.pose import centroid_size, generalized_procrustes
 from ..errors import InputError
+from ..model.normals import outward_normals
 from ..model.shape_model import ShapeModel
 from ..prepare import io
 
@@ -101,40 +102,6 @@ def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
                   + centres[:, None])
     aligned, _ = generalized_procrustes(shapes, weights, scaling=False, planar=planar)
     return aligned
-
-
-def outward_normals(points: np.ndarray, cells: np.ndarray, part_of=None) -> np.ndarray:
-    """Unit normals at the points of a shape, turned out of what each part encloses: the
-    area-weighted normals of its triangles (a part whose signed volume is negative is turned
-    round), or for segments (2-D curves) the in-plane normals, a part turned round when they
-    point into the area it encloses. ``part_of`` gives each cell's part (default: one part).
-    A point in no cell gets a zero vector."""
-    points = np.asarray(points, dtype=np.float64)
-    cells = np.asarray(cells)
-    part_of = np.zeros(len(cells), dtype=np.int64) if part_of is None else np.asarray(part_of)
-    if cells.shape[1] == 3:
-        a, b, c = (points[cells[:, k]] for k in range(3))
-        face = np.cross(b - a, c - a)                  # length: twice the area
-        inward = np.einsum("ij,ij->i", a, np.cross(b, c))     # 6 x signed volume per cell
-    else:
-        start, end = points[cells[:, 0]], points[cells[:, 1]]
-        tangent = end - start
-        face = np.stack([tangent[:, 1], -tangent[:, 0], np.zeros(len(tangent))], axis=1)
-        inward = np.empty(len(cells))
-        for part in np.unique(part_of):
-            rows = part_of == part
-            centre = points[np.unique(cells[rows])].mean(axis=0)
-            inward[rows] = np.einsum("ij,ij->i", face[rows], (start + end)[rows] / 2 - centre)
-    for part in np.unique(part_of):
-        rows = part_of == part
-        if inward[rows].sum() < 0:
-            face[rows] = -face[rows]
-    normals = np.zeros_like(points)
-    for k in range(cells.shape[1]):
-        for d in range(3):
-            normals[:, d] += np.bincount(cells[:, k], weights=face[:, d], minlength=len(points))
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.where(length > 0, length, 1.0)
 
 
 def vertex_normals(points: np.ndarray, cells: np.ndarray | None, part_of=None) -> np.ndarray:

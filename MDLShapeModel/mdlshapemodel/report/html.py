@@ -179,6 +179,43 @@ def _renderings(model, shapes, names) -> list:
     return parts
 
 
+def _normals_section(model, normals, names) -> list:
+    """How well the cases' normals agree at each model point (model/normals.py): the count of
+    flagged points, a map of the spread on the mean (surfaces), the cases most often off."""
+    from ..model.normals import OFF_DEGREES, SPREAD_DEGREES
+
+    spread = normals.spread_degrees
+    flagged = int(np.count_nonzero(normals.flagged))
+    parts = ["<h2>Correspondence check: normals</h2>",
+             f"<p>At each model point, the mean angle between the aligned cases' surface normals "
+             f"and their mean direction. Where the points of the cases are the same anatomical "
+             f"place their normals agree, up to the shapes' own variation; where they spread, "
+             f"the correspondence there is likely wrong. <b>{flagged} of {len(spread)} points "
+             f"({100.0 * flagged / len(spread):.1f}%)</b> spread more than "
+             f"{SPREAD_DEGREES:.0f}°; median spread {np.median(spread):.1f}°. Every point's "
+             f"value is in mean.vtp (point arrays normal_spread_degrees and normal_agreement, "
+             f"the mean resultant length).</p>"]
+    if not model.of_curves:
+        from . import rendering
+
+        try:
+            image = rendering.render_maps(model.mean, model.triangles, [
+                ("normal spread", spread, "viridis", 0.0, max(2 * SPREAD_DEGREES, 1e-9),
+                 "mean angle to the mean normal [°]")], outlined=normals.flagged)
+            parts += [_image(base64.b64encode(image).decode("ascii"), "normal spread"),
+                      f"<p>Outlined: points spreading more than {SPREAD_DEGREES:.0f}°.</p>"]
+        except (MDLShapeModelError, RuntimeError) as error:
+            log.warning("report: no normal map (%s)", error)
+    off = normals.cases_off()
+    worst = [i for i in np.argsort(-off, kind="stable")[:5] if off[i] > 0]
+    if worst:
+        parts += [f"<p>Cases with the most points whose normal is more than {OFF_DEGREES:.0f}° "
+                  "from the mean direction (column 'normals off' of the case table):</p>",
+                  table(("case", "points"), [(names[i] if names is not None else str(i),
+                                              int(off[i])) for i in worst])]
+    return parts
+
+
 # The per-case table's columns (cases.csv) as the report heads them, with their units.
 CASE_COLUMNS = {
     "case": "case", "file": "input file", "surface_vertices": "surface vertices",
@@ -189,6 +226,7 @@ CASE_COLUMNS = {
     "sphere_mean_abs_log_area": "sphere map: mean |ln area ratio|",
     "sphere_p95_abs_log_area": "sphere map: 95th percentile |ln area ratio|",
     "sphere_seconds": "sphere map [s]", "warps": "warps", "warp_kinds": "warp kinds",
+    "normals_off": "normals off (points)",
     "mahalanobis": "Mahalanobis distance", "score_outlier": "outlier (p < 0.01)",
     "smoothing_sigma": "blur [voxels]", "repair": "repaired", "mirrored": "mirrored"}
 
@@ -260,13 +298,14 @@ surface to surface (when shown) do not.</li>
 
 
 def write_report(output: Path, metrics: dict, cases: list, rejected: list, model=None,
-                 shapes=None, names=None, distances=None) -> Path:
+                 shapes=None, names=None, distances=None, normals=None) -> Path:
     """Write ``output/report.html`` and return its path.
 
     ``model`` (ShapeModel) and ``shapes`` (aligned corresponded shapes, with ``names``) add the
     mode and correspondence renderings and the interactive viewer (report/viewer.py);
     ``distances`` (n_s, n_p), each corresponded point's distance to its input surface, colour a
-    case there.
+    case there; ``normals`` (:class:`~mdlshapemodel.model.normals.NormalAgreement`) adds the
+    check of the corresponded normals.
     """
     objective = metrics["objective"]
     ending = metrics.get("optimisation", {})    # how it ended; an unconverged one has a warning
@@ -302,6 +341,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     if convergence:
         parts += ["<h2>Convergence</h2>", _image(convergence, "convergence")]
     parts += _renderings(model, shapes, names)
+    if normals is not None:
+        parts += _normals_section(model, normals, names)
     from .viewer import viewer_section     # the interactive 3-D viewer (plotly.js, offline)
 
     parts += viewer_section(model, shapes, names, distances=distances)

@@ -23,7 +23,7 @@ import json
 
 import numpy as np
 
-from ..analysis.shapes import outward_normals
+from ..model.normals import outward_normals
 
 MAX_MODES = 10
 # the case picker's share of the page (bytes before base64: 6 per point and case); a population
