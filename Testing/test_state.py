@@ -234,3 +234,15 @@ def test_trial_shapes_replace_every_shape_and_restore_the_state():
         full = state.value()
     assert full == pytest.approx(state.value(1, trial[1]), rel=1e-9)
     assert replaced != before
+
+
+def test_released_sampling_keeps_the_correspondence_and_refuses_to_move_points():
+    state = small_state()
+    shapes, aligned, weights = state.raw_shapes(), state.aligned_shapes(), state.weights.copy()
+    state.release_sampling()
+    np.testing.assert_array_equal(state.raw_shapes(), shapes)
+    np.testing.assert_array_equal(state.aligned_shapes(), aligned)
+    np.testing.assert_array_equal(state.weights, weights)
+    part = state.examples[0].parts[0]
+    with pytest.raises(RuntimeError, match="release_sampling"):
+        part.sample(part.positions)

@@ -155,3 +155,23 @@ def test_worker_startup_functions_run_in_every_pool_worker_and_never_here(tmp_pa
     assert [case.name for case in prepared] == ["case_0"]
     assert [(r.name, r.reason) for r in rejected_cases] == [
         ("case_1", f"worker process died (signal 9) while preparing {paths[1]}")]
+
+
+@pytest.mark.parametrize("threads", [None, 1])
+def test_a_finished_task_lets_go_of_its_inputs(threads):
+    # a task keeps its inputs to redo lost work; once it has its value they may be freed
+    import gc
+    import weakref
+    from concurrent.futures import ThreadPoolExecutor
+
+    data = np.arange(1000.0)
+    ref = weakref.ref(data)
+    executor = None if threads is None else ThreadPoolExecutor(threads)
+    task = Task(executor, np.sum, data, what="a sum")
+    del data
+    assert task.result() == 499500.0
+    gc.collect()
+    assert ref() is None
+    assert task.result() == 499500.0          # asked again: the same value
+    if executor is not None:
+        executor.shutdown()

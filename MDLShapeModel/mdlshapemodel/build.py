@@ -292,6 +292,7 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
             log.info("waited %.1f s for the baselines' evaluation", time.perf_counter() - waited)
 
         report(progress, 0.5, "evaluating the model, writing outputs")
+        corresponded.state.release_sampling()   # final: its point locators' memory goes
         result = write_outputs(output, corresponded, prepared, rejected, config, baselines, pool,
                                warnings)
         report(progress, 1.0, "evaluated, outputs written")

@@ -397,7 +397,7 @@ class Task:
         self.future = self.error = None
         executor = on_cluster(executor)
         if executor is None:
-            self.value = function(*arguments)
+            self.value, self.arguments = function(*arguments), ()
             return
         try:
             self.future = executor.submit(function, *arguments)
@@ -411,7 +411,7 @@ class Task:
         try:
             if self.error is not None:
                 raise self.error
-            return self.future.result()
+            value = self.future.result()
         except BaseException as error:
             if not (isinstance(error, (BrokenExecutor, CancelledError, *redo))
                     or killed_on_cluster(error)):
@@ -419,6 +419,8 @@ class Task:
             log.warning("%s on the executor did not finish (%s); doing it here", self.what,
                         type(error).__name__)
             return self.function(*self.arguments)
+        self.arguments = ()      # done: its inputs are not needed again (they may be large)
+        return value
 
 
 # ---- a Dask cluster ----------------------------------------------------------------------------

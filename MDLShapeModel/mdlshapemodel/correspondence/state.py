@@ -96,6 +96,9 @@ class PartState:
 
     def sample(self, positions: np.ndarray, hint: np.ndarray | None = None):
         """S(phi(u_k)) at sphere positions; returns (points, located faces)."""
+        if self.locator is None:
+            raise RuntimeError("the part's point location was released "
+                               "(CorrespondenceState.release_sampling): its points are final")
         return self.locator.evaluate(self.vertices, positions,
                                      self.hint if hint is None else hint)
 
@@ -429,6 +432,16 @@ class CorrespondenceState:
     def raw_shapes(self) -> np.ndarray:
         """(n_s, n_p, 3) samples in each example's own physical coordinates."""
         return np.stack([e.raw_points() for e in self.examples])
+
+    def release_sampling(self):
+        """The correspondence is final: drop each part's point locator (its search structures
+        are about half of the state's memory), which only moving the sample points needs. The
+        shapes, poses, weights and warps stay; sampling afterwards raises RuntimeError. A build
+        calls it before it evaluates the model."""
+        for example in self.examples:
+            for part in getattr(example, "parts", ()):
+                if isinstance(part, PartState):
+                    part.locator = None
 
     def snapshot(self) -> list:
         """Everything the optimisation changes: per example its pose and per part its positions,
