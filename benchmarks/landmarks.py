@@ -1,0 +1,387 @@
+"""Landmark transfer: expert landmarks carried from case to case through a build's correspondence.
+
+What it measures. Every case has expert landmarks; every build writes its corresponded sample
+points as one triangle mesh per case (``correspondence/<case>.vtp``, the same triangles for every
+case). For a template case i, a target case j != i and a landmark l: the landmark of i is located
+on i's corresponded mesh (its closest point: a triangle and barycentric coordinates), carried to
+the same triangle and barycentric coordinates of j's corresponded mesh, and projected to the
+closest point of j's own input surface; the error is the distance (mm) to j's landmark l. Reported
+per build:
+
+* single template: mean and median over all (i, j, l);
+* median of templates: for each (j, l) the coordinate-wise median of the n - 1 predictions,
+  projected to j's surface, against the truth; mean and median over (j, l);
+* per label, the median-of-templates mean error of every build, next to the raters' spread (each
+  rater's mean over trials against the mean of the other raters, mean over the evaluated cases):
+  what one expert differs from the others;
+* each case's mean error as a target (median of templates) and as a template (single), to show
+  outliers; and ``located``: the mean distance of the landmarks from their own case's
+  corresponded mesh (how closely the sample points' triangles cover the surface).
+
+Only the cases that every build holds are evaluated. The builds: ``mdl`` (the defaults),
+``initial`` (``--strategy none``: the initial correspondence from the sphere maps) and ``cpd``
+(``--correspondence cpd``: a template case registered to every case by coherent point drift).
+
+Data: the femurs of VSDFullBodyBoneModels (github.com/RWTHmediTEC/VSDFullBodyBoneModels, commit
+ee5c4f0 = v2.0, Fischer et al., Sci. Rep. 2019 and 2020; licence CC BY-NC-SA: benchmarks only,
+never commit the data), extracted by ``landmark_data.py``: 19 whole femurs in mm (right ones
+mirrored to look left) with 22 landmarks each, the mean of 5 raters x 4 trials. Two femurs (z055,
+z057) have a handle (not genus 0); a build rejects them with a message and carries on. The
+vertebrae and pelvises that ``landmark_data.py`` also writes are not genus 0 (a vertebra has a
+hole, the pelvis is three bones), so this tool cannot model them: the benchmark covers the
+femurs only.
+
+    python benchmarks/landmark_data.py --output /tmp/landmarks
+    python benchmarks/landmarks.py run /tmp/landmarks/femur --output /tmp/lm-femur
+
+or step by step (options after ``--`` go to every build):
+
+    python benchmarks/landmarks.py build /tmp/landmarks/femur --output /tmp/lm-femur \\
+        --points 2562 -- --max-time 600
+    python benchmarks/landmarks.py evaluate /tmp/landmarks/femur /tmp/lm-femur/mdl \\
+        /tmp/lm-femur/initial /tmp/lm-femur/cpd
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+BUILDS = {"mdl": [], "initial": ["--strategy", "none"], "cpd": ["--correspondence", "cpd"]}
+
+
+# ---------------------------------------------------------------- transfer
+
+
+def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (k, 3) of ``points`` (k, 3) in the triangles (a, b, c) (each
+    (k, 3)); the points are taken to lie in their triangles (closest points), so the coordinates
+    are clipped to [0, 1] and renormalised. A degenerate triangle gives its closest vertex."""
+    v0, v1, v2 = b - a, c - a, points - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    denominator = d00 * d11 - d01 ** 2
+    scale = np.maximum(d00 * d11, 1e-300)
+    regular = denominator > 1e-12 * scale
+    safe = np.where(regular, denominator, 1.0)
+    beta = (d11 * d20 - d01 * d21) / safe
+    gamma = (d00 * d21 - d01 * d20) / safe
+    weights = np.clip(np.stack([1.0 - beta - gamma, beta, gamma], axis=1), 0.0, 1.0)
+    if not regular.all():
+        corners = np.stack([a, b, c], axis=1)[~regular]                     # (d, 3, 3)
+        nearest = np.argmin(np.linalg.norm(corners - points[~regular, None], axis=2), axis=1)
+        weights[~regular] = np.eye(3)[nearest]
+    return weights / weights.sum(axis=1, keepdims=True)
+
+
+def locate(mesh_points: np.ndarray, triangles: np.ndarray, points: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The closest point of each of ``points`` (k, 3) on the mesh (mesh_points, triangles): its
+    triangle index (k,), barycentric coordinates (k, 3) and distance (k,)."""
+    from mdlshapemodel.prepare.surface import SurfaceDistance
+
+    closest, distance, face = SurfaceDistance(mesh_points, triangles).closest(points)
+    corners = mesh_points[triangles[face]]
+    return face, barycentric(closest, corners[:, 0], corners[:, 1], corners[:, 2]), distance
+
+
+def transfer(points_i: np.ndarray, triangles: np.ndarray, landmarks_i: np.ndarray,
+             points_j: np.ndarray | list[np.ndarray], surface_j: tuple | None = None
+             ) -> np.ndarray:
+    """Carry landmarks from case i to case j through a correspondence.
+
+    Each landmark is located on i's corresponded mesh (its closest point there: a triangle and
+    barycentric coordinates) and put at the same barycentric coordinates of the same triangle of
+    j's corresponded mesh; optionally projected to the closest point of j's own surface.
+
+    Parameters
+    ----------
+    points_i : ndarray (n_p, 3)
+        Corresponded sample points of case i (vertex k is the same place on every case).
+    triangles : ndarray (m, 3)
+        The triangles of the corresponded meshes, shared by all cases.
+    landmarks_i : ndarray (L, 3)
+        Landmarks of case i, in the frame of ``points_i``.
+    points_j : ndarray (n_p, 3), or (n_t, n_p, 3) for several targets at once
+        Corresponded sample points of the target case(s), same order as ``points_i``.
+    surface_j : (vertices, faces) or None
+        j's own surface (one target only); when given, the predictions are projected to its
+        closest points.
+
+    Returns
+    -------
+    ndarray (L, 3), or (n_t, L, 3) for several targets
+        The predicted landmarks of j, in the frame of ``points_j``.
+
+    Examples
+    --------
+    Carrying to the same case gives the landmarks' closest points on i's corresponded mesh::
+
+        predicted = transfer(points, triangles, landmarks, points)
+    """
+    points_i = np.asarray(points_i, dtype=np.float64)
+    triangles = np.asarray(triangles)
+    face, weights, _ = locate(points_i, triangles, np.asarray(landmarks_i, dtype=np.float64))
+    targets = np.asarray(points_j, dtype=np.float64)
+    corners = targets[..., triangles[face], :]                      # (..., L, 3, 3)
+    predicted = np.einsum("...lkd,lk->...ld", corners, weights)
+    if surface_j is not None:
+        if predicted.ndim != 2:
+            raise ValueError("surface_j projects the predictions of one target only")
+        predicted = project(predicted, *surface_j)
+    return predicted
+
+
+def project(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The closest points of the surface (vertices, faces) to ``points`` (..., 3)."""
+    from mdlshapemodel.prepare.surface import SurfaceDistance
+
+    flat = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return SurfaceDistance(vertices, faces).closest(flat)[0].reshape(np.shape(points))
+
+
+# ---------------------------------------------------------------- data
+
+
+def rater_spread(data: Path, cases: list[str], labels: list[str]) -> dict:
+    """The between-rater spread per label (mm) over ``cases``, from ``raters.json``: per case,
+    the mean over raters of the distance from the rater's mean over trials to the mean of the
+    other raters (landmark_data.py's definition); mean and median over the cases. Also the
+    stored summary over all extracted cases."""
+    raters = json.loads((data / "raters.json").read_text())
+    values = []
+    for case in cases:
+        row = []
+        for label in labels:
+            points = np.array(raters["cases"][case]["points"][label], dtype=float)   # (R, T, 3)
+            per_rater = np.nanmean(points, axis=1)
+            n = len(per_rater)
+            others = (per_rater.sum(axis=0)[None] - per_rater) / max(n - 1, 1)
+            row.append(float(np.linalg.norm(per_rater - others, axis=1).mean()))
+        values.append(row)
+    values = np.array(values)
+    spread = {label: {"mean": float(values[:, k].mean()), "median": float(np.median(values[:, k]))}
+              for k, label in enumerate(labels)}
+    spread["overall"] = {"mean": float(values.mean()), "median": float(np.median(values))}
+    return {"evaluated_cases": spread,
+            "all_cases": raters.get("spread", {}).get("inter_rater"),
+            "definition": "mean over raters of |rater's mean over trials - mean of the other "
+                          "raters|, mm; mean and median over cases"}
+
+
+# ---------------------------------------------------------------- build
+
+
+def build(args) -> int:
+    """The three builds through the command line, one after the other; existing ones are kept."""
+    data, output = Path(args.data), Path(args.output)
+    output.mkdir(parents=True, exist_ok=True)
+    for name, options in BUILDS.items():
+        folder = output / name
+        if (folder / "model.h5").exists():
+            print(f"{name}: {folder / 'model.h5'} exists, kept", flush=True)
+            continue
+        command = [sys.executable, "-m", "mdlshapemodel.cli", "build", str(data / "meshes"),
+                   "-o", str(folder), "-q", "--points", str(args.points), *options, *args.extra]
+        if folder.exists():
+            command.append("--overwrite")     # an earlier build that did not finish
+        print(f"{name}: python {' '.join(command[1:])}", flush=True)
+        started = time.perf_counter()
+        run = subprocess.run(command)
+        seconds = time.perf_counter() - started
+        if run.returncode != 0:
+            print(f"{name}: build failed (exit {run.returncode}) after {seconds:.0f} s",
+                  file=sys.stderr)
+            return run.returncode
+        held = len(list((folder / "correspondence").glob("*.vtp")))
+        print(f"{name}: built in {seconds:.0f} s wall, {held} cases", flush=True)
+    return 0
+
+
+# ---------------------------------------------------------------- evaluate
+
+
+def evaluate_build(data: Path, build_folder: Path, cases: list[str], labels: list[str],
+                   landmarks: dict, surfaces: dict) -> dict:
+    """The landmark-transfer errors of one build on ``cases`` (see the module docstring)."""
+    from mdlshapemodel.prepare import io
+
+    points, triangles = {}, None
+    for case in cases:
+        vertices, faces = io.read_mesh(build_folder / "correspondence" / f"{case}.vtp")
+        if triangles is None:
+            triangles = faces
+        elif not np.array_equal(faces, triangles):
+            raise ValueError(f"{build_folder}: {case} has other triangles than {cases[0]}")
+        points[case] = vertices
+    n, n_l = len(cases), len(labels)
+    stacked = np.stack([points[c] for c in cases])                          # (n, n_p, 3)
+    # predictions[i, j]: the landmarks of i carried to j, projected to j's surface
+    predictions = np.full((n, n, n_l, 3), np.nan)
+    located = np.zeros((n, n_l))
+    for i, case in enumerate(cases):
+        located[i] = locate(points[case], triangles, landmarks[case])[2]
+        predictions[i] = transfer(points[case], triangles, landmarks[case], stacked)
+    truth = np.stack([landmarks[c] for c in cases])                          # (n, L, 3)
+    single = np.full((n, n, n_l), np.nan)                                    # [i, j, l]
+    median = np.zeros((n, n_l))                                              # [j, l]
+    for j, case in enumerate(cases):
+        others = [i for i in range(n) if i != j]
+        projected = project(predictions[others, j], *surfaces[case])         # (n-1, L, 3)
+        single[others, j] = np.linalg.norm(projected - truth[j], axis=-1)
+        consensus = project(np.median(projected, axis=0), *surfaces[case])
+        median[j] = np.linalg.norm(consensus - truth[j], axis=-1)
+    off_diagonal = ~np.eye(n, dtype=bool)
+    values = single[off_diagonal]                                            # (n(n-1), L)
+    return {
+        "cases": n, "points": int(stacked.shape[1]),
+        "single": {"mean": float(values.mean()), "median": float(np.median(values))},
+        "median_of_templates": {"mean": float(median.mean()), "median": float(np.median(median))},
+        "located": {"mean": float(located.mean()), "max": float(located.max())},
+        "per_label": {label: {"median_of_templates_mean": float(median[:, k].mean()),
+                              "median_of_templates_median": float(np.median(median[:, k])),
+                              "single_mean": float(values[:, k].mean()),
+                              "single_median": float(np.median(values[:, k]))}
+                      for k, label in enumerate(labels)},
+        "per_case": {case: {"as_target_median_of_templates_mean": float(median[j].mean()),
+                            "as_target_single_mean": float(np.nanmean(single[:, j])),
+                            "as_template_single_mean": float(np.nanmean(single[j])),
+                            "located_mean": float(located[j].mean())}
+                     for j, case in enumerate(cases)},
+        "errors_median_of_templates": {case: median[j].round(4).tolist()
+                                       for j, case in enumerate(cases)},
+    }
+
+
+def evaluate(args) -> int:
+    """Landmark transfer through every build, on the cases that all of them hold; tables printed
+    and ``landmarks.json`` written."""
+    from mdlshapemodel.prepare import io
+    from mdlshapemodel.prepare.landmarks import read_landmarks
+
+    data = Path(args.data)
+    builds = [Path(b) for b in args.builds]
+    output = Path(args.output) if args.output else builds[0].parent
+    inputs = {p.stem for p in (data / "meshes").glob("*.vtp")}
+    held = [{p.stem for p in (b / "correspondence").glob("*.vtp")} for b in builds]
+    cases = sorted(set.intersection(*held) & inputs)
+    print(f"{len(cases)} cases held by every build, of {len(inputs)} inputs", end="")
+    missing = {b.name: sorted(inputs - h) for b, h in zip(builds, held) if inputs - h}
+    print("".join(f"; {name} lacks {', '.join(m)}" for name, m in missing.items()) or "")
+    rejected = {}
+    for b in builds:
+        if (b / "rejected.csv").exists():
+            with open(b / "rejected.csv", newline="") as handle:
+                rejected[b.name] = {row["case"]: row["reason"] for row in csv.DictReader(handle)}
+            for case, reason in rejected[b.name].items():
+                print(f"  {b.name}: {case} rejected: {reason}")
+    if len(cases) < 2:
+        print("need at least two cases", file=sys.stderr)
+        return 1
+    labels, landmarks = None, {}
+    for case in cases:
+        read = read_landmarks(data / "landmarks" / f"{case}.csv")
+        if labels is not None and list(read.labels) != labels:
+            raise ValueError(f"{case}: landmark labels differ from {cases[0]}'s")
+        labels, landmarks[case] = list(read.labels), read.points
+    surfaces = {case: io.read_mesh(data / "meshes" / f"{case}.vtp") for case in cases}
+    results = {}
+    for build_folder in builds:
+        started = time.perf_counter()
+        results[build_folder.name] = evaluate_build(data, build_folder, cases, labels, landmarks,
+                                                    surfaces)
+        results[build_folder.name]["evaluation_seconds"] = time.perf_counter() - started
+    spread = rater_spread(data, cases, labels)
+
+    names = list(results)
+    print(f"\nlandmark transfer error, mm ({len(cases)} cases, {len(labels)} landmarks; single: "
+          f"over {len(cases) * (len(cases) - 1) * len(labels)} (i, j, l); median of templates: "
+          f"over {len(cases) * len(labels)} (j, l))")
+    print(f"{'build':<12} {'points':>6} {'single mean':>11} {'median':>7} "
+          f"{'med-of-templ mean':>17} {'median':>7} {'located':>7}")
+    for name in names:
+        r = results[name]
+        print(f"{name:<12} {r['points']:>6} {r['single']['mean']:>11.2f} "
+              f"{r['single']['median']:>7.2f} {r['median_of_templates']['mean']:>17.2f} "
+              f"{r['median_of_templates']['median']:>7.2f} {r['located']['mean']:>7.2f}")
+    between = spread["evaluated_cases"]
+    print(f"{'raters':<12} {'':>6} {'':>11} {'':>7} {between['overall']['mean']:>17.2f} "
+          f"{between['overall']['median']:>7.2f}   (between-rater spread)")
+
+    print("\nper label: median-of-templates mean error (mm) and the between-rater spread "
+          "(mean over the cases)")
+    print(f"{'label':<8}" + "".join(f" {name:>9}" for name in names) + f" {'raters':>9}")
+    for label in labels:
+        print(f"{label:<8}" + "".join(
+            f" {results[n]['per_label'][label]['median_of_templates_mean']:>9.2f}"
+            for n in names) + f" {between[label]['mean']:>9.2f}")
+    print(f"{'all':<8}" + "".join(f" {results[n]['median_of_templates']['mean']:>9.2f}"
+                                  for n in names) + f" {between['overall']['mean']:>9.2f}")
+
+    print("\nper case: mean error as a target (median of templates) | as a template (single) "
+          "| located, mm")
+    print(f"{'case':<14}" + "".join(f" {name:>22}" for name in names))
+    for case in cases:
+        print(f"{case:<14}" + "".join(
+            f" {results[n]['per_case'][case]['as_target_median_of_templates_mean']:>6.2f} | "
+            f"{results[n]['per_case'][case]['as_template_single_mean']:>6.2f} | "
+            f"{results[n]['per_case'][case]['located_mean']:>4.2f}" for n in names))
+
+    output.mkdir(parents=True, exist_ok=True)
+    report = {"data": str(data), "cases": cases, "labels": labels,
+              "builds": {name: str(b) for name, b in zip(names, builds)},
+              "missing": missing, "rejected": rejected, "results": results, "raters_spread": spread}
+    (output / "landmarks.json").write_text(json.dumps(report, indent=1))
+    print(f"\n-> {output / 'landmarks.json'}")
+    return 0
+
+
+def run(args) -> int:
+    """Build (existing builds kept), then evaluate."""
+    code = build(args)
+    if code:
+        return code
+    output = Path(args.output)
+    return evaluate(argparse.Namespace(data=args.data, output=str(output),
+                                       builds=[str(output / name) for name in BUILDS]))
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = []
+    if "--" in argv:                      # options after -- go to every build
+        extra = argv[argv.index("--") + 1:]
+        argv = argv[:argv.index("--")]
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    for command, text in (("build", "the mdl, initial and cpd builds (the CLI, one at a time)"),
+                          ("run", "build, then evaluate")):
+        sub = commands.add_parser(command, help=text,
+                                  epilog="options after -- are passed to every build")
+        sub.add_argument("data", help="folder with meshes/ and landmarks/ (landmark_data.py)")
+        sub.add_argument("--output", required=True)
+        sub.add_argument("--points", type=int, default=2562, help="sample points per case")
+    evaluator = commands.add_parser("evaluate", help="landmark transfer through build outputs")
+    evaluator.add_argument("data", help="folder with meshes/, landmarks/ and raters.json")
+    evaluator.add_argument("builds", nargs="+", help="build output folders")
+    evaluator.add_argument("--output", help="where landmarks.json goes (default: the first "
+                                            "build's parent folder)")
+    args = parser.parse_args(argv)
+    if extra and args.command == "evaluate":
+        parser.error("evaluate takes no build options")
+    args.extra = extra
+    return {"build": build, "evaluate": evaluate, "run": run}[args.command](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
