@@ -14,6 +14,10 @@ of case i there (in the model's frame):
 and per case and point the angle of its normal to the mean direction, so that a case whose
 normals are off at many points can be named. A point where s_k exceeds :data:`SPREAD_DEGREES`
 is flagged.
+
+The check finds gross errors. It does not rank two correspondences of the same cases: the
+shapes' own variation spreads normals too, and a correspondence that follows the surfaces more
+smoothly than the true one can have the smaller spread (docs/benchmarks.md).
 """
 
 from __future__ import annotations

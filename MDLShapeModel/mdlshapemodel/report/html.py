@@ -189,8 +189,10 @@ def _normals_section(model, normals, names) -> list:
     parts = ["<h2>Correspondence check: normals</h2>",
              f"<p>At each model point, the mean angle between the aligned cases' surface normals "
              f"and their mean direction. Where the points of the cases are the same anatomical "
-             f"place their normals agree, up to the shapes' own variation; where they spread, "
-             f"the correspondence there is likely wrong. <b>{flagged} of {len(spread)} points "
+             f"place their normals agree, up to the shapes' own variation; where they spread "
+             f"widely, the correspondence there is likely wrong (a region turned or twisted in "
+             f"some cases). The spread does not rank two correspondences: the shapes' own "
+             f"variation spreads normals too. <b>{flagged} of {len(spread)} points "
              f"({100.0 * flagged / len(spread):.1f}%)</b> spread more than "
              f"{SPREAD_DEGREES:.0f}°; median spread {np.median(spread):.1f}°. Every point's "
              f"value is in mean.vtp (point arrays normal_spread_degrees and normal_agreement, "
