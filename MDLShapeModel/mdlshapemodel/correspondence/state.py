@@ -434,14 +434,15 @@ class CorrespondenceState:
         return np.stack([e.raw_points() for e in self.examples])
 
     def release_sampling(self):
-        """The correspondence is final: drop each part's point locator (its search structures
-        are about half of the state's memory), which only moving the sample points needs. The
-        shapes, poses, weights and warps stay; sampling afterwards raises RuntimeError. A build
-        calls it before it evaluates the model."""
+        """The correspondence is final: drop what only moving the sample points needs, each
+        part's point locator and its copy of the surface and sphere map (most of the state's
+        memory). The samples, poses, weights and warps stay; sampling afterwards raises
+        RuntimeError. A build calls it before it evaluates the model."""
         for example in self.examples:
             for part in getattr(example, "parts", ()):
                 if isinstance(part, PartState):
-                    part.locator = None
+                    part.locator = part.vertices = part.faces = part.sphere = None
+                    part.cumulative_area = None
 
     def snapshot(self) -> list:
         """Everything the optimisation changes: per example its pose and per part its positions,
