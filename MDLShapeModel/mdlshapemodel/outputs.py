@@ -250,6 +250,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                           "normal_agreement": normals.resultant},
                       cell_data={"part": model.part_of_triangles()} if model.part_names else None)
     outlier = score_outliers(model)
+    normals_off = None if normals is None else normals.cases_off()
     cases = []
     physical = physical_shapes(raw, prepared)
     for folder in ("correspondence", "aligned"):
@@ -274,7 +275,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                       "warps": int(sum(len(p.warps) for p in getattr(state.examples[i], "parts",
                                                                       []))),
                       "warp_kinds": warp_summary(state.examples[i]),
-                      "normals_off": "" if normals is None else int(normals.cases_off()[i]),
+                      "normals_off": "" if normals_off is None else int(normals_off[i]),
                       "mahalanobis": float(outlier["distance"][i]),
                       "score_outlier": bool(outlier["outlier"][i]),
                       "smoothing_sigma": ("" if case.smoothing_sigma is None

@@ -78,7 +78,7 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
     description length of the smallest modes for a more compact model; with many examples the
     n_s - 1 modes' terms can make eq. 14 prefer the start although the phases' end is closer to
     a known true correspondence and generalizes better (docs/benchmarks.md, 1000 shapes), so the
-    start is not put back.
+    end is not judged against the start.
 
     ``checkpoint(point, state)`` is called after every sweep, round, level or iteration with the
     state it was reached in (the coarse stage's own, :mod:`..coarse`, during that stage) and the
