@@ -365,3 +365,27 @@ def test_a_long_command_line_wraps_in_a_small_box(browser, tmp_path, monkeypatch
     height = box.bounding_box()["height"]
     line = page.evaluate("parseFloat(getComputedStyle(document.body).fontSize)")
     assert height < 10 * line, (height, line)
+
+
+def test_the_normals_check_shows_its_map_and_the_cases_most_off(browser, tmp_path):
+    from mdlshapemodel.model.normals import normal_agreement
+
+    model, shapes, names = population(n_s=4, n_points=642)
+    shapes = shapes.copy()
+    shapes[2] = shapes[2][::-1]             # one case's points in reverse order: normals off
+    normals = normal_agreement(shapes, model.triangles)
+    path = write_report(tmp_path, report_metrics(), [], [], model, shapes, names,
+                        normals=normals)
+    page, errors, _ = _open(browser, path)
+    assert errors == []
+    section = page.locator("h2", has_text="Correspondence check: normals")
+    assert section.count() == 1
+    image = page.locator("img[alt='normal spread']")
+    assert image.evaluate("e => e.complete && e.naturalWidth > 0")
+    shot = _pixels(image.screenshot())
+    assert _drawn(shot) > 0.1, "the normal map draws nothing"
+    rows = page.locator("h2:has-text('Correspondence check: normals') ~ table").first
+    assert names[2] in rows.inner_text().split("\n")[1]     # the reversed case heads the list
+    widths = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
+    assert widths[0] <= widths[1], widths
+    page.close()
