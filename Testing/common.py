@@ -1,6 +1,7 @@
 """What many test files share: where the shared real data is (../shared/data beside the
 checkout, or the folder named by MDLSHAPEMODEL_DATA; tests that need it skip with a reason when
-it is absent) and running the command line or a script in a subprocess, always with a timeout."""
+it is absent), running the command line or a script in a subprocess, always with a timeout, and
+central differences for gradient checks."""
 
 from __future__ import annotations
 
@@ -47,3 +48,12 @@ def run_python(code: str, *arguments, cwd=None, env=None, timeout: float = TIMEO
     crash in native code ends that process, not the test run."""
     return subprocess.run([sys.executable, "-c", code, *map(str, arguments)], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout)
+
+
+def central_difference(function, x, k: int, relative_step: float = 1e-4) -> float:
+    """(f(x + h e_k) - f(x - h e_k)) / 2h with h = ``relative_step`` max(|x_k|, 1e-3)."""
+    step = relative_step * max(abs(x[k]), 1e-3)
+    plus, minus = x.copy(), x.copy()
+    plus[k] += step
+    minus[k] -= step
+    return (function(plus) - function(minus)) / (2 * step)

@@ -42,6 +42,7 @@ from .outputs import (BuildResult, Checkpoint, clear_previous_build, earlier_bui
 from .parallel import Task, dask_executor, helper_for
 from .prepare import io, preprocess
 from .prepare.case import Rejection
+from .prepare.landmarks import read_landmark_folder
 from .prepare.parts import case_inputs, read_manifest
 from .progress import Progress, report
 
@@ -112,6 +113,8 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     _refuse_unguarded_call(config, executor)
     output = Path(output)
     cases = _cases(inputs, config, manifest, output)      # before anything is written
+    landmarks = (None if config.landmarks is None
+                 else read_landmark_folder(config.landmarks, [case.name for case in cases]))
     earlier = [] if resume else earlier_build(output)
     if earlier and not overwrite:
         raise BuildError(f"{output} holds an earlier build ({', '.join(p.name for p in earlier)})"
@@ -129,7 +132,7 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     if log.level == logging.NOTSET or log.level > logging.INFO:
         log.setLevel(logging.INFO)
     try:
-        return _build(cases, output, config, progress, executor, resume)
+        return _build(cases, output, config, progress, executor, resume, landmarks)
     except InternalError as error:
         # the user sees the one-line message; the traceback (a worker's too) goes to build.log
         handler.stream.write("".join(traceback.format_exception(error)))
@@ -139,15 +142,18 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         handler.close()
 
 
-def fingerprint(prepared: list, config: BuildConfig) -> dict:
+def fingerprint(prepared: list, config: BuildConfig, landmarks: dict | None = None) -> dict:
     """What a checkpoint is of: the settings that shape the result (all but ``workers``,
     ``scheduler``, ``cache_dir`` and the budget, ``max_time`` and ``max_sweeps``, which a
     resumed build may raise to carry on an optimisation that they stopped) and every prepared
-    case's name and the digests of its files."""
+    case's name and the digests of its files (and of its landmark file)."""
     settings = {key: value for key, value in config.to_dict().items()
                 if key not in ("workers", "scheduler", "cache_dir", "max_time", "max_sweeps")}
+    marks = landmarks or {}
     return {"settings": settings,
-            "cases": [[case.name, *map(io.file_digest, case.paths)] for case in prepared]}
+            "cases": [[case.name, *map(io.file_digest, case.paths)]
+                      + ([io.file_digest(marks[case.name].path)] if case.name in marks else [])
+                      for case in prepared]}
 
 
 def _resumption(output: Path, print_of: dict):
@@ -233,19 +239,21 @@ def _guarded(source, line: int) -> bool:
 
 
 def _build(cases: list, output: Path, config: BuildConfig, progress, executor,
-           resume: bool) -> BuildResult:
+           resume: bool, landmarks: dict | None) -> BuildResult:
     started = time.perf_counter()
     io.write_text(output / "config.json", json.dumps(config.to_dict(), indent=2))
     if config.scheduler is None:
         log.info("preprocessing %d cases with %d workers", len(cases), config.workers)
-        return _build_from(cases, output, config, progress, executor, resume, started)
+        return _build_from(cases, output, config, progress, executor, resume, started,
+                           landmarks)
     with dask_executor(config.scheduler) as cluster:   # connected and checked before any work
         log.info("preprocessing %d cases on the Dask cluster", len(cases))
-        return _build_from(cases, output, config, progress, cluster, resume, started)
+        return _build_from(cases, output, config, progress, cluster, resume, started,
+                           landmarks)
 
 
 def _build_from(cases: list, output: Path, config: BuildConfig, progress, executor,
-                resume: bool, started: float) -> BuildResult:
+                resume: bool, started: float, landmarks: dict | None) -> BuildResult:
     prepared, rejected = preprocess(cases, config, executor, progress)
     prepared, odd = one_kind(prepared)
     rejected = rejected + odd
@@ -267,14 +275,14 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         def evaluate_baseline(name, state, notes):
             pending[name] = (notes, evaluate_state(state, config, prepared, pool=pool))
 
-        print_of = fingerprint(prepared, config)
+        print_of = fingerprint(prepared, config, landmarks)
         resumed = _resumption(output, print_of) if resume else None
 
         def checkpoint(state, point, rng, trace):
             save_checkpoint(output / "checkpoint.npz", state, point, rng, trace, print_of)
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
-                                  evaluate_baseline, resumed)
+                                  evaluate_baseline, resumed, landmarks)
         if corresponded.interrupted:
             log.warning("optimisation interrupted: writing the model of the state reached")
         unfinished = corresponded.optimisation.warning(output)
@@ -396,6 +404,7 @@ class Correspondence:
     trace: Trace                 # the optimisation's rows (convergence.csv)
     optimisation: OptimisationEnd   # converged or what stopped it
     objective_points: int        # the sample points (all parts) the objectives are measured on
+    landmarks: dict | None = None   # case name -> the Landmarks that guided it (None: unguided)
 
     @property
     def interrupted(self) -> bool:
@@ -405,7 +414,8 @@ class Correspondence:
 
 def correspond(prepared: list, config: BuildConfig, progress: Progress | None = None,
                executor: Executor | None = None, checkpoint=None, baselines=None,
-               resume: Checkpoint | None = None) -> Correspondence:
+               resume: Checkpoint | None = None, landmarks: dict | None = None
+               ) -> Correspondence:
     """Prepared cases -> their optimised correspondence and its shape model (the middle of a build).
 
     The initial correspondence (:func:`~.correspondence.state.initial_state`), then either the
@@ -438,6 +448,9 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     resume : Checkpoint, optional
         Carry on from this checkpoint (of the same cases and settings) instead of starting the
         optimisation: the same result as the uninterrupted run.
+    landmarks : dict of case name -> Landmarks, optional
+        Landmarks that guide the correspondence (surfaces; :mod:`.correspondence.guides`): the
+        initial alignment and the optimisation keep each label at one place across the cases.
 
     Returns
     -------
@@ -472,9 +485,16 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         surface = next(case.name for case in prepared if not case.is_curve)
         raise BuildError(f"2-D curves and surfaces in one build: {curves[0]} is a curve, "
                          f"{surface} a surface")
+    if curves and landmarks:
+        raise BuildError("--landmarks guides surfaces; these inputs are 2-D curves")
     if curves and config.correspondence == "cpd":
         raise BuildError("--correspondence cpd registers surfaces; these inputs are 2-D curves")
-    state, (fixed, integrated), voxel, data_range = initial_state(prepared, config)
+    state, (fixed, integrated), voxel, data_range = initial_state(prepared, config, landmarks)
+    if state.guides is not None:
+        log.info("%d landmark labels guide the correspondence (%d landmarks of %d cases; weight "
+                 "%g): %s", len(state.guides.labels), int(state.guides.present.sum()),
+                 int(state.guides.present.any(axis=1).sum()), config.landmark_weight,
+                 ", ".join(state.guides.labels))
     settings = config.optimisation_settings()
     # eq. 14 is measured where the optimisation minimises it (the fast strategy's coarse grid)
     coarse = (settings.coarse_points if config.correspondence != "cpd"
@@ -557,14 +577,15 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                              trace.last.wall_seconds if trace.rows else 0.0)
     return Correspondence(state, shape_model_of(state, config, final, voxel, data_range, named),
                           initial, final, voxel, data_range, trace, ending,
-                          state.n_points if coarse is None else coarse * len(state.grids))
+                          state.n_points if coarse is None else coarse * len(state.grids),
+                          landmarks if state.guides is not None else None)
 
 
 def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: float,
                    voxel_size: float, data_range: float, part_names=()) -> ShapeModel:
     """The shape model of a correspondence: the area-weighted PCA of its aligned shapes, with the
     sampling grid's triangles and sphere positions, the case names, the part names of a
-    multi-part object, and as metadata the
+    multi-part object, the guided landmarks' rows, and as metadata the
     objective, the method (the strategy, or "cpd"), the voxel size, the data range and the
     configuration (JSON)."""
     method = "cpd" if config.correspondence == "cpd" else config.strategy
@@ -577,6 +598,9 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
                                    data_range_mm=data_range,
                                    config=json.dumps(config.to_dict()))
     model.parameters = np.concatenate([points for points, _ in state.grids])
+    if state.guides is not None:
+        model.landmarks = {label: int(row) for label, row in zip(state.guides.labels,
+                                                                 state.guides.indices)}
     return model
 
 

@@ -90,6 +90,10 @@ MAX_SMOOTHING_SIGMA = 2.0
 SURFACE_POINTS = 2562
 CURVE_POINTS = 128
 
+# ``--landmark-weight``: lambda of the landmark guides' term (correspondence/guides.py), nats per
+# squared voxel of distance between a landmark and its corresponded point, halved
+LANDMARK_WEIGHT = 1.0
+
 # Unless set, the surfaces mapped to the sphere have about this many vertices per sample point,
 # and at least MIN_SURFACE_VERTICES: ``BuildConfig.target_vertices``. A surface many times finer
 # than the sampling grid buys nothing and costs time (a 0.5 mm femur contour has 146,000).
@@ -378,6 +382,15 @@ class BuildConfig:
                          "objective is measured there) and carry the maps over to --points; 0: "
                          "optimise on --points (default %(default)s)",
         metavar="N"))
+    landmarks: str | None = field(default=None, metadata=option(
+        _CORRESPONDENCE, "folder of landmark files that guide the correspondence, one per case "
+                         "named after it (3D Slicer .mrk.json or .fcsv, or CSV label,x,y,z; "
+                         "LPS unless the file says RAS): each label is kept at one place across "
+                         "the cases (surfaces; a case may lack labels or have no file)",
+        metavar="DIR"))
+    landmark_weight: float = field(default=LANDMARK_WEIGHT, metadata=option(
+        _CORRESPONDENCE, "--landmarks: the objective's cost of a landmark one voxel from its "
+                         "corresponded point is half this, in nats (default %(default)s)"))
     seed: int = field(default=0, metadata=option(
         _CORRESPONDENCE, "random seed of the paper's strategies (fast draws no random "
                          "numbers): the same seed and inputs give the same model bit for bit, "
@@ -465,6 +478,10 @@ class BuildConfig:
         need(self.max_sweeps >= 1, "max_sweeps", "must be at least 1")
         need(self.coarse_points == 0 or self.coarse_points >= 12, "coarse_points",
              "must be 0 (no coarse stage) or at least 12")
+        need(self.landmarks is None or (isinstance(self.landmarks, str)
+                                        and self.landmarks.strip() != ""),
+             "landmarks", "must be a folder of landmark files")
+        need(self.landmark_weight > 0, "landmark_weight", "must be positive")
         need(self.evaluation_modes >= 1, "evaluation_modes", "must be at least 1")
         need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")
         need(self.surface_samples == 0 or self.surface_samples >= 2, "surface_samples",

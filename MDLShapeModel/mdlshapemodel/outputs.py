@@ -50,8 +50,8 @@ class BuildResult:
 # What a build writes into its output folder. Other entries are not a build's: the inputs/ that the
 # demo and the Slicer module write there first, or anything else a user keeps there.
 BUILD_FILES = ("model.h5", "mean.vtp", "correspondence", "aligned", "scores.csv", "cases.csv",
-               "metrics.json", "report.html", "rejected.csv", "convergence.csv", "config.json",
-               "checkpoint.npz", "build.log")
+               "landmarks.csv", "metrics.json", "report.html", "rejected.csv", "convergence.csv",
+               "config.json", "checkpoint.npz", "build.log")
 
 
 def previous_build(output) -> list:
@@ -226,11 +226,34 @@ def physical_shapes(raw: np.ndarray, prepared: list) -> list:
             for points, case in zip(raw, prepared)]
 
 
+LANDMARK_COLUMNS = ("case", "label", "x", "y", "z", "given_x", "given_y", "given_z",
+                    "distance_mm")
+
+
+def corresponded_landmarks(model, physical: list, prepared: list, given: dict | None) -> list:
+    """The rows of landmarks.csv: every case's corresponded point of each of the model's
+    landmarks (``model.landmarks``), in the coordinates of its input, with the landmark it was
+    given there (``given``: case name -> Landmarks; empty where it has none) and their
+    distance."""
+    rows = []
+    for points, case in zip(physical, prepared):
+        marks = (given or {}).get(case.name)
+        for label, row in model.landmarks.items():
+            point = points[row]
+            target = None if marks is None else marks.get(label)
+            rows.append([case.name, label, *(f"{v:.6f}" for v in point)]
+                        + (["", "", "", ""] if target is None else
+                           [*(f"{v:.6f}" for v in target),
+                            f"{float(np.linalg.norm(point - target)):.6f}"]))
+    return rows
+
+
 def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                   config: BuildConfig, baselines: dict | None = None, pool=None,
                   warnings=()) -> BuildResult:
-    """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html, of
-    the :class:`~mdlshapemodel.build.Correspondence` of the ``prepared`` cases."""
+    """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html (and
+    for a guided build landmarks.csv), of the :class:`~mdlshapemodel.build.Correspondence` of
+    the ``prepared`` cases."""
     state, model = corresponded.state, corresponded.model
     initial, final = corresponded.initial_objective, corresponded.final_objective
     voxel, data_range = corresponded.voxel_size, corresponded.data_range
@@ -286,6 +309,10 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
     io.write_csv(output / "cases.csv", list(cases[0].keys()),
                  [[c.get(k, "") for k in cases[0]] for c in cases])
+    landmark_rows = corresponded_landmarks(model, physical, prepared, corresponded.landmarks)
+    if landmark_rows:
+        io.write_csv(output / "landmarks.csv", LANDMARK_COLUMNS, landmark_rows)
+    landmark_distances = [float(row[-1]) for row in landmark_rows if row[-1] != ""]
     log.info("wrote the model, meshes and tables in %.1f s", time.perf_counter() - started)
     started = time.perf_counter()
     quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
@@ -311,6 +338,12 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
+               "landmarks": None if not model.landmarks else {
+                   "labels": list(model.landmarks),
+                   "given": len(landmark_distances),
+                   "distance_mm": {"mean": float(np.mean(landmark_distances)),
+                                   "max": float(np.max(landmark_distances))}
+                   if landmark_distances else None},
                "baselines": baselines or {}, "warnings": list(warnings)}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()

@@ -43,7 +43,8 @@ def coarse_view(state: CorrespondenceState, n_points: int) -> CorrespondenceStat
     Sphere parts are resampled with their warps (they share the surfaces, sphere maps and
     locators of ``state``'s). An example whose correspondence is given (:class:`FixedExample`,
     e.g. the CPD baseline's) keeps the points of each part where its grid starts with the coarse
-    grid (nested icospheres: 642 in 2562); raises ValueError where it does not."""
+    grid (nested icospheres: 642 in 2562); raises ValueError where it does not. The landmark
+    guides carry over where their sample points are among the coarse grid's (ValueError else)."""
     grid, cells = sphere_grid(n_points)
     examples = []
     for example in state.examples:
@@ -58,8 +59,12 @@ def coarse_view(state: CorrespondenceState, n_points: int) -> CorrespondenceStat
         else:
             examples.append(Example(example.name,
                                     [part.on_grid(grid, cells) for part in example.parts]))
+    guides = None
+    if state.guides is not None:     # the guided points are among the coarse grid's
+        guides = state.guides.on_rows(np.concatenate([np.arange(part.start, part.start + n_points)
+                                                      for part in state.part_slices]))
     coarse = CorrespondenceState(examples, [(grid, cells)] * len(state.grids), state.objective,
-                                 scaling=state.scaling, planar=state.planar)
+                                 scaling=state.scaling, planar=state.planar, guides=guides)
     coarse.target_size = state.target_size
     for view, example in zip(coarse.examples, state.examples):
         view.pose = example.pose.copy()

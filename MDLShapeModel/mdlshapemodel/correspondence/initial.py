@@ -9,12 +9,13 @@ import numpy as np
 from ..config import BuildConfig
 from ..prepare.sphere import align_parameterizations, reference_frames
 from .circle import curve_state
+from .guides import guides_on_grid, place_landmarks
 from .objective import objectives
 from .sampling import sphere_grid
 from .state import CorrespondenceState, Example, PartState
 
 
-def initial_state(prepared: list, config: BuildConfig):
+def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = None):
     """The initial correspondence of prepared cases and the two objectives.
 
     2-D curves: :func:`.circle.curve_state` (origins aligned, ``config.points_for(curves=True)``
@@ -24,6 +25,11 @@ def initial_state(prepared: list, config: BuildConfig):
     ``config.points``; one pose per case moves all its
     parts (III-E). The objectives' Delta follow the mean voxel size. Returns (state, (fixed,
     integrated), voxel size, data range of the aligned shapes).
+
+    ``landmarks`` (case name -> :class:`~mdlshapemodel.prepare.landmarks.Landmarks`, surfaces
+    only): the alignment of the sphere maps also brings each label to one shared place, and the
+    state gets their :class:`.guides.Guides` (weight ``config.landmark_weight``), on sample
+    points of the coarse grid where the fast strategy runs one.
     """
     if prepared[0].is_curve:
         state = curve_state([[part.map for part in case.parts] for case in prepared],
@@ -34,19 +40,35 @@ def initial_state(prepared: list, config: BuildConfig):
     grid_points, grid_triangles = sphere_grid(config.points_for(curves=False))
     # several parts: each case's frame from its whole surface, the same for all its parts
     frames = reference_frames([case.surface() for case in prepared]) if n_parts > 1 else None
-    maps = [align_parameterizations([case.parts[j].map for case in prepared], frames=frames)
-            for j in range(n_parts)]
+    placed = place_landmarks(prepared, landmarks) if landmarks else None
+    maps = []
+    for j in range(n_parts):
+        originals = [case.parts[j].map for case in prepared]
+        images = None if placed is None else placed.images(j, originals)
+        maps.append(align_parameterizations(originals, frames=frames, landmarks=images))
     examples = [Example(case.name, [PartState(maps[j][i].vertices, maps[j][i].faces,
                                               maps[j][i].sphere, grid_points, grid_triangles)
                                     for j in range(n_parts)])
                 for i, case in enumerate(prepared)]
+    guides = None
+    if placed is not None:
+        coarse = config.coarse_points
+        candidates = coarse if 0 < coarse < len(grid_points) else len(grid_points)
+        guides = guides_on_grid(placed, maps, grid_points, candidates,
+                                [j * len(grid_points) for j in range(n_parts)],
+                                config.landmark_weight, _voxel(prepared))
     state = CorrespondenceState(examples, [(grid_points, grid_triangles)] * n_parts,
-                                scaling=config.scaling)
+                                scaling=config.scaling, guides=guides)
     return _with_objectives(state, prepared, config)
 
 
 def _with_objectives(state: CorrespondenceState, prepared: list, config: BuildConfig):
     """(state, its two objectives, the mean voxel size, the data range of the aligned shapes)."""
-    voxel = float(np.mean([case.voxel_size for case in prepared]))
+    voxel = _voxel(prepared)
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
     return state, objectives(config, voxel, data_range), voxel, data_range
+
+
+def _voxel(prepared: list) -> float:
+    """The mean voxel size of the cases: the unit of the coding accuracy and of the guides."""
+    return float(np.mean([case.voxel_size for case in prepared]))

@@ -335,3 +335,17 @@ def objectives(config, voxel: float, data_range: float) -> tuple:
     return (Objective("fixed", data_range, delta=config.fixed_delta * voxel),
             Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
                       delta_max=config.delta_range[1] * voxel))
+
+
+@dataclass(frozen=True)
+class NoDescription:
+    """An objective that is 0 for every covariance: with landmark guides, the state's F is then
+    their term alone (the landmark phase of :func:`~.strategies.optimise`)."""
+
+    kind: str = "none"
+
+    def __call__(self, gram: np.ndarray) -> float:
+        return 0.0
+
+    def gradient(self, gram: np.ndarray) -> tuple[float, np.ndarray]:
+        return 0.0, np.zeros_like(np.asarray(gram, dtype=np.float64))

@@ -24,6 +24,7 @@ import numpy as np
 from ..prepare.curve import segment_vertex_lengths
 from ..prepare.sphere import orientation
 from ..prepare.surface import face_areas, triangle_vertex_areas
+from .guides import Guides
 from .objective import Objective
 from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from .sampling import SphereLocator, grid_order, icosphere
@@ -228,11 +229,15 @@ class CorrespondenceState:
     planar : bool, optional
         Whether the shapes lie in the plane z = 0 and poses rotate about z only; by default when
         every part is planar (closed curves).
+    guides : Guides, optional
+        Landmarks that guide the correspondence (:mod:`.guides`): their term is part of
+        :meth:`value`.
     """
 
     def __init__(self, examples: list, grids: list, objective: Objective | None = None,
-                 scaling: bool = True, planar: bool | None = None):
+                 scaling: bool = True, planar: bool | None = None, guides: Guides | None = None):
         self.examples = examples
+        self.guides = guides
         self.grids = grids
         self.objective = objective
         self.scaling = scaling
@@ -299,6 +304,8 @@ class CorrespondenceState:
         centred = (self.shapes - self.reference) * np.sqrt(self.weights)[None, :, None]
         flat = centred.reshape(self.n_shapes, -1)
         self.gram = flat @ flat.T
+        self.guide_costs = (None if self.guides is None
+                            else self.guides.costs(self.raw_shapes()))
 
     # ------------------------------------------------------------------ objective
     def _row(self, shape: np.ndarray) -> tuple[np.ndarray, float]:
@@ -324,14 +331,32 @@ class CorrespondenceState:
         factor = self.target_size / centroid_size(total / n, self.weights)
         return centred * factor ** 2
 
-    def value(self, i: int | None = None, shape: np.ndarray | None = None) -> float:
-        """F of the current state, or with shape i replaced by ``shape``."""
+    def value(self, i: int | None = None, shape: np.ndarray | None = None,
+              raw: np.ndarray | None = None) -> float:
+        """F of the current state, or with shape i replaced by ``shape``: the description length
+        of the covariance, plus the landmark term of the guides (if any), for which a trial also
+        gives ``raw``, its unposed samples."""
         self.evaluations += 1
-        return self.objective(self.covariance(i, shape))
+        return self.objective(self.covariance(i, shape)) + self.guide_cost(i, raw)
+
+    def guide_cost(self, i: int | None = None, raw: np.ndarray | None = None) -> float:
+        """The landmark term C of the guides (0 without), or with example i's unposed samples
+        replaced by ``raw`` (n_p, 3)."""
+        if self.guides is None:
+            return 0.0
+        total = float(self.guide_costs.sum())
+        if i is None:
+            return total
+        if raw is None:
+            raise ValueError("a trial of a guided state needs its unposed samples (raw)")
+        return total - float(self.guide_costs[i]) + self.guides.cost(i, raw)
 
     def shape_gradient(self) -> tuple[float, np.ndarray]:
-        """F of the current state and G = dF/dX, (n_s, n_p, 3): the derivative with respect to
-        every example's posed points, with the area weights w held fixed (docs/method.md section 2).
+        """F of the current state and G = dF/dX, (n_s, n_p, 3): the derivative of the description
+        length with respect to every example's posed points, with the area weights w held fixed
+        (docs/method.md section 2). F includes the guides' landmark term (:meth:`guide_cost`),
+        which depends on the unposed samples only: its gradient is the guides' own
+        (:meth:`.guides.Guides.gradients`), not part of G.
 
         F = F(D'), D' = f^2 H K H, f = target_size / cs(mean). With Gd = dF/dD' (symmetric,
         :meth:`Objective.gradient`) and M = f^2 H Gd H,
@@ -347,7 +372,7 @@ class CorrespondenceState:
         flat *= np.repeat(2.0 * self.weights, 3)
         grad = multiplier @ flat
         grad += self.scale_gradient(self.sum_shapes, grad_cov, covariance).reshape(1, -1)
-        return value, grad.reshape(self.shapes.shape)
+        return value + self.guide_cost(), grad.reshape(self.shapes.shape)
 
     def example_gradient(self, i: int, shape: np.ndarray | None = None
                          ) -> tuple[float, np.ndarray]:
@@ -385,18 +410,23 @@ class CorrespondenceState:
                 * self.weights[:, None] * offset)
 
     @contextlib.contextmanager
-    def trial_shapes(self, shapes: np.ndarray):
+    def trial_shapes(self, shapes: np.ndarray, raw: np.ndarray | None = None):
         """Within the block, :meth:`value`, :meth:`covariance` and :meth:`shape_gradient` see
-        *every* example's shape replaced by ``shapes`` (n_s, n_p, 3): the Gram matrix is rebuilt
-        from scratch about the same reference, O(n_s^2 n_p). The state is restored afterwards."""
-        saved = self.shapes, self.sum_shapes, self.gram
+        *every* example's shape replaced by ``shapes`` (n_s, n_p, 3) (and a guided state's
+        unposed samples by ``raw``, needed then): the Gram matrix is rebuilt from scratch about
+        the same reference, O(n_s^2 n_p). The state is restored afterwards."""
+        if self.guides is not None and raw is None:
+            raise ValueError("a trial of a guided state needs its unposed samples (raw)")
+        saved = self.shapes, self.sum_shapes, self.gram, self.guide_costs
         centred = ((shapes - self.reference) * np.sqrt(self.weights)[None, :, None]).reshape(
             len(shapes), -1)
         self.shapes, self.sum_shapes, self.gram = shapes, shapes.sum(axis=0), centred @ centred.T
+        if self.guides is not None:
+            self.guide_costs = self.guides.costs(raw)
         try:
             yield self
         finally:
-            self.shapes, self.sum_shapes, self.gram = saved
+            self.shapes, self.sum_shapes, self.gram, self.guide_costs = saved
 
     def commit_shape(self, i: int):
         """Record that example i's parts or pose changed: update X, K and the sums."""
@@ -407,6 +437,8 @@ class CorrespondenceState:
         self.gram[i, i] = diagonal
         self.sum_shapes += shape - self.shapes[i]
         self.shapes[i] = shape
+        if self.guides is not None:
+            self.guide_costs[i] = self.guides.cost(i, self.examples[i].raw_points())
 
     # ------------------------------------------------------------------ views
     def _model_frame(self) -> tuple[np.ndarray, float]:

@@ -42,7 +42,9 @@ vectors are point-interleaved (x1, y1, z1, x2, ...: ``MapPointIdToInternalIdx = 
         @format = "mdlshapemodel", @format_version = 2
         mean (n, 3), modes (m, n, 3), variances (m,), weights (n,), scores (s, m) float64;
         names (s,) UTF-8 strings; part_sizes (parts,) int64; part_names (parts,) UTF-8 strings
-        for a multi-part object; triangles (t, 3) and parameters (n, 3) when set; metadata/<key> one scalar (or array) dataset per entry
+        for a multi-part object; triangles (t, 3) and parameters (n, 3) when set;
+        landmark_labels (l,) UTF-8 strings and landmark_rows (l,) int64 for a guided build;
+        metadata/<key> one scalar (or array) dataset per entry
 
 The Statismo groups hold the same Gaussian as the model: with V the (3n, m) flattened modes
 (orthonormal in the weighted inner product) the shape covariance is V diag(lambda) V^T; a thin QR
@@ -98,6 +100,23 @@ class ShapeModel:
     parameters: np.ndarray | None = None     # (n_p, 3) sampling positions on the unit sphere;
     #                                          (n_p,) angles on the circle for 2-D curves
     part_names: list = field(default_factory=list)  # one per part_sizes entry; [] for one part
+    landmarks: dict = field(default_factory=dict)   # label -> the row of the points that is
+    #                                                 the landmark (a build with --landmarks)
+
+    def landmark_points(self, points: np.ndarray | None = None) -> dict:
+        """The landmarks of a shape of the model (its points (n_p, 3); default the mean): label
+        -> (3,) point.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> model = ShapeModel.from_shapes(np.arange(18.0).reshape(2, 3, 3), np.full(3, 1 / 3))
+        >>> model.landmarks = {"tip": 2}
+        >>> model.landmark_points()["tip"].tolist()
+        [7.5, 8.5, 9.5]
+        """
+        points = self.mean if points is None else np.asarray(points)
+        return {label: points[row] for label, row in self.landmarks.items()}
 
     def part_slices(self) -> list:
         """The rows of the points of each part (``part_sizes`` in order)."""
@@ -186,6 +205,8 @@ class ShapeModel:
         if self.part_names and len(self.part_names) != len(self.part_sizes):
             raise ValueError(f"{len(self.part_names)} part names for "
                              f"{len(self.part_sizes)} parts")
+        if any(not 0 <= int(row) < n_p for row in self.landmarks.values()):
+            raise ValueError(f"landmark rows outside 0..{n_p - 1}")
         return self
 
     def instance(self, scores: np.ndarray | None = None, *,
@@ -333,6 +354,12 @@ class ShapeModel:
             group.create_dataset("triangles", data=np.asarray(self.triangles))
         if self.parameters is not None:
             group.create_dataset("parameters", data=np.asarray(self.parameters))
+        if self.landmarks:
+            group.create_dataset("landmark_labels", data=np.array(list(self.landmarks),
+                                                                  dtype=object),
+                                 dtype=h5py.string_dtype())
+            group.create_dataset("landmark_rows", data=np.array(list(self.landmarks.values()),
+                                                                dtype=np.int64))
         metadata = group.create_group("metadata", track_order=True)   # keeps the dict order
         for key, value in self.metadata.items():
             key = _checked_key(key)
@@ -382,7 +409,10 @@ class ShapeModel:
                    part_sizes=[int(s) for s in group["part_sizes"][()]], metadata=metadata,
                    parameters=group["parameters"][()] if "parameters" in group else None,
                    part_names=[_text(n) for n in group["part_names"][()]]
-                   if "part_names" in group else []).check()
+                   if "part_names" in group else [],
+                   landmarks={_text(label): int(row) for label, row in
+                              zip(group["landmark_labels"][()], group["landmark_rows"][()])}
+                   if "landmark_labels" in group else {}).check()
 
     @classmethod
     def _read_statismo(cls, f, path) -> "ShapeModel":

@@ -31,7 +31,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,10 +47,12 @@ FCSV_COLUMNS = ("id", "x", "y", "z", "ow", "ox", "oy", "oz", "vis", "sel", "lock
 
 @dataclass(frozen=True)
 class Landmarks:
-    """Named points of one case: ``labels`` (unique strings) and ``points`` (k, 3), mm, LPS."""
+    """Named points of one case: ``labels`` (unique strings) and ``points`` (k, 3), mm, LPS;
+    ``path``: the file they were read from ("" when not from a file)."""
 
     labels: tuple
     points: np.ndarray
+    path: str = ""
 
     def __post_init__(self):
         if len(self.labels) != len(self.points):
@@ -100,6 +102,27 @@ def find_landmark_file(folder, case: str) -> Path | None:
         raise InputError(f"{folder}: several landmark files for case {case!r}: "
                          f"{', '.join(p.name for p in found)}")
     return found[0] if found else None
+
+
+def read_landmark_folder(folder, cases) -> dict:
+    """The landmarks of every case of ``cases`` (names) that has a file in ``folder``
+    (:func:`find_landmark_file`): case name -> :class:`Landmarks`.
+
+    Raises :class:`~mdlshapemodel.errors.InputError` where the folder is missing, no case has a
+    file there, or a file cannot be read (naming it).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: no such landmark folder")
+    found = {}
+    for case in cases:
+        path = find_landmark_file(folder, case)
+        if path is not None:
+            found[case] = read_landmarks(path)
+    if not found:
+        raise InputError(f"{folder}: no landmark file named after a case (e.g. "
+                         f"{next(iter(cases), 'case')}.mrk.json, .fcsv or .csv)")
+    return found
 
 
 def _system(path: Path, value: str) -> str:
@@ -194,4 +217,67 @@ def _landmarks(path: Path, rows: list) -> Landmarks:
             point = [-point[0], -point[1], point[2]]
         labels.append(label)
         points.append(point)
-    return Landmarks(tuple(labels), np.array(points, dtype=np.float64))
+    return Landmarks(tuple(labels), np.array(points, dtype=np.float64), str(path))
+
+
+@dataclass(frozen=True)
+class SurfaceLandmarks:
+    """Landmarks put on a surface with a sphere map: for each point, the closest surface point
+    (``surface``, (k, 3)), the triangle (``face``) and barycentric coordinates (``coords``) it
+    lies at, its image on the sphere (``sphere``, (k, 3) unit vectors) and its distance from the
+    given point (``distance``, (k,), mm)."""
+
+    surface: np.ndarray
+    face: np.ndarray
+    coords: np.ndarray
+    sphere: np.ndarray
+    distance: np.ndarray
+
+    def on_sphere(self, sphere: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """The points' images under another sphere map of the same mesh (e.g. rotated)."""
+        image = np.einsum("kc,kcd->kd", self.coords, np.asarray(sphere)[np.asarray(faces)[self.face]])
+        return image / np.linalg.norm(image, axis=1, keepdims=True)
+
+
+def on_surface(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
+               points: np.ndarray) -> SurfaceLandmarks:
+    """Put points on a triangulated surface and on its sphere map (:class:`SurfaceLandmarks`).
+
+    Parameters
+    ----------
+    vertices, faces : ndarray (n, 3), (m, 3)
+        The surface.
+    sphere : ndarray (n, 3)
+        Its bijective map onto the unit sphere (one unit vector per vertex).
+    points : ndarray (k, 3)
+        Points in the surface's coordinates.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from mdlshapemodel.correspondence.sampling import icosphere
+    >>> vertices, faces = icosphere(2)
+    >>> placed = on_surface(2.0 * vertices, faces, vertices, np.array([[0.0, 0.0, 3.0]]))
+    >>> placed.sphere.round(6).tolist(), placed.distance.round(3).tolist()
+    ([[0.0, 0.0, 1.0]], [1.0])
+    """
+    from .nearest import TriangleGrid
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    closest, squared, face = TriangleGrid(vertices, faces).closest(points)
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)[face]]     # (k, 3, 3)
+    coords = barycentric(closest, corners)
+    placed = SurfaceLandmarks(closest, face, coords, np.zeros((len(points), 3)), np.sqrt(squared))
+    return replace(placed, sphere=placed.on_sphere(sphere, faces))
+
+
+def barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (k, 3) of points (k, 3) in the planes of triangles (k, 3, 3)."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    v0, v1, v2 = b - a, c - a, points - a
+    d00, d01, d11 = (np.einsum("kd,kd->k", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
+    d20, d21 = np.einsum("kd,kd->k", v2, v0), np.einsum("kd,kd->k", v2, v1)
+    denominator = np.where(np.abs(d00 * d11 - d01 ** 2) > 0, d00 * d11 - d01 ** 2, 1.0)
+    v = (d11 * d20 - d01 * d21) / denominator
+    w = (d00 * d21 - d01 * d20) / denominator
+    return np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, 1.0)

@@ -413,8 +413,16 @@ def reference_frames(surfaces: list, reference: int = 0) -> list:
     return frames
 
 
-def align_parameterizations(maps: list, reference: int = 0, frames: list | None = None
-                            ) -> list:
+#: how strongly landmarks steer the alignment of the parameterizations, against the first-order
+#: maps: each matrix is scaled to unit norm, the landmarks' by this factor, so that landmarks
+#: decide wherever they pin the rotation (two or more) and the first-order maps break ties
+LANDMARK_ALIGNMENT_WEIGHT = 10.0
+#: rounds of (rotations given the landmarks' shared places, shared places given the rotations)
+LANDMARK_ALIGNMENT_ROUNDS = 5
+
+
+def align_parameterizations(maps: list, reference: int = 0, frames: list | None = None,
+                            landmarks: list | None = None) -> list:
     """Rotate each sphere map so that its parameterization matches the reference's.
 
     Each shape is first brought into the reference's frame (``frames``, default
@@ -424,6 +432,13 @@ def align_parameterizations(maps: list, reference: int = 0, frames: list | None 
     first-order maps, min ||Q M_i P - M_ref||_F over proper rotations, is an orthogonal
     Procrustes problem. The new sphere coordinates are P^T u, so that S_i'(u) = S_i(P u).
 
+    ``landmarks``, one (k, 3) array per map: the sphere images of the same k landmarks on every
+    map (a row of NaN where a case lacks one). The rotations then also bring every landmark to
+    one shared place g_l on the sphere: max <A_i, P> + c sum_l <s_il g_l^T, P> over rotations
+    (A_i the first-order maps' cross-covariance, both terms scaled as
+    :data:`LANDMARK_ALIGNMENT_WEIGHT` says), alternating with g_l = the normalised mean of the
+    rotated s_il, starting from the rotations without landmarks.
+
     Returns new :class:`SphereMap` objects (the inputs are not modified); each ``quality`` gains
     ``parameter_rotation_degrees``.
     """
@@ -431,15 +446,47 @@ def align_parameterizations(maps: list, reference: int = 0, frames: list | None 
         frames = reference_frames([(m.vertices, m.faces) for m in maps], reference)
     ref = maps[reference]
     _, ref_first = first_order_map(ref.vertices, ref.faces, ref.sphere)
-    aligned = []
+    crosses = []
     for item, frame in zip(maps, frames):
         _, first = first_order_map(item.vertices, item.faces, item.sphere)
-        u, _, vt = np.linalg.svd((frame @ first).T @ ref_first)
-        d = np.ones(3)
-        d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-        rotation = (u * d) @ vt
+        crosses.append((frame @ first).T @ ref_first)
+    rotations = [_best_rotation(cross) for cross in crosses]
+    if landmarks is not None and len(landmarks) and np.size(landmarks[0]):
+        images = [np.asarray(points, dtype=np.float64) for points in landmarks]
+        for _ in range(LANDMARK_ALIGNMENT_ROUNDS):
+            places = shared_places(images, rotations)
+            rotations = []
+            for cross, points in zip(crosses, images):
+                known = np.all(np.isfinite(points), axis=1) & np.all(np.isfinite(places), axis=1)
+                cross = cross / max(np.linalg.norm(cross), 1e-300)
+                if known.any():
+                    pull = points[known].T @ places[known]
+                    cross = cross + LANDMARK_ALIGNMENT_WEIGHT * pull / known.sum()
+                rotations.append(_best_rotation(cross))
+    aligned = []
+    for item, rotation in zip(maps, rotations):
         quality = dict(item.quality)
         angle = np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1, 1)))
         quality["parameter_rotation_degrees"] = float(angle)
         aligned.append(SphereMap(item.vertices, item.faces, item.sphere @ rotation, quality))
     return aligned
+
+
+def shared_places(images: list, rotations: list) -> np.ndarray:
+    """(k, 3): each landmark's shared place on the sphere, the normalised mean of its images
+    (rows of ``images``, NaN where absent) rotated as the maps are (u -> u P); NaN where no map
+    has the landmark."""
+    rotated = np.stack([points @ rotation for points, rotation in zip(images, rotations)])
+    known = np.all(np.isfinite(rotated), axis=2)
+    total = np.where(known[..., None], rotated, 0.0).sum(axis=0)
+    norms = np.linalg.norm(total, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where((norms > 0) & known.any(axis=0)[:, None], total / norms, np.nan)
+
+
+def _best_rotation(cross: np.ndarray) -> np.ndarray:
+    """The proper rotation P maximising <cross, P> (orthogonal Procrustes)."""
+    u, _, vt = np.linalg.svd(cross)
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return (u * d) @ vt

@@ -40,6 +40,7 @@ import numpy as np
 
 from ...config import STRATEGIES, OptimisationSettings
 from ...parallel import Threads
+from ..objective import NoDescription
 from ..coarse import carry_over, coarse_grid_applies, coarse_view
 from ..state import CorrespondenceState, replay_record
 from ..trace import Stop, Trace
@@ -58,6 +59,10 @@ PHASES = {
     "fast": optimise_fast,
 }
 KEEP_INITIAL = "none"
+#: with landmark guides: the share of ``max_time`` by which the landmark phase ends, and the fast
+#: strategy's field levels in it
+LANDMARK_PHASE_SHARE = 0.1
+LANDMARK_PHASE_LEVELS = (0, 1)
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -191,10 +196,12 @@ class Phase:
 
 def _phases(state: CorrespondenceState, objectives: tuple, settings: OptimisationSettings,
             start: float, active) -> list:
-    """The phases of a run: the fixed-Delta objective's (unless ``fixed_fraction`` is 0), then
-    the full objective's; for the fast strategy on all examples of surfaces sampled more finely
-    than ``coarse_points`` (:func:`runs_coarse`), both on the coarse grid (named "coarse fixed"
-    and "coarse integrated"; ``coarse_passes`` passes over the field levels in the first, one in
+    """The phases of a run: with landmark guides, the guides' term alone (on the coarse field
+    levels :data:`LANDMARK_PHASE_LEVELS` of the fast strategy, within
+    :data:`LANDMARK_PHASE_SHARE` of the time); the fixed-Delta objective's (unless
+    ``fixed_fraction`` is 0), then the full objective's; for the fast strategy on all examples
+    of surfaces sampled more finely than ``coarse_points`` (:func:`runs_coarse`), all on the
+    coarse grid (named "coarse landmarks", "coarse fixed" and "coarse integrated"; ``coarse_passes`` passes over the field levels in the first, one in
     the second), whose maps are then carried over to the state's own grid."""
     fixed, integrated = objectives
     total = settings.max_time
@@ -207,6 +214,15 @@ def _phases(state: CorrespondenceState, objectives: tuple, settings: Optimisatio
     if settings.fixed_fraction > 0:
         phases.insert(0, Phase(names[0], fixed, start + settings.fixed_fraction * total,
                                replace(settings, field_passes=passes[0]), coarse))
+    if state.guides is not None:
+        # the landmarks first, alone: the coarsest fields carry each case's landmarks to their
+        # shared places, moving whole regions with them, before the description length moves
+        # the points between them
+        phases.insert(0, Phase("coarse landmarks" if coarse else "landmarks", NoDescription(),
+                               start + LANDMARK_PHASE_SHARE * total,
+                               replace(settings, field_passes=1), coarse,
+                               {"levels": LANDMARK_PHASE_LEVELS}
+                               if settings.strategy == "fast" else {}))
     return phases
 
 

@@ -45,9 +45,11 @@ from .quasi_newton import minimize_box
 POSE_SCALE_LIMIT = 0.0
 
 
-def gradient_at(state: CorrespondenceState, shapes: np.ndarray) -> tuple[float, np.ndarray]:
-    """F and dF/dX (n_s, n_p, 3) for trial shapes of every example (the state is unchanged)."""
-    with state.trial_shapes(shapes):
+def gradient_at(state: CorrespondenceState, shapes: np.ndarray,
+                raw: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """F and dF/dX (n_s, n_p, 3) for trial shapes of every example (and their unposed samples
+    ``raw``, which a guided state needs; the state is unchanged)."""
+    with state.trial_shapes(shapes, raw):
         return state.shape_gradient()
 
 
@@ -206,6 +208,7 @@ class _Trial:
     scale: np.ndarray         # (n_active,) e^sigma
     shapes: np.ndarray        # (n_s, n_p, 3) every example's shape, the active ones moved
     pose: np.ndarray          # (n_active, 7) the pose parameters of x
+    unposed: np.ndarray | None   # (n_s, n_p, 3) every example's unposed samples (guided states)
 
 
 class FieldRound:
@@ -282,30 +285,45 @@ class FieldRound:
                                      self.translation0 - self.centres)
         posed = hotloops.apply_poses(about, scale, rotation,
                                      self.centres + self.scale_of_length * p[:, 3:6])
-        if len(self.active) == self.state.n_shapes and np.array_equal(
-                self.active, np.arange(self.state.n_shapes)):
+        everyone = len(self.active) == self.state.n_shapes and np.array_equal(
+            self.active, np.arange(self.state.n_shapes))
+        if everyone:
             shapes = posed          # every example moves (a round of the whole population)
         else:
             shapes = self.state.shapes.copy()
             shapes[self.active] = posed
+        unposed = None
+        if self.state.guides is not None:
+            unposed = raw if everyone else self.state.raw_shapes()
+            unposed[self.active] = raw
         return _Trial(x=np.array(x, copy=True), located=located, raw=raw, about=about,
-                      rotation=rotation, jacobian=jacobian, scale=scale, shapes=shapes, pose=p)
+                      rotation=rotation, jacobian=jacobian, scale=scale, shapes=shapes, pose=p,
+                      unposed=unposed)
 
     def gradient(self, trial: _Trial, shape_gradient: np.ndarray) -> np.ndarray:
-        """dF/dx from dF/dX (n_s, n_p, 3)."""
+        """dF/dx from dF/dX (n_s, n_p, 3) and, for a guided state, the landmark term's gradient
+        with respect to the unposed samples (which moves the fields, not the poses)."""
         result = np.zeros(self.size)
         g = shape_gradient[self.active]
         rotation, scale = trial.rotation, trial.scale
         # the samples y of example i are posed by scale e^sigma s0 and rotation R(w) R0
         total_scale = scale * self.scale0
         total_rotation = rotation @ self.rotation0
+        g_fields = g
+        guides = self.state.guides
+        if guides is not None:
+            # dC/dy as the dF/dX that the blocks' chain rule (y -> X = s R y + t) turns into it
+            pulled = guides.gradients(trial.unposed)[self.active]
+            g_fields = g.copy()
+            g_fields[:, guides.indices] += (np.einsum("aij,alj->ali", total_rotation, pulled)
+                                            / total_scale[:, None, None])
 
         def chain(indices):
             for b in indices:
                 block = self.blocks[b]
                 result[block.coefficients] = block.gradient(
                     trial.located[b], total_scale[block.row], total_rotation[block.row],
-                    g[block.row, block.rows])
+                    g_fields[block.row, block.rows])
 
         self.threads.over(len(self.blocks), chain)
         # the pose: with N = sum_k g_k v_k^T (3 x 3) every term is a contraction of N:
@@ -362,7 +380,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
         if "best" in cache and time.perf_counter() > deadline:
             raise _RoundOutOfTime
         trial = round_.trial(x)
-        value, shape_gradient = gradient_at(state, trial.shapes)
+        value, shape_gradient = gradient_at(state, trial.shapes, trial.unposed)
         state.evaluations += 1
         if "best" not in cache or value < cache["best"][0]:
             cache["best"] = (value, x.copy(), trial)
@@ -383,7 +401,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
             break
         x = 0.5 * x
         trial = round_.trial(x)
-        value = gradient_at(state, trial.shapes)[0]
+        value = gradient_at(state, trial.shapes, trial.unposed)[0]
         state.evaluations += 1
         folded = value < start_value and round_.folds(trial)
     if value < start_value and not folded:

@@ -47,8 +47,8 @@ def optimise_amplitude(state: CorrespondenceState, i: int, j: int, kernel: Symme
     def objective(amplitude: float) -> float:
         trial = changed(kernel, amplitude=float(amplitude))
         positions, points, hint = part.propose(trial, check_folds=False)
-        shape = example.pose.apply(example.raw_points({j: points}))
-        value = state.value(i, shape)
+        raw = example.raw_points({j: points})
+        value = state.value(i, example.pose.apply(raw), raw)
         cache[float(amplitude)] = (value, trial, positions, points, hint)
         seen(value)
         return value
@@ -86,7 +86,8 @@ def _search_warp(state: CorrespondenceState, i: int, j: int, warp_of, bounds: tu
         proposal = part.propose(warp)
         if proposal is None:
             return np.inf
-        value = state.value(i, example.pose.apply(example.raw_points({j: proposal[1]})))
+        raw = example.raw_points({j: proposal[1]})
+        value = state.value(i, example.pose.apply(raw), raw)
         found.append((value, warp, proposal))
         seen(value)
         return value
@@ -249,7 +250,7 @@ def optimise_pose(state: CorrespondenceState, i: int, current: float, max_evalua
     seen = improvements(current, improved)
 
     def objective(parameters: np.ndarray) -> float:
-        value = state.value(i, pose_of(parameters).apply(raw))
+        value = state.value(i, pose_of(parameters).apply(raw), raw)
         seen(value)
         return value
 

@@ -27,9 +27,11 @@ from .base import (PhasePoint, active_parts, begin_sweeps, end_of_iteration, rec
                    start_phase, stop_after_sweep, sweep_point)
 
 
-def population_value(state: CorrespondenceState, shapes: np.ndarray) -> float:
-    """F of the population with *every* shape replaced by ``shapes`` (n_s, n_p, 3)."""
-    with state.trial_shapes(shapes):
+def population_value(state: CorrespondenceState, shapes: np.ndarray,
+                     raw: np.ndarray | None = None) -> float:
+    """F of the population with *every* shape replaced by ``shapes`` (n_s, n_p, 3) (and the
+    unposed samples by ``raw``, which a guided state needs)."""
+    with state.trial_shapes(shapes, raw):
         return state.value()
 
 
@@ -85,6 +87,7 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
     def trial_of(x: np.ndarray):
         amplitudes = np.clip(x, 0.0, upper)
         shapes = state.shapes.copy()
+        raw = None if state.guides is None else state.raw_shapes()
         parts = []
         for i, ks in by_example.items():
             example = state.examples[i]
@@ -100,19 +103,21 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
                 for kernel in kernels:
                     positions = kernel.apply(positions)
                 if part.folds(positions):
-                    return None, None
+                    return None, None, None
                 points, hint = part.sample(positions)
                 replace[b.j] = points
                 parts.append((i, part, kernels, positions, points, hint))
             if replace:
                 shapes[i] = example.pose.apply(example.raw_points(replace))
-        return shapes, parts
+                if raw is not None:
+                    raw[i] = example.raw_points(replace)
+        return shapes, raw, parts
 
     def objective(x: np.ndarray) -> float:
-        shapes, parts = trial_of(x)
+        shapes, raw, parts = trial_of(x)
         if shapes is None:
             return np.inf
-        value = population_value(state, shapes)
+        value = population_value(state, shapes, raw)
         if value < best["value"]:
             best["value"], best["trial"] = value, parts
             if improved is not None:

@@ -1,0 +1,279 @@
+"""Landmarks as guides of the correspondence: their placing on the surfaces and the sphere, the
+alignment they steer, their term of the objective and its gradient, and builds guided by them."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from mdlshapemodel.correspondence.guides import Guides, guides_on_grid, place_landmarks
+from mdlshapemodel.correspondence.sampling import icosphere
+from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
+from mdlshapemodel.model.shape_model import ShapeModel
+from mdlshapemodel.prepare.case import PreparedCase, PreparedPart
+from mdlshapemodel.prepare.landmarks import Landmarks, on_surface
+from mdlshapemodel.prepare.sphere import SphereMap, align_parameterizations
+from common import central_difference, run_cli
+from files import write_label_map
+from synthetic import build_objectives, small_mask, small_state
+
+AXES = np.array([12.0, 7.0, 4.0])
+
+
+def ellipsoid_case(name: str, rotation: np.ndarray = np.eye(3)) -> PreparedCase:
+    """An ellipsoid (semi-axes AXES) whose sphere map is its icosphere turned by ``rotation``."""
+    sphere, faces = icosphere(3)
+    vertices = sphere * AXES
+    return PreparedCase(name, [PreparedPart("", f"{name}.vtp",
+                                            SphereMap(vertices, faces, sphere @ rotation.T))], 1.0)
+
+
+def rotation_about(axis, degrees: float) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    angle = np.radians(degrees)
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def test_a_landmark_is_put_at_the_closest_surface_point_and_its_sphere_image():
+    sphere, faces = icosphere(3)
+    vertices = sphere * AXES
+    turned = sphere @ rotation_about([1, 2, 3], 40).T
+    # on the surface at a vertex, and 2 mm off the surface along the x axis
+    points = np.array([vertices[17] + 0.0, [AXES[0] + 2.0, 0.0, 0.0]])
+    placed = on_surface(vertices, faces, turned, points)
+    assert placed.distance[0] == pytest.approx(0.0, abs=1e-9)
+    assert placed.distance[1] == pytest.approx(2.0, abs=1e-6)
+    np.testing.assert_allclose(placed.surface[1], [AXES[0], 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(placed.sphere[0], turned[17], atol=1e-9)
+    # the image under a map is the same barycentric point of the same triangle
+    np.testing.assert_allclose(placed.on_sphere(sphere, faces)[0], sphere[17], atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(placed.sphere, axis=1), 1.0)
+
+
+def test_landmarks_steer_the_alignment_of_the_parameterizations():
+    """Two copies of one ellipsoid with the same sphere map, whose landmarks name places half a
+    turn apart about its long axis (which the ellipsoid's symmetry allows): the first-order maps
+    align the parameterizations as they are; the landmarks turn the second's by half a turn, so
+    that each label's images nearly coincide (the first-order maps still pull a little)."""
+    cases = [ellipsoid_case("a"), ellipsoid_case("b")]
+    sphere, faces = icosphere(3)
+    on_a = np.array([[AXES[0], 0, 0], [0, AXES[1], 0], [0, 0, AXES[2]]]) * [0.999, 1, 1]
+    on_b = on_a @ rotation_about([1, 0, 0], 180).T
+    marks = {"a": Landmarks(("x", "y", "z"), on_a), "b": Landmarks(("x", "y", "z"), on_b)}
+    placed = place_landmarks(cases, marks)
+    originals = [case.map for case in cases]
+    plain = align_parameterizations(originals)
+    guided = align_parameterizations(originals, landmarks=placed.images(0, originals))
+    images_plain = placed.images(0, plain)
+    images_guided = placed.images(0, guided)
+    assert np.max(np.linalg.norm(images_plain[0] - images_plain[1], axis=1)) > 1.9
+    assert np.max(np.linalg.norm(images_guided[0] - images_guided[1], axis=1)) < 0.15
+
+
+def test_a_label_some_cases_lack_and_a_case_without_landmarks():
+    cases = [ellipsoid_case(name, rotation_about([0, 0, 1], angle))
+             for name, angle in (("a", 0), ("b", 20), ("c", -15))]
+    tip = np.array([[AXES[0], 0.0, 0.0], [0.0, 0.0, AXES[2]]])
+    marks = {"a": Landmarks(("tip", "top"), tip), "b": Landmarks(("tip",), tip[:1])}
+    placed = place_landmarks(cases, marks)
+    assert placed.labels == ("tip", "top")
+    np.testing.assert_array_equal(placed.present, [[True, True], [True, False], [False, False]])
+    images = placed.images(0, [case.map for case in cases])
+    assert np.all(np.isnan(images[1][1])) and np.all(np.isnan(images[2]))
+    aligned = [align_parameterizations([case.map for case in cases],
+                                       landmarks=images)]
+    grid, _ = icosphere(2)
+    guides = guides_on_grid(placed, aligned, grid, 42, [0], weight=2.0, scale=0.5)
+    assert guides.indices.max() < 42 and len(set(guides.indices)) == 2
+    np.testing.assert_allclose(guides.targets[0], tip, atol=1e-9)
+    assert place_landmarks(cases, {}) is None
+
+
+def guided_state(weight: float = 3.0):
+    """The small synthetic state with two guided labels (one lacking in case 1), targets off
+    its current samples."""
+    state = small_state()
+    raw = state.raw_shapes()
+    indices = np.array([5, 40])
+    targets = raw[:, indices] + np.random.default_rng(0).normal(0.0, 1.5, (state.n_shapes, 2, 3))
+    present = np.ones((state.n_shapes, 2), dtype=bool)
+    present[1, 0] = False
+    state.guides = Guides(("a", "b"), indices, targets, present, weight, 0.8)
+    state.objective = build_objectives(state)[1]
+    state.rebuild()
+    return state
+
+
+def test_the_guides_term_is_the_direct_sum_and_part_of_every_value():
+    state = guided_state()
+    raw = state.raw_shapes()
+    guides = state.guides
+    direct = sum(guides.weight / 2 / guides.scale ** 2
+                 * np.sum((raw[i, guides.indices[k]] - guides.targets[i, k]) ** 2)
+                 for i in range(state.n_shapes) for k in range(2) if guides.present[i, k])
+    assert state.guide_cost() == pytest.approx(direct, rel=1e-12)
+    description = state.objective(state.covariance())
+    assert state.value() == pytest.approx(description + direct, rel=1e-12)
+    # a trial of one example: its unposed samples change the term, its pose does not
+    example = state.examples[2]
+    moved = raw[2] + 0.3
+    trial = state.value(2, example.pose.apply(moved), moved)
+    expected_term = direct - guides.cost(2, raw[2]) + guides.cost(2, moved)
+    assert trial == pytest.approx(state.objective(state.covariance(2, example.pose.apply(moved)))
+                                  + expected_term, rel=1e-12)
+    with pytest.raises(ValueError, match="unposed"):
+        state.value(2, example.pose.apply(moved))
+    with pytest.raises(ValueError, match="unposed"):
+        with state.trial_shapes(state.shapes):
+            pass
+    np.testing.assert_allclose(np.nansum(guides.distances(raw) ** 2 * guides.present),
+                               direct * 2 * guides.scale ** 2 / guides.weight)
+
+
+def test_the_fast_round_gradient_with_guides_matches_finite_differences():
+    state = guided_state()
+    round_ = FieldRound(state, [0, 1, 3], level=1, support=2.0)
+    rng = np.random.default_rng(5)
+    upper = round_.limit
+    x = rng.uniform(-0.3, 0.3, round_.size) * np.where(np.isfinite(upper), upper, 0.05)
+
+    def value(x):
+        trial = round_.trial(x)
+        return gradient_at(state, trial.shapes, trial.unposed)[0]
+
+    trial = round_.trial(x)
+    analytic = round_.gradient(trial, gradient_at(state, trial.shapes, trial.unposed)[1])
+    chosen = np.concatenate([rng.choice(round_.size, 12, replace=False),
+                             round_.pose_index.ravel()])
+    for k in chosen:
+        assert analytic[k] == pytest.approx(central_difference(value, x, k), rel=2e-5,
+                                            abs=1e-6)
+
+
+def test_guides_carried_to_rows_of_a_coarser_grid():
+    guides = Guides(("a", "b"), np.array([3, 170]), np.zeros((2, 2, 3)),
+                    np.ones((2, 2), dtype=bool), 1.0, 1.0)
+    rows = np.concatenate([np.arange(0, 42), np.arange(162, 204)])
+    np.testing.assert_array_equal(guides.on_rows(rows).indices, [3, 50])
+    with pytest.raises(ValueError, match="b"):
+        guides.on_rows(np.arange(42))
+
+
+def test_a_model_keeps_its_landmarks(tmp_path):
+    shapes = np.random.default_rng(1).normal(size=(4, 10, 3))
+    model = ShapeModel.from_shapes(shapes, np.full(10, 0.1))
+    model.landmarks = {"tip": 7, "base": 2}
+    model.save(tmp_path / "model.h5")
+    loaded = ShapeModel.load(tmp_path / "model.h5")
+    assert loaded.landmarks == {"tip": 7, "base": 2}
+    np.testing.assert_array_equal(loaded.landmark_points()["tip"], loaded.mean[7])
+    model.landmarks = {"tip": 10}
+    with pytest.raises(ValueError, match="landmark rows"):
+        model.check()
+
+
+# ---------------------------------------------------------------- builds through the CLI
+
+POSITIONS = np.linspace(-0.6, 0.6, 5)
+SEMI_AXES = (10.0, 6.0, 5.0)
+
+
+def bump_tip(position: float) -> np.ndarray:
+    """The physical point (x, y, z; 1 mm voxels, origin 0) at the top of small_mask's bump."""
+    shape = (18, 20, 28)                               # small_mask's (z, y, x)
+    cz, cy, cx = [(n - 1) / 2.0 for n in shape]
+    bx = cx + 0.6 * SEMI_AXES[0] * position
+    by = cy + SEMI_AXES[1] * np.sqrt(1.0 - (0.6 * position) ** 2)
+    return np.array([bx, by + 3.5, cz])
+
+
+def write_guided_population(folder):
+    """Five bumpy ellipsoids (label maps) and a landmark folder: the bump's top in every case, and
+    the +x end of the long axis in all but the last; RAS in one case's .fcsv."""
+    (folder / "labels").mkdir(parents=True)
+    (folder / "marks").mkdir()
+    for k, position in enumerate(POSITIONS):
+        write_label_map(folder / "labels" / f"s{k}.nii.gz", small_mask(float(position)))
+        tip = bump_tip(float(position))
+        end = np.array([(28 - 1) / 2.0 + SEMI_AXES[0], (20 - 1) / 2.0, (18 - 1) / 2.0])
+        if k == 0:
+            lines = ["# Markups fiducial file version = 4.11", "# CoordinateSystem = RAS",
+                     "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID"]
+            for n, (label, point) in enumerate((("tip", tip), ("end", end))):
+                ras = point * [-1, -1, 1]
+                lines.append(f"m{n},{ras[0]},{ras[1]},{ras[2]},0,0,0,1,1,1,0,{label},,")
+            (folder / "marks" / f"s{k}.fcsv").write_text("\n".join(lines) + "\n")
+            continue
+        rows = [("tip", tip)] + ([("end", end)] if k < len(POSITIONS) - 1 else [])
+        with open(folder / "marks" / f"s{k}.csv", "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["label", "x", "y", "z"])
+            writer.writerows([label, *point] for label, point in rows)
+    return folder
+
+
+@pytest.mark.slow
+def test_a_guided_build_puts_its_corresponded_landmarks_on_the_given_ones(tmp_path):
+    data = write_guided_population(tmp_path)
+    common = ["--points", 162, "--coarse-points", 42, "--workers", 1, "--max-time", 60,
+              "--specificity-samples", 200, "--surface-samples", 0, "--evaluation-modes", 2,
+              "--no-cache", "-q"]
+    guided = run_cli("build", data / "labels", "-o", tmp_path / "guided", "--landmarks",
+                 data / "marks", *common)
+    assert guided.returncode == 0, guided.stderr
+    rows = list(csv.DictReader(open(tmp_path / "guided" / "landmarks.csv")))
+    assert {(row["case"], row["label"]) for row in rows} == {
+        (f"s{k}", label) for k in range(5) for label in ("end", "tip")}
+    given = [row for row in rows if row["distance_mm"]]
+    assert len(given) == 9                       # s4 lacks "end"
+    distances = np.array([float(row["distance_mm"]) for row in given])
+    assert distances.max() < 1.0                  # within a voxel of the given landmarks
+    for row in given:
+        point = np.array([float(row[c]) for c in "xyz"])
+        target = np.array([float(row[f"given_{c}"]) for c in "xyz"])
+        assert np.linalg.norm(point - target) == pytest.approx(float(row["distance_mm"]),
+                                                               abs=1e-5)
+    tips = {row["case"]: np.array([float(row[f"given_{c}"]) for c in "xyz"])
+            for row in given if row["label"] == "tip"}
+    np.testing.assert_allclose(tips["s0"], bump_tip(POSITIONS[0]), atol=1e-5)   # RAS read
+    model = ShapeModel.load(tmp_path / "guided" / "model.h5")
+    assert sorted(model.landmarks) == ["end", "tip"]
+    metrics = json.loads((tmp_path / "guided" / "metrics.json").read_text())
+    assert metrics["landmarks"]["given"] == 9
+    assert metrics["landmarks"]["distance_mm"]["max"] == pytest.approx(distances.max())
+    log = (tmp_path / "guided" / "build.log").read_text()
+    assert "2 landmark labels guide the correspondence (9 landmarks of 5 cases" in log
+    # unguided, the same sample point is not on the bump's top in every case
+    plain = run_cli("build", data / "labels", "-o", tmp_path / "plain", *common)
+    assert plain.returncode == 0, plain.stderr
+    assert not (tmp_path / "plain" / "landmarks.csv").exists()
+    from files import polydata_triangles
+
+    row = model.landmarks["tip"]
+    off = [np.linalg.norm(polydata_triangles(tmp_path / "plain" / "correspondence"
+                                             / f"s{k}.vtp")[0][row] - bump_tip(position))
+           for k, position in enumerate(POSITIONS)]
+    assert max(off) > 2.0 * distances.max()
+
+
+def test_bad_landmark_files_are_refused_before_anything_is_written(tmp_path):
+    data = tmp_path / "labels"
+    data.mkdir()
+    for k, position in enumerate(POSITIONS[:3]):
+        write_label_map(data / f"s{k}.nii.gz", small_mask(float(position)))
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    (marks / "s1.csv").write_text("label,x,y,z\ntip,1,2,three\n")
+    result = run_cli("build", data, "-o", tmp_path / "out", "--landmarks", marks, "--workers", 1)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "s1.csv" in result.stderr and "not numbers" in result.stderr
+    assert not (tmp_path / "out").exists()
+    (marks / "s1.csv").unlink()
+    result = run_cli("build", data, "-o", tmp_path / "out", "--landmarks", marks, "--workers", 1)
+    assert result.returncode == 2 and "no landmark file named after a case" in result.stderr
+    result = run_cli("build", data, "-o", tmp_path / "out", "--landmarks", tmp_path / "none",
+                 "--workers", 1)
+    assert result.returncode == 2 and "no such landmark folder" in result.stderr
+    assert not (tmp_path / "out").exists()
