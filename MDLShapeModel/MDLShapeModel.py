@@ -32,7 +32,7 @@ import shutil
 import sys
 import threading
 import typing
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Annotated
 
 import qt
@@ -213,6 +213,7 @@ class ExportedInputs:
 
     paths: list
     rejected: list                          # (name, reason)
+    config: BuildConfig | None = None       # the build's settings, with the landmarks' folder
 
 
 class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
@@ -238,8 +239,12 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
     # -- inputs -> files -------------------------------------------------------------------
 
     def exportInputs(self, inputs, folder, config: BuildConfig | None = None,
-                     segments=None) -> ExportedInputs:
+                     segments=None, landmarks=None) -> ExportedInputs:
         """Write node inputs as files the library reads; file paths pass through.
+
+        ``landmarks``: one markups node (or None) per input, written by Slicer's markups storage
+        node as ``landmarks/<case>.mrk.json`` beside the inputs; the returned ``config`` then
+        names that folder (``BuildConfig.landmarks``), so that they guide the build.
 
         Segmentation nodes: the union of ``segments`` (names; None or empty: all segments) as a
         label map in the segmentation's reference geometry, with the value ``config.labels[0]``
@@ -251,11 +256,25 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         folder = pathlib.Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         paths, rejected, used = [], [], set()
-        for item in inputs:
+        markups = list(landmarks) if landmarks is not None else [None] * len(inputs)
+        if len(markups) != len(inputs):
+            raise ValueError(f"{len(markups)} landmark nodes for {len(inputs)} inputs")
+        marks = folder / "landmarks"
+        if any(node is not None for node in markups):
+            marks.mkdir(exist_ok=True)
+            config = replace(config, landmarks=str(marks))
+        for item, node in zip(inputs, markups):
             if isinstance(item, (str, os.PathLike)):
+                from mdlshapemodel.prepare.io import case_name
+
                 paths.append(pathlib.Path(item))
+                name = case_name(item)
+            else:
+                name = _uniqueName(_fileSafe(item.GetName() or item.GetID()), used)
+            if node is not None:     # named after the case, as the build looks for it
+                _writeNode(node, marks / f"{name}.mrk.json", "vtkMRMLMarkupsJsonStorageNode")
+            if isinstance(item, (str, os.PathLike)):
                 continue
-            name = _uniqueName(_fileSafe(item.GetName() or item.GetID()), used)
             try:
                 if item.IsA("vtkMRMLSegmentationNode"):
                     value = config.labels[0] if config.labels else 1
@@ -272,7 +291,7 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                                      f"{', '.join(INPUT_NODE_TYPES)})")
             except ValueError as error:
                 rejected.append((item.GetName(), str(error)))
-        return ExportedInputs(paths, rejected)
+        return ExportedInputs(paths, rejected, config)
 
     # -- the build ---------------------------------------------------------------------------
 
@@ -287,7 +306,8 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                            overwrite=overwrite)
 
     def buildModel(self, inputs, outputDirectory, config: BuildConfig | None = None,
-                   progress=None, segments=None, overwrite: bool = False) -> ShapeModelResult:
+                   progress=None, segments=None, overwrite: bool = False,
+                   landmarks=None) -> ShapeModelResult:
         """Build a model of ``inputs`` and load it into the scene (blocking).
 
         Parameters
@@ -307,6 +327,9 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             Names of the segments whose union is the object (default: all).
         overwrite : bool
             Replace an earlier build in ``outputDirectory`` (else it is refused).
+        landmarks : list, optional
+            One vtkMRMLMarkupsFiducialNode (or None) per input: its control points, matched
+            across the cases by label, guide the correspondence (``build --landmarks``).
 
         Returns
         -------
@@ -314,17 +337,20 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             With ``rejected`` holding every input that could not be used and why.
         """
         outputDirectory = pathlib.Path(outputDirectory)
-        exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments)
-        built = self.runBuild(exported.paths, outputDirectory, config, progress, overwrite)
+        exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments,
+                                     landmarks)
+        built = self.runBuild(exported.paths, outputDirectory, exported.config, progress,
+                              overwrite)
         return self.loadResults(outputDirectory, exported.rejected, built.interrupted)
 
     def startBuild(self, inputs, outputDirectory, config: BuildConfig | None = None,
-                   segments=None, overwrite: bool = False) -> "BuildJob":
+                   segments=None, overwrite: bool = False, landmarks=None) -> "BuildJob":
         """Export the inputs (here, on the main thread), then run the build in a background
         thread; load its results with ``job.finish(logic)`` once ``job.done``."""
         outputDirectory = pathlib.Path(outputDirectory)
-        exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments)
-        return BuildJob(self, exported, outputDirectory, config, overwrite)
+        exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments,
+                                     landmarks)
+        return BuildJob(self, exported, outputDirectory, exported.config, overwrite)
 
     # -- results -> scene --------------------------------------------------------------------
 
@@ -759,7 +785,10 @@ def _checkData(node):
 
 def _writeNode(node, path: pathlib.Path, storageClass: str) -> pathlib.Path:
     storage = slicer.mrmlScene.CreateNodeByClass(storageClass)
-    storage.UnRegister(None)
+    if storage is None:     # a class the scene has not registered (markups outside Slicer)
+        storage = getattr(slicer, storageClass)()
+    else:
+        storage.UnRegister(None)
     storage.SetFileName(str(path))
     if not storage.WriteData(node):
         raise ValueError(f"could not be written to {path}")

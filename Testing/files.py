@@ -1,4 +1,4 @@
-"""Writing the tests' label maps and reading the meshes a build writes, in one place (SimpleITK
+"""Writing the tests' label maps and reading the meshes and tables a build writes, in one place (SimpleITK
 and VTK's own readers and writers: nothing of the library's, which the tests check)."""
 
 from __future__ import annotations
@@ -40,3 +40,11 @@ def polydata_triangles(path) -> tuple[np.ndarray, np.ndarray]:
     polydata = read_polydata(path)
     return (vtk_to_numpy(polydata.GetPoints().GetData()).copy(),
             vtk_to_numpy(polydata.GetPolys().GetConnectivityArray()).reshape(-1, 3).copy())
+
+
+def read_csv_rows(path) -> list:
+    """The rows of a CSV file with a header, as dicts (the standard library's reader)."""
+    import csv
+
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))

@@ -38,6 +38,14 @@ def small_mask(position: float, scale: float = 1.0) -> np.ndarray:
                                bump_position=position, bump_radius=3.5, scale=scale)
 
 
+def small_bump_top(position: float) -> np.ndarray:
+    """The top of :func:`small_mask`'s bump in voxel coordinates (x, y, z)."""
+    cz, cy, cx = [(n - 1) / 2.0 for n in SMALL_SHAPE]
+    ax, ay = 10.0, 6.0
+    by = cy + ay * np.sqrt(1.0 - (0.6 * position) ** 2)
+    return np.array([cx + 0.6 * ax * position, by + 3.5, cz])
+
+
 @lru_cache(maxsize=None)
 def small_maps(n: int = 5) -> tuple:
     """Aligned sphere maps of ``n`` small bumpy ellipsoids (about 300 vertices each)."""

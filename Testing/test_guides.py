@@ -16,7 +16,7 @@ from mdlshapemodel.prepare.landmarks import Landmarks, on_surface
 from mdlshapemodel.prepare.sphere import SphereMap, align_parameterizations
 from common import central_difference, run_cli
 from files import write_label_map
-from synthetic import build_objectives, small_mask, small_state
+from synthetic import build_objectives, small_bump_top, small_mask, small_state
 
 AXES = np.array([12.0, 7.0, 4.0])
 
@@ -177,27 +177,18 @@ def test_a_model_keeps_its_landmarks(tmp_path):
 # ---------------------------------------------------------------- builds through the CLI
 
 POSITIONS = np.linspace(-0.6, 0.6, 5)
-SEMI_AXES = (10.0, 6.0, 5.0)
-
-
-def bump_tip(position: float) -> np.ndarray:
-    """The physical point (x, y, z; 1 mm voxels, origin 0) at the top of small_mask's bump."""
-    shape = (18, 20, 28)                               # small_mask's (z, y, x)
-    cz, cy, cx = [(n - 1) / 2.0 for n in shape]
-    bx = cx + 0.6 * SEMI_AXES[0] * position
-    by = cy + SEMI_AXES[1] * np.sqrt(1.0 - (0.6 * position) ** 2)
-    return np.array([bx, by + 3.5, cz])
 
 
 def write_guided_population(folder):
-    """Five bumpy ellipsoids (label maps) and a landmark folder: the bump's top in every case, and
-    the +x end of the long axis in all but the last; RAS in one case's .fcsv."""
+    """Five bumpy ellipsoids (label maps, 1 mm voxels, origin 0) and a landmark folder: the bump's
+    top in every case, and the +x end of the long axis in all but the last; RAS in one case's
+    .fcsv."""
     (folder / "labels").mkdir(parents=True)
     (folder / "marks").mkdir()
     for k, position in enumerate(POSITIONS):
         write_label_map(folder / "labels" / f"s{k}.nii.gz", small_mask(float(position)))
-        tip = bump_tip(float(position))
-        end = np.array([(28 - 1) / 2.0 + SEMI_AXES[0], (20 - 1) / 2.0, (18 - 1) / 2.0])
+        tip = small_bump_top(float(position))
+        end = np.array([(28 - 1) / 2.0 + 10.0, (20 - 1) / 2.0, (18 - 1) / 2.0])
         if k == 0:
             lines = ["# Markups fiducial file version = 4.11", "# CoordinateSystem = RAS",
                      "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID"]
@@ -237,7 +228,7 @@ def test_a_guided_build_puts_its_corresponded_landmarks_on_the_given_ones(tmp_pa
                                                                abs=1e-5)
     tips = {row["case"]: np.array([float(row[f"given_{c}"]) for c in "xyz"])
             for row in given if row["label"] == "tip"}
-    np.testing.assert_allclose(tips["s0"], bump_tip(POSITIONS[0]), atol=1e-5)   # RAS read
+    np.testing.assert_allclose(tips["s0"], small_bump_top(POSITIONS[0]), atol=1e-5)   # RAS read
     model = ShapeModel.load(tmp_path / "guided" / "model.h5")
     assert sorted(model.landmarks) == ["end", "tip"]
     metrics = json.loads((tmp_path / "guided" / "metrics.json").read_text())
@@ -245,6 +236,14 @@ def test_a_guided_build_puts_its_corresponded_landmarks_on_the_given_ones(tmp_pa
     assert metrics["landmarks"]["distance_mm"]["max"] == pytest.approx(distances.max())
     log = (tmp_path / "guided" / "build.log").read_text()
     assert "2 landmark labels guide the correspondence (9 landmarks of 5 cases" in log
+    # fit predicts a new case's landmarks: where its fitted correspondence puts them
+    new = write_label_map(tmp_path / "n1.nii.gz", small_mask(0.3))
+    fitted = run_cli("fit", tmp_path / "guided" / "model.h5", new, "-o", tmp_path / "fitted")
+    assert fitted.returncode == 0, fitted.stderr
+    predicted = {row["label"]: np.array([float(row[c]) for c in "xyz"])
+                 for row in csv.DictReader(open(tmp_path / "fitted" / "landmarks.csv"))}
+    assert sorted(predicted) == ["end", "tip"]
+    assert np.linalg.norm(predicted["tip"] - small_bump_top(0.3)) < 2.0
     # unguided, the same sample point is not on the bump's top in every case
     plain = run_cli("build", data / "labels", "-o", tmp_path / "plain", *common)
     assert plain.returncode == 0, plain.stderr
@@ -253,7 +252,7 @@ def test_a_guided_build_puts_its_corresponded_landmarks_on_the_given_ones(tmp_pa
 
     row = model.landmarks["tip"]
     off = [np.linalg.norm(polydata_triangles(tmp_path / "plain" / "correspondence"
-                                             / f"s{k}.vtp")[0][row] - bump_tip(position))
+                                             / f"s{k}.vtp")[0][row] - small_bump_top(position))
            for k, position in enumerate(POSITIONS)]
     assert max(off) > 2.0 * distances.max()
 

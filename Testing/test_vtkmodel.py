@@ -1,6 +1,7 @@
 """The model-building VTK objects (vtkmodel) in real VTK pipelines, against build_model."""
 
 import ast
+import dataclasses
 import re
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from mdlshapemodel.vtkmodel import (ShapeModelBuilder, ShapeModelInstance, Shape
                                     ShapeModelWriter, model_to_polydata, polydata_to_model)
 
 from files import read_polydata, write_label_map
-from synthetic import small_mask
+from synthetic import small_bump_top, small_mask
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 NAMES = ["left_0", "left_1", "left_2", "right_3"]
@@ -420,3 +421,27 @@ def test_the_readme_example_runs(tmp_path, monkeypatch):
     model = ShapeModel.load(tmp_path / "model.h5")
     assert_same_model(model, polydata_to_model(namespace["mean"]))
     assert_same_model(polydata_to_model(model_reader.GetOutput()), model)
+
+
+def test_a_guided_builder_gives_the_model_of_the_guided_build(population, pipeline, tmp_path):
+    """Landmarks (the config's folder) guide the builder as they guide build_model: the same
+    model bit for bit, its landmarks in the model polydata."""
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    for k, (name, position) in enumerate(zip(NAMES, np.linspace(-0.6, 0.6, len(NAMES)))):
+        top = small_bump_top(float(position))
+        if name.startswith("right_"):
+            top[0] = small_mask(0.0).shape[2] - 1 - top[0]
+        point = top + (12.0 * k, -4.0, 2.0)
+        (marks / f"{name}.csv").write_text("label,x,y,z\ntop,{},{},{}\n".format(*point))
+    config = dataclasses.replace(CONFIG, landmarks=str(marks))
+    branches, _, _ = pipeline
+    builder = builder_of(branches, config, NAMES)
+    builder.Update()
+    assert builder.GetErrorText() in ("", None)
+    model = polydata_to_model(builder.GetOutput(0))
+    reference = build_model(population, tmp_path / "out", config)
+    assert_same_model(model, reference.model)
+    assert model.landmarks == reference.model.landmarks and list(model.landmarks) == ["top"]
+    unguided = polydata_to_model(pipeline[1].GetOutput(0))
+    assert not unguided.landmarks and not np.array_equal(unguided.mean, model.mean)

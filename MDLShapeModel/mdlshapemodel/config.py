@@ -92,7 +92,7 @@ CURVE_POINTS = 128
 
 # ``--landmark-weight``: lambda of the landmark guides' term (correspondence/guides.py), nats per
 # squared voxel of distance between a landmark and its corresponded point, halved
-LANDMARK_WEIGHT = 1.0
+LANDMARK_WEIGHT = 10.0
 
 # Unless set, the surfaces mapped to the sphere have about this many vertices per sample point,
 # and at least MIN_SURFACE_VERTICES: ``BuildConfig.target_vertices``. A surface many times finer

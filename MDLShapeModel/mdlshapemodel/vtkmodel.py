@@ -29,7 +29,8 @@ One vtkPolyData holds a :class:`~mdlshapemodel.model.shape_model.ShapeModel` exa
   the model has them, ``SphereCoordinates`` (each point's sampling position on the unit sphere);
 - field data ``Variances`` (one per mode, descending, mm^2), ``Scores`` (a row per case, a
   component per mode), ``CaseNames``, ``PartSizes``, for a multi-part model ``PartNames`` (and
-  the cell data ``part``: each triangle's part, 0, 1, ...), and ``Metadata`` (JSON: the
+  the cell data ``part``: each triangle's part, 0, 1, ...), for a model built with landmarks
+  ``LandmarkLabels`` and ``LandmarkRows`` (each label's point), and ``Metadata`` (JSON: the
   objective, the strategy, the voxel size, the data range and the build configuration of a
   built model). The builder adds ``InitialObjective`` (eq. 14 of the initial correspondence)
   and ``StoppedBy``: why the optimisation ended, "converged" or the limit that came first, "time
@@ -60,6 +61,7 @@ from .model.shape_model import ShapeModel
 from .outputs import physical_shapes
 from .prepare import io, surface
 from .prepare.case import PreparedCase, PreparedPart
+from .prepare.landmarks import read_landmark_folder
 from .prepare.sphere import SphereMap
 from .vtkfilters import (MIRRORED, SPHERE_COORDINATES, VOXEL_SIZE, _accessors, _add_field,
                          _field, _Filter)
@@ -75,6 +77,8 @@ SCORES = "Scores"
 CASE_NAMES = "CaseNames"
 PART_SIZES = "PartSizes"
 PART_NAMES = "PartNames"
+LANDMARK_LABELS = "LandmarkLabels"    # field data of a guided model: its landmarks' labels
+LANDMARK_ROWS = "LandmarkRows"        # and each one's point
 PART = "part"
 METADATA = "Metadata"
 INITIAL_OBJECTIVE = "InitialObjective"
@@ -176,6 +180,9 @@ def model_to_polydata(model: ShapeModel) -> vtk.vtkPolyData:
         _add_strings(fields, PART_NAMES, model.part_names)
         if triangles is not None:
             _add_array(polydata.GetCellData(), PART, model.part_of_triangles().astype(np.int32))
+    if model.landmarks:
+        _add_strings(fields, LANDMARK_LABELS, list(model.landmarks))
+        _add_array(fields, LANDMARK_ROWS, np.array(list(model.landmarks.values()), dtype=np.int64))
     _add_field(polydata, METADATA, json.dumps(model.metadata, default=_json_value))
     return polydata
 
@@ -231,7 +238,10 @@ def _model_of(polydata) -> ShapeModel:
         part_names=_strings(fields, PART_NAMES) if fields.GetAbstractArray(PART_NAMES) else [],
         metadata={key: np.asarray(value) if isinstance(value, list) else value
                   for key, value in metadata.items()},
-        parameters=None if parameters is None else vtk_to_numpy(parameters).astype(np.float64)
+        parameters=None if parameters is None else vtk_to_numpy(parameters).astype(np.float64),
+        landmarks=dict(zip(_strings(fields, LANDMARK_LABELS),
+                           (int(row) for row in _array(fields, LANDMARK_ROWS, "field"))))
+        if fields.GetAbstractArray(LANDMARK_LABELS) else {}
     ).check()
 
 
@@ -323,7 +333,9 @@ class ShapeModelBuilder(_Filter):
     ``Strategy``, ``Correspondence``, ``MaxTime``, ``MaxSweeps`` and ``Seed``
     (:data:`BUILDER_SETTINGS`), all starting at the defaults of
     :class:`~mdlshapemodel.config.BuildConfig`. ``Workers`` of the configuration
-    is used only by the CPD correspondence (``SetCorrespondence("cpd")``).
+    is used only by the CPD correspondence (``SetCorrespondence("cpd")``). Its ``landmarks``
+    (a folder with a landmark file per case name, as ``build --landmarks`` takes) guide the
+    correspondence; the model then holds ``LandmarkLabels`` and ``LandmarkRows``.
 
     Progress: ProgressEvents while the optimisation runs (its share of ``MaxTime``), the message
     in ``GetProgressText()``. ``AbortExecuteOn()`` (e.g. in a progress observer) stops the
@@ -392,11 +404,14 @@ class ShapeModelBuilder(_Filter):
         inputs = [vtk.vtkPolyData.GetData(in_info[0], i)
                   for i in range(in_info[0].GetNumberOfInformationObjects())]
         names = self._case_names_of(inputs)
+        landmarks = (None if config.landmarks is None
+                     else read_landmark_folder(config.landmarks, names))
         prepared = [_prepared_case(data, name, config) for data, name in zip(inputs, names)]
         self.SetProgressText("the initial correspondence")
         self.UpdateProgress(START)
         try:
-            corresponded = correspond(prepared, config, _PipelineProgress(self, config.max_time))
+            corresponded = correspond(prepared, config, _PipelineProgress(self, config.max_time),
+                                      landmarks=landmarks)
         except Cancelled:
             corresponded = None
         if corresponded is None or corresponded.interrupted:

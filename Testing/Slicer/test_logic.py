@@ -21,7 +21,7 @@ from mdlshapemodel.prepare.surface import (arrays_to_polydata, mask_to_surface,
                                            point_surface_distances)
 import files
 from common import run_cli, run_python
-from synthetic import small_mask
+from synthetic import small_bump_top, small_mask
 
 # small and quick: 162 points, a short evaluation
 QUICK = dict(points=162, baselines=[], max_time=120, evaluation_modes=2, specificity_samples=100,
@@ -363,3 +363,29 @@ def test_a_two_part_object_is_built_from_label_map_nodes_and_loaded_part_by_part
         assert node.GetPolyData().GetNumberOfPoints() == 162
     # the explorer holds the whole object: both parts' points
     assert result.explorerModelNode.GetPolyData().GetNumberOfPoints() == 324
+
+
+def test_markups_nodes_guide_a_build_of_label_map_nodes(generated_files, tmp_path):
+    """A markups node per input (points in RAS, as Slicer holds them) is written beside the
+    inputs and guides the build: its landmarks.csv holds every case's corresponded landmark near
+    the one placed, and the model records the labels."""
+    harness.new_scene()
+    volumes = [load_label_map_node(path) for path in generated_files[:4]]
+    markups = []
+    for k, position in enumerate(np.linspace(-0.6, 0.6, 5)[:4]):
+        top = small_bump_top(float(position)) * (1.2, 1.0, 1.0) + (5.0, -3.0, 2.0)   # LPS
+        node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", f"marks_{k}")
+        node.AddControlPoint(list(top * LPS_TO_RAS), "top")
+        markups.append(node)
+    markups[3] = None                           # a case without landmarks
+    result = module.MDLShapeModelLogic().buildModel(volumes, tmp_path / "out",
+                                                    BuildConfig(**QUICK), landmarks=markups)
+    assert result.rejected == []
+    assert sorted(p.name for p in (tmp_path / "out" / "inputs" / "landmarks").iterdir()) == [
+        f"case_{k}.mrk.json" for k in range(3)]
+    rows = files.read_csv_rows(tmp_path / "out" / "landmarks.csv")
+    assert [(row["case"], row["label"]) for row in rows] == [(f"case_{k}", "top")
+                                                            for k in range(4)]
+    distances = [float(row["distance_mm"]) for row in rows[:3]]
+    assert rows[3]["distance_mm"] == "" and max(distances) < 2.0
+    assert list(ShapeModel.load(tmp_path / "out" / "model.h5").landmarks) == ["top"]

@@ -216,8 +216,10 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
     :func:`~.prepare.parts.read_manifest`; each file is its part: all its labels). Writes ``correspondence/<case>.vtp`` (the case's
     corresponded points, its own coordinates), ``reconstruction/<case>.vtp`` (the model's
     reconstruction with all modes, same coordinates), both in a sub-folder per part for a
-    multi-part model, ``scores.csv``, ``fit.json`` (errors for M = 0..n_modes, objective) and
-    ``rejected.csv``. Returns (results, rejections as (name, path, reason)).
+    multi-part model, ``scores.csv``, ``fit.json`` (errors for M = 0..n_modes, objective),
+    ``rejected.csv`` and, for a model built with landmarks, ``landmarks.csv``: every case's
+    landmarks where its fitted correspondence puts them (its own coordinates). Returns
+    (results, rejections as (name, path, reason)).
     """
     model, _ = load_model(model_path)
     config = build_config_of(model)
@@ -253,6 +255,10 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
     io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(model.n_modes)],
                  [[r.name] + [f"{v:.6g}" for v in r.scores] for r in results])
     io.write_csv(output / "rejected.csv", ("case", "file", "reason"), rejected)
+    if model.landmarks:
+        io.write_csv(output / "landmarks.csv", ("case", "label", "x", "y", "z"),
+                     [[r.name, label, *(f"{v:.6f}" for v in point)] for r in results
+                      for label, point in model.landmark_points(r.corresponded).items()])
     summary = {r.name: {"file": r.path, "modes": list(range(model.n_modes + 1)),
                         "reconstruction_squared_mm2": r.squared_error.tolist(),
                         "reconstruction_distance_mm": r.distance_error.tolist(),
