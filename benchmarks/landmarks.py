@@ -19,8 +19,12 @@ per build:
   corresponded mesh (how closely the sample points' triangles cover the surface).
 
 Only the cases that every build holds are evaluated. The builds: ``mdl`` (the defaults),
-``initial`` (``--strategy none``: the initial correspondence from the sphere maps) and ``cpd``
-(``--correspondence cpd``: a template case registered to every case by coherent point drift).
+``initial`` (``--strategy none``: the initial correspondence from the sphere maps), ``cpd``
+(``--correspondence cpd``: a template case registered to every case by coherent point drift),
+and ``guided-even`` and ``guided-odd`` (the defaults with ``--landmarks``: every other label of
+every case guides the correspondence, the other half is held out; the evaluation then reports
+each guided build's error on the labels it held out, beside the unguided builds' on the same
+labels).
 
 Data: the femurs of VSDFullBodyBoneModels (github.com/RWTHmediTEC/VSDFullBodyBoneModels, commit
 ee5c4f0 = v2.0, Fischer et al., Sci. Rep. 2019 and 2020; licence CC BY-NC-SA: benchmarks only,
@@ -39,7 +43,8 @@ or step by step (options after ``--`` go to every build):
     python benchmarks/landmarks.py build /tmp/landmarks/femur --output /tmp/lm-femur \\
         --points 2562 -- --max-time 600
     python benchmarks/landmarks.py evaluate /tmp/landmarks/femur /tmp/lm-femur/mdl \\
-        /tmp/lm-femur/initial /tmp/lm-femur/cpd
+        /tmp/lm-femur/initial /tmp/lm-femur/cpd /tmp/lm-femur/guided-even \\
+        /tmp/lm-femur/guided-odd
 """
 
 from __future__ import annotations
@@ -54,7 +59,42 @@ from pathlib import Path
 
 import numpy as np
 
-BUILDS = {"mdl": [], "initial": ["--strategy", "none"], "cpd": ["--correspondence", "cpd"]}
+BUILDS = {"mdl": [], "initial": ["--strategy", "none"], "cpd": ["--correspondence", "cpd"],
+          "guided-even": ["--landmarks", "{output}/guides-even"],
+          "guided-odd": ["--landmarks", "{output}/guides-odd"]}
+#: the guided builds' landmarks: every other label of the data's order, from the first (even) or
+#: the second (odd); the other half is held out
+SPLITS = {"even": 0, "odd": 1}
+
+
+def write_guides(data: Path, output: Path) -> None:
+    """``guides-even`` and ``guides-odd`` in ``output``: every case's landmark file cut to half of
+    its labels (:data:`SPLITS`)."""
+    from mdlshapemodel.prepare.landmarks import read_landmarks
+
+    for split, first in SPLITS.items():
+        folder = output / f"guides-{split}"
+        folder.mkdir(parents=True, exist_ok=True)
+        for path in sorted((data / "landmarks").glob("*.csv")):
+            marks = read_landmarks(path)
+            with open(folder / path.name, "w", newline="") as handle:
+                writer = csv.writer(handle)
+                writer.writerow(["label", "x", "y", "z"])
+                for label, point in list(zip(marks.labels, marks.points))[first::2]:
+                    writer.writerow([label, *(f"{value:.6f}" for value in point)])
+
+
+def guide_labels(build_folder: Path) -> list[str]:
+    """The labels that guided a build (none: an unguided build), from its config.json."""
+    from mdlshapemodel.prepare.landmarks import read_landmarks
+
+    config = json.loads((build_folder / "config.json").read_text())
+    if not config.get("landmarks"):
+        return []
+    labels = set()
+    for path in Path(config["landmarks"]).glob("*.csv"):
+        labels.update(read_landmarks(path).labels)
+    return sorted(labels)
 
 
 # ---------------------------------------------------------------- transfer
@@ -186,7 +226,9 @@ def build(args) -> int:
     """The three builds through the command line, one after the other; existing ones are kept."""
     data, output = Path(args.data), Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
+    write_guides(data, output)
     for name, options in BUILDS.items():
+        options = [option.format(output=output) for option in options]
         folder = output / name
         if (folder / "model.h5").exists():
             print(f"{name}: {folder / 'model.h5'} exists, kept", flush=True)
@@ -336,6 +378,29 @@ def evaluate(args) -> int:
             f" {results[n]['per_case'][case]['as_target_median_of_templates_mean']:>6.2f} | "
             f"{results[n]['per_case'][case]['as_template_single_mean']:>6.2f} | "
             f"{results[n]['per_case'][case]['located_mean']:>4.2f}" for n in names))
+
+    guided = {name: guide_labels(b) for name, b in zip(names, builds)}
+    unguided = [name for name in names if not guided[name]]
+    if any(guided.values()):
+        print("\nlandmarks as guides: median-of-templates mean error (mm) on the labels a guided "
+              "build held out, and on its guides; the unguided builds on the same labels")
+        print(f"{'guided build':<14} {'guides':>6} {'held out':>8} {'on guides':>9}"
+              + "".join(f" {name + ' (held)':>16}" for name in unguided))
+        for name in names:
+            if not guided[name]:
+                continue
+            per_label = results[name]["per_label"]
+            held = [label for label in labels if label not in guided[name]]
+            held_error = float(np.mean([per_label[k]["median_of_templates_mean"] for k in held]))
+            guide_error = float(np.mean([per_label[k]["median_of_templates_mean"]
+                                         for k in guided[name] if k in per_label]))
+            others = [float(np.mean([results[u]["per_label"][k]["median_of_templates_mean"]
+                                     for k in held])) for u in unguided]
+            results[name]["guided"] = {"guides": guided[name], "held_out": held,
+                                       "held_out_error": held_error, "guides_error": guide_error,
+                                       "unguided_held_out_error": dict(zip(unguided, others))}
+            print(f"{name:<14} {len(guided[name]):>6} {held_error:>8.2f} {guide_error:>9.2f}"
+                  + "".join(f" {value:>16.2f}" for value in others))
 
     output.mkdir(parents=True, exist_ok=True)
     report = {"data": str(data), "cases": cases, "labels": labels,
