@@ -113,7 +113,7 @@ class ShapeModel:
         >>> model = ShapeModel.from_shapes(np.arange(18.0).reshape(2, 3, 3), np.full(3, 1 / 3))
         >>> model.landmarks = {"tip": 2}
         >>> model.landmark_points()["tip"].tolist()
-        [7.5, 8.5, 9.5]
+        [10.5, 11.5, 12.5]
         """
         points = self.mean if points is None else np.asarray(points)
         return {label: points[row] for label, row in self.landmarks.items()}
