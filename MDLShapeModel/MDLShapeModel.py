@@ -293,6 +293,24 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                 rejected.append((item.GetName(), str(error)))
         return ExportedInputs(paths, rejected, config)
 
+    @staticmethod
+    def landmarksOf(inputs, markupsNodes) -> list:
+        """The markups node of each input (None where it has none): the one named after the
+        input's case (a node's name; a file's name without its suffix), or that name followed
+        by "_landmarks". Raises ValueError where a markups node matches no input."""
+        from mdlshapemodel.prepare.io import case_name
+
+        names = [case_name(item) if isinstance(item, (str, os.PathLike))
+                 else _fileSafe(item.GetName() or item.GetID()) for item in inputs]
+        byName = {}
+        for node in markupsNodes:
+            name = node.GetName().removesuffix("_landmarks")
+            if name not in names:
+                raise ValueError(f"landmarks {node.GetName()!r}: no input is named "
+                                 f"{name!r} (name a point list after its case)")
+            byName[name] = node
+        return [byName.get(name) for name in names]
+
     # -- the build ---------------------------------------------------------------------------
 
     def runBuild(self, paths, outputDirectory, config: BuildConfig | None = None, progress=None,
@@ -1080,8 +1098,11 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                     f"{output} holds an earlier build. Replace it?"):
                 return
             self.ui.logText.clear()
-            self._job = self.logic.startBuild(self.inputs(), output, config, self._segments(),
-                                              overwrite)
+            inputs = self.inputs()
+            markups = list(self.ui.landmarkNodesSelector.checkedNodes())
+            self._job = self.logic.startBuild(
+                inputs, output, config, self._segments(), overwrite,
+                self.logic.landmarksOf(inputs, markups) if markups else None)
             for name, reason in self._job.exported.rejected:
                 self.ui.logText.appendPlainText(f"rejected {name}: {reason}")
             self.ui.applyButton.enabled = False

@@ -73,11 +73,26 @@ class qMRMLNodeComboBox(QtWidgets.QComboBox):
 
 
 class qMRMLCheckableNodeComboBox(QtWidgets.QComboBox):
-    """Stands in for qMRMLCheckableNodeComboBox (checks several nodes of the scene)."""
+    """Stands in for qMRMLCheckableNodeComboBox (checks several nodes of the scene): it names
+    the kinds of node its ``nodeTypes`` take, none checked."""
+
+    KINDS = {"vtkMRMLSegmentationNode": "segmentations", "vtkMRMLLabelMapVolumeNode": "label maps",
+             "vtkMRMLModelNode": "models", "vtkMRMLMarkupsFiducialNode": "point lists"}
 
     def __init__(self, parent=None):
         super().__init__(parent)
-        self.addItem("segmentations, label maps, models: none checked")
+        self._types = []
+        self.addItem("none checked")
+
+    def getNodeTypes(self):
+        return self._types
+
+    def setNodeTypes(self, types):
+        self._types = list(types)
+        self.setItemText(0, ", ".join(self.KINDS.get(t, t) for t in self._types)
+                         + ": none checked")
+
+    nodeTypes = Property("QStringList", getNodeTypes, setNodeTypes)
 
 
 class qMRMLTableView(QtWidgets.QTableView):

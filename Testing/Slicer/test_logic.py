@@ -389,3 +389,16 @@ def test_markups_nodes_guide_a_build_of_label_map_nodes(generated_files, tmp_pat
     distances = [float(row["distance_mm"]) for row in rows[:3]]
     assert rows[3]["distance_mm"] == "" and max(distances) < 2.0
     assert list(ShapeModel.load(tmp_path / "out" / "model.h5").landmarks) == ["top"]
+
+
+def test_point_lists_are_matched_to_the_inputs_they_are_named_after(scene, tmp_path):
+    volume = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "case_0")
+    other = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", "case_1")
+    path = tmp_path / "case_9.nii.gz"
+    first = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "case_0_landmarks")
+    ninth = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "case_9")
+    logic = module.MDLShapeModelLogic()
+    assert logic.landmarksOf([volume, other, path], [ninth, first]) == [first, None, ninth]
+    stray = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "F")
+    with pytest.raises(ValueError, match="'F': no input is named"):
+        logic.landmarksOf([volume, other, path], [first, stray])
