@@ -246,6 +246,8 @@ NON_DEFAULT_OPTIONS = {
     "tolerance": (["--tolerance", "0.01"], 0.01),
     "max_sweeps": (["--max-sweeps", "7"], 7),
     "coarse_points": (["--coarse-points", "162"], 162),
+    "landmarks": (["--landmarks", "marks"], "marks"),      # made by config_of_command_line
+    "landmark_weight": (["--landmark-weight", "3"], 3.0),
     "seed": (["--seed", "5"], 5),
     "evaluation_modes": (["--evaluation-modes", "3"], 3),
     "specificity_samples": (["--specificity-samples", "300"], 300),
@@ -260,13 +262,16 @@ NON_DEFAULT_OPTIONS = {
 def config_of_command_line(tmp_path: Path, name: str, *options) -> dict:
     """The configuration that ``build`` makes of ``options``: the build writes config.json into
     its output folder before it prepares its inputs, which here are three damaged label maps
-    (so it stops there, or at an unreachable --scheduler)."""
+    (so it stops there, or at an unreachable --scheduler). It runs in ``tmp_path``, which holds
+    a landmark folder ``marks`` for one of them."""
     inputs = tmp_path / "damaged"
     if not inputs.exists():
         inputs.mkdir()
         for k in range(3):
             (inputs / f"case_{k}.nii.gz").write_bytes(b"not an image")
-    result = run("build", inputs, "-o", tmp_path / name, *options)
+        (tmp_path / "marks").mkdir()
+        (tmp_path / "marks" / "case_0.csv").write_text("label,x,y,z\ntip,1,2,3\n")
+    result = run("build", inputs, "-o", tmp_path / name, *options, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     return json.loads((tmp_path / name / "config.json").read_text())
 
