@@ -187,6 +187,8 @@ class ShapeModelResult:
     caseNames: list = field(default_factory=list)
     partNames: list = field(default_factory=list)     # [] for a one-part object
     rejected: list = field(default_factory=list)  # (name, reason)
+    # a build guided by landmarks: each case's corresponded landmarks, a point list per case
+    landmarkNodes: list = field(default_factory=list)
     interrupted: bool = False
     reportFile: pathlib.Path | None = None
     warnings: list = field(default_factory=list)  # the build's (metrics.json), e.g. absent labels
@@ -375,7 +377,8 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
     def loadResults(self, outputDirectory, rejected=(), interrupted: bool = False
                     ) -> ShapeModelResult:
         """The nodes of a build's output folder: the model (:meth:`loadModel`) and every case's
-        corresponded model, in the build's case order."""
+        corresponded model, in the build's case order, and for a build guided by landmarks
+        every case's corresponded landmarks (``landmarks.csv``) as a point list."""
         from mdlshapemodel.prepare.io import case_file
 
         outputDirectory = pathlib.Path(outputDirectory)
@@ -386,6 +389,17 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                                   f"{name} {part}".strip())
                 _placeInFolder(node, result.folderItemID)
                 result.correspondenceModelNodes.append(node)
+        marks = {}
+        for row in _readCsv(outputDirectory / "landmarks.csv"):
+            marks.setdefault(row["case"], []).append(
+                (row["label"], [float(row[c]) for c in ("x", "y", "z")]))
+        for name, points in marks.items():
+            node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode",
+                                                      f"{name} landmarks")
+            for label, point in points:
+                node.AddControlPoint(list(_toRas([point])[0]), label)
+            _placeInFolder(node, result.folderItemID)
+            result.landmarkNodes.append(node)
         result.rejected = list(rejected) + [(row["case"], row["reason"]) for row in
                                             _readCsv(outputDirectory / "rejected.csv")]
         result.interrupted = interrupted

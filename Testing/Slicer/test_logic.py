@@ -389,6 +389,14 @@ def test_markups_nodes_guide_a_build_of_label_map_nodes(generated_files, tmp_pat
     distances = [float(row["distance_mm"]) for row in rows[:3]]
     assert rows[3]["distance_mm"] == "" and max(distances) < 2.0
     assert list(ShapeModel.load(tmp_path / "out" / "model.h5").landmarks) == ["top"]
+    # loaded as a point list per case, in RAS, at the corresponded points
+    assert [node.GetName() for node in result.landmarkNodes] == [f"case_{k} landmarks"
+                                                                 for k in range(4)]
+    for node, row in zip(result.landmarkNodes, rows):
+        assert node.GetNthControlPointLabel(0) == "top"
+        placed = np.array(node.GetNthControlPointPosition(0))
+        np.testing.assert_allclose(placed * LPS_TO_RAS, [float(row[c]) for c in "xyz"],
+                                   atol=1e-5)
 
 
 def test_point_lists_are_matched_to_the_inputs_they_are_named_after(scene, tmp_path):
