@@ -14,7 +14,10 @@ from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare.case import PreparedCase, PreparedPart
 from mdlshapemodel.prepare.landmarks import Landmarks, on_surface
 from mdlshapemodel.prepare.sphere import SphereMap, align_parameterizations
+from mdlshapemodel.config import OptimisationSettings
+from mdlshapemodel.correspondence.state import state_record
 from common import central_difference, run_cli
+from resuming import assert_same_record, optimised_with_checkpoints, resumed_from
 from files import write_label_map
 from synthetic import build_objectives, small_bump_top, small_mask, small_state
 
@@ -150,6 +153,28 @@ def test_the_fast_round_gradient_with_guides_matches_finite_differences():
     for k in chosen:
         assert analytic[k] == pytest.approx(central_difference(value, x, k), rel=2e-5,
                                             abs=1e-6)
+
+
+def test_a_guided_optimisation_starts_on_the_landmarks_and_resumes_exactly():
+    """The staged fast strategy runs a landmark phase first (its F is the guides' term alone,
+    which falls), carries the guides to the coarse grid, and ends as the uninterrupted run from
+    a checkpoint of each phase."""
+    settings = OptimisationSettings(strategy="fast", max_time=1e6, fixed_fraction=0.5,
+                                    coarse_points=42, max_sweeps=3)
+    state = guided_state()
+    start = state.guide_cost()
+    final, trace, saved = optimised_with_checkpoints(state, settings)
+    phases = [point.phase for point, *_ in saved]
+    assert phases[0] == "coarse landmarks" and "coarse integrated" in phases
+    landmark_rows = [row for row in trace.rows if row.phase == "coarse landmarks"]
+    assert landmark_rows and landmark_rows[-1].objective < start
+    assert state.guide_cost() < start
+    expected = state_record(state)
+    for phase in ("coarse landmarks", "coarse fixed"):
+        resumed = guided_state()
+        value, _ = resumed_from(resumed, settings, saved[phases.index(phase)])
+        assert value == final, phase
+        assert_same_record(state_record(resumed), expected)
 
 
 def test_guides_carried_to_rows_of_a_coarser_grid():

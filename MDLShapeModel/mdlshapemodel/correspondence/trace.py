@@ -15,8 +15,9 @@ class TraceRow(NamedTuple):
     cpu_seconds: float
     evaluations: int
     objective: float
-    phase: str      # "fixed" (eq. 13) or "integrated" (eq. 14), "coarse " before either on
-                    # the coarse grid
+    phase: str      # "fixed" (eq. 13) or "integrated" (eq. 14), after "landmarks" (the
+                    # guides' term alone) with landmark guides; "coarse " before each on the
+                    # coarse grid
     sweep: int      # sweep, level, iteration or round within the phase (0: its start)
 
 
