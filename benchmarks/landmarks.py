@@ -21,10 +21,10 @@ per build:
 Only the cases that every build holds are evaluated. The builds: ``mdl`` (the defaults),
 ``initial`` (``--strategy none``: the initial correspondence from the sphere maps), ``cpd``
 (``--correspondence cpd``: a template case registered to every case by coherent point drift),
-and ``guided-even`` and ``guided-odd`` (the defaults with ``--landmarks``: every other label of
-every case guides the correspondence, the other half is held out; the evaluation then reports
-each guided build's error on the labels it held out, beside the unguided builds' on the same
-labels).
+and ``guided-even``, ``guided-odd``, ``guided-3`` and ``guided-6`` (the defaults with
+``--landmarks``: every other label of every case, or 3 or 6 labels, guide the correspondence,
+the others are held out; the evaluation then reports each guided build's error on the labels it
+held out, beside the unguided builds' on the same labels).
 
 Data: the femurs of VSDFullBodyBoneModels (github.com/RWTHmediTEC/VSDFullBodyBoneModels, commit
 ee5c4f0 = v2.0, Fischer et al., Sci. Rep. 2019 and 2020; licence CC BY-NC-SA: benchmarks only,
@@ -44,7 +44,7 @@ or step by step (options after ``--`` go to every build):
         --points 2562 -- --max-time 600
     python benchmarks/landmarks.py evaluate /tmp/landmarks/femur /tmp/lm-femur/mdl \\
         /tmp/lm-femur/initial /tmp/lm-femur/cpd /tmp/lm-femur/guided-even \\
-        /tmp/lm-femur/guided-odd
+        /tmp/lm-femur/guided-odd /tmp/lm-femur/guided-3 /tmp/lm-femur/guided-6
 """
 
 from __future__ import annotations
@@ -59,20 +59,25 @@ from pathlib import Path
 
 import numpy as np
 
+#: the guided builds' landmarks, chosen from the labels in the data's order: every other label
+#: from the first (even) or the second (odd), and 3 or 6 labels spread over the order; the
+#: others are held out
+SPLITS = {"even": lambda labels: labels[0::2], "odd": lambda labels: labels[1::2],
+          "3": lambda labels: [labels[k] for k in np.linspace(0, len(labels) - 1, 3).round()
+                               .astype(int)],
+          "6": lambda labels: [labels[k] for k in np.linspace(0, len(labels) - 1, 6).round()
+                               .astype(int)]}
 BUILDS = {"mdl": [], "initial": ["--strategy", "none"], "cpd": ["--correspondence", "cpd"],
-          "guided-even": ["--landmarks", "{output}/guides-even"],
-          "guided-odd": ["--landmarks", "{output}/guides-odd"]}
-#: the guided builds' landmarks: every other label of the data's order, from the first (even) or
-#: the second (odd); the other half is held out
-SPLITS = {"even": 0, "odd": 1}
+          **{f"guided-{split}": ["--landmarks", f"{{output}}/guides-{split}"]
+             for split in SPLITS}}
 
 
 def write_guides(data: Path, output: Path) -> None:
-    """``guides-even`` and ``guides-odd`` in ``output``: every case's landmark file cut to half of
-    its labels (:data:`SPLITS`)."""
+    """``guides-<split>`` in ``output`` for every split of :data:`SPLITS`: every case's landmark
+    file cut to the split's labels."""
     from mdlshapemodel.prepare.landmarks import read_landmarks
 
-    for split, first in SPLITS.items():
+    for split, choose in SPLITS.items():
         folder = output / f"guides-{split}"
         folder.mkdir(parents=True, exist_ok=True)
         for path in sorted((data / "landmarks").glob("*.csv")):
@@ -80,7 +85,10 @@ def write_guides(data: Path, output: Path) -> None:
             with open(folder / path.name, "w", newline="") as handle:
                 writer = csv.writer(handle)
                 writer.writerow(["label", "x", "y", "z"])
-                for label, point in list(zip(marks.labels, marks.points))[first::2]:
+                chosen = choose(list(marks.labels))
+                for label, point in zip(marks.labels, marks.points):
+                    if label not in chosen:
+                        continue
                     writer.writerow([label, *(f"{value:.6f}" for value in point)])
 
 
