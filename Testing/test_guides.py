@@ -279,6 +279,10 @@ def test_a_guided_build_puts_its_corresponded_landmarks_on_the_given_ones(tmp_pa
     metrics = json.loads((tmp_path / "guided" / "metrics.json").read_text())
     assert metrics["landmarks"]["given"] == 9
     assert metrics["landmarks"]["distance_mm"]["max"] == pytest.approx(distances.max())
+    assert {label: item["cases"] for label, item in metrics["landmarks"]["per_label"].items()} == {
+        "end": 4, "tip": 5}
+    assert "Landmarks that guided the correspondence" in (tmp_path / "guided" /
+                                                         "report.html").read_text()
     log = (tmp_path / "guided" / "build.log").read_text()
     assert "2 landmark labels guide the correspondence (9 landmarks of 5 cases" in log
     # fit predicts a new case's landmarks: where its fitted correspondence puts them

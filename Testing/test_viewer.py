@@ -389,3 +389,28 @@ def test_the_normals_check_shows_its_map_and_the_cases_most_off(browser, tmp_pat
     widths = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
     assert widths[0] <= widths[1], widths
     page.close()
+
+
+def test_the_landmarks_section_lists_each_label_and_its_farthest_case(browser, tmp_path):
+    from mdlshapemodel.outputs import landmark_summary
+
+    model, shapes, names = population(n_s=4, n_points=42)
+    model.landmarks = {"tip": 3, "base": 17}
+    rows = [[name, label, "0", "0", "0", "0", "0", "0", f"{distance:.6f}"]
+            for name, distances in zip(names, ((0.2, 0.5), (0.4, 2.5), (0.1, 0.3), (0.3, 0.0)))
+            for label, distance in zip(("tip", "base"), distances)]
+    rows[-1][-1] = ""                         # the last case was not given its base
+    metrics = {**report_metrics(), "landmarks": landmark_summary(model, rows)}
+    path = write_report(tmp_path, metrics, [], [], model, shapes, names)
+    page, errors, _ = _open(browser, path)
+    assert errors == []
+    heading = page.locator("h2", has_text="Landmarks that guided the correspondence")
+    assert heading.count() == 1
+    lines = page.locator("h2:has-text('Landmarks that guided') ~ table").first.inner_text()
+    tip, base = lines.split("\n")[1:3]
+    assert tip.split("\t")[:2] == ["tip", "4"] and tip.split("\t")[-1] == names[1]
+    assert base.split("\t")[:2] == ["base", "3"] and base.split("\t")[3] == "2.5"
+    assert "7 landmarks given" in page.locator("h2:has-text('Landmarks that guided') + p").inner_text()
+    widths = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
+    assert widths[0] <= widths[1], widths
+    page.close()

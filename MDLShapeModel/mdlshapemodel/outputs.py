@@ -248,6 +248,27 @@ def corresponded_landmarks(model, physical: list, prepared: list, given: dict | 
     return rows
 
 
+def landmark_summary(model, rows: list) -> dict | None:
+    """metrics.json's ``landmarks`` from the rows of landmarks.csv: the labels, how many were
+    given, the distance of every corresponded landmark from the given one (mean, max) and per
+    label (cases, mean, max and the case of the max); None for a model without landmarks."""
+    if not model.landmarks:
+        return None
+    given = [(row[0], row[1], float(row[-1])) for row in rows if row[-1] != ""]
+    per_label = {}
+    for label in model.landmarks:
+        mine = [(distance, case) for case, name, distance in given if name == label]
+        if mine:
+            worst = max(mine)
+            per_label[label] = {"cases": len(mine),
+                                "mean_mm": float(np.mean([d for d, _ in mine])),
+                                "max_mm": worst[0], "max_case": worst[1]}
+    distances = [distance for _, _, distance in given]
+    return {"labels": list(model.landmarks), "given": len(given),
+            "distance_mm": {"mean": float(np.mean(distances)), "max": float(np.max(distances))}
+            if distances else None, "per_label": per_label}
+
+
 def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                   config: BuildConfig, baselines: dict | None = None, pool=None,
                   warnings=()) -> BuildResult:
@@ -312,7 +333,6 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
     landmark_rows = corresponded_landmarks(model, physical, prepared, corresponded.landmarks)
     if landmark_rows:
         io.write_csv(output / "landmarks.csv", LANDMARK_COLUMNS, landmark_rows)
-    landmark_distances = [float(row[-1]) for row in landmark_rows if row[-1] != ""]
     log.info("wrote the model, meshes and tables in %.1f s", time.perf_counter() - started)
     started = time.perf_counter()
     quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
@@ -338,12 +358,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
-               "landmarks": None if not model.landmarks else {
-                   "labels": list(model.landmarks),
-                   "given": len(landmark_distances),
-                   "distance_mm": {"mean": float(np.mean(landmark_distances)),
-                                   "max": float(np.max(landmark_distances))}
-                   if landmark_distances else None},
+               "landmarks": landmark_summary(model, landmark_rows),
                "baselines": baselines or {}, "warnings": list(warnings)}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()

@@ -244,6 +244,20 @@ OUTPUT_FILES = (
     ("build.log", "the build's log"))
 
 
+def _landmarks_section(summary: dict) -> list:
+    """The landmarks that guided the correspondence (metrics.json ``landmarks``): per label, how
+    far the cases' corresponded landmarks lie from the given ones."""
+    rows = [(label, item["cases"], item["mean_mm"], item["max_mm"], item["max_case"])
+            for label, item in summary["per_label"].items()]
+    return ["<h2>Landmarks that guided the correspondence</h2>",
+            f"<p>{len(summary['labels'])} labels, {summary['given']} landmarks given. Each "
+            "case's corresponded landmark is the model point of its label; its distance from "
+            "the landmark given shows how closely the correspondence follows it (landmarks.csv "
+            "has every case's).</p>",
+            table(("label", "cases", "mean distance [mm]", "largest [mm]", "case of the largest"),
+                  rows)]
+
+
 def run_table() -> str:
     """What is running: this package's version and the date (a table), and the command line
     (wrapped, scrolling when long)."""
@@ -343,6 +357,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     if convergence:
         parts += ["<h2>Convergence</h2>", _image(convergence, "convergence")]
     parts += _renderings(model, shapes, names)
+    if metrics.get("landmarks"):
+        parts += _landmarks_section(metrics["landmarks"])
     if normals is not None:
         parts += _normals_section(model, normals, names)
     from .viewer import viewer_section     # the interactive 3-D viewer (plotly.js, offline)
