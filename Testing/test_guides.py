@@ -3,6 +3,7 @@ alignment they steer, their term of the objective and its gradient, and builds g
 
 import csv
 import json
+import re
 
 import numpy as np
 import pytest
@@ -93,7 +94,15 @@ def test_a_label_some_cases_lack_and_a_case_without_landmarks():
     guides = guides_on_grid(placed, aligned, grid, 42, [0], weight=2.0, scale=0.5)
     assert guides.indices.max() < 42 and len(set(guides.indices)) == 2
     np.testing.assert_allclose(guides.targets[0], tip, atol=1e-9)
+    assert guides.far_from_surface(["a", "b", "c"]) == []
     assert place_landmarks(cases, {}) is None
+    # a landmark 4 mm off the surface (8 voxels of 0.5 mm) is reported, with its distance
+    off = {**marks, "c": Landmarks(("top",), np.array([[0.0, 0.0, AXES[2] + 4.0]]))}
+    placed = place_landmarks(cases, off)
+    far = guides_on_grid(placed, aligned, grid, 42, [0], 2.0, 0.5).far_from_surface(
+        ["a", "b", "c"])
+    assert [(case, label) for case, label, _ in far] == [("c", "top")]
+    assert far[0][2] == pytest.approx(4.0, abs=1e-6)
 
 
 def guided_state(weight: float = 3.0):
@@ -325,3 +334,11 @@ def test_bad_landmark_files_are_refused_before_anything_is_written(tmp_path):
                  "--workers", 1)
     assert result.returncode == 2 and "no such landmark folder" in result.stderr
     assert not (tmp_path / "out").exists()
+    # RAS coordinates in a CSV that does not say so: far from the surface, and the user is told
+    top = small_bump_top(float(POSITIONS[1])) * [-1, -1, 1]
+    (marks / "s1.csv").write_text("label,x,y,z\ntop,{},{},{}\n".format(*top))
+    result = run_cli("build", data, "-o", tmp_path / "out", "--landmarks", marks, "--workers", 1,
+                     "--points", 42, "--max-time", 5, "--baselines", "", "--no-cache",
+                     "--specificity-samples", 100, "--surface-samples", 0)
+    assert result.returncode == 0, result.stderr
+    assert re.search(r"landmark top of s1 is [\d.]+ mm from the case's surface", result.stderr)

@@ -495,6 +495,10 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                  "%g): %s", len(state.guides.labels), int(state.guides.present.sum()),
                  int(state.guides.present.any(axis=1).sum()), config.landmark_weight,
                  ", ".join(state.guides.labels))
+        for name, label, distance in state.guides.far_from_surface([c.name for c in prepared]):
+            log.warning("landmark %s of %s is %.1f mm from the case's surface (moved onto it): "
+                        "are its coordinates those of the case's file (LPS, or RAS where the "
+                        "file says so)?", label, name, distance)
     settings = config.optimisation_settings()
     # eq. 14 is measured where the optimisation minimises it (the fast strategy's coarse grid)
     coarse = (settings.coarse_points if config.correspondence != "cpd"

@@ -24,6 +24,10 @@ from ..prepare.landmarks import on_surface
 from ..prepare.sphere import shared_places
 
 
+#: a given landmark farther than this many voxels from its case's surface is reported
+FAR_VOXELS = 5.0
+
+
 @dataclass(frozen=True)
 class Guides:
     """The landmark term of one correspondence state.
@@ -38,6 +42,8 @@ class Guides:
         lambda.
     scale : float
         h, mm.
+    off_surface : ndarray (n_s, n_l), optional
+        How far each given landmark was from its case's surface (mm; 0 where absent).
     """
 
     labels: tuple
@@ -46,6 +52,16 @@ class Guides:
     present: np.ndarray
     weight: float
     scale: float
+    off_surface: np.ndarray | None = None
+
+    def far_from_surface(self, names: list, voxels: float = FAR_VOXELS) -> list:
+        """(case name, label, mm) of every given landmark more than ``voxels`` voxels from its
+        case's surface: likely in other coordinates than the case's file (RAS for LPS)."""
+        if self.off_surface is None:
+            return []
+        cases, labels = np.nonzero(self.present & (self.off_surface > voxels * self.scale))
+        return [(names[i], self.labels[k], float(self.off_surface[i, k]))
+                for i, k in zip(cases, labels)]
 
     def costs(self, raw: np.ndarray) -> np.ndarray:
         """C_i of every example (n_s,) from the unposed samples ``raw`` (n_s, n_p, 3)."""
@@ -177,6 +193,7 @@ def guides_on_grid(placed: PlacedLandmarks, aligned: list, grid: np.ndarray, can
     n_l = len(placed.labels)
     indices = np.zeros(n_l, dtype=np.int64)
     targets = np.zeros((placed.present.shape[0], n_l, 3))
+    off_surface = np.zeros((placed.present.shape[0], n_l))
     for j, maps in enumerate(aligned):
         mine = np.flatnonzero(placed.part_of_label == j)
         if not len(mine):
@@ -193,4 +210,6 @@ def guides_on_grid(placed: PlacedLandmarks, aligned: list, grid: np.ndarray, can
         for i, placing in enumerate(placed.placed[j]):
             if placing is not None:
                 targets[i, mine] = placing.surface
-    return Guides(placed.labels, indices, targets, placed.present, float(weight), float(scale))
+                off_surface[i, mine] = placing.distance
+    return Guides(placed.labels, indices, targets, placed.present, float(weight), float(scale),
+                  off_surface * placed.present)
