@@ -94,6 +94,9 @@ CURVE_POINTS = 128
 # squared voxel of distance between a landmark and its corresponded point, halved
 LANDMARK_WEIGHT = 10.0
 
+# ``--smoothness``: w of the prior on smooth correspondence (correspondence/smoothness.py); 0: none
+SMOOTHNESS = 0.0
+
 # Unless set, the surfaces mapped to the sphere have about this many vertices per sample point,
 # and at least MIN_SURFACE_VERTICES: ``BuildConfig.target_vertices``. A surface many times finer
 # than the sampling grid buys nothing and costs time (a 0.5 mm femur contour has 146,000).
@@ -391,6 +394,10 @@ class BuildConfig:
     landmark_weight: float = field(default=LANDMARK_WEIGHT, metadata=option(
         _CORRESPONDENCE, "--landmarks: the objective's cost of a landmark one voxel from its "
                          "corresponded point is half this, in nats (default %(default)s)"))
+    smoothness: float = field(default=SMOOTHNESS, metadata=option(
+        _CORRESPONDENCE, "surfaces: weight of a prior on smooth correspondence, the thin-plate "
+                         "bending energy of each case's displacement from the mean shape; 0: "
+                         "none (default %(default)s)", metavar="W"))
     seed: int = field(default=0, metadata=option(
         _CORRESPONDENCE, "random seed of the paper's strategies (fast draws no random "
                          "numbers): the same seed and inputs give the same model bit for bit, "
@@ -482,6 +489,7 @@ class BuildConfig:
                                         and self.landmarks.strip() != ""),
              "landmarks", "must be a folder of landmark files")
         need(self.landmark_weight > 0, "landmark_weight", "must be positive")
+        need(self.smoothness >= 0, "smoothness", "must be >= 0")
         need(self.evaluation_modes >= 1, "evaluation_modes", "must be at least 1")
         need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")
         need(self.surface_samples == 0 or self.surface_samples >= 2, "surface_samples",

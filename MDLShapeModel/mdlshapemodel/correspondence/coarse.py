@@ -64,7 +64,8 @@ def coarse_view(state: CorrespondenceState, n_points: int) -> CorrespondenceStat
         guides = state.guides.on_rows(np.concatenate([np.arange(part.start, part.start + n_points)
                                                       for part in state.part_slices]))
     coarse = CorrespondenceState(examples, [(grid, cells)] * len(state.grids), state.objective,
-                                 scaling=state.scaling, planar=state.planar, guides=guides)
+                                 scaling=state.scaling, planar=state.planar, guides=guides,
+                                 smoothness=state.smoothness)
     coarse.target_size = state.target_size
     for view, example in zip(coarse.examples, state.examples):
         view.pose = example.pose.copy()

@@ -10,6 +10,7 @@ from ..config import BuildConfig
 from ..prepare.sphere import align_parameterizations, reference_frames
 from .circle import curve_state
 from .guides import guides_on_grid, place_landmarks
+from .smoothness import Smoothness
 from .objective import objectives
 from .sampling import sphere_grid
 from .state import CorrespondenceState, Example, PartState
@@ -29,7 +30,8 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
     ``landmarks`` (case name -> :class:`~mdlshapemodel.prepare.landmarks.Landmarks`, surfaces
     only): the alignment of the sphere maps also brings each label to one shared place, and the
     state gets their :class:`.guides.Guides` (weight ``config.landmark_weight``), on sample
-    points of the coarse grid where the fast strategy runs one.
+    points of the coarse grid where the fast strategy runs one. ``config.smoothness`` > 0 gives
+    the state the prior of :mod:`.smoothness` (surfaces).
     """
     if prepared[0].is_curve:
         state = curve_state([[part.map for part in case.parts] for case in prepared],
@@ -57,8 +59,10 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
         guides = guides_on_grid(placed, maps, grid_points, candidates,
                                 [j * len(grid_points) for j in range(n_parts)],
                                 config.landmark_weight, _voxel(prepared))
+    smoothness = (Smoothness(config.smoothness, _voxel(prepared)) if config.smoothness > 0
+                  else None)
     state = CorrespondenceState(examples, [(grid_points, grid_triangles)] * n_parts,
-                                scaling=config.scaling, guides=guides)
+                                scaling=config.scaling, guides=guides, smoothness=smoothness)
     return _with_objectives(state, prepared, config)
 
 

@@ -25,6 +25,7 @@ from ..prepare.curve import segment_vertex_lengths
 from ..prepare.sphere import orientation
 from ..prepare.surface import face_areas, triangle_vertex_areas
 from .guides import Guides
+from .smoothness import Smoothness
 from .objective import Objective
 from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from .sampling import SphereLocator, grid_order, icosphere
@@ -232,12 +233,17 @@ class CorrespondenceState:
     guides : Guides, optional
         Landmarks that guide the correspondence (:mod:`.guides`): their term is part of
         :meth:`value`.
+    smoothness : Smoothness, optional
+        The prior on smooth correspondence (:mod:`.smoothness`): its energy is part of
+        :meth:`value` and its gradient of :meth:`shape_gradient`.
     """
 
     def __init__(self, examples: list, grids: list, objective: Objective | None = None,
-                 scaling: bool = True, planar: bool | None = None, guides: Guides | None = None):
+                 scaling: bool = True, planar: bool | None = None, guides: Guides | None = None,
+                 smoothness: Smoothness | None = None):
         self.examples = examples
         self.guides = guides
+        self.smoothness = smoothness
         self.grids = grids
         self.objective = objective
         self.scaling = scaling
@@ -306,6 +312,30 @@ class CorrespondenceState:
         self.gram = flat @ flat.T
         self.guide_costs = (None if self.guides is None
                             else self.guides.costs(self.raw_shapes()))
+        self.smoothness_terms = (None if self.smoothness is None
+                                 else self.smoothness.at(self.reference))
+        self._smooth()
+
+    def _smooth(self):
+        """The prior's energy and B~ D_i of the current shapes (with its terms held fixed)."""
+        if self.smoothness_terms is None:
+            self.smooth_energy, self.bent = 0.0, None
+            return
+        terms = self.smoothness_terms
+        displacements = self.shapes - self.shapes.mean(axis=0)
+        self.bent = np.einsum("jk,ikd->ijd", terms.matrix, displacements)
+        self.smooth_energy = 0.5 * terms.factor * float(np.sum(displacements * self.bent))
+
+    def _smooth_trial(self, i: int, shape: np.ndarray) -> tuple[float, np.ndarray]:
+        """The prior's energy with example i's shape replaced by ``shape``, and B~ Delta
+        (Delta = shape - X_i): E' = E + w/h^2 [tr(Delta^T B~ D_i) + (1 - 1/n_s) tr(Delta^T B~
+        Delta) / 2] (the other displacements move by -Delta / n_s, and sum_j D_j = 0)."""
+        delta = shape - self.shapes[i]
+        bent_delta = self.smoothness_terms.matrix @ delta
+        factor = self.smoothness_terms.factor
+        change = factor * (float(np.sum(delta * self.bent[i]))
+                           + 0.5 * (1.0 - 1.0 / self.n_shapes) * float(np.sum(delta * bent_delta)))
+        return self.smooth_energy + change, bent_delta
 
     # ------------------------------------------------------------------ objective
     def _row(self, shape: np.ndarray) -> tuple[np.ndarray, float]:
@@ -337,7 +367,16 @@ class CorrespondenceState:
         of the covariance, plus the landmark term of the guides (if any), for which a trial also
         gives ``raw``, its unposed samples."""
         self.evaluations += 1
-        return self.objective(self.covariance(i, shape)) + self.guide_cost(i, raw)
+        return (self.objective(self.covariance(i, shape)) + self.guide_cost(i, raw)
+                + self.smoothness_energy(i, shape))
+
+    def smoothness_energy(self, i: int | None = None, shape: np.ndarray | None = None) -> float:
+        """The prior's energy E (0 without a prior), or with example i's shape replaced."""
+        if self.smoothness_terms is None:
+            return 0.0
+        if i is None:
+            return self.smooth_energy
+        return self._smooth_trial(i, shape)[0]
 
     def guide_cost(self, i: int | None = None, raw: np.ndarray | None = None) -> float:
         """The landmark term C of the guides (0 without), or with example i's unposed samples
@@ -356,7 +395,8 @@ class CorrespondenceState:
         length with respect to every example's posed points, with the area weights w held fixed
         (docs/method.md section 2). F includes the guides' landmark term (:meth:`guide_cost`),
         which depends on the unposed samples only: its gradient is the guides' own
-        (:meth:`.guides.Guides.gradients`), not part of G.
+        (:meth:`.guides.Guides.gradients`), not part of G. F and G include the smoothness
+        prior's energy and gradient (:mod:`.smoothness`).
 
         F = F(D'), D' = f^2 H K H, f = target_size / cs(mean). With Gd = dF/dD' (symmetric,
         :meth:`Objective.gradient`) and M = f^2 H Gd H,
@@ -372,7 +412,10 @@ class CorrespondenceState:
         flat *= np.repeat(2.0 * self.weights, 3)
         grad = multiplier @ flat
         grad += self.scale_gradient(self.sum_shapes, grad_cov, covariance).reshape(1, -1)
-        return value + self.guide_cost(), grad.reshape(self.shapes.shape)
+        grad = grad.reshape(self.shapes.shape)
+        if self.smoothness_terms is not None:
+            grad += self.smoothness_terms.factor * self.bent
+        return value + self.guide_cost() + self.smooth_energy, grad
 
     def example_gradient(self, i: int, shape: np.ndarray | None = None
                          ) -> tuple[float, np.ndarray]:
@@ -386,7 +429,17 @@ class CorrespondenceState:
             row += multiplier[i, i] * (shape - self.shapes[i])
             total = total - self.shapes[i] + shape
         data = 2.0 * row * self.weights[:, None]
-        return value, data + self.scale_gradient(total, grad_cov, covariance)
+        gradient = data + self.scale_gradient(total, grad_cov, covariance)
+        if self.smoothness_terms is not None:
+            bent = self.bent[i]
+            if shape is not None:
+                energy, bent_delta = self._smooth_trial(i, shape)
+                bent = bent + (1.0 - 1.0 / self.n_shapes) * bent_delta
+            else:
+                energy = self.smooth_energy
+            value += energy
+            gradient = gradient + self.smoothness_terms.factor * bent
+        return value, gradient
 
     def _covariance_gradient(self, i, shape):
         """F, dF/dD', D' and dF/dK = f^2 H (dF/dD') H at the current (or trial) state."""
@@ -417,20 +470,27 @@ class CorrespondenceState:
         the same reference, O(n_s^2 n_p). The state is restored afterwards."""
         if self.guides is not None and raw is None:
             raise ValueError("a trial of a guided state needs its unposed samples (raw)")
-        saved = self.shapes, self.sum_shapes, self.gram, self.guide_costs
+        saved = (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self.smooth_energy,
+                 self.bent)
         centred = ((shapes - self.reference) * np.sqrt(self.weights)[None, :, None]).reshape(
             len(shapes), -1)
         self.shapes, self.sum_shapes, self.gram = shapes, shapes.sum(axis=0), centred @ centred.T
         if self.guides is not None:
             self.guide_costs = self.guides.costs(raw)
+        self._smooth()
         try:
             yield self
         finally:
-            self.shapes, self.sum_shapes, self.gram, self.guide_costs = saved
+            (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self.smooth_energy,
+             self.bent) = saved
 
     def commit_shape(self, i: int):
         """Record that example i's parts or pose changed: update X, K and the sums."""
         shape = self.examples[i].pose.apply(self.examples[i].raw_points())
+        if self.smoothness_terms is not None:
+            self.smooth_energy, bent_delta = self._smooth_trial(i, shape)
+            self.bent -= bent_delta / self.n_shapes
+            self.bent[i] += bent_delta
         row, diagonal = self._row(shape)
         self.gram[i, :] = row
         self.gram[:, i] = row
