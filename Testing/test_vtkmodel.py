@@ -424,8 +424,8 @@ def test_the_readme_example_runs(tmp_path, monkeypatch):
 
 
 def test_a_guided_builder_gives_the_model_of_the_guided_build(population, pipeline, tmp_path):
-    """Landmarks (the config's folder) guide the builder as they guide build_model: the same
-    model bit for bit, its landmarks in the model polydata."""
+    """Landmarks (the config's folder) guide the builder as they guide build_model, with the
+    smoothness prior: the same model bit for bit, its landmarks in the model polydata."""
     marks = tmp_path / "marks"
     marks.mkdir()
     for k, (name, position) in enumerate(zip(NAMES, np.linspace(-0.6, 0.6, len(NAMES)))):
@@ -434,7 +434,7 @@ def test_a_guided_builder_gives_the_model_of_the_guided_build(population, pipeli
             top[0] = small_mask(0.0).shape[2] - 1 - top[0]
         point = top + (12.0 * k, -4.0, 2.0)
         (marks / f"{name}.csv").write_text("label,x,y,z\ntop,{},{},{}\n".format(*point))
-    config = dataclasses.replace(CONFIG, landmarks=str(marks))
+    config = dataclasses.replace(CONFIG, landmarks=str(marks), smoothness=0.01)
     branches, _, _ = pipeline
     builder = builder_of(branches, config, NAMES)
     builder.Update()
