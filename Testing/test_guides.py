@@ -342,3 +342,17 @@ def test_bad_landmark_files_are_refused_before_anything_is_written(tmp_path):
                      "--specificity-samples", 100, "--surface-samples", 0)
     assert result.returncode == 0, result.stderr
     assert re.search(r"landmark top of s1 is [\d.]+ mm from the case's surface", result.stderr)
+
+
+def test_landmarks_and_the_smoothness_prior_are_refused_for_2d_curves(tmp_path):
+    from mdlshapemodel.demo import write_demo_curves
+
+    paths = write_demo_curves(tmp_path / "curves", n_subjects=3)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    (marks / f"{paths[0].name.split('.')[0]}.csv").write_text("label,x,y,z\ntip,1,2,0\n")
+    for option in (["--landmarks", marks], ["--smoothness", "0.01"]):
+        result = run_cli("build", tmp_path / "curves", "-o", tmp_path / "out", "--workers", 1,
+                         "--no-cache", *option)
+        assert result.returncode == 2 and "Traceback" not in result.stderr
+        assert "these inputs are 2-D curves" in result.stderr, result.stderr

@@ -487,6 +487,8 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                          f"{surface} a surface")
     if curves and landmarks:
         raise BuildError("--landmarks guides surfaces; these inputs are 2-D curves")
+    if curves and config.smoothness > 0:
+        raise BuildError("--smoothness is a prior for surfaces; these inputs are 2-D curves")
     if curves and config.correspondence == "cpd":
         raise BuildError("--correspondence cpd registers surfaces; these inputs are 2-D curves")
     state, (fixed, integrated), voxel, data_range = initial_state(prepared, config, landmarks)
