@@ -10,6 +10,7 @@ import pytest
 
 from mdlshapemodel.correspondence.guides import Guides, guides_on_grid, place_landmarks
 from mdlshapemodel.correspondence.sampling import icosphere
+from mdlshapemodel.correspondence.smoothness import Smoothness
 from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare.case import PreparedCase, PreparedPart
@@ -105,10 +106,11 @@ def test_a_label_some_cases_lack_and_a_case_without_landmarks():
     assert far[0][2] == pytest.approx(4.0, abs=1e-6)
 
 
-def guided_state(weight: float = 3.0):
+def guided_state(weight: float = 3.0, smoothness: float = 0.0):
     """The small synthetic state with two guided labels (one lacking in case 1), targets off
-    its current samples."""
+    its current samples (and the smoothness prior of that weight, if any)."""
     state = small_state()
+    state.smoothness = Smoothness(smoothness, 0.8) if smoothness else None
     raw = state.raw_shapes()
     indices = np.array([5, 40])
     targets = raw[:, indices] + np.random.default_rng(0).normal(0.0, 1.5, (state.n_shapes, 2, 3))
@@ -167,22 +169,22 @@ def test_the_fast_round_gradient_with_guides_matches_finite_differences():
 
 
 def test_a_guided_optimisation_starts_on_the_landmarks_and_resumes_exactly():
-    """The staged fast strategy runs a landmark phase first (its F is the guides' term alone,
-    which falls), carries the guides to the coarse grid, and ends as the uninterrupted run from
-    a checkpoint of each phase."""
+    """The staged fast strategy runs a landmark phase first (its F is the guides' term and the
+    smoothness prior, which falls), carries the guides and the prior to the coarse grid, and ends
+    as the uninterrupted run from a checkpoint of each phase."""
     settings = OptimisationSettings(strategy="fast", max_time=1e6, fixed_fraction=0.5,
                                     coarse_points=42, max_sweeps=3)
-    state = guided_state()
+    state = guided_state(smoothness=0.2)
     start = state.guide_cost()
     final, trace, saved = optimised_with_checkpoints(state, settings)
     phases = [point.phase for point, *_ in saved]
     assert phases[0] == "coarse landmarks" and "coarse integrated" in phases
     landmark_rows = [row for row in trace.rows if row.phase == "coarse landmarks"]
-    assert landmark_rows and landmark_rows[-1].objective < start
-    assert state.guide_cost() < start
+    assert landmark_rows and landmark_rows[-1].objective < landmark_rows[0].objective
+    assert state.guide_cost() < start and state.smoothness_energy() > 0
     expected = state_record(state)
     for phase in ("coarse landmarks", "coarse fixed"):
-        resumed = guided_state()
+        resumed = guided_state(smoothness=0.2)
         value, _ = resumed_from(resumed, settings, saved[phases.index(phase)])
         assert value == final, phase
         assert_same_record(state_record(resumed), expected)

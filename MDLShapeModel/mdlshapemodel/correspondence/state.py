@@ -374,12 +374,32 @@ class CorrespondenceState:
                 + self.smoothness_energy(i, shape))
 
     def smoothness_energy(self, i: int | None = None, shape: np.ndarray | None = None) -> float:
-        """The prior's energy E (0 without a prior), or with example i's shape replaced."""
+        """The prior's energy (0 without a prior) of the population rescaled as F sees it,
+        f^2 E with f = target_size / cs(mean) (E is quadratic in the shapes' size: unscaled,
+        it would fall by shrinking the population), or with example i's shape replaced."""
         if self.smoothness_terms is None:
             return 0.0
         if i is None:
-            return self.smooth_energy
-        return self._smooth_trial(i, shape)[0]
+            return self._size_factor(self.sum_shapes) * self.smooth_energy
+        total = self.sum_shapes - self.shapes[i] + shape
+        return self._size_factor(total) * self._smooth_trial(i, shape)[0]
+
+    def _size_factor(self, total: np.ndarray) -> float:
+        """f^2 = (target_size / cs(mean))^2 for the shapes summing to ``total``."""
+        return (self.target_size / centroid_size(total / self.n_shapes, self.weights)) ** 2
+
+    def _smoothness_gradient(self, total: np.ndarray, energy: float, bent: np.ndarray
+                             ) -> np.ndarray:
+        """d(f^2 E)/dX for one example (``bent`` its B~ D, (n_p, 3)) or all ((n_s, n_p, 3)):
+        f^2 (w/h^2) B~ D_i plus the change of f^2, -(2/n_s) f^2 E w_k (xbar_k - c) / cs^2, the
+        same for every example (as in :meth:`scale_gradient`)."""
+        mean = total / self.n_shapes
+        size_squared = centroid_size(mean, self.weights) ** 2
+        scaled = self.target_size ** 2 / size_squared
+        offset = mean - weighted_centroid(mean, self.weights)
+        shift = (-2.0 / self.n_shapes * scaled * energy / size_squared
+                 * self.weights[:, None] * offset)
+        return scaled * self.smoothness_terms.factor * bent + shift
 
     def guide_cost(self, i: int | None = None, raw: np.ndarray | None = None) -> float:
         """The landmark term C of the guides (0 without), or with example i's unposed samples
@@ -417,8 +437,8 @@ class CorrespondenceState:
         grad += self.scale_gradient(self.sum_shapes, grad_cov, covariance).reshape(1, -1)
         grad = grad.reshape(self.shapes.shape)
         if self.smoothness_terms is not None:
-            grad += self.smoothness_terms.factor * self.bent
-        return value + self.guide_cost() + self.smooth_energy, grad
+            grad += self._smoothness_gradient(self.sum_shapes, self.smooth_energy, self.bent)
+        return value + self.guide_cost() + self.smoothness_energy(), grad
 
     def example_gradient(self, i: int, shape: np.ndarray | None = None
                          ) -> tuple[float, np.ndarray]:
@@ -440,8 +460,8 @@ class CorrespondenceState:
                 bent = bent + (1.0 - 1.0 / self.n_shapes) * bent_delta
             else:
                 energy = self.smooth_energy
-            value += energy
-            gradient = gradient + self.smoothness_terms.factor * bent
+            value += self._size_factor(total) * energy
+            gradient = gradient + self._smoothness_gradient(total, energy, bent)
         return value, gradient
 
     def _covariance_gradient(self, i, shape):
