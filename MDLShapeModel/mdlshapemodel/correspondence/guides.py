@@ -36,7 +36,7 @@ class Guides:
     indices : ndarray (n_l,) int
         The row of the shape vector (the part's offset plus the grid vertex k_l) of each label.
     targets : ndarray (n_s, n_l, 3)
-        Each example's landmarks on its surface, in its own coordinates (0 where absent).
+        Each example's landmarks on its surface, in its own coordinates (unused where absent).
     present : ndarray (n_s, n_l) bool
     weight : float
         lambda.
