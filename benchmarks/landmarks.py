@@ -108,39 +108,15 @@ def guide_labels(build_folder: Path) -> list[str]:
 # ---------------------------------------------------------------- transfer
 
 
-def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (k, 3) of ``points`` (k, 3) in the triangles (a, b, c) (each
-    (k, 3)); the points are taken to lie in their triangles (closest points), so the coordinates
-    are clipped to [0, 1] and renormalised. A degenerate triangle gives its closest vertex."""
-    v0, v1, v2 = b - a, c - a, points - a
-    d00 = np.einsum("ij,ij->i", v0, v0)
-    d01 = np.einsum("ij,ij->i", v0, v1)
-    d11 = np.einsum("ij,ij->i", v1, v1)
-    d20 = np.einsum("ij,ij->i", v2, v0)
-    d21 = np.einsum("ij,ij->i", v2, v1)
-    denominator = d00 * d11 - d01 ** 2
-    scale = np.maximum(d00 * d11, 1e-300)
-    regular = denominator > 1e-12 * scale
-    safe = np.where(regular, denominator, 1.0)
-    beta = (d11 * d20 - d01 * d21) / safe
-    gamma = (d00 * d21 - d01 * d20) / safe
-    weights = np.clip(np.stack([1.0 - beta - gamma, beta, gamma], axis=1), 0.0, 1.0)
-    if not regular.all():
-        corners = np.stack([a, b, c], axis=1)[~regular]                     # (d, 3, 3)
-        nearest = np.argmin(np.linalg.norm(corners - points[~regular, None], axis=2), axis=1)
-        weights[~regular] = np.eye(3)[nearest]
-    return weights / weights.sum(axis=1, keepdims=True)
-
-
 def locate(mesh_points: np.ndarray, triangles: np.ndarray, points: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The closest point of each of ``points`` (k, 3) on the mesh (mesh_points, triangles): its
     triangle index (k,), barycentric coordinates (k, 3) and distance (k,)."""
+    from mdlshapemodel.prepare.landmarks import barycentric
     from mdlshapemodel.prepare.surface import SurfaceDistance
 
     closest, distance, face = SurfaceDistance(mesh_points, triangles).closest(points)
-    corners = mesh_points[triangles[face]]
-    return face, barycentric(closest, corners[:, 0], corners[:, 1], corners[:, 2]), distance
+    return face, barycentric(closest, mesh_points[triangles[face]]), distance
 
 
 def transfer(points_i: np.ndarray, triangles: np.ndarray, landmarks_i: np.ndarray,

@@ -272,12 +272,23 @@ def on_surface(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
 
 
 def barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (k, 3) of points (k, 3) in the planes of triangles (k, 3, 3)."""
+    """Barycentric coordinates (k, 3) of points (k, 3) in triangles (k, 3, 3).
+
+    The points are taken to lie in their triangles (closest points): the coordinates are
+    clipped to [0, 1] and renormalised. A degenerate triangle gives its vertex nearest the point.
+    """
     a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
     v0, v1, v2 = b - a, c - a, points - a
     d00, d01, d11 = (np.einsum("kd,kd->k", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
     d20, d21 = np.einsum("kd,kd->k", v2, v0), np.einsum("kd,kd->k", v2, v1)
-    denominator = np.where(np.abs(d00 * d11 - d01 ** 2) > 0, d00 * d11 - d01 ** 2, 1.0)
-    v = (d11 * d20 - d01 * d21) / denominator
-    w = (d00 * d21 - d01 * d20) / denominator
-    return np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, 1.0)
+    denominator = d00 * d11 - d01 ** 2
+    regular = denominator > 1e-12 * np.maximum(d00 * d11, 1e-300)
+    safe = np.where(regular, denominator, 1.0)
+    beta = (d11 * d20 - d01 * d21) / safe
+    gamma = (d00 * d21 - d01 * d20) / safe
+    weights = np.clip(np.stack([1.0 - beta - gamma, beta, gamma], axis=1), 0.0, 1.0)
+    if not regular.all():
+        nearest = np.argmin(np.linalg.norm(corners[~regular] - points[~regular, None], axis=2),
+                            axis=1)
+        weights[~regular] = np.eye(3)[nearest]
+    return weights / weights.sum(axis=1, keepdims=True)
