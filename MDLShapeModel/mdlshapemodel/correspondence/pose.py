@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..prepare.sphere import best_rotation
+
 
 @dataclass
 class Pose:
@@ -78,11 +80,7 @@ def align(source: np.ndarray, target: np.ndarray, weights: np.ndarray,
     if planar:
         rotation, gain = planar_rotation(covariance)
     else:
-        u, singular, vt = np.linalg.svd(covariance)
-        d = np.ones(3)
-        d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-        rotation = (u * d) @ vt
-        gain = np.sum(singular * d)
+        rotation, gain = best_rotation(covariance)
     if scaling:
         variance = float(weights @ np.einsum("ij,ij->i", s, s))
         scale = float(gain / variance) if variance > 0 else 1.0

@@ -450,7 +450,7 @@ def align_parameterizations(maps: list, reference: int = 0, frames: list | None 
     for item, frame in zip(maps, frames):
         _, first = first_order_map(item.vertices, item.faces, item.sphere)
         crosses.append((frame @ first).T @ ref_first)
-    rotations = [_best_rotation(cross) for cross in crosses]
+    rotations = [best_rotation(cross)[0] for cross in crosses]
     if landmarks is not None and len(landmarks) and np.size(landmarks[0]):
         images = [np.asarray(points, dtype=np.float64) for points in landmarks]
         for _ in range(LANDMARK_ALIGNMENT_ROUNDS):
@@ -462,7 +462,7 @@ def align_parameterizations(maps: list, reference: int = 0, frames: list | None 
                 if known.any():
                     pull = points[known].T @ places[known]
                     cross = cross + LANDMARK_ALIGNMENT_WEIGHT * pull / known.sum()
-                rotations.append(_best_rotation(cross))
+                rotations.append(best_rotation(cross)[0])
     aligned = []
     for item, rotation in zip(maps, rotations):
         quality = dict(item.quality)
@@ -484,9 +484,10 @@ def shared_places(images: list, rotations: list) -> np.ndarray:
         return np.where((norms > 0) & known.any(axis=0)[:, None], total / norms, np.nan)
 
 
-def _best_rotation(cross: np.ndarray) -> np.ndarray:
-    """The proper rotation P maximising <cross, P> (orthogonal Procrustes)."""
-    u, _, vt = np.linalg.svd(cross)
+def best_rotation(cross: np.ndarray) -> tuple[np.ndarray, float]:
+    """The proper rotation P maximising <cross, P> (orthogonal Procrustes, a reflection never
+    allowed) and that maximum (3 x 3 ``cross``)."""
+    u, singular, vt = np.linalg.svd(cross)
     d = np.ones(3)
     d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return (u * d) @ vt
+    return (u * d) @ vt, float(np.sum(singular * d))
