@@ -210,7 +210,8 @@ def test_scaling_term_of_the_gradient(state):
     state.objective = build_objectives(state)[0]
     _, grad = state.shape_gradient()
     _, grad_cov = state.objective.gradient(state.covariance())
-    data = grad - state.scale_gradient(state.sum_shapes, grad_cov, state.covariance())[None]
+    amount = float(np.sum(grad_cov * state.covariance()))
+    data = grad - state.scale_gradient(state.sum_shapes, amount)[None]
     along = np.sum(data * state.shapes)
     assert abs(along) > 1e-3 * np.linalg.norm(data) * np.linalg.norm(state.shapes)
     assert np.sum(grad * state.shapes) == pytest.approx(0.0, abs=1e-9 * abs(along))

@@ -391,15 +391,10 @@ class CorrespondenceState:
     def _smoothness_gradient(self, total: np.ndarray, energy: float, bent: np.ndarray
                              ) -> np.ndarray:
         """d(f^2 E)/dX for one example (``bent`` its B~ D, (n_p, 3)) or all ((n_s, n_p, 3)):
-        f^2 (w/h^2) B~ D_i plus the change of f^2, -(2/n_s) f^2 E w_k (xbar_k - c) / cs^2, the
-        same for every example (as in :meth:`scale_gradient`)."""
-        mean = total / self.n_shapes
-        size_squared = centroid_size(mean, self.weights) ** 2
-        scaled = self.target_size ** 2 / size_squared
-        offset = mean - weighted_centroid(mean, self.weights)
-        shift = (-2.0 / self.n_shapes * scaled * energy / size_squared
-                 * self.weights[:, None] * offset)
-        return scaled * self.smoothness_terms.factor * bent + shift
+        f^2 (w/h^2) B~ D_i plus the change of f^2 (:meth:`scale_gradient`)."""
+        scaled = self._size_factor(total)
+        return (scaled * self.smoothness_terms.factor * bent
+                + self.scale_gradient(total, scaled * energy))
 
     def guide_cost(self, i: int | None = None, raw: np.ndarray | None = None) -> float:
         """The landmark term C of the guides (0 without), or with example i's unposed samples
@@ -434,7 +429,8 @@ class CorrespondenceState:
         flat = (self.shapes - self.reference).reshape(self.n_shapes, -1)
         flat *= np.repeat(2.0 * self.weights, 3)
         grad = multiplier @ flat
-        grad += self.scale_gradient(self.sum_shapes, grad_cov, covariance).reshape(1, -1)
+        grad += self.scale_gradient(self.sum_shapes,
+                                    float(np.sum(grad_cov * covariance))).reshape(1, -1)
         grad = grad.reshape(self.shapes.shape)
         if self.smoothness_terms is not None:
             grad += self._smoothness_gradient(self.sum_shapes, self.smooth_energy, self.bent)
@@ -452,7 +448,7 @@ class CorrespondenceState:
             row += multiplier[i, i] * (shape - self.shapes[i])
             total = total - self.shapes[i] + shape
         data = 2.0 * row * self.weights[:, None]
-        gradient = data + self.scale_gradient(total, grad_cov, covariance)
+        gradient = data + self.scale_gradient(total, float(np.sum(grad_cov * covariance)))
         if self.smoothness_terms is not None:
             bent = self.bent[i]
             if shape is not None:
@@ -475,15 +471,16 @@ class CorrespondenceState:
         centred = centred - centred.mean(axis=0)[None, :]
         return value, grad_cov, covariance, centred * factor ** 2
 
-    def scale_gradient(self, total, grad_cov, covariance) -> np.ndarray:
-        """(n_p, 3): the part of dF/dx_ik (the same for every example i) due to the rescaling
-        factor f = target_size / cs(mean): dF/df^2 = <Gd, D'> / f^2, d f^2 = -f^2 d cs^2 / cs^2,
+    def scale_gradient(self, total, amount: float) -> np.ndarray:
+        """(n_p, 3): the part of dT/dx_ik (the same for every example i) due to the rescaling
+        factor f = target_size / cs(mean), for a term T of F evaluated on the rescaled
+        population with dT/df^2 = ``amount`` / f^2 (the description length: amount = <Gd, D'>;
+        the smoothness prior, f^2 E: amount = f^2 E). d f^2 = -f^2 d cs^2 / cs^2 and
         d cs^2 / dx_ik = 2 w_k (xbar_k - c) / n_s."""
         mean = total / self.n_shapes
         offset = mean - weighted_centroid(mean, self.weights)
         size_squared = centroid_size(mean, self.weights) ** 2
-        return (-2.0 / self.n_shapes * float(np.sum(grad_cov * covariance)) / size_squared
-                * self.weights[:, None] * offset)
+        return -2.0 / self.n_shapes * amount / size_squared * self.weights[:, None] * offset
 
     @contextlib.contextmanager
     def trial_shapes(self, shapes: np.ndarray, raw: np.ndarray | None = None):
