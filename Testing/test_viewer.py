@@ -392,15 +392,15 @@ def test_the_normals_check_shows_its_map_and_the_cases_most_off(browser, tmp_pat
 
 
 def test_the_landmarks_section_lists_each_label_and_its_farthest_case(browser, tmp_path):
-    from mdlshapemodel.outputs import landmark_summary
+    from mdlshapemodel.outputs import CorrespondedLandmark, landmark_summary
 
     model, shapes, names = population(n_s=4, n_points=42)
     model.landmarks = {"tip": 3, "base": 17}
-    rows = [[name, label, "0", "0", "0", "0", "0", "0", f"{distance:.6f}"]
-            for name, distances in zip(names, ((0.2, 0.5), (0.4, 2.5), (0.1, 0.3), (0.3, 0.0)))
-            for label, distance in zip(("tip", "base"), distances)]
-    rows[-1][-1] = ""                         # the last case was not given its base
-    metrics = {**report_metrics(), "landmarks": landmark_summary(model, rows)}
+    records = [CorrespondedLandmark(name, label, np.zeros(3), np.array([distance, 0.0, 0.0]))
+               for name, distances in zip(names, ((0.2, 0.5), (0.4, 2.5), (0.1, 0.3), (0.3, 0.0)))
+               for label, distance in zip(("tip", "base"), distances)]
+    records[-1] = CorrespondedLandmark(names[-1], "base", np.zeros(3), None)   # not given
+    metrics = {**report_metrics(), "landmarks": landmark_summary(model, records)}
     path = write_report(tmp_path, metrics, [], [], model, shapes, names)
     page, errors, _ = _open(browser, path)
     assert errors == []

@@ -230,40 +230,58 @@ LANDMARK_COLUMNS = ("case", "label", "x", "y", "z", "given_x", "given_y", "given
                     "distance_mm")
 
 
+@dataclass(frozen=True)
+class CorrespondedLandmark:
+    """One case's corresponded point of one of the model's landmarks, in its input's coordinates,
+    and the landmark it was given (None where it has none): a row of landmarks.csv."""
+
+    case: str
+    label: str
+    point: np.ndarray
+    given: np.ndarray | None
+
+    @property
+    def distance(self) -> float | None:
+        """mm between the corresponded point and the given landmark (None: none given)."""
+        return None if self.given is None else float(np.linalg.norm(self.point - self.given))
+
+    def row(self) -> list:
+        """The row of landmarks.csv (:data:`LANDMARK_COLUMNS`)."""
+        given = (["", "", "", ""] if self.given is None else
+                 [*(f"{v:.6f}" for v in self.given), f"{self.distance:.6f}"])
+        return [self.case, self.label, *(f"{v:.6f}" for v in self.point)] + given
+
+
 def corresponded_landmarks(model, physical: list, prepared: list, given: dict | None) -> list:
-    """The rows of landmarks.csv: every case's corresponded point of each of the model's
-    landmarks (``model.landmarks``), in the coordinates of its input, with the landmark it was
-    given there (``given``: case name -> Landmarks; empty where it has none) and their
-    distance."""
-    rows = []
+    """Every case's :class:`CorrespondedLandmark` of each of the model's landmarks
+    (``model.landmarks``; ``physical``: the corresponded shapes in the inputs' coordinates;
+    ``given``: case name -> Landmarks)."""
+    records = []
     for points, case in zip(physical, prepared):
         marks = (given or {}).get(case.name)
         for label, row in model.landmarks.items():
-            point = points[row]
-            target = None if marks is None else marks.get(label)
-            rows.append([case.name, label, *(f"{v:.6f}" for v in point)]
-                        + (["", "", "", ""] if target is None else
-                           [*(f"{v:.6f}" for v in target),
-                            f"{float(np.linalg.norm(point - target)):.6f}"]))
-    return rows
+            records.append(CorrespondedLandmark(case.name, label, points[row],
+                                                None if marks is None else marks.get(label)))
+    return records
 
 
-def landmark_summary(model, rows: list) -> dict | None:
-    """metrics.json's ``landmarks`` from the rows of landmarks.csv: the labels, how many were
-    given, the distance of every corresponded landmark from the given one (mean, max) and per
-    label (cases, mean, max and the case of the max); None for a model without landmarks."""
+def landmark_summary(model, records: list) -> dict | None:
+    """metrics.json's ``landmarks`` from the :class:`CorrespondedLandmark` records: the labels,
+    how many were given, the distance of every corresponded landmark from the given one (mean,
+    max) and per label (cases, mean, max and the case of the max); None for a model without
+    landmarks."""
     if not model.landmarks:
         return None
-    given = [(row[0], row[1], float(row[-1])) for row in rows if row[-1] != ""]
+    given = [record for record in records if record.given is not None]
     per_label = {}
     for label in model.landmarks:
-        mine = [(distance, case) for case, name, distance in given if name == label]
+        mine = [(record.distance, record.case) for record in given if record.label == label]
         if mine:
             worst = max(mine)
             per_label[label] = {"cases": len(mine),
                                 "mean_mm": float(np.mean([d for d, _ in mine])),
                                 "max_mm": worst[0], "max_case": worst[1]}
-    distances = [distance for _, _, distance in given]
+    distances = [record.distance for record in given]
     return {"labels": list(model.landmarks), "given": len(given),
             "distance_mm": {"mean": float(np.mean(distances)), "max": float(np.max(distances))}
             if distances else None, "per_label": per_label}
@@ -330,9 +348,10 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                  [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
     io.write_csv(output / "cases.csv", list(cases[0].keys()),
                  [[c.get(k, "") for k in cases[0]] for c in cases])
-    landmark_rows = corresponded_landmarks(model, physical, prepared, corresponded.landmarks)
-    if landmark_rows:
-        io.write_csv(output / "landmarks.csv", LANDMARK_COLUMNS, landmark_rows)
+    landmarks = corresponded_landmarks(model, physical, prepared, corresponded.landmarks)
+    if landmarks:
+        io.write_csv(output / "landmarks.csv", LANDMARK_COLUMNS,
+                     [record.row() for record in landmarks])
     log.info("wrote the model, meshes and tables in %.1f s", time.perf_counter() - started)
     started = time.perf_counter()
     quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
@@ -358,7 +377,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
-               "landmarks": landmark_summary(model, landmark_rows),
+               "landmarks": landmark_summary(model, landmarks),
                "baselines": baselines or {}, "warnings": list(warnings)}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()
