@@ -33,11 +33,13 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
     points of the coarse grid where the fast strategy runs one. ``config.smoothness`` > 0 gives
     the state the prior of :mod:`.smoothness` (surfaces).
     """
+    # the mean voxel size: the unit of the coding accuracy, the guides and the prior
+    voxel = float(np.mean([case.voxel_size for case in prepared]))
     if prepared[0].is_curve:
         state = curve_state([[part.map for part in case.parts] for case in prepared],
                             [case.name for case in prepared], config.points_for(curves=True),
                             scaling=config.scaling)
-        return _with_objectives(state, prepared, config)
+        return _with_objectives(state, voxel, config)
     n_parts = len(prepared[0].parts)
     grid_points, grid_triangles = sphere_grid(config.points_for(curves=False))
     # several parts: each case's frame from its whole surface, the same for all its parts
@@ -58,21 +60,15 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
         candidates = coarse if 0 < coarse < len(grid_points) else len(grid_points)
         guides = guides_on_grid(placed, maps, grid_points, candidates,
                                 [j * len(grid_points) for j in range(n_parts)],
-                                config.landmark_weight, _voxel(prepared))
-    smoothness = (Smoothness(config.smoothness, _voxel(prepared)) if config.smoothness > 0
-                  else None)
+                                config.landmark_weight, voxel)
+    smoothness = Smoothness(config.smoothness, voxel) if config.smoothness > 0 else None
     state = CorrespondenceState(examples, [(grid_points, grid_triangles)] * n_parts,
                                 scaling=config.scaling, guides=guides, smoothness=smoothness)
-    return _with_objectives(state, prepared, config)
+    return _with_objectives(state, voxel, config)
 
 
-def _with_objectives(state: CorrespondenceState, prepared: list, config: BuildConfig):
+def _with_objectives(state: CorrespondenceState, voxel: float, config: BuildConfig):
     """(state, its two objectives, the mean voxel size, the data range of the aligned shapes)."""
-    voxel = _voxel(prepared)
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
     return state, objectives(config, voxel, data_range), voxel, data_range
 
-
-def _voxel(prepared: list) -> float:
-    """The mean voxel size of the cases: the unit of the coding accuracy and of the guides."""
-    return float(np.mean([case.voxel_size for case in prepared]))

@@ -293,8 +293,10 @@ class FieldRound:
             shapes = self.state.shapes.copy()
             shapes[self.active] = posed
         unposed = None
-        if self.state.guides is not None:
-            unposed = raw if everyone else self.state.raw_shapes()
+        if self.state.guides is not None and everyone:
+            unposed = raw
+        elif self.state.guides is not None:
+            unposed = self.state.raw_shapes()
             unposed[self.active] = raw
         return _Trial(x=np.array(x, copy=True), located=located, raw=raw, about=about,
                       rotation=rotation, jacobian=jacobian, scale=scale, shapes=shapes, pose=p,

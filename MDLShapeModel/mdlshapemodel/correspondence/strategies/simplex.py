@@ -108,9 +108,10 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
                 replace[b.j] = points
                 parts.append((i, part, kernels, positions, points, hint))
             if replace:
-                shapes[i] = example.pose.apply(example.raw_points(replace))
+                unposed = example.raw_points(replace)
+                shapes[i] = example.pose.apply(unposed)
                 if raw is not None:
-                    raw[i] = example.raw_points(replace)
+                    raw[i] = unposed
         return shapes, raw, parts
 
     def objective(x: np.ndarray) -> float:
