@@ -266,13 +266,11 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             marks.mkdir(exist_ok=True)
             config = replace(config, landmarks=str(marks))
         for item, node in zip(inputs, markups):
+            name = _caseName(item)
             if isinstance(item, (str, os.PathLike)):
-                from mdlshapemodel.prepare.io import case_name
-
                 paths.append(pathlib.Path(item))
-                name = case_name(item)
             else:
-                name = _uniqueName(_fileSafe(item.GetName() or item.GetID()), used)
+                name = _uniqueName(name, used)
             if node is not None:     # named after the case, as the build looks for it
                 _writeNode(node, marks / f"{name}.mrk.json", "vtkMRMLMarkupsJsonStorageNode")
             if isinstance(item, (str, os.PathLike)):
@@ -300,10 +298,7 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         """The markups node of each input (None where it has none): the one named after the
         input's case (a node's name; a file's name without its suffix), or that name followed
         by "_landmarks". Raises ValueError where a markups node matches no input."""
-        from mdlshapemodel.prepare.io import case_name
-
-        names = [case_name(item) if isinstance(item, (str, os.PathLike))
-                 else _fileSafe(item.GetName() or item.GetID()) for item in inputs]
+        names = [_caseName(item) for item in inputs]
         byName = {}
         for node in markupsNodes:
             name = node.GetName().removesuffix("_landmarks")
@@ -786,6 +781,16 @@ def segmentNames(text: str) -> list:
 
 def _fileSafe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "case"
+
+
+def _caseName(item) -> str:
+    """The case name a build gives an input: a file's name without its suffix, a node's name
+    made safe for a file name (exportInputs also makes node names unique)."""
+    if isinstance(item, (str, os.PathLike)):
+        from mdlshapemodel.prepare.io import case_name
+
+        return case_name(item)
+    return _fileSafe(item.GetName() or item.GetID())
 
 
 def _uniqueName(name: str, used: set) -> str:
