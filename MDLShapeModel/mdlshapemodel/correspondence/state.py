@@ -368,7 +368,7 @@ class CorrespondenceState:
               raw: np.ndarray | None = None) -> float:
         """F of the current state, or with shape i replaced by ``shape``: the description length
         of the covariance, plus the landmark term of the guides (if any), for which a trial also
-        gives ``raw``, its unposed samples."""
+        gives ``raw``, its unposed samples, and the smoothness prior's energy (if any)."""
         self.evaluations += 1
         return (self.objective(self.covariance(i, shape)) + self.guide_cost(i, raw)
                 + self.smoothness_energy(i, shape))

@@ -239,6 +239,7 @@ OUTPUT_FILES = (
                                      "in its input's space"),
     ("aligned/", "each case's corresponded mesh in the model's frame"),
     ("scores.csv", "each case's scores per mode"), ("cases.csv", "the table below"),
+    ("landmarks.csv", "each case's corresponded landmarks beside the ones given"),
     ("metrics.json", "every number of this page"), ("convergence.csv", "the objective by time"),
     ("config.json", "every setting of the build"), ("rejected.csv", "inputs left out and why"),
     ("build.log", "the build's log"))

@@ -201,8 +201,9 @@ def _phases(state: CorrespondenceState, objectives: tuple, settings: Optimisatio
     :data:`LANDMARK_PHASE_SHARE` of the time); the fixed-Delta objective's (unless
     ``fixed_fraction`` is 0), then the full objective's; for the fast strategy on all examples
     of surfaces sampled more finely than ``coarse_points`` (:func:`runs_coarse`), all on the
-    coarse grid (named "coarse landmarks", "coarse fixed" and "coarse integrated"; ``coarse_passes`` passes over the field levels in the first, one in
-    the second), whose maps are then carried over to the state's own grid."""
+    coarse grid (named "coarse landmarks", "coarse fixed" and "coarse integrated";
+    ``coarse_passes`` passes over the field levels in the fixed-Delta phase, one in the full
+    objective's), whose maps are then carried over to the state's own grid."""
     fixed, integrated = objectives
     total = settings.max_time
     coarse = runs_coarse(state, settings, active)
