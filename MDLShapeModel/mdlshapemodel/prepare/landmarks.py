@@ -31,7 +31,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -235,8 +235,14 @@ class SurfaceLandmarks:
 
     def on_sphere(self, sphere: np.ndarray, faces: np.ndarray) -> np.ndarray:
         """The points' images under another sphere map of the same mesh (e.g. rotated)."""
-        image = np.einsum("kc,kcd->kd", self.coords, np.asarray(sphere)[np.asarray(faces)[self.face]])
-        return image / np.linalg.norm(image, axis=1, keepdims=True)
+        return _sphere_image(self.coords, self.face, sphere, faces)
+
+
+def _sphere_image(coords: np.ndarray, face: np.ndarray, sphere: np.ndarray,
+                  faces: np.ndarray) -> np.ndarray:
+    """Unit vectors: the barycentric points ``coords`` of triangles ``face`` on a sphere map."""
+    image = np.einsum("kc,kcd->kd", coords, np.asarray(sphere)[np.asarray(faces)[face]])
+    return image / np.linalg.norm(image, axis=1, keepdims=True)
 
 
 def on_surface(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
@@ -267,8 +273,8 @@ def on_surface(vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
     closest, squared, face = TriangleGrid(vertices, faces).closest(points)
     corners = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)[face]]     # (k, 3, 3)
     coords = barycentric(closest, corners)
-    placed = SurfaceLandmarks(closest, face, coords, np.zeros((len(points), 3)), np.sqrt(squared))
-    return replace(placed, sphere=placed.on_sphere(sphere, faces))
+    return SurfaceLandmarks(closest, face, coords, _sphere_image(coords, face, sphere, faces),
+                            np.sqrt(squared))
 
 
 def barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
