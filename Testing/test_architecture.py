@@ -144,7 +144,7 @@ def test_leaves_import_neither_numba_nor_vtk_nor_the_optimiser(module):
             "'mdlshapemodel.correspondence', 'mdlshapemodel.prepare') if m in sys.modules]; "
             "print(','.join(heavy))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            check=True)
+                            check=True, timeout=120)
     assert result.stdout.strip() == ""
 
 

@@ -60,7 +60,8 @@ def test_a_case_prepares_bit_for_bit_alike_in_separate_processes(tmp_path):
         environment = dict(os.environ, PADDING="x" * padding, PYTHONPATH=package_root,
                            OPENBLAS_NUM_THREADS=str(k + 1), OMP_NUM_THREADS=str(k + 1))
         result = subprocess.run([sys.executable, "-c", PREPARE, str(path)], cwd=folder,
-                                env=environment, capture_output=True, text=True, check=True)
+                                env=environment, capture_output=True, text=True, check=True,
+                                timeout=300)
         outputs.add(result.stdout.strip())
     assert outputs == {f"{len(here.map.vertices)} {digest_of(here)}"}
 

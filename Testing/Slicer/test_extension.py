@@ -19,7 +19,7 @@ pytestmark = pytest.mark.skipif(CMAKE is None, reason="cmake is not installed")
 
 def configure(source, build):
     return subprocess.run([CMAKE, "-S", str(source), "-B", str(build), f"-DSlicer_DIR={STANDIN}"],
-                          capture_output=True, text=True)
+                          capture_output=True, text=True, timeout=120)
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,8 @@ def test_the_built_module_finds_its_resources_next_to_itself(build_tree):
     code = (f"import sys; sys.path.insert(0, {str(harness.HERE)!r}); import harness; "
             f"harness.install(); sys.path.insert(0, {str(modules)!r}); import MDLShapeModel; "
             "print(MDLShapeModel.__file__); print(MDLShapeModel.resourcePath('UI/MDLShapeModel.ui'))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
     assert done.returncode == 0, done.stderr
     module_file, ui_file = done.stdout.strip().splitlines()[-2:]
     assert module_file == str(modules / "MDLShapeModel.py")
