@@ -84,14 +84,25 @@ def generalization_verdicts(ratio, populations, n=15, modes=3, seed=5):
     return count / populations
 
 
-def test_the_generalization_difference_is_paired_over_the_same_cases():
-    a, b = noisy_pair(np.random.default_rng(3), 12, 1.0)
-    result = compare_populations([a, b], 4, 100)
+def test_the_generalization_difference_is_paired_and_its_error_a_jackknife_over_the_cases():
+    """The difference is the mean of the per-case differences of the leave-one-out errors; its
+    standard error the jackknife's, each case left out of both populations and G computed again
+    from the shapes, as written out here."""
+    a, b = noisy_pair(np.random.default_rng(3), 8, 1.0)
+    modes = 4
+    result = compare_populations([a, b], modes, 100)
     g = result["differences"]["b"]["generalization"]
-    per_case = [generalization(p.shapes, p.weights, 4)["squared_per_case"] for p in (a, b)]
-    differences = per_case[1] - per_case[0]
-    np.testing.assert_allclose(g["difference"], differences.mean(axis=0), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(g["se"], differences.std(axis=0, ddof=1) / np.sqrt(11), rtol=1e-9)
+
+    def difference(keep):
+        errors = [generalization(p.shapes[keep], p.weights, modes)["squared_per_case"]
+                  for p in (a, b)]
+        return (errors[1] - errors[0]).mean(axis=0)
+
+    n = 8
+    left_out = np.array([difference(np.delete(np.arange(n), j)) for j in range(n)])
+    jackknife = np.sqrt((n - 1) / n * np.sum((left_out - left_out.mean(axis=0)) ** 2, axis=0))
+    np.testing.assert_allclose(g["difference"], difference(np.arange(n)), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(g["se"], jackknife, rtol=1e-7)
     assert g["paired"] and not result["differences"]["b"]["specificity"]["paired"]
     # the unpaired SE counts the spread between cases, which both share: far larger
     unpaired = np.hypot(result["models"]["a"]["generalization_se"],
@@ -99,19 +110,21 @@ def test_the_generalization_difference_is_paired_over_the_same_cases():
     assert np.all(np.asarray(g["se"]) < 0.5 * unpaired)
 
 
-def test_equally_good_correspondences_are_rarely_called_different():
-    """False positives: two correspondences with noise of the same size (here 14-18 % at M = 1..3;
-    above the nominal 5 % because leave-one-out errors of different cases are not independent;
-    the unpaired rule: 0 %, at the price of the power below)."""
-    rate = generalization_verdicts(1.0, 50)
-    assert np.all(rate <= 0.25), rate
+def test_equally_good_correspondences_are_called_different_at_most_at_the_nominal_rate():
+    """False positives: two correspondences with independent noise of the same size, 100
+    populations of 15 cases, are called different at M = 1..3 at most about as often as two
+    standard errors allow (4.6 %; the binomial spread of 100 draws is 2 %). The per-case
+    differences' own spread, which ignores that each case's error depends on the others' model,
+    called 11-19 % of them different."""
+    rate = generalization_verdicts(1.0, 100)
+    assert np.all(rate <= 0.08), rate
 
 
 def test_a_correspondence_with_a_tenth_more_noise_is_found_worse():
-    """Power: the unpaired rule found 10 % more noise in 0, 0 and 23 % of these populations at
-    M = 1..3 (the cases' spread swamps it); the paired one in 93-100 %."""
+    """Power: 10 % more noise in one correspondence is found in most populations of 15 cases
+    (the unpaired rule, which counts the cases' spread as noise, in 0-23 %)."""
     rate = generalization_verdicts(1.1, 30)
-    assert np.all(rate >= 0.75), rate
+    assert np.all(rate >= 0.6), rate
 
 
 def test_only_shared_cases_are_compared():
@@ -129,9 +142,9 @@ def test_only_shared_cases_are_compared():
 
 def test_too_few_shared_cases_is_an_error():
     shapes, weights, _ = two_mode_population(n=5)
-    with pytest.raises(InputError, match="share only 2"):
+    with pytest.raises(InputError, match="share only 3 case.*at least 4"):
         compare_populations([Population("a", list("abcde"), shapes, weights),
-                             Population("b", list("abxyz"), shapes, weights)])
+                             Population("b", list("abcyz"), shapes, weights)])
 
 
 def test_write_comparison_and_load_population(tmp_path):

@@ -6,18 +6,14 @@ difference between two models at M modes is called significant when it exceeds t
 of the difference (the paper's criterion for its error bars, IV-B).
 
 Generalization is measured case by case on the same cases, so its difference is paired: the mean
-of the per-case differences of the leave-one-out errors, its standard error that of those
-differences (sd / sqrt(n - 1), as eq. 21). The unpaired sqrt(SE_a^2 + SE_b^2) counts the spread
-between cases, which both models share, as noise: on 20 hippocampi (642 points) it called no
-difference between a one-at-a-time build and the initial correspondence at any M (0 of 10), the
-paired rule 4 of 10; on synthetic populations whose correspondences differ by 10 % more noise the
-unpaired rule found it in 0-49 % of the populations at M = 1..3, the paired one in 90-99 %. Its
-false positives on two equally good correspondences (independent noise of the same size) were
-5-18 % at 10-30 cases, above the nominal 5 %: leave-one-out errors of different cases are not
-independent (each one's model holds the others). Compactness (no per-case values) and
-specificity (per-sample values of two different models) keep sqrt(SE_a^2 + SE_b^2); the
-specificity's SE is the Monte Carlo error of its samples only, so with 10,000 samples two builds
-that differ only in their seed are usually called different.
+of the per-case differences of the leave-one-out errors. Its standard error is a jackknife over
+the cases (:func:`mdlshapemodel.model.evaluation.generalization_difference`): the spread of the
+per-case differences alone would understate it, since each case's leave-one-out error depends on
+the model of all the others, and the unpaired sqrt(SE_a^2 + SE_b^2) would count the spread between
+cases, which both models share, as noise. Compactness (no per-case values) and specificity
+(per-sample values of two different models) keep sqrt(SE_a^2 + SE_b^2); the specificity's SE is
+the Monte Carlo error of its samples, so two builds that differ only in their seed, being
+different models, can be told apart. False positives and power: benchmarks/compare_calibration.py.
 """
 
 from __future__ import annotations
@@ -30,11 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..model.evaluation import evaluate, generalization
+from ..model.evaluation import evaluate, generalization_difference, model_space
 from ..model.shape_model import ShapeModel
 from ..prepare import io
 
 MEASURES = ("compactness", "generalization", "specificity")
+# the jackknife of the generalization difference leaves each case out and then each other case:
+# with fewer than 4, a leave-one-out model of the jackknife's populations has no mode
+MIN_SHARED_CASES = 4
 
 
 @dataclass
@@ -79,19 +78,18 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
     if not populations:
         raise InputError("nothing to compare")
     shared = [n for n in populations[0].names if all(n in p.names for p in populations[1:])]
-    if len(shared) < 3:
-        raise InputError(f"the models share only {len(shared)} case(s); at least 3 are needed")
+    if len(shared) < MIN_SHARED_CASES:
+        raise InputError(f"the models share only {len(shared)} case(s); at least "
+                         f"{MIN_SHARED_CASES} are needed")
     models = {}
-    per_case = {}           # the leave-one-out errors of each shared case, for paired differences
+    spaces = {}             # the model space of each population's shared cases, for paired differences
     for population in populations:
         index = [population.names.index(n) for n in shared]
         shapes = population.shapes[index]
         variances = ShapeModel.from_shapes(shapes, population.weights).variances
         models[population.label] = evaluate(shapes, population.weights, variances, max_modes,
                                             n_samples, np.random.default_rng(seed))
-        modes = len(models[population.label]["modes"])
-        per_case[population.label] = generalization(shapes, population.weights,
-                                                    modes)["squared_per_case"]
+        spaces[population.label] = model_space(shapes, population.weights)
     reference = populations[0].label
     differences = {}
     for label, values in models.items():
@@ -102,8 +100,8 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
             a = np.asarray(models[reference][measure])
             b = np.asarray(values[measure])
             if measure == "generalization":
-                paired = per_case[label] - per_case[reference]
-                se = paired.std(axis=0, ddof=1) / np.sqrt(len(shared) - 1)
+                se = generalization_difference(spaces[reference], spaces[label],
+                                               len(a))["se"]
             else:
                 se = np.hypot(np.asarray(models[reference][measure + "_se"]),
                               np.asarray(values[measure + "_se"]))
