@@ -160,7 +160,12 @@ def test_write_comparison_and_load_population(tmp_path):
     np.testing.assert_allclose(populations[0].shapes, shapes, atol=1e-9)
     result = compare_populations(populations, 2, 200)
     page = write_comparison(result, tmp_path / "cmp")
-    assert page.read_text().count("<img src='data:image/png;base64") == 1    # the measures' plot
+    text = page.read_text()
+    assert text.count("<img src='data:image/png;base64") == 1    # the measures' plot
+    # what was run: a table of version and date with no empty header row
+    run = text[text.index("<h2>What was run</h2>"):]
+    run = run[:run.index("</table>")]
+    assert "<th>" not in run and "<td>version</td>" in run and "<td>date</td>" in run
     assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["n_cases"] == 8
     assert (tmp_path / "cmp" / "compare.csv").read_text().startswith("measure,M,model")
     with pytest.raises(InputError, match="no model.h5"):

@@ -72,8 +72,9 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
     Returns a JSON-ready dict: ``cases`` (shared), ``models`` (label -> measures as from
     :func:`mdlshapemodel.model.evaluation.evaluate`) and ``differences`` (label -> measure -> per M:
     difference to the first model, its standard error, and whether it exceeds two of them;
-    ``paired`` says whether the standard error is that of per-case differences, as for
-    generalization, or sqrt(SE_a^2 + SE_b^2)).
+    ``paired`` says whether the difference is over the same cases, with the jackknife's standard
+    error (:func:`mdlshapemodel.model.evaluation.generalization_difference`), as for
+    generalization, or of two independent estimates, with sqrt(SE_a^2 + SE_b^2)).
     """
     if not populations:
         raise InputError("nothing to compare")
@@ -160,8 +161,8 @@ def write_comparison(result: dict, destination) -> Path:
     body = [f"<h1>Comparison of {len(series)} models</h1>",
             f"<p>{result['n_cases']} shared cases; differences are against "
             f"<b>{html.escape(result['reference'])}</b> and called significant beyond two "
-            "standard errors of the difference (for generalization, of the per-case differences: "
-            "the cases are the same). Lower is better for all three measures.</p>",
+            "standard errors of the difference (for generalization, the cases being the same, a "
+            "jackknife over them). Lower is better for all three measures.</p>",
             f"<img src='data:image/png;base64,{plot}' alt='measures'>", HOW_TO_READ,
             "<h2>What was run</h2>", run_table()]
     models = []

@@ -80,8 +80,11 @@ def convergence_plot(path: Path) -> str | None:
 
 
 def table(header, rows, flags=None) -> str:
-    """An HTML table; ``flags[i][j]`` true marks cell (i, j)."""
-    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
+    """An HTML table; ``flags[i][j]`` true marks cell (i, j); no header row when ``header`` is
+    None."""
+    head = ("" if header is None else
+            "<thead><tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
+            + "</tr></thead>")
     body = []
     for i, row in enumerate(rows):
         cells = []
@@ -89,7 +92,7 @@ def table(header, rows, flags=None) -> str:
             flagged = flags is not None and flags[i][j]
             cells.append(f"<td{' class=flag' if flagged else ''}>{html.escape(_fmt(value))}</td>")
         body.append("<tr>" + "".join(cells) + "</tr>")
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+    return f"<table>{head}<tbody>{''.join(body)}</tbody></table>"
 
 
 def _fmt(value) -> str:
@@ -268,7 +271,7 @@ def run_table() -> str:
 
     from ..version import __version__
 
-    return (table(("", ""), [("version", f"mdlshapemodel {__version__}"),
+    return (table(None, [("version", f"mdlshapemodel {__version__}"),
                              ("date", time.strftime("%Y-%m-%d %H:%M"))])
             + f"<p>Command:</p><pre class=command>{html.escape(shlex.join(sys.argv))}</pre>")
 
