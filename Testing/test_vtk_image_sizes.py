@@ -28,7 +28,7 @@ from mdlshapemodel.vtkmodel import ShapeModelReader, model_to_polydata, polydata
 from common import hippocampi, needs_hippocampi, run_cli, run_python
 from synthetic import small_mask
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+VTK_GUIDE = Path(__file__).resolve().parents[1] / "docs" / "vtk.md"
 
 
 def run_pipeline(code: str, folder: Path, *arguments) -> subprocess.CompletedProcess:
@@ -39,14 +39,14 @@ def run_pipeline(code: str, folder: Path, *arguments) -> subprocess.CompletedPro
     return result
 
 
-def readme_pipeline() -> str:
-    """The README's label-map-to-model VTK example, as written there."""
-    section = README.read_text()[README.read_text().index("## VTK pipelines"):]
+def guide_pipeline() -> str:
+    """docs/vtk.md's label-map-to-model VTK example, as written there."""
+    section = VTK_GUIDE.read_text()
     return next(block for block in re.findall(r"```python\n(.*?)```", section, re.S)
                 if "ShapeModelBuilder" in block)
 
 
-# The README's reader replaced by VTK's NIfTI reader and the file's orientation: the reader
+# The guide's reader replaced by VTK's NIfTI reader and the file's orientation: the reader
 # leaves it in the q-form matrix (from the image's coordinates, spacing applied, to RAS), and
 # vtkImageChangeInformation puts it into the image in LPS, the space of the library's reader.
 NIFTI_READER = textwrap.indent(textwrap.dedent("""\
@@ -70,7 +70,7 @@ def no_vtk_errors(stderr: str):
 @pytest.mark.slow
 @needs_hippocampi
 @pytest.mark.parametrize("reader", ["mha", "nifti"])
-def test_the_readme_pipeline_on_ten_hippocampi_builds_the_model_of_the_cli(reader, tmp_path):
+def test_the_vtk_guides_pipeline_on_ten_hippocampi_builds_the_model_of_the_cli(reader, tmp_path):
     files = hippocampi(10)
     names = [path.name.split(".")[0] for path in files]
     if reader == "mha":     # the same images as MetaImage files, which vtkMetaImageReader reads
@@ -80,7 +80,7 @@ def test_the_readme_pipeline_on_ten_hippocampi_builds_the_model_of_the_cli(reade
             sitk.WriteImage(sitk.ReadImage(str(path)), str(inputs[-1]))
     else:
         inputs = files
-    code = readme_pipeline()
+    code = guide_pipeline()
     listed = re.search(r"files = \{.*?\}", code, re.S).group(0)
     code = code.replace(listed, "files = " + repr({n: str(p) for n, p in zip(names, inputs)}))
     # a budget the optimisation never reaches, so that both builds stop on convergence alone

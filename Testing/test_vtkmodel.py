@@ -20,7 +20,7 @@ from mdlshapemodel.vtkmodel import (ShapeModelBuilder, ShapeModelInstance, Shape
 from files import read_polydata, write_label_map
 from synthetic import small_bump_top, small_mask
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+VTK_GUIDE = Path(__file__).resolve().parents[1] / "docs" / "vtk.md"
 NAMES = ["left_0", "left_1", "left_2", "right_3"]
 # small and deterministic: fast draws no random numbers and stops on its convergence test long
 # before the time limit
@@ -404,16 +404,15 @@ def test_abort_execute_cancels_the_optimisation(pipeline):
     assert builder.GetOutput(0).GetNumberOfPoints() == 42
 
 
-def test_the_readme_example_runs(tmp_path, monkeypatch):
-    text = README.read_text()
-    section = text[text.index("## VTK pipelines"):]
+def test_the_vtk_guides_example_runs(tmp_path, monkeypatch):
+    section = VTK_GUIDE.read_text()
     code = next(block for block in re.findall(r"```python\n(.*?)```", section, re.S)
                 if "ShapeModelBuilder" in block)
     files = re.search(r"files = (\{.*?\})", code, re.S).group(1)
     write_label_maps(tmp_path / "labels", list(ast.literal_eval(files)))  # the files it reads
     monkeypatch.chdir(tmp_path)
     namespace = {}
-    exec(compile(code, str(README), "exec"), namespace)
+    exec(compile(code, str(VTK_GUIDE), "exec"), namespace)
     builder, model_reader = namespace["builder"], namespace["model_reader"]
     assert builder.GetErrorText() == ""
     assert block_names(namespace["corresponded"]) == ["case_1", "case_2", "case_3", "case_4"]
