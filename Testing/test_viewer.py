@@ -228,6 +228,36 @@ def test_viewer_in_a_browser(browser, tmp_path):
     assert time.perf_counter() - started < 60
 
 
+def test_a_guided_models_landmarks_follow_the_sliders_and_the_picked_case(browser, tmp_path):
+    """The landmarks are a labelled trace at their rows of the shape shown: the mean, the mean
+    moved by a slider, a picked case."""
+    model, shapes, names = population(n_s=6, n_points=642)
+    model.landmarks = {"tip": 3, "base": 517}
+    rows = [3, 517]
+    path = tmp_path / "viewer.html"
+    path.write_text(html_page("viewer", viewer_section(model, shapes, names)), encoding="utf-8")
+    page, errors, requests = _open(browser, path)
+    plot = "document.getElementById('viewer-plot').data"
+
+    def shown():
+        _frames(page)
+        trace = page.evaluate(f"{plot}[1]")
+        return np.column_stack([trace["x"], trace["y"], trace["z"]])
+
+    assert page.evaluate(f"{plot}.length") == 2
+    assert page.evaluate(f"{plot}[1].text") == ["tip", "base"]
+    np.testing.assert_allclose(shown(), model.mean[rows], atol=1e-4)
+    _slide(page, 0, 2)
+    moved = model.mean + 2 * np.sqrt(model.variances[0]) * model.modes[0]
+    np.testing.assert_allclose(shown(), moved[rows], atol=1e-3)
+    page.select_option("#viewer-case", "4")
+    np.testing.assert_allclose(shown(), shapes[4][rows], atol=1e-2)   # quantised on the page
+    assert "landmarks that guided the build" in page.inner_text("#viewer p")
+    assert not errors, errors
+    assert not requests, requests
+    page.close()
+
+
 def test_multi_part_viewer_in_a_browser(browser, tmp_path):
     model, shapes, names = population(n_s=4, n_points=162, parts=2)
     path = tmp_path / "parts.html"

@@ -10,7 +10,9 @@ on the bounding box of all cases: a step below 1/65535 of its size, to keep the 
 A few lines of JavaScript turn the sliders into ``mean + sum_k s_k sqrt(lambda_k) mode_k`` and the
 colour into the displacement from the mean along the mean's outward normal, and call
 ``Plotly.restyle``; the case picker shows one corresponded case instead (coloured the same way).
-One ``mesh3d`` trace per part: the legend toggles the parts. A model of 2-D curves is drawn as its
+One ``mesh3d`` trace per part: the legend toggles the parts. The landmarks of a guided build are a
+``scatter3d`` trace of their labelled points, which follow the sliders and the picked case (they are
+rows of the points). A model of 2-D curves is drawn as its
 segments (a 2-D ``scatter`` per part, the points coloured). No network request: nothing is loaded
 from anywhere but the page.
 """
@@ -98,6 +100,8 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES,
         "along": _b64(along, np.float32), "normals": _b64(normals, np.float32),
         "cases": cases, "n_cases": n_cases,
         "pattern": _b64(correspondence_values(mean), np.float32),
+        "landmarks": [] if model.of_curves else [
+            {"label": str(label), "row": int(row)} for label, row in model.landmarks.items()],
     }
     if cases:
         data.update(case_low=[float(v) for v in low], case_step=[float(v) for v in step],
@@ -135,6 +139,7 @@ SCRIPT = r"""
   var s = new Float64Array(K), pending = false, curve = D.kind === 'curve';
   var cells = D.parts.map(function (part) { return new Int32Array(bytes(part.triangles)); });
   var div = document.getElementById('viewer-plot'), picker = document.getElementById('viewer-case');
+  var marks = D.landmarks || [];
 
   function model() {               // mean + sum_k s_k sqrt(lambda_k) mode_k, normal displacement
     var p = Float64Array.from(mean), c = new Float64Array(n);
@@ -173,6 +178,13 @@ SCRIPT = r"""
     });
     return curve ? {x: out.x, y: out.y, 'marker.color': out.intensity} : out;
   }
+  function landmarks(p) {          // the landmarks' points of a shape, as one trace's x, y, z
+    var x = [], y = [], z = [];
+    marks.forEach(function (mark) {
+      x.push(p[3 * mark.row]); y.push(p[3 * mark.row + 1]); z.push(p[3 * mark.row + 2]);
+    });
+    return {x: [x], y: [y], z: [z]};
+  }
   function current() {
     var pick = picker ? picker.value : '', mode = colouring ? colouring.value : 'normal';
     var shape = pick === '' ? model() : training(Number(pick));
@@ -196,12 +208,13 @@ SCRIPT = r"""
   }
   function draw() {
     pending = false;
-    var t = traces.apply(null, current());
-    Plotly.restyle(div, t, D.parts.map(function (_, i) { return i; }));
+    var shape = current();
+    Plotly.restyle(div, traces.apply(null, shape), D.parts.map(function (_, i) { return i; }));
+    if (marks.length) Plotly.restyle(div, landmarks(shape[0]), [D.parts.length]);
   }
   function later() { if (!pending) { pending = true; requestAnimationFrame(draw); } }
 
-  var first = traces.apply(null, model());
+  var start = model(), first = traces.apply(null, start);
   var data = D.parts.map(function (part, i) {
     if (curve) {
       return {type: 'scatter', mode: 'lines+markers', name: part.name, x: first.x[i],
@@ -218,6 +231,13 @@ SCRIPT = r"""
             coloraxis: 'coloraxis', showlegend: D.parts.length > 1, flatshading: false,
             hoverinfo: 'skip', lighting: {ambient: 0.6, diffuse: 0.6, specular: 0.1}};
   });
+  if (marks.length) {
+    var at = landmarks(start[0]), names = marks.map(function (mark) { return mark.label; });
+    data.push({type: 'scatter3d', mode: 'markers+text', name: 'landmarks', x: at.x[0],
+               y: at.y[0], z: at.z[0], text: names, hovertext: names, hoverinfo: 'text',
+               textposition: 'top center', textfont: {size: 11, color: '#111'},
+               marker: {size: 4, color: '#111'}, showlegend: true});
+  }
   var box = D.ranges, size = box.map(function (r) { return r[1] - r[0]; });
   var big = Math.max.apply(null, size);
   var axis = function (r) { return {range: r, visible: false}; };
@@ -313,6 +333,9 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES,
         + "</select></label>")
     parts_note = (" Click a part's name in the legend to hide or show it."
                   if len(data["parts"]) > 1 else "")
+    if data["landmarks"]:
+        parts_note += (" The black points are the landmarks that guided the build, where they "
+                       "lie on the shape shown; the legend hides them.")
     payload = json.dumps(data).replace("</", "<\\/")
     shown = (f": the first {len(data['cases'])} of {data['n_cases']} cases, to keep the page small"
              if len(data["cases"]) < data["n_cases"] else "")
