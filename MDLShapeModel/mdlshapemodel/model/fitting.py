@@ -26,6 +26,7 @@ from ..config import BuildConfig
 from ..correspondence.circle import CurvePart
 from ..correspondence.objective import objectives
 from ..correspondence.pose import Pose, align
+from ..correspondence.smoothness import Smoothness
 from ..correspondence.state import CorrespondenceState, Example, FixedExample, PartState
 from ..correspondence.strategies import optimise
 from ..correspondence.trace import Trace
@@ -145,18 +146,23 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
         examples.append(Example(case.name, [PartState(new.vertices, new.faces, new.sphere,
                                                       *grid)
                                             for new, grid in zip(new_maps, grids)]))
-    state = CorrespondenceState(examples, grids, scaling=config.scaling,
-                                planar=case.is_curve)
-
     voxel = float(model.metadata.get("voxel_size_mm", case.voxel_size))
+    # the model's prior on smooth correspondence (if it was built with one) holds for the new
+    # case too, so that its points do not slide where the training cases' could not
+    smoothness = (Smoothness(config.smoothness, voxel)
+                  if config.smoothness > 0 and not case.is_curve else None)
+    state = CorrespondenceState(examples, grids, scaling=config.scaling,
+                                planar=case.is_curve, smoothness=smoothness)
+
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
     fixed, integrated = objectives(config, voxel, data_range)
     initial = integrated(state.covariance())
     settings = replace(config, strategy=strategy or config.strategy, max_time=max_time,
                        max_sweeps=max_sweeps).optimisation_settings()
     trace = Trace()
-    final = optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), trace,
-                     progress, active=[len(examples) - 1])
+    optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), trace, progress,
+             active=[len(examples) - 1])
+    final = integrated(state.covariance())       # eq. 14, as ``initial`` (without the prior)
 
     raw = examples[-1].raw_points()
     to_model = align(raw, model.mean, model.weights, scaling=config.scaling,
