@@ -8,7 +8,8 @@ import pytest
 from mdlshapemodel.report.compare import (Population, compare_populations, comparison_rows,
                                    load_population, write_comparison)
 from mdlshapemodel.errors import InputError
-from mdlshapemodel.model.evaluation import evaluate, generalization
+from mdlshapemodel.model.evaluation import (evaluate, generalization, generalization_difference,
+                                           model_space)
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.correspondence.sampling import sphere_grid
 
@@ -108,6 +109,29 @@ def test_the_generalization_difference_is_paired_and_its_error_a_jackknife_over_
     unpaired = np.hypot(result["models"]["a"]["generalization_se"],
                         result["models"]["b"]["generalization_se"])
     assert np.all(np.asarray(g["se"]) < 0.5 * unpaired)
+
+
+def test_beyond_its_groups_the_jackknife_leaves_out_a_group_at_a_time():
+    """12 cases in 4 groups (case k in group k mod 4): each group left out of both populations
+    in turn, G computed again from the shapes, SE^2 = 3/4 sum_g (D_(g) - mean)^2."""
+    a, b = noisy_pair(np.random.default_rng(4), 12, 1.2)
+    modes = 3
+    result = generalization_difference(model_space(a.shapes, a.weights),
+                                       model_space(b.shapes, b.weights), modes, groups=4)
+
+    def difference(keep):
+        errors = [generalization(p.shapes[keep], p.weights, modes)["squared_per_case"]
+                  for p in (a, b)]
+        return (errors[1] - errors[0]).mean(axis=0)
+
+    group = np.arange(12) % 4
+    left_out = np.array([difference(np.flatnonzero(group != g)) for g in range(4)])
+    expected = np.sqrt(3 / 4 * np.sum((left_out - left_out.mean(axis=0)) ** 2, axis=0))
+    np.testing.assert_allclose(result["se"], expected, rtol=1e-7)
+    np.testing.assert_allclose(result["difference"], difference(np.arange(12)), rtol=1e-9)
+    with pytest.raises(ValueError, match="at least 2 groups"):
+        generalization_difference(model_space(a.shapes, a.weights),
+                                  model_space(b.shapes, b.weights), modes, groups=1)
 
 
 def test_equally_good_correspondences_are_called_different_at_most_at_the_nominal_rate():

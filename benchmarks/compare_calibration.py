@@ -5,7 +5,8 @@ The truth is a real build's corresponded shapes (its model.h5, in the model fram
 draws ``--cases`` of them, makes two correspondences of those cases by adding independent
 Gaussian noise to every point (sd ``--sigma`` mm, and ``ratio`` times that for the second) and
 asks compare's rule (two standard errors of the difference) at M = 1..``--modes``, with the
-jackknife standard error that compare uses and with the per-case differences' own spread.
+jackknife standard error that compare uses (``--groups`` sets where its groups begin) and with the
+per-case differences' own spread.
 
     python benchmarks/compare_calibration.py /tmp/h82/default --cases 15 --trials 200
 """
@@ -17,16 +18,18 @@ import time
 
 import numpy as np
 
-from mdlshapemodel.model.evaluation import generalization_difference, model_space
+from mdlshapemodel.model.evaluation import (JACKKNIFE_GROUPS, generalization_difference,
+                                           model_space)
 from mdlshapemodel.report.compare import load_population
 
 
-def trial(shapes, weights, rng, cases, sigma, ratio, modes):
+def trial(shapes, weights, rng, cases, sigma, ratio, modes, groups):
     """(significant by the jackknife, significant by the per-case spread), each (modes,)."""
     chosen = shapes[rng.choice(len(shapes), cases, replace=False)]
     a = chosen + rng.normal(0.0, sigma, chosen.shape)
     b = chosen + rng.normal(0.0, ratio * sigma, chosen.shape)
-    result = generalization_difference(model_space(a, weights), model_space(b, weights), modes)
+    result = generalization_difference(model_space(a, weights), model_space(b, weights), modes,
+                                       groups)
     magnitude = np.abs(result["difference"])
     return magnitude > 2 * result["se"], magnitude > 2 * result["paired_se"]
 
@@ -40,10 +43,14 @@ def main():
     parser.add_argument("--ratios", type=float, nargs="+", default=[1.0, 1.1])
     parser.add_argument("--modes", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--groups", type=int, default=JACKKNIFE_GROUPS,
+                        help="the jackknife's groups beyond this many cases (default: compare's, "
+                             "%(default)s)")
     args = parser.parse_args()
     population = load_population(args.build)
     print(f"truth: {population.label}, {len(population.names)} cases, "
-          f"{population.shapes.shape[1]} points; noise sd {args.sigma} mm; {args.trials} trials")
+          f"{population.shapes.shape[1]} points; noise sd {args.sigma} mm; {args.trials} trials; "
+          f"the jackknife in {args.groups} groups beyond {args.groups} cases")
     print("cases  ratio  called different at M = 1..%d: jackknife | per-case spread   seconds"
           % args.modes)
     for cases in args.cases:
@@ -53,7 +60,7 @@ def main():
             counts = np.zeros((2, args.modes))
             for _ in range(args.trials):
                 counts += np.array(trial(population.shapes, population.weights, rng, cases,
-                                         args.sigma, ratio, args.modes))
+                                         args.sigma, ratio, args.modes, args.groups))
             rates = counts / args.trials
             print(f"{cases:5d}  {ratio:5.2f}  {' '.join(f'{r:5.3f}' for r in rates[0])} | "
                   f"{' '.join(f'{r:5.3f}' for r in rates[1])}   "
