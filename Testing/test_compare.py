@@ -9,7 +9,7 @@ from mdlshapemodel.report.compare import (Population, compare_populations, compa
                                    load_population, write_comparison)
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.evaluation import (evaluate, generalization, generalization_difference,
-                                           model_space)
+                                           generalization_jackknife, model_space)
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.correspondence.sampling import sphere_grid
 
@@ -85,6 +85,13 @@ def generalization_verdicts(ratio, populations, n=15, modes=3, seed=5):
     return count / populations
 
 
+def direct_difference(a, b, keep, modes):
+    """G_b - G_a (M = 1..modes) of the cases ``keep`` alone, from their shapes."""
+    errors = [generalization(p.shapes[keep], p.weights, modes)["squared_per_case"]
+              for p in (a, b)]
+    return (errors[1] - errors[0]).mean(axis=0)
+
+
 def test_the_generalization_difference_is_paired_and_its_error_a_jackknife_over_the_cases():
     """The difference is the mean of the per-case differences of the leave-one-out errors; its
     standard error the jackknife's, each case left out of both populations and G computed again
@@ -93,16 +100,12 @@ def test_the_generalization_difference_is_paired_and_its_error_a_jackknife_over_
     modes = 4
     result = compare_populations([a, b], modes, 100)
     g = result["differences"]["b"]["generalization"]
-
-    def difference(keep):
-        errors = [generalization(p.shapes[keep], p.weights, modes)["squared_per_case"]
-                  for p in (a, b)]
-        return (errors[1] - errors[0]).mean(axis=0)
-
     n = 8
-    left_out = np.array([difference(np.delete(np.arange(n), j)) for j in range(n)])
+    left_out = np.array([direct_difference(a, b, np.delete(np.arange(n), j), modes)
+                         for j in range(n)])
     jackknife = np.sqrt((n - 1) / n * np.sum((left_out - left_out.mean(axis=0)) ** 2, axis=0))
-    np.testing.assert_allclose(g["difference"], difference(np.arange(n)), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(g["difference"], direct_difference(a, b, np.arange(n), modes),
+                               rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(g["se"], jackknife, rtol=1e-7)
     assert g["paired"] and not result["differences"]["b"]["specificity"]["paired"]
     # the unpaired SE counts the spread between cases, which both share: far larger
@@ -116,22 +119,21 @@ def test_beyond_its_groups_the_jackknife_leaves_out_a_group_at_a_time():
     in turn, G computed again from the shapes, SE^2 = 3/4 sum_g (D_(g) - mean)^2."""
     a, b = noisy_pair(np.random.default_rng(4), 12, 1.2)
     modes = 3
-    result = generalization_difference(model_space(a.shapes, a.weights),
-                                       model_space(b.shapes, b.weights), modes, groups=4)
-
-    def difference(keep):
-        errors = [generalization(p.shapes[keep], p.weights, modes)["squared_per_case"]
-                  for p in (a, b)]
-        return (errors[1] - errors[0]).mean(axis=0)
-
+    spaces = [model_space(p.shapes, p.weights) for p in (a, b)]
+    result = generalization_difference(*[generalization_jackknife(space, modes, groups=4)
+                                         for space in spaces])
     group = np.arange(12) % 4
-    left_out = np.array([difference(np.flatnonzero(group != g)) for g in range(4)])
+    left_out = np.array([direct_difference(a, b, np.flatnonzero(group != g), modes)
+                         for g in range(4)])
     expected = np.sqrt(3 / 4 * np.sum((left_out - left_out.mean(axis=0)) ** 2, axis=0))
     np.testing.assert_allclose(result["se"], expected, rtol=1e-7)
-    np.testing.assert_allclose(result["difference"], difference(np.arange(12)), rtol=1e-9)
+    np.testing.assert_allclose(result["difference"], direct_difference(a, b, np.arange(12), modes),
+                               rtol=1e-9)
     with pytest.raises(ValueError, match="at least 2 groups"):
-        generalization_difference(model_space(a.shapes, a.weights),
-                                  model_space(b.shapes, b.weights), modes, groups=1)
+        generalization_jackknife(spaces[0], modes, groups=1)
+    with pytest.raises(ValueError, match="the same cases, groups and modes"):
+        generalization_difference(generalization_jackknife(spaces[0], modes, groups=4),
+                                  generalization_jackknife(spaces[1], modes, groups=3))
 
 
 def test_equally_good_correspondences_are_called_different_at_most_at_the_nominal_rate():

@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from mdlshapemodel.model.evaluation import (JACKKNIFE_GROUPS, generalization_difference,
-                                           model_space)
+                                           generalization_jackknife, model_space)
 from mdlshapemodel.report.compare import load_population
 
 
@@ -28,8 +28,8 @@ def trial(shapes, weights, rng, cases, sigma, ratio, modes, groups):
     chosen = shapes[rng.choice(len(shapes), cases, replace=False)]
     a = chosen + rng.normal(0.0, sigma, chosen.shape)
     b = chosen + rng.normal(0.0, ratio * sigma, chosen.shape)
-    result = generalization_difference(model_space(a, weights), model_space(b, weights), modes,
-                                       groups)
+    result = generalization_difference(
+        *[generalization_jackknife(model_space(c, weights), modes, groups) for c in (a, b)])
     magnitude = np.abs(result["difference"])
     return magnitude > 2 * result["se"], magnitude > 2 * result["paired_se"]
 

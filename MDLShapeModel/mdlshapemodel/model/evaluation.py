@@ -206,27 +206,54 @@ def _squared_per_case(coordinates: np.ndarray, max_modes: int) -> np.ndarray:
     return squared
 
 
-#: The jackknife of :func:`generalization_difference` leaves out one case at a time up to this
+#: The jackknife of :func:`generalization_jackknife` leaves out one case at a time up to this
 #: many cases, and beyond it one of this many groups at a time (case k in group k mod groups): its
 #: cost grows as n_s^2 per group, so a population of 1000 costs 50 recomputations, not 1000.
 JACKKNIFE_GROUPS = 50
 
 
-def generalization_difference(a: ModelSpace, b: ModelSpace, max_modes: int,
-                              groups: int = JACKKNIFE_GROUPS) -> dict:
-    """G_b(M) - G_a(M) of two correspondences of the same cases (rows in the same order), and
-    its jackknife standard error over the cases.
+@dataclass(frozen=True)
+class GeneralizationJackknife:
+    """The squared leave-one-out errors of one correspondence's cases, ``per_case`` (n_s, M),
+    and their mean with each of the jackknife's groups of cases left out of the population,
+    ``left_out`` (groups, M). Two of the same cases and groups give
+    :func:`generalization_difference`."""
+
+    per_case: np.ndarray
+    left_out: np.ndarray
+
+
+def generalization_jackknife(space: ModelSpace, max_modes: int,
+                             groups: int = JACKKNIFE_GROUPS) -> GeneralizationJackknife:
+    """The leave-one-out errors (eq. 20) of the shapes of ``space``, and their mean with each
+    group of cases left out of the population altogether (every other case's leave-one-out
+    model then lacks that group too): one case per group up to ``groups`` cases, beyond them
+    ``groups`` groups (case k in group k mod groups)."""
+    n_s = len(space.coordinates)
+    if n_s < 4:
+        raise ValueError(f"the jackknife needs at least 4 cases, not {n_s}")
+    if groups < 2:
+        raise ValueError(f"the jackknife needs at least 2 groups, not {groups}")
+    count = min(n_s, groups)
+    group_of = np.arange(n_s) % count
+    left_out = np.array([
+        _squared_per_case(subspace(space, np.flatnonzero(group_of != g)).coordinates,
+                          max_modes).mean(axis=0) for g in range(count)])
+    return GeneralizationJackknife(_squared_per_case(space.coordinates, max_modes), left_out)
+
+
+def generalization_difference(a: GeneralizationJackknife, b: GeneralizationJackknife) -> dict:
+    """G_b(M) - G_a(M) of two correspondences of the same cases (rows in the same order, the
+    same groups), and its jackknife standard error over the cases.
 
     The difference is the mean of the per-case differences of the squared leave-one-out errors
     (eq. 20-21). Their spread understates its error: each case's error depends on the model of
     all the others, so the per-case differences are not independent. The jackknife recomputes
-    the difference with each case j left out of the population altogether (every other case's
-    leave-one-out model then lacks j too): with D_(j) those n_s values,
-    SE^2 = (n_s - 1)/n_s sum_j (D_(j) - mean D_(.))^2. Beyond ``groups`` cases, the cases are
-    split into ``groups`` groups (case k in group k mod groups) and each group is left out in
-    turn: the same formula with g groups for n_s.
+    the difference with each group of cases left out of both populations
+    (:func:`generalization_jackknife`): with D_(g) those g values,
+    SE^2 = (g - 1)/g sum_g (D_(g) - mean D_(.))^2 (g = n_s: one case per group).
 
-    Returns a dict of arrays (max_modes,): ``difference``, ``se`` (jackknife), and ``paired_se``
+    Returns a dict of arrays (M,): ``difference``, ``se`` (jackknife), and ``paired_se``
     (sd of the per-case differences / sqrt(n_s - 1), the error eq. 21 would give them).
 
     Examples
@@ -235,27 +262,19 @@ def generalization_difference(a: ModelSpace, b: ModelSpace, max_modes: int,
     >>> shapes = rng.normal(size=(8, 20, 3))
     >>> noisier = shapes + rng.normal(scale=0.5, size=shapes.shape)
     >>> weights = np.full(20, 1 / 20)
-    >>> result = generalization_difference(model_space(shapes, weights),
-    ...                                    model_space(noisier, weights), 2)
+    >>> result = generalization_difference(
+    ...     generalization_jackknife(model_space(shapes, weights), 2),
+    ...     generalization_jackknife(model_space(noisier, weights), 2))
     >>> bool(np.all(result["difference"] > 0))
     True
     """
-    n_s = len(a.coordinates)
-    if len(b.coordinates) != n_s or n_s < 4:
-        raise ValueError(f"two spaces of the same cases, at least 4, are needed "
-                         f"(got {n_s} and {len(b.coordinates)})")
-    per_case = (_squared_per_case(b.coordinates, max_modes)
-                - _squared_per_case(a.coordinates, max_modes))
-    if groups < 2:
-        raise ValueError(f"the jackknife needs at least 2 groups, not {groups}")
-    count = min(n_s, groups)
-    group_of = np.arange(n_s) % count
-    left_out = np.empty((count, max_modes))
-    for g in range(count):
-        others = np.flatnonzero(group_of != g)
-        left_out[g] = (_squared_per_case(subspace(b, others).coordinates, max_modes)
-                       - _squared_per_case(subspace(a, others).coordinates, max_modes)
-                       ).mean(axis=0)
+    if a.per_case.shape != b.per_case.shape or a.left_out.shape != b.left_out.shape:
+        raise ValueError(f"two jackknifes of the same cases, groups and modes are needed (got "
+                         f"{a.per_case.shape}, {a.left_out.shape} and {b.per_case.shape}, "
+                         f"{b.left_out.shape})")
+    per_case = b.per_case - a.per_case
+    left_out = b.left_out - a.left_out
+    count, n_s = len(left_out), len(per_case)
     spread = np.sum((left_out - left_out.mean(axis=0)) ** 2, axis=0)
     return {"difference": per_case.mean(axis=0),
             "se": np.sqrt((count - 1.0) / count * spread),

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..model.evaluation import evaluate, generalization_difference, model_space
+from ..model.evaluation import (evaluate, generalization_difference, generalization_jackknife,
+                                model_space)
 from ..model.shape_model import ShapeModel
 from ..prepare import io
 
@@ -83,14 +84,15 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
         raise InputError(f"the models share only {len(shared)} case(s); at least "
                          f"{MIN_SHARED_CASES} are needed")
     models = {}
-    spaces = {}             # the model space of each population's shared cases, for paired differences
+    jackknifes = {}         # each population's leave-one-out errors, for paired differences
     for population in populations:
         index = [population.names.index(n) for n in shared]
         shapes = population.shapes[index]
         variances = ShapeModel.from_shapes(shapes, population.weights).variances
         models[population.label] = evaluate(shapes, population.weights, variances, max_modes,
                                             n_samples, np.random.default_rng(seed))
-        spaces[population.label] = model_space(shapes, population.weights)
+        jackknifes[population.label] = generalization_jackknife(
+            model_space(shapes, population.weights), len(models[population.label]["modes"]))
     reference = populations[0].label
     differences = {}
     for label, values in models.items():
@@ -101,8 +103,7 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
             a = np.asarray(models[reference][measure])
             b = np.asarray(values[measure])
             if measure == "generalization":
-                se = generalization_difference(spaces[reference], spaces[label],
-                                               len(a))["se"]
+                se = generalization_difference(jackknifes[reference], jackknifes[label])["se"]
             else:
                 se = np.hypot(np.asarray(models[reference][measure + "_se"]),
                               np.asarray(values[measure + "_se"]))
