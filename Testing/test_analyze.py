@@ -4,6 +4,7 @@ number of analysis.json recomputed here, the files read back by VTK, bad tables 
 from __future__ import annotations
 
 import csv
+import html
 import json
 from pathlib import Path
 
@@ -96,12 +97,23 @@ def vtk_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return vtk_to_numpy(normals.GetOutput().GetPointData().GetNormals()).astype(np.float64)
 
 
+def area_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Point normals as the sums of the area-weighted normals of the triangles around them."""
+    corners = points[triangles]
+    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    summed = np.zeros_like(points)
+    for k in range(3):
+        np.add.at(summed, triangles[:, k], face)
+    return summed
+
+
 def test_every_number_of_analysis_json_is_recomputed(build, table, analysed):
     summary = json.loads((analysed / "analysis.json").read_text())
     used = [f"case_{k:02d}" for k in range(N) if k != 5]
     assert summary["n_cases"] == 11
     assert summary["n_per_group"] == {"full": 6, "thin": 5}
-    assert summary["left_out"] == [{"case": "case_05", "reason": "no value for 'group'"}]
+    assert summary["left_out"] == [{"case": "case_05", "reason": "no value for 'group'",
+                                    "missing": {"group": ""}}]
     assert summary["unmatched_rows"] == ["case_99"]
     points = read_points(analysed / "points.csv")
     assert summary["significant_points"] == {
@@ -115,12 +127,8 @@ def test_every_number_of_analysis_json_is_recomputed(build, table, analysed):
     np.testing.assert_allclose(np.column_stack([points[c].astype(float) for c in "xyz"]), mean,
                                atol=5e-5 * np.abs(mean).max())
     thin = np.array([int(n[-2:]) % 2 == 1 for n in used])
-    corners = mean[model.triangles]
-    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    summed = np.zeros_like(mean)
-    for k in range(3):
-        np.add.at(summed, model.triangles[:, k], face)       # area-weighted face normals
-    for normals, tolerance in ((summed, 1e-5), (vtk_normals(mean, model.triangles), 0.05)):
+    for normals, tolerance in ((area_normals(mean, model.triangles), 1e-5),
+                               (vtk_normals(mean, model.triangles), 0.05)):
         unit = normals / np.linalg.norm(normals, axis=1)[:, None]
         normal = np.einsum("npd,pd->np", aligned - mean, unit)
         t = stats.ttest_ind(normal[thin], normal[~thin]).statistic
@@ -189,8 +197,8 @@ def test_effects_vtp_holds_the_points_csv_values_for_vtk(analysed):
 
 def test_a_covariate_with_nuisance_writes_its_effect_per_unit(build, table, tmp_path):
     result = run_cli("analyze", build, "--table", table, "--covariate", "age", "--nuisance",
-                     "sex", "--displacement", "vector", "--permutations", "99", "-o",
-                     tmp_path / "age", "-q")
+                     "sex", "--categorical", "sex", "--displacement", "vector",
+                     "--permutations", "99", "-o", tmp_path / "age", "-q")
     assert result.returncode == 0, result.stderr
     summary = json.loads((tmp_path / "age" / "analysis.json").read_text())
     assert summary["n_cases"] == 12 and summary["n_per_group"] is None
@@ -212,8 +220,16 @@ def test_an_earlier_analysis_is_refused_without_overwrite(build, table, analysed
      "has one level ('same')"),
     ("case,group\n" + "".join(f"case_{k:02d},{'a' if k else 'b'}\n" for k in range(N)),
      ["--group", "group"], "group group='b' has 1 case(s); each group needs at least 3"),
-    ("case,age\n" + "".join(f"case_{k:02d},{'old' if k == 3 else k}\n" for k in range(N)),
-     ["--covariate", "age"], "covariate 'age' is not numeric (value 'old')"),
+    ("case,age\n" + "".join(f"case_{k:02d},{'old' if k % 2 else 'young'}\n"
+                            for k in range(N)),
+     ["--covariate", "age"], "covariate 'age' is not numeric: 12 of 12 values are not numbers "
+                             "('young', 'old')"),
+    ("case,group,sex\n" + "".join(f"case_{k:02d},{k % 2},{'F' if k % 3 else 'M'}\n"
+                                  for k in range(N)),
+     ["--group", "group", "--nuisance", "sex"], "nuisance column 'sex' is not numeric"),
+    ("case,group,age\n" + "".join(f"case_{k:02d},{k % 2},{k}\n" for k in range(N)),
+     ["--group", "group", "--nuisance", "age", "--test", "age"],
+     "test: 'age' is not the group or a covariate"),
     ("case,group\n" + "".join(f"other_{k},a\n" for k in range(N)), ["--group", "group"],
      "no row matches a case of the build"),
     ("case,group\ncase_00,a\n", ["--group", "diagnosis"], "no column 'diagnosis'"),
@@ -237,3 +253,84 @@ def test_a_folder_that_is_not_a_build_is_refused(table, tmp_path):
                      tmp_path / "out", "-q")
     assert result.returncode == 2 and "not a build folder (no model.h5)" in result.stderr
     assert not (tmp_path / "out").exists()
+
+
+def ages_table(path: Path, missing: str | None = None, drop: bool = False) -> Path:
+    """Groups thin/full alternating and ages of four values that repeat (40 to 55); case_04's
+    age is ``missing`` (when given), or its row is left out of the table (``drop``)."""
+    rows = [[f"case_{k:02d}", "thin" if k % 2 else "full", 40 + 5 * (k // 3)]
+            for k in range(N)]
+    if missing is not None:
+        rows[4][2] = missing
+    return write_table(path, [r for r in rows if not (drop and r[0] == "case_04")],
+                       header=("case", "group", "age"))
+
+
+def test_a_missing_age_leaves_its_case_out_and_changes_nothing_else(build, tmp_path):
+    """The issue's scenario: --group with --covariate age, one age NA. The case is left out and
+    listed; the analysis is the one of the table without that row (age one numeric column,
+    N - 1 cases, N - 4 residual degrees of freedom), not one with age as a factor."""
+    outputs = {}
+    for name, table in (("marked", ages_table(tmp_path / "marked.csv", missing="NA")),
+                        ("dropped", ages_table(tmp_path / "dropped.csv", drop=True))):
+        result = run_cli("analyze", build, "--table", table, "--group", "group", "--covariate",
+                         "age", "--permutations", "999", "-o", tmp_path / name)
+        assert result.returncode == 0, result.stderr
+        assert "tested: group; adjusted for: age (8 residual degrees of freedom)" in result.stdout
+        outputs[name] = (result, json.loads((tmp_path / name / "analysis.json").read_text()))
+    result, marked = outputs["marked"]
+    assert "left out case_04: 'age' is missing ('NA')" in result.stderr
+    assert marked["left_out"] == [{"case": "case_04", "reason": "'age' is missing ('NA')",
+                                   "missing": {"age": "NA"}}]
+    assert marked["tested"] == ["group"] and marked["adjusted_for"] == ["age"]
+    assert marked["degrees_of_freedom"] == (N - 1) - 3          # intercept, group, age
+    dropped = outputs["dropped"][1]
+    for key in ("n_cases", "n_per_group", "tested", "adjusted_for", "effects", "global_test",
+                "significant_points", "degrees_of_freedom", "classification", "discriminant"):
+        assert marked[key] == dropped[key], key
+    assert ((tmp_path / "marked" / "points.csv").read_bytes()
+            == (tmp_path / "dropped" / "points.csv").read_bytes())
+    page = html.unescape((tmp_path / "marked" / "analysis.html").read_text())
+    assert "<td>case_04</td><td>'age' is missing ('NA')</td>" in page
+
+
+def test_a_covariate_beside_a_group_is_tested_with_test(build, tmp_path):
+    """--test age: the statistic at each point is the F of age added to a model of the group
+    (ordinary least squares, recomputed here), the effect its slope; the page says so."""
+    table = ages_table(tmp_path / "ages.csv")
+    output = tmp_path / "age"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "--covariate",
+                     "age", "--test", "age", "--permutations", "999", "-o", output)
+    assert result.returncode == 0, result.stderr
+    assert "tested: age; adjusted for: group (9 residual degrees of freedom)" in result.stdout
+    summary = json.loads((output / "analysis.json").read_text())
+    assert summary["tested"] == ["age"] and summary["adjusted_for"] == ["group"]
+    assert summary["effects"] == ["age"] and summary["classification"] is None
+
+    names = [f"case_{k:02d}" for k in range(N)]
+    model = ShapeModel.load(build / "model.h5")
+    aligned = align(shapes_of(build, names), model.weights)
+    mean = aligned.mean(axis=0)
+    normals = area_normals(mean, model.triangles)
+    normal = np.einsum("npd,pd->np", aligned - mean,
+                       normals / np.linalg.norm(normals, axis=1)[:, None])
+    thin = np.array([k % 2 for k in range(N)], dtype=float)
+    age = np.array([40 + 5 * (k // 3) for k in range(N)], dtype=float)
+    reduced = np.column_stack([np.ones(N), thin])
+    full = np.column_stack([reduced, age])
+
+    def residual_sum(design, y):
+        return np.sum((y - design @ np.linalg.lstsq(design, y, rcond=None)[0]) ** 2, axis=0)
+
+    f = ((residual_sum(reduced, normal) - residual_sum(full, normal))
+         / (residual_sum(full, normal) / (N - 3)))
+    points = read_points(output / "points.csv")
+    np.testing.assert_allclose(points["statistic"].astype(float), f, rtol=2e-5)
+    slope = np.linalg.lstsq(full, (aligned - mean).reshape(N, -1), rcond=None)[0][-1]
+    np.testing.assert_allclose(
+        np.column_stack([points[f"difference_{c}"].astype(float) for c in "xyz"]),
+        slope.reshape(-1, 3), atol=1e-6)
+    page = (output / "analysis.html").read_text()
+    assert "Tested: <b>age</b>; adjusted for: group <b>group</b>." in page
+    assert "Where the shapes differ by <b>age</b>" in page
+    assert "effect of age, per unit" in page and "Discriminant" not in page

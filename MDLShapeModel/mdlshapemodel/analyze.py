@@ -6,7 +6,8 @@ output folder holds a whole analysis or none (an interrupted run leaves nothing 
 
 The output folder::
 
-    analysis.json   settings, cases per group, cases left out and why, the global test, the
+    analysis.json   settings, the columns tested and adjusted for, cases per group, cases left
+                    out and why (with the columns and values missing), the global test, the
                     number of significant points (FWER, FDR), the classification
     points.csv      one row per model point: point,part,x,y,z,statistic,p,p_fwer,q_fdr,
                     difference_x,difference_y,difference_z,normal_difference_mm
@@ -83,10 +84,10 @@ def summary_of(analysis: Analysis, build, table) -> dict:
         "n_cases": len(design.cases),
         "n_per_group": ({level: design.groups.count(level) for level in design.levels}
                         if design.groups is not None else None),
-        "tested": design.interest_names,
-        "adjusted_for": ([*config.covariates, *config.nuisance] if config.group
-                         else list(config.nuisance)),
-        "left_out": [{"case": c, "reason": r} for c, r in design.left_out],
+        "tested": design.tested,
+        "adjusted_for": design.adjusted_for,
+        "effects": design.interest_names,
+        "left_out": [asdict(case) for case in design.left_out],
         "unmatched_rows": design.unmatched,
         "global_test": {"modes": analysis.global_test.modes,
                         "statistic": analysis.global_test.statistic,
@@ -194,7 +195,7 @@ def analyze_build(build, table, output, config: AnalysisConfig | None = None, pr
     output = Path(output)
     built = read_build(build)
     design = subjects(table, built.model.names, config.group, config.covariates,
-                      config.nuisance, config.reference)
+                      config.nuisance, config.reference, config.categorical, config.test)
     if output.resolve() == Path(build).resolve():
         raise InputError(f"{output}: the output folder is the build folder; choose another")
     earlier = earlier_analysis(output)

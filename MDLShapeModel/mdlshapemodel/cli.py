@@ -328,7 +328,8 @@ def _run_analyze(args, live: bool) -> int:
     from .analyze import analyze_build
 
     config = AnalysisConfig(group=args.group, covariates=args.covariate,
-                            nuisance=args.nuisance, reference=args.reference,
+                            nuisance=args.nuisance, categorical=args.categorical,
+                            test=args.test, reference=args.reference,
                             permutations=args.permutations, size=args.size, parts=args.parts,
                             displacement=args.displacement, alpha=args.alpha,
                             seed=args.seed).validate()
@@ -341,7 +342,10 @@ def _run_analyze(args, live: bool) -> int:
         log.warning("left out %s: %s", case, reason)
     if summary["unmatched_rows"]:
         log.warning("table rows matching no case: %s", ", ".join(summary["unmatched_rows"]))
-    lines = [f"  cases: {summary['n_cases']}"
+    lines = [f"  tested: {', '.join(summary['tested'])}; adjusted for: "
+             f"{', '.join(summary['adjusted_for']) or 'nothing'} "
+             f"({summary['degrees_of_freedom']} residual degrees of freedom)",
+             f"  cases: {summary['n_cases']}"
              + (" (" + ", ".join(f"{k}: {v}" for k, v in summary["n_per_group"].items()) + ")"
                 if summary["n_per_group"] else ""),
              f"  points significant at alpha {config.alpha}: {counts['fwer']} family-wise, "
@@ -463,10 +467,23 @@ def main(argv=None) -> int:
                     "unusual: per-point tests on the corresponded shapes of a build with "
                     "permutation inference (family-wise and FDR corrected), a global test, the "
                     "discriminant of two groups and its cross-validated classification. Writes "
-                    "analysis.json, points.csv, effects.vtp, unusual.csv and analysis.html.",
+                    "analysis.json, points.csv, effects.vtp, unusual.csv and analysis.html.\n\n"
+                    "One effect is tested: the --group, else the --covariate columns, or the "
+                    "columns named by --test; every other column given is adjusted for, not "
+                    "tested (so --covariate beside --group is adjusted for). A column's kind is "
+                    "its role: --group categorical, --covariate numeric, --nuisance numeric "
+                    "unless named by --categorical. Empty cells, NA, nan, ? and other "
+                    "non-numbers in a numeric column are missing values: the case is left out "
+                    "and listed with the column and the value.",
         epilog="examples:\n  mdlshapemodel analyze out --table subjects.csv --group diagnosis "
-               "-o findings\n  mdlshapemodel analyze out --table subjects.csv --covariate age "
-               "--nuisance sex -o aging",
+               "--covariate age -o findings\n"
+               "    (tested: diagnosis; adjusted for: age)\n"
+               "  mdlshapemodel analyze out --table subjects.csv --group diagnosis "
+               "--covariate age --test age -o aging\n"
+               "    (tested: age; adjusted for: diagnosis)\n"
+               "  mdlshapemodel analyze out --table subjects.csv --covariate age "
+               "--nuisance site --categorical site -o by-age\n"
+               "    (tested: age; adjusted for: site, a categorical column coded 1, 2, 3)",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     analyze.add_argument("build", help="a build's output folder")
     analyze.add_argument("--table", required=True, metavar="CSV",
@@ -479,10 +496,18 @@ def main(argv=None) -> int:
                          help="the group the others are compared with (default: the first in "
                               "sorted order)")
     analyze.add_argument("--covariate", metavar="NAME", action="append", default=[],
-                         help="numeric column: its effect is tested (adjusted for, with "
-                              "--group); repeatable")
+                         help="numeric column: tested without --group; beside --group it is "
+                              "adjusted for, NOT tested, unless named by --test; repeatable")
+    analyze.add_argument("--test", metavar="NAME", action="append", default=[],
+                         help="the column tested, the --group or a --covariate; everything "
+                              "else is adjusted for (default: the group, else the "
+                              "covariates); repeatable")
     analyze.add_argument("--nuisance", metavar="NAME", action="append", default=[],
-                         help="column adjusted for (numeric, or categorical); repeatable")
+                         help="column adjusted for, never tested: numeric unless named by "
+                              "--categorical; repeatable")
+    analyze.add_argument("--categorical", metavar="NAME", action="append", default=[],
+                         help="a --nuisance column that is categorical (coded by its levels, "
+                              "e.g. a site coded 1, 2, 3); repeatable")
     analyze.add_argument("--permutations", type=int, default=analysis_defaults.permutations,
                          help="random permutations (default %(default)s)")
     analyze.add_argument("--size", choices=ANALYSIS_SIZES, default=analysis_defaults.size,

@@ -550,13 +550,80 @@ PART_ALIGNMENTS = ("whole", "each")
 
 
 @dataclass
+class Roles:
+    """What each column of an analysis's model is: :func:`analysis_roles`."""
+
+    tested: list          # the columns whose effect is tested
+    adjusted_for: list    # the other columns of the model (nuisance)
+    categorical: list     # the model's categorical columns (coded as indicators of levels)
+    numeric: list         # the model's numeric columns
+
+
+def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=(),
+                   test=()) -> Roles:
+    """The roles of the columns of one analysis, declared by how they are named: ``group`` is
+    categorical, ``covariates`` are numeric, ``nuisance`` columns are numeric unless named in
+    ``categorical``. The tested effect is ``test`` when given (each one the group or a
+    covariate), else the group, else the covariates; every other column is adjusted for.
+
+    Raises
+    ------
+    ConfigError
+        Nothing to test, a column named twice, ``test`` or ``categorical`` naming a column of
+        the wrong kind.
+
+    Examples
+    --------
+    >>> roles = analysis_roles("diagnosis", ["age"], ["site"], categorical=["site"])
+    >>> roles.tested, roles.adjusted_for, roles.categorical
+    (['diagnosis'], ['age', 'site'], ['diagnosis', 'site'])
+    >>> analysis_roles("diagnosis", ["age"], test=["age"]).adjusted_for
+    ['diagnosis']
+    """
+    covariates, nuisance = list(covariates), list(nuisance)
+    categorical, test = list(categorical), list(test)
+    if group is None and not covariates:
+        raise ConfigError("nothing to test: give a group column or a covariate")
+    model = ([group] if group else []) + covariates + nuisance
+    for names in (model, categorical, test):
+        repeated = sorted({c for c in names if names.count(c) > 1})
+        if repeated:
+            raise ConfigError(f"column {repeated[0]!r} is given twice")
+    for name in test:
+        if name != group and name not in covariates:
+            raise ConfigError(f"test: {name!r} is not the group or a covariate (a tested "
+                              "column is given by --group or --covariate)")
+    for name in categorical:
+        if name in covariates:
+            raise ConfigError(f"categorical: {name!r} is a covariate, which is numeric (a "
+                              "categorical column is given by --group or --nuisance)")
+        if name != group and name not in nuisance:
+            raise ConfigError(f"categorical: {name!r} is not a nuisance column (give it with "
+                              f"--nuisance {name})")
+    tested = test or ([group] if group else covariates)
+    kinds = {name: name == group or name in categorical for name in model}
+    return Roles(tested=[c for c in model if c in tested],
+                 adjusted_for=[c for c in model if c not in tested],
+                 categorical=[c for c in model if kinds[c]],
+                 numeric=[c for c in model if not kinds[c]])
+
+
+@dataclass
 class AnalysisConfig:
     """Settings of one analysis of a build (``mdlshapemodel analyze``): which variables of the
-    subjects table are tested and how. ``validate`` names the field at fault."""
+    subjects table are tested and how. ``validate`` names the field at fault.
+
+    A column's kind is declared by its role (:func:`analysis_roles`): the group is categorical,
+    covariates numeric, nuisance columns numeric unless named in ``categorical``. Beside a group,
+    covariates are adjusted for unless named in ``test``.
+    """
 
     group: str | None = None          # categorical column: the groups compared
     covariates: list[str] = field(default_factory=list)   # numeric columns
-    nuisance: list[str] = field(default_factory=list)     # columns adjusted for
+    nuisance: list[str] = field(default_factory=list)     # columns adjusted for, never tested
+    categorical: list[str] = field(default_factory=list)  # nuisance columns that are categorical
+    test: list[str] = field(default_factory=list)  # the tested columns (default: group, else
+    #                                                the covariates); the rest is adjusted for
     reference: str | None = None      # the group the others are compared with (default: first)
     permutations: int = 10_000
     size: str = "kept"
@@ -580,4 +647,12 @@ class AnalysisConfig:
              f"must be one of {', '.join(DISPLACEMENTS)}")
         need(0 < self.alpha < 1, "alpha", "must be between 0 and 1")
         need(self.folds >= 2, "folds", "must be at least 2")
+        if self.group is not None or self.covariates:
+            self.roles()
         return self
+
+    def roles(self) -> Roles:
+        """What each column of the model is (:func:`analysis_roles`); ConfigError when the
+        names contradict each other."""
+        return analysis_roles(self.group, self.covariates, self.nuisance, self.categorical,
+                              self.test)

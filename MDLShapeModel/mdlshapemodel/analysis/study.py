@@ -142,7 +142,10 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     global_test = GlobalTest(scores.shape[1], float(overall.statistic[0]), float(overall.p[0]),
                              config.permutations)
     found_discriminant = found_classification = None
-    if subjects.groups is not None and len(subjects.levels) == 2:
+    # the discriminant and classification of two groups describe a tested group, not one
+    # adjusted for
+    if (subjects.groups is not None and len(subjects.levels) == 2
+            and subjects.group in subjects.tested):
         second = np.array([g == subjects.levels[1] for g in subjects.groups])
         found_discriminant = discriminant(aligned, model.weights, second)
         found_classification = classify(aligned, model.weights, second, config.folds,

@@ -1,9 +1,17 @@
 """The table of subjects: which cases have which group and covariate values.
 
 A CSV file with a ``case`` column whose values are the build's case names; every other column is
-a variable (a categorical group, or numeric covariates). Cases missing from the table, or with an
-empty value in a column the analysis uses, are left out and listed with the reason; rows that
-match no case are listed. Categorical nuisance variables are coded as indicators.
+a variable. A column's kind is declared by its role in the analysis
+(:func:`~mdlshapemodel.config.analysis_roles`), never guessed from its values: the group and the
+nuisance columns named categorical are categorical (coded as indicators of their levels), the
+covariates and the other nuisance columns numeric.
+
+Missing values: in any column the analysis uses, an empty cell or a marker of
+:data:`MISSING_MARKERS` (any letter case); in a numeric column, also any other value that is not
+a finite number. A case with a missing value is left out of the analysis and listed with the
+column and the value, as are cases missing from the table; rows that match no case are listed. A
+numeric column with as many words (non-numbers other than the markers) as numbers among the
+build's cases is not a numeric column: an error naming it, not a list of left-out cases.
 """
 
 from __future__ import annotations
@@ -15,11 +23,35 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import analysis_roles
 from ..errors import InputError
 
 CASE = "case"
+# cells that mean "no value" in any column (compared in lower case, after stripping blanks);
+# "none" is not one of them: it can be a level (no treatment)
+MISSING_MARKERS = ("", "na", "n/a", "nan", "null", "?", ".", "-", "#n/a")
 # the smallest group that is tested: fewer cases than this cannot estimate a group's spread
 MIN_GROUP = 3
+
+
+@dataclass
+class LeftOut:
+    """A build case that an analysis does not use, and why.
+
+    Attributes
+    ----------
+    case : str
+        The case's name.
+    reason : str
+        One line: "not in the table", or each missing value with its column.
+    missing : dict
+        The columns without a usable value and their cells as written (empty when the case is
+        not in the table).
+    """
+
+    case: str
+    reason: str
+    missing: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -38,12 +70,21 @@ class Subjects:
     nuisance : ndarray (n, c)
         The nuisance columns (numeric covariates centred; categorical ones as indicators).
     interest_names : list of str
-        A name per interest column: the group level it indicates, or the covariate.
+        A name per interest column: the group level it indicates, or the covariate (a level is
+        named ``group=level`` when other columns are tested with the group).
+    interest_columns : list of str
+        The table column of each interest column.
+    tested : list of str
+        The table columns whose effect is tested.
+    adjusted_for : list of str
+        The other table columns of the model.
+    group : str or None
+        The group column (tested or adjusted for).
     groups : list of str or None
         Each used case's group (None without ``--group``).
     levels : list of str
         The group levels, reference first (empty without ``--group``).
-    left_out : list of (case, reason)
+    left_out : list of LeftOut
         Build cases that are not used, and why.
     unmatched : list of str
         Table rows whose case is not one of the build's.
@@ -54,6 +95,10 @@ class Subjects:
     interest: np.ndarray
     nuisance: np.ndarray
     interest_names: list
+    interest_columns: list
+    tested: list
+    adjusted_for: list
+    group: str | None
     groups: list | None
     levels: list
     left_out: list = field(default_factory=list)
@@ -98,13 +143,40 @@ def _number(text: str) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def _numeric(path, rows: list, column: str, role: str) -> np.ndarray:
-    values = [_number(row[column]) for row in rows]
-    bad = [row[column] for row, v in zip(rows, values) if v is None]
-    if bad:
-        raise InputError(f"{path}: {role} '{column}' is not numeric (value {bad[0]!r}); a "
-                         "categorical variable goes to --group or --nuisance")
-    return np.array(values, dtype=np.float64)
+def is_missing(text: str) -> bool:
+    """Whether a cell is a missing-value marker (:data:`MISSING_MARKERS`), in any letter case.
+
+    Examples
+    --------
+    >>> [is_missing(text) for text in ("", "NA", "NaN", " ? ", "none", "0")]
+    [True, True, True, True, False, False]
+    """
+    return text.strip().lower() in MISSING_MARKERS
+
+
+def _why_missing(column: str, text: str, numeric: bool) -> str | None:
+    """Why a cell gives no value (None when it gives one)."""
+    if text == "":
+        return f"no value for {column!r}"
+    if is_missing(text):
+        return f"{column!r} is missing ({text!r})"
+    if numeric and _number(text) is None:
+        return f"{column!r} is not a number ({text!r})"
+    return None
+
+
+def _check_numeric(path: Path, rows: list, column: str, role: str):
+    """InputError when a numeric column holds as many words as numbers among ``rows`` (words:
+    values that are neither numbers nor missing-value markers): it is a categorical column."""
+    values = [row[column] for row in rows]
+    words = [v for v in values if not is_missing(v) and _number(v) is None]
+    numbers = sum(_number(v) is not None for v in values)
+    if words and len(words) >= numbers:
+        examples = ", ".join(repr(v) for v in list(dict.fromkeys(words))[:3])
+        raise InputError(f"{path}: {role} {column!r} is not numeric: {len(words)} of "
+                         f"{len(values)} values are not numbers ({examples}); a categorical "
+                         f"column goes to --group, or to --nuisance {column} with "
+                         f"--categorical {column}")
 
 
 def _indicators(values: list, levels: list) -> np.ndarray:
@@ -113,7 +185,7 @@ def _indicators(values: list, levels: list) -> np.ndarray:
 
 
 def subjects(table, case_names: list, group: str | None = None, covariates=(),
-             nuisance=(), reference: str | None = None) -> Subjects:
+             nuisance=(), reference: str | None = None, categorical=(), test=()) -> Subjects:
     """Match a subjects table to a build's cases and make the design of one analysis.
 
     Parameters
@@ -123,15 +195,20 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
     case_names : list of str
         The build's cases, in model order.
     group : str, optional
-        A categorical column: the effect of interest is the difference between its levels
-        (the covariates then join the nuisance).
+        A categorical column: the groups compared.
     covariates : sequence of str
-        Numeric columns: without ``group``, the effect of interest (their slopes); with it,
-        adjusted for.
+        Numeric columns: tested without ``group``; beside it, adjusted for unless named in
+        ``test``.
     nuisance : sequence of str
-        Columns adjusted for (numeric, or categorical as indicators).
+        Columns adjusted for, never tested: numeric unless named in ``categorical``.
     reference : str, optional
         The group level the others are compared with (default: the first in sorted order).
+    categorical : sequence of str
+        Nuisance columns that are categorical (coded as indicators of their levels), such as a
+        site coded 1, 2, 3.
+    test : sequence of str
+        The columns tested, each the group or a covariate (default: the group, else the
+        covariates); every other column is adjusted for.
 
     Returns
     -------
@@ -141,40 +218,56 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
     ------
     InputError
         One line naming the file and the problem: no ``case`` column, an unknown column, a
-        group with one level or fewer than 3 cases, a non-numeric covariate, no case matched.
+        group with one level or fewer than 3 cases, a numeric column of words, no case matched
+        or none with every value.
+    ConfigError
+        Roles that contradict each other (:func:`~mdlshapemodel.config.analysis_roles`).
+
+    Examples
+    --------
+    ::
+
+        design = subjects("subjects.csv", names, group="diagnosis", covariates=["age"],
+                          test=["age"])
+        design.tested, design.adjusted_for        # ['age'], ['diagnosis']
     """
     path = Path(table)
+    roles = analysis_roles(group, covariates, nuisance, categorical, test)
     header, rows = read_table(path)
-    covariates, nuisance = list(covariates), list(nuisance)
-    if group is None and not covariates:
-        raise InputError("nothing to test: give a group column or a covariate")
-    used_columns = ([group] if group else []) + covariates + nuisance
+    used_columns = roles.tested + roles.adjusted_for
     for column in used_columns:
         if column not in header:
             raise InputError(f"{path}: no column {column!r} (columns: {', '.join(header)})")
         if column == CASE:
             raise InputError(f"{path}: '{CASE}' names the cases; it is not a variable")
-    repeated = sorted({c for c in used_columns if used_columns.count(c) > 1})
-    if repeated:
-        raise InputError(f"column {repeated[0]!r} is given twice")
     by_case = {row[CASE]: row for row in rows}
+    matched = [by_case[name] for name in case_names if name in by_case]
+    known = set(case_names)
+    unmatched = [row[CASE] for row in rows if row[CASE] not in known]
+    if not matched:
+        raise InputError(f"{path}: no row matches a case of the build (cases like "
+                         f"{case_names[0]!r}; table rows like {rows[0][CASE] if rows else None!r})")
+    for column in roles.numeric:
+        _check_numeric(path, matched, column, "covariate" if column in covariates else
+                       "nuisance column")
+    numeric = set(roles.numeric)
     left_out, chosen, indices = [], [], []
     for index, name in enumerate(case_names):
         row = by_case.get(name)
         if row is None:
-            left_out.append((name, "not in the table"))
+            left_out.append(LeftOut(name, "not in the table"))
             continue
-        empty = [c for c in used_columns if row[c] == ""]
-        if empty:
-            left_out.append((name, f"no value for {empty[0]!r}"))
+        reasons = {c: _why_missing(c, row[c], c in numeric) for c in used_columns}
+        missing = {c: row[c] for c in used_columns if reasons[c]}
+        if missing:
+            left_out.append(LeftOut(name, "; ".join(reasons[c] for c in missing), missing))
             continue
         chosen.append(row)
         indices.append(index)
-    known = set(case_names)
-    unmatched = [row[CASE] for row in rows if row[CASE] not in known]
     if not chosen:
-        raise InputError(f"{path}: no row matches a case of the build (cases like "
-                         f"{case_names[0]!r}; table rows like {rows[0][CASE] if rows else None!r})")
+        counts = ", ".join(f"{c}: {sum(c in o.missing for o in left_out)}" for c in used_columns)
+        raise InputError(f"{path}: no case of the build has a value in every column used "
+                         f"(cases without one: {counts})")
     groups, levels = None, []
     if group:
         groups = [row[group] for row in chosen]
@@ -192,24 +285,29 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
         if small:
             raise InputError(f"{path}: group {group}={small[0]!r} has {sizes[small[0]]} "
                              f"case(s); each group needs at least {MIN_GROUP}")
-        interest = _indicators(groups, levels)
-        names = levels[1:]
-        adjust = covariates + nuisance
-    else:
-        interest = np.column_stack([_numeric(path, chosen, c, "covariate") for c in covariates])
-        interest = interest - interest.mean(axis=0)
-        names = covariates
-        adjust = nuisance
-    blocks = []
-    for column in adjust:
+
+    def block(column: str) -> tuple[np.ndarray, list]:
+        """The design columns of one table column and their names."""
         values = [row[column] for row in chosen]
-        numbers = [_number(v) for v in values]
-        if all(v is not None for v in numbers):
-            numeric = np.array(numbers)
-            blocks.append((numeric - numeric.mean())[:, None])
-        else:
-            blocks.append(_indicators(values, sorted(set(values))))
-    nuisance_columns = (np.hstack(blocks) if blocks else np.zeros((len(chosen), 0)))
+        if column in numeric:
+            numbers = np.array([_number(v) for v in values])
+            return (numbers - numbers.mean())[:, None], [column]
+        kinds = levels if column == group else sorted(set(values))
+        named = [f"{column}={k}" if len(roles.tested) > 1 else k for k in kinds[1:]]
+        return _indicators(values, kinds), named
+
+    def design(columns: list) -> tuple[np.ndarray, list, list]:
+        blocks = [block(column) for column in columns]
+        matrix = (np.hstack([b for b, _ in blocks]) if blocks
+                  else np.zeros((len(chosen), 0)))
+        names = [name for _, block_names in blocks for name in block_names]
+        sources = [c for c, (_, block_names) in zip(columns, blocks) for _ in block_names]
+        return matrix, names, sources
+
+    interest, names, sources = design(roles.tested)
+    nuisance_columns, _, _ = design(roles.adjusted_for)
     return Subjects(cases=[case_names[i] for i in indices], indices=np.array(indices),
-                    interest=interest, nuisance=nuisance_columns, interest_names=list(names),
-                    groups=groups, levels=levels, left_out=left_out, unmatched=unmatched)
+                    interest=interest, nuisance=nuisance_columns, interest_names=names,
+                    interest_columns=sources, tested=roles.tested,
+                    adjusted_for=roles.adjusted_for, group=group, groups=groups, levels=levels,
+                    left_out=left_out, unmatched=unmatched)

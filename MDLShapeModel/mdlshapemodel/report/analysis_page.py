@@ -52,10 +52,9 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     log_p = -np.log10(points.p_fwer)
     top = max(float(log_p.max()), -np.log10(alpha) * 1.5)
     rows = [("-log10 p (FWER)", log_p, "viridis", 0.0, top, "-log10 p, family-wise")]
-    for name, values in zip(analysis.subjects.interest_names, analysis.normal_difference):
+    for label, values in zip(effect_labels(analysis.subjects), analysis.normal_difference):
         limit = float(np.max(np.abs(values))) or 1.0
-        rows.append((f"effect: {name}", values, "coolwarm", -limit, limit,
-                     "along the normal [mm]"))
+        rows.append((label, values, "coolwarm", -limit, limit, "along the normal [mm]"))
     parts = []
     if model.of_curves:
         return [_image(_curve_maps(analysis, rows, significant), "effect maps")]
@@ -66,6 +65,16 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
                              [(label, values, cmap == "coolwarm")
                               for label, values, cmap, _, _, _ in rows])
     return parts
+
+
+def effect_labels(subjects) -> list:
+    """A title per tested effect column: the tested column and, for a group, which level is
+    compared with which (the reference)."""
+    labels, levels = [], iter(subjects.levels[1:])
+    for column in subjects.interest_columns:
+        labels.append(f"effect of {column}: {next(levels)} minus {subjects.levels[0]}"
+                      if column == subjects.group else f"effect of {column}, per unit")
+    return labels
 
 
 def _b64(png: bytes) -> str:
@@ -144,13 +153,15 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
         body[-1] += " (" + ", ".join(f"{html.escape(level)}: {count}" for level, count
                                      in summary["n_per_group"].items()) + ")"
     body[-1] += f"; {len(subjects.left_out)} left out.</p>"
-    tested = (f"group <b>{html.escape(config.group)}</b>" if config.group else
-              "covariate(s) <b>" + html.escape(", ".join(config.covariates)) + "</b>")
-    adjusted = summary["adjusted_for"]
-    body.append(f"<p>Tested: {tested}" + (f", adjusted for {html.escape(', '.join(adjusted))}"
-                                          if adjusted else "") + ".</p>")
+
+    def named(columns: list) -> str:
+        return ", ".join(("group " if c == subjects.group else "") + f"<b>{html.escape(c)}</b>"
+                         for c in columns) or "nothing"
+
+    body.append(f"<p>Tested: {named(subjects.tested)}; adjusted for: "
+                f"{named(subjects.adjusted_for)}.</p>")
     counts = summary["significant_points"]
-    body += ["<h2>Where the shapes differ</h2>",
+    body += [f"<h2>Where the shapes differ by {named(subjects.tested)}</h2>",
              f"<p>{counts['fwer']} of {len(analysis.mean)} points significant at &alpha; = "
              f"{config.alpha} after family-wise correction, {counts['fdr']} after FDR "
              "correction (outlined in black: family-wise).</p>"]
@@ -191,10 +202,13 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
                  if analysis.points.effect.shape[0] == 1 else "the F of Pillai's trace")
     body.append(HOW_TO_READ.format(
         what=what, statistic=statistic, permutations=config.permutations, alpha=config.alpha,
-        effect_unit="(mm)" if config.group else "per unit of the covariate (mm)",
+        effect_unit=("(mm)" if subjects.tested == [subjects.group] else
+                     "per unit of the covariate (mm)" if subjects.group not in subjects.tested
+                     else "(mm; per unit for a covariate)"),
         size="" if config.size == "kept" else ", after scaling each case to the mean size",
         sized="size and shape" if config.size == "kept" else "shape"))
     if subjects.left_out:
-        body += ["<h2>Cases left out</h2>", table(("case", "reason"), subjects.left_out)]
+        body += ["<h2>Cases left out</h2>",
+                 table(("case", "reason"), [(c.case, c.reason) for c in subjects.left_out])]
     io.write_text(path, html_page("MDLShapeModel analysis", body))
     return path
