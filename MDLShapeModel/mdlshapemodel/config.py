@@ -114,6 +114,11 @@ PREPARATION_BYTES_PER_VOXEL = 36
 PREPARATION_BYTES_PER_MESH_POINT = 1600
 MAX_VOXELS = MEMORY_BUDGET // PREPARATION_BYTES_PER_VOXEL               # 477,218,588
 MAX_MESH_POINTS = MEMORY_BUDGET // PREPARATION_BYTES_PER_MESH_POINT     # 10,737,418
+# Without --label, an image of more distinct non-zero values than this is not a label map but an
+# intensity image (a CT's or an MR's hundreds to thousands of grey values): its non-zero voxels
+# would make the image's box the object. An 8-bit label map holds at most 255 labels.
+MAX_LABEL_VALUES = 255
+
 # The largest coordinate (mm) of an input: a mesh's points, a label map's corners. 1,000 km is no
 # anatomy; beyond about 1e154 squared distances overflow (a point at 1e308 broke the k-d tree).
 MAX_COORDINATE = 1e9
