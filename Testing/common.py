@@ -22,8 +22,10 @@ needs_hippocampi = pytest.mark.skipif(not HIPPOCAMPI.is_dir(),
 
 
 def hippocampi(count: int) -> list:
-    """The first ``count`` shared hippocampus label maps, in sorted order."""
-    return sorted(HIPPOCAMPI.glob("*.nii.gz"))[:count]
+    """The first ``count`` shared hippocampus label maps, in sorted order, leaving out
+    hippocampus_011 (hippocampus_010 again, byte for byte, which a build refuses)."""
+    return [path for path in sorted(HIPPOCAMPI.glob("*.nii.gz"))
+            if path.name != "hippocampus_011.nii.gz"][:count]
 
 
 TIMEOUT = 900   # seconds for one subprocess: a hang fails the test instead of stalling the run

@@ -94,6 +94,59 @@ def test_every_bad_input_gets_one_line_and_the_build_goes_on(tmp_path):
     assert strict.returncode == 2 and "strict" in strict.stderr
 
 
+def intensity_image(path, k: int, kind=np.int16):
+    """A CT-like image written by SimpleITK: a smooth ramp of grey values (-1000 to about
+    1000) with a brighter ball, shifted by ``k``; every voxel non-zero."""
+    z, y, x = np.mgrid[0:30, 0:34, 0:38].astype(float)
+    image = -1000.0 + 50.0 * x + 5.0 * y + 3.0 * k
+    image[(z - 15) ** 2 + (y - 17) ** 2 + (x - 19 - k) ** 2 < 8 ** 2] += 1200.0
+    sitk.WriteImage(sitk.GetImageFromArray(np.round(image).astype(kind)), str(path))
+    return path
+
+
+def refused_build(out, paths, *options):
+    """``build`` of ``paths`` into ``out`` that must reject every one: exit 2 (fewer than 3
+    usable cases), no model, no traceback; returns {file name: its rejection line}."""
+    result = run("build", *paths, "-o", out, "--points", 42, "--workers", 2, *options)
+    assert result.returncode == 2, result.stderr
+    assert "only 0 usable case(s)" in result.stderr and "Traceback" not in result.stderr
+    assert not (out / "model.h5").exists()
+    lines = {}
+    for path in paths:
+        (line,) = [line for line in result.stderr.splitlines()
+                   if "rejected" in line and str(path) in line]
+        lines[path.name] = line
+    return lines
+
+
+def test_intensity_images_are_not_label_maps(tmp_path):
+    """Three int16 CT-like images given without --label: each rejected in one line that says it
+    is not a label map and suggests --label (not a 'model' of the image's box)."""
+    paths = [intensity_image(tmp_path / f"ct_{k}.nii.gz", k) for k in range(3)]
+    for name, line in refused_build(tmp_path / "out", paths).items():
+        assert "not a label map" in line and "distinct values" in line, name
+        assert "--label" in line, name
+
+
+def test_an_object_that_fills_its_image_out_to_the_border_is_refused(tmp_path):
+    """An image whose non-zero voxels reach every side of its box (an 8-bit intensity image of
+    fewer grey values than a label map may have, a mask of ones) is no object's label map:
+    without --label the line suggests it; with --label, the label that fills the image is
+    named."""
+    noise = np.random.default_rng(0).integers(1, 200, size=(3, 16, 18, 20)).astype(np.uint8)
+    paths = [tmp_path / "grey_0.nii.gz", tmp_path / "grey_1.nii.gz", tmp_path / "ones.nii.gz"]
+    for path, values in zip(paths, (noise[0], noise[1], np.ones((16, 18, 20), np.uint8))):
+        sitk.WriteImage(sitk.GetImageFromArray(values), str(path))
+    for name, line in refused_build(tmp_path / "out", paths).items():
+        assert "not a label map" in line and "border on every side" in line, name
+        assert "--label" in line, name
+    labelled = [tmp_path / f"box_{k}.nii.gz" for k in range(3)]
+    for k, path in enumerate(labelled):
+        write_label_map(path, np.ones((12 + k, 14, 16)))
+    for name, line in refused_build(tmp_path / "labelled", labelled, "--label", 1).items():
+        assert "label 1 fills the image out to its border on every side" in line, name
+
+
 def test_a_missing_label_map_is_a_rejection_that_says_so(tmp_path):
     """Through the Python API (the CLI checks paths before), a file that is not there is a
     rejection with a plain reason, not SimpleITK's message."""

@@ -245,10 +245,12 @@ def test_mirrored_inputs_are_modelled_with_their_other_side(tmp_path):
     right = shapes[0][0] * np.array([-1.0, 1.0, 1.0]) + np.array([40.0, 0.0, 0.0])
     write_polydata(folder / "right_0.vtp", right, shapes[0][1][:, [0, 2, 1]])
     output = tmp_path / "out"
+    # right_0 is left_0 once more (mirrored back, the same shape): allowed here
     result = build_model([folder], output, BuildConfig(points=162, max_time=0, workers=1,
                                                         mirror=["right_*"], voxel_size=1.0,
                                                         specificity_samples=100,
-                                                        evaluation_modes=2))
+                                                        evaluation_modes=2,
+                                                        allow_duplicates=True))
     cases = {row["case"]: row for row in read_csv(output / "cases.csv")}
     assert cases["right_0"]["mirrored"] == "True" and cases["left_0"]["mirrored"] == "False"
     points, triangles = polydata_triangles(output / "correspondence" / "right_0.vtp")

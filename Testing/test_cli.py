@@ -224,6 +224,7 @@ NON_DEFAULT_OPTIONS = {
     "labels": (["--label", "1,2", "--label", "3"], [1, 2, 3]),
     "voxel_size": (["--voxel-size", "0.5"], 0.5),
     "mirror": (["--mirror", "*_r*", "--mirror", "a,b"], ["*_r*", "a,b"]),
+    "allow_duplicates": (["--allow-duplicates"], True),
     "parts": (["--part", "head=1", "--part", "tail=2,3"], ["head=1", "tail=2,3"]),
     "surface_method": (["--surface", "slicer"], "slicer"),
     "smoothing_factor": (["--smoothing-factor", "0.25"], 0.25),
@@ -269,7 +270,7 @@ def config_of_command_line(tmp_path: Path, name: str, *options) -> dict:
     if not inputs.exists():
         inputs.mkdir()
         for k in range(3):
-            (inputs / f"case_{k}.nii.gz").write_bytes(b"not an image")
+            (inputs / f"case_{k}.nii.gz").write_bytes(b"not image %d" % k)   # not one file 3 times
         (tmp_path / "marks").mkdir()
         (tmp_path / "marks" / "case_0.csv").write_text("label,x,y,z\ntip,1,2,3\n")
     result = run("build", inputs, "-o", tmp_path / name, *options, cwd=tmp_path)

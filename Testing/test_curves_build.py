@@ -152,7 +152,8 @@ def test_a_new_outline_is_fitted_to_a_2d_model(curve_build, tmp_path):
     points, data = polyline(fitted / "reconstruction" / "new.vtp")
     assert points.shape == (128, 3) and data.GetNumberOfLines() == 128
     surface = tmp_path / "surface.nii.gz"
-    sitk.WriteImage(sitk.GetImageFromArray(np.ones((4, 5, 6), np.uint8)), str(surface))
+    sitk.WriteImage(sitk.GetImageFromArray(np.pad(np.ones((4, 5, 6), np.uint8), 1)),
+                    str(surface))
     refused = cli("fit", output, surface, "-o", tmp_path / "refused")
     assert refused.returncode == 2
     assert "a 3-D input; the model is of 2-D curves" in refused.stderr

@@ -42,6 +42,7 @@ from .outputs import (BuildResult, Checkpoint, clear_previous_build, earlier_bui
 from .parallel import Task, dask_executor, helper_for
 from .prepare import io, preprocess
 from .prepare.case import Rejection
+from .prepare.duplicates import identical_files, refusal, same_shapes
 from .prepare.landmarks import read_landmark_folder
 from .prepare.parts import case_inputs, read_manifest
 from .progress import Progress, report
@@ -83,7 +84,8 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         holds one raises :class:`BuildError` and touches nothing. What a failed or cancelled
         start left there is replaced without asking. The inputs are checked before anything is
         written: a missing path, a build's output folder given as input, fewer than 3 input
-        files raise and leave ``output`` as it was. Every file is written whole or not at all (a temporary name renamed into place).
+        files, identical input files (unless ``config.allow_duplicates``) raise and leave
+        ``output`` as it was. Every file is written whole or not at all (a temporary name renamed into place).
     manifest : path, optional
         A CSV table of cases with the columns ``case``, ``part``, ``file``: one file per part
         (:func:`.prepare.parts.read_manifest`), added to ``inputs``.
@@ -144,11 +146,13 @@ def build_model(inputs, output, config: BuildConfig | None = None,
 
 def fingerprint(prepared: list, config: BuildConfig, landmarks: dict | None = None) -> dict:
     """What a checkpoint is of: the settings that shape the result (all but ``workers``,
-    ``scheduler``, ``cache_dir`` and the budget, ``max_time`` and ``max_sweeps``, which a
-    resumed build may raise to carry on an optimisation that they stopped) and every prepared
-    case's name and the digests of its files (and of its landmark file)."""
+    ``scheduler``, ``cache_dir``, ``allow_duplicates`` (a permission) and the budget,
+    ``max_time`` and ``max_sweeps``, which a resumed build may raise to carry on an
+    optimisation that they stopped) and every prepared case's name and the digests of its
+    files (and of its landmark file)."""
     settings = {key: value for key, value in config.to_dict().items()
-                if key not in ("workers", "scheduler", "cache_dir", "max_time", "max_sweeps")}
+                if key not in ("workers", "scheduler", "cache_dir", "allow_duplicates",
+                               "max_time", "max_sweeps")}
     marks = landmarks or {}
     return {"settings": settings,
             "cases": [[case.name, *map(io.file_digest, case.paths)]
@@ -185,7 +189,8 @@ MIN_CASES = 3
 def _cases(inputs, config: BuildConfig, manifest, output: Path) -> list:
     """The build's cases from its inputs and manifest, checked before the output folder is
     touched: a missing path, a build's output folder given as input (or the output folder
-    itself), no input file, fewer than :data:`MIN_CASES` cases are refused."""
+    itself), no input file, fewer than :data:`MIN_CASES` cases, and identical files (unless
+    ``config.allow_duplicates``; :mod:`.prepare.duplicates`) are refused."""
     paths = [Path(p) for p in inputs]
     for path in paths:
         if path.is_dir() and path.resolve() == output.resolve():
@@ -198,6 +203,9 @@ def _cases(inputs, config: BuildConfig, manifest, output: Path) -> list:
                          ".vtk/.vtp/.stl/.ply/.obj)")
     if len(cases) < MIN_CASES:
         raise BuildError(f"{len(cases)} input file(s) found; a model needs at least {MIN_CASES}")
+    same = [] if config.allow_duplicates else identical_files(cases)
+    if same:
+        raise BuildError(refusal(same))
     return cases
 
 
@@ -426,8 +434,10 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     Parameters
     ----------
     prepared : list of PreparedCase
-        At least three cases (:func:`~.prepare.case.prepare_case`) with distinct names, in the
-        model's order (else :class:`BuildError`).
+        At least three cases (:func:`~.prepare.case.prepare_case`) with distinct names and
+        distinct shapes (:func:`~.prepare.duplicates.same_shapes` in the initial
+        correspondence, unless ``config.allow_duplicates``), in the model's order (else
+        :class:`BuildError`).
     config : BuildConfig
         The correspondence settings (validated by the caller).
     progress : callable(fraction or None, message), optional
@@ -492,6 +502,12 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     if curves and config.correspondence == "cpd":
         raise BuildError("--correspondence cpd registers surfaces; these inputs are 2-D curves")
     state, (fixed, integrated), voxel, data_range = initial_state(prepared, config, landmarks)
+    same = same_shapes(state.raw_shapes(), state.weights,
+                       [case.path or case.name for case in prepared])
+    if same and not config.allow_duplicates:
+        raise BuildError(refusal(same))
+    for duplicates in same:
+        log.warning("%s: modelled as they are (--allow-duplicates)", duplicates.line())
     if state.guides is not None:
         log.info("%d landmark labels guide the correspondence (%d landmarks of %d cases; weight "
                  "%g): %s", len(state.guides.labels), int(state.guides.present.sum()),

@@ -114,6 +114,20 @@ PREPARATION_BYTES_PER_VOXEL = 36
 PREPARATION_BYTES_PER_MESH_POINT = 1600
 MAX_VOXELS = MEMORY_BUDGET // PREPARATION_BYTES_PER_VOXEL               # 477,218,588
 MAX_MESH_POINTS = MEMORY_BUDGET // PREPARATION_BYTES_PER_MESH_POINT     # 10,737,418
+# Without --label, an image of more distinct non-zero values than this is not a label map but an
+# intensity image (a CT's or an MR's hundreds to thousands of grey values): its non-zero voxels
+# would make the image's box the object. An 8-bit label map holds at most 255 labels.
+MAX_LABEL_VALUES = 255
+
+# Two cases are one case given twice (refused unless ``BuildConfig.allow_duplicates``) when their
+# files are identical, or when their shapes in the initial correspondence, each moved to its
+# centroid, are closer than this share of the shape's size: the area-weighted RMS distance of
+# their corresponded points over the RMS distance of the points from their centroid. A copy
+# re-saved, converted or moved lies at about 0, one with a voxel changed below it; different
+# subjects lie 30 times further apart or more, and the closest of 60 synthetic subjects of the
+# demo (two shape parameters) 5 times (docs/inputs.md, "A case given twice").
+DUPLICATE_DISTANCE = 0.001
+
 # The largest coordinate (mm) of an input: a mesh's points, a label map's corners. 1,000 km is no
 # anatomy; beyond about 1e154 squared distances overflow (a point at 1e308 broke the k-d tree).
 MAX_COORDINATE = 1e9
@@ -297,6 +311,10 @@ class BuildConfig:
         _INPUTS, "reflect inputs whose file name matches PATTERN (x -> -x), e.g. "
                  "--mirror '*_rfemur*' to model right and left sides together; repeatable",
         metavar="PATTERN", item="pattern", repeatable=True, split=False))
+    allow_duplicates: bool = field(default=False, metadata=option(
+        _INPUTS, "model a case given twice (identical files, or shapes whose RMS distance is "
+                 f"below {100 * DUPLICATE_DISTANCE:g}%% of their size) as it is; by default the "
+                 "build names such cases and stops before the optimisation"))
     # surfaces and sphere maps
     surface_method: str = field(default="gaussian", metadata=option(
         _INPUTS, "label map -> surface: Gaussian blur + flying edges, or 3D Slicer's "

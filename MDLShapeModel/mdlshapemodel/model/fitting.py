@@ -2,7 +2,8 @@
 
 The paper notes (III-D) that examples can be added to a model one at a time. ``fit_case`` does that
 for one new case without changing the model: the training shapes are the model's own
-(``mean + scores @ modes``, exact, since a model keeps every mode of its training set) and stay
+(``mean + scores @ modes``: exact but for the modes of negligible variance that a model drops,
+:data:`~.shape_model.NEGLIGIBLE_VARIANCE`) and stay
 fixed; only the new case's reparameterization and pose are optimised (by the model's build strategy
 unless told otherwise), to minimise the description length of the training set with the new case
 added (eq. 14). The corresponded case is then aligned to the model mean, projected onto the modes,

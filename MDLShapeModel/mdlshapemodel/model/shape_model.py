@@ -72,6 +72,13 @@ STATISMO_VERSION = (0, 9)
 # the representer that Statismo's ITK mesh representer and Scalismo write
 REPRESENTER_NAME = "itkStandardMeshRepresenter"
 REPRESENTER_VERSION = "0.1"
+# A model keeps the modes whose variance is above this share of the total variance. A mode below
+# it moves the points by less than a thousandth of the population's RMS deviation from the mean
+# (for a hippocampus, about a micrometre): it holds rounding or a case given twice (a pair of
+# near-identical cases makes one), not anatomy, and a Mahalanobis distance over it, which
+# divides by its variance, would be decided by it alone. The smallest modes of distinct cases
+# are orders of magnitude above it (docs/method.md).
+NEGLIGIBLE_VARIANCE = 1e-6
 
 
 @dataclass
@@ -149,9 +156,11 @@ class ShapeModel:
 
     @classmethod
     def from_shapes(cls, shapes: np.ndarray, weights: np.ndarray, names=None, triangles=None,
-                    part_sizes=None, relative_tolerance: float = 1e-10, parameters=None,
+                    part_sizes=None, negligible: float = NEGLIGIBLE_VARIANCE, parameters=None,
                     part_names=None, **metadata):
-        """Area-weighted PCA of aligned shapes (n_s, n_p, 3)."""
+        """Area-weighted PCA of aligned shapes (n_s, n_p, 3) (eq. 1-3 with the inner product of
+        eq. 15), keeping the modes whose variance is above ``negligible`` of the total
+        (:data:`NEGLIGIBLE_VARIANCE`): at most n_s - 1, fewer when shapes nearly coincide."""
         shapes = np.asarray(shapes, dtype=np.float64)
         n_s, n_p, _ = shapes.shape
         mean = shapes.mean(axis=0)
@@ -159,7 +168,7 @@ class ShapeModel:
         z = ((shapes - mean) * root).reshape(n_s, -1)
         u, singular, vt = np.linalg.svd(z, full_matrices=False)
         variances = singular ** 2 / n_s
-        keep = variances > relative_tolerance * max(variances.max(initial=0.0), 1e-300)
+        keep = variances > negligible * variances.sum()
         modes = vt[keep].reshape(-1, n_p, 3) / root
         scores = u[:, keep] * singular[keep]
         return cls(mean=mean, modes=modes, variances=variances[keep], weights=np.asarray(weights),

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import MAX_COORDINATE, MAX_VOXELS
+from ..config import MAX_COORDINATE, MAX_LABEL_VALUES, MAX_VOXELS
 from ..errors import InputError
 from . import integrity
 
@@ -126,7 +126,7 @@ def select_labels(array: np.ndarray, labels=()) -> np.ndarray:
     ------
     InputError
         When the array has non-integer values, no non-zero value, or none of ``labels`` (the
-        message lists the labels found).
+        message lists the labels found), or is not a label map by :func:`require_label_map`.
 
     Examples
     --------
@@ -159,8 +159,53 @@ def selected_labels(array: np.ndarray, labels=()) -> tuple[np.ndarray, tuple]:
             shown = ", ".join(str(v) for v in found[:20])
             raise InputError(f"label {', '.join(str(int(v)) for v in labels)} not present "
                              f"(labels found: {shown})")
-        return np.isin(array, labels), found
-    return array != 0, found
+        mask = np.isin(array, labels)
+    else:
+        mask = array != 0
+    require_label_map(len(present), mask, labels)
+    return mask, found
+
+
+def require_label_map(values: int, mask: np.ndarray, labels=()):
+    """The rule that tells a label map from an intensity image (a CT, an MR) given as one.
+
+    Without ``labels``, an image of more than :data:`~mdlshapemodel.config.MAX_LABEL_VALUES`
+    distinct non-zero ``values`` is not a label map. With or without them, an object ``mask``
+    that holds every voxel of the image's border (both end slices along every axis longer than
+    one voxel) is refused: its surface would be the image's box, as when every voxel of an
+    intensity image is non-zero. Raises :class:`InputError` saying which, and suggesting
+    ``--label`` when none was given.
+
+    Examples
+    --------
+    >>> require_label_map(2, np.pad(np.ones((2, 2, 2), bool), 1))   # inside its image: fine
+    >>> require_label_map(1, np.ones((3, 4, 5), bool), [1])
+    Traceback (most recent call last):
+    ...
+    mdlshapemodel.errors.InputError: label 1 fills the image out to its border on every side: ...
+    """
+    suggestion = "give the object's label value(s) with --label"
+    if not len(labels) and values > MAX_LABEL_VALUES:
+        raise InputError(f"not a label map: {values:,} distinct values (an intensity image's "
+                         f"grey values, as of a CT or MR; a label map has at most "
+                         f"{MAX_LABEL_VALUES}); {suggestion}")
+    if _fills_border(mask):
+        if len(labels):
+            raise InputError(f"label {', '.join(str(int(v)) for v in labels)} fills the image "
+                             "out to its border on every side: its surface would be the image's "
+                             "box, not an object's")
+        raise InputError("not a label map: its non-zero voxels fill the image out to its border "
+                         "on every side, as an intensity image's do, so its surface would be the "
+                         f"image's box; {suggestion}")
+
+
+def _fills_border(mask: np.ndarray) -> bool:
+    """Whether ``mask`` holds every voxel of both end slices along every axis longer than one
+    voxel (every voxel, when there is no such axis)."""
+    axes = [k for k, n in enumerate(mask.shape) if n > 1]
+    if not axes:
+        return bool(mask.all())
+    return all(np.take(mask, end, axis=k).all() for k in axes for end in (0, -1))
 
 
 _NATIVE_STDERR = threading.Lock()
