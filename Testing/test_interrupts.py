@@ -25,7 +25,7 @@ import pytest
 
 from mdlshapemodel import BuildConfig, Cancelled, ShapeModel
 from mdlshapemodel.outputs import earlier_build
-from mdlshapemodel.parallel import ProcessPool, Threads
+from mdlshapemodel.parallel import ProcessPool, Task, Threads
 from mdlshapemodel.prepare import io
 from mdlshapemodel.progress import ctrl_c
 
@@ -94,12 +94,14 @@ class Run:
 
 
 def build(labels, output: Path, cache: Path, phase: str | None = None, delay: float = 0.0,
-          no_cache: bool = False) -> Run:
-    """Run the command line's build of ``labels`` and, with ``phase``, send SIGINT to its process
-    group ``delay`` seconds after the phase's first line."""
+          no_cache: bool = False, again: float | None = None, extra=()) -> Run:
+    """Run the command line's build of ``labels`` (with the ``extra`` arguments) and, with
+    ``phase``, send SIGINT to its process group ``delay`` seconds after the phase's first line,
+    and once more ``again`` seconds later if given."""
     environment = dict(os.environ, PYTHONWARNINGS="ignore")
     arguments = [sys.executable, "-c", COMMAND_LINE, "build", str(labels), "-o", str(output),
-                 *OPTIONS, *(["--no-cache"] if no_cache else ["--cache-dir", str(cache)])]
+                 *OPTIONS, *(["--no-cache"] if no_cache else ["--cache-dir", str(cache)]),
+                 *extra]
     run = Run(output, phase)
     started = time.monotonic()
     process = subprocess.Popen(arguments, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
@@ -127,6 +129,10 @@ def build(labels, output: Path, cache: Path, phase: str | None = None, delay: fl
             if process.poll() is None:
                 os.killpg(process.pid, signal.SIGINT)
                 run.sent_after = count
+            if again is not None:
+                time.sleep(again)
+                if process.poll() is None:
+                    os.killpg(process.pid, signal.SIGINT)
         process.wait(timeout=TIMEOUT)
     finally:
         if process.poll() is None:
@@ -250,6 +256,29 @@ def test_fifty_ctrl_c_at_random_moments_of_every_phase(labels, tmp_path):
           {outcome: ended.count(outcome) for outcome in sorted(set(ended))})
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("phase", ["optimising", "the report"])
+def test_a_second_ctrl_c_aborts_at_once_and_resume_carries_the_build_on(labels, tmp_path, phase):
+    """Two SIGINTs 0.3 s apart: the build ends at the second (exit code 130) with one line that
+    says so, and --resume then ends with the uninterrupted build's model."""
+    cache = tmp_path / "cache"
+    whole = build(labels, tmp_path / "whole", cache)
+    assert whole.returncode == 0, whole.stderr
+    run = build(labels, tmp_path / "out", cache, phase, 0.2, again=0.3)
+    assert run.returncode == 130 and "Traceback" not in run.stderr, run.stderr
+    assert all(line.startswith("mdlshapemodel: ") for _, line in run.lines), run.stderr
+    assert run.lines[-1][1] == ("mdlshapemodel: interrupted again: aborted (--resume carries the "
+                                "build on)"), run.stderr
+    resumed = build(labels, tmp_path / "out", cache, extra=["--resume"])
+    # from the checkpoint, or (aborted before the first one) from the start
+    assert resumed.returncode == 0, resumed.stderr
+    assert_whole_build(tmp_path / "out")
+    ours, theirs = (ShapeModel.load(folder / "model.h5") for folder in (tmp_path / "out",
+                                                                       tmp_path / "whole"))
+    assert ours.metadata["objective"] == theirs.metadata["objective"]
+    assert (ours.mean == theirs.mean).all()
+
+
 # -- the pieces ----------------------------------------------------------------------------------
 
 def sigint_disposition():
@@ -273,6 +302,31 @@ def test_pool_workers_ignore_sigint_and_pool_threads_leave_it_to_the_main_thread
     with Threads(2) as threads:
         threads.over(2, note)
     assert blocked == [True, True]
+
+
+def interrupted_in_a_worker(seconds: float) -> str:
+    """In a worker process: KeyboardInterrupt after ``seconds``; here: "done here"."""
+    import multiprocessing
+
+    time.sleep(seconds)
+    if multiprocessing.parent_process() is not None:
+        raise KeyboardInterrupt
+    return "done here"
+
+
+def test_a_task_redoes_work_interrupted_in_its_worker_but_not_a_ctrl_c_here():
+    with ProcessPool(1) as pool:
+        # the worker's own KeyboardInterrupt (a caller's executor whose workers Ctrl-C reaches)
+        task = Task(pool, interrupted_in_a_worker, 0.0)
+        assert task.result(redo=(KeyboardInterrupt,)) == "done here"
+        # Ctrl-C here while the task runs there: raised on, not taken for lost work
+        task = Task(pool, interrupted_in_a_worker, 2.0)
+        timer = threading.Timer(0.5, signal.pthread_kill, (threading.main_thread().ident,
+                                                           signal.SIGINT))
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            task.result(redo=(KeyboardInterrupt,))
+        timer.join()
 
 
 def test_ctrl_c_sets_a_flag_taken_at_the_next_report_and_a_second_one_raises():

@@ -625,8 +625,8 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
 
 def _outcome(evaluation):
     """The result of an evaluation that may have run on the executor; one interrupted there
-    (Ctrl-C reaches the worker processes too), cancelled, or lost with its worker process is done
-    again here. Any other exception is a bug and propagates."""
+    (Ctrl-C reaches the worker processes of a caller's executor too), cancelled, or lost with its
+    worker process is done again here. Any other exception is a bug and propagates."""
     if not isinstance(evaluation, Task):
         return evaluation
     return evaluation.result(redo=(KeyboardInterrupt, CancelledError))

@@ -451,7 +451,8 @@ class Task:
             self.error = error
 
     def result(self, redo: tuple = ()):
-        """The value; also done again here when the executor's run raised one of ``redo``."""
+        """The value; also done again here when the executor's run raised one of ``redo`` (not
+        when this thread's wait did: a second Ctrl-C is raised on)."""
         if self.future is None and self.error is None:
             return self.value
         try:
@@ -460,13 +461,21 @@ class Task:
             value = self.future.result()
         except BaseException as error:
             if not (isinstance(error, (BrokenExecutor, CancelledError, *redo))
-                    or killed_on_cluster(error)):
+                    or killed_on_cluster(error)) or not self._raised_there(error):
                 raise
             log.warning("%s on the executor did not finish (%s); doing it here", self.what,
                         type(error).__name__)
             return self.function(*self.arguments)
         self.arguments = ()      # done: its inputs are not needed again (they may be large)
         return value
+
+    def _raised_there(self, error: BaseException) -> bool:
+        """Whether ``error`` is the executor's (its run's, or a lost run's), not one raised in
+        this thread while it waited (a KeyboardInterrupt)."""
+        if self.future is None or not isinstance(error, KeyboardInterrupt):
+            return True
+        return (self.future.done() and not self.future.cancelled()
+                and self.future.exception() is error)
 
 
 # ---- a Dask cluster ----------------------------------------------------------------------------

@@ -60,12 +60,14 @@ class Interrupt:
     interrupted while preparing stops, one interrupted while optimising writes the model of the
     state reached. Once the work is :meth:`finishing` (a build writing its outputs), a Ctrl-C
     no longer stops it: it is said (``announcement``) and the work finishes. A second Ctrl-C
-    raises ``KeyboardInterrupt`` at once, wherever the main thread is: to abort hard.
+    aborts at once: ``abort()`` if given (a program ends there), else ``KeyboardInterrupt``
+    raised wherever the main thread is.
     """
 
-    def __init__(self):
+    def __init__(self, abort: Callable[[], None] | None = None):
         self.requested = threading.Event()   # set by the first Ctrl-C
         self.installed = False               # Ctrl-C reaches this one (see :func:`ctrl_c`)
+        self.abort = abort
         self.presses = 0
         self._stops = True                   # a request raises Cancelled (not yet finishing)
         self._lock = threading.Lock()
@@ -112,6 +114,8 @@ class Interrupt:
         """The SIGINT handler (it runs in the main thread, between two bytecodes)."""
         self.presses += 1
         if self.presses > 1:
+            if self.abort is not None:
+                self.abort()
             raise KeyboardInterrupt
         self.requested.set()
         if not self._stops:
@@ -128,8 +132,8 @@ _active: Interrupt | None = None
 
 
 @contextlib.contextmanager
-def ctrl_c():
-    """An :class:`Interrupt` that Ctrl-C reaches while the block runs.
+def ctrl_c(abort: Callable[[], None] | None = None):
+    """An :class:`Interrupt` (with ``abort``) that Ctrl-C reaches while the block runs.
 
     Its handler is installed only in the main thread (the only one Python runs signal handlers
     in) and only where Ctrl-C would raise ``KeyboardInterrupt`` (Python's default handler: a
@@ -143,7 +147,7 @@ def ctrl_c():
     if main and _active is not None:
         yield _active
         return
-    interrupt = Interrupt()
+    interrupt = Interrupt(abort)
     if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         yield interrupt
         return
