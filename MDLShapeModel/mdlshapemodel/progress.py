@@ -14,7 +14,7 @@ panel.
 
 Ctrl-C is a cancellation too: within :func:`ctrl_c` (a build, the command line) it only sets a
 flag, :class:`Interrupt`, that the work sees at its next report, where it stops as if the
-callback had cancelled; a second Ctrl-C raises ``KeyboardInterrupt`` at once.
+callback had cancelled; a second Ctrl-C aborts at once.
 
 Examples
 --------
