@@ -11,7 +11,9 @@ build.log). The optimisation state is checkpointed after every sweep or round, a
 optimisation (Ctrl-C, a cancelling progress callback, or the time limit) still writes a model of
 the state reached. One that ended before it converged says so, and how to carry it on
 (``--resume`` with a larger budget), in build.log, metrics.json, the report and the summary
-(:class:`OptimisationEnd`).
+(:class:`OptimisationEnd`). Ctrl-C is taken at the next progress report (:func:`.progress.ctrl_c`):
+while preparing it stops the build, while optimising it ends the optimisation there, and after
+the optimisation the outputs are finished; a second Ctrl-C aborts at once.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from .prepare.case import Rejection
 from .prepare.duplicates import identical_files, refusal, same_shapes
 from .prepare.landmarks import read_landmark_folder
 from .prepare.parts import case_inputs, read_manifest
-from .progress import Progress, report
+from .progress import Interrupt, Progress, ctrl_c, report
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -70,7 +72,11 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     progress : callable(fraction or None, message), optional
         See :mod:`mdlshapemodel.progress`. Cancelling (returning False or raising
         :class:`Cancelled`) during the optimisation stops it early; the model of the state reached
-        is still written. Cancelling in another stage raises :class:`Cancelled`.
+        is still written. Cancelling in another stage raises :class:`Cancelled`. Called from the
+        main thread where Ctrl-C raises ``KeyboardInterrupt`` (a script, a notebook), the build
+        takes Ctrl-C as such a cancellation at its next report (:func:`.progress.ctrl_c`; the
+        usual handler is back when it returns); once the optimisation has ended, Ctrl-C lets
+        the outputs be finished. A second Ctrl-C raises ``KeyboardInterrupt`` at once.
     executor : concurrent.futures.Executor, optional
         Runs the per-case work (preprocessing, CPD registrations, evaluations); default: a pool
         of ``config.workers`` processes per stage (none when 1) and one helper process for the
@@ -122,26 +128,28 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         raise BuildError(f"{output} holds an earlier build ({', '.join(p.name for p in earlier)})"
                          ": give --overwrite to replace it, --resume to carry it on, or another "
                          "output folder")
-    if resume:
-        remove_partial_files(output)
-    else:
-        clear_previous_build(output)
-    (output / "correspondence").mkdir(parents=True, exist_ok=True)
-    (output / "aligned").mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(output / "build.log", mode="a" if resume else "w")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
-    log.addHandler(handler)
-    if log.level == logging.NOTSET or log.level > logging.INFO:
-        log.setLevel(logging.INFO)
-    try:
-        return _build(cases, output, config, progress, executor, resume, landmarks)
-    except InternalError as error:
-        # the user sees the one-line message; the traceback (a worker's too) goes to build.log
-        handler.stream.write("".join(traceback.format_exception(error)))
-        raise
-    finally:
-        log.removeHandler(handler)
-        handler.close()
+    with ctrl_c() as interrupt:
+        interrupt.check()    # Ctrl-C already (the command line's, as it started): nothing touched
+        if resume:
+            remove_partial_files(output)
+        else:
+            clear_previous_build(output)
+        (output / "correspondence").mkdir(parents=True, exist_ok=True)
+        (output / "aligned").mkdir(parents=True, exist_ok=True)
+        handler = logging.FileHandler(output / "build.log", mode="a" if resume else "w")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        log.addHandler(handler)
+        if log.level == logging.NOTSET or log.level > logging.INFO:
+            log.setLevel(logging.INFO)
+        try:
+            return _build(cases, output, config, progress, executor, resume, landmarks, interrupt)
+        except InternalError as error:
+            # the user sees the one-line message; the traceback (a worker's too) goes to build.log
+            handler.stream.write("".join(traceback.format_exception(error)))
+            raise
+        finally:
+            log.removeHandler(handler)
+            handler.close()
 
 
 def fingerprint(prepared: list, config: BuildConfig, landmarks: dict | None = None) -> dict:
@@ -247,21 +255,23 @@ def _guarded(source, line: int) -> bool:
 
 
 def _build(cases: list, output: Path, config: BuildConfig, progress, executor,
-           resume: bool, landmarks: dict | None) -> BuildResult:
+           resume: bool, landmarks: dict | None, interrupt: Interrupt) -> BuildResult:
     started = time.perf_counter()
+    progress = interrupt.watch(progress)
     io.write_text(output / "config.json", json.dumps(config.to_dict(), indent=2))
     if config.scheduler is None:
         log.info("preprocessing %d cases with %d workers", len(cases), config.workers)
         return _build_from(cases, output, config, progress, executor, resume, started,
-                           landmarks)
+                           landmarks, interrupt)
     with dask_executor(config.scheduler) as cluster:   # connected and checked before any work
         log.info("preprocessing %d cases on the Dask cluster", len(cases))
         return _build_from(cases, output, config, progress, cluster, resume, started,
-                           landmarks)
+                           landmarks, interrupt)
 
 
 def _build_from(cases: list, output: Path, config: BuildConfig, progress, executor,
-                resume: bool, started: float, landmarks: dict | None) -> BuildResult:
+                resume: bool, started: float, landmarks: dict | None,
+                interrupt: Interrupt) -> BuildResult:
     prepared, rejected = preprocess(cases, config, executor, progress)
     prepared, odd = one_kind(prepared)
     rejected = rejected + odd
@@ -291,8 +301,11 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
                                   evaluate_baseline, resumed, landmarks)
+        # from here on a Ctrl-C lets the outputs be finished (a second one aborts)
         if corresponded.interrupted:
-            log.warning("optimisation interrupted: writing the model of the state reached")
+            log.warning("optimisation interrupted: writing the model of the state reached%s",
+                        interrupt.again)
+        interrupt.finishing("interrupted after the optimisation: finishing the outputs")
         unfinished = corresponded.optimisation.warning(output)
         if unfinished is not None:
             log.warning("%s", unfinished)
@@ -628,8 +641,8 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
 
 def _outcome(evaluation):
     """The result of an evaluation that may have run on the executor; one interrupted there
-    (Ctrl-C reaches the worker processes too), cancelled, or lost with its worker process is done
-    again here. Any other exception is a bug and propagates."""
+    (Ctrl-C reaches the worker processes of a caller's executor too), cancelled, or lost with its
+    worker process is done again here. Any other exception is a bug and propagates."""
     if not isinstance(evaluation, Task):
         return evaluation
     return evaluation.result(redo=(KeyboardInterrupt, CancelledError))

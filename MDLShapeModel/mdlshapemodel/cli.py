@@ -19,7 +19,8 @@ from typing import Callable
 from .config import (ANALYSIS_SIZES, DISPLACEMENTS, OPTION_GROUPS, PART_ALIGNMENTS,
                      STRATEGIES, AnalysisConfig, BuildConfig, parse_items)
 from .correspondence.trace import stop_summary
-from .errors import ConfigError, InternalError, MDLShapeModelError
+from .errors import Cancelled, ConfigError, InternalError, MDLShapeModelError
+from .progress import ctrl_c
 from .version import __version__
 
 log = logging.getLogger("mdlshapemodel")
@@ -279,14 +280,28 @@ def _summary(result) -> str:
     return "\n".join(lines)
 
 
+def _abort(live: bool):
+    """A build's second Ctrl-C: the process ends at once (exit code 130). Its files are whole
+    (each is written under a temporary name, then renamed), and --resume carries it on, as
+    after a kill. Written straight to file descriptor 2 (after a bar, ``live``, on a line of
+    its own): this runs in the signal handler, which may have cut a write to sys.stderr short."""
+    os.write(2, (b"\n" if live else b"")
+             + b"mdlshapemodel: interrupted again: aborted (--resume carries the build on)\n")
+    os._exit(130)
+
+
 def _run_build(inputs, output, config, live: bool, overwrite: bool = False,
                resume: bool = False, manifest=None) -> int:
-    from .build import build_model
+    # Ctrl-C from the start (the build's modules take a while to import) to the summary is
+    # the build's to take at its next report (progress.ctrl_c): an interrupted build ends
+    # with the model of the state reached, or while preparing with Cancelled; a second one
+    # aborts at once
+    with ctrl_c(abort=lambda: _abort(live)), _ProgressDisplay(live) as progress:
+        from .build import build_model
 
-    with _ProgressDisplay(live) as progress:
         result = build_model(inputs, output, config, progress=progress, overwrite=overwrite,
                              resume=resume, manifest=manifest)
-    print(_summary(result))
+        print(_summary(result))
     return 0
 
 
@@ -576,7 +591,12 @@ def main(argv=None) -> int:
     except InternalError as error:
         print(f"mdlshapemodel: internal error: {error}", file=sys.stderr)
         return 3
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Cancelled, SystemError) as error:
+        # SystemError: a KeyboardInterrupt (Ctrl-C of a command other than build) met
+        # numba-compiled code, which returns with the exception set; Python reports that as a
+        # SystemError caused by it
+        if isinstance(error, SystemError) and not isinstance(error.__cause__, KeyboardInterrupt):
+            raise
         print("mdlshapemodel: interrupted", file=sys.stderr)
         return 130
     finally:

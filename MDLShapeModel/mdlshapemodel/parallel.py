@@ -12,6 +12,10 @@ A worker process that dies (a segfault in a native library, ``os._exit``, the ke
 out-of-memory killer) loses the work it held, not the build: :func:`map_cases` finds the case that
 kills its worker and hands it to the caller's ``died`` (preprocessing rejects it), and runs the
 other cases again; :class:`Task` does lost work again here.
+
+Ctrl-C (SIGINT), which a terminal sends to every process of its foreground group, is the main
+process's to decide on (:func:`.progress.ctrl_c`): the worker processes of a :class:`ProcessPool`
+ignore it from their start, and the threads of :class:`Threads` leave it to the main thread.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import logging
 import multiprocessing
 import os
 import re
+import signal
 import socket
 import sys
 import threading
@@ -72,9 +77,46 @@ def _end_with_parent(parent: int, interval: float = 0.5) -> None:
 WORKER_STARTUP: list = []
 
 
+@contextlib.contextmanager
+def _ctrl_c_held():
+    """SIGINT blocked in this thread while the block starts worker processes, which inherit the
+    block (until :func:`_ignore_ctrl_c`): a Ctrl-C while one imports its modules is no
+    ``KeyboardInterrupt`` there. One that arrives here meanwhile is delivered when the block
+    ends."""
+    if not hasattr(signal, "pthread_sigmask"):   # (Windows: no signal masks)
+        yield
+        return
+    # multiprocessing starts its resource tracker along with the first process, and unblocks
+    # SIGINT in the calling thread when it has: started first, it leaves the block alone
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def _ignore_ctrl_c() -> None:
+    """Worker initializer: SIGINT ignored (and no longer blocked: :func:`_ctrl_c_held`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+def _leave_ctrl_c_to_the_main_thread() -> None:
+    """Thread-pool initializer: SIGINT blocked in the pool's threads, so that the kernel delivers
+    it to the main thread, the one Python runs signal handlers in (its waits are cut short)."""
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+
 def _start_worker(parent: int, startup: tuple = ()) -> None:
-    """Worker initializer of :class:`ProcessPool`: :func:`_end_with_parent`, then ``startup``
-    (:data:`WORKER_STARTUP` when the pool started this worker)."""
+    """Worker initializer of :class:`ProcessPool`: :func:`_ignore_ctrl_c`,
+    :func:`_end_with_parent`, then ``startup`` (:data:`WORKER_STARTUP` when the pool started
+    this worker)."""
+    _ignore_ctrl_c()
     _end_with_parent(parent)
     for function in startup:
         function()
@@ -88,7 +130,8 @@ class ProcessPool(Executor):
     was running or holding fail with ``BrokenProcessPool``, and it takes no new ones. This pool
     starts a fresh ``ProcessPoolExecutor`` at the next :meth:`submit` instead, so the lost calls
     can be submitted again. :meth:`death` says how a worker died. Workers start on demand, at a
-    submission, and are shut down with the pool (``with ProcessPool(n) as pool:``).
+    submission, and are shut down with the pool (``with ProcessPool(n) as pool:``). They ignore
+    Ctrl-C (SIGINT) from their start: the main process decides what it means.
 
     ``spawn`` (not ``fork``): VTK, numba and BLAS threads do not survive a fork safely. A script
     that uses it needs the usual ``if __name__ == "__main__":`` guard.
@@ -113,7 +156,7 @@ class ProcessPool(Executor):
     def submit(self, fn, /, *args, **kwargs):
         if self._closed:
             raise RuntimeError("cannot schedule new futures after shutdown")
-        with _one_blas_thread_per_worker():   # workers start within submit
+        with _one_blas_thread_per_worker(), _ctrl_c_held():   # workers start within submit
             try:
                 future = (self._pool or self._fresh()).submit(fn, *args, **kwargs)
             except BrokenExecutor:
@@ -152,6 +195,7 @@ class Threads:
 
     Each index is handled by exactly one call, with the same arithmetic as in one thread, so the
     results do not depend on the number of threads. ``threads`` <= 1 runs in the calling thread.
+    The threads leave Ctrl-C (SIGINT) to the main thread.
     Use as a context manager (the threads end with it).
 
     Examples
@@ -169,7 +213,9 @@ class Threads:
 
     def __init__(self, threads: int):
         self.threads = max(int(threads), 1)
-        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+        self._pool = (ThreadPoolExecutor(self.threads,
+                                         initializer=_leave_ctrl_c_to_the_main_thread)
+                      if self.threads > 1 else None)
 
     def over(self, n: int, function) -> None:
         """``function(range(a, b))`` for the chunks of ``range(n)``; the first exception of a
@@ -405,7 +451,8 @@ class Task:
             self.error = error
 
     def result(self, redo: tuple = ()):
-        """The value; also done again here when the executor's run raised one of ``redo``."""
+        """The value; also done again here when the executor's run raised one of ``redo`` (not
+        when this thread's wait did: a second Ctrl-C is raised on)."""
         if self.future is None and self.error is None:
             return self.value
         try:
@@ -414,13 +461,21 @@ class Task:
             value = self.future.result()
         except BaseException as error:
             if not (isinstance(error, (BrokenExecutor, CancelledError, *redo))
-                    or killed_on_cluster(error)):
+                    or killed_on_cluster(error)) or not self._raised_there(error):
                 raise
             log.warning("%s on the executor did not finish (%s); doing it here", self.what,
                         type(error).__name__)
             return self.function(*self.arguments)
         self.arguments = ()      # done: its inputs are not needed again (they may be large)
         return value
+
+    def _raised_there(self, error: BaseException) -> bool:
+        """Whether ``error`` is the executor's (its run's, or a lost run's), not one raised in
+        this thread while it waited (a KeyboardInterrupt)."""
+        if self.future is None or not isinstance(error, KeyboardInterrupt):
+            return True
+        return (self.future.done() and not self.future.cancelled()
+                and self.future.exception() is error)
 
 
 # ---- a Dask cluster ----------------------------------------------------------------------------

@@ -12,6 +12,10 @@ The command line shows these reports as a progress bar (or plain log lines when 
 a terminal), the VTK filters as ``vtkAlgorithm`` progress events, and the 3D Slicer module in its
 panel.
 
+Ctrl-C is a cancellation too: within :func:`ctrl_c` (a build, the command line) it only sets a
+flag, :class:`Interrupt`, that the work sees at its next report, where it stops as if the
+callback had cancelled; a second Ctrl-C aborts at once.
+
 Examples
 --------
 >>> from mdlshapemodel.progress import report
@@ -23,16 +27,136 @@ Examples
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import signal
+import threading
 from typing import Callable, Optional
 
 from .errors import Cancelled
 
 Progress = Callable[[Optional[float], str], Optional[bool]]
 
-__all__ = ["Cancelled", "Progress", "report"]
+__all__ = ["Cancelled", "Interrupt", "Progress", "ctrl_c", "report"]
+
+log = logging.getLogger("mdlshapemodel")
 
 
 def report(progress: Progress | None, fraction: float | None, message: str) -> None:
     """Pass one report to ``progress`` (if any); raise :class:`Cancelled` if it returns False."""
     if progress is not None and progress(fraction, message) is False:
         raise Cancelled(message)
+
+
+class Interrupt:
+    """Ctrl-C (SIGINT) as a request to stop at the next report, not an exception raised anywhere.
+
+    Python's own handler raises ``KeyboardInterrupt`` wherever the main thread happens to be:
+    inside a numba kernel (which then returns with the exception set, a ``SystemError``), while
+    a thread pool is half-way through a loop, between two writes of a file. Installed by
+    :func:`ctrl_c` instead, the first Ctrl-C only sets :attr:`requested`; the work sees it at its
+    next :func:`report` through :meth:`watch` (or at :meth:`check`) and raises
+    :class:`Cancelled` there, at a point where what it has reached is consistent: a build
+    interrupted while preparing stops, one interrupted while optimising writes the model of the
+    state reached. Once the work is :meth:`finishing` (a build writing its outputs), a Ctrl-C
+    no longer stops it: it is said (``announcement``) and the work finishes. A second Ctrl-C
+    aborts at once: ``abort()`` if given (a program ends there), else ``KeyboardInterrupt``
+    raised wherever the main thread is.
+    """
+
+    def __init__(self, abort: Callable[[], None] | None = None):
+        self.requested = threading.Event()   # set by the first Ctrl-C
+        self.installed = False               # Ctrl-C reaches this one (see :func:`ctrl_c`)
+        self.abort = abort
+        self.presses = 0
+        self._stops = True                   # a request raises Cancelled (not yet finishing)
+        self._lock = threading.Lock()
+        self._seen = False                   # the request has raised Cancelled, or been said
+        self._announcement = None
+        self._saying = None                  # the thread that says it (see _press)
+
+    def check(self) -> None:
+        """Raise :class:`Cancelled` if Ctrl-C was pressed and the work is not finishing."""
+        if self._stops and self.requested.is_set():
+            with self._lock:
+                self._seen = True
+            raise Cancelled("interrupted (Ctrl-C)")
+
+    def watch(self, progress: Progress | None) -> Progress:
+        """``progress`` (None: no callback) preceded by :meth:`check` at every report."""
+        def watched(fraction, message):
+            self.check()
+            return None if progress is None else progress(fraction, message)
+        return watched
+
+    def finishing(self, announcement: str | None = None) -> None:
+        """From now on a Ctrl-C lets the work finish, with ``announcement`` logged as a warning
+        (at once if Ctrl-C was pressed since the last report and nothing has stopped for it)."""
+        self._stops, self._announcement = False, announcement
+        if self.requested.is_set():
+            self._announce()
+
+    @property
+    def again(self) -> str:
+        """What a message about a Ctrl-C adds: how to abort hard ("" without one)."""
+        return (" (Ctrl-C again to abort)" if self.installed and self.requested.is_set()
+                else "")
+
+    def _announce(self):
+        with self._lock:                     # once, whichever thread comes first
+            if self._seen:
+                return
+            self._seen = True
+        if self._announcement:
+            log.warning("%s%s", self._announcement, self.again)
+
+    def _press(self, number, frame):
+        """The SIGINT handler (it runs in the main thread, between two bytecodes)."""
+        self.presses += 1
+        if self.presses > 1:
+            if self.abort is not None:
+                self.abort()
+            raise KeyboardInterrupt
+        self.requested.set()
+        if not self._stops:
+            # said by a thread of its own: this handler may run within a write to the stream
+            # that the message goes to (a write that a signal cut short), where writing again
+            # from this thread would fail
+            self._saying = threading.Thread(target=self._announce, name="mdlshapemodel-ctrl-c",
+                                            daemon=True)
+            self._saying.start()
+
+
+# the Interrupt that Ctrl-C reaches, while a :func:`ctrl_c` block of the main thread runs
+_active: Interrupt | None = None
+
+
+@contextlib.contextmanager
+def ctrl_c(abort: Callable[[], None] | None = None):
+    """An :class:`Interrupt` (with ``abort``) that Ctrl-C reaches while the block runs.
+
+    Its handler is installed only in the main thread (the only one Python runs signal handlers
+    in) and only where Ctrl-C would raise ``KeyboardInterrupt`` (Python's default handler: a
+    script, a notebook); elsewhere (a thread, an application with a handler of its own, Ctrl-C
+    ignored) the Interrupt is never pressed. The previous handler is back when the block ends.
+    Nested in the main thread (the command line's around a build's), the inner block gets the
+    outer block's Interrupt.
+    """
+    global _active
+    main = threading.current_thread() is threading.main_thread()
+    if main and _active is not None:
+        yield _active
+        return
+    interrupt = Interrupt(abort)
+    if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield interrupt
+        return
+    previous = signal.signal(signal.SIGINT, interrupt._press)
+    interrupt.installed, _active = True, interrupt
+    try:
+        yield interrupt
+    finally:
+        _active = None
+        signal.signal(signal.SIGINT, previous)
+        if interrupt._saying is not None:    # said before the program goes on (or ends)
+            interrupt._saying.join(timeout=10.0)
