@@ -39,6 +39,21 @@ from .shape_model import ShapeModel
 SURFACE_GENERALIZATION_POINTS = 5000
 
 
+#: A direction of the shapes whose variance is below this share of the largest one's is no mode:
+#: it holds rounding (identical cases differ there in the last digits), so the model spaces here
+#: and the leave-one-out models leave it out, as :meth:`ShapeModel.from_shapes` leaves it out of
+#: a model (its ``relative_tolerance``). The measures of aligned shapes and of the model's own
+#: reconstruction of them (``mdlshapemodel compare`` reads those) are then the same.
+NEGLIGIBLE_VARIANCE = 1e-10
+
+
+def _modes_kept(singular: np.ndarray) -> np.ndarray:
+    """Which singular values of centred shapes are modes (variance above
+    :data:`NEGLIGIBLE_VARIANCE` of the largest)."""
+    largest = max(float(singular.max(initial=0.0)), 1e-300)
+    return singular ** 2 > NEGLIGIBLE_VARIANCE * largest ** 2
+
+
 @dataclass(frozen=True)
 class ModelSpace:
     """The training shapes in model space.
@@ -59,7 +74,7 @@ def model_space(shapes: np.ndarray, weights: np.ndarray) -> ModelSpace:
     root = np.sqrt(weights)
     z = ((shapes - shapes.mean(axis=0)) * root[None, :, None]).reshape(n_s, -1)
     u, singular, vt = np.linalg.svd(z, full_matrices=False)
-    keep = singular > 1e-10 * max(singular.max(initial=0.0), 1e-300)
+    keep = _modes_kept(singular)
     return ModelSpace(u[:, keep] * singular[keep], vt[keep] / np.repeat(root, 3))
 
 
@@ -125,7 +140,7 @@ def _modes_of_others(coordinates: np.ndarray, i: int) -> tuple[np.ndarray, int]:
     """The principal directions (rows) of every shape but i, and their number (the rank)."""
     others = np.delete(coordinates, i, axis=0)
     _, singular, directions = np.linalg.svd(others - others.mean(axis=0), full_matrices=False)
-    rank = int(np.sum(singular > 1e-10 * max(singular.max(initial=0.0), 1e-300)))
+    rank = int(np.sum(_modes_kept(singular)))
     return directions, rank
 
 
@@ -194,7 +209,7 @@ def subspace(space: ModelSpace, keep) -> ModelSpace:
     coordinates = space.coordinates[np.asarray(keep)]
     coordinates = coordinates - coordinates.mean(axis=0)
     u, singular, vt = np.linalg.svd(coordinates, full_matrices=False)
-    nonzero = singular > 1e-10 * max(singular.max(initial=0.0), 1e-300)
+    nonzero = _modes_kept(singular)
     return ModelSpace(u[:, nonzero] * singular[nonzero], vt[nonzero] @ space.to_points)
 
 
