@@ -18,7 +18,7 @@ from .correspondence.state import CorrespondenceState, state_record
 from .correspondence.strategies.base import PhasePoint
 from .correspondence.trace import TraceRow
 from .errors import BuildError
-from .model.evaluation import evaluate_state
+from .model.evaluation import evaluate_state, measure_differences
 from .model.normals import OFF_DEGREES, SPREAD_DEGREES, normal_agreement
 from .model.shape_model import ShapeModel, score_outliers
 from .prepare import io
@@ -287,6 +287,23 @@ def landmark_summary(model, records: list) -> dict | None:
             if distances else None, "per_label": per_label}
 
 
+def against_baselines(quality: dict, baselines: dict) -> dict:
+    """metrics.json's ``baselines``: each baseline's measures (as from
+    :func:`~.model.evaluation.evaluate`) and, under ``differences``, the model's measures minus
+    the baseline's with their standard errors and verdicts
+    (:func:`~.model.evaluation.measure_differences`: the rule of ``mdlshapemodel compare``;
+    "better": the model's value is lower). The generalization's jackknifes (``jackknife`` of
+    ``quality`` and of each baseline) are taken out: they are not JSON."""
+    mine = quality.pop("jackknife", None)
+    recorded = {}
+    for name, values in baselines.items():
+        values = dict(values)
+        theirs = values.pop("jackknife", None)
+        values["differences"] = measure_differences(values, quality, theirs, mine)
+        recorded[name] = values
+    return recorded
+
+
 def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                   config: BuildConfig, baselines: dict | None = None, pool=None,
                   warnings=()) -> BuildResult:
@@ -354,7 +371,9 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                      [record.row() for record in landmarks])
     log.info("wrote the model, meshes and tables in %.1f s", time.perf_counter() - started)
     started = time.perf_counter()
-    quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
+    quality = evaluate_state(state, config, prepared, model, pool=pool, background=False,
+                             jackknife=bool(baselines))
+    baselines = against_baselines(quality, baselines or {})
     log.info("evaluated the model in %.1f s", time.perf_counter() - started)
     metrics = {"objective": {"initial": initial, "final": final,
                              "n_points": corresponded.objective_points,
@@ -378,7 +397,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
                "landmarks": landmark_summary(model, landmarks),
-               "baselines": baselines or {}, "warnings": list(warnings)}
+               "baselines": baselines, "warnings": list(warnings)}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()
     write_report(output, metrics, cases, rejected, model, aligned, names,

@@ -296,6 +296,67 @@ def generalization_difference(a: GeneralizationJackknife, b: GeneralizationJackk
             "paired_se": per_case.std(axis=0, ddof=1) / np.sqrt(n_s - 1.0)}
 
 
+#: The measures :func:`measure_differences` compares (lower is better for each, IV-B).
+COMPARED_MEASURES = ("compactness", "generalization", "specificity")
+
+#: Two models differ in a measure where their difference exceeds this many standard errors of
+#: the difference (the paper's criterion for its error bars, IV-B).
+SIGNIFICANT_SE = 2.0
+
+
+def verdict(difference: float, se: float) -> str:
+    """"better", "worse" or "same": a model's measure minus a reference's, ``difference``, with
+    its standard error ``se``. Lower is better for every measure (a compact model has little
+    variance, IV-B); within :data:`SIGNIFICANT_SE` standard errors the two are the same.
+
+    The one rule of ``mdlshapemodel compare`` and of the report's baseline verdicts.
+
+    Examples
+    --------
+    >>> verdict(-0.5, 0.2), verdict(0.5, 0.2), verdict(0.3, 0.2)
+    ('better', 'worse', 'same')
+    """
+    if not abs(difference) > SIGNIFICANT_SE * se:
+        return "same"
+    return "better" if difference < 0 else "worse"
+
+
+def measure_differences(reference: dict, other: dict,
+                        reference_jackknife: GeneralizationJackknife | None = None,
+                        other_jackknife: GeneralizationJackknife | None = None) -> dict:
+    """The measures of ``other`` minus those of ``reference``, two :func:`evaluate` results of
+    the same cases (in the same order) with the same modes, and their standard errors.
+
+    Generalization is paired: :func:`generalization_difference` of the two models'
+    :func:`generalization_jackknife` (left out when either is None: fewer than 4 cases).
+    Compactness has no per-case values and the specificities are of samples of two different
+    models, so theirs are sqrt(SE_a^2 + SE_b^2).
+
+    Returns
+    -------
+    dict
+        measure -> ``difference``, ``se`` and ``verdict`` (:func:`verdict`, of ``other``) per M,
+        ``significant`` (the verdict is not "same") and ``paired`` (the jackknife's SE).
+    """
+    result = {}
+    for measure in COMPARED_MEASURES:
+        paired = measure == "generalization"
+        if paired:
+            if reference_jackknife is None or other_jackknife is None:
+                continue
+            found = generalization_difference(reference_jackknife, other_jackknife)
+            difference, se = found["difference"], found["se"]
+        else:
+            difference = np.asarray(other[measure]) - np.asarray(reference[measure])
+            se = np.hypot(np.asarray(other[measure + "_se"]),
+                          np.asarray(reference[measure + "_se"]))
+        verdicts = [verdict(d, s) for d, s in zip(difference, se)]
+        result[measure] = {"difference": np.asarray(difference).tolist(),
+                           "se": np.asarray(se).tolist(), "paired": paired,
+                           "significant": [v != "same" for v in verdicts], "verdict": verdicts}
+    return result
+
+
 def specificity(shapes: np.ndarray, weights: np.ndarray, max_modes: int, n_samples: int = 10_000,
                 rng: np.random.Generator | None = None, chunk: int = 256,
                 space: ModelSpace | None = None):
@@ -731,7 +792,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
 def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max_modes: int = 10,
              n_samples: int = 10_000, rng: np.random.Generator | None = None,
              triangles: np.ndarray | None = None, surfaces=None,
-             surface_samples: int = 1000, pool=None) -> dict:
+             surface_samples: int = 1000, pool=None, jackknife: bool = False) -> dict:
     """Compactness, generalization and specificity for M = 1..max_modes, as JSON-ready lists.
 
     Parameters
@@ -764,13 +825,17 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         Where to measure the surface generalization meanwhile (e.g. a process on another core);
         the results are the same. If its worker process dies, it is measured here instead
         (:class:`~mdlshapemodel.parallel.Task`).
+    jackknife : bool
+        Also the :func:`generalization_jackknife` of the shapes, under ``jackknife`` (not
+        JSON: for :func:`measure_differences` against another correspondence of the same
+        cases), when there are at least 4 shapes.
 
     Returns
     -------
     dict
         ``modes``, ``compactness``, ``generalization``, ``specificity`` (mm^2), their ``_mm``
-        (point-to-point) versions, each with ``_se``, ``specificity_samples``, and the surface
-        measures above when ``surfaces`` is given.
+        (point-to-point) versions, each with ``_se``, ``specificity_samples``, the surface
+        measures above when ``surfaces`` is given, and ``jackknife`` when asked for.
     """
     from threadpoolctl import threadpool_limits
 
@@ -784,11 +849,11 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
     # worker computes, whatever the number of cores
     with threadpool_limits(limits=1, user_api="blas"):
         return _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles,
-                         surfaces, surface_samples, pool)
+                         surfaces, surface_samples, pool, jackknife)
 
 
 def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, surfaces,
-              surface_samples, pool) -> dict:
+              surface_samples, pool, jackknife) -> dict:
     import copy
 
     n_s = len(shapes)
@@ -821,14 +886,19 @@ def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, 
             as_list[name + "_surface_mm"] = result["distance"].tolist()
             as_list[name + "_surface_mm_se"] = result["distance_se"].tolist()
         as_list["specificity_surface_samples"] = int(surface_samples)
+    if jackknife and n_s >= 4:
+        as_list["jackknife"] = generalization_jackknife(space, max_modes)
     return as_list
 
 
 def evaluate_state(state, config, prepared: list | None = None,
-                   model: ShapeModel | None = None, pool=None, background: bool = True):
+                   model: ShapeModel | None = None, pool=None, background: bool = True,
+                   jackknife: bool = False):
     """Compactness, generalization and specificity of the state's aligned shapes (``model``: the
     model of those shapes, when already built). With ``prepared`` (the cases, in the state's
-    order) and ``config.surface_samples`` > 0, also measured surface to surface.
+    order) and ``config.surface_samples`` > 0, also measured surface to surface; with
+    ``jackknife``, also the generalization's jackknife (:func:`evaluate`), to tell another
+    correspondence of the same cases apart from this one (:func:`measure_differences`).
 
     With a ``pool`` (any ``concurrent.futures.Executor``): ``background`` runs the whole evaluation there and
     returns its :class:`~mdlshapemodel.parallel.Task` (the state may change meanwhile: it gets
@@ -847,5 +917,5 @@ def evaluate_state(state, config, prepared: list | None = None,
                  config.specificity_samples, np.random.default_rng(config.seed),
                  state.triangles().copy(), surfaces, config.surface_samples)
     if pool is not None and background:
-        return Task(pool, evaluate, *arguments, what="an evaluation")
-    return evaluate(*arguments, pool=pool)
+        return Task(pool, evaluate, *arguments, None, jackknife, what="an evaluation")
+    return evaluate(*arguments, pool=pool, jackknife=jackknife)

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..correspondence.trace import stop_summary
 from ..errors import MDLShapeModelError
+from ..model.evaluation import verdict
 from ..prepare import io
 from .figures import encoded_png, pyplot
 
@@ -118,8 +119,24 @@ def _series(metrics: dict) -> list:
     return series
 
 
+def _baseline_cell(values: dict, key: str, k: int) -> tuple[str, bool]:
+    """A baseline's value ± SE at the k-th M, with the verdict of the model against it where
+    metrics.json records their difference (``differences``, the model's minus the
+    baseline's: the rule of ``mdlshapemodel compare``), and whether the model is worse."""
+    cell = f"{values[key][k]:.4g} ± {values[key + '_se'][k]:.2g}"
+    found = values.get("differences", {}).get(key)
+    if found is None:
+        return cell, False
+    difference, se = found["difference"][k], found["se"][k]
+    said = verdict(difference, se)
+    if said != "same":
+        cell += f" (MDL {said} by {abs(difference):.2g} ± {se:.2g})"
+    return cell, said == "worse"
+
+
 def _measure_table(metrics: dict) -> str:
-    """Values ± SE per M; baselines' G and S with a flag where MDL differs by > 2 SE."""
+    """Values ± SE per M; the baselines' G and S with the verdict of the MDL model against
+    each (:func:`~mdlshapemodel.model.evaluation.verdict`), a flag where it is worse."""
     baselines = metrics.get("baselines", {})
     header = ["M", "C(M)", "G(M)", "S(M)"]
     for name in baselines:
@@ -131,12 +148,9 @@ def _measure_table(metrics: dict) -> str:
         flag = [False] * 4
         for values in baselines.values():
             for key in ("generalization", "specificity"):
-                difference = values[key][k] - metrics[key][k]
-                se = np.hypot(values[key + "_se"][k], metrics[key + "_se"][k])
-                mark = " (MDL better)" if difference > 2 * se else (
-                    " (MDL worse)" if difference < -2 * se else "")
-                row.append(f"{values[key][k]:.4g} ± {values[key + '_se'][k]:.2g}{mark}")
-                flag.append(difference < -2 * se)
+                cell, worse = _baseline_cell(values, key, k)
+                row.append(cell)
+                flag.append(worse)
         rows.append(row)
         flags.append(flag)
     return table(header, rows, flags)
@@ -349,7 +363,11 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     parts += ["<h2>Model quality (area-weighted squared distances, ± 1 standard error)</h2>",
               "<p>Lower is better for all three measures. A baseline value marked "
               "'MDL better' exceeds the MDL model's by more than two standard errors of the "
-              "difference.</p>",
+              "difference ('MDL worse': falls short of it), by the rule of "
+              "<code>mdlshapemodel compare</code>: for G, whose cases are the same, the paired "
+              "difference with its jackknife standard error over the cases; for S, the two "
+              "Monte Carlo errors together. metrics.json has each difference and its standard "
+              "error (<code>baselines</code>, <code>differences</code>).</p>",
               _image(measure_plot(_series(metrics)), "quality measures"),
               _measure_table(metrics), HOW_TO_READ]
     if "generalization_surface_mm" in metrics:
