@@ -10,7 +10,6 @@ saying why.
 from __future__ import annotations
 
 import io
-import os
 import time
 from pathlib import Path
 
@@ -20,11 +19,9 @@ import pytest
 from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.report.html import html_page, write_report
-from mdlshapemodel.report.viewer import viewer_section
+from mdlshapemodel.report.viewer import EffectMap, viewer_section
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--no-first-run"]
+from browser import browser, open_page as _open  # noqa: F401 (browser: a fixture)
 
 
 def population(n_s=6, n_points=642, seed=0, parts=1):
@@ -119,45 +116,10 @@ def test_write_report_holds_the_viewer(tmp_path):
     assert "id='viewer-plot'" in page and "MIT licence" in page
 
 
-@pytest.fixture(scope="module")
-def browser():
-    if not os.path.exists(CHROMIUM):
-        pytest.skip(f"{CHROMIUM} is missing: the viewer's browser tests need Debian's chromium "
-                    "(apt-get install chromium)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("the playwright package is missing: pip install '.[test]'")
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield browser
-        browser.close()
-
-
 def _pixels(png: bytes) -> np.ndarray:
     from matplotlib.image import imread
 
     return imread(io.BytesIO(png), format="png")[..., :3]
-
-
-def _open(browser, path: Path, drawn="#viewer-plot canvas"):
-    page = browser.new_page(viewport={"width": 1200, "height": 900})
-    errors, requests = [], []
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: errors.append(str(e)))
-
-    def route(r):
-        if r.request.url.startswith("file:"):
-            r.continue_()
-        else:
-            requests.append(r.request.url)
-            r.abort()
-
-    page.route("**/*", route)
-    page.goto(path.as_uri())
-    page.wait_for_selector(drawn, timeout=30000)
-    page.wait_for_timeout(500)
-    return page, errors, requests
 
 
 def _slide(page, mode: int, value: float):
@@ -303,8 +265,8 @@ def test_the_analysis_effect_maps_turn_and_threshold_in_a_browser(browser, tmp_p
     # a significance map high at one end, and a signed effect negative there
     significance = 3.0 * np.exp(-np.sum((mean - mean[np.argmax(mean[:, 0])]) ** 2, axis=1) / 40)
     effect = -0.5 * significance + 0.1 * mean[:, 1] / np.abs(mean[:, 1]).max()
-    section = effects_section(mean, model.triangles, [("-log10 p", significance, False),
-                                                      ("effect [mm]", effect, True)])
+    section = effects_section(mean, model.triangles, [EffectMap("-log10 p", significance),
+                                                      EffectMap("effect [mm]", effect, True)])
     path = tmp_path / "effects.html"
     path.write_text(html_page("effects", section), encoding="utf-8")
     page, errors, requests = _open(browser, path, drawn="#effects-plot canvas")
@@ -444,3 +406,4 @@ def test_the_landmarks_section_lists_each_label_and_its_farthest_case(browser, t
     widths = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
     assert widths[0] <= widths[1], widths
     page.close()
+
