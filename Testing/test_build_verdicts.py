@@ -1,6 +1,6 @@
 """What a build says of itself, through the real command line on shared hippocampi: the report's
 verdicts against its baseline are those of `mdlshapemodel compare` on the same two
-correspondences."""
+correspondences, and the cases its checks flag are named in its printout and atop its report."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ import re
 
 import numpy as np
 import pytest
+
+from mdlshapemodel.prepare import io
 
 from common import hippocampi, needs_hippocampi, run_cli_quietly
 
@@ -73,3 +75,24 @@ def test_the_reports_verdicts_against_its_baseline_are_those_of_compare(tmp_path
     unpaired = np.hypot(metrics["generalization_se"], baseline["generalization_se"])
     assert any(abs(d) <= 2 * u and v != "same"
                for d, u, v in zip(g["difference"], unpaired, g["verdict"]))
+
+
+def test_the_build_names_the_cases_it_flags(tmp_path):
+    cases = distinct_hippocampi(13)
+    result = run_cli_quietly("build", *cases, "-o", tmp_path / "out", "--baselines", "",
+                             *COMMON)
+    assert result.returncode == 0, result.stderr
+    rows = io.read_csv(tmp_path / "out" / "cases.csv")
+    outliers = [row["case"] for row in rows if str(row["score_outlier"]) == "True"]
+    assert outliers, "no score outlier among these cases: the test needs one"
+    said = [line for line in result.stdout.splitlines() if "flagged" in line]
+    assert len(said) == 1 and all(name in said[0] for name in outliers), result.stdout
+    line = said[0]
+    flagged = json.loads((tmp_path / "out" / "metrics.json").read_text())["flagged_cases"]
+    assert set(outliers) <= set(flagged)
+    for row in rows:
+        assert (row["case"] in line) == (row["case"] in flagged), row["case"]
+    assert all(flagged[name][0] in line for name in flagged)
+    page = (tmp_path / "out" / "report.html").read_text()
+    top = page[:page.index("<h2>")]
+    assert all(name in top for name in flagged)

@@ -407,3 +407,72 @@ def test_the_landmarks_section_lists_each_label_and_its_farthest_case(browser, t
     assert widths[0] <= widths[1], widths
     page.close()
 
+
+def case_rows(names) -> list:
+    """Rows of a build's case table (cases.csv's columns), with long values: wider than a page."""
+    from mdlshapemodel.report.html import CASE_COLUMNS
+
+    rows = []
+    for k, name in enumerate(names):
+        row = {key: f"{0.123456 * (k + 1):.6f}" for key in CASE_COLUMNS}
+        row.update(case=name, flags="score outlier (Mahalanobis distance 3.61, p = 0.004)"
+                   if k == 2 else "", file=f"/data/a/rather/long/folder/{name}.nii.gz",
+                   warp_kinds="field:36; symmetric:120; asymmetric:12; shear:4",
+                   score_outlier=k == 2)
+        rows.append(row)
+    return rows
+
+
+def test_the_case_table_scrolls_in_its_box_with_the_case_and_its_flags_pinned(browser,
+                                                                             tmp_path):
+    model, shapes, names = population(n_s=6, n_points=42)
+    names = [f"subject_{k:04d}_hippocampus_left" for k in range(6)]
+    path = write_report(tmp_path, report_metrics(), case_rows(names), [], model, shapes, names)
+    page, errors, _ = _open(browser, path)
+    assert errors == []
+    widths = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
+    assert widths[0] <= widths[1], widths              # the page itself does not scroll sideways
+    box = page.locator("div.cases")
+    assert box.evaluate("e => e.scrollWidth > e.clientWidth + 100")   # the table scrolls in it
+    row = box.locator("tbody tr").nth(2)
+    row.scroll_into_view_if_needed()
+    middle = row.locator("td").nth(8)
+    before = middle.bounding_box()["x"]
+    box.evaluate("e => { e.scrollLeft = e.scrollWidth; }")
+    page.wait_for_timeout(200)
+    assert middle.bounding_box()["x"] < before - 100   # scrolled
+    frame = box.bounding_box()
+    for column in (0, 1):                # the case name and its flags stay in view, on top
+        cell = row.locator("td").nth(column)
+        where = cell.bounding_box()
+        assert frame["x"] - 1 <= where["x"] and where["x"] + where["width"] <= (
+            frame["x"] + frame["width"] + 1), (column, where, frame)
+        shown = page.evaluate("([x, y]) => document.elementFromPoint(x, y).textContent",
+                              [where["x"] + where["width"] / 2, where["y"] + where["height"] / 2])
+        assert shown == cell.inner_text()
+    assert row.locator("td").nth(0).inner_text() == names[2]
+    assert "score outlier" in row.locator("td").nth(1).inner_text()
+    page.close()
+
+
+def test_flagged_cases_are_named_at_the_top_of_the_report(browser, tmp_path):
+    model, shapes, names = population(n_s=6, n_points=42)
+    flagged = {names[2]: ["score outlier (Mahalanobis distance 3.61, p = 0.004)"],
+               names[4]: ["normals off at 30 points (more than 60° from the mean direction)"]}
+    metrics = {**report_metrics(), "flagged_cases": flagged}
+    path = write_report(tmp_path, metrics, case_rows(names), [], model, shapes, names)
+    page, errors, _ = _open(browser, path)
+    assert errors == []
+    listed = page.locator("#flagged")
+    assert listed.is_visible()
+    text = listed.inner_text()
+    assert all(name in text for name in flagged) and "score outlier" in text
+    assert "normals off at 30 points" in text and names[0] not in text
+    first_section = page.locator("h2").first.bounding_box()["y"]
+    assert listed.bounding_box()["y"] < first_section        # above everything else
+    page.close()
+    path = write_report(tmp_path, {**report_metrics(), "flagged_cases": {}}, case_rows(names),
+                        [], model, shapes, names)
+    page, errors, _ = _open(browser, path)
+    assert "No case is flagged" in page.locator("#flagged").inner_text()
+    page.close()

@@ -33,7 +33,16 @@ STYLE = ("body{font-family:sans-serif;margin:2em;max-width:1150px}table{border-c
          # a long command line (hundreds of input paths) wraps in a box of a few lines that
          # scrolls, instead of widening the page
          "pre.command{white-space:pre-wrap;overflow-wrap:anywhere;max-height:7.5em;"
-         "overflow:auto;background:#f6f6f6;border:1px solid #ccc;padding:4px 8px;margin:0}")
+         "overflow:auto;background:#f6f6f6;border:1px solid #ccc;padding:4px 8px;margin:0}"
+         # the cases table scrolls sideways in its box, the case name and its flags pinned
+         "div.cases{overflow-x:auto;max-width:100%}div.cases table{margin:0}"
+         "div.cases td:nth-child(-n+2),div.cases th:nth-child(-n+2){position:sticky;"
+         "box-sizing:border-box;text-align:left;overflow-wrap:anywhere;z-index:1}"
+         "div.cases td:nth-child(-n+2){background:#fff}"
+         "div.cases td:first-child,div.cases th:first-child{left:0;width:11em;min-width:11em;"
+         "max-width:11em}div.cases td:nth-child(2),div.cases th:nth-child(2){left:11em;"
+         "min-width:9em;max-width:16em}"
+         "div.flagged{border:2px solid #b00;padding:0 1em;margin:1em 0}")
 
 
 def measure_plot(series: list, keys=("compactness", "generalization", "specificity")) -> str:
@@ -156,6 +165,22 @@ def _measure_table(metrics: dict) -> str:
     return table(header, rows, flags)
 
 
+def _flagged_part(metrics: dict) -> list:
+    """The cases the build's checks flag (metrics.json ``flagged_cases``), named with why: at
+    the top of the report, so that they are seen before the model is used."""
+    flagged = metrics.get("flagged_cases")
+    if flagged is None:
+        return []
+    if not flagged:
+        return ["<p id=flagged>No case is flagged by the build's checks (score outliers, "
+                "normals off).</p>"]
+    items = "".join(f"<li><b>{html.escape(name)}</b>: {html.escape('; '.join(reasons))}</li>"
+                    for name, reasons in flagged.items())
+    return [f"<div id=flagged class=flagged><p><b>{len(flagged)} case(s) flagged</b> by the "
+            "build's checks: look at them before using the model (the case table at the end "
+            f"has them in its column 'flagged: why').</p><ul>{items}</ul></div>"]
+
+
 def _renderings(model, shapes, names) -> list:
     """The mode and correspondence images, or a note when offscreen rendering is unavailable."""
     if model is None or model.triangles is None:
@@ -237,7 +262,8 @@ def _normals_section(model, normals, names) -> list:
 
 # The per-case table's columns (cases.csv) as the report heads them, with their units.
 CASE_COLUMNS = {
-    "case": "case", "file": "input file", "surface_vertices": "surface vertices",
+    "case": "case", "flags": "flagged: why", "file": "input file",
+    "surface_vertices": "surface vertices",
     "mean_distance_mm": "mean distance to the input [mm]",
     "max_distance_mm": "largest distance to the input [mm]",
     "mean_distance_voxels": "mean distance to the input [voxels]",
@@ -354,6 +380,7 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     ]
     parts += [f"<p class=flag>Warning: {html.escape(warning)}.</p>"
               for warning in metrics.get("warnings", [])]
+    parts += _flagged_part(metrics)
     baselines = metrics.get("baselines", {})
     if baselines:
         parts.append("<p>Objective of the baselines on the same cases: " + "; ".join(
@@ -388,7 +415,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     parts += viewer_section(model, shapes, names, distances=distances)
     if cases:
         keys = list(cases[0].keys())
-        flags = [[k == "score_outlier" and bool(c.get(k)) for k in keys] for c in cases]
+        flags = [[k in ("score_outlier", "flags") and bool(c.get(k)) for k in keys]
+                 for c in cases]
         shown = [[Path(str(c.get(k, ""))).name if k == "file" else c.get(k, "") for k in keys]
                  for c in cases]
         parts += ["<h2>Cases</h2>",
@@ -396,8 +424,10 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
                   "map: flipped triangles and |ln area ratio|. Score outlier: the Mahalanobis "
                   "distance of the case's scores (over the modes explaining 95% of the "
                   "variance) has p < 0.01 against the distribution of a training case's own "
-                  "distance (a scaled Beta).</p>",
-                  table([CASE_COLUMNS.get(k, k) for k in keys], shown, flags)]
+                  "distance (a scaled Beta). The table scrolls sideways; the case and why it "
+                  "is flagged stay in view.</p>",
+                  "<div class=cases>",
+                  table([CASE_COLUMNS.get(k, k) for k in keys], shown, flags), "</div>"]
     if rejected:
         parts += ["<h2>Rejected inputs</h2>",
                   table(("case", "file", "reason"), [(r.name, r.path, r.reason) for r in rejected])]
