@@ -168,6 +168,24 @@ def test_generalization_with_all_modes_uses_only_the_left_out_models_modes(rng):
     assert result["distance"][-1] == pytest.approx(distance.mean(axis=0)[-1], rel=1e-9)
 
 
+def test_a_case_and_its_copy_give_the_same_generalization_as_the_models_reconstruction(rng):
+    """Two inputs that are one case (a copy, apart from rounding) span a direction of negligible
+    variance. It is no mode of the model, nor of a leave-one-out model: G of the aligned shapes
+    equals G of the model's reconstruction of them (what ``compare`` reads from model.h5), and
+    the brute force's, at every M."""
+    from mdlshapemodel.model.shape_model import ShapeModel
+
+    shapes, weights = random_population(rng, n_s=10, n_p=40)
+    shapes[7] = shapes[6] + 1e-9 * rng.normal(size=shapes[6].shape)
+    model = ShapeModel.from_shapes(shapes, weights)
+    assert model.n_modes == 8                   # the copy adds no mode
+    alone = generalization(shapes, weights, 8)["squared"]
+    rebuilt = generalization(model.instance(model.scores), weights, 8)["squared"]
+    squared, _ = brute_force_generalization(shapes, weights, 8)
+    np.testing.assert_allclose(alone, squared.mean(axis=0), rtol=1e-7)
+    np.testing.assert_allclose(rebuilt, alone, rtol=1e-7)
+
+
 # --- specificity -----------------------------------------------------------------------------------
 
 def sign_symmetric_population(rng, n_p=30, scales=(3.0, 1.7, 0.8), n_base=2):

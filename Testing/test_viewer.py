@@ -10,7 +10,6 @@ saying why.
 from __future__ import annotations
 
 import io
-import os
 import time
 from pathlib import Path
 
@@ -20,11 +19,9 @@ import pytest
 from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.report.html import html_page, write_report
-from mdlshapemodel.report.viewer import viewer_section
+from mdlshapemodel.report.viewer import EffectMap, viewer_section
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--no-first-run"]
+from browser import browser, open_page as _open  # noqa: F401 (browser: a fixture)
 
 
 def population(n_s=6, n_points=642, seed=0, parts=1):
@@ -119,45 +116,10 @@ def test_write_report_holds_the_viewer(tmp_path):
     assert "id='viewer-plot'" in page and "MIT licence" in page
 
 
-@pytest.fixture(scope="module")
-def browser():
-    if not os.path.exists(CHROMIUM):
-        pytest.skip(f"{CHROMIUM} is missing: the viewer's browser tests need Debian's chromium "
-                    "(apt-get install chromium)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("the playwright package is missing: pip install '.[test]'")
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield browser
-        browser.close()
-
-
 def _pixels(png: bytes) -> np.ndarray:
     from matplotlib.image import imread
 
     return imread(io.BytesIO(png), format="png")[..., :3]
-
-
-def _open(browser, path: Path, drawn="#viewer-plot canvas"):
-    page = browser.new_page(viewport={"width": 1200, "height": 900})
-    errors, requests = [], []
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: errors.append(str(e)))
-
-    def route(r):
-        if r.request.url.startswith("file:"):
-            r.continue_()
-        else:
-            requests.append(r.request.url)
-            r.abort()
-
-    page.route("**/*", route)
-    page.goto(path.as_uri())
-    page.wait_for_selector(drawn, timeout=30000)
-    page.wait_for_timeout(500)
-    return page, errors, requests
 
 
 def _slide(page, mode: int, value: float):
@@ -303,8 +265,8 @@ def test_the_analysis_effect_maps_turn_and_threshold_in_a_browser(browser, tmp_p
     # a significance map high at one end, and a signed effect negative there
     significance = 3.0 * np.exp(-np.sum((mean - mean[np.argmax(mean[:, 0])]) ** 2, axis=1) / 40)
     effect = -0.5 * significance + 0.1 * mean[:, 1] / np.abs(mean[:, 1]).max()
-    section = effects_section(mean, model.triangles, [("-log10 p", significance, False),
-                                                      ("effect [mm]", effect, True)])
+    section = effects_section(mean, model.triangles, [EffectMap("-log10 p", significance),
+                                                      EffectMap("effect [mm]", effect, True)])
     path = tmp_path / "effects.html"
     path.write_text(html_page("effects", section), encoding="utf-8")
     page, errors, requests = _open(browser, path, drawn="#effects-plot canvas")
@@ -443,4 +405,74 @@ def test_the_landmarks_section_lists_each_label_and_its_farthest_case(browser, t
     assert "7 landmarks given" in page.locator("h2:has-text('Landmarks that guided') + p").inner_text()
     widths = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
     assert widths[0] <= widths[1], widths
+    page.close()
+
+
+def case_rows(names) -> list:
+    """Rows of a build's case table (cases.csv's columns), with long values: wider than a page."""
+    from mdlshapemodel.report.html import CASE_COLUMNS
+
+    rows = []
+    for k, name in enumerate(names):
+        row = {key: f"{0.123456 * (k + 1):.6f}" for key in CASE_COLUMNS}
+        row.update(case=name, flags="score outlier (Mahalanobis distance 3.61, p = 0.004)"
+                   if k == 2 else "", file=f"/data/a/rather/long/folder/{name}.nii.gz",
+                   warp_kinds="field:36; symmetric:120; asymmetric:12; shear:4",
+                   score_outlier=k == 2)
+        rows.append(row)
+    return rows
+
+
+def test_the_case_table_scrolls_in_its_box_with_the_case_and_its_flags_pinned(browser,
+                                                                             tmp_path):
+    model, shapes, names = population(n_s=6, n_points=42)
+    names = [f"subject_{k:04d}_hippocampus_left" for k in range(6)]
+    path = write_report(tmp_path, report_metrics(), case_rows(names), [], model, shapes, names)
+    page, errors, _ = _open(browser, path)
+    assert errors == []
+    widths = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
+    assert widths[0] <= widths[1], widths              # the page itself does not scroll sideways
+    box = page.locator("div.cases")
+    assert box.evaluate("e => e.scrollWidth > e.clientWidth + 100")   # the table scrolls in it
+    row = box.locator("tbody tr").nth(2)
+    row.scroll_into_view_if_needed()
+    middle = row.locator("td").nth(8)
+    before = middle.bounding_box()["x"]
+    box.evaluate("e => { e.scrollLeft = e.scrollWidth; }")
+    page.wait_for_timeout(200)
+    assert middle.bounding_box()["x"] < before - 100   # scrolled
+    frame = box.bounding_box()
+    for column in (0, 1):                # the case name and its flags stay in view, on top
+        cell = row.locator("td").nth(column)
+        where = cell.bounding_box()
+        assert frame["x"] - 1 <= where["x"] and where["x"] + where["width"] <= (
+            frame["x"] + frame["width"] + 1), (column, where, frame)
+        shown = page.evaluate("([x, y]) => document.elementFromPoint(x, y).textContent",
+                              [where["x"] + where["width"] / 2, where["y"] + where["height"] / 2])
+        assert shown == cell.inner_text()
+    assert row.locator("td").nth(0).inner_text() == names[2]
+    assert "score outlier" in row.locator("td").nth(1).inner_text()
+    page.close()
+
+
+def test_flagged_cases_are_named_at_the_top_of_the_report(browser, tmp_path):
+    model, shapes, names = population(n_s=6, n_points=42)
+    flagged = {names[2]: ["score outlier (Mahalanobis distance 3.61, p = 0.004)"],
+               names[4]: ["normals off at 30 points (more than 60° from the mean direction)"]}
+    metrics = {**report_metrics(), "flagged_cases": flagged}
+    path = write_report(tmp_path, metrics, case_rows(names), [], model, shapes, names)
+    page, errors, _ = _open(browser, path)
+    assert errors == []
+    listed = page.locator("#flagged")
+    assert listed.is_visible()
+    text = listed.inner_text()
+    assert all(name in text for name in flagged) and "score outlier" in text
+    assert "normals off at 30 points" in text and names[0] not in text
+    first_section = page.locator("h2").first.bounding_box()["y"]
+    assert listed.bounding_box()["y"] < first_section        # above everything else
+    page.close()
+    path = write_report(tmp_path, {**report_metrics(), "flagged_cases": {}}, case_rows(names),
+                        [], model, shapes, names)
+    page, errors, _ = _open(browser, path)
+    assert "No case is flagged" in page.locator("#flagged").inner_text()
     page.close()

@@ -66,10 +66,10 @@ def build(args) -> int:
         for label, values in (("MDL", metrics), ("equal arc length", baseline)):
             print(f"  {label:<18}" + "  ".join(f"{v:8.3f} +- {e:6.3f}" for v, e in
                                                zip(values[key][:5], values[key + "_se"][:5])))
-        difference = np.array(baseline[key][:5]) - np.array(metrics[key][:5])
-        se = np.hypot(baseline[key + "_se"][:5], metrics[key + "_se"][:5])
-        print(f"  {'better by (SE)':<18}" + "  ".join(f"{d / s:18.1f}" for d, s in
-                                                      zip(difference, se)))
+        # the build's own difference (MDL minus baseline) and its SE: compare's rule
+        found = baseline["differences"][key]
+        print(f"  {'better by (SE)':<18}" + "  ".join(
+            f"{-d / s:18.1f}" for d, s in zip(found["difference"][:5], found["se"][:5])))
     return 0
 
 

@@ -291,7 +291,8 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         pending = {}   # baseline -> (objective and notes, its evaluation: running or done)
 
         def evaluate_baseline(name, state, notes):
-            pending[name] = (notes, evaluate_state(state, config, prepared, pool=pool))
+            pending[name] = (notes, evaluate_state(state, config, prepared, pool=pool,
+                                                   jackknife=True))
 
         print_of = fingerprint(prepared, config, landmarks)
         resumed = _resumption(output, print_of) if resume else None

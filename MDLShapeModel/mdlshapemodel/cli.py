@@ -274,6 +274,11 @@ def _summary(result) -> str:
     lines += [f"  surface fidelity: mean {m['surface_distance_mm']['mean']:.3f} mm, "
               f"max {m['surface_distance_mm']['max']:.3f} mm",
               f"  report: {result.output / 'report.html'}"]
+    flagged = m.get("flagged_cases", {})
+    if flagged:
+        lines.append(f"  {len(flagged)} case(s) flagged, to look at (report, cases.csv 'flags'): "
+                     + "; ".join(f"{name}: {', '.join(reasons)}"
+                                 for name, reasons in flagged.items()))
     if result.rejected:
         lines.append(f"  {len(result.rejected)} input(s) rejected: see {result.output / 'rejected.csv'}")
     lines += [f"  warning: {warning}" for warning in result.warnings]

@@ -18,8 +18,8 @@ from .correspondence.state import CorrespondenceState, state_record
 from .correspondence.strategies.base import PhasePoint
 from .correspondence.trace import TraceRow
 from .errors import BuildError
-from .model.evaluation import evaluate_state
-from .model.normals import OFF_DEGREES, SPREAD_DEGREES, normal_agreement
+from .model.evaluation import evaluate_state, measure_differences
+from .model.normals import CASE_OFF_SHARE, OFF_DEGREES, SPREAD_DEGREES, normal_agreement
 from .model.shape_model import ShapeModel, score_outliers
 from .prepare import io
 from .prepare.curve import CurveMap, point_curve_distances
@@ -287,6 +287,45 @@ def landmark_summary(model, records: list) -> dict | None:
             if distances else None, "per_label": per_label}
 
 
+def flagged_cases(names, outlier: dict, normals) -> dict:
+    """metrics.json's ``flagged_cases``: each case a check of the build marks, with what marks
+    it (the column ``flags`` of cases.csv): its scores' Mahalanobis distance has p < 0.01
+    (``outlier``, :func:`~.model.shape_model.score_outliers`), or its normals are off at more
+    than :data:`~.model.normals.CASE_OFF_SHARE` of the points (``normals``, a
+    :class:`~.model.normals.NormalAgreement`, None for none)."""
+    off = None if normals is None else normals.cases_off()
+    marked = None if normals is None else normals.cases_flagged()
+    flagged = {}
+    for i, name in enumerate(names):
+        reasons = []
+        if outlier["outlier"][i]:
+            reasons.append(f"score outlier (Mahalanobis distance {outlier['distance'][i]:.2f}, "
+                           f"p = {outlier['p'][i]:.2g})")
+        if marked is not None and marked[i]:
+            reasons.append(f"normals off at {int(off[i])} points (more than "
+                           f"{OFF_DEGREES:.0f}° from the mean direction)")
+        if reasons:
+            flagged[name] = reasons
+    return flagged
+
+
+def against_baselines(quality: dict, baselines: dict) -> dict:
+    """metrics.json's ``baselines``: each baseline's measures (as from
+    :func:`~.model.evaluation.evaluate`) and, under ``differences``, the model's measures minus
+    the baseline's with their standard errors and verdicts
+    (:func:`~.model.evaluation.measure_differences`: the rule of ``mdlshapemodel compare``;
+    "better": the model's value is lower). The generalization's jackknifes (``jackknife`` of
+    ``quality`` and of each baseline) are taken out: they are not JSON."""
+    mine = quality.pop("jackknife", None)
+    recorded = {}
+    for name, values in baselines.items():
+        values = dict(values)
+        theirs = values.pop("jackknife", None)
+        values["differences"] = measure_differences(values, quality, theirs, mine)
+        recorded[name] = values
+    return recorded
+
+
 def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                   config: BuildConfig, baselines: dict | None = None, pool=None,
                   warnings=()) -> BuildResult:
@@ -313,6 +352,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                       cell_data={"part": model.part_of_triangles()} if model.part_names else None)
     outlier = score_outliers(model)
     normals_off = None if normals is None else normals.cases_off()
+    flagged = flagged_cases(names, outlier, normals)
     cases = []
     physical = physical_shapes(raw, prepared)
     for folder in ("correspondence", "aligned"):
@@ -327,7 +367,8 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
         distances = np.concatenate([
             input_distances(prepared_part.map, raw[i][part.rows], part.triangles)
             for prepared_part, part in zip(case.parts, parts)])
-        cases.append({"case": case.name, "file": ";".join(case.paths),
+        cases.append({"case": case.name, "flags": "; ".join(flagged.get(case.name, [])),
+                      "file": ";".join(case.paths),
                       "surface_vertices": int(sum(len(_input_points(p.map))
                                                   for p in case.parts)),
                       "mean_distance_mm": float(distances.mean()),
@@ -354,7 +395,9 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                      [record.row() for record in landmarks])
     log.info("wrote the model, meshes and tables in %.1f s", time.perf_counter() - started)
     started = time.perf_counter()
-    quality = evaluate_state(state, config, prepared, model, pool=pool, background=False)
+    quality = evaluate_state(state, config, prepared, model, pool=pool, background=False,
+                             jackknife=bool(baselines))
+    baselines = against_baselines(quality, baselines or {})
     log.info("evaluated the model in %.1f s", time.perf_counter() - started)
     metrics = {"objective": {"initial": initial, "final": final,
                              "n_points": corresponded.objective_points,
@@ -368,17 +411,18 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "variances": model.variances.tolist(), **quality,
                "score_outliers": {"modes": outlier["modes"], "threshold": outlier["threshold"],
                                   "cases": [n for n, o in zip(names, outlier["outlier"]) if o]},
+               "flagged_cases": flagged,
                "normals": None if normals is None else {
                    "spread_degrees_median": float(np.median(normals.spread_degrees)),
                    "flagged_points": int(np.count_nonzero(normals.flagged)),
                    "flagged_fraction": float(np.mean(normals.flagged)),
                    "spread_threshold_degrees": SPREAD_DEGREES,
-                   "off_degrees": OFF_DEGREES},
+                   "off_degrees": OFF_DEGREES, "case_off_share": CASE_OFF_SHARE},
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
                "landmarks": landmark_summary(model, landmarks),
-               "baselines": baselines or {}, "warnings": list(warnings)}
+               "baselines": baselines, "warnings": list(warnings)}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()
     write_report(output, metrics, cases, rejected, model, aligned, names,

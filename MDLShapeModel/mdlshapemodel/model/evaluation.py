@@ -39,6 +39,21 @@ from .shape_model import ShapeModel
 SURFACE_GENERALIZATION_POINTS = 5000
 
 
+#: A direction of the shapes whose variance is below this share of the largest one's is no mode:
+#: it holds rounding (identical cases differ there in the last digits), so the model spaces here
+#: and the leave-one-out models leave it out, as :meth:`ShapeModel.from_shapes` leaves it out of
+#: a model (its ``relative_tolerance``). The measures of aligned shapes and of the model's own
+#: reconstruction of them (``mdlshapemodel compare`` reads those) are then the same.
+NEGLIGIBLE_VARIANCE = 1e-10
+
+
+def _modes_kept(singular: np.ndarray) -> np.ndarray:
+    """Which singular values of centred shapes are modes (variance above
+    :data:`NEGLIGIBLE_VARIANCE` of the largest)."""
+    largest = max(float(singular.max(initial=0.0)), 1e-300)
+    return singular ** 2 > NEGLIGIBLE_VARIANCE * largest ** 2
+
+
 @dataclass(frozen=True)
 class ModelSpace:
     """The training shapes in model space.
@@ -59,7 +74,7 @@ def model_space(shapes: np.ndarray, weights: np.ndarray) -> ModelSpace:
     root = np.sqrt(weights)
     z = ((shapes - shapes.mean(axis=0)) * root[None, :, None]).reshape(n_s, -1)
     u, singular, vt = np.linalg.svd(z, full_matrices=False)
-    keep = singular > 1e-10 * max(singular.max(initial=0.0), 1e-300)
+    keep = _modes_kept(singular)
     return ModelSpace(u[:, keep] * singular[keep], vt[keep] / np.repeat(root, 3))
 
 
@@ -125,7 +140,7 @@ def _modes_of_others(coordinates: np.ndarray, i: int) -> tuple[np.ndarray, int]:
     """The principal directions (rows) of every shape but i, and their number (the rank)."""
     others = np.delete(coordinates, i, axis=0)
     _, singular, directions = np.linalg.svd(others - others.mean(axis=0), full_matrices=False)
-    rank = int(np.sum(singular > 1e-10 * max(singular.max(initial=0.0), 1e-300)))
+    rank = int(np.sum(_modes_kept(singular)))
     return directions, rank
 
 
@@ -194,7 +209,7 @@ def subspace(space: ModelSpace, keep) -> ModelSpace:
     coordinates = space.coordinates[np.asarray(keep)]
     coordinates = coordinates - coordinates.mean(axis=0)
     u, singular, vt = np.linalg.svd(coordinates, full_matrices=False)
-    nonzero = singular > 1e-10 * max(singular.max(initial=0.0), 1e-300)
+    nonzero = _modes_kept(singular)
     return ModelSpace(u[:, nonzero] * singular[nonzero], vt[nonzero] @ space.to_points)
 
 
@@ -279,6 +294,67 @@ def generalization_difference(a: GeneralizationJackknife, b: GeneralizationJackk
     return {"difference": per_case.mean(axis=0),
             "se": np.sqrt((count - 1.0) / count * spread),
             "paired_se": per_case.std(axis=0, ddof=1) / np.sqrt(n_s - 1.0)}
+
+
+#: The measures :func:`measure_differences` compares (lower is better for each, IV-B).
+COMPARED_MEASURES = ("compactness", "generalization", "specificity")
+
+#: Two models differ in a measure where their difference exceeds this many standard errors of
+#: the difference (the paper's criterion for its error bars, IV-B).
+SIGNIFICANT_SE = 2.0
+
+
+def verdict(difference: float, se: float) -> str:
+    """"better", "worse" or "same": a model's measure minus a reference's, ``difference``, with
+    its standard error ``se``. Lower is better for every measure (a compact model has little
+    variance, IV-B); within :data:`SIGNIFICANT_SE` standard errors the two are the same.
+
+    The one rule of ``mdlshapemodel compare`` and of the report's baseline verdicts.
+
+    Examples
+    --------
+    >>> verdict(-0.5, 0.2), verdict(0.5, 0.2), verdict(0.3, 0.2)
+    ('better', 'worse', 'same')
+    """
+    if not abs(difference) > SIGNIFICANT_SE * se:
+        return "same"
+    return "better" if difference < 0 else "worse"
+
+
+def measure_differences(reference: dict, other: dict,
+                        reference_jackknife: GeneralizationJackknife | None = None,
+                        other_jackknife: GeneralizationJackknife | None = None) -> dict:
+    """The measures of ``other`` minus those of ``reference``, two :func:`evaluate` results of
+    the same cases (in the same order) with the same modes, and their standard errors.
+
+    Generalization is paired: :func:`generalization_difference` of the two models'
+    :func:`generalization_jackknife` (left out when either is None: fewer than 4 cases).
+    Compactness has no per-case values and the specificities are of samples of two different
+    models, so theirs are sqrt(SE_a^2 + SE_b^2).
+
+    Returns
+    -------
+    dict
+        measure -> ``difference``, ``se`` and ``verdict`` (:func:`verdict`, of ``other``) per M,
+        ``significant`` (the verdict is not "same") and ``paired`` (the jackknife's SE).
+    """
+    result = {}
+    for measure in COMPARED_MEASURES:
+        paired = measure == "generalization"
+        if paired:
+            if reference_jackknife is None or other_jackknife is None:
+                continue
+            found = generalization_difference(reference_jackknife, other_jackknife)
+            difference, se = found["difference"], found["se"]
+        else:
+            difference = np.asarray(other[measure]) - np.asarray(reference[measure])
+            se = np.hypot(np.asarray(other[measure + "_se"]),
+                          np.asarray(reference[measure + "_se"]))
+        verdicts = [verdict(d, s) for d, s in zip(difference, se)]
+        result[measure] = {"difference": np.asarray(difference).tolist(),
+                           "se": np.asarray(se).tolist(), "paired": paired,
+                           "significant": [v != "same" for v in verdicts], "verdict": verdicts}
+    return result
 
 
 def specificity(shapes: np.ndarray, weights: np.ndarray, max_modes: int, n_samples: int = 10_000,
@@ -716,7 +792,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
 def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max_modes: int = 10,
              n_samples: int = 10_000, rng: np.random.Generator | None = None,
              triangles: np.ndarray | None = None, surfaces=None,
-             surface_samples: int = 1000, pool=None) -> dict:
+             surface_samples: int = 1000, pool=None, jackknife: bool = False) -> dict:
     """Compactness, generalization and specificity for M = 1..max_modes, as JSON-ready lists.
 
     Parameters
@@ -749,13 +825,17 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         Where to measure the surface generalization meanwhile (e.g. a process on another core);
         the results are the same. If its worker process dies, it is measured here instead
         (:class:`~mdlshapemodel.parallel.Task`).
+    jackknife : bool
+        Also the :func:`generalization_jackknife` of the shapes, under ``jackknife`` (not
+        JSON: for :func:`measure_differences` against another correspondence of the same
+        cases), when there are at least 4 shapes.
 
     Returns
     -------
     dict
         ``modes``, ``compactness``, ``generalization``, ``specificity`` (mm^2), their ``_mm``
-        (point-to-point) versions, each with ``_se``, ``specificity_samples``, and the surface
-        measures above when ``surfaces`` is given.
+        (point-to-point) versions, each with ``_se``, ``specificity_samples``, the surface
+        measures above when ``surfaces`` is given, and ``jackknife`` when asked for.
     """
     from threadpoolctl import threadpool_limits
 
@@ -769,11 +849,11 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
     # worker computes, whatever the number of cores
     with threadpool_limits(limits=1, user_api="blas"):
         return _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles,
-                         surfaces, surface_samples, pool)
+                         surfaces, surface_samples, pool, jackknife)
 
 
 def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, surfaces,
-              surface_samples, pool) -> dict:
+              surface_samples, pool, jackknife) -> dict:
     import copy
 
     n_s = len(shapes)
@@ -806,14 +886,19 @@ def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, 
             as_list[name + "_surface_mm"] = result["distance"].tolist()
             as_list[name + "_surface_mm_se"] = result["distance_se"].tolist()
         as_list["specificity_surface_samples"] = int(surface_samples)
+    if jackknife and n_s >= 4:
+        as_list["jackknife"] = generalization_jackknife(space, max_modes)
     return as_list
 
 
 def evaluate_state(state, config, prepared: list | None = None,
-                   model: ShapeModel | None = None, pool=None, background: bool = True):
+                   model: ShapeModel | None = None, pool=None, background: bool = True,
+                   jackknife: bool = False):
     """Compactness, generalization and specificity of the state's aligned shapes (``model``: the
     model of those shapes, when already built). With ``prepared`` (the cases, in the state's
-    order) and ``config.surface_samples`` > 0, also measured surface to surface.
+    order) and ``config.surface_samples`` > 0, also measured surface to surface; with
+    ``jackknife``, also the generalization's jackknife (:func:`evaluate`), to tell another
+    correspondence of the same cases apart from this one (:func:`measure_differences`).
 
     With a ``pool`` (any ``concurrent.futures.Executor``): ``background`` runs the whole evaluation there and
     returns its :class:`~mdlshapemodel.parallel.Task` (the state may change meanwhile: it gets
@@ -832,5 +917,5 @@ def evaluate_state(state, config, prepared: list | None = None,
                  config.specificity_samples, np.random.default_rng(config.seed),
                  state.triangles().copy(), surfaces, config.surface_samples)
     if pool is not None and background:
-        return Task(pool, evaluate, *arguments, what="an evaluation")
-    return evaluate(*arguments, pool=pool)
+        return Task(pool, evaluate, *arguments, None, jackknife, what="an evaluation")
+    return evaluate(*arguments, pool=pool, jackknife=jackknife)

@@ -30,6 +30,11 @@ import numpy as np
 #: flagged (the report, metrics.json), as is a case's normal this far from it (cases.csv)
 SPREAD_DEGREES = 30.0
 OFF_DEGREES = 60.0
+#: a case whose normal is more than :data:`OFF_DEGREES` from the mean direction at more than this
+#: share of the points is flagged (metrics.json ``flagged_cases``, the report, the build's
+#: summary): a twisted correspondence has tens of such points where the other cases have 0 or 1
+#: (docs/benchmarks.md, the femurs)
+CASE_OFF_SHARE = 0.005
 
 
 def outward_normals(points: np.ndarray, cells: np.ndarray, part_of=None) -> np.ndarray:
@@ -83,6 +88,11 @@ class NormalAgreement:
         """Per case, how many points have its normal more than :data:`OFF_DEGREES` from the
         mean direction."""
         return np.count_nonzero(self.angles_degrees > OFF_DEGREES, axis=1)
+
+    def cases_flagged(self) -> np.ndarray:
+        """Per case, whether its normal is off (:meth:`cases_off`) at more than
+        :data:`CASE_OFF_SHARE` of the points."""
+        return self.cases_off() > CASE_OFF_SHARE * self.angles_degrees.shape[1]
 
 
 def normal_agreement(shapes: np.ndarray, cells: np.ndarray, part_of=None) -> NormalAgreement:

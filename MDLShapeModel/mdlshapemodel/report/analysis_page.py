@@ -21,7 +21,7 @@ from ..prepare import io
 from .figures import encoded_png, pyplot
 from .html import _image, html_page, table
 from .rendering import render_maps, render_modes
-from .viewer import effects_section
+from .viewer import EffectMap, effects_section
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -45,12 +45,20 @@ orientation are not findings, differences in {sized} are.</li>
 """
 
 
+# what is not significant is greyed: its pictures without colour, its text grey
+STYLE = ("section.not-significant{color:#777}section.not-significant img{filter:grayscale(1);"
+         "opacity:0.5}section.not-significant p.note{color:#333;background:#f3f3f3;"
+         "border-left:4px solid #999;padding:4px 8px}")
+
+
 def _maps(analysis: Analysis, model: ShapeModel) -> list:
     points, alpha = analysis.points, analysis.config.alpha
     significant = analysis.significant("fwer")
     cells = model.triangles
     log_p = -np.log10(points.p_fwer)
-    top = max(float(log_p.max()), -np.log10(alpha) * 1.5)
+    level = float(-np.log10(alpha))
+    # one fixed scale from 0 past the significance level: a null result stays dark
+    top = max(float(log_p.max()), level * 1.5)
     rows = [("-log10 p (FWER)", log_p, "viridis", 0.0, top, "-log10 p, family-wise")]
     for label, values in zip(effect_labels(analysis.subjects), analysis.normal_difference):
         limit = float(np.max(np.abs(values))) or 1.0
@@ -61,9 +69,10 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     for row in rows:
         png = render_maps(analysis.mean, cells, [row], outlined=significant)
         parts.append(_image(_b64(png), row[0]))
-    parts += effects_section(analysis.mean, cells,
-                             [(label, values, cmap == "coolwarm")
-                              for label, values, cmap, _, _, _ in rows])
+    parts += effects_section(analysis.mean, cells, [
+        EffectMap(label, values, diverging=cmap == "coolwarm", limit=high,
+                  marks=() if cmap == "coolwarm" else ((level, f"α = {alpha:g}"),))
+        for label, values, cmap, _, high, _ in rows])
     return parts
 
 
@@ -97,6 +106,56 @@ def _curve_maps(analysis: Analysis, rows, significant) -> str:
         axis.set_yticks([])
         figure.colorbar(drawn, ax=axis, shrink=0.8, label=unit)
     return encoded_png(figure)
+
+
+#: The accuracy and the AUC of a classification that does not separate the groups (the
+#: discriminant's threshold lies midway between the group means, whatever their sizes).
+CHANCE = 0.5
+
+BELOW_CHANCE = ("<p class=chance>Below chance ({what} under {chance:g}) does not mean that the "
+                "shapes predict the other group: the groups do not separate. Cross-validated "
+                "estimates of an effect that is not there scatter around chance, below it about "
+                "as often as above (each case is classified by a discriminant fitted without it, "
+                "whose group means lean away from it).</p>")
+
+
+def _not_significant(analysis: Analysis) -> str | None:
+    """The note on the discriminant and the classification when the global test finds no
+    difference at alpha (None when it does)."""
+    overall, alpha = analysis.global_test, analysis.config.alpha
+    if overall.p <= alpha:
+        return None
+    return (f"<p class=note><b>Not significant</b>: the global test gives p = {overall.p:.2g} "
+            f"&gt; &alpha; = {alpha:g}, so the groups' shapes are not found to differ. A "
+            "discriminant is fitted to any two groups, also to noise: its shape change and the "
+            "classification are no finding.</p>")
+
+
+def _section(name: str, parts: list, note: str | None) -> list:
+    """``parts`` in a section ``name``; greyed with ``note`` first when not significant."""
+    if not parts:
+        return []
+    if note is None:
+        return [f"<section id={name}>", *parts, "</section>"]
+    return [f"<section id={name} class=not-significant>", parts[0], note, *parts[1:],
+            "</section>"]
+
+
+def _classification_parts(analysis: Analysis, summary: dict) -> list:
+    if analysis.classification is None:
+        return []
+    c = summary["classification"]
+    parts = ["<h2>Classification</h2>",
+             f"<p>{c['folds']}-fold cross-validated linear discriminant (principal "
+             "components and discriminant fitted on the training folds only).</p>",
+             table(("measure", "value", "SE"),
+                   [("accuracy", c["accuracy"], c["accuracy_se"]),
+                    ("AUC", c["auc"], c["auc_se"])])]
+    below = [name for name in ("accuracy", "auc") if c[name] < CHANCE]
+    if below:
+        parts.append(BELOW_CHANCE.format(what=" and ".join(n.replace("auc", "AUC")
+                                                           for n in below), chance=CHANCE))
+    return parts
 
 
 def _discriminant_parts(analysis: Analysis, model: ShapeModel) -> list:
@@ -174,15 +233,9 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
     body += ["<h2>Global test</h2>",
              f"<p>On the first {overall['modes']} principal scores: statistic "
              f"{overall['statistic']:.4g}, permutation p = {overall['p']:.4g}.</p>"]
-    body += _discriminant_parts(analysis, model)
-    if analysis.classification is not None:
-        c = summary["classification"]
-        body += ["<h2>Classification</h2>",
-                 f"<p>{c['folds']}-fold cross-validated linear discriminant (principal "
-                 "components and discriminant fitted on the training folds only).</p>",
-                 table(("measure", "value", "SE"),
-                       [("accuracy", c["accuracy"], c["accuracy_se"]),
-                        ("AUC", c["auc"], c["auc_se"])])]
+    note = _not_significant(analysis)
+    body += _section("discriminant", _discriminant_parts(analysis, model), note)
+    body += _section("classification", _classification_parts(analysis, summary), note)
     unusual = analysis.unusual
     flagged = [(name, d, p) for name, d, p, o in zip(unusual.names, unusual.distances.distance,
                                                       unusual.distances.p,
@@ -210,5 +263,6 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
     if subjects.left_out:
         body += ["<h2>Cases left out</h2>",
                  table(("case", "reason"), [(c.case, c.reason) for c in subjects.left_out])]
+    body.insert(0, f"<style>{STYLE}</style>")
     io.write_text(path, html_page("MDLShapeModel analysis", body))
     return path

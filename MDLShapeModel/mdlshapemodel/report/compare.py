@@ -26,12 +26,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..model.evaluation import (evaluate, generalization_difference, generalization_jackknife,
-                                model_space)
+from ..model.evaluation import (COMPARED_MEASURES, SIGNIFICANT_SE, evaluate,
+                                generalization_jackknife, measure_differences, model_space,
+                                verdict)
 from ..model.shape_model import ShapeModel
 from ..prepare import io
 
-MEASURES = ("compactness", "generalization", "specificity")
+MEASURES = COMPARED_MEASURES
 # the jackknife of the generalization difference leaves each case out and then each other case:
 # with fewer than 4, a leave-one-out model of the jackknife's populations has no mode
 MIN_SHARED_CASES = 4
@@ -94,22 +95,9 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
         jackknifes[population.label] = generalization_jackknife(
             model_space(shapes, population.weights), len(models[population.label]["modes"]))
     reference = populations[0].label
-    differences = {}
-    for label, values in models.items():
-        if label == reference:
-            continue
-        differences[label] = {}
-        for measure in MEASURES:
-            a = np.asarray(models[reference][measure])
-            b = np.asarray(values[measure])
-            if measure == "generalization":
-                se = generalization_difference(jackknifes[reference], jackknifes[label])["se"]
-            else:
-                se = np.hypot(np.asarray(models[reference][measure + "_se"]),
-                              np.asarray(values[measure + "_se"]))
-            differences[label][measure] = {"difference": (b - a).tolist(), "se": se.tolist(),
-                                           "paired": measure == "generalization",
-                                           "significant": (np.abs(b - a) > 2 * se).tolist()}
+    differences = {label: measure_differences(models[reference], values, jackknifes[reference],
+                                              jackknifes[label])
+                   for label, values in models.items() if label != reference}
     return {"reference": reference, "cases": shared, "n_cases": len(shared),
             "excluded_cases": {p.label: [n for n in p.names if n not in shared]
                                for p in populations},
@@ -117,11 +105,9 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
             "folders": {p.label: p.folder for p in populations}}
 
 
-def _verdict(difference: float, significant: bool) -> str:
-    """Lower is better for all three measures (a compact model has little variance, IV-B)."""
-    if not significant:
-        return "same (within 2 SE)"
-    return "better" if difference < 0 else "worse"
+def _shown(found: str) -> str:
+    """A verdict (:func:`~mdlshapemodel.model.evaluation.verdict`) as the tables say it."""
+    return f"same (within {SIGNIFICANT_SE:g} SE)" if found == "same" else found
 
 
 def comparison_rows(result: dict) -> list:
@@ -136,7 +122,7 @@ def comparison_rows(result: dict) -> list:
                 else:
                     d = result["differences"][label][measure]
                     extra = (d["difference"][k], d["se"][k],
-                             _verdict(d["difference"][k], d["significant"][k]))
+                             _shown(verdict(d["difference"][k], d["se"][k])))
                 rows.append((measure, m, label, values[measure][k], values[measure + "_se"][k])
                             + extra)
     return rows

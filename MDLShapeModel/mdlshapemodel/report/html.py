@@ -19,6 +19,7 @@ import numpy as np
 
 from ..correspondence.trace import stop_summary
 from ..errors import MDLShapeModelError
+from ..model.evaluation import verdict
 from ..prepare import io
 from .figures import encoded_png, pyplot
 
@@ -32,7 +33,16 @@ STYLE = ("body{font-family:sans-serif;margin:2em;max-width:1150px}table{border-c
          # a long command line (hundreds of input paths) wraps in a box of a few lines that
          # scrolls, instead of widening the page
          "pre.command{white-space:pre-wrap;overflow-wrap:anywhere;max-height:7.5em;"
-         "overflow:auto;background:#f6f6f6;border:1px solid #ccc;padding:4px 8px;margin:0}")
+         "overflow:auto;background:#f6f6f6;border:1px solid #ccc;padding:4px 8px;margin:0}"
+         # the cases table scrolls sideways in its box, the case name and its flags pinned
+         "div.cases{overflow-x:auto;max-width:100%}div.cases table{margin:0}"
+         "div.cases td:nth-child(-n+2),div.cases th:nth-child(-n+2){position:sticky;"
+         "box-sizing:border-box;text-align:left;overflow-wrap:anywhere;z-index:1}"
+         "div.cases td:nth-child(-n+2){background:#fff}"
+         "div.cases td:first-child,div.cases th:first-child{left:0;width:11em;min-width:11em;"
+         "max-width:11em}div.cases td:nth-child(2),div.cases th:nth-child(2){left:11em;"
+         "min-width:9em;max-width:16em}"
+         "div.flagged{border:2px solid #b00;padding:0 1em;margin:1em 0}")
 
 
 def measure_plot(series: list, keys=("compactness", "generalization", "specificity")) -> str:
@@ -118,8 +128,24 @@ def _series(metrics: dict) -> list:
     return series
 
 
+def _baseline_cell(values: dict, key: str, k: int) -> tuple[str, bool]:
+    """A baseline's value ± SE at the k-th M, with the verdict of the model against it where
+    metrics.json records their difference (``differences``, the model's minus the
+    baseline's: the rule of ``mdlshapemodel compare``), and whether the model is worse."""
+    cell = f"{values[key][k]:.4g} ± {values[key + '_se'][k]:.2g}"
+    found = values.get("differences", {}).get(key)
+    if found is None:
+        return cell, False
+    difference, se = found["difference"][k], found["se"][k]
+    said = verdict(difference, se)
+    if said != "same":
+        cell += f" (MDL {said} by {abs(difference):.2g} ± {se:.2g})"
+    return cell, said == "worse"
+
+
 def _measure_table(metrics: dict) -> str:
-    """Values ± SE per M; baselines' G and S with a flag where MDL differs by > 2 SE."""
+    """Values ± SE per M; the baselines' G and S with the verdict of the MDL model against
+    each (:func:`~mdlshapemodel.model.evaluation.verdict`), a flag where it is worse."""
     baselines = metrics.get("baselines", {})
     header = ["M", "C(M)", "G(M)", "S(M)"]
     for name in baselines:
@@ -131,15 +157,28 @@ def _measure_table(metrics: dict) -> str:
         flag = [False] * 4
         for values in baselines.values():
             for key in ("generalization", "specificity"):
-                difference = values[key][k] - metrics[key][k]
-                se = np.hypot(values[key + "_se"][k], metrics[key + "_se"][k])
-                mark = " (MDL better)" if difference > 2 * se else (
-                    " (MDL worse)" if difference < -2 * se else "")
-                row.append(f"{values[key][k]:.4g} ± {values[key + '_se'][k]:.2g}{mark}")
-                flag.append(difference < -2 * se)
+                cell, worse = _baseline_cell(values, key, k)
+                row.append(cell)
+                flag.append(worse)
         rows.append(row)
         flags.append(flag)
     return table(header, rows, flags)
+
+
+def _flagged_part(metrics: dict) -> list:
+    """The cases the build's checks flag (metrics.json ``flagged_cases``), named with why: at
+    the top of the report, so that they are seen before the model is used."""
+    flagged = metrics.get("flagged_cases")
+    if flagged is None:
+        return []
+    if not flagged:
+        return ["<p id=flagged>No case is flagged by the build's checks (score outliers, "
+                "normals off).</p>"]
+    items = "".join(f"<li><b>{html.escape(name)}</b>: {html.escape('; '.join(reasons))}</li>"
+                    for name, reasons in flagged.items())
+    return [f"<div id=flagged class=flagged><p><b>{len(flagged)} case(s) flagged</b> by the "
+            "build's checks: look at them before using the model (the case table at the end "
+            f"has them in its column 'flagged: why').</p><ul>{items}</ul></div>"]
 
 
 def _renderings(model, shapes, names) -> list:
@@ -223,7 +262,8 @@ def _normals_section(model, normals, names) -> list:
 
 # The per-case table's columns (cases.csv) as the report heads them, with their units.
 CASE_COLUMNS = {
-    "case": "case", "file": "input file", "surface_vertices": "surface vertices",
+    "case": "case", "flags": "flagged: why", "file": "input file",
+    "surface_vertices": "surface vertices",
     "mean_distance_mm": "mean distance to the input [mm]",
     "max_distance_mm": "largest distance to the input [mm]",
     "mean_distance_voxels": "mean distance to the input [voxels]",
@@ -340,6 +380,7 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     ]
     parts += [f"<p class=flag>Warning: {html.escape(warning)}.</p>"
               for warning in metrics.get("warnings", [])]
+    parts += _flagged_part(metrics)
     baselines = metrics.get("baselines", {})
     if baselines:
         parts.append("<p>Objective of the baselines on the same cases: " + "; ".join(
@@ -349,7 +390,11 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     parts += ["<h2>Model quality (area-weighted squared distances, ± 1 standard error)</h2>",
               "<p>Lower is better for all three measures. A baseline value marked "
               "'MDL better' exceeds the MDL model's by more than two standard errors of the "
-              "difference.</p>",
+              "difference ('MDL worse': falls short of it), by the rule of "
+              "<code>mdlshapemodel compare</code>: for G, whose cases are the same, the paired "
+              "difference with its jackknife standard error over the cases; for S, the two "
+              "Monte Carlo errors together. metrics.json has each difference and its standard "
+              "error (<code>baselines</code>, <code>differences</code>).</p>",
               _image(measure_plot(_series(metrics)), "quality measures"),
               _measure_table(metrics), HOW_TO_READ]
     if "generalization_surface_mm" in metrics:
@@ -370,7 +415,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     parts += viewer_section(model, shapes, names, distances=distances)
     if cases:
         keys = list(cases[0].keys())
-        flags = [[k == "score_outlier" and bool(c.get(k)) for k in keys] for c in cases]
+        flags = [[k in ("score_outlier", "flags") and bool(c.get(k)) for k in keys]
+                 for c in cases]
         shown = [[Path(str(c.get(k, ""))).name if k == "file" else c.get(k, "") for k in keys]
                  for c in cases]
         parts += ["<h2>Cases</h2>",
@@ -378,8 +424,10 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
                   "map: flipped triangles and |ln area ratio|. Score outlier: the Mahalanobis "
                   "distance of the case's scores (over the modes explaining 95% of the "
                   "variance) has p < 0.01 against the distribution of a training case's own "
-                  "distance (a scaled Beta).</p>",
-                  table([CASE_COLUMNS.get(k, k) for k in keys], shown, flags)]
+                  "distance (a scaled Beta). The table scrolls sideways; the case and why it "
+                  "is flagged stay in view.</p>",
+                  "<div class=cases>",
+                  table([CASE_COLUMNS.get(k, k) for k in keys], shown, flags), "</div>"]
     if rejected:
         parts += ["<h2>Rejected inputs</h2>",
                   table(("case", "file", "reason"), [(r.name, r.path, r.reason) for r in rejected])]

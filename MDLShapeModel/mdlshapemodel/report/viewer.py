@@ -22,6 +22,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -383,7 +384,8 @@ EFFECT_SCRIPT = r"""
   }
   var mean = floats(D.mean), cells = ints(D.triangles), n = D.n_points;
   var maps = D.maps.map(function (m) { return {name: m.name, values: floats(m.values),
-                                              diverging: m.diverging, limit: m.limit}; });
+                                              diverging: m.diverging, limit: m.limit,
+                                              ticks: m.ticks, labels: m.labels}; });
   var x = [], y = [], z = [], I = [], J = [], K = [];
   for (var p = 0; p < n; p++) { x.push(mean[3 * p]); y.push(mean[3 * p + 1]);
                                 z.push(mean[3 * p + 2]); }
@@ -401,26 +403,33 @@ EFFECT_SCRIPT = r"""
     shown.textContent = (level).toPrecision(3);
     return out;
   }
-  function scale() {
+  function scale() {              // the map's fixed range; its marked values on the colour bar
     var map = maps[+choice.value];
-    return map.diverging ? {cmin: -map.limit, cmax: map.limit, colorscale: 'RdBu'}
-                         : {cmin: 0, cmax: map.limit, colorscale: 'Viridis'};
+    var out = map.diverging ? {cmin: -map.limit, cmax: map.limit, colorscale: 'RdBu'}
+                            : {cmin: 0, cmax: map.limit, colorscale: 'Viridis'};
+    out.ticks = map.ticks.length ? {tickmode: 'array', tickvals: map.ticks, ticktext: map.labels}
+                                 : {tickmode: 'auto', tickvals: null, ticktext: null};
+    return out;
+  }
+  function bar(s, name) {
+    return Object.assign({title: {text: name}, len: 0.8}, s.ticks);
   }
   var layout = {margin: {l: 0, r: 0, t: 0, b: 0}, uirevision: 'keep',
                 scene: {xaxis: {visible: false}, yaxis: {visible: false},
                         zaxis: {visible: false}, aspectmode: 'data',
                         camera: {eye: {x: D.eye[0], y: D.eye[1], z: D.eye[2]}}}};
+  var first = scale();
   var trace = {type: 'mesh3d', x: x, y: y, z: z, i: I, j: J, k: K, intensity: colours(),
                intensitymode: 'vertex', hoverinfo: 'skip', flatshading: false,
-               colorbar: {title: {text: maps[0].name}, len: 0.8},
+               cmin: first.cmin, cmax: first.cmax, colorscale: first.colorscale,
+               colorbar: bar(first, maps[0].name),
                lighting: {ambient: 0.6, diffuse: 0.6, specular: 0.1}};
-  Object.assign(trace, scale());
   Plotly.newPlot('effects-plot', [trace], layout, {displaylogo: false, responsive: true});
   function update() {
     var s = scale();
     Plotly.restyle('effects-plot', {intensity: [colours()], cmin: [s.cmin], cmax: [s.cmax],
                                     colorscale: [s.colorscale],
-                                    'colorbar.title.text': [maps[+choice.value].name]});
+                                    colorbar: [bar(s, maps[+choice.value].name)]});
   }
   choice.addEventListener('change', update);
   threshold.addEventListener('input', update);
@@ -428,11 +437,45 @@ EFFECT_SCRIPT = r"""
 """
 
 
+@dataclass(frozen=True)
+class EffectMap:
+    """One map of :func:`effects_section`: a value per point of the mean surface.
+
+    ``diverging``: coloured symmetrically about 0, blue negative; else from 0 up. ``limit``: the
+    colour scale's end (the largest |value| shown at full colour), fixed whatever the values, so
+    that a map of small values looks small; None: the map's largest |value|. ``marks``: values
+    marked on the colour bar, with their labels (such as the significance level)."""
+
+    name: str
+    values: np.ndarray
+    diverging: bool = False
+    limit: float | None = None
+    marks: tuple = ()          # ((value, label), ...)
+
+    def scale_end(self) -> float:
+        """The colour scale's end: ``limit``, or the largest |value| (1 when all are 0)."""
+        if self.limit is not None:
+            return float(self.limit)
+        return float(np.max(np.abs(self.values), initial=0.0)) or 1.0
+
+    def ticks(self) -> tuple[list, list]:
+        """The colour bar's ticks: the scale's ends, 0 and the marks (values, labels); none
+        (plotly's own) without marks."""
+        if not self.marks:
+            return [], []
+        end = self.scale_end()
+        ticks = {-end: f"{-end:.3g}", 0.0: "0", end: f"{end:.3g}"} if self.diverging else {
+            0.0: "0", end: f"{end:.3g}"}
+        ticks.update({float(value): label for value, label in self.marks})
+        ordered = sorted(ticks)
+        return ordered, [ticks[value] for value in ordered]
+
+
 def effects_section(mean: np.ndarray, triangles: np.ndarray, maps: list) -> list:
     """An interactive 3-D view of effect maps on the mean surface (HTML fragments): a picker of
-    the ``maps`` (``(name, values (p,), diverging)``: a diverging map is coloured symmetrically
-    about 0, blue negative; else from 0 up) and a threshold below which a point shows the neutral
-    colour (a fraction of the map's largest absolute value). Offline: plotly.js inlined."""
+    the ``maps`` (:class:`EffectMap`), each on its fixed colour scale with its marks on the
+    colour bar, and a threshold below which a point shows the neutral colour (a share of the
+    scale's end). Offline: plotly.js inlined."""
     if triangles is None or len(triangles) == 0 or np.shape(triangles)[1] != 3:
         return []
     try:
@@ -440,22 +483,27 @@ def effects_section(mean: np.ndarray, triangles: np.ndarray, maps: list) -> list
     except ImportError:
         return []
     # the camera looks at the first map's strongest point, from outside the surface
-    strongest = np.asarray(mean)[int(np.argmax(np.abs(maps[0][1])))] - np.mean(mean, axis=0)
+    strongest = np.asarray(mean)[int(np.argmax(np.abs(maps[0].values)))] - np.mean(mean, axis=0)
     eye = 2.0 * strongest / (np.linalg.norm(strongest) or 1.0)
+    encoded = []
+    for effect in maps:
+        ticks, labels = effect.ticks()
+        encoded.append({"name": effect.name,
+                        "values": _b64(np.asarray(effect.values), np.float32),
+                        "diverging": bool(effect.diverging), "limit": effect.scale_end(),
+                        "ticks": ticks, "labels": labels})
     data = {"eye": [float(v) for v in eye],
             "n_points": int(len(mean)), "mean": _b64(np.asarray(mean), np.float32),
-            "triangles": _b64(np.asarray(triangles), np.int32),
-            "maps": [{"name": name, "values": _b64(np.asarray(values), np.float32),
-                      "diverging": bool(diverging),
-                      "limit": float(np.max(np.abs(values))) or 1.0}
-                     for name, values, diverging in maps]}
-    options = "".join(f"<option value={k}>{html.escape(name)}</option>"
-                      for k, (name, _, _) in enumerate(maps))
+            "triangles": _b64(np.asarray(triangles), np.int32), "maps": encoded}
+    options = "".join(f"<option value={k}>{html.escape(effect.name)}</option>"
+                      for k, effect in enumerate(maps))
     payload = json.dumps(data).replace("</", "<\\/")
     return [
         "<h3>Turn it yourself</h3>",
         "<p>Drag to turn, scroll to zoom; choose the map, and grey out the points whose value "
-        "is below the threshold (a share of the map's largest value).</p>",
+        "is below the threshold (a share of the colour scale's end). Each map keeps one colour "
+        "scale: -log10 p runs from 0 to at least -log10 &alpha; (marked on the colour bar), so "
+        "that where nothing is significant nothing is bright.</p>",
         "<div id=effects><div class=controls>"
         f"<label>map <select id='effects-map'>{options}</select></label> "
         "<label>threshold <input type=range id='effects-threshold' min=0 max=1 step=0.01 "
