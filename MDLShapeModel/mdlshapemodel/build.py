@@ -35,6 +35,7 @@ from .correspondence.strategies import optimise, runs_coarse
 from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import Stop, Trace, stop_summary
 from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
+from .kernels import compile_ahead
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
 from .outputs import (BuildResult, Checkpoint, clear_previous_build, earlier_build,
@@ -132,6 +133,7 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     if log.level == logging.NOTSET or log.level > logging.INFO:
         log.setLevel(logging.INFO)
     try:
+        compile_ahead(build_model)    # a cold cache: compiled here, before any worker starts
         return _build(cases, output, config, progress, executor, resume, landmarks)
     except InternalError as error:
         # the user sees the one-line message; the traceback (a worker's too) goes to build.log
