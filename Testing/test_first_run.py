@@ -27,7 +27,7 @@ def test_version():
 def test_build_help_ends_with_examples():
     text = run_cli("build", "--help").stdout
     examples = text[text.index("examples:"):]
-    assert "mdlshapemodel build labels/ -o out --label 1,2" in examples
+    assert "mdlshapemodel build labels/ -o both --label 1,2" in examples
     assert text.rstrip().endswith("(after an interruption)")
 
 
