@@ -24,7 +24,7 @@ STAGES = [
     {"model"},
     {"analysis"},
     {"report"},
-    {"build", "outputs", "analyze"},
+    {"build", "outputs", "analyze", "kernels"},
     {"cli", "vtkfilters", "vtkmodel", "demo", "__init__"},
 ]
 

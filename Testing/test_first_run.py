@@ -1,13 +1,17 @@
 """What a new user meets first: --version, build's examples, the hint for labels written apart,
 inputs checked before anything is written, a build folder refused as input, the rerun after a
-failed start, the main guard of a script, mode weights in standard deviations."""
+failed start, the main guard of a script, mode weights in standard deviations, the line of the
+first run's compilation."""
 
+import os
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mdlshapemodel import ShapeModel
+from mdlshapemodel.kernels import COMPILING
 from mdlshapemodel.prepare import io
 from mdlshapemodel.version import __version__
 
@@ -23,7 +27,7 @@ def test_version():
 def test_build_help_ends_with_examples():
     text = run_cli("build", "--help").stdout
     examples = text[text.index("examples:"):]
-    assert "mdlshapemodel build labels/ -o out --label 1,2" in examples
+    assert "mdlshapemodel build labels/ -o both --label 1,2" in examples
     assert text.rstrip().endswith("(after an interruption)")
 
 
@@ -118,3 +122,29 @@ def test_a_label_that_no_case_holds_is_reported(tmp_path):
     metrics = __import__("json").loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["warnings"] == [message]
     assert message in (tmp_path / "out" / "report.html").read_text()
+
+
+def numba_index_files(folder: Path) -> dict:
+    """numba's cache index files under ``folder`` and their modification times."""
+    return {path: path.stat().st_mtime_ns for path in folder.rglob("*.nbi")}
+
+
+@pytest.mark.slow
+def test_a_cold_kernel_cache_is_announced_and_compiled_once_before_the_workers(tmp_path):
+    write_population(tmp_path / "in", 3)
+    cache = tmp_path / "numba"       # numba's cache, empty: as on a fresh install
+    environment = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    quick = ["--points", 42, "--workers", 2, "--no-cache", "--evaluation-modes", 1,
+             "--specificity-samples", 50, "--surface-samples", 10, "--max-time", 20]
+    cold = run_cli("build", tmp_path / "in", "-o", tmp_path / "cold", *quick, env=environment)
+    assert cold.returncode == 0, cold.stderr
+    assert cold.stderr.count(COMPILING) == 1
+    assert cold.stderr.index(COMPILING) < cold.stderr.index("preprocessing 3 cases")
+    compiled = numba_index_files(cache)
+    assert compiled
+    warm = run_cli("build", tmp_path / "in", "-o", tmp_path / "warm", *quick, env=environment)
+    assert warm.returncode == 0, warm.stderr
+    assert COMPILING not in warm.stderr
+    # the first build compiled everything a build needs (in its workers, its optimisation and
+    # its evaluation) before its workers started: the second compiled nothing
+    assert numba_index_files(cache) == compiled

@@ -108,6 +108,41 @@ def test_direction_matrix_is_honoured():
     np.testing.assert_allclose(b, a * np.array([-1.0, -1.0, 1.0]), atol=1e-9)
 
 
+READ_THROUGH_THE_FILTER = """
+import sys
+import vtk
+from mdlshapemodel.vtkfilters import LabelMapToClosedSurface
+
+reader = getattr(vtk, sys.argv[1])()
+reader.SetFileName(sys.argv[2])
+to_surface = LabelMapToClosedSurface()
+to_surface.SetInputConnection(reader.GetOutputPort())
+to_surface.Update()
+print(to_surface.GetOutput().GetNumberOfPoints())
+print(to_surface.GetErrorText())
+"""
+
+
+def test_a_file_its_reader_could_not_read_is_named_as_such(tmp_path):
+    from common import run_python
+
+    good = tmp_path / "good.nii"
+    sitk.WriteImage(sitk.GetImageFromArray(small_mask(0.0).astype(np.uint8)), str(good))
+    (tmp_path / "damaged.mha").write_text("not a MetaImage header\n")
+    (tmp_path / "cut.nii").write_bytes(good.read_bytes()[:len(good.read_bytes()) // 3])
+    for reader, name, reason in (("vtkMetaImageReader", "missing.mha", "missing, or not"),
+                                 ("vtkMetaImageReader", "damaged.mha", "missing, or not"),
+                                 ("vtkNIFTIImageReader", "cut.nii", "PrematureEndOfFile")):
+        result = run_python(READ_THROUGH_THE_FILTER, reader, tmp_path / name)
+        points, message = result.stdout.splitlines()
+        assert points == "0"
+        assert message.startswith(f"{tmp_path / name}: the input could not be read ({reader}: "
+                                  f"{reason}"), message
+        assert "too thin" not in message
+    read = run_python(READ_THROUGH_THE_FILTER, "vtkNIFTIImageReader", good)
+    assert int(read.stdout.splitlines()[0]) > 0 and read.stdout.splitlines()[1:] in ([], [""])
+
+
 def test_failures_leave_an_empty_output_and_a_message():
     missing = LabelMapToClosedSurface()
     source = image_source(small_mask(0.0))

@@ -23,8 +23,6 @@ The output folder::
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -154,8 +152,7 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model):
 
 def earlier_analysis(output) -> list:
     """The files of an earlier analysis in ``output`` (empty when there is none)."""
-    output = Path(output)
-    return [output / name for name in ANALYSIS_FILES if (output / name).exists()]
+    return io.earlier_outputs(output, ANALYSIS_FILES)
 
 
 def analyze_build(build, table, output, config: AnalysisConfig | None = None, progress=None,
@@ -198,23 +195,9 @@ def analyze_build(build, table, output, config: AnalysisConfig | None = None, pr
                       config.nuisance, config.reference, config.categorical, config.test)
     if output.resolve() == Path(build).resolve():
         raise InputError(f"{output}: the output folder is the build folder; choose another")
-    earlier = earlier_analysis(output)
-    if earlier and not overwrite:
-        raise InputError(f"{output}: holds an earlier analysis ({earlier[0].name}); use "
-                         "--overwrite to replace it")
-    if output.exists() and not output.is_dir():
-        raise InputError(f"{output}: exists and is not a folder")
+    io.refuse_earlier(output, earlier_analysis(output), overwrite, "analysis")
     analysis = analyze_shapes(built.model, built.shapes, design, config, progress)
     summary = summary_of(analysis, build, table)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial-", dir=output.parent))
-    try:
-        _write(staging, analysis, summary, built.model)
-        output.mkdir(exist_ok=True)
-        for path in earlier_analysis(output):
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
-        for path in staging.iterdir():
-            path.rename(output / path.name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    with io.written_folder(output, ANALYSIS_FILES) as folder:
+        _write(folder, analysis, summary, built.model)
     return AnalysisResult(output, analysis, summary)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 import traceback
 from concurrent.futures import CancelledError, Executor
@@ -37,6 +38,7 @@ from .correspondence.strategies import optimise, runs_coarse
 from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import Stop, Trace, stop_summary
 from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
+from .kernels import compile_ahead
 from .model.evaluation import evaluate_state
 from .model.shape_model import ShapeModel
 from .outputs import (BuildResult, Checkpoint, clear_previous_build, earlier_build,
@@ -123,25 +125,23 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     cases = _cases(inputs, config, manifest, output)      # before anything is written
     landmarks = (None if config.landmarks is None
                  else read_landmark_folder(config.landmarks, [case.name for case in cases]))
-    earlier = [] if resume else earlier_build(output)
-    if earlier and not overwrite:
-        raise BuildError(f"{output} holds an earlier build ({', '.join(p.name for p in earlier)})"
-                         ": give --overwrite to replace it, --resume to carry it on, or another "
-                         "output folder")
+    io.refuse_earlier(output, [] if resume else earlier_build(output), overwrite, "build",
+                      ", --resume to carry it on", BuildError)
     with ctrl_c() as interrupt:
         interrupt.check()    # Ctrl-C already (the command line's, as it started): nothing touched
         if resume:
+            _refuse_other_settings(output, config)         # before any case is prepared
             remove_partial_files(output)
         else:
             clear_previous_build(output)
-        (output / "correspondence").mkdir(parents=True, exist_ok=True)
-        (output / "aligned").mkdir(parents=True, exist_ok=True)
+        output.mkdir(parents=True, exist_ok=True)    # its folders come with what goes in them
         handler = logging.FileHandler(output / "build.log", mode="a" if resume else "w")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(handler)
         if log.level == logging.NOTSET or log.level > logging.INFO:
             log.setLevel(logging.INFO)
         try:
+            compile_ahead(build_model)    # a cold cache: compiled here, before any worker starts
             return _build(cases, output, config, progress, executor, resume, landmarks, interrupt)
         except InternalError as error:
             # the user sees the one-line message; the traceback (a worker's too) goes to build.log
@@ -168,6 +168,28 @@ def fingerprint(prepared: list, config: BuildConfig, landmarks: dict | None = No
                       for case in prepared]}
 
 
+def _refuse_difference(path: Path, then: dict, now: dict):
+    """Refuse to resume from the checkpoint ``path`` of fingerprint ``then`` when this build's
+    ``now`` differs (``now`` may lack the cases: the settings alone are compared then)."""
+    now = json.loads(json.dumps(now))   # as JSON gives it back
+    differ = sorted(key for key in set(now["settings"]) | set(then["settings"])
+                    if now["settings"].get(key) != then["settings"].get(key))
+    if "cases" in now and now["cases"] != then["cases"]:
+        differ.insert(0, "the input files")
+    if differ:
+        raise BuildError(f"{path} is of other inputs or settings ({', '.join(differ)}): resume "
+                         "with the same ones, or build anew with --overwrite")
+
+
+def _refuse_other_settings(output: Path, config: BuildConfig):
+    """On ``--resume``, the checkpoint's settings against this build's, before any work (the
+    input files are compared once they are prepared: :func:`_resumption`)."""
+    path = output / "checkpoint.npz"
+    if path.exists():
+        settings = fingerprint([], config)["settings"]
+        _refuse_difference(path, read_checkpoint(path).fingerprint, {"settings": settings})
+
+
 def _resumption(output: Path, print_of: dict):
     """The checkpoint to resume from (None: there is none, start over), checked against this
     build's :func:`fingerprint` ``print_of``."""
@@ -177,18 +199,15 @@ def _resumption(output: Path, print_of: dict):
                  output)
         return None
     checkpoint = read_checkpoint(path)
-    now = json.loads(json.dumps(print_of))   # as JSON gives it back
-    if checkpoint.fingerprint != now:
-        differ = sorted(key for key in set(now["settings"]) | set(checkpoint.fingerprint["settings"])
-                        if now["settings"].get(key) != checkpoint.fingerprint["settings"].get(key))
-        if now["cases"] != checkpoint.fingerprint["cases"]:
-            differ.insert(0, "the input files")
-        raise BuildError(f"{path} is of other inputs or settings ({', '.join(differ)}): resume "
-                         "with the same ones, or build anew with --overwrite")
+    _refuse_difference(path, checkpoint.fingerprint, print_of)
     log.info("resuming from %s (%s, step %d)", path, checkpoint.point.phase,
              checkpoint.point.sweep)
     return checkpoint
 
+
+# eq. 14 values closer than this (relative) are the same: what the rounding of the same
+# correspondence measured twice may differ by
+OBJECTIVE_RTOL = 1e-9
 
 # the fewest cases a model is built of (a mean and one mode need three)
 MIN_CASES = 3
@@ -275,8 +294,8 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
     prepared, rejected = preprocess(cases, config, executor, progress)
     prepared, odd = one_kind(prepared)
     rejected = rejected + odd
-    for rejection in rejected:
-        log.warning("rejected %s: %s", io.printable(rejection.path), rejection.reason)
+    for line in io.rejection_lines((r.path, r.reason) for r in rejected):
+        log.warning("rejected %s", line)            # the same reason once, with its count
     io.write_csv(output / "rejected.csv", ("case", "file", "reason"),
                  [(r.name, r.path, r.reason) for r in rejected])
     if rejected and config.strict:
@@ -601,7 +620,7 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         log.info("final objective %.4f after %.1f s, %d evaluations; optimisation %s", final,
                  trace.last.wall_seconds if trace.rows else 0.0, state.evaluations,
                  stop_summary(trace.stopped_by))
-        if final > initial:
+        if final > initial and not math.isclose(final, initial, rel_tol=OBJECTIVE_RTOL):
             log.info("eq. 14 ended above the initial correspondence's (%.4f): the fixed-Delta "
                      "phase trades the smallest modes' description length for a more compact "
                      "model; generalization and specificity against the initial correspondence's "

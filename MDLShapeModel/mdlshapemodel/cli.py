@@ -311,16 +311,17 @@ def _run_build(inputs, output, config, live: bool, overwrite: bool = False,
 
 
 def _run_compare(args) -> int:
-    from .report.compare import (compare_populations, load_population, summary_lines,
-                                 write_comparison)
+    from .report.compare import (compare_populations, load_population,
+                                 refuse_earlier_comparison, summary_lines, write_comparison)
 
+    refuse_earlier_comparison(args.output, args.overwrite)     # before any work
     populations = [load_population(path) for path in args.outputs]
     labels = [p.label for p in populations]
     for k, population in enumerate(populations):  # labels must be unique keys
         if labels.count(population.label) > 1:
             population.label = f"{population.label} #{k + 1}"
     result = compare_populations(populations, args.modes, args.samples, args.seed)
-    page = write_comparison(result, args.output)
+    page = write_comparison(result, args.output, args.overwrite)
     print("\n".join(summary_lines(result)))
     print(f"comparison of {len(populations)} models on {result['n_cases']} shared cases: {page}")
     return 0
@@ -328,20 +329,17 @@ def _run_compare(args) -> int:
 
 def _run_fit(args) -> int:
     from .model.fitting import fit_cases
-    from .prepare.io import printable
 
-    results, rejected = fit_cases(args.model, args.inputs, args.output, args.label,
-                                  args.max_time, args.max_sweeps, args.seed,
-                                  strategy=args.strategy, manifest=args.manifest)
-    for name, path, reason in rejected:
-        log.warning("rejected %s: %s", printable(path), printable(reason))
+    results, _ = fit_cases(args.model, args.inputs, args.output, args.label, args.max_time,
+                           args.max_sweeps, args.seed, strategy=args.strategy,
+                           manifest=args.manifest, overwrite=args.overwrite)
     for result in results:
         print(f"{result.name}: reconstruction error with all modes "
               f"{result.squared_error[-1]:.4f} mm^2 ({result.distance_error[-1]:.3f} mm mean), "
               f"mean shape only {result.squared_error[0]:.4f} mm^2; objective "
               f"{result.objective['initial']:.3f} -> {result.objective['final']:.3f}")
     print(f"fitted {len(results)} case(s) to {args.model}: {Path(args.output) / 'fit.json'}")
-    return 0 if results else 2
+    return 0
 
 
 def _run_analyze(args, live: bool) -> int:
@@ -409,10 +407,10 @@ def main(argv=None) -> int:
         "build", help="build a model from label maps, meshes or 2-D curves",
         epilog="examples:\n"
                "  mdlshapemodel build labels/ -o out\n"
-               "  mdlshapemodel build labels/ -o out --label 1,2 --points 642\n"
-               "  mdlshapemodel build femurs/*.stl -o femurs --mirror '*_right*'\n"
+               "  mdlshapemodel build labels/ -o both --label 1,2 --points 642\n"
+               "  mdlshapemodel build femurs/*.stl -o femur-model --mirror '*_right*'\n"
                "  mdlshapemodel build labels/ -o parts --part head=1 --part tail=2\n"
-               "  mdlshapemodel build -o out --resume            (after an interruption)",
+               "  mdlshapemodel build labels/ -o out --resume    (after an interruption)",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     build.add_argument("inputs", nargs="*", help="label maps, meshes, 2-D curves (point lists, "
                                                  "polylines, 2-D label images), or folders of "
@@ -432,7 +430,10 @@ def main(argv=None) -> int:
                             "uninterrupted build would have made. A build stopped by --max-time "
                             "or --max-sweeps before it converged carries on with a larger one")
     _add_build_options(build)
-    demo = commands.add_parser("demo", help="build a model of a generated population")
+    demo = commands.add_parser(
+        "demo", help="build a model of a generated population",
+        epilog="examples:\n  mdlshapemodel demo -o demo\n  mdlshapemodel demo -o demo2d --2d",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     demo.add_argument("-o", "--output", default="mdlshapemodel-demo", help="output folder "
                       "(default %(default)s)")
     demo.add_argument("--subjects", type=int, default=12, help="population size (default 12)")
@@ -449,7 +450,9 @@ def main(argv=None) -> int:
         "compare", help="evaluate several models of the same cases side by side",
         description="Evaluate models (build output folders) on the cases they share and say, for "
                     "each number of modes, whether they differ by more than two standard errors "
-                    "(the first model is the reference). Writes compare.html/.csv/.json.")
+                    "(the first model is the reference). Writes compare.html/.csv/.json.",
+        epilog="examples:\n  mdlshapemodel compare out both -o comparison",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     compare.add_argument("outputs", nargs="+", help="build output folders (or their model.h5)")
     compare.add_argument("-o", "--output", default="comparison", help="folder for the comparison "
                          "(default %(default)s)")
@@ -458,12 +461,17 @@ def main(argv=None) -> int:
     compare.add_argument("--samples", type=int, default=defaults.specificity_samples,
                          help="specificity samples (default %(default)s)")
     compare.add_argument("--seed", type=int, default=0)
+    compare.add_argument("--overwrite", action="store_true",
+                         help="replace an earlier comparison in the output folder")
     compare.add_argument("-q", "--quiet", action="store_true")
     fit = commands.add_parser(
         "fit", help="fit new cases to an existing model: correspondence, scores, reconstruction",
         description="Find the correspondence of new cases against a model (optimising only each "
                     "new case's reparameterization and pose, with the model's training shapes "
-                    "fixed) and write their scores and reconstructions.")
+                    "fixed) and write their scores and reconstructions.",
+        epilog="examples:\n  mdlshapemodel fit out new/ -o fitted\n"
+               "  mdlshapemodel fit out/model.h5 new/case.nii.gz -o fitted --overwrite",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     fit.add_argument("model", help="model.h5 or the build output folder holding it")
     fit.add_argument("inputs", nargs="*", help="label maps, meshes, or folders of them")
     fit.add_argument("-o", "--output", required=True, help="output folder")
@@ -479,6 +487,8 @@ def main(argv=None) -> int:
     fit.add_argument("--strategy", choices=[s for s in STRATEGIES if s != "none"],
                      help="optimisation strategy for the new cases (default: the model's own)")
     fit.add_argument("--seed", type=int, default=0)
+    fit.add_argument("--overwrite", action="store_true",
+                     help="replace an earlier fit in the output folder")
     fit.add_argument("-q", "--quiet", action="store_true")
     analysis_defaults = AnalysisConfig()
     analyze = commands.add_parser(

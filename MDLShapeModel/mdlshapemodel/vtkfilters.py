@@ -32,7 +32,7 @@ from vtk.util.numpy_support import numpy_to_vtk
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 
 from .config import BuildConfig
-from .errors import MDLShapeModelError
+from .errors import InputError, MDLShapeModelError
 from .prepare import io, surface
 from .prepare.case import prepare_surface, surface_of_mask
 from .prepare.sphere import AREA_WEIGHT, MAX_ITERATIONS
@@ -120,15 +120,38 @@ class _Filter(VTKPythonAlgorithmBase):
         return self.GetOutputDataObject(port)
 
     def GetErrorText(self) -> str:
-        """The last failure's message, or '' after a successful execution."""
-        return self._error_text
+        """The last failure's message, or '' after a successful execution. A reader that
+        failed before this filter could run (VTK then does not run it) is named here too."""
+        return self._error_text or self._input_failure()
+
+    def _input_failure(self) -> str:
+        """Why the input's source, a reader, failed ('' when it did not or is no reader): it
+        reports an error code, or it cannot read its file (VTK's MetaImage reader, given a
+        missing or damaged file, reports nothing and gives a one-voxel image)."""
+        if self.GetNumberOfInputConnections(0) == 0:
+            return ""
+        source = self.GetInputAlgorithm(0, 0)
+        file = source.GetFileName() if hasattr(source, "GetFileName") else None
+        code = source.GetErrorCode()
+        if code:
+            reason = vtk.vtkErrorCode.GetStringFromErrorCode(code)
+        elif file and hasattr(source, "CanReadFile") and not source.CanReadFile(file):
+            reason = "missing, or not a file of its format"
+        else:
+            return ""
+        return (f"{io.printable(file) + ': ' if file else ''}the input could not be read "
+                f"({source.GetClassName()}: {reason})")
 
     def RequestData(self, request, in_info, out_info):
-        """Count the execution, run :meth:`_execute`; a failure goes through :meth:`_fail`."""
+        """Count the execution, run :meth:`_execute`; a failure (the input's reader's too)
+        goes through :meth:`_fail`."""
         self.executions += 1
         self._error_text = ""
         self.UpdateProgress(0.0)
         try:
+            failure = self._input_failure()
+            if failure:
+                raise InputError(failure)
             self._execute(in_info, out_info)
         except MDLShapeModelError as error:
             return self._fail(error)

@@ -17,6 +17,7 @@ parameterization: the mean mesh with the sampling grid as its sphere map.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -38,6 +39,8 @@ from ..prepare.curve import align_curve_origins, curve_map
 from ..prepare.sphere import SphereMap, align_parameterizations, reference_frames
 from .shape_model import ShapeModel
 from .outliers import modes_explaining, new_case_distances
+
+log = logging.getLogger("mdlshapemodel")
 
 
 @dataclass
@@ -213,9 +216,15 @@ def unusual_fit(model: ShapeModel, result: FitResult) -> dict | None:
             "at_point": int(departure.argmax())}
 
 
+# what fit_cases writes into its output folder
+FIT_FILES = ("correspondence", "reconstruction", "scores.csv", "fit.json", "rejected.csv",
+             "landmarks.csv")
+
+
 def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
               max_sweeps: int = 10_000, seed: int = 0, progress=None,
-              strategy: str | None = None, manifest=None) -> tuple[list, list]:
+              strategy: str | None = None, manifest=None,
+              overwrite: bool = False) -> tuple[list, list]:
     """Fit every input to the model and write the results to ``output``.
 
     ``inputs`` are files or folders (one case per file; a multi-part model's parts are split
@@ -226,24 +235,43 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
     multi-part model, ``scores.csv``, ``fit.json`` (errors for M = 0..n_modes, objective),
     ``rejected.csv`` and, for a model built with landmarks, ``landmarks.csv``: every case's
     landmarks where its fitted correspondence puts them (its own coordinates). Returns
-    (results, rejections as (name, path, reason)).
+    (results, rejections as (name, path, reason)); the rejections' reasons are logged, each
+    once with its count (:func:`~.prepare.io.rejection_lines`).
+
+    The output folder's rule is build's (:func:`~.prepare.io.refuse_earlier`): one that holds an
+    earlier fit is refused unless ``overwrite``, and a build's folder always (their files
+    would mix). Everything is written into a folder beside it that takes its place at the end
+    (:func:`~.prepare.io.written_folder`): the output holds a whole fit or nothing. No usable
+    case raises :class:`InputError` with the reasons, and nothing is written.
     """
-    model, _ = load_model(model_path)
+    model, model_file = load_model(model_path)
+    output = Path(output)
+    if (output / "model.h5").exists() or output.resolve() == model_file.parent.resolve():
+        raise InputError(f"{output}: is a build's output folder; give the fit another one")
+    io.refuse_earlier(output, io.earlier_outputs(output, FIT_FILES), overwrite, "fit")
     config = build_config_of(model)
     if labels:
         config.labels = list(labels)
         config.validate()
-    output = Path(output)
     meshes = model.part_meshes()
-    for folder in ("correspondence", "reconstruction"):
-        for mesh in meshes:
-            (output / folder / mesh.name).mkdir(parents=True, exist_ok=True)
     cases = case_inputs(io.find_inputs(inputs), config)
     if manifest is not None:   # a file per part holds that part: no labels select within it
         names_only = replace(config, parts=[spec.name for spec in config.part_specs()])
         cases += read_manifest(manifest, names_only)
     if not cases:
         raise InputError("no input files found")
+    with io.written_folder(output, FIT_FILES) as folder:
+        results, rejected = _fit_into(folder, model, meshes, cases, config, max_time,
+                                      max_sweeps, seed, progress, strategy)
+    return results, rejected
+
+
+def _fit_into(output: Path, model, meshes, cases, config, max_time, max_sweeps, seed, progress,
+              strategy) -> tuple[list, list]:
+    """Fit ``cases`` and write the outputs of :func:`fit_cases` into the folder ``output``."""
+    for folder in ("correspondence", "reconstruction"):
+        for mesh in meshes:
+            (output / folder / mesh.name).mkdir(parents=True, exist_ok=True)
     results, rejected = [], []
     for case in cases:
         try:
@@ -259,6 +287,12 @@ def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
             for mesh in meshes:
                 io.write_polydata(io.case_file(output / folder / mesh.name, result.name),
                                   points[mesh.rows], mesh.triangles)
+    reasons = io.rejection_lines((path, reason) for _, path, reason in rejected)
+    if not results:
+        raise InputError(f"no usable case: every one of the {len(cases)} input(s) was "
+                         f"rejected ({'; '.join(reasons)})")
+    for line in reasons:
+        log.warning("rejected %s", line)            # the same reason once, with its count
     io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(model.n_modes)],
                  [[r.name] + [f"{v:.6g}" for v in r.scores] for r in results])
     io.write_csv(output / "rejected.csv", ("case", "file", "reason"), rejected)

@@ -658,6 +658,75 @@ def written_whole(path):
         temporary.unlink(missing_ok=True)
 
 
+def earlier_outputs(output, names) -> list[Path]:
+    """The entries of ``names`` (a command's files and folders) that ``output`` holds: what an
+    earlier run of the command left there; empty when there are none."""
+    output = Path(output)
+    return [output / name for name in names if (output / name).exists()]
+
+
+def refuse_earlier(output, earlier: list, overwrite: bool, what: str, also: str = "",
+                   error: type = InputError) -> None:
+    """The one rule of every command's output folder: a folder that holds an earlier run's
+    outputs (``earlier``, :func:`earlier_outputs`) is refused unless ``overwrite``, before any
+    work, with the names found; ``what`` names the run ("build", "fit", ...) and ``also`` adds
+    another way out (", --resume to carry it on"); ``error`` is the exception raised. An output
+    that exists but is not a folder is refused in any case."""
+    output = Path(output)
+    if output.exists() and not output.is_dir():
+        raise InputError(f"{output}: exists and is not a folder")
+    if earlier and not overwrite:
+        raise error(f"{output} holds an earlier {what} "
+                         f"({', '.join(Path(p).name for p in earlier)}): give --overwrite to "
+                         f"replace it{also}, or another output folder")
+
+
+@contextmanager
+def written_folder(output, names):
+    """Yield a new empty folder beside ``output`` to write a command's outputs into; when the
+    block ends without an error they take the place of an earlier run's (the entries of
+    ``names`` in ``output`` are removed, then the new ones moved in; a new ``output`` is the
+    folder itself, renamed). On an error or an interruption the new folder is removed and
+    ``output`` left as it was: a command's outputs are whole or absent, and never mixed with an
+    earlier run's."""
+    import shutil
+
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    # hidden and marked partial, made as mkdir makes folders (mkdtemp's would be private)
+    staging = output.parent / f".{output.name}.{os.getpid()}.{os.urandom(4).hex()}{PARTIAL}"
+    staging.mkdir()
+    try:
+        yield staging
+        if not output.exists():
+            os.replace(staging, output)
+            return
+        for path in earlier_outputs(output, names):
+            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+        for path in staging.iterdir():
+            os.replace(path, output / path.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def rejection_lines(rejections, shown: int = 3) -> list[str]:
+    """One line per distinct reason of ``rejections`` ((file, reason) pairs), in the order
+    first met: ``FILE: REASON`` for a reason of one file, else ``N inputs: REASON (FILE, FILE,
+    FILE and K more)`` with the first ``shown`` files. File names and reasons are
+    :func:`printable`."""
+    by_reason = {}
+    for path, reason in rejections:
+        by_reason.setdefault(printable(reason), []).append(printable(path))
+    lines = []
+    for reason, paths in by_reason.items():
+        if len(paths) == 1:
+            lines.append(f"{paths[0]}: {reason}")
+            continue
+        more = f" and {len(paths) - shown} more" if len(paths) > shown else ""
+        lines.append(f"{len(paths)} inputs: {reason} ({', '.join(paths[:shown])}{more})")
+    return lines
+
+
 def write_text(path, text: str):
     """Write a text file whole or not at all (:func:`written_whole`)."""
     with written_whole(path) as temporary:

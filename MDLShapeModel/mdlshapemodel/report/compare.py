@@ -132,17 +132,39 @@ ROW_HEADER = ("measure", "M", "model", "value_mm2", "se", "difference", "differe
               "verdict")
 
 
-def write_comparison(result: dict, destination) -> Path:
-    """compare.json, compare.csv and a self-contained compare.html with the plot."""
+# what write_comparison writes into its folder
+COMPARE_FILES = ("compare.json", "compare.csv", "compare.html")
+
+
+def refuse_earlier_comparison(destination, overwrite: bool = False) -> None:
+    """Refuse a folder that holds an earlier comparison unless ``overwrite`` (the rule of every
+    command's output folder: :func:`~mdlshapemodel.prepare.io.refuse_earlier`)."""
+    io.refuse_earlier(destination, io.earlier_outputs(destination, COMPARE_FILES), overwrite,
+                      "comparison")
+
+
+def write_comparison(result: dict, destination, overwrite: bool = False) -> Path:
+    """compare.json, compare.csv and a self-contained compare.html with the plot, written
+    whole or not at all into ``destination``
+    (:func:`~mdlshapemodel.prepare.io.written_folder`; an earlier comparison there is refused
+    unless ``overwrite``)."""
+    refuse_earlier_comparison(destination, overwrite)
+    destination = Path(destination)
+    with io.written_folder(destination, COMPARE_FILES) as folder:
+        _write_comparison(result, destination, folder)
+    return destination / "compare.html"
+
+
+def _write_comparison(result: dict, destination: Path, into: Path):
+    """The files of :func:`write_comparison` into the folder ``into``; links are relative to
+    ``destination``, where they end up."""
     import os
 
     from .html import HOW_TO_READ, html_page, measure_plot, run_table, table
 
-    destination = Path(destination)
-    destination.mkdir(parents=True, exist_ok=True)
-    io.write_text(destination / "compare.json", json.dumps(result, indent=2))
+    io.write_text(into / "compare.json", json.dumps(result, indent=2))
     rows = comparison_rows(result)
-    io.write_csv(destination / "compare.csv", ROW_HEADER, rows)
+    io.write_csv(into / "compare.csv", ROW_HEADER, rows)
     series = [(values, label) for label, values in result["models"].items()]
     plot = measure_plot(series)
     body = [f"<h1>Comparison of {len(series)} models</h1>",
@@ -168,9 +190,7 @@ def write_comparison(result: dict, destination) -> Path:
     if excluded:
         body.append("<h2>Cases left out (not in every model)</h2>")
         body.append(table(("model", "cases"), [(k, ", ".join(v)) for k, v in excluded.items()]))
-    path = destination / "compare.html"
-    io.write_text(path, html_page("MDLShapeModel comparison", body))
-    return path
+    io.write_text(into / "compare.html", html_page("MDLShapeModel comparison", body))
 
 
 def _viewers(result: dict) -> list:
