@@ -37,6 +37,7 @@ import re
 import subprocess
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,15 +45,33 @@ import scipy.io
 import vtk
 from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy
 
-VSD_GIT = "/work/.mirror/RWTHmediTEC+VSDFullBodyBoneModels/repo"
-VSD_COMMIT = "ee5c4f0"
+MIRRORS = "/work/.mirror"  # where the search tool's fetch puts github:owner/name
 VSD_DUPLICATES = ("z024",)
-VERSE_GIT = "/work/.mirror/madsendennis+how-to-shape-model/repo"
-VERSE_COMMIT = "HEAD"
 PELVIS_BONES = ("Sacrum", "Hip_R", "Hip_L")  # the order the raters' vertex indices assume
 
 
 # ---------------------------------------------------------------- git
+
+
+@dataclass(frozen=True)
+class Source:
+    """A public git repository the data is read from, at a fixed commit."""
+
+    repository: str  # owner/name on GitHub
+    commit: str
+    licence: str
+
+    def git_dir(self, mirrors: str) -> str:
+        """The bare git directory of the local mirror (``<mirrors>/<owner>+<name>/repo``)."""
+        path = Path(mirrors) / self.repository.replace("/", "+") / "repo"
+        if not path.is_dir():
+            raise SystemExit(f"no mirror of {self.repository} at {path} (fetch "
+                             f"github:{self.repository}, or pass --mirrors)")
+        return str(path)
+
+
+VSD = Source("RWTHmediTEC/VSDFullBodyBoneModels", "ee5c4f0", "CC BY-NC-SA 4.0")
+VERSE = Source("madsendennis/how-to-shape-model", "HEAD", "Apache-2.0 (VerSe data CC BY-SA 4.0)")
 
 
 def git_show(git_dir: str, commit: str, path: str) -> bytes:
@@ -263,13 +282,13 @@ def load_mat(git_dir: str, commit: str, path: str) -> dict:
     return scipy.io.loadmat(io.BytesIO(git_show(git_dir, commit, path)))
 
 
-def vsd_raters(bone: str) -> tuple[list[str], dict, list[str]]:
+def vsd_raters(git: str, bone: str) -> tuple[list[str], dict, list[str]]:
     """Rater names; per subject (side, points (raters, trials, landmarks, 3)); landmark names."""
-    files = [f for f in git_list(VSD_GIT, VSD_COMMIT, f"ManualLandmarks/{bone}")
+    files = [f for f in git_list(git, VSD.commit, f"ManualLandmarks/{bone}")
              if f.endswith(".mat")]
     raters, subjects, names = [], {}, None
     for r, path in enumerate(files):
-        results = load_mat(VSD_GIT, VSD_COMMIT, path)["Results"]
+        results = load_mat(git, VSD.commit, path)["Results"]
         raters.append(Path(path).stem)
         trials = [j for j in range(results.shape[1]) if results[0, j].dtype == object]
         for row in results:
@@ -290,10 +309,10 @@ def vsd_raters(bone: str) -> tuple[list[str], dict, list[str]]:
     return raters, subjects, names
 
 
-def vsd_bones(subject: str) -> dict:
+def vsd_bones(git: str, subject: str) -> dict:
     """Bone name -> (vertices (V, 3) mm, faces (F, 3) 0-based) of one subject."""
     bones = {}
-    for b in load_mat(VSD_GIT, VSD_COMMIT, f"Bones/{subject}.mat")["B"].ravel():
+    for b in load_mat(git, VSD.commit, f"Bones/{subject}.mat")["B"].ravel():
         mesh = b["mesh"]
         if mesh.size == 0:
             continue
@@ -303,9 +322,9 @@ def vsd_bones(subject: str) -> dict:
     return bones
 
 
-def vsd_cases(bone: str, mirror: bool, keep_duplicate: bool):
+def vsd_cases(git: str, bone: str, mirror: bool, keep_duplicate: bool):
     """Yield (case, vertices, faces, bone ids or None, names, points, info) for femur or pelvis."""
-    raters, subjects, names = vsd_raters(bone.capitalize())
+    raters, subjects, names = vsd_raters(git, bone.capitalize())
     sides = {e["side"] for e in subjects.values()}
     mirror = mirror and bone == "femur" and len(sides) > 1
     for subject in sorted(subjects):
@@ -315,7 +334,7 @@ def vsd_cases(bone: str, mirror: bool, keep_duplicate: bool):
         if not re.fullmatch(r"z\d{3}", subject):  # e.g. the phantom of later versions
             print(f"  {subject}: left out (not a VSD subject)")
             continue
-        entry, bones = subjects[subject], vsd_bones(subject)
+        entry, bones = subjects[subject], vsd_bones(git, subject)
         points, info = entry["points"], {"subject": subject, "raters": raters}
         if bone == "femur":
             side = entry["side"]
@@ -359,13 +378,13 @@ def ply_space(data: bytes) -> str:
     return match.group(1) if match else "?"
 
 
-def vertebra_cases():
+def vertebra_cases(git: str):
     """Yield (case, vertices, faces, None, names, points, info) for the L1 vertebrae."""
-    paths = [p for p in git_list(VERSE_GIT, VERSE_COMMIT, "data/vertebrae") if p.endswith(".ply")]
+    paths = [p for p in git_list(git, VERSE.commit, "data/vertebrae") if p.endswith(".ply")]
     for path in paths:
-        data = git_show(VERSE_GIT, VERSE_COMMIT, path)
+        data = git_show(git, VERSE.commit, path)
         poly = read_ply(data)
-        landmarks = json.loads(git_show(VERSE_GIT, VERSE_COMMIT, path[:-4] + ".json"))
+        landmarks = json.loads(git_show(git, VERSE.commit, path[:-4] + ".json"))
         names = [lm["id"] for lm in landmarks]
         points = np.array([[[lm["coordinates"] for lm in landmarks]]], dtype=float)
         vertices = vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
@@ -466,16 +485,19 @@ def main() -> None:
                         help="keep right femurs as they are instead of mirroring them")
     parser.add_argument("--keep-duplicate", action="store_true",
                         help="keep VSD subject z024, a duplicate removed upstream in v3.0")
+    parser.add_argument("--mirrors", default=MIRRORS,
+                        help="folder of the git mirrors, <owner>+<name>/repo (default %(default)s)")
     args = parser.parse_args()
     output = Path(args.output)
     start = time.perf_counter()
-    print(f"VSDFullBodyBoneModels {git_commit(VSD_GIT, VSD_COMMIT)} (CC BY-NC-SA)")
-    print(f"how-to-shape-model    {git_commit(VERSE_GIT, VERSE_COMMIT)}")
     for dataset in args.datasets:
+        source = VERSE if dataset == "vertebrae" else VSD
+        git = source.git_dir(args.mirrors)
+        print(f"\n{dataset}: {source.repository} {git_commit(git, source.commit)} ({source.licence})")
         if dataset == "vertebrae":
-            cases = vertebra_cases()
+            cases = vertebra_cases(git)
         else:
-            cases = vsd_cases(dataset, not args.no_mirror, args.keep_duplicate)
+            cases = vsd_cases(git, dataset, not args.no_mirror, args.keep_duplicate)
         export(dataset, cases, output)
     print(f"\nwritten to {output} in {time.perf_counter() - start:.1f} s")
 
