@@ -44,14 +44,14 @@ SURFACE_GENERALIZATION_POINTS = 5000
 #: and the leave-one-out models leave it out, as :meth:`ShapeModel.from_shapes` leaves it out of
 #: a model (its ``relative_tolerance``). The measures of aligned shapes and of the model's own
 #: reconstruction of them (``mdlshapemodel compare`` reads those) are then the same.
-NEGLIGIBLE_VARIANCE = 1e-10
+ROUNDING_VARIANCE = 1e-10
 
 
 def _modes_kept(singular: np.ndarray) -> np.ndarray:
     """Which singular values of centred shapes are modes (variance above
-    :data:`NEGLIGIBLE_VARIANCE` of the largest)."""
+    :data:`ROUNDING_VARIANCE` of the largest)."""
     largest = max(float(singular.max(initial=0.0)), 1e-300)
-    return singular ** 2 > NEGLIGIBLE_VARIANCE * largest ** 2
+    return singular ** 2 > ROUNDING_VARIANCE * largest ** 2
 
 
 @dataclass(frozen=True)
