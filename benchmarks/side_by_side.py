@@ -176,7 +176,8 @@ def main():
     elif args.truth:
         cases = sorted((Path(args.truth) / "labels").glob("*.nii.gz"))
     else:
-        cases = sorted(DATA.glob("*.nii.gz"))
+        # hippocampus_011 is hippocampus_010 byte for byte, which a build refuses
+        cases = [p for p in sorted(DATA.glob("*.nii.gz")) if p.name != "hippocampus_011.nii.gz"]
         extra = extra or ["--label", "1,2"]     # after --: build options for every version
     cases = cases[:args.cases or (82 if not (args.landmarks or args.truth) else None)]
     inputs = linked(cases, output / "inputs")
