@@ -128,8 +128,8 @@ class _Filter(VTKPythonAlgorithmBase):
         """Why the input's source, a reader, failed ('' when it did not or is no reader): it
         reports an error code, or it cannot read its file (VTK's MetaImage reader, given a
         missing or damaged file, reports nothing and gives a one-voxel image)."""
-        if self.GetNumberOfInputConnections(0) == 0:
-            return ""
+        if self.GetNumberOfInputPorts() == 0 or self.GetNumberOfInputConnections(0) == 0:
+            return ""      # a source, or a filter not connected yet
         source = self.GetInputAlgorithm(0, 0)
         file = source.GetFileName() if hasattr(source, "GetFileName") else None
         code = source.GetErrorCode()
