@@ -102,7 +102,7 @@ class MDLShapeModel(ScriptedLoadableModule):
 MAIN_SETTINGS = ("labels", "surface_method", "points", "strategy", "max_time", "baselines")
 ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror", "parts", "seed",
                      "evaluation_modes", "specificity_samples", "workers", "strict",
-                     "allow_duplicates", "smoothness")
+                     "allow_duplicates", "smoothness", "placement")
 BUILD_SETTINGS = MAIN_SETTINGS + ADVANCED_SETTINGS
 
 

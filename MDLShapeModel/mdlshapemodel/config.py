@@ -26,6 +26,7 @@ WARPS = ("symmetric", "asymmetric", "shear", "rotation")
 WARP_STRATEGIES = ("one-at-a-time", "one-at-a-time-pose")
 CORRESPONDENCES = ("mdl", "cpd")
 BASELINES = ("none", "cpd")
+PLACEMENTS = ("sphere", "surface")
 SURFACE_METHODS = ("gaussian", "slicer")
 
 
@@ -89,6 +90,9 @@ MAX_SMOOTHING_SIGMA = 2.0
 # surface (an icosphere of 2562 vertices), on the circle for a 2-D curve (128).
 SURFACE_POINTS = 2562
 CURVE_POINTS = 128
+
+# ``--placement``: where a surface's sample points lie (correspondence/placement.py)
+PLACEMENT = "sphere"
 
 # ``--landmark-weight``: lambda of the landmark guides' term (correspondence/guides.py), nats per
 # squared voxel of distance between a landmark and its corresponded point, halved
@@ -357,6 +361,13 @@ class BuildConfig:
         _CORRESPONDENCE, "sample points per part: on the sphere (an icosphere when 10*4^k+2) "
                          f"for surfaces, default {SURFACE_POINTS}; equally spaced on the circle for "
                          f"2-D curves, default {CURVE_POINTS}"))
+    placement: str = field(default=PLACEMENT, metadata=option(
+        _CORRESPONDENCE, "where a surface's sample points lie: 'sphere', an even grid on the "
+                         "sphere (an icosphere when --points is 10*4^k+2); 'surface', spread "
+                         "evenly over the population's mean surface, so that thin processes and "
+                         "ridges, which the sphere maps squeeze, get their share "
+                         "(default %(default)s)",
+        choices=PLACEMENTS))
     # optimisation: our gradient strategy by default (the paper's four remain selectable); the
     # other defaults are those of OptimisationSettings (one source)
     strategy: str = field(default="fast", metadata=option(
@@ -487,6 +498,8 @@ class BuildConfig:
              f"each must be one of {', '.join(BASELINES)}")
         need(self.points is None or self.points >= 12, "points", "must be at least 12")
         need(self.strategy in STRATEGIES, "strategy", f"must be one of {', '.join(STRATEGIES)}")
+        need(self.placement in PLACEMENTS, "placement",
+             f"must be one of {', '.join(PLACEMENTS)}")
         need(isinstance(self.warps, (list, tuple)) and len(self.warps) > 0
              and all(w in WARPS for w in self.warps) and len(set(self.warps)) == len(self.warps),
              "warps", f"must be distinct kinds from {', '.join(WARPS)}")

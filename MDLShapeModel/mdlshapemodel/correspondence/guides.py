@@ -173,7 +173,7 @@ def place_landmarks(cases: list, landmarks: dict) -> PlacedLandmarks | None:
     return PlacedLandmarks(labels, part_of_label, placed, present)
 
 
-def guides_on_grid(placed: PlacedLandmarks, aligned: list, grid: np.ndarray, candidates: int,
+def guides_on_grid(placed: PlacedLandmarks, aligned: list, grids: list, candidates: int,
                    part_offsets, weight: float, scale: float) -> Guides:
     """The :class:`Guides` of landmarks placed on aligned maps.
 
@@ -182,11 +182,12 @@ def guides_on_grid(placed: PlacedLandmarks, aligned: list, grid: np.ndarray, can
     placed : PlacedLandmarks
     aligned : list
         Per part, the aligned sphere maps of the cases (in case order).
-    grid : ndarray (n, 3)
-        The parts' sampling grid.
+    grids : list of ndarray (n, 3)
+        Per part, its sampling grid's points on the sphere.
     candidates : int
-        Guide sample points are chosen among the grid's first ``candidates`` points (the coarse
-        grid's, nested in the finer icospheres, so that the same guides apply to both).
+        Guide sample points are chosen among each grid's first ``candidates`` points (the
+        coarse grid's, which the build's grid starts with, so that the same guides apply to
+        both).
     part_offsets : sequence of int
         The first row of each part in the shape vector.
     """
@@ -203,7 +204,7 @@ def guides_on_grid(placed: PlacedLandmarks, aligned: list, grid: np.ndarray, can
         for k, place in zip(mine, places):
             # the nearest grid point that no other label has: landmarks closer together than
             # the grid's spacing are guided at neighbouring points
-            order = np.argsort(-(grid[:candidates] @ np.nan_to_num(place)), kind="stable")
+            order = np.argsort(-(grids[j][:candidates] @ np.nan_to_num(place)), kind="stable")
             vertex = next(int(v) for v in order if int(v) not in taken)
             taken.add(vertex)
             indices[k] = part_offsets[j] + vertex

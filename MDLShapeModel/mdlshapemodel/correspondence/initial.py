@@ -12,6 +12,7 @@ from .circle import curve_state
 from .guides import guides_on_grid, place_landmarks
 from .smoothness import Smoothness
 from .objective import objectives
+from .placement import icosphere_level, surface_grids
 from .sampling import sphere_grid
 from .state import CorrespondenceState, Example, PartState
 
@@ -41,7 +42,7 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
                             scaling=config.scaling)
         return _with_objectives(state, voxel, config)
     n_parts = len(prepared[0].parts)
-    grid_points, grid_triangles = sphere_grid(config.points_for(curves=False))
+    n_points = config.points_for(curves=False)
     # several parts: each case's frame from its whole surface, the same for all its parts
     frames = reference_frames([case.surface() for case in prepared]) if n_parts > 1 else None
     placed = place_landmarks(prepared, landmarks) if landmarks else None
@@ -50,19 +51,24 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
         originals = [case.parts[j].map for case in prepared]
         images = None if placed is None else placed.images(j, originals)
         maps.append(align_parameterizations(originals, frames=frames, landmarks=images))
+    coarse = config.coarse_points
+    nested = coarse if 0 < coarse < n_points else 0     # the grid's first points
+    if config.placement == "surface":
+        grids = surface_grids(maps, n_points, nested if icosphere_level(nested) else 0,
+                              scaling=config.scaling)
+    else:
+        grids = [sphere_grid(n_points)] * n_parts
     examples = [Example(case.name, [PartState(maps[j][i].vertices, maps[j][i].faces,
-                                              maps[j][i].sphere, grid_points, grid_triangles)
+                                              maps[j][i].sphere, *grids[j])
                                     for j in range(n_parts)])
                 for i, case in enumerate(prepared)]
     guides = None
     if placed is not None:
-        coarse = config.coarse_points
-        candidates = coarse if 0 < coarse < len(grid_points) else len(grid_points)
-        guides = guides_on_grid(placed, maps, grid_points, candidates,
-                                [j * len(grid_points) for j in range(n_parts)],
+        guides = guides_on_grid(placed, maps, [grid for grid, _ in grids], nested or n_points,
+                                [j * n_points for j in range(n_parts)],
                                 config.landmark_weight, voxel)
     smoothness = Smoothness(config.smoothness, voxel) if config.smoothness > 0 else None
-    state = CorrespondenceState(examples, [(grid_points, grid_triangles)] * n_parts,
+    state = CorrespondenceState(examples, grids,
                                 scaling=config.scaling, guides=guides, smoothness=smoothness)
     return _with_objectives(state, voxel, config)
 

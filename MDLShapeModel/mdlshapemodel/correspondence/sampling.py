@@ -77,6 +77,45 @@ def sphere_grid(n_points: int) -> tuple[np.ndarray, np.ndarray]:
     return fibonacci_sphere(n_points)
 
 
+def farthest_points(points: np.ndarray, count: int, first: int = 0) -> np.ndarray:
+    """Indices of ``count`` of ``points`` (n, d) spread evenly over them: the first ``first``
+    points, then again and again the point farthest from all those taken (greedy farthest-point
+    sampling; ties go to the lowest index, so the order is reproducible).
+
+    Examples
+    --------
+    >>> line = np.array([[0.0], [1.0], [2.0], [3.0], [10.0]])
+    >>> farthest_points(line, 3, first=1).tolist()
+    [0, 4, 3]
+    """
+    points = np.asarray(points, dtype=np.float64)
+    n = len(points)
+    if not 0 <= first <= count <= n:
+        raise ValueError(f"cannot take {count} of {n} points starting with {first}")
+    chosen = np.empty(count, dtype=np.int64)
+    chosen[:first] = np.arange(first)
+    if first:
+        nearest = cKDTree(points[:first]).query(points)[0] ** 2
+    else:
+        chosen[0] = 0
+        nearest = np.sum((points - points[0]) ** 2, axis=1)
+        first = 1
+    for k in range(first, count):
+        index = int(np.argmax(nearest))
+        chosen[k] = index
+        np.minimum(nearest, np.sum((points - points[index]) ** 2, axis=1), out=nearest)
+    return chosen
+
+
+def spherical_triangles(points: np.ndarray) -> np.ndarray:
+    """The Delaunay triangulation of unit vectors (their convex hull), counter-clockwise from
+    outside; every point is a vertex of it."""
+    triangles = ConvexHull(points).simplices.astype(np.int64)
+    if len(np.unique(triangles)) != len(points):
+        raise ValueError("points on the sphere that are not vertices of their hull (repeated?)")
+    return orient_triangles(points, triangles)
+
+
 class SphereLocator:
     """Point location on a fold-free spherical triangulation.
 
