@@ -53,15 +53,17 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
         maps.append(align_parameterizations(originals, frames=frames, landmarks=images))
     coarse = config.coarse_points
     nested = coarse if 0 < coarse < n_points else 0     # the grid's first points
-    if config.placement == "surface":
-        grids = surface_grids(maps, n_points, nested if icosphere_level(nested) else 0,
-                              scaling=config.scaling)
-    else:
-        grids = [sphere_grid(n_points)] * n_parts
+    grids = [sphere_grid(n_points)] * n_parts
     examples = [Example(case.name, [PartState(maps[j][i].vertices, maps[j][i].faces,
                                               maps[j][i].sphere, *grids[j])
                                     for j in range(n_parts)])
                 for i, case in enumerate(prepared)]
+    if config.placement == "surface":
+        aligned = CorrespondenceState(examples, grids, scaling=config.scaling)
+        grids = surface_grids(aligned, nested if icosphere_level(nested) else 0)
+        examples = [Example(example.name, [part.on_grid(*grid)
+                                           for part, grid in zip(example.parts, grids)])
+                    for example in examples]
     guides = None
     if placed is not None:
         guides = guides_on_grid(placed, maps, [grid for grid, _ in grids], nested or n_points,
