@@ -113,6 +113,8 @@ def _settingMember(name: str, defaults: BuildConfig):
     value = getattr(defaults, name)
     if name == "points":       # None: per kind of input; the panel builds surfaces
         kind, value = int, defaults.points_for(curves=False)
+    if name == "smoothness":   # None: per kind of input, as ``points``
+        kind, value = float, defaults.smoothness_for(curves=False)
     if typing.get_origin(kind) is list:
         return str, ", ".join(str(v) for v in value)
     if "choices" in metadata:

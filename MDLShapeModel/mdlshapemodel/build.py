@@ -24,7 +24,7 @@ import math
 import time
 import traceback
 from concurrent.futures import CancelledError, Executor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -530,7 +530,7 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                          f"{surface} a surface")
     if curves and landmarks:
         raise BuildError("--landmarks guides surfaces; these inputs are 2-D curves")
-    if curves and config.smoothness > 0:
+    if curves and config.smoothness_for(curves=True) > 0:
         raise BuildError("--smoothness is a prior for surfaces; these inputs are 2-D curves")
     if curves and config.correspondence == "cpd":
         raise BuildError("--correspondence cpd registers surfaces; these inputs are 2-D curves")
@@ -642,8 +642,10 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
     sampling grid's triangles and sphere positions, the case names, the part names of a
     multi-part object, the guided landmarks' rows, and as metadata the
     objective, the method (the strategy, or "cpd"), the voxel size, the data range and the
-    configuration (JSON)."""
+    configuration (JSON), with the prior's weight as applied."""
     method = "cpd" if config.correspondence == "cpd" else config.strategy
+    # the prior's weight as applied, so that ``fit`` applies the same whatever the default
+    config = replace(config, smoothness=config.smoothness_for(curves=state.planar))
     model = ShapeModel.from_shapes(state.aligned_shapes(), state.weights,
                                    names=[e.name for e in state.examples],
                                    triangles=state.triangles(),

@@ -31,8 +31,8 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
     ``landmarks`` (case name -> :class:`~mdlshapemodel.prepare.landmarks.Landmarks`, surfaces
     only): the alignment of the sphere maps also brings each label to one shared place, and the
     state gets their :class:`.guides.Guides` (weight ``config.landmark_weight``), on sample
-    points of the coarse grid where the fast strategy runs one. ``config.smoothness`` > 0 gives
-    the state the prior of :mod:`.smoothness` (surfaces).
+    points of the coarse grid where the fast strategy runs one. A weight
+    ``config.smoothness_for(curves=False)`` > 0 gives the state the prior of :mod:`.smoothness`.
     """
     # the mean voxel size: the unit of the coding accuracy, the guides and the prior
     voxel = float(np.mean([case.voxel_size for case in prepared]))
@@ -69,7 +69,8 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
         guides = guides_on_grid(placed, maps, [grid for grid, _ in grids], nested or n_points,
                                 [j * n_points for j in range(n_parts)],
                                 config.landmark_weight, voxel)
-    smoothness = Smoothness(config.smoothness, voxel) if config.smoothness > 0 else None
+    weight = config.smoothness_for(curves=False)
+    smoothness = Smoothness(weight, voxel) if weight > 0 else None
     state = CorrespondenceState(examples, grids,
                                 scaling=config.scaling, guides=guides, smoothness=smoothness)
     return _with_objectives(state, voxel, config)

@@ -153,8 +153,8 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     voxel = float(model.metadata.get("voxel_size_mm", case.voxel_size))
     # the model's prior on smooth correspondence (if it was built with one) holds for the new
     # case too, so that its points do not slide where the training cases' could not
-    smoothness = (Smoothness(config.smoothness, voxel)
-                  if config.smoothness > 0 and not case.is_curve else None)
+    weight = config.smoothness_for(curves=case.is_curve)
+    smoothness = Smoothness(weight, voxel) if weight > 0 and not case.is_curve else None
     state = CorrespondenceState(examples, grids, scaling=config.scaling,
                                 planar=case.is_curve, smoothness=smoothness)
 
