@@ -92,7 +92,7 @@ def test_a_label_some_cases_lack_and_a_case_without_landmarks():
     aligned = [align_parameterizations([case.map for case in cases],
                                        landmarks=images)]
     grid, _ = icosphere(2)
-    guides = guides_on_grid(placed, aligned, grid, 42, [0], weight=2.0, scale=0.5)
+    guides = guides_on_grid(placed, aligned, [grid], 42, [0], weight=2.0, scale=0.5)
     assert guides.indices.max() < 42 and len(set(guides.indices)) == 2
     np.testing.assert_allclose(guides.targets[0], tip, atol=1e-9)
     assert guides.far_from_surface(["a", "b", "c"]) == []
@@ -100,7 +100,7 @@ def test_a_label_some_cases_lack_and_a_case_without_landmarks():
     # a landmark 4 mm off the surface (8 voxels of 0.5 mm) is reported, with its distance
     off = {**marks, "c": Landmarks(("top",), np.array([[0.0, 0.0, AXES[2] + 4.0]]))}
     placed = place_landmarks(cases, off)
-    far = guides_on_grid(placed, aligned, grid, 42, [0], 2.0, 0.5).far_from_surface(
+    far = guides_on_grid(placed, aligned, [grid], 42, [0], 2.0, 0.5).far_from_surface(
         ["a", "b", "c"])
     assert [(case, label) for case, label, _ in far] == [("c", "top")]
     assert far[0][2] == pytest.approx(4.0, abs=1e-6)
