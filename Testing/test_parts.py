@@ -157,7 +157,8 @@ def test_every_part_is_optimised_and_none_folds(two_part_state, strategy):
     prepared, config = two_part_state
     state, pair, _, _ = initial_state(prepared, config)
     before = [[p.positions.copy() for p in e.parts] for e in state.examples]
-    start = pair[1](state.covariance())
+    state.objective = pair[1]
+    start = state.value()               # the description length and the default prior's energy
     settings = BuildConfig(parts=PARTS, points=162, strategy=strategy, max_sweeps=3, fixed_fraction=0,
                            max_time=60).optimisation_settings()
     final = optimise(state, pair, settings, np.random.default_rng(0), Trace())
