@@ -10,7 +10,7 @@ j's landmark: one template's misplaced landmark does not move it.
 
 A landmark that guided the correspondence lands close to the given one by construction; only a
 label that did not guide it (:func:`transfer_errors` on a correspondence made without it) shows
-how well the correspondence lands where no landmark holds it.
+how well the correspondence lands where no landmark holds it (:class:`LandmarkCheck`).
 
 Examples
 --------
@@ -151,3 +151,75 @@ def transfer_errors(shapes: np.ndarray, triangles: np.ndarray, landmarks: np.nda
                                            axis=1)
     return TransferErrors(single, median, located)
 
+
+def landmark_array(prepared: list, landmarks: dict, labels) -> np.ndarray:
+    """Every prepared case's landmarks of ``labels`` in the case's own frame (a mirrored case's
+    mirrored as its surface was), (n, L, 3), a row of NaN where a case lacks a label.
+
+    ``landmarks``: case name -> :class:`~mdlshapemodel.prepare.landmarks.Landmarks`, in the
+    coordinates of each case's input file.
+    """
+    result = np.full((len(prepared), len(labels), 3), np.nan)
+    for i, case in enumerate(prepared):
+        marks = landmarks.get(case.name)
+        for k, label in enumerate(labels):
+            point = None if marks is None else marks.get(label)
+            if point is not None:
+                result[i, k] = point * ([-1.0, 1.0, 1.0] if case.mirrored else 1.0)
+    return result
+
+
+#: what the landmark check's numbers are, in words (metrics.json and the report)
+CHECK_MEASURE = ("each case's landmark carried through the correspondence to every other case "
+                 "(the same place on its corresponded mesh, projected to the case's surface), "
+                 "the median of those predictions against the given landmark, mm; the mean "
+                 "over the cases that have the label")
+
+
+@dataclass(frozen=True)
+class LandmarkCheck:
+    """How far a build's correspondence carries each landmark label (:func:`transfer_errors`,
+    the median of templates, its mean over the cases), where the label does not guide it.
+
+    labels : tuple of str, (L,)
+    held_out : ndarray (L,)
+        mm, from the correspondence optimised with the label left out of the guides (its fold
+        of ``folds``), or from the build itself where nothing guides it.
+    guided : ndarray (L,) or None
+        mm, the same from the build's correspondence, which the label guided; None where the
+        landmarks guided nothing (``folds`` empty).
+    cases : ndarray (L,) int
+        The cases each error is the mean over (those with the label, when another has it too).
+    folds : list of tuple
+        The labels left out of the guides together, one optimisation each.
+    """
+
+    labels: tuple
+    held_out: np.ndarray
+    guided: np.ndarray | None
+    cases: np.ndarray
+    folds: list
+
+    def to_json(self) -> dict:
+        """metrics.json's ``landmark_check``: per label the held-out error, the guided one and
+        the number of cases; their means over the labels; the folds; what is measured."""
+        guided = self.guided if self.guided is not None else np.full(len(self.labels), np.nan)
+        return {"guided": self.guided is not None,
+                "folds": [list(fold) for fold in self.folds],
+                "per_label": {label: {"held_out_mm": _number(held), "guided_mm": _number(guide),
+                                      "cases": int(cases)}
+                              for label, held, guide, cases in zip(self.labels, self.held_out,
+                                                                    guided, self.cases)},
+                "mean": {"held_out_mm": _mean(self.held_out), "guided_mm": _mean(guided)},
+                "measure": CHECK_MEASURE}
+
+
+def _number(value: float) -> float | None:
+    """A JSON number, None for NaN."""
+    return float(value) if np.isfinite(value) else None
+
+
+def _mean(values: np.ndarray) -> float | None:
+    """The mean of the finite values, None where there are none."""
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if len(finite) else None
