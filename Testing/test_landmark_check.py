@@ -263,3 +263,29 @@ def test_landmarks_with_weight_0_guide_nothing_and_are_measured(tmp_path):
     assert "The landmarks did not guide this correspondence" in report
     assert "Landmarks that guided the correspondence" not in report
     assert "(not guiding)" in measured.stdout
+
+
+@pytest.mark.slow
+def test_a_landmark_check_cancelled_leaves_the_build_whole_and_says_so(tmp_path):
+    from mdlshapemodel import build_model
+
+    data = write_population(tmp_path)
+    config = BuildConfig(landmarks=str(data / "marks"), check_landmarks=True, points=162,
+                         coarse_points=42, workers=1, max_sweeps=5, specificity_samples=200,
+                         surface_samples=0, evaluation_modes=2, baselines=[], cache_dir="")
+    checks = []
+
+    def progress(fraction, message):
+        if message.startswith("landmark check"):
+            checks.append(message)
+            return len(checks) < 2               # the second fold is cancelled as it starts
+        return None
+
+    result = build_model([data / "labels"], tmp_path / "out", config, progress=progress)
+    assert checks == ["landmark check 1 of 4: bottom left out of the guides",
+                      "landmark check 2 of 4: end left out of the guides"]
+    assert not result.interrupted and result.metrics["landmark_check"] is None
+    warning = "the landmark check was interrupted: the outputs have none"
+    assert warning in result.metrics["warnings"]
+    assert warning in (tmp_path / "out" / "report.html").read_text()
+    assert (tmp_path / "out" / "model.h5").exists()

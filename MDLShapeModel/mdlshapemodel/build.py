@@ -325,6 +325,10 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         checked = None
         if config.checks_landmarks() and not corresponded.interrupted:
             checked = _checked_landmarks(prepared, config, landmarks, corresponded, progress)
+            if checked is None:
+                cut = "the landmark check was interrupted: the outputs have none"
+                log.warning("%s", cut)
+                warnings = [*warnings, cut]
         # from here on a Ctrl-C lets the outputs be finished (a second one aborts)
         if corresponded.interrupted:
             log.warning("optimisation interrupted: writing the model of the state reached%s",
@@ -355,15 +359,14 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
 def _checked_landmarks(prepared: list, config: BuildConfig, landmarks: dict,
                        corresponded, progress) -> LandmarkCheck | None:
-    """:func:`check_landmarks` in a build, timed in build.log; None (and a warning) where a
-    Ctrl-C or a cancelling progress callback stops it: the build's outputs do not wait for it."""
+    """:func:`check_landmarks` in a build, timed in build.log; None where a Ctrl-C or a
+    cancelling progress callback stops it: the build's outputs do not wait for it."""
     started = time.perf_counter()
     try:
         checked = check_landmarks(prepared, config, landmarks, corresponded, progress)
     except Cancelled:
         checked = None
     if checked is None:
-        log.warning("the landmark check was interrupted: the outputs have none")
         return None
     log.info("landmark check: %d optimisations in %.1f s", len(checked.folds),
              time.perf_counter() - started)

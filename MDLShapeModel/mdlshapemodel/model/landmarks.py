@@ -170,10 +170,10 @@ def landmark_array(prepared: list, landmarks: dict, labels) -> np.ndarray:
 
 
 #: what the landmark check's numbers are, in words (metrics.json and the report)
-CHECK_MEASURE = ("each case's landmark carried through the correspondence to every other case "
-                 "(the same place on its corresponded mesh, projected to the case's surface), "
-                 "the median of those predictions against the given landmark, mm; the mean "
-                 "over the cases that have the label")
+CHECK_MEASURE = ("per case, every other case's landmark carried to it through the "
+                 "correspondence (the same place on the corresponded meshes, put on the case's "
+                 "surface), the median of those predictions against the case's own landmark; "
+                 "the mean over the cases that have the label, mm")
 
 
 @dataclass(frozen=True)

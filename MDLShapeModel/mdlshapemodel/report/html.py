@@ -324,14 +324,14 @@ def _landmark_check_section(check: dict) -> list:
                 f"{html.escape(how)}. "
                 "<i>Left out</i>: how far the correspondence carries the label from the "
                 "experts' position when the label does not guide it; <i>guiding</i>: the same "
-                "in this build, which it guided (small by construction). Measured as "
+                "in this build, which it guided (small by construction). Each distance: "
                 f"{html.escape(check['measure'])}.</p>",
                 table(("label", "cases", "left out of the guides [mm]", "guiding [mm]"), rows)]
     rows = [(label, item["cases"], mm(item["held_out_mm"])) for label, item in labels.items()]
     rows.append(("mean", "", mm(check["mean"]["held_out_mm"])))
     return ["<h2>Landmarks: how far the correspondence carries them</h2>",
             "<p>The landmarks did not guide this correspondence: it carries each label from "
-            "the experts' position by the distance shown, measured as "
+            "the experts' position by the distance shown. Each distance: "
             f"{html.escape(check['measure'])}.</p>",
             table(("label", "cases", "distance [mm]"), rows)]
 
