@@ -54,6 +54,9 @@ def test_a_correspondence_turned_in_one_case_carries_its_landmarks_off_by_the_tu
     assert cases.tolist() == [4, 3]
     assert means[0] == pytest.approx(errors.median[0, 0] / 4)
     np.testing.assert_allclose(errors.located[[0, 1, 3], 1], 0.0, atol=0.02)
+    lean = transfer_errors(shapes, faces, marks, [surface] * 4, single=False)
+    assert lean.single is None
+    np.testing.assert_array_equal(lean.median, errors.median)
 
 
 def test_the_folds_leave_each_label_out_once_and_their_number_is_bounded():

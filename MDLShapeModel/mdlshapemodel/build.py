@@ -412,7 +412,8 @@ def check_landmarks(prepared: list, config: BuildConfig, landmarks: dict,
     triangles = corresponded.state.triangles()
 
     def errors(state) -> tuple[np.ndarray, np.ndarray]:
-        return transfer_errors(state.raw_shapes(), triangles, given, surfaces).per_label()
+        return transfer_errors(state.raw_shapes(), triangles, given, surfaces,
+                               single=False).per_label()
 
     built, cases = errors(corresponded.state)
     folds = config.landmark_folds(labels)

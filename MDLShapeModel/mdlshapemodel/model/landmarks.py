@@ -77,9 +77,9 @@ def transfer(points_i: np.ndarray, triangles: np.ndarray, landmarks_i: np.ndarra
 class TransferErrors:
     """The landmark-transfer errors of one correspondence, mm (NaN where not defined).
 
-    single : ndarray (n, n, L)
+    single : ndarray (n, n, L) or None
         [i, j, l]: template i's landmark l carried to case j, against j's (NaN for i = j and
-        where i or j lacks l).
+        where i or j lacks l); None where not kept.
     median : ndarray (n, L)
         [j, l]: the median of templates against j's landmark l (NaN where j lacks l or no other
         case has it).
@@ -88,7 +88,7 @@ class TransferErrors:
         sample points' triangles cover the surface there; NaN where i lacks l).
     """
 
-    single: np.ndarray
+    single: np.ndarray | None
     median: np.ndarray
     located: np.ndarray
 
@@ -101,7 +101,7 @@ class TransferErrors:
 
 
 def transfer_errors(shapes: np.ndarray, triangles: np.ndarray, landmarks: np.ndarray,
-                    surfaces: list) -> TransferErrors:
+                    surfaces: list, single: bool = True) -> TransferErrors:
     """The landmark-transfer errors of a correspondence (see the module docstring).
 
     Parameters
@@ -114,6 +114,9 @@ def transfer_errors(shapes: np.ndarray, triangles: np.ndarray, landmarks: np.nda
         Every case's landmarks in the same frame, a row of NaN where a case lacks a label.
     surfaces : list of (vertices, faces)
         Every case's surface in the same frame: the predictions are projected to it.
+    single : bool
+        Keep every single template's error (``TransferErrors.single``, n^2 L numbers; else
+        None). The memory otherwise grows as n L.
 
     Returns
     -------
@@ -125,31 +128,35 @@ def transfer_errors(shapes: np.ndarray, triangles: np.ndarray, landmarks: np.nda
     if len(shapes) != n or len(surfaces) != n:
         raise ValueError(f"{len(shapes)} shapes, {n} landmark sets and {len(surfaces)} surfaces")
     present = np.isfinite(landmarks).all(axis=2)
-    predictions = np.full((n, n, n_l, 3), np.nan)           # [i, j]: i's landmarks carried to j
+    # where each template's landmarks lie on its corresponded mesh: a triangle and weights
+    faces = np.zeros((n, n_l), dtype=np.int64)
+    weights = np.zeros((n, n_l, 3))
     located = np.full((n, n_l), np.nan)
     triangles = np.asarray(triangles)
     for i in range(n):
         rows = np.flatnonzero(present[i])
         if len(rows):
-            face, weights, located[i, rows] = locate(shapes[i], triangles, landmarks[i, rows])
-            corners = shapes[:, triangles[face]]                     # (n, k, 3, 3)
-            predictions[i][:, rows] = np.einsum("nkcd,kc->nkd", corners, weights)
-    single = np.full((n, n, n_l), np.nan)
+            faces[i, rows], weights[i, rows], located[i, rows] = locate(
+                shapes[i], triangles, landmarks[i, rows])
+    singles = np.full((n, n, n_l), np.nan) if single else None
     median = np.full((n, n_l), np.nan)
     for j in range(n):
-        surface = SurfaceDistance(*surfaces[j])
         wanted = present & present[j] & (np.arange(n) != j)[:, None]        # [i, l]
         if not wanted.any():
             continue
+        surface = SurfaceDistance(*surfaces[j])
+        # every template's landmarks at their triangles and weights of j's corresponded mesh
+        carried = np.einsum("ilcd,ilc->ild", shapes[j][triangles[faces]], weights)
         projected = np.full((n, n_l, 3), np.nan)
-        projected[wanted] = surface.closest(predictions[:, j][wanted])[0]
-        truth = np.broadcast_to(landmarks[j], projected.shape)
-        single[:, j][wanted] = np.linalg.norm(projected[wanted] - truth[wanted], axis=1)
+        projected[wanted] = surface.closest(carried[wanted])[0]
+        if single:
+            truth = np.broadcast_to(landmarks[j], projected.shape)
+            singles[:, j][wanted] = np.linalg.norm(projected[wanted] - truth[wanted], axis=1)
         labels = np.flatnonzero(wanted.any(axis=0))
         consensus = np.stack([np.median(projected[wanted[:, l], l], axis=0) for l in labels])
         median[j, labels] = np.linalg.norm(surface.closest(consensus)[0] - landmarks[j, labels],
                                            axis=1)
-    return TransferErrors(single, median, located)
+    return TransferErrors(singles, median, located)
 
 
 def landmark_array(prepared: list, landmarks: dict, labels) -> np.ndarray:
