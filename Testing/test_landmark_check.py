@@ -266,6 +266,8 @@ def test_landmarks_with_weight_0_guide_nothing_and_are_measured(tmp_path):
     assert "The landmarks did not guide this correspondence" in report
     assert "Landmarks that guided the correspondence" not in report
     assert "(not guiding)" in measured.stdout
+    assert ("the landmarks of 5 cases measure the correspondence, they do not guide it"
+            in (tmp_path / "measured" / "build.log").read_text())
 
 
 @pytest.mark.slow

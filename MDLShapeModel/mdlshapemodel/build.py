@@ -625,6 +625,9 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     if curves and config.correspondence == "cpd":
         raise BuildError("--correspondence cpd registers surfaces; these inputs are 2-D curves")
     guiding = landmarks if landmarks and config.landmarks_guide(True) else None
+    if landmarks and guiding is None:
+        log.info("the landmarks of %d cases measure the correspondence, they do not guide it "
+                 "(landmark weight 0)", len(landmarks))
     state, (fixed, integrated), voxel, data_range = initial_state(prepared, config, guiding)
     same = same_shapes(state.raw_shapes(), state.weights,
                        [case.path or case.name for case in prepared])
