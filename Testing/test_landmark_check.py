@@ -294,3 +294,20 @@ def test_a_landmark_check_cancelled_leaves_the_build_whole_and_says_so(tmp_path)
     assert warning in result.metrics["warnings"]
     assert warning in (tmp_path / "out" / "report.html").read_text()
     assert (tmp_path / "out" / "model.h5").exists()
+
+
+@pytest.mark.slow
+def test_a_build_resumed_with_the_check_asked_for_carries_on_and_checks(tmp_path):
+    data = write_population(tmp_path)
+    options = [o for o in COMMON if o not in ("--max-sweeps", 5)]
+    stopped = run_cli("build", data / "labels", "-o", tmp_path / "out", "--landmarks",
+                      data / "marks", "--max-sweeps", 1, *options)
+    assert stopped.returncode == 0, stopped.stderr
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["landmark_check"] is None
+    resumed = run_cli("build", data / "labels", "-o", tmp_path / "out", "--landmarks",
+                      data / "marks", "--max-sweeps", 5, "--check-landmarks", "--resume",
+                      *options)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming from" in (tmp_path / "out" / "build.log").read_text()
+    check = json.loads((tmp_path / "out" / "metrics.json").read_text())["landmark_check"]
+    assert check["folds"] == [[label] for label in LABELS]
