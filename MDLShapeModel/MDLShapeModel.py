@@ -104,6 +104,8 @@ ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror
                      "evaluation_modes", "specificity_samples", "workers", "strict",
                      "allow_duplicates", "smoothness", "placement")
 BUILD_SETTINGS = MAIN_SETTINGS + ADVANCED_SETTINGS
+# beside the landmark point lists: settings of a build given landmarks (landmarkConfigOf)
+LANDMARK_SETTINGS = ("check_landmarks",)
 
 
 def _settingMember(name: str, defaults: BuildConfig):
@@ -149,7 +151,7 @@ def _parameterNodeClass():
                  "analysisPermutations": AnalysisConfig().permutations,
                  "analysisColorBy": EFFECT_SCALARS[0],
                  "__doc__": "The MDLShapeModel module's parameters."}
-    for name in BUILD_SETTINGS:
+    for name in BUILD_SETTINGS + LANDMARK_SETTINGS:
         annotations[name], namespace[name] = _settingMember(name, defaults)
     namespace["__annotations__"] = annotations
     return parameterNodeWrapper(type("MDLShapeModelParameterNode", (), namespace))
@@ -168,6 +170,17 @@ def buildConfigOf(parameters) -> BuildConfig:
             value = field_items(name, value)
         values[name] = value
     return BuildConfig(**values).validate()
+
+
+def landmarkConfigOf(config: BuildConfig, parameters, landmarks: bool) -> BuildConfig:
+    """``config`` with the parameter node's landmark settings (:data:`LANDMARK_SETTINGS`), for a
+    build given landmark point lists (``landmarks``); ValueError where one is set without any
+    (the landmarks' folder joins the configuration when they are exported)."""
+    values = {name: getattr(parameters, name) for name in LANDMARK_SETTINGS}
+    if values["check_landmarks"] and not landmarks:
+        raise ValueError("Check landmarks: check the cases' landmark point lists (Landmarks) "
+                         "to be checked")
+    return replace(config, **values)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1113,7 +1126,9 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         from mdlshapemodel.outputs import earlier_build
 
         with slicer.util.tryWithErrorDisplay("Could not start the build.", waitCursor=True):
-            config = buildConfigOf(self._parameterNode)
+            markups = list(self.ui.landmarkNodesSelector.checkedNodes())
+            config = landmarkConfigOf(buildConfigOf(self._parameterNode), self._parameterNode,
+                                      bool(markups))
             output = pathlib.Path(str(self._parameterNode.outputDirectory))
             overwrite = bool(earlier_build(output))
             if overwrite and not slicer.util.confirmYesNoDisplay(
@@ -1121,7 +1136,6 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 return
             self.ui.logText.clear()
             inputs = self.inputs()
-            markups = list(self.ui.landmarkNodesSelector.checkedNodes())
             self._job = self.logic.startBuild(
                 inputs, output, config, self._segments(), overwrite,
                 self.logic.landmarksOf(inputs, markups) if markups else None)

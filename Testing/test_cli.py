@@ -249,6 +249,7 @@ NON_DEFAULT_OPTIONS = {
     "coarse_points": (["--coarse-points", "162"], 162),
     "landmarks": (["--landmarks", "marks"], "marks"),      # made by config_of_command_line
     "landmark_weight": (["--landmark-weight", "3"], 3.0),
+    "check_landmarks": (["--check-landmarks", "--landmarks", "marks"], True),
     "smoothness": (["--smoothness", "0.1"], 0.1),
     "seed": (["--seed", "5"], 5),
     "evaluation_modes": (["--evaluation-modes", "3"], 3),

@@ -105,75 +105,6 @@ def guide_labels(build_folder: Path) -> list[str]:
     return sorted(labels)
 
 
-# ---------------------------------------------------------------- transfer
-
-
-def locate(mesh_points: np.ndarray, triangles: np.ndarray, points: np.ndarray
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The closest point of each of ``points`` (k, 3) on the mesh (mesh_points, triangles): its
-    triangle index (k,), barycentric coordinates (k, 3) and distance (k,)."""
-    from mdlshapemodel.prepare.landmarks import barycentric
-    from mdlshapemodel.prepare.surface import SurfaceDistance
-
-    closest, distance, face = SurfaceDistance(mesh_points, triangles).closest(points)
-    return face, barycentric(closest, mesh_points[triangles[face]]), distance
-
-
-def transfer(points_i: np.ndarray, triangles: np.ndarray, landmarks_i: np.ndarray,
-             points_j: np.ndarray | list[np.ndarray], surface_j: tuple | None = None
-             ) -> np.ndarray:
-    """Carry landmarks from case i to case j through a correspondence.
-
-    Each landmark is located on i's corresponded mesh (its closest point there: a triangle and
-    barycentric coordinates) and put at the same barycentric coordinates of the same triangle of
-    j's corresponded mesh; optionally projected to the closest point of j's own surface.
-
-    Parameters
-    ----------
-    points_i : ndarray (n_p, 3)
-        Corresponded sample points of case i (vertex k is the same place on every case).
-    triangles : ndarray (m, 3)
-        The triangles of the corresponded meshes, shared by all cases.
-    landmarks_i : ndarray (L, 3)
-        Landmarks of case i, in the frame of ``points_i``.
-    points_j : ndarray (n_p, 3), or (n_t, n_p, 3) for several targets at once
-        Corresponded sample points of the target case(s), same order as ``points_i``.
-    surface_j : (vertices, faces) or None
-        j's own surface (one target only); when given, the predictions are projected to its
-        closest points.
-
-    Returns
-    -------
-    ndarray (L, 3), or (n_t, L, 3) for several targets
-        The predicted landmarks of j, in the frame of ``points_j``.
-
-    Examples
-    --------
-    Carrying to the same case gives the landmarks' closest points on i's corresponded mesh::
-
-        predicted = transfer(points, triangles, landmarks, points)
-    """
-    points_i = np.asarray(points_i, dtype=np.float64)
-    triangles = np.asarray(triangles)
-    face, weights, _ = locate(points_i, triangles, np.asarray(landmarks_i, dtype=np.float64))
-    targets = np.asarray(points_j, dtype=np.float64)
-    corners = targets[..., triangles[face], :]                      # (..., L, 3, 3)
-    predicted = np.einsum("...lkd,lk->...ld", corners, weights)
-    if surface_j is not None:
-        if predicted.ndim != 2:
-            raise ValueError("surface_j projects the predictions of one target only")
-        predicted = project(predicted, *surface_j)
-    return predicted
-
-
-def project(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """The closest points of the surface (vertices, faces) to ``points`` (..., 3)."""
-    from mdlshapemodel.prepare.surface import SurfaceDistance
-
-    flat = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return SurfaceDistance(vertices, faces).closest(flat)[0].reshape(np.shape(points))
-
-
 # ---------------------------------------------------------------- data
 
 
@@ -242,6 +173,8 @@ def evaluate_build(data: Path, build_folder: Path, cases: list[str], labels: lis
     """The landmark-transfer errors of one build on ``cases`` (see the module docstring)."""
     from mdlshapemodel.prepare import io
 
+    from mdlshapemodel.model.landmarks import transfer_errors
+
     points, triangles = {}, None
     for case in cases:
         vertices, faces = io.read_mesh(build_folder / "correspondence" / f"{case}.vtp")
@@ -250,23 +183,11 @@ def evaluate_build(data: Path, build_folder: Path, cases: list[str], labels: lis
         elif not np.array_equal(faces, triangles):
             raise ValueError(f"{build_folder}: {case} has other triangles than {cases[0]}")
         points[case] = vertices
-    n, n_l = len(cases), len(labels)
+    n = len(cases)
     stacked = np.stack([points[c] for c in cases])                          # (n, n_p, 3)
-    # predictions[i, j]: the landmarks of i carried to j, projected to j's surface
-    predictions = np.full((n, n, n_l, 3), np.nan)
-    located = np.zeros((n, n_l))
-    for i, case in enumerate(cases):
-        located[i] = locate(points[case], triangles, landmarks[case])[2]
-        predictions[i] = transfer(points[case], triangles, landmarks[case], stacked)
-    truth = np.stack([landmarks[c] for c in cases])                          # (n, L, 3)
-    single = np.full((n, n, n_l), np.nan)                                    # [i, j, l]
-    median = np.zeros((n, n_l))                                              # [j, l]
-    for j, case in enumerate(cases):
-        others = [i for i in range(n) if i != j]
-        projected = project(predictions[others, j], *surfaces[case])         # (n-1, L, 3)
-        single[others, j] = np.linalg.norm(projected - truth[j], axis=-1)
-        consensus = project(np.median(projected, axis=0), *surfaces[case])
-        median[j] = np.linalg.norm(consensus - truth[j], axis=-1)
+    errors = transfer_errors(stacked, triangles, np.stack([landmarks[c] for c in cases]),
+                             [surfaces[c] for c in cases])
+    single, median, located = errors.single, errors.median, errors.located
     off_diagonal = ~np.eye(n, dtype=bool)
     values = single[off_diagonal]                                            # (n(n-1), L)
     return {

@@ -40,6 +40,7 @@ from .correspondence.trace import Stop, Trace, stop_summary
 from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
 from .kernels import compile_ahead
 from .model.evaluation import evaluate_state
+from .model.landmarks import LandmarkCheck, landmark_array, transfer_errors
 from .model.shape_model import ShapeModel
 from .outputs import (BuildResult, Checkpoint, clear_previous_build, earlier_build,
                       read_checkpoint, remove_partial_files, save_checkpoint, write_outputs)
@@ -54,7 +55,7 @@ from .progress import Interrupt, Progress, ctrl_c, report
 log = logging.getLogger("mdlshapemodel")
 
 __all__ = ["BuildError", "BuildResult", "Correspondence", "OptimisationEnd", "build_model",
-           "correspond", "shape_model_of"]
+           "check_landmarks", "correspond", "shape_model_of"]
 
 
 def build_model(inputs, output, config: BuildConfig | None = None,
@@ -160,7 +161,7 @@ def fingerprint(prepared: list, config: BuildConfig, landmarks: dict | None = No
     files (and of its landmark file)."""
     settings = {key: value for key, value in config.to_dict().items()
                 if key not in ("workers", "scheduler", "cache_dir", "allow_duplicates",
-                               "max_time", "max_sweeps")}
+                               "max_time", "max_sweeps", "check_landmarks")}
     marks = landmarks or {}
     return {"settings": settings,
             "cases": [[case.name, *map(io.file_digest, case.paths)]
@@ -321,6 +322,13 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
                                   evaluate_baseline, resumed, landmarks)
+        checked = None
+        if config.checks_landmarks() and not corresponded.interrupted:
+            checked = _checked_landmarks(prepared, config, landmarks, corresponded, progress)
+            if checked is None:
+                cut = "the landmark check was interrupted: the outputs have none"
+                log.warning("%s", cut)
+                warnings = [*warnings, cut]
         # from here on a Ctrl-C lets the outputs be finished (a second one aborts)
         if corresponded.interrupted:
             log.warning("optimisation interrupted: writing the model of the state reached%s",
@@ -343,10 +351,90 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         report(progress, 0.5, "evaluating the model, writing outputs")
         corresponded.state.release_sampling()   # final: its point locators' memory goes
         result = write_outputs(output, corresponded, prepared, rejected, config, baselines, pool,
-                               warnings)
+                               warnings, checked)
         report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
+
+
+def _checked_landmarks(prepared: list, config: BuildConfig, landmarks: dict,
+                       corresponded, progress) -> LandmarkCheck | None:
+    """:func:`check_landmarks` in a build, timed in build.log; None where a Ctrl-C or a
+    cancelling progress callback stops it: the build's outputs do not wait for it."""
+    started = time.perf_counter()
+    try:
+        checked = check_landmarks(prepared, config, landmarks, corresponded, progress)
+    except Cancelled:
+        checked = None
+    if checked is None:
+        return None
+    log.info("landmark check: %d optimisations in %.1f s", len(checked.folds),
+             time.perf_counter() - started)
+    return checked
+
+
+def check_landmarks(prepared: list, config: BuildConfig, landmarks: dict,
+                    corresponded: "Correspondence", progress: Progress | None = None
+                    ) -> LandmarkCheck | None:
+    """How far the correspondence carries each landmark label where the label does not guide it
+    (:class:`~.model.landmarks.LandmarkCheck`).
+
+    Where the landmarks guide the correspondence, each fold of labels
+    (:meth:`~.config.BuildConfig.landmark_folds`) is left out of the guides and the
+    correspondence of the same prepared cases optimised again (:func:`correspond`, no baseline,
+    no checkpoint): the fold's labels' transfer errors
+    (:func:`~.model.landmarks.transfer_errors`) come from that correspondence, the guided
+    errors from ``corresponded``. Where they do not guide it (``landmark_weight`` 0, the CPD
+    correspondence), ``corresponded`` itself gives every label's error.
+
+    Parameters
+    ----------
+    prepared : list of PreparedCase
+        The cases of ``corresponded``, in its order (surfaces).
+    config : BuildConfig
+        The build's settings.
+    landmarks : dict of case name -> Landmarks
+        The landmarks given (all of them, guiding or not).
+    corresponded : Correspondence
+        The build's correspondence (:func:`correspond`).
+    progress : callable(fraction or None, message), optional
+        Each fold's optimisation reports here.
+
+    Returns
+    -------
+    LandmarkCheck, or None where a fold's optimisation was interrupted.
+    """
+    from .prepare.landmarks import Landmarks
+
+    labels = tuple(sorted({label for marks in landmarks.values() for label in marks.labels}))
+    given = landmark_array(prepared, landmarks, labels)
+    surfaces = [case.surface() for case in prepared]
+    triangles = corresponded.state.triangles()
+
+    def errors(state) -> tuple[np.ndarray, np.ndarray]:
+        return transfer_errors(state.raw_shapes(), triangles, given, surfaces,
+                               single=False).per_label()
+
+    built, cases = errors(corresponded.state)
+    folds = config.landmark_folds(labels)
+    if not folds:
+        return LandmarkCheck(labels, built, None, cases, [])
+    held_out = np.full(len(labels), np.nan)
+    for k, fold in enumerate(folds):
+        report(progress, None, f"landmark check {k + 1} of {len(folds)}: "
+                               f"{', '.join(fold)} left out of the guides")
+        kept = {}
+        for name, marks in landmarks.items():
+            rows = [m for m, label in enumerate(marks.labels) if label not in fold]
+            if rows:
+                kept[name] = Landmarks(tuple(marks.labels[m] for m in rows), marks.points[rows],
+                                       marks.path)
+        refit = correspond(prepared, config, progress, landmarks=kept or None)
+        if refit.interrupted:
+            return None
+        mine = [labels.index(label) for label in fold]
+        held_out[mine] = errors(refit.state)[0][mine]
+    return LandmarkCheck(labels, held_out, built, cases, folds)
 
 
 def absent_labels(prepared: list, config: BuildConfig) -> list:
@@ -493,7 +581,9 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         optimisation: the same result as the uninterrupted run.
     landmarks : dict of case name -> Landmarks, optional
         Landmarks that guide the correspondence (surfaces; :mod:`.correspondence.guides`): the
-        initial alignment and the optimisation keep each label at one place across the cases.
+        initial alignment and the optimisation keep each label at one place across the cases;
+        with ``config.landmark_weight`` 0 they guide nothing
+        (:meth:`~.config.BuildConfig.landmarks_guide`).
 
     Returns
     -------
@@ -534,7 +624,11 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         raise BuildError("--smoothness is a prior for surfaces; these inputs are 2-D curves")
     if curves and config.correspondence == "cpd":
         raise BuildError("--correspondence cpd registers surfaces; these inputs are 2-D curves")
-    state, (fixed, integrated), voxel, data_range = initial_state(prepared, config, landmarks)
+    guiding = landmarks if landmarks and config.landmarks_guide(True) else None
+    if landmarks and guiding is None:
+        log.info("the landmarks of %d cases measure the correspondence, they do not guide it "
+                 "(landmark weight 0)", len(landmarks))
+    state, (fixed, integrated), voxel, data_range = initial_state(prepared, config, guiding)
     same = same_shapes(state.raw_shapes(), state.weights,
                        [case.path or case.name for case in prepared])
     if same and not config.allow_duplicates:

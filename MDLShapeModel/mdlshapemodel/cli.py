@@ -271,9 +271,15 @@ def _summary(result) -> str:
         for name, values in m.get("baselines", {}).items():
             shown += f" ({name}: " + ", ".join(f"{v:.3f}" for v in values[key][:3]) + ")"
         lines.append(f"  {key:<14} {symbol}(1..3): {shown} mm^2")
-    lines += [f"  surface fidelity: mean {m['surface_distance_mm']['mean']:.3f} mm, "
-              f"max {m['surface_distance_mm']['max']:.3f} mm",
-              f"  report: {result.output / 'report.html'}"]
+    lines.append(f"  surface fidelity: mean {m['surface_distance_mm']['mean']:.3f} mm, "
+                 f"max {m['surface_distance_mm']['max']:.3f} mm")
+    check = m.get("landmark_check")
+    if check and check["mean"]["held_out_mm"] is not None:
+        lines.append("  landmarks, mean distance from the given ones: "
+                     + (f"{check['mean']['held_out_mm']:.2f} mm left out of the guides, "
+                        f"{check['mean']['guided_mm']:.2f} mm guiding" if check["guided"] else
+                        f"{check['mean']['held_out_mm']:.2f} mm (not guiding)"))
+    lines.append(f"  report: {result.output / 'report.html'}")
     flagged = m.get("flagged_cases", {})
     if flagged:
         lines.append(f"  {len(flagged)} case(s) flagged, to look at (report, cases.csv 'flags'): "

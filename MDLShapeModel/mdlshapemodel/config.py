@@ -100,6 +100,11 @@ PLACEMENT = "surface"
 # squared voxel of distance between a landmark and its corresponded point, halved
 LANDMARK_WEIGHT = 10.0
 
+# ``--check-landmarks``: with at most this many labels guiding, each is left out of the guides
+# in a fold of its own (one optimisation per label); with more, the labels are dealt in turn
+# (in sorted order) to this many folds, so that the check costs at most this many optimisations
+LANDMARK_CHECK_FOLDS = 6
+
 # ``--smoothness``: w of the prior on smooth correspondence of surfaces
 # (correspondence/smoothness.py); 0: none. The default is the weight that brings the benchmark
 # populations' correspondence closest to their known truth and expert landmarks while the 82
@@ -428,7 +433,15 @@ class BuildConfig:
         metavar="DIR"))
     landmark_weight: float = field(default=LANDMARK_WEIGHT, metadata=option(
         _CORRESPONDENCE, "--landmarks: the objective's cost of a landmark one voxel from its "
-                         "corresponded point is half this, in nats (default %(default)s)"))
+                         "corresponded point is half this, in nats; 0: the landmarks do not "
+                         "guide the correspondence, they only measure it (the report shows how "
+                         "far it carries each one) (default %(default)s)"))
+    check_landmarks: bool = field(default=False, metadata=option(
+        _CORRESPONDENCE, "--landmarks: measure how far the correspondence carries each label "
+                         "where it does not guide it: the optimisation runs again with the "
+                         f"label left out of the guides (up to {LANDMARK_CHECK_FOLDS} labels one "
+                         f"at a time, more in {LANDMARK_CHECK_FOLDS} groups: one more "
+                         "optimisation each); the errors go to metrics.json and the report"))
     # None: SMOOTHNESS on surfaces, none on 2-D curves (smoothness_for)
     smoothness: float | None = field(default=None, metadata=option(
         _CORRESPONDENCE, "surfaces: weight of a prior on smooth correspondence, the thin-plate "
@@ -526,7 +539,9 @@ class BuildConfig:
         need(self.landmarks is None or (isinstance(self.landmarks, str)
                                         and self.landmarks.strip() != ""),
              "landmarks", "must be a folder of landmark files")
-        need(self.landmark_weight > 0, "landmark_weight", "must be positive")
+        need(self.landmark_weight >= 0, "landmark_weight", "must be >= 0")
+        need(not self.check_landmarks or self.landmarks is not None, "check_landmarks",
+             "needs --landmarks (the folder of the landmarks to check)")
         need(self.smoothness is None or self.smoothness >= 0, "smoothness", "must be >= 0")
         need(self.evaluation_modes >= 1, "evaluation_modes", "must be at least 1")
         need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")
@@ -537,6 +552,32 @@ class BuildConfig:
                                         and self.scheduler.strip() != ""),
              "scheduler", "must be a Dask scheduler's address, e.g. tcp://127.0.0.1:8786")
         return self
+
+    def landmarks_guide(self, given: bool | None = None) -> bool:
+        """Whether landmarks guide the correspondence: given (``given``; by default, whether
+        ``landmarks`` names a folder) and a positive ``landmark_weight``; with 0 they only
+        measure it (:meth:`checks_landmarks`)."""
+        return (self.landmarks is not None if given is None else given) \
+            and self.landmark_weight > 0
+
+    def checks_landmarks(self) -> bool:
+        """Whether the build measures how far its correspondence carries the landmarks where
+        they do not guide it: asked for (``check_landmarks``), or landmarks given only to be
+        measured (``landmark_weight`` 0, which costs no optimisation)."""
+        return self.landmarks is not None and (self.check_landmarks
+                                               or not self.landmarks_guide())
+
+    def landmark_folds(self, labels) -> list[tuple]:
+        """The labels left out of the guides in each fold of the landmark check: one label per
+        fold up to :data:`LANDMARK_CHECK_FOLDS` labels, else the sorted labels dealt in turn to
+        that many folds. None where nothing is guided (``landmark_weight`` 0, or the CPD
+        correspondence, which follows no guides): the build itself then measures every label.
+        """
+        labels = sorted(labels)
+        if not labels or not self.landmarks_guide(True) or self.correspondence == "cpd":
+            return []
+        folds = min(len(labels), LANDMARK_CHECK_FOLDS)
+        return [tuple(labels[k::folds]) for k in range(folds)]
 
     def points_for(self, curves: bool) -> int:
         """The sample points of each part: ``points``, or unless set :data:`CURVE_POINTS` for

@@ -328,10 +328,12 @@ def against_baselines(quality: dict, baselines: dict) -> dict:
 
 def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                   config: BuildConfig, baselines: dict | None = None, pool=None,
-                  warnings=()) -> BuildResult:
+                  warnings=(), landmark_check=None) -> BuildResult:
     """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html (and
     for a guided build landmarks.csv), of the :class:`~mdlshapemodel.build.Correspondence` of
-    the ``prepared`` cases."""
+    the ``prepared`` cases; ``landmark_check`` (a
+    :class:`~mdlshapemodel.model.landmarks.LandmarkCheck`, optional) goes to metrics.json and
+    the report."""
     state, model = corresponded.state, corresponded.model
     initial, final = corresponded.initial_objective, corresponded.final_objective
     voxel, data_range = corresponded.voxel_size, corresponded.data_range
@@ -422,6 +424,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
                "landmarks": landmark_summary(model, landmarks),
+               "landmark_check": None if landmark_check is None else landmark_check.to_json(),
                "baselines": baselines, "warnings": list(warnings)}
     io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
     started = time.perf_counter()

@@ -335,7 +335,8 @@ class ShapeModelBuilder(_Filter):
     :class:`~mdlshapemodel.config.BuildConfig`. ``Workers`` of the configuration
     is used only by the CPD correspondence (``SetCorrespondence("cpd")``). Its ``landmarks``
     (a folder with a landmark file per case name, as ``build --landmarks`` takes) guide the
-    correspondence; the model then holds ``LandmarkLabels`` and ``LandmarkRows``.
+    correspondence (unless ``landmark_weight`` is 0); the model then holds ``LandmarkLabels``
+    and ``LandmarkRows``. ``check_landmarks`` is a build's (its report): not done here.
 
     Progress: ProgressEvents while the optimisation runs (its share of ``MaxTime``), the message
     in ``GetProgressText()``. ``AbortExecuteOn()`` (e.g. in a progress observer) stops the

@@ -106,6 +106,17 @@ def test_the_parameter_node_holds_the_build_configs_defaults_and_fills_it(scene)
         module.buildConfigOf(parameters)
 
 
+def test_check_landmarks_beside_the_point_lists_joins_a_build_given_them(scene):
+    parameters = module.MDLShapeModelLogic().getParameterNode()
+    config = module.buildConfigOf(parameters)
+    assert module.landmarkConfigOf(config, parameters, landmarks=False) == config
+    parameters.check_landmarks = True
+    assert module.buildConfigOf(parameters) == config         # not without the point lists
+    assert module.landmarkConfigOf(config, parameters, landmarks=True).check_landmarks
+    with pytest.raises(ValueError, match="Check landmarks: check the cases' landmark point"):
+        module.landmarkConfigOf(config, parameters, landmarks=False)
+
+
 def test_the_parameter_node_survives_saving_and_reloading_the_scene(scene, tmp_path):
     explorer = scene.AddNewNodeByClass("vtkMRMLModelNode", "explorer")
     parameters = module.MDLShapeModelLogic().getParameterNode()
@@ -368,7 +379,7 @@ def test_a_two_part_object_is_built_from_label_map_nodes_and_loaded_part_by_part
 def test_markups_nodes_guide_a_build_of_label_map_nodes(generated_files, tmp_path):
     """A markups node per input (points in RAS, as Slicer holds them) is written beside the
     inputs and guides the build: its landmarks.csv holds every case's corresponded landmark near
-    the one placed, and the model records the labels."""
+    the one placed, and the model records the labels; the build checks them when asked."""
     harness.new_scene()
     volumes = [load_label_map_node(path) for path in generated_files[:4]]
     markups = []
@@ -378,9 +389,12 @@ def test_markups_nodes_guide_a_build_of_label_map_nodes(generated_files, tmp_pat
         node.AddControlPoint(list(top * LPS_TO_RAS), "top")
         markups.append(node)
     markups[3] = None                           # a case without landmarks
-    result = module.MDLShapeModelLogic().buildModel(volumes, tmp_path / "out",
-                                                    BuildConfig(**QUICK), landmarks=markups)
+    result = module.MDLShapeModelLogic().buildModel(
+        volumes, tmp_path / "out", BuildConfig(**QUICK, check_landmarks=True), landmarks=markups)
     assert result.rejected == []
+    # checked: the correspondence made again without the one label measures it
+    check = json.loads((tmp_path / "out" / "metrics.json").read_text())["landmark_check"]
+    assert check["folds"] == [["top"]] and check["per_label"]["top"]["cases"] == 3
     assert sorted(p.name for p in (tmp_path / "out" / "inputs" / "landmarks").iterdir()) == [
         f"case_{k}.mrk.json" for k in range(3)]
     rows = files.read_csv_rows(tmp_path / "out" / "landmarks.csv")

@@ -302,6 +302,40 @@ def _landmarks_section(summary: dict) -> list:
                   rows)]
 
 
+def _landmark_check_section(check: dict) -> list:
+    """How far the correspondence carries each landmark where it does not guide it
+    (metrics.json ``landmark_check``): per label the error left out of the guides, and guiding."""
+    def mm(value):
+        return "" if value is None else f"{value:.2f}"
+
+    labels = check["per_label"]
+    if check["guided"]:
+        folds = check["folds"]
+        how = ("each label was left out of the guides in turn and the correspondence optimised "
+               "again with the others" if all(len(fold) == 1 for fold in folds) else
+               f"the labels were left out of the guides in {len(folds)} groups ("
+               + "; ".join(", ".join(fold) for fold in folds)
+               + "), and the correspondence optimised again with the others each time")
+        rows = [(label, item["cases"], mm(item["held_out_mm"]), mm(item["guided_mm"]))
+                for label, item in labels.items()]
+        rows.append(("mean", "", mm(check["mean"]["held_out_mm"]), mm(check["mean"]["guided_mm"])))
+        return ["<h2>Landmarks left out of the guides</h2>",
+                f"<p>How well the correspondence lands where no landmark holds it: "
+                f"{html.escape(how)}. "
+                "<i>Left out</i>: how far the correspondence carries the label from the "
+                "experts' position when the label does not guide it; <i>guiding</i>: the same "
+                "in this build, which it guided (small by construction). Each distance: "
+                f"{html.escape(check['measure'])}.</p>",
+                table(("label", "cases", "left out of the guides [mm]", "guiding [mm]"), rows)]
+    rows = [(label, item["cases"], mm(item["held_out_mm"])) for label, item in labels.items()]
+    rows.append(("mean", "", mm(check["mean"]["held_out_mm"])))
+    return ["<h2>Landmarks: how far the correspondence carries them</h2>",
+            "<p>The landmarks did not guide this correspondence: it carries each label from "
+            "the experts' position by the distance shown. Each distance: "
+            f"{html.escape(check['measure'])}.</p>",
+            table(("label", "cases", "distance [mm]"), rows)]
+
+
 def run_table() -> str:
     """What is running: this package's version and the date (a table), and the command line
     (wrapped, scrolling when long)."""
@@ -408,6 +442,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     parts += _renderings(model, shapes, names)
     if metrics.get("landmarks"):
         parts += _landmarks_section(metrics["landmarks"])
+    if metrics.get("landmark_check"):
+        parts += _landmark_check_section(metrics["landmark_check"])
     if normals is not None:
         parts += _normals_section(model, normals, names)
     from .viewer import viewer_section     # the interactive 3-D viewer (plotly.js, offline)
