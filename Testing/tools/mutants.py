@@ -184,7 +184,7 @@ MUTANTS = [
            "order = np.argsort(-(grid[:candidates] @ np.nan_to_num(place)), kind=\"stable\")",
            "order = np.argsort(grid[:candidates] @ np.nan_to_num(place), kind=\"stable\")",
            ("test_guides.py",),
-           "a landmark guided at the grid vertex farthest from it"),
+           "a landmark guided at the grid vertex farthest from it", k="nearest_its_place"),
 ]
 
 
