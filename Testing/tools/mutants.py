@@ -185,6 +185,18 @@ MUTANTS = [
            "order = np.argsort(grid[:candidates] @ np.nan_to_num(place), kind=\"stable\")",
            ("test_guides.py",),
            "a landmark guided at the grid vertex farthest from it", k="nearest_its_place"),
+    # --- meshes: what test_remesh.py and test_sphere.py reached through private functions ---
+    Mutant("half_edges_next_reversed", "prepare/remesh.py",
+           "nxt[half] = corners[:, [1, 2, 0]].ravel()",
+           "nxt[half] = corners[:, [2, 0, 1]].ravel()",
+           ("test_remesh.py",),
+           "the remesher's half-edges run each triangle backwards", k="oriented_genus_0"),
+    Mutant("corner_lists_lose_the_first_corner", "prepare/multilevel.py",
+           "head[corners[order[starts]]] = order[starts]",
+           "head[corners[order[starts]]] = order[starts][::-1]",
+           ("test_sphere.py",),
+           "each vertex's corner list starts at another vertex's corner",
+           k="vertex_numbering"),
 ]
 
 
