@@ -1,7 +1,8 @@
 """What `analyze` writes, recomputed here from the inputs, for the options few runs use.
 
-One small real build (10 bumpy ellipsoids, two of them given mirrored, strategy none) serves the
-module: the corresponded shapes of mirrored cases (in the model's frame for the analysis, on
+One small real build (10 bumpy ellipsoids in 0.8 mm voxels, two of them given mirrored, strategy
+none) serves the module: the build's tables against its model and each other (scores.csv,
+cases.csv, metrics.json), the corresponded shapes of mirrored cases (in the model's frame for the analysis, on
 their inputs in correspondence/), the real command line with a tested covariate beside a group,
 another covariate and a categorical nuisance column (points.csv, effects.vtp and analysis.json
 against ordinary least squares done here), ``--reference`` with ``--displacement vector``
@@ -32,6 +33,7 @@ from synthetic import small_mask
 
 N = 10
 MIRRORED = ("case_03", "case_06")
+VOXEL = 0.8         # mm
 THIN = [k % 2 == 1 for k in range(N)]
 
 
@@ -47,7 +49,9 @@ def build(tmp_path_factory) -> Path:
         if f"case_{k:02d}" in MIRRORED:
             mask = mask[:, :, ::-1]
         paths.append(folder / "labels" / f"case_{k:02d}.nii.gz")
-        sitk.WriteImage(sitk.GetImageFromArray(np.ascontiguousarray(mask)), str(paths[-1]))
+        image = sitk.GetImageFromArray(np.ascontiguousarray(mask))
+        image.SetSpacing((VOXEL,) * 3)
+        sitk.WriteImage(image, str(paths[-1]))
     config = BuildConfig(points=642, strategy="none", baselines=[], workers=1,
                          evaluation_modes=2, specificity_samples=100, surface_samples=0,
                          cache_dir="", mirror=[f"{name}*" for name in MIRRORED])
@@ -91,10 +95,41 @@ def test_mirrored_cases_are_of_the_models_side_for_the_analysis_and_on_their_inp
     # correspondence/: every case's points on its own input, mirrored ones included
     for k in range(N):
         image = sitk.ReadImage(str(build.parent / "labels" / f"case_{k:02d}.nii.gz"))
-        inside = np.argwhere(sitk.GetArrayFromImage(image) > 0)[:, ::-1]     # x, y, z
-        low, high = inside.min(0) - 1.0, inside.max(0) + 1.0
+        inside = np.argwhere(sitk.GetArrayFromImage(image) > 0)[:, ::-1] * VOXEL  # x, y, z
+        low, high = inside.min(0) - VOXEL, inside.max(0) + VOXEL
         points = io.read_mesh(io.case_file(build / "correspondence", f"case_{k:02d}"))[0]
         assert np.all((points >= low) & (points <= high)), f"case_{k:02d}"
+
+
+def test_the_builds_tables_agree_with_its_model_and_with_each_other(build):
+    """scores.csv holds the model's scores; cases.csv each case's Mahalanobis distance over the
+    modes metrics.json names (recomputed from the scores and the variances), its flag against
+    the threshold, its distances in voxels of 0.8 mm, which cases were mirrored; metrics.json
+    the mean and the largest of the cases' distances."""
+    model = ShapeModel.load(build / "model.h5")
+    metrics = json.loads((build / "metrics.json").read_text())
+    scores = {row["case"]: row for row in io.read_csv(build / "scores.csv")}
+    written = np.array([[float(scores[n][f"mode_{m + 1}"]) for m in range(model.n_modes)]
+                        for n in model.names])
+    np.testing.assert_allclose(written, model.scores, rtol=1e-5, atol=1e-6)
+    outliers, variances = metrics["score_outliers"], np.array(metrics["variances"])
+    k = outliers["modes"]
+    distance = np.sqrt(np.sum(written[:, :k] ** 2 / variances[:k], axis=1))
+    cases = {row["case"]: row for row in io.read_csv(build / "cases.csv")}
+    assert metrics["voxel_size_mm"] == pytest.approx(VOXEL)
+    for name, d in zip(model.names, distance):
+        row = cases[name]
+        assert float(row["mahalanobis"]) == pytest.approx(d, rel=1e-4)
+        assert (row["score_outlier"] == "True") == (d > outliers["threshold"])
+        assert float(row["mean_distance_voxels"]) == pytest.approx(
+            float(row["mean_distance_mm"]) / VOXEL, rel=1e-6)     # the image's float spacing
+        assert (row["mirrored"] == "True") == (name in MIRRORED)
+    assert outliers["cases"] == [n for n in model.names if cases[n]["score_outlier"] == "True"]
+    surface = metrics["surface_distance_mm"]
+    assert surface["mean"] == pytest.approx(np.mean([float(c["mean_distance_mm"])
+                                                      for c in cases.values()]), rel=1e-9)
+    assert surface["max"] == pytest.approx(max(float(c["max_distance_mm"])
+                                               for c in cases.values()), rel=1e-9)
 
 
 def read_points(path: Path) -> dict:

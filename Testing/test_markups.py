@@ -1,14 +1,17 @@
 """3D Slicer markups JSON files (.mrk.json) read by the library, without Slicer: written here
 as Slicer 5 writes them (schema, control points with orientation and status, display), in RAS
 and in LPS, with a control point of the list never placed. The points come back in LPS, equal to
-the same points given as a plain LPS table."""
+the same points given as a plain LPS table. And what a guided build writes of the corresponded
+landmarks: landmarks.csv's rows and metrics.json's summary, recomputed here."""
 
 from __future__ import annotations
 
 import json
 
 import numpy as np
+import pytest
 
+from mdlshapemodel.outputs import LANDMARK_COLUMNS, CorrespondedLandmark, landmark_summary
 from mdlshapemodel.prepare.landmarks import read_landmark_folder, read_landmarks
 
 SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/"
@@ -63,3 +66,42 @@ def test_a_control_point_never_placed_is_not_a_landmark(tmp_path):
     assert list(found) == ["case_01"]
     assert found["case_01"].labels == tuple(POINTS)
     assert found["case_01"].get("apex") is None
+
+
+def test_landmarks_csv_rows_and_the_summary_of_their_distances():
+    """Each row: the corresponded point, the given one and the Euclidean distance between them;
+    the summary: per label the number of cases, the mean and the largest distance with its case,
+    over all the mean and the largest; a case without a given landmark counts in none."""
+    rng = np.random.default_rng(12)
+
+    class Model:
+        landmarks = {"tip": 3, "base": 40}
+
+    records = []
+    for case in ("a", "b", "c", "d"):
+        for label in Model.landmarks:
+            point = rng.normal(scale=10.0, size=3)
+            given = None if (case, label) == ("d", "tip") else point + rng.normal(size=3)
+            records.append(CorrespondedLandmark(case, label, point, given))
+    distances = {}
+    for record in records:
+        row = dict(zip(LANDMARK_COLUMNS, record.row()))
+        if record.given is None:
+            assert row["given_x"] == row["distance_mm"] == ""
+            continue
+        point = np.array([float(row[c]) for c in "xyz"])
+        given = np.array([float(row[f"given_{c}"]) for c in "xyz"])
+        distance = float(np.sqrt(np.sum((point - given) ** 2)))
+        assert float(row["distance_mm"]) == pytest.approx(distance, abs=2e-6)
+        distances.setdefault(record.label, {})[record.case] = distance
+    summary = landmark_summary(Model, records)
+    assert summary["labels"] == ["tip", "base"] and summary["given"] == 7
+    every = [d for mine in distances.values() for d in mine.values()]
+    assert summary["distance_mm"]["mean"] == pytest.approx(np.mean(every), abs=1e-5)
+    assert summary["distance_mm"]["max"] == pytest.approx(max(every), abs=1e-5)
+    for label, mine in distances.items():
+        found = summary["per_label"][label]
+        assert found["cases"] == len(mine)
+        assert found["mean_mm"] == pytest.approx(np.mean(list(mine.values())), abs=1e-5)
+        assert found["max_case"] == max(mine, key=mine.get)
+        assert found["max_mm"] == pytest.approx(max(mine.values()), abs=1e-5)
