@@ -1,14 +1,16 @@
-"""What `analyze` writes, recomputed here from the inputs, for the options few runs use.
+"""What build, analyze and fit write, recomputed here from the inputs, with the options few
+runs use.
 
 One small real build (10 bumpy ellipsoids in 0.8 mm voxels, two of them given mirrored, strategy
 none) serves the module: the build's tables against its model and each other (scores.csv,
-cases.csv, metrics.json), the corresponded shapes of mirrored cases (in the model's frame for the analysis, on
-their inputs in correspondence/), the real command line with a tested covariate beside a group,
-another covariate and a categorical nuisance column (points.csv, effects.vtp and analysis.json
-against ordinary least squares done here), ``--reference`` with ``--displacement vector``
-(Hotelling's T^2 per point, the difference's direction), ``--size removed``, each case's
-departure from its reconstruction; 2-D outlines and two-part objects through the library on
-models made here (no build)."""
+cases.csv, metrics.json); the corresponded shapes of mirrored cases (in the model's frame for the
+analysis, on their inputs in correspondence/); the real command line of analyze with a tested
+covariate beside a group, another covariate and a categorical nuisance column (points.csv,
+effects.vtp and analysis.json against ordinary least squares done here), ``--reference`` with
+``--displacement vector`` (Hotelling's T^2 per point, the difference's direction),
+``--size removed``, each case's departure from its reconstruction; fit.json of a new case (its
+reconstruction errors, distance, p-value and departure from a projection done here); 2-D
+outlines and two-part objects through the library on models made here (no build)."""
 
 from __future__ import annotations
 
@@ -277,6 +279,52 @@ def test_each_cases_departure_from_its_reconstruction(build, table, tmp_path):
     for name, largest in zip(model.names, departure.max(axis=1)):
         assert float(rows[name]["max_departure_mm"]) == pytest.approx(largest, rel=1e-4,
                                                                       abs=1e-6)
+
+
+def test_fit_json_of_a_new_case(build, tmp_path):
+    """A new case fitted to the build: fit.json's reconstruction errors for 0..all modes, its
+    Mahalanobis distance, its p-value against F(k, n - k) of (n - k) d^2 / (k (n + 1)) and its
+    largest departure from the reconstruction by k modes, all from the written scores and
+    the model, with a weighted least-squares projection done here."""
+    from scipy import stats
+
+    from mdlshapemodel.model.fitting import fit_cases
+
+    mask = small_mask(0.2, 0.96).astype(np.uint8)
+    image = sitk.GetImageFromArray(mask)
+    image.SetSpacing((VOXEL,) * 3)
+    path = tmp_path / "new_case.nii.gz"
+    sitk.WriteImage(image, str(path))
+    results, _ = fit_cases(build, [path], tmp_path / "fit", max_time=60, max_sweeps=1)
+    entry = json.loads((tmp_path / "fit" / "fit.json").read_text())["new_case"]
+    model = ShapeModel.load(build / "model.h5")
+    aligned = results[0].aligned                  # the fitted points in the model's frame
+    w = model.weights
+    basis = (model.modes * np.sqrt(w)[None, :, None]).reshape(model.n_modes, -1)
+    scores = np.linalg.lstsq(basis.T, ((aligned - model.mean) * np.sqrt(w)[:, None]).ravel(),
+                             rcond=None)[0]
+    written = io.read_csv(tmp_path / "fit" / "scores.csv")[0]
+    np.testing.assert_allclose([float(written[f"mode_{m + 1}"]) for m in range(model.n_modes)],
+                               scores, rtol=1e-4, atol=1e-6)
+    squared, distance = [], []
+    for m in range(model.n_modes + 1):
+        residual = aligned - model.mean - np.einsum("m,mpd->pd", scores[:m], model.modes[:m])
+        squared.append(w @ np.sum(residual ** 2, axis=1))
+        distance.append(w @ np.linalg.norm(residual, axis=1))
+    np.testing.assert_allclose(entry["reconstruction_squared_mm2"], squared, rtol=1e-6)
+    np.testing.assert_allclose(entry["reconstruction_distance_mm"], distance, rtol=1e-6)
+    assert entry["mahalanobis"] == pytest.approx(np.sqrt(np.sum(scores ** 2 / model.variances)),
+                                                 rel=1e-6)
+    unusual, n = entry["unusual"], N
+    k = unusual["modes"]
+    d2 = np.sum(scores[:k] ** 2 / model.variances[:k])
+    assert unusual["distance"] == pytest.approx(np.sqrt(d2), rel=1e-6)
+    assert unusual["p"] == pytest.approx(stats.f.sf((n - k) * d2 / (k * (n + 1)), k, n - k),
+                                         rel=1e-5)
+    reconstructed = model.mean + np.einsum("m,mpd->pd", scores[:k], model.modes[:k])
+    departure = np.linalg.norm(aligned - reconstructed, axis=1)
+    assert unusual["max_departure_mm"] == pytest.approx(departure.max(), rel=1e-5)
+    assert unusual["at_point"] == int(departure.argmax())
 
 
 def groups_table(path: Path, names: list) -> Path:
