@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from scipy import stats
 from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig, build_model
@@ -200,6 +201,23 @@ def test_a_tested_covariate_beside_a_group_another_covariate_and_a_site(build, t
     assert summary["significant_points"] == {"fwer": int(np.sum(points["p_fwer"] <= 0.05)),
                                              "fdr": int(np.sum(points["q_fdr"] <= 0.05)),
                                              "of": len(mean)}
+    # the global test: Pillai's trace of age on the principal scores explaining 95 % (at most
+    # n - 6: one more than the model's columns), adjusted for the others
+    root = np.sqrt(model.weights)[None, :, None]
+    u, s, _ = np.linalg.svd(((aligned - mean) * root).reshape(N, -1), full_matrices=False)
+    explained = np.cumsum(s ** 2) / np.sum(s ** 2)
+    k = min(int(np.searchsorted(explained, 0.95)) + 1, N - 6)
+    assert summary["global_test"]["modes"] == k
+    scores = u[:, :k] * s[:k]
+
+    def projection(x):
+        return x @ np.linalg.pinv(x)
+
+    total = scores.T @ (np.eye(N) - projection(others.astype(float))) @ scores
+    hypothesis = scores.T @ (projection(full) - projection(others.astype(float))) @ scores
+    pillai = np.trace(hypothesis @ np.linalg.inv(total))
+    assert summary["global_test"]["statistic"] == pytest.approx(
+        (N - 5) * pillai / (1 - pillai), rel=1e-6)
     polydata = io.read_polydata(output / "effects.vtp")
     data = polydata.GetPointData()
     np.testing.assert_allclose(vtk_to_numpy(polydata.GetPoints().GetData()), mean, atol=1e-4)
@@ -279,6 +297,12 @@ def test_each_cases_departure_from_its_reconstruction(build, table, tmp_path):
     for name, largest in zip(model.names, departure.max(axis=1)):
         assert float(rows[name]["max_departure_mm"]) == pytest.approx(largest, rel=1e-4,
                                                                       abs=1e-6)
+    # the p-value of each distance: d^2 / (n - 1) ~ Beta(k / 2, (n - k - 1) / 2)
+    squared = np.sum((u[:, :k] * s[:k]) ** 2 / (s[:k] ** 2 / N), axis=1)
+    for name, d2 in zip(model.names, squared):
+        assert float(rows[name]["mahalanobis"]) == pytest.approx(np.sqrt(d2), rel=1e-4)
+        assert float(rows[name]["p"]) == pytest.approx(
+            stats.beta(k / 2, (N - k - 1) / 2).sf(d2 / (N - 1)), rel=1e-4, abs=1e-9)
 
 
 def test_fit_json_of_a_new_case(build, tmp_path):
@@ -286,8 +310,6 @@ def test_fit_json_of_a_new_case(build, tmp_path):
     Mahalanobis distance, its p-value against F(k, n - k) of (n - k) d^2 / (k (n + 1)) and its
     largest departure from the reconstruction by k modes, all from the written scores and
     the model, with a weighted least-squares projection done here."""
-    from scipy import stats
-
     from mdlshapemodel.model.fitting import fit_cases
 
     mask = small_mask(0.2, 0.96).astype(np.uint8)
@@ -331,6 +353,27 @@ def groups_table(path: Path, names: list) -> Path:
     path.write_text("case,group\n" + "".join(f"{n},{'b' if k % 2 else 'a'}\n"
                                              for k, n in enumerate(names)))
     return path
+
+
+def test_the_global_test_takes_no_more_scores_than_its_model_leaves_room_for(tmp_path):
+    """Noise spreads the variance over every mode: the global test takes n - z - r - 1 principal
+    scores (12 cases, an intercept, three nuisance columns, one tested column: 6), so that
+    Pillai's trace has residual degrees of freedom to spare."""
+    rng = np.random.default_rng(8)
+    from mdlshapemodel.correspondence.sampling import sphere_grid
+
+    directions, triangles = sphere_grid(42)
+    shapes = directions * [10.0, 8.0, 6.0] + rng.normal(0.0, 0.5, (12, 42, 3))
+    names = [f"case_{k}" for k in range(12)]
+    model = ShapeModel.from_shapes(shapes, np.full(42, 1 / 42), names=names,
+                                   triangles=triangles)
+    path = tmp_path / "t.csv"
+    path.write_text("case,group,a,b,c\n" + "".join(
+        f"{n},{'b' if k % 2 else 'a'},{rng.normal():.4f},{rng.normal():.4f},{rng.normal():.4f}\n"
+        for k, n in enumerate(names)))
+    design = subjects(path, names, "group", nuisance=["a", "b", "c"])
+    found = analyze_shapes(model, shapes, design, AnalysisConfig(permutations=19))
+    assert found.global_test.modes == 12 - 4 - 1 - 1
 
 
 def test_2d_outlines_are_turned_in_their_plane_never_turned_over(tmp_path):

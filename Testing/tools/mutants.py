@@ -104,6 +104,10 @@ MUTANTS = [
            'if config.displacement == "normal":', 'if config.displacement != "":',
            ("test_outputs_recomputed.py",),
            "--displacement vector tests the normal component"),
+    Mutant("global_test_modes_ignore_the_nuisance", "analysis/study.py",
+           "max_modes=len(aligned) - z - r - 1)", "max_modes=len(aligned) - r - 2)",
+           ("test_outputs_recomputed.py",),
+           "the global test takes more principal scores than its degrees of freedom allow"),
     # --- discriminant and classification ---
     Mutant("ledoit_wolf_over_n", "analysis/discriminant.py",
            "for x in centred]) / n ** 2", "for x in centred]) / n",
@@ -153,6 +157,11 @@ MUTANTS = [
            "reconstructed = model.instance(model.scores[:, :k + 1])",
            ("test_outputs_recomputed.py",),
            "a case's departure measured from its reconstruction by one mode more"),
+    Mutant("training_p_over_n", "model/outliers.py",
+           "p = reference.sf(np.clip(squared / (n - 1), 0.0, 1.0))",
+           "p = reference.sf(np.clip(squared / n, 0.0, 1.0))",
+           ("test_outputs_recomputed.py",),
+           "a training case's p-value from d^2 / n: too few cases flagged"),
     # --- the viewer ---
     Mutant("viewer_modes_colour_reversed", "report/viewer.py",
            'along = np.einsum("kpd,pd->kp", scaled, normals)',
