@@ -376,6 +376,33 @@ def test_the_global_test_takes_no_more_scores_than_its_model_leaves_room_for(tmp
     assert found.global_test.modes == 12 - 4 - 1 - 1
 
 
+def test_a_dent_is_a_negative_normal_difference_where_it_is(tmp_path):
+    """Half the ellipsoids have a dent of 1.5 mm around the tip of their long axis: the normal
+    difference of that group is negative there, most negative at the dent, and its test
+    statistic is largest there."""
+    rng = np.random.default_rng(9)
+    from mdlshapemodel.correspondence.sampling import sphere_grid
+
+    directions, triangles = sphere_grid(642)
+    dent = 1.5 * np.exp(-np.sum((directions - [1.0, 0.0, 0.0]) ** 2, axis=1) / 0.08)
+    shapes = []
+    for k in range(12):
+        radius = np.linalg.norm(directions * [12.0, 8.0, 6.0], axis=1) + 0.1 * rng.normal(
+            size=len(directions))
+        radius -= dent * (k % 2)
+        shapes.append(directions * radius[:, None])
+    shapes = np.stack(shapes)
+    names = [f"case_{k}" for k in range(12)]
+    model = ShapeModel.from_shapes(shapes, np.full(642, 1 / 642), names=names,
+                                   triangles=triangles)
+    design = subjects(groups_table(tmp_path / "t.csv", names), names, "group")
+    found = analyze_shapes(model, shapes, design, AnalysisConfig(permutations=19))
+    normal = found.normal_difference[0]
+    in_dent = dent > 0.75
+    assert np.all(normal[in_dent] < -0.3)
+    assert in_dent[np.argmin(normal)] and in_dent[np.argmax(found.points.statistic)]
+
+
 def test_2d_outlines_are_turned_in_their_plane_never_turned_over(tmp_path):
     """Asymmetric outlines, half of them the mirror images of the others: a rotation in the
     plane cannot match them to the rest, a turn about an in-plane axis could. Each aligned

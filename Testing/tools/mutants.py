@@ -108,6 +108,11 @@ MUTANTS = [
            "max_modes=len(aligned) - z - r - 1)", "max_modes=len(aligned) - r - 2)",
            ("test_outputs_recomputed.py",),
            "the global test takes more principal scores than its degrees of freedom allow"),
+    Mutant("normals_turned_inward", "model/normals.py",
+           "if inward[rows].sum() < 0:", "if inward[rows].sum() > 0:",
+           ("test_outputs_recomputed.py",),
+           "the mean's normals point inward: every normal displacement has its sign reversed",
+           k="dent"),
     # --- discriminant and classification ---
     Mutant("ledoit_wolf_over_n", "analysis/discriminant.py",
            "for x in centred]) / n ** 2", "for x in centred]) / n",
