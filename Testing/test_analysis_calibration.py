@@ -56,30 +56,37 @@ def principal(sample: np.ndarray):
     return mean, vt, u * s, s ** 2 / len(sample)
 
 
-@pytest.mark.parametrize("alpha", [0.01, 0.05])
-def test_training_cases_are_flagged_at_the_level_at_n_8(alpha):
+LEVELS = (0.01, 0.05)
+
+
+def test_training_cases_are_flagged_at_the_level_at_n_8():
     """A training case's distance over all k = 3 modes of 3-dimensional Gaussian data at n = 8:
     its Beta reference is exact, so a case is flagged with probability alpha (one case per
     sample, so that the trials are independent)."""
     rng = np.random.default_rng(8)
-    samples, flagged = 3000, 0
+    samples, flagged = 3000, np.zeros(len(LEVELS))
     for sample in gaussian_populations(rng, samples, 8, 3):
         _, _, scores, variances = principal(sample)
-        flagged += bool(training_distances(scores, variances, 3, alpha=alpha).outlier[0])
-    assert within(flagged / samples, alpha, samples), flagged / samples
+        found = training_distances(scores, variances, 3, alpha=LEVELS[0])
+        assert found.outlier[0] == (found.p[0] < LEVELS[0])
+        flagged += found.p[0] < np.array(LEVELS)
+    for alpha, count in zip(LEVELS, flagged):
+        assert within(count / samples, alpha, samples), (alpha, count / samples)
 
 
-@pytest.mark.parametrize("alpha", [0.01, 0.05])
-def test_new_cases_are_flagged_at_the_level_at_n_8(alpha):
+def test_new_cases_are_flagged_at_the_level_at_n_8():
     """A new case from the population of 8 training cases, projected on all k = 3 modes: its F
     reference (Hotelling's T^2 of a prediction) is exact."""
     rng = np.random.default_rng(9)
-    samples, flagged = 3000, 0
+    samples, flagged = 3000, np.zeros(len(LEVELS))
     for sample in gaussian_populations(rng, samples, 9, 3):
         mean, directions, _, variances = principal(sample[:8])
         scores = (sample[8:] - mean) @ directions.T
-        flagged += bool(new_case_distances(scores, variances, 8, 3, alpha=alpha).outlier[0])
-    assert within(flagged / samples, alpha, samples), flagged / samples
+        found = new_case_distances(scores, variances, 8, 3, alpha=LEVELS[0])
+        assert found.outlier[0] == (found.p[0] < LEVELS[0])
+        flagged += found.p[0] < np.array(LEVELS)
+    for alpha, count in zip(LEVELS, flagged):
+        assert within(count / samples, alpha, samples), (alpha, count / samples)
 
 
 def test_ledoit_wolf_intensity_is_its_formula():
