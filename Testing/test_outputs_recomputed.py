@@ -89,6 +89,9 @@ def similarity_residual(source: np.ndarray, target: np.ndarray) -> float:
 
 
 def test_mirrored_cases_are_of_the_models_side_for_the_analysis_and_on_their_inputs(build):
+    """The analysis reads every case, the mirrored ones included, as a proper similarity
+    transform of the model's own aligned case (a mirror image is not one: the correspondence
+    tells left from right); correspondence/ holds each case's points on its own input."""
     built = read_build(build)
     model = built.model
     training = model.instance(model.scores)          # the model's own aligned cases
