@@ -16,7 +16,7 @@ from scipy import stats
 from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig, build_model
-from mdlshapemodel.analysis import align
+from mdlshapemodel.analysis import align, permutation_test
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import io
 
@@ -152,7 +152,10 @@ def test_every_number_of_analysis_json_is_recomputed(build, table, analysed):
     d = b.mean(0) - a.mean(0)
     t2 = len(a) * len(b) / len(used) * d @ np.linalg.solve(pooled, d)
     assert summary["global_test"]["statistic"] == pytest.approx(t2, rel=1e-6)
-    assert 1 / 1000 <= summary["global_test"]["p"] <= 1
+    # its p: the permutation test (B = 999, the default seed) of the scores computed here
+    again = permutation_test(scores[:, None, :], thin[:, None].astype(float), permutations=999,
+                             seed=0)
+    assert summary["global_test"]["p"] == pytest.approx(float(again.p[0]), rel=1e-9)
 
     # unusual cases: the threshold of the scaled Beta over the model's own modes
     unusual = summary["unusual"]
@@ -190,7 +193,13 @@ def test_effects_vtp_holds_the_points_csv_values_for_vtk(analysed):
     assert data.GetArray("difference").GetNumberOfComponents() == 3
     significant = vtk_to_numpy(data.GetArray("significant_fwer"))
     assert significant.sum() == np.sum(points["p_fwer"].astype(float) <= 0.05)
-    assert (analysed / "analysis.html").stat().st_size > 10_000
+    summary = json.loads((analysed / "analysis.json").read_text())
+    page = (analysed / "analysis.html").read_text()
+    counts, overall = summary["significant_points"], summary["global_test"]
+    assert (f"<p>{counts['fwer']} of 162 points significant at &alpha; = 0.05 after "
+            f"family-wise correction, {counts['fdr']} after FDR correction") in page
+    assert (f"statistic {overall['statistic']:.4g}, permutation p = {overall['p']:.4g}."
+            in page)
     departures = list((analysed / "unusual").iterdir())
     assert len(departures) == N
 

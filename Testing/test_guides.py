@@ -106,6 +106,27 @@ def test_a_label_some_cases_lack_and_a_case_without_landmarks():
     assert far[0][2] == pytest.approx(4.0, abs=1e-6)
 
 
+def test_each_label_is_guided_at_the_grid_vertex_nearest_its_place():
+    """Three turned ellipsoids, landmarks at the tips of their axes: each label's guide is the
+    candidate grid vertex nearest the mean of its images on the aligned spheres, and within
+    the grid's spacing of every case's image."""
+    cases = [ellipsoid_case(name, rotation_about([1, 1, 0], angle))
+             for name, angle in (("a", 0), ("b", 25), ("c", -30))]
+    tips = np.diag(AXES) * 0.999
+    marks = {case.name: Landmarks(("x", "y", "z"), tips) for case in cases}
+    placed = place_landmarks(cases, marks)
+    maps = align_parameterizations([case.map for case in cases],
+                                   landmarks=placed.images(0, [case.map for case in cases]))
+    grid, _ = icosphere(2)
+    guides = guides_on_grid(placed, [maps], grid, 42, [0], weight=1.0, scale=1.0)
+    images = np.stack(placed.images(0, maps))                     # (cases, labels, 3)
+    for label, vertex in enumerate(guides.indices):
+        place = images[:, label].mean(axis=0)
+        assert vertex == int(np.argmax(grid[:42] @ place)), placed.labels[label]
+        angles = np.arccos(np.clip(images[:, label] @ grid[vertex], -1.0, 1.0))
+        assert angles.max() < 0.6, (placed.labels[label], angles)
+
+
 def guided_state(weight: float = 3.0, smoothness: float = 0.0):
     """The small synthetic state with two guided labels (one lacking in case 1), targets off
     its current samples (and the smoothness prior of that weight, if any)."""

@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from mdlshapemodel.correspondence.sampling import icosphere
-from mdlshapemodel.prepare import remesh as remesher
 from mdlshapemodel.prepare.remesh import HIGH, LOW, remesh_isotropic
 from mdlshapemodel.prepare.surface import (edges_of, mask_to_surface, point_surface_distances,
                                            topology)
@@ -107,19 +106,20 @@ def test_a_mesh_that_is_not_a_closed_manifold_is_refused():
     assert remesh_isotropic(np.vstack([points, points + 3.0]), doubled, 0.3) is not None
 
 
-def test_the_half_edges_of_a_mesh_are_consistent():
+def test_a_remeshed_sphere_is_a_closed_consistently_oriented_genus_0_mesh():
+    """Every edge of the result is run once in each direction by its two triangles, every
+    vertex is used, the Euler characteristic is 2 and the triangles face outward."""
     points, faces = icosphere(2)
-    n = len(points)
-    arrays = remesher._half_edges(faces, n, (n, 3 * n, 2 * n))
-    to, nxt, face, v_out, valence, f_half = arrays[:6]
-    used = 3 * len(faces)
-    h = np.arange(used)
-    np.testing.assert_array_equal(nxt[nxt[nxt[h]]], h)                 # triangles
-    np.testing.assert_array_equal(face[nxt[h]], face[h])
-    tail = to[h ^ 1]
-    np.testing.assert_array_equal(to[nxt[nxt[h]]], tail)              # the triangle closes
-    np.testing.assert_array_equal(tail[v_out[:n]], np.arange(n))      # v_out leaves its vertex
-    np.testing.assert_array_equal(valence[:n], np.bincount(faces.ravel()))
+    vertices, triangles = remesh_isotropic(points, faces, 0.25)
+    directed = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    pairs = {tuple(edge) for edge in directed.tolist()}
+    assert len(pairs) == len(directed)                                 # each direction once
+    assert all((b, a) in pairs for a, b in pairs)                      # and its reverse
+    assert np.array_equal(np.unique(triangles), np.arange(len(vertices)))
+    assert len(vertices) - len(directed) // 2 + len(triangles) == 2
+    corners = vertices[triangles]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    assert np.all(np.einsum("fd,fd->f", normal, corners.mean(axis=1)) > 0)
 
 
 @pytest.mark.skipif(not HIPPOCAMPI.is_dir(), reason="the shared hippocampus data is not here")

@@ -438,36 +438,23 @@ def test_the_multilevel_map_is_fold_free_where_the_conformal_map_is_not():
     assert mapped.quality["mean_abs_log_area_ratio"] < 0.5
 
 
-def test_simplifying_and_re_inserting_every_vertex_restores_the_mesh():
-    # the compiled simplification and vertex splits undo each other exactly, and every split
-    # leaves the map of the vertices so far fold-free
-    from mdlshapemodel.prepare import multilevel
-
+def test_the_multilevel_map_does_not_depend_on_the_vertex_numbering():
+    # the simplification removes every vertex but four and re-inserts them all: with the
+    # vertices numbered in another order the map still covers the sphere once, fold-free, and
+    # the mesh given is left as it was
     vertices, faces = long_ellipsoid()
     faces = np.array(faces, dtype=np.int64)
-    n = len(vertices)
-    working = faces.copy()
-    head, after, before = multilevel._corner_lists(working, n)
-    f_alive = np.ones(len(faces), dtype=bool)
-    v_alive = np.ones(n, dtype=bool)
-    valence = np.bincount(faces.ravel()).astype(np.int64)
-    records = np.zeros((n, 6), dtype=np.int64)
-    done, pool = multilevel.simplify(vertices, working, f_alive, v_alive, head, after, before,
-                                     valence, records, np.zeros(10, dtype=np.int64))
-    assert done == n - 4 and v_alive.sum() == 4 and f_alive.sum() == 4
-    x = np.zeros_like(vertices)
-    x[v_alive] = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]]) / np.sqrt(3)
-    if determinants(x, working[f_alive][:1])[0] < 0:
-        kept = np.flatnonzero(v_alive)
-        x[kept[:2]] = x[kept[1::-1]]
-    for r in range(done, 0, -100):
-        assert multilevel.insert(records, r, max(r - 100, 0), x, working, f_alive, v_alive,
-                                 head, after, before, valence, pool) == -1
-        assert np.all(determinants(x, working[f_alive]) > 0)
-    np.testing.assert_array_equal(working, faces)
-    assert f_alive.all() and v_alive.all()
-    np.testing.assert_array_equal(valence, np.bincount(faces.ravel()))
-    assert check_bijective(x, faces) == 0
+    order = np.random.default_rng(11).permutation(len(vertices))
+    renumbered = np.empty_like(order)
+    renumbered[order] = np.arange(len(order))
+    given_vertices, given_faces = vertices[order], renumbered[faces]
+    kept = given_vertices.copy(), given_faces.copy()
+    sphere = multilevel_map(given_vertices, given_faces)
+    np.testing.assert_array_equal(given_vertices, kept[0])
+    np.testing.assert_array_equal(given_faces, kept[1])
+    np.testing.assert_allclose(np.linalg.norm(sphere, axis=1), 1.0)
+    assert np.all(determinants(sphere, given_faces) > 0)
+    assert check_bijective(sphere, given_faces) == 0
 
 
 def test_the_multilevel_map_needs_only_the_topology():

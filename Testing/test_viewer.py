@@ -161,7 +161,6 @@ def test_viewer_in_a_browser(browser, tmp_path):
     model, shapes, names = population(n_s=6, n_points=642)
     path = tmp_path / "viewer.html"
     path.write_text(html_page("viewer", viewer_section(model, shapes, names)), encoding="utf-8")
-    started = time.perf_counter()
     page, errors, requests = _open(browser, path)
 
     mean = _eventually(page, lambda shot: _drawn(shot) > 0.05)
@@ -187,7 +186,6 @@ def test_viewer_in_a_browser(browser, tmp_path):
     assert not errors, errors
     assert not requests, requests
     page.close()
-    assert time.perf_counter() - started < 60
 
 
 def test_a_guided_models_landmarks_follow_the_sliders_and_the_picked_case(browser, tmp_path):

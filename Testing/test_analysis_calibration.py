@@ -1,0 +1,174 @@
+"""Calibration where the failures live, and the discriminant's numbers by another route.
+
+Small samples (n = 8 to 12), several nuisance columns correlated with the groups, unequal group
+sizes: the family-wise error of the per-point test, the false flags of the outlier distances of
+training and new cases. Rates are checked two-sided, within a stated number of standard errors
+of the level, with fixed seeds. The discriminant and the classification: Ledoit-Wolf's
+intensity from its formula written another way, the direction of the discriminant on a
+population whose second group is thinner, cross-validation that cannot see the held-out cases
+(chance accuracy on noise), the AUC and its standard error from the held-out values."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from mdlshapemodel.analysis import classify, permutation_test
+from mdlshapemodel.analysis.discriminant import discriminant, ledoit_wolf
+from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.model.outliers import new_case_distances, training_distances
+
+SES = 3.0       # a rate passes within this many binomial standard errors of its level
+
+
+def within(rate: float, level: float, trials: int) -> bool:
+    return abs(rate - level) <= SES * np.sqrt(level * (1 - level) / trials)
+
+
+def test_family_wise_error_at_n_12_with_three_nuisance_columns_correlated_with_the_groups():
+    """Freedman-Lane must permute the nuisance with the residuals: at n = 12 (5 against 7), with
+    three nuisance columns that follow the groups, a test without them in the permuted
+    statistics flags a null population about a quarter of the time."""
+    rng = np.random.default_rng(40)
+    alpha, datasets, n, points = 0.05, 300, 12, 20
+    group = (np.arange(n) < 5).astype(float)[:, None]
+    flagged = 0
+    for _ in range(datasets):
+        nuisance = 1.2 * group + rng.normal(size=(n, 3))          # correlated with the groups
+        y = nuisance @ rng.normal(size=(3, points)) + rng.normal(size=(n, points))
+        result = permutation_test(y, group, nuisance, permutations=199,
+                                  seed=int(rng.integers(1 << 30)))
+        flagged += bool(np.any(result.p_fwer <= alpha))
+    assert within(flagged / datasets, alpha, datasets), flagged / datasets
+
+
+def gaussian_populations(rng, count: int, n: int, k: int) -> np.ndarray:
+    """``count`` samples of n cases of k numbers, each with its own unequal variances."""
+    spread = np.sqrt(rng.uniform(0.5, 4.0, size=(count, 1, k)))
+    return rng.normal(size=(count, n, k)) * spread
+
+
+def principal(sample: np.ndarray):
+    """(mean, directions (k, k), scores (n, k), variances with divisor n) of a sample."""
+    mean = sample.mean(axis=0)
+    u, s, vt = np.linalg.svd(sample - mean, full_matrices=False)
+    return mean, vt, u * s, s ** 2 / len(sample)
+
+
+LEVELS = (0.01, 0.05)
+
+
+def test_training_cases_are_flagged_at_the_level_at_n_8():
+    """A training case's distance over all k = 3 modes of 3-dimensional Gaussian data at n = 8:
+    its Beta reference is exact, so a case is flagged with probability alpha (one case per
+    sample, so that the trials are independent)."""
+    rng = np.random.default_rng(8)
+    samples, flagged = 3000, np.zeros(len(LEVELS))
+    for sample in gaussian_populations(rng, samples, 8, 3):
+        _, _, scores, variances = principal(sample)
+        found = training_distances(scores, variances, 3, alpha=LEVELS[0])
+        assert found.outlier[0] == (found.p[0] < LEVELS[0])
+        flagged += found.p[0] < np.array(LEVELS)
+    for alpha, count in zip(LEVELS, flagged):
+        assert within(count / samples, alpha, samples), (alpha, count / samples)
+
+
+def test_new_cases_are_flagged_at_the_level_at_n_8():
+    """A new case from the population of 8 training cases, projected on all k = 3 modes: its F
+    reference (Hotelling's T^2 of a prediction) is exact."""
+    rng = np.random.default_rng(9)
+    samples, flagged = 3000, np.zeros(len(LEVELS))
+    for sample in gaussian_populations(rng, samples, 9, 3):
+        mean, directions, _, variances = principal(sample[:8])
+        scores = (sample[8:] - mean) @ directions.T
+        found = new_case_distances(scores, variances, 8, 3, alpha=LEVELS[0])
+        assert found.outlier[0] == (found.p[0] < LEVELS[0])
+        flagged += found.p[0] < np.array(LEVELS)
+    for alpha, count in zip(LEVELS, flagged):
+        assert within(count / samples, alpha, samples), (alpha, count / samples)
+
+
+def test_ledoit_wolf_intensity_is_its_formula():
+    """Ledoit and Wolf (2004): intensity min(b^2, d^2) / d^2 with d^2 = |S - mu I|^2 and
+    b^2 = (1/n^2) sum_i |x_i x_i' - S|^2, here as (sum_i |x_i|^4) / n^2 - |S|^2 / n."""
+    rng = np.random.default_rng(4)
+    for n, k in ((10, 6), (30, 4), (12, 9)):
+        x = rng.normal(size=(n, k)) * np.linspace(2.0, 0.5, k)
+        x -= x.mean(axis=0)
+        sample = x.T @ x / n
+        mu = np.trace(sample) / k
+        d2 = np.sum((sample - mu * np.eye(k)) ** 2)
+        b2 = np.sum(np.sum(x ** 2, axis=1) ** 2) / n ** 2 - np.sum(sample ** 2) / n
+        expected = min(b2, d2) / d2
+        assert 0.0 < expected < 1.0
+        shrunk, intensity = ledoit_wolf(x)
+        assert intensity == pytest.approx(expected, rel=1e-10)
+        np.testing.assert_allclose(shrunk, (1 - expected) * sample + expected * mu * np.eye(k),
+                                   rtol=1e-10)
+
+
+def ellipsoids(rng, n: int, thinner: np.ndarray, points: int = 162) -> tuple:
+    """Ellipsoids on one sphere grid with random axes; ``thinner`` ones 10 % narrower in y, z."""
+    directions, _ = sphere_grid(points)
+    axes = np.array([14.0, 9.0, 7.0]) * (1 + 0.04 * rng.normal(size=(n, 3)))
+    axes[thinner, 1:] *= 0.9
+    return directions[None] * axes[:, None], directions
+
+
+def test_the_discriminant_points_from_the_first_group_to_the_second():
+    """The second group is thinner: its discriminant scores are higher, and the pattern (the
+    shape change towards the second group) points inward, where the thinner shapes lie."""
+    rng = np.random.default_rng(3)
+    second = np.arange(12) % 2 == 1
+    shapes, directions = ellipsoids(rng, 12, second)
+    found = discriminant(shapes, np.full(len(directions), 1 / len(directions)), second)
+    assert found.scores[second].mean() > found.scores[~second].mean()
+    outward = directions            # the ellipsoids' outward normals point away from the origin
+    along = np.einsum("pd,pd->p", found.pattern, outward)
+    sides = np.abs(directions[:, 0]) < 0.5          # where the groups differ: the y-z sides
+    assert np.mean(along[sides] < 0) > 0.9
+    # the pattern is the covariance of the shapes with the standardised score
+    centred = shapes - shapes.mean(axis=0)
+    np.testing.assert_allclose(found.pattern, np.einsum("n,npd->pd", found.scores, centred)
+                               / len(shapes), atol=1e-12)
+
+
+def test_cross_validation_does_not_see_the_held_out_cases():
+    """Noise with two labels: held-out accuracy scatters around one half. Fitting the principal
+    components or the discriminant on the held-out cases too finds the labels in the noise."""
+    rng = np.random.default_rng(5)
+    accuracies = []
+    for _ in range(12):
+        shapes = rng.normal(size=(16, 20, 3))
+        second = rng.permutation(16) < 8
+        accuracies.append(classify(shapes, np.full(20, 1 / 20), second, folds=4,
+                                   seed=int(rng.integers(1 << 30))).accuracy)
+    # each accuracy has SE sqrt(0.25 / 16) = 0.125; their mean over 12 draws 0.036
+    assert abs(np.mean(accuracies) - 0.5) <= SES * np.sqrt(0.25 / 16 / 12), accuracies
+
+
+def test_the_auc_and_its_standard_error_come_from_the_held_out_values():
+    """The AUC is the Mann-Whitney U of the held-out values over m n (ties count half: the
+    shapes come in identical pairs, so cases held out together tie), its SE Hanley and McNeil's
+    (1982), the accuracy's SE binomial."""
+    rng = np.random.default_rng(6)
+    base = rng.normal(size=(10, 15, 3))
+    base[:, :5, 0] += np.linspace(-1.0, 1.0, 10)[:, None]
+    shapes = np.repeat(base, 2, axis=0)                 # each shape twice, once in each group
+    second = np.tile([False, True], 10)
+    second[:4] = [False, False, True, True]             # the first two pairs share a label
+    result = classify(shapes, np.full(15, 1 / 15), second, folds=4, seed=2)
+    held = result.predicted
+    positive, negative = held[second], held[~second]
+    assert np.any(positive[:, None] == negative[None, :]), "no tie: the test shows nothing"
+    u = stats.mannwhitneyu(positive, negative, alternative="two-sided").statistic
+    m, n = len(positive), len(negative)
+    assert result.auc == pytest.approx(u / (m * n), rel=1e-12)
+    a = result.auc
+    q1, q2 = a / (2 - a), 2 * a * a / (1 + a)
+    se = np.sqrt((a * (1 - a) + (m - 1) * (q1 - a * a) + (n - 1) * (q2 - a * a)) / (m * n))
+    assert result.auc_se == pytest.approx(se, rel=1e-12)
+    accuracy = np.mean((held > 0) == second)
+    assert result.accuracy == accuracy
+    assert result.accuracy_se == pytest.approx(np.sqrt(accuracy * (1 - accuracy) / 20))

@@ -1,0 +1,382 @@
+"""A mutation check of the test suite: plant one-line bugs, one at a time, and see the tests
+that should catch each fail.
+
+Each mutant is a realistic one-line bug: a file of the package, the exact original text (which
+must occur exactly once in that file, so that the list cannot silently rot as the code changes),
+its replacement, the quick tests that must catch it and what it would break. The package is
+copied once into a temporary folder (with its ``__pycache__``, so that numba's compiled kernels
+stay cached); each mutant is written into the copy, its tests run there (``-m "not slow"``,
+``PYTHONPATH`` naming the copy, a time limit), and the original is put back. Before the
+mutants, each distinct selection of tests is run on the unchanged copy: a test that fails
+without a bug kills nothing.
+
+Usage (from the checkout, with the project's virtualenv active)::
+
+    python Testing/tools/mutants.py                 # every mutant; exit 1 if any survives
+    python Testing/tools/mutants.py --list          # the list, checked against the code
+    python Testing/tools/mutants.py --only NAME     # one mutant (repeatable)
+
+Run it before resolving an issue that touches the analysis, the outlier distances, guides,
+landmarks, the viewer or the evaluation; add every bug found to :data:`MUTANTS`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+PACKAGE = ROOT / "MDLShapeModel" / "mdlshapemodel"
+TESTING = ROOT / "Testing"
+TIMEOUT = 1200          # seconds for one mutant's tests
+
+
+@dataclass(frozen=True)
+class Mutant:
+    """One planted bug: in ``file`` (relative to the package), ``original`` becomes
+    ``replacement``; ``tests`` (pytest arguments relative to Testing/: files or node ids) with
+    the optional ``-k`` expression ``k`` must fail."""
+
+    name: str
+    file: str
+    original: str
+    replacement: str
+    tests: tuple
+    description: str
+    k: str = ""
+
+
+MUTANTS = [
+    # --- the per-point test and the effects (analysis/) ---
+    Mutant("freedman_lane_without_nuisance", "analysis/glm.py",
+           "permuted_z = basis_z[:, 1:]", "permuted_z = basis_z[:, :1]",
+           ("test_analysis_calibration.py",),
+           "the nuisance left out of the permuted statistics (only the intercept, which drops "
+           "out): too liberal with several nuisance columns correlated with the groups"),
+    Mutant("effect_of_the_nuisance_reported", "analysis/study.py",
+           "design = np.hstack([np.ones((n, 1)), subjects.nuisance, subjects.interest])",
+           "design = np.hstack([np.ones((n, 1)), subjects.interest, subjects.nuisance])",
+           ("test_outputs_recomputed.py",),
+           "design columns in another order: the written difference is the nuisance's slope"),
+    Mutant("normal_difference_reversed", "analysis/study.py",
+           'normal_difference = np.einsum("rpd,pd->rp", difference, normals)',
+           'normal_difference = -np.einsum("rpd,pd->rp", difference, normals)',
+           ("test_outputs_recomputed.py",),
+           "the effect's normal component with its sign reversed (inward written as outward)"),
+    Mutant("size_removed_inverted", "analysis/shapes.py",
+           "(sizes.mean() / sizes)", "(sizes / sizes.mean())",
+           ("test_outputs_recomputed.py",),
+           "--size removed scales each case by its size over the mean (doubles the differences)"),
+    Mutant("mirrored_cases_not_reflected", "analysis/shapes.py",
+           "shapes.append(shape * [-1.0, 1.0, 1.0] if mirrored.get(name) else shape)",
+           "shapes.append(shape)",
+           ("test_outputs_recomputed.py",),
+           "the analysis takes mirrored cases as they were written (the other side)"),
+    Mutant("mirrored_outputs_not_reflected_back", "outputs.py",
+           "return [points * [-1.0, 1.0, 1.0] if case.mirrored else points",
+           "return [points * [1.0, 1.0, 1.0] if case.mirrored else points",
+           ("test_outputs_recomputed.py",),
+           "correspondence/ of a mirrored case left in the mirrored frame, off its input"),
+    Mutant("reference_ignored", "analysis/table.py",
+           "levels = [reference] + [level for level in levels if level != reference]",
+           "levels = sorted(levels)",
+           ("test_outputs_recomputed.py",),
+           "--reference ignored: every difference's sign flips when the reference sorts last"),
+    Mutant("two_d_aligned_in_3d", "analysis/study.py",
+           "aligned = align(used, model.weights, config.size, planar=planar)",
+           "aligned = align(used, model.weights, config.size, planar=False)",
+           ("test_outputs_recomputed.py",),
+           "2-D outlines aligned by 3-D rotations (a turn about an in-plane axis mirrors them)"),
+    Mutant("parts_each_ignored", "analysis/study.py",
+           'if config.parts == "each" and len(model.part_sizes) > 1:',
+           'if config.parts == "each" and len(model.part_sizes) > 2:',
+           ("test_outputs_recomputed.py",),
+           "--parts each aligns a two-part object as one"),
+    Mutant("displacement_vector_ignored", "analysis/study.py",
+           'if config.displacement == "normal":', 'if config.displacement != "":',
+           ("test_outputs_recomputed.py",),
+           "--displacement vector tests the normal component"),
+    Mutant("global_test_modes_ignore_the_nuisance", "analysis/study.py",
+           "max_modes=len(aligned) - z - r - 1)", "max_modes=len(aligned) - r - 2)",
+           ("test_outputs_recomputed.py",),
+           "the global test takes more principal scores than its degrees of freedom allow"),
+    Mutant("normals_turned_inward", "model/normals.py",
+           "if inward[rows].sum() < 0:", "if inward[rows].sum() > 0:",
+           ("test_outputs_recomputed.py",),
+           "the mean's normals point inward: every normal displacement has its sign reversed",
+           k="dent"),
+    # --- discriminant and classification ---
+    Mutant("ledoit_wolf_over_n", "analysis/discriminant.py",
+           "for x in centred]) / n ** 2", "for x in centred]) / n",
+           ("test_analysis_calibration.py",),
+           "Ledoit-Wolf's intensity with 1/n for 1/n^2 (always shrunk to the identity)"),
+    Mutant("discriminant_reversed", "analysis/discriminant.py",
+           "w = np.linalg.solve(covariance, means[1] - means[0])",
+           "w = np.linalg.solve(covariance, means[0] - means[1])",
+           ("test_analysis_calibration.py",),
+           "the discriminant (and its pattern) point from the second group to the first"),
+    Mutant("discriminant_pattern_reversed", "analysis/discriminant.py",
+           'pattern = np.einsum("n,npd->pd", value, shapes - mean) / n',
+           'pattern = np.einsum("n,npd->pd", value, mean - shapes) / n',
+           ("test_analysis_calibration.py",),
+           "the discriminant's shape pattern reversed"),
+    Mutant("classifier_leakage", "analysis/discriminant.py",
+           "test, train = fold_of == fold, fold_of != fold",
+           "test, train = fold_of == fold, fold_of >= 0",
+           ("test_analysis_calibration.py",),
+           "the classifier's PCA and LDA fitted on all cases, the held-out ones included"),
+    Mutant("accuracy_se_n_minus_1", "analysis/discriminant.py",
+           "float(np.sqrt(accuracy * (1 - accuracy) / n))",
+           "float(np.sqrt(accuracy * (1 - accuracy) / (n - 1)))",
+           ("test_analysis_calibration.py",),
+           "the accuracy's binomial SE over n - 1"),
+    Mutant("auc_se_q2", "analysis/discriminant.py",
+           "q1, q2 = auc / (2 - auc), 2 * auc ** 2 / (1 + auc)",
+           "q1, q2 = auc / (2 - auc), auc ** 2 / (1 + auc)",
+           ("test_analysis_calibration.py",),
+           "Hanley-McNeil's Q2 without its factor 2 (the AUC's SE too small)"),
+    Mutant("auc_ties_count_whole", "analysis/discriminant.py",
+           "auc = float((greater + 0.5 * ties) / (m * n))",
+           "auc = float((greater + ties) / (m * n))",
+           ("test_analysis_calibration.py",),
+           "tied held-out values count as wins in the AUC"),
+    # --- outliers (model/outliers.py) ---
+    Mutant("training_beta_parameters", "model/outliers.py",
+           "reference = beta(k / 2, (n - k - 1) / 2)", "reference = beta(k / 2, (n - k) / 2)",
+           ("test_analysis_calibration.py",),
+           "a training case's Beta with (n - k) / 2: false flags 3x the level at n = 8"),
+    Mutant("new_case_f_scale", "model/outliers.py",
+           "scale = (n - k) / (k * (n + 1))", "scale = (n - k) / (k * (n - 1))",
+           ("test_analysis_calibration.py",),
+           "a new case's F scale with n - 1 for n + 1: too many new cases flagged at small n"),
+    Mutant("unusual_departure_one_mode_more", "analysis/study.py",
+           "reconstructed = model.instance(model.scores[:, :k])",
+           "reconstructed = model.instance(model.scores[:, :k + 1])",
+           ("test_outputs_recomputed.py",),
+           "a case's departure measured from its reconstruction by one mode more"),
+    Mutant("training_p_over_n", "model/outliers.py",
+           "p = reference.sf(np.clip(squared / (n - 1), 0.0, 1.0))",
+           "p = reference.sf(np.clip(squared / n, 0.0, 1.0))",
+           ("test_outputs_recomputed.py",),
+           "a training case's p-value from d^2 / n: too few cases flagged"),
+    # --- the viewer ---
+    Mutant("viewer_modes_colour_reversed", "report/viewer.py",
+           'along = np.einsum("kpd,pd->kp", scaled, normals)',
+           'along = np.einsum("kpd,pd->kp", -scaled, normals)',
+           ("test_viewer_colours.py",),
+           "the viewer colours a mode's outward displacement as inward"),
+    Mutant("viewer_colour_scale_reversed", "report/viewer.py",
+           "colorscale: SCALES.normal.colorscale,",
+           "colorscale: SCALES.normal.colorscale, reversescale: true,",
+           ("test_viewer_colours.py",),
+           "plotly's RdBu reversed: outward drawn blue"),
+    Mutant("viewer_case_colour_reversed", "report/viewer.py",
+           "c[i] += (p[3 * i + e] - mean[3 * i + e]) * normals[3 * i + e];",
+           "c[i] += (mean[3 * i + e] - p[3 * i + e]) * normals[3 * i + e];",
+           ("test_viewer_colours.py",),
+           "a picked case coloured by its displacement reversed"),
+    # --- landmarks and guides ---
+    Mutant("markups_ras_read_as_lps", "prepare/landmarks.py",
+           'rows.append((point.get("label", ""), position, system))',
+           'rows.append((point.get("label", ""), position, "LPS"))',
+           ("test_markups.py",),
+           "a Slicer markups JSON in RAS read as LPS (x and y of the wrong sign)"),
+    Mutant("markups_unplaced_kept", "prepare/landmarks.py",
+           'if point.get("positionStatus") == "undefined":',
+           'if point.get("positionStatus") == "missing":',
+           ("test_markups.py",),
+           "an unplaced control point of a markups JSON kept as a landmark"),
+    Mutant("guides_at_the_farthest_vertex", "correspondence/guides.py",
+           "order = np.argsort(-(grid[:candidates] @ np.nan_to_num(place)), kind=\"stable\")",
+           "order = np.argsort(grid[:candidates] @ np.nan_to_num(place), kind=\"stable\")",
+           ("test_guides.py",),
+           "a landmark guided at the grid vertex farthest from it", k="nearest_its_place"),
+    # --- the build's tables (outputs.py) ---
+    Mutant("distance_in_voxels_times_the_voxel", "outputs.py",
+           '"mean_distance_voxels": float(distances.mean() / case.voxel_size),',
+           '"mean_distance_voxels": float(distances.mean() * case.voxel_size),',
+           ("test_outputs_recomputed.py",),
+           "cases.csv's distance in voxels multiplied by the voxel size (right at 1 mm only)"),
+    Mutant("largest_surface_distance_averaged", "outputs.py",
+           '"max": float(np.max([c["max_distance_mm"] for c in cases]))},',
+           '"max": float(np.mean([c["max_distance_mm"] for c in cases]))},',
+           ("test_outputs_recomputed.py",),
+           "metrics.json's largest surface distance the mean of the cases' largest"),
+    Mutant("landmark_distance_not_euclidean", "outputs.py",
+           "float(np.linalg.norm(self.point - self.given))",
+           "float(np.abs(self.point - self.given).sum())",
+           ("test_markups.py",),
+           "landmarks.csv's distance the sum of the coordinate differences"),
+    Mutant("landmark_worst_case_is_the_nearest", "outputs.py",
+           "worst = max(mine)", "worst = min(mine)",
+           ("test_markups.py",),
+           "metrics.json names the case nearest its landmark as the farthest"),
+    # --- fit.json (model/fitting.py) ---
+    Mutant("fit_departure_from_all_modes", "model/fitting.py",
+           "departure = np.linalg.norm(result.aligned - model.instance(result.scores[:k]), axis=1)",
+           "departure = np.linalg.norm(result.aligned - model.instance(result.scores), axis=1)",
+           ("test_outputs_recomputed.py",),
+           "a fitted case's departure measured from its reconstruction by all modes, not k"),
+    Mutant("fit_reconstruction_one_mode_ahead", "model/fitting.py",
+           "residual = aligned - model.instance(scores[:m])",
+           "residual = aligned - model.instance(scores[:m + 1])",
+           ("test_outputs_recomputed.py",),
+           "fit.json's reconstruction error for M modes is that of M + 1"),
+    # --- compare.csv (report/compare.py, model/evaluation.py) ---
+    Mutant("compare_value_written_as_its_se", "report/compare.py",
+           'values[measure][k], values[measure + "_se"][k])',
+           'values[measure][k], values[measure][k])',
+           ("test_compare_csv.py",),
+           "compare.csv's SE column holds the value"),
+    Mutant("compare_cases_matched_by_position", "report/compare.py",
+           "index = [population.names.index(n) for n in shared]",
+           "index = list(range(len(shared)))",
+           ("test_compare_csv.py",),
+           "models compared case by position, not by name"),
+    Mutant("difference_se_summed", "model/evaluation.py",
+           "se = np.hypot(np.asarray(other[measure + \"_se\"]),",
+           "se = np.add(np.asarray(other[measure + \"_se\"]),",
+           ("test_compare_csv.py",),
+           "the SE of an unpaired difference the sum of the SEs (too few differences called)"),
+    # --- meshes: what test_remesh.py and test_sphere.py reached through private functions ---
+    Mutant("half_edges_next_reversed", "prepare/remesh.py",
+           "nxt[half] = corners[:, [1, 2, 0]].ravel()",
+           "nxt[half] = corners[:, [2, 0, 1]].ravel()",
+           ("test_remesh.py",),
+           "the remesher's half-edges run each triangle backwards", k="oriented_genus_0"),
+    Mutant("corner_lists_lose_the_first_corner", "prepare/multilevel.py",
+           "head[corners[order[starts]]] = order[starts]",
+           "head[corners[order[starts]]] = order[starts][::-1]",
+           ("test_sphere.py",),
+           "each vertex's corner list starts at another vertex's corner",
+           k="vertex_numbering"),
+]
+
+
+def check(mutants: list, chosen: list) -> list:
+    """Problems of the list: an original that does not occur exactly once, a replacement equal
+    to it, a name used twice; a test file of a ``chosen`` mutant that does not exist."""
+    problems, names = [], set()
+    for mutant in mutants:
+        if mutant.name in names:
+            problems.append(f"{mutant.name}: the name is used twice")
+        names.add(mutant.name)
+        path = PACKAGE / mutant.file
+        if not path.is_file():
+            problems.append(f"{mutant.name}: no file {mutant.file}")
+            continue
+        count = path.read_text(encoding="utf-8").count(mutant.original)
+        if count != 1:
+            problems.append(f"{mutant.name}: the original text occurs {count} times in "
+                            f"{mutant.file} (must be once)")
+        if mutant.original == mutant.replacement:
+            problems.append(f"{mutant.name}: the replacement is the original")
+        for test in mutant.tests if mutant in chosen else ():
+            if not (TESTING / test.split("::")[0]).is_file():
+                problems.append(f"{mutant.name}: no test file Testing/{test.split('::')[0]}")
+    return problems
+
+
+def run_tests(copy: Path, tests: tuple, k: str) -> tuple[int, str, float]:
+    """(exit code, output, seconds) of the quick tests ``tests`` with the package at ``copy``."""
+    environment = dict(os.environ, PYTHONPATH=str(copy), PYTHONDONTWRITEBYTECODE="1")
+    command = [sys.executable, "-m", "pytest", *tests, "-m", "not slow", "-q", "-x",
+               "-p", "no:cacheprovider", "-W", "ignore"]
+    if k:
+        command += ["-k", k]
+    started = time.perf_counter()
+    try:
+        result = subprocess.run(command, cwd=TESTING, env=environment, capture_output=True,
+                                text=True, timeout=TIMEOUT)
+        code, output = result.returncode, result.stdout + result.stderr
+    except subprocess.TimeoutExpired as error:
+        code, output = -1, f"timed out after {TIMEOUT} s\n{error.stdout or ''}"
+    return code, output, time.perf_counter() - started
+
+
+def failed_test(output: str) -> str:
+    """The first failing test's id in pytest's summary ('' when none is named)."""
+    found = re.search(r"^(?:FAILED|ERROR) (\S+)", output, flags=re.MULTILINE)
+    return found.group(1) if found else ""
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--list", action="store_true", help="list the mutants and check them")
+    parser.add_argument("--only", action="append", metavar="NAME", help="run only this mutant")
+    parser.add_argument("--no-baseline", action="store_true",
+                        help="skip running each test selection on the unchanged package")
+    arguments = parser.parse_args(argv)
+
+    chosen = MUTANTS
+    if arguments.only:
+        unknown = sorted(set(arguments.only) - {m.name for m in MUTANTS})
+        if unknown:
+            print(f"no mutant named {', '.join(unknown)}", file=sys.stderr)
+            return 2
+        chosen = [m for m in MUTANTS if m.name in arguments.only]
+    problems = check(MUTANTS, chosen)
+    if problems:
+        print("\n".join(problems), file=sys.stderr)
+        return 2
+    if arguments.list:
+        for mutant in chosen:
+            print(f"{mutant.name:40s} {mutant.file:28s} {' '.join(mutant.tests)}"
+                  f"{' -k ' + mutant.k if mutant.k else ''}\n    {mutant.description}")
+        print(f"{len(chosen)} mutants; each original occurs once in its file")
+        return 0
+
+    with tempfile.TemporaryDirectory(prefix="mdlshapemodel-mutants-") as folder:
+        copy = Path(folder)
+        # copy2 keeps the modification times, which numba's cache and the .pyc files check
+        shutil.copytree(PACKAGE, copy / "mdlshapemodel", copy_function=shutil.copy2)
+        if not arguments.no_baseline:
+            for selection in sorted({(m.tests, m.k) for m in chosen}):
+                code, output, seconds = run_tests(copy, *selection)
+                if code != 0:
+                    print(f"the tests {' '.join(selection[0])} fail without a mutant "
+                          f"({seconds:.0f} s):\n{output[-3000:]}", file=sys.stderr)
+                    return 2
+        rows, survivors = [], []
+        print(f"{'mutant':40s} {'result':9s} {'seconds':>7s}  by")
+        for mutant in chosen:
+            path = copy / "mdlshapemodel" / mutant.file
+            original = path.read_bytes()
+            stat = path.stat()
+            try:
+                path.write_text(original.decode("utf-8").replace(mutant.original,
+                                                                 mutant.replacement),
+                                encoding="utf-8")
+                # another modification time, so that no cached .pyc of the original is used
+                os.utime(path, (stat.st_atime, stat.st_mtime + 7))
+                code, output, seconds = run_tests(copy, mutant.tests, mutant.k)
+            finally:
+                path.write_bytes(original)
+                os.utime(path, (stat.st_atime, stat.st_mtime))
+            if code == 1:
+                result, by = "killed", failed_test(output)
+            elif code == 0:
+                result, by = "SURVIVED", ""
+                survivors.append(mutant.name)
+            else:      # no test collected, a usage error, a time-out: not a kill
+                result, by = "ERROR", (output.strip().splitlines() or ["?"])[-1][:80]
+                survivors.append(mutant.name)
+            rows.append((mutant.name, result, seconds, by))
+            print(f"{mutant.name:40s} {result:9s} {seconds:7.0f}  {by}", flush=True)
+        print(f"{len(rows) - len(survivors)} of {len(rows)} mutants killed")
+        if survivors:
+            print("not killed: " + ", ".join(survivors))
+            return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
