@@ -1,0 +1,242 @@
+"""Per-point statistics that stay valid when groups differ in variance (the Behrens-Fisher
+problem): Welch's v and G with variance groups (Winkler et al. 2014, NeuroImage 92, section
+"Variance groups"), James' statistic for a vector per point.
+
+Pooled-covariance statistics (Pillai's trace, Hotelling's T^2 with the pooled covariance) assume
+one error variance for all cases. When a small group varies more than a large one, their null
+distribution depends on the variances and permuting the cases does not recover it: the test
+rejects far too often. The statistics here weight each case by the inverse residual variance of
+its variance group (the groups compared), so that, asymptotically, their distribution does not
+depend on the variances (Janssen 1997: a studentized statistic makes the permutation test
+asymptotically exact under unequal variances, and exact when the variances are equal).
+
+One number per point (q = 1), r effect columns (s = r numerator degrees of freedom), the model
+``Y = M psi + E`` with M = [Z X]:
+
+- per variance group g, from the least-squares residuals e = (I - H) y of the full model, the
+  weight of each of its cases ``W_nn = (sum_{g} R_nn) / (sum_{g} e_n^2)`` (R = I - H: the
+  group's residual degrees of freedom over its residual sum of squares);
+- the weighted least-squares estimate ``psi = (M'WM)^-1 M'Wy`` and the Wald statistic of the
+  effect's coefficients ``psi_X' [(M'WM)^-1]_XX^-1 psi_X``;
+- ``G = Wald / (s Lambda)``, ``Lambda = 1 + 2 (s - 1) / (s (s + 2)) sum_g (1 - sum_g W_nn /
+  tr W)^2 / sum_g R_nn``; for s = 1, G = v^2 with v Welch's t (the two-sample case:
+  ``(m2 - m1) / sqrt(s1^2 / n1 + s2^2 / n2)``), for one-way layouts Welch's (1951) F.
+
+Its approximate denominator degrees of freedom are ``s (s + 2) / (3 sum_g (1 - sum_g W_nn /
+tr W)^2 / sum_g R_nn)`` (Welch-Satterthwaite for s = 1); the permutation test does not need them.
+
+A vector per point (q > 1) in a one-way layout (the groups compared, nothing adjusted for):
+James' (1954) statistic ``J = sum_g (m_g - m)' W_g (m_g - m)`` with ``W_g = n_g S_g^-1`` (S_g
+the group's covariance) and ``m = (sum_g W_g)^-1 sum_g W_g m_g``; for two groups
+``d' (S_1 / n_1 + S_2 / n_2)^-1 d``, and for q = 1 it is s Lambda G.
+
+Welch's G is approximately F(s, nu) distributed with nu estimated from the data, a different nu at
+each point and in each permutation; the permutation test therefore permutes its parametric
+p-value, as ``-log p`` (:func:`pivotal`; Winkler et al. 2014 convert G the same way), which
+makes the statistic pivotal: under unequal variances, the permuted G of cases mixed from both
+groups has lighter tails than G itself, while the p-value of either is close to uniform. James'
+J is permuted as it is.
+
+All functions take a chunk of permutations at once: ``rows`` (B, n), the permutation of the cases
+(the design's and the variance groups' rows travel together against the fixed data).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import special
+
+# a group's variance at a point is at least this share of the point's total variance, so that a
+# group whose cases coincide at a point gives a large statistic, not a division by zero
+SMALLEST_VARIANCE = 1e-12
+
+
+def pivotal(statistic: np.ndarray, s: int, df: np.ndarray) -> np.ndarray:
+    """``-log p`` of G under its approximate F(s, df) distribution (larger: more extreme).
+
+    Examples
+    --------
+    >>> from scipy import stats
+    >>> bool(np.isclose(pivotal(np.array([2.5]), 2, np.array([17.3]))[0],
+    ...                 -np.log(stats.f.sf(2.5, 2, 17.3))))
+    True
+    """
+    return -np.log(np.maximum(special.fdtrc(s, df, statistic), 1e-300))
+
+
+def lambda_and_df(weights: np.ndarray, sizes: np.ndarray, residual_df: np.ndarray, s: int):
+    """Welch's Lambda and the denominator degrees of freedom of G.
+
+    Parameters
+    ----------
+    weights : ndarray (..., G, p)
+        Each variance group's weight per case (its residual df over its residual sum of squares).
+    sizes : ndarray (G,)
+        Cases per group.
+    residual_df : ndarray (..., G, 1) or (G, 1)
+        Each group's residual degrees of freedom, sum over its cases of R_nn.
+    s : int
+        Numerator degrees of freedom (rank of the contrast).
+
+    Returns
+    -------
+    Lambda, df : ndarray (..., p)
+    """
+    shares = sizes[:, None] * weights
+    shares = shares / shares.sum(axis=-2, keepdims=True)
+    spread = np.sum((1.0 - shares) ** 2 / residual_df, axis=-2)
+    lam = 1.0 + 2.0 * (s - 1) / (s * (s + 2)) * spread
+    return lam, s * (s + 2) / (3.0 * np.maximum(spread, 1e-300))
+
+
+def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
+            rows: np.ndarray) -> np.ndarray:
+    """Welch's G (q = 1) or James' J (q > 1) of a one-way layout for each permutation.
+
+    Parameters
+    ----------
+    residuals : ndarray (n, p, q)
+        The data after the intercept (centred).
+    groups : ndarray (n,) int
+        Each case's group, 0 .. G - 1.
+    sizes : ndarray (G,)
+        Cases per group.
+    rows : ndarray (B, n)
+        Permutations: the group of case ``rows[b, i]`` is given to case i.
+
+    Returns
+    -------
+    statistic : ndarray (B, p)
+    df : ndarray (B, p) or None
+        G's denominator degrees of freedom (None for James' J).
+    """
+    n, p, q = residuals.shape
+    count = len(sizes)
+    chunk = len(rows)
+    upper = np.triu_indices(q)
+    products = residuals[:, :, upper[0]] * residuals[:, :, upper[1]]          # (n, p, q(q+1)/2)
+    columns = np.concatenate([residuals, products], axis=2).reshape(n, -1)
+    # group indicators of the permuted cases; the last group's sums are the totals minus the rest
+    indicator = (groups[rows][:, None, :] == np.arange(count - 1)[None, :, None]).astype(
+        np.float64)                                                         # (B, G-1, n)
+    partial = (indicator.reshape(-1, n) @ columns).reshape(chunk, count - 1, p, -1)
+    sums = np.concatenate([partial, columns.sum(axis=0).reshape(1, 1, p, -1)
+                           - partial.sum(axis=1, keepdims=True)], axis=1)  # (B, G, p, k)
+    size = sizes.astype(np.float64)[None, :, None]
+    means = sums[..., :q] / size[..., None]                                 # (B, G, p, q)
+    scatter = np.zeros((chunk, count, p, q, q))
+    scatter[..., upper[0], upper[1]] = sums[..., q:]
+    scatter[..., upper[1], upper[0]] = sums[..., q:]
+    scatter -= size[..., None, None] * means[..., :, None] * means[..., None, :]
+    floor = SMALLEST_VARIANCE * np.einsum("npi,npi->p", residuals, residuals) / n
+    if q == 1:
+        variance = np.maximum(scatter[..., 0, 0] / (size - 1), floor)      # (B, G, p)
+        weights = size / variance                                           # n_g / s_g^2
+        mean = means[..., 0]
+        centre = np.sum(weights * mean, axis=1, keepdims=True) / weights.sum(axis=1,
+                                                                              keepdims=True)
+        wald = np.sum(weights * (mean - centre) ** 2, axis=1)
+        s = count - 1
+        lam, df = lambda_and_df(1.0 / variance, sizes, (sizes - 1.0)[:, None], s)
+        return wald / (s * lam), df
+    covariance = scatter / (size - 1)[..., None, None]
+    covariance += floor[:, None, None] * np.eye(q)
+    weights = size[..., None, None] * np.linalg.inv(covariance)            # (B, G, p, q, q)
+    weighted = np.einsum("bgpij,bgpj->bgpi", weights, means)
+    total = weights.sum(axis=1)
+    combined = weighted.sum(axis=1)
+    return (np.einsum("bgpi,bgpi->bp", means, weighted)
+            - np.einsum("bpi,bpi->bp", combined,
+                        np.linalg.solve(total, combined[..., None])[..., 0])), None
+
+
+def wald_tail(normal: np.ndarray, right: np.ndarray, r: int) -> np.ndarray:
+    """The Wald statistic of the last r coefficients of the weighted least-squares problems
+    ``normal psi = right``, ``psi_X' [normal^-1]_XX^-1 psi_X``, for many small problems at once.
+
+    With the Cholesky factor ``normal = L L'`` and ``u = L^-1 right``, ``[normal^-1]_XX =
+    L_XX^-T L_XX^-1`` and ``psi_X = L_XX^-T u_X``, so the statistic is ``|u_X|^2``: the sum of
+    squares of the last r entries of u. Written out over the matrix entries, each an array over
+    all problems, because the matrices are small (the model's columns) and many (permutations
+    x points).
+
+    Parameters
+    ----------
+    normal : ndarray (m, m, ...)
+        Symmetric positive definite matrices (the entries first).
+    right : ndarray (m, ...)
+    r : int
+
+    Returns
+    -------
+    ndarray (...)
+
+    Examples
+    --------
+    >>> a = np.array([[4.0, 1.0], [1.0, 3.0]]); b = np.array([1.0, 2.0])
+    >>> psi = np.linalg.solve(a, b)
+    >>> bool(np.isclose(wald_tail(a[..., None], b[..., None], 1)[0],
+    ...                 psi[1] ** 2 / np.linalg.inv(a)[1, 1]))
+    True
+    """
+    m = len(right)
+    factor = [[None] * m for _ in range(m)]
+    solved = []
+    for j in range(m):
+        diagonal = np.sqrt(np.maximum(
+            normal[j, j] - sum(factor[j][k] ** 2 for k in range(j)), 1e-300))
+        factor[j][j] = diagonal
+        for i in range(j + 1, m):
+            factor[i][j] = (normal[i, j] - sum(factor[i][k] * factor[j][k] for k in range(j))
+                            ) / diagonal
+        solved.append((right[j] - sum(factor[j][k] * solved[k] for k in range(j))) / diagonal)
+    return sum(u ** 2 for u in solved[m - r:])
+
+
+def general(residuals: np.ndarray, basis: np.ndarray, r: int, groups: np.ndarray,
+            sizes: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Winkler's G (v^2 for one effect column) of any design with variance groups, one number
+    per point, for each permutation.
+
+    Parameters
+    ----------
+    residuals : ndarray (n, p)
+        The data after the nuisance (the reduced model's residuals, Freedman-Lane).
+    basis : ndarray (n, m)
+        An orthonormal basis of the full model [Z X] whose last r columns span X after Z (the
+        Wald statistic of X's coefficients does not depend on the basis of either span).
+    r : int
+        Effect columns.
+    groups, sizes, rows
+        As in :func:`one_way`.
+
+    Returns
+    -------
+    ndarray (B, p)
+    """
+    n, p = residuals.shape
+    count = len(sizes)
+    chunk, m = len(rows), basis.shape[1]
+    permuted = basis[rows]                                                   # (B, n, m)
+    members = (groups[rows][..., None] == np.arange(count)).astype(np.float64)  # (B, n, G)
+    # per group g the sums over its cases of P_n P_n' (cross), P_n y_n (moments) and y_n^2, P
+    # the permuted basis: one matrix product each over all permutations and points
+    split = np.swapaxes(members[..., None] * permuted[:, :, None, :], 1, 3)  # (B, m, G, n)
+    cross = np.einsum("bjgn,bnk->bgjk", split, permuted)                    # (B, G, m, m)
+    moments = (split.reshape(-1, n) @ residuals).reshape(chunk, m, count, p)
+    squares = (np.swapaxes(members, 1, 2).reshape(-1, n) @ residuals ** 2).reshape(
+        chunk, count, p)
+    fit = moments.sum(axis=2)                                               # P'y (B, m, p)
+    # each group's residual sum of squares of the least-squares fit, sum_g (y - P P'y)^2
+    sums = (squares - 2.0 * np.einsum("bjp,bjgp->bgp", fit, moments)
+            + np.einsum("bjp,bgjk,bkp->bgp", fit, cross, fit, optimize=True))
+    residual_df = np.einsum("bng,bn->bg", members, 1.0 - np.sum(permuted ** 2, axis=2))
+    floor = SMALLEST_VARIANCE * np.sum(residuals ** 2, axis=0) / n
+    weights = residual_df[..., None] / np.maximum(sums, floor * residual_df[..., None])
+    # M'WM and M'Wy per point, as sums over the groups, each entry an array over (B, p)
+    normal = np.einsum("bgp,bgij->ijbp", weights, cross)                    # (m, m, B, p)
+    right = np.einsum("bgp,bigp->ibp", weights, moments)                    # (m, B, p)
+    wald = wald_tail(normal, right, r)
+    lam, df = lambda_and_df(weights, sizes, residual_df[..., None], r)
+    return wald / (r * lam), df
+
