@@ -46,6 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import FAMILY_WISE
 from ..errors import InputError
 from ..progress import report
 from . import welch
@@ -62,10 +63,6 @@ BLOCK = 256
 # permutations of the general Welch statistic computed at once (bounds its memory to
 # WELCH_CHUNK x n x p floats)
 WELCH_CHUNK = 25
-# the statistics offered for group comparisons: one pooled covariance, or one per variance group
-VARIANCES = ("pooled", "groups")
-# the family-wise corrections: the maximum statistic over the points, or the minimum p
-FAMILY_WISE = ("maximum", "min-p")
 
 
 @dataclass
@@ -119,6 +116,19 @@ class PointTest:
     family_null: np.ndarray
     variance: str
     family_wise: str
+
+    @property
+    def name(self) -> str:
+        """What the statistic is, in words (for the page, the terminal and analysis.json)."""
+        r, _, q = self.effect.shape
+        if self.variance == "groups":
+            return ("James' statistic (a covariance per group)" if q > 1 else
+                    "Welch's v^2 (a variance per group)" if r == 1 else
+                    "Welch's G (a variance per group)")
+        if r > 1:
+            return "the F of Pillai's trace (one pooled covariance)"
+        return ("Hotelling's T^2 (one pooled covariance)" if q > 1 else
+                "F = t^2 (one pooled variance)")
 
 
 def benjamini_hochberg(p: np.ndarray) -> np.ndarray:
@@ -231,6 +241,67 @@ def smallest_p(table: np.ndarray) -> np.ndarray:
     return smallest
 
 
+def drawn_permutations(n: int, permutations: int, seed: int):
+    """The permutations :func:`permutation_test` draws, chunk by chunk.
+
+    Yields arrays (count, n) of :data:`CHUNK` rows (fewer in the last): in permutation b, case
+    i is given the design row (and variance group) of case ``rows[b, i]``, against the fixed
+    residuals of the reduced model; a plain loop over them recomputes every permuted statistic.
+
+    Examples
+    --------
+    >>> rows = np.vstack(list(drawn_permutations(5, 300, seed=0)))
+    >>> rows.shape, sorted(rows[0].tolist())
+    ((300, 5), [0, 1, 2, 3, 4])
+    """
+    rng = np.random.default_rng(seed)
+    done = 0
+    while done < permutations:
+        count = min(CHUNK, permutations - done)
+        yield np.argsort(rng.random((CHUNK, n)), axis=1)[:count]
+        done += count
+
+
+def drawn_flips(groups: np.ndarray, count: int, seed: int):
+    """The resamples of a test with variance groups, chunk by chunk: each a permutation within
+    the groups and a sign per case.
+
+    Parameters
+    ----------
+    groups : ndarray (n,) int
+        Each case's variance group.
+    count : int
+        Resamples drawn (B).
+    seed : int
+
+    Yields
+    ------
+    rows : ndarray (b, n)
+        Case i is given the design row of case ``rows[j, i]``, a case of its own group.
+    signs : ndarray (b, n)
+        +1 or -1 per case: the flipped data are ``signs * residuals``.
+
+    Examples
+    --------
+    >>> groups = np.array([0, 0, 1, 1, 1])
+    >>> rows, signs = next(drawn_flips(groups, 100, seed=0))
+    >>> bool(np.all(groups[rows] == groups)), sorted(np.unique(signs).tolist())
+    (True, [-1.0, 1.0])
+    """
+    rng = np.random.default_rng(seed)
+    n = len(groups)
+    order = np.argsort(groups, kind="stable")
+    done = 0
+    while done < count:
+        size = min(CHUNK, count - done)
+        keys = rng.random((CHUNK, n)) + 2.0 * groups[order]
+        rows = np.empty((CHUNK, n), dtype=np.int64)
+        rows[:, order] = order[np.argsort(keys, axis=1)]
+        signs = rng.integers(0, 2, (CHUNK, n)) * 2.0 - 1.0
+        yield rows[:size], signs[:size]
+        done += size
+
+
 def _one_way(interest: np.ndarray, codes: np.ndarray, count: int) -> bool:
     """Whether [1, interest] spans exactly the indicators of the variance groups (a one-way
     layout of the groups compared)."""
@@ -285,8 +356,10 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     >>> bool(np.all(result.p_fwer[:5] < 0.05)), int(np.sum(result.p_fwer[5:] < 0.05))
     (True, 0)
     >>> welch = permutation_test(data, group, permutations=999, variance_groups=group[:, 0])
-    >>> welch.variance, bool(np.all(welch.p_fwer[:5] < 0.05))
+    >>> welch.variance, bool(np.allclose(welch.statistic, result.statistic))  # n1 = n2: v = t
     ('groups', True)
+    >>> bool(np.all(welch.p[:5] < 0.01)), int(np.sum(welch.p_fwer[5:] < 0.05))
+    (True, 0)
     """
     data = np.asarray(data, dtype=np.float64)
     if data.ndim == 2:
@@ -337,35 +410,41 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         total = np.einsum("npi,npj->pij", stacked, stacked)
         whitened = np.einsum("npj,pij->npi", stacked, _whitening(total)).reshape(n, p * q)
 
-        def values_of(rows: np.ndarray) -> np.ndarray:
+        def values_of(rows: np.ndarray, signs) -> np.ndarray:
             """Pillai's V for each permutation (rows: (B, n) indices into the bases)."""
             permuted = np.ascontiguousarray(np.swapaxes(bases[rows], 1, 2))   # (B, k, n)
             products = permuted.reshape(-1, n) @ whitened                      # one BLAS product
             return _pillai(products.reshape(len(rows), zp + r, p, q), zp)
-    else:
-        if z == 1 and _one_way(interest, codes, len(sizes)):
-            def welch_of(rows: np.ndarray) -> tuple:
-                return welch.one_way(stacked, codes, sizes, rows)
-        elif q == 1:
-            full = np.hstack([basis_z, basis_x])
 
-            def welch_of(rows: np.ndarray) -> tuple:
-                parts = [welch.general(residuals, full, r, codes, sizes, rows[k:k + WELCH_CHUNK])
+        resamples = ((rows, None) for rows in drawn_permutations(n, permutations, seed))
+    else:
+        one_way = z == 1 and _one_way(interest, codes, len(sizes))
+        if q > 1 and not one_way:
+            raise InputError("variance groups with a vector per point need the groups "
+                             "compared alone, nothing adjusted for (James' statistic): test "
+                             "the normal displacement, or use the pooled statistic")
+        full = np.hstack([basis_z, basis_x])
+        centred = welch.reduced_residuals(data, basis_z, full, codes, sizes)
+        if one_way:
+            def welch_of(rows: np.ndarray, signs: np.ndarray) -> tuple:
+                return welch.one_way(centred, codes, sizes, signs)
+        else:
+            def welch_of(rows: np.ndarray, signs: np.ndarray) -> tuple:
+                parts = [welch.general(centred[..., 0], full, r, codes, sizes,
+                                       rows[k:k + WELCH_CHUNK], signs[k:k + WELCH_CHUNK])
                          for k in range(0, len(rows), WELCH_CHUNK)]
                 return tuple(np.concatenate(found) for found in zip(*parts))
-        else:
-            raise InputError("variance groups with a vector per point need the groups compared "
-                             "alone, nothing adjusted for (James' statistic): test the normal "
-                             "displacement, or use the pooled statistic")
 
-        def values_of(rows: np.ndarray) -> np.ndarray:
+        def values_of(rows: np.ndarray, signs: np.ndarray) -> np.ndarray:
             """Welch's G as -log of its parametric p (q = 1), James' J (q > 1)."""
-            found, welch_df = welch_of(rows)
+            found, welch_df = welch_of(rows, signs)
             return found if welch_df is None else welch.pivotal(found, r, welch_df)
 
-    observed = values_of(np.arange(n)[None])[0]
+        resamples = drawn_flips(codes, permutations, seed)
+
+    identity = np.arange(n)[None], np.ones((1, n))
+    observed = values_of(*identity)[0]
     threshold = observed - TIES * np.abs(observed)
-    rng = np.random.default_rng(seed)
     exceed = np.zeros(p, dtype=np.int64)
     minimum_p = family_wise == "min-p"
     # min-p keeps every permutation's statistic at every point (row 0: the observed); the
@@ -375,10 +454,9 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         table[0] = observed
     maxima = np.empty(permutations)
     done = 0
-    while done < permutations:
-        count = min(CHUNK, permutations - done)
-        rows = np.argsort(rng.random((CHUNK, n)), axis=1)[:count]
-        values = values_of(rows)
+    for rows, signs in resamples:
+        count = len(rows)
+        values = values_of(rows, signs)
         exceed += np.sum(values >= threshold, axis=0)
         if minimum_p:
             table[1 + done:1 + done + count] = values
@@ -396,7 +474,7 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         family_null = maxima
     p_fwer = np.maximum((1.0 + below) / (1.0 + permutations), p_point)
     statistic = (statistic_of(observed, q, r, df) if codes is None
-                 else welch_of(np.arange(n)[None])[0][0])
+                 else welch_of(*identity)[0][0])
     return PointTest(value=observed, statistic=statistic, p=p_point, p_fwer=p_fwer,
                      q_fdr=benjamini_hochberg(p_point), effect=effect, df=df,
                      permutations=permutations, family_null=family_null,

@@ -1,14 +1,12 @@
 """Per-point statistics that stay valid when groups differ in variance (the Behrens-Fisher
-problem): Welch's v and G with variance groups (Winkler et al. 2014, NeuroImage 92, section
-"Variance groups"), James' statistic for a vector per point.
+problem): Welch's v and G with variance groups (Winkler et al. 2014, NeuroImage 92, "Variance
+groups"), James' statistic for a vector per point, and the resampling that goes with them.
 
-Pooled-covariance statistics (Pillai's trace, Hotelling's T^2 with the pooled covariance) assume
-one error variance for all cases. When a small group varies more than a large one, their null
-distribution depends on the variances and permuting the cases does not recover it: the test
-rejects far too often. The statistics here weight each case by the inverse residual variance of
-its variance group (the groups compared), so that, asymptotically, their distribution does not
-depend on the variances (Janssen 1997: a studentized statistic makes the permutation test
-asymptotically exact under unequal variances, and exact when the variances are equal).
+Pooled-covariance statistics (Student's t, the F, Pillai's trace, Hotelling's T^2) assume one
+error variance for all cases. When a small group varies more than a large one, their null
+distribution depends on the variances, and permuting cases between the groups does not
+recover it: cases of unequal variance are not exchangeable. The statistics here weight each
+case by the inverse residual variance of its variance group (the groups compared).
 
 One number per point (q = 1), r effect columns (s = r numerator degrees of freedom), the model
 ``Y = M psi + E`` with M = [Z X]:
@@ -20,25 +18,25 @@ One number per point (q = 1), r effect columns (s = r numerator degrees of freed
   effect's coefficients ``psi_X' [(M'WM)^-1]_XX^-1 psi_X``;
 - ``G = Wald / (s Lambda)``, ``Lambda = 1 + 2 (s - 1) / (s (s + 2)) sum_g (1 - sum_g W_nn /
   tr W)^2 / sum_g R_nn``; for s = 1, G = v^2 with v Welch's t (the two-sample case:
-  ``(m2 - m1) / sqrt(s1^2 / n1 + s2^2 / n2)``), for one-way layouts Welch's (1951) F.
-
-Its approximate denominator degrees of freedom are ``s (s + 2) / (3 sum_g (1 - sum_g W_nn /
-tr W)^2 / sum_g R_nn)`` (Welch-Satterthwaite for s = 1); the permutation test does not need them.
+  ``(m2 - m1) / sqrt(s1^2 / n1 + s2^2 / n2)``), for one-way layouts Welch's (1951) F. Its
+  approximate denominator degrees of freedom are ``nu = s (s + 2) / (3 sum_g (1 - sum_g W_nn /
+  tr W)^2 / sum_g R_nn)`` (Welch-Satterthwaite for s = 1).
 
 A vector per point (q > 1) in a one-way layout (the groups compared, nothing adjusted for):
 James' (1954) statistic ``J = sum_g (m_g - m)' W_g (m_g - m)`` with ``W_g = n_g S_g^-1`` (S_g
 the group's covariance) and ``m = (sum_g W_g)^-1 sum_g W_g m_g``; for two groups
 ``d' (S_1 / n_1 + S_2 / n_2)^-1 d``, and for q = 1 it is s Lambda G.
 
-Welch's G is approximately F(s, nu) distributed with nu estimated from the data, a different nu at
-each point and in each permutation; the permutation test therefore permutes its parametric
-p-value, as ``-log p`` (:func:`pivotal`; Winkler et al. 2014 convert G the same way), which
-makes the statistic pivotal: under unequal variances, the permuted G of cases mixed from both
-groups has lighter tails than G itself, while the p-value of either is close to uniform. James'
-J is permuted as it is.
-
-All functions take a chunk of permutations at once: ``rows`` (B, n), the permutation of the cases
-(the design's and the variance groups' rows travel together against the fixed data).
+Resampling (Winkler et al. 2014, independent and symmetric errors): under the null hypothesis
+the cases within a variance group are exchangeable, cases of different groups are not, and each
+case's error is as likely as its negative. So the residuals of the reduced model are
+sign-flipped case by case and permuted only within the variance groups
+(:func:`~.glm.drawn_flips`);
+no case changes group, and each keeps its variance. The reduced model is fitted by weighted least
+squares with the variance groups' weights (:func:`reduced_residuals`), so that a small, highly
+variable group does not move the others' residuals. The statistic is flipped as ``-log`` of its
+parametric p-value under F(s, nu) (:func:`pivotal`; nu differs between points and resamples),
+which puts every point on one scale for the maximum over the points; James' J as it is.
 """
 
 from __future__ import annotations
@@ -89,20 +87,64 @@ def lambda_and_df(weights: np.ndarray, sizes: np.ndarray, residual_df: np.ndarra
     return lam, s * (s + 2) / (3.0 * np.maximum(spread, 1e-300))
 
 
+def reduced_residuals(data: np.ndarray, basis_z: np.ndarray, full: np.ndarray,
+                      groups: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """The residuals of the reduced model (the nuisance) fitted by weighted least squares, each
+    case weighted by its variance group's inverse residual variance in the full model.
+
+    Parameters
+    ----------
+    data : ndarray (n, p, q)
+    basis_z, full : ndarray (n, z), (n, m)
+        Orthonormal bases of the nuisance and of the full model.
+    groups, sizes
+        Each case's variance group (0 .. G - 1) and the groups' sizes.
+
+    Returns
+    -------
+    ndarray (n, p, q)
+        For q = 1 the weights are one number per group and point; for q > 1 (only with the
+        intercept as nuisance) a q x q matrix, the inverse of the group's covariance.
+    """
+    n, p, q = data.shape
+    members = (groups[:, None] == np.arange(len(sizes))).astype(np.float64)   # (n, G)
+    flat = data.reshape(n, -1)
+    errors = (flat - full @ (full.T @ flat)).reshape(n, p, q)
+    residual_df = members.T @ (1.0 - np.sum(full ** 2, axis=1))                 # (G,)
+    floor = SMALLEST_VARIANCE * np.einsum("npi,npi->p", data, data) / n
+    if q == 1:
+        sums = members.T @ errors[..., 0] ** 2                                   # (G, p)
+        weights = residual_df[:, None] / np.maximum(sums, floor * residual_df[:, None])
+        cross = np.einsum("ng,ni,nj->gij", members, basis_z, basis_z)
+        normal = np.einsum("gp,gij->pij", weights, cross)                        # (p, z, z)
+        moments = np.einsum("ng,ni,np->gip", members, basis_z, data[..., 0], optimize=True)
+        right = np.einsum("gp,gip->pi", weights, moments)
+        fitted = basis_z @ np.linalg.solve(normal, right[..., None])[..., 0].T
+        return data - fitted[..., None]
+    scatter = np.einsum("ng,npi,npj->gpij", members, errors, errors)
+    covariance = scatter / residual_df[:, None, None, None] + floor[:, None, None] * np.eye(q)
+    weights = np.linalg.inv(covariance)                                          # (G, p, q, q)
+    means = np.einsum("ng,npi->gpi", members, data) / sizes[:, None, None]
+    weighted = np.einsum("gpij,gpj->gpi", weights * sizes[:, None, None, None], means)
+    total = np.einsum("gpij->pij", weights * sizes[:, None, None, None])
+    centre = np.linalg.solve(total, weighted.sum(axis=0)[..., None])[..., 0]   # (p, q)
+    return data - centre[None]
+
+
 def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
-            rows: np.ndarray) -> np.ndarray:
-    """Welch's G (q = 1) or James' J (q > 1) of a one-way layout for each permutation.
+            signs: np.ndarray) -> tuple:
+    """Welch's G (q = 1) or James' J (q > 1) of a one-way layout for each sign flip.
 
     Parameters
     ----------
     residuals : ndarray (n, p, q)
-        The data after the intercept (centred).
+        The reduced model's residuals (:func:`reduced_residuals`).
     groups : ndarray (n,) int
         Each case's group, 0 .. G - 1.
     sizes : ndarray (G,)
         Cases per group.
-    rows : ndarray (B, n)
-        Permutations: the group of case ``rows[b, i]`` is given to case i.
+    signs : ndarray (B, n)
+        The flips (permutations within the groups do not change a one-way statistic).
 
     Returns
     -------
@@ -112,26 +154,24 @@ def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
     """
     n, p, q = residuals.shape
     count = len(sizes)
-    chunk = len(rows)
+    chunk = len(signs)
+    flat = residuals.reshape(n, p * q)
+    members = (groups[:, None] == np.arange(count)).astype(np.float64)          # (n, G)
+    # the flipped groups' sums: one product; their squares and cross products do not flip
+    signed = (signs[:, None, :] * members.T[None]).reshape(-1, n)               # (B G, n)
+    means = (signed @ flat).reshape(chunk, count, p, q) / sizes[None, :, None, None]
     upper = np.triu_indices(q)
-    products = residuals[:, :, upper[0]] * residuals[:, :, upper[1]]          # (n, p, q(q+1)/2)
-    columns = np.concatenate([residuals, products], axis=2).reshape(n, -1)
-    # group indicators of the permuted cases; the last group's sums are the totals minus the rest
-    indicator = (groups[rows][:, None, :] == np.arange(count - 1)[None, :, None]).astype(
-        np.float64)                                                         # (B, G-1, n)
-    partial = (indicator.reshape(-1, n) @ columns).reshape(chunk, count - 1, p, -1)
-    sums = np.concatenate([partial, columns.sum(axis=0).reshape(1, 1, p, -1)
-                           - partial.sum(axis=1, keepdims=True)], axis=1)  # (B, G, p, k)
-    size = sizes.astype(np.float64)[None, :, None]
-    means = sums[..., :q] / size[..., None]                                 # (B, G, p, q)
-    scatter = np.zeros((chunk, count, p, q, q))
-    scatter[..., upper[0], upper[1]] = sums[..., q:]
-    scatter[..., upper[1], upper[0]] = sums[..., q:]
-    scatter -= size[..., None, None] * means[..., :, None] * means[..., None, :]
+    products = (residuals[:, :, upper[0]] * residuals[:, :, upper[1]]).reshape(n, -1)
+    scatter = np.zeros((count, p, q, q))
+    scatter[..., upper[0], upper[1]] = (members.T @ products).reshape(count, p, -1)
+    scatter[..., upper[1], upper[0]] = scatter[..., upper[0], upper[1]]
+    size = sizes[None, :, None]
+    # the groups' scatter about their flipped means
+    scatter = scatter[None] - size[..., None, None] * means[..., :, None] * means[..., None, :]
     floor = SMALLEST_VARIANCE * np.einsum("npi,npi->p", residuals, residuals) / n
     if q == 1:
-        variance = np.maximum(scatter[..., 0, 0] / (size - 1), floor)      # (B, G, p)
-        weights = size / variance                                           # n_g / s_g^2
+        variance = np.maximum(scatter[..., 0, 0] / (size - 1), floor)           # (B, G, p)
+        weights = size / variance                                                # n_g / s_g^2
         mean = means[..., 0]
         centre = np.sum(weights * mean, axis=1, keepdims=True) / weights.sum(axis=1,
                                                                               keepdims=True)
@@ -141,7 +181,7 @@ def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
         return wald / (s * lam), df
     covariance = scatter / (size - 1)[..., None, None]
     covariance += floor[:, None, None] * np.eye(q)
-    weights = size[..., None, None] * np.linalg.inv(covariance)            # (B, G, p, q, q)
+    weights = size[..., None, None] * np.linalg.inv(covariance)                # (B, G, p, q, q)
     weighted = np.einsum("bgpij,bgpj->bgpi", weights, means)
     total = weights.sum(axis=1)
     combined = weighted.sum(axis=1)
@@ -194,49 +234,51 @@ def wald_tail(normal: np.ndarray, right: np.ndarray, r: int) -> np.ndarray:
 
 
 def general(residuals: np.ndarray, basis: np.ndarray, r: int, groups: np.ndarray,
-            sizes: np.ndarray, rows: np.ndarray) -> np.ndarray:
+            sizes: np.ndarray, rows: np.ndarray, signs: np.ndarray) -> tuple:
     """Winkler's G (v^2 for one effect column) of any design with variance groups, one number
-    per point, for each permutation.
+    per point, for each resample.
 
     Parameters
     ----------
     residuals : ndarray (n, p)
-        The data after the nuisance (the reduced model's residuals, Freedman-Lane).
+        The reduced model's residuals (:func:`reduced_residuals`).
     basis : ndarray (n, m)
         An orthonormal basis of the full model [Z X] whose last r columns span X after Z (the
         Wald statistic of X's coefficients does not depend on the basis of either span).
     r : int
         Effect columns.
-    groups, sizes, rows
+    groups, sizes
         As in :func:`one_way`.
+    rows, signs : ndarray (B, n)
+        The resamples (:func:`~.glm.drawn_flips`): case i, its residual flipped by ``signs[b, i]``,
+        is given the design row of case ``rows[b, i]`` of its own group.
 
     Returns
     -------
-    ndarray (B, p)
+    statistic, df : ndarray (B, p)
+        G and its denominator degrees of freedom.
     """
     n, p = residuals.shape
     count = len(sizes)
     chunk, m = len(rows), basis.shape[1]
-    permuted = basis[rows]                                                   # (B, n, m)
-    members = (groups[rows][..., None] == np.arange(count)).astype(np.float64)  # (B, n, G)
-    # per group g the sums over its cases of P_n P_n' (cross), P_n y_n (moments) and y_n^2, P
-    # the permuted basis: one matrix product each over all permutations and points
-    split = np.swapaxes(members[..., None] * permuted[:, :, None, :], 1, 3)  # (B, m, G, n)
-    cross = np.einsum("bjgn,bnk->bgjk", split, permuted)                    # (B, G, m, m)
+    members = (groups[:, None] == np.arange(count)).astype(np.float64)          # (n, G)
+    # a permutation within the groups leaves each group's sums of P_n P_n' and of y_n^2 (P the
+    # basis) as they are: only the sums of P_n y_n change, one matrix product for all
+    cross = np.einsum("ng,ni,nj->gij", members, basis, basis)                   # (G, m, m)
+    squares = members.T @ residuals ** 2                                         # (G, p)
+    residual_df = members.T @ (1.0 - np.sum(basis ** 2, axis=1))                 # (G,)
+    flipped = basis[rows] * signs[..., None]                                     # (B, n, m)
+    split = np.swapaxes(members[None, :, :, None] * flipped[:, :, None, :], 1, 3)  # (B, m, G, n)
     moments = (split.reshape(-1, n) @ residuals).reshape(chunk, m, count, p)
-    squares = (np.swapaxes(members, 1, 2).reshape(-1, n) @ residuals ** 2).reshape(
-        chunk, count, p)
-    fit = moments.sum(axis=2)                                               # P'y (B, m, p)
+    fit = moments.sum(axis=2)                                                    # P'y (B, m, p)
     # each group's residual sum of squares of the least-squares fit, sum_g (y - P P'y)^2
-    sums = (squares - 2.0 * np.einsum("bjp,bjgp->bgp", fit, moments)
-            + np.einsum("bjp,bgjk,bkp->bgp", fit, cross, fit, optimize=True))
-    residual_df = np.einsum("bng,bn->bg", members, 1.0 - np.sum(permuted ** 2, axis=2))
+    sums = (squares[None] - 2.0 * np.einsum("bjp,bjgp->bgp", fit, moments)
+            + np.einsum("bjp,gjk,bkp->bgp", fit, cross, fit, optimize=True))
     floor = SMALLEST_VARIANCE * np.sum(residuals ** 2, axis=0) / n
-    weights = residual_df[..., None] / np.maximum(sums, floor * residual_df[..., None])
+    weights = residual_df[None, :, None] / np.maximum(sums, floor * residual_df[None, :, None])
     # M'WM and M'Wy per point, as sums over the groups, each entry an array over (B, p)
-    normal = np.einsum("bgp,bgij->ijbp", weights, cross)                    # (m, m, B, p)
-    right = np.einsum("bgp,bigp->ibp", weights, moments)                    # (m, B, p)
+    normal = np.einsum("bgp,gij->ijbp", weights, cross)                         # (m, m, B, p)
+    right = np.einsum("bgp,bigp->ibp", weights, moments)                        # (m, B, p)
     wald = wald_tail(normal, right, r)
-    lam, df = lambda_and_df(weights, sizes, residual_df[..., None], r)
+    lam, df = lambda_and_df(weights, sizes, residual_df[:, None], r)
     return wald / (r * lam), df
-
