@@ -131,6 +131,37 @@ def reduced_residuals(data: np.ndarray, basis_z: np.ndarray, full: np.ndarray,
     return data - centre[None]
 
 
+def small_inverse(matrices: np.ndarray) -> np.ndarray:
+    """The inverses of many 2 x 2 or 3 x 3 matrices (..., q, q) by their adjugates, written out
+    over the entries (much faster than a batched LAPACK call for so small matrices); other sizes
+    by :func:`numpy.linalg.inv`.
+
+    Examples
+    --------
+    >>> a = np.array([[[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]]])
+    >>> bool(np.allclose(small_inverse(a), np.linalg.inv(a)))
+    True
+    """
+    q = matrices.shape[-1]
+    m = matrices
+    if q == 2:
+        determinant = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
+        adjugate = np.stack([np.stack([m[..., 1, 1], -m[..., 0, 1]], -1),
+                             np.stack([-m[..., 1, 0], m[..., 0, 0]], -1)], -2)
+        return adjugate / determinant[..., None, None]
+    if q != 3:
+        return np.linalg.inv(matrices)
+    cofactor = np.empty_like(m)
+    for i in range(3):
+        for j in range(3):
+            r0, r1 = [k for k in range(3) if k != i]
+            c0, c1 = [k for k in range(3) if k != j]
+            cofactor[..., j, i] = (-1) ** (i + j) * (m[..., r0, c0] * m[..., r1, c1]
+                                                     - m[..., r0, c1] * m[..., r1, c0])
+    determinant = np.einsum("...j,...j->...", m[..., 0, :], cofactor[..., :, 0])
+    return cofactor / determinant[..., None, None]
+
+
 def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
             signs: np.ndarray) -> tuple:
     """Welch's G (q = 1) or James' J (q > 1) of a one-way layout for each sign flip.
@@ -181,13 +212,12 @@ def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
         return wald / (s * lam), df
     covariance = scatter / (size - 1)[..., None, None]
     covariance += floor[:, None, None] * np.eye(q)
-    weights = size[..., None, None] * np.linalg.inv(covariance)                # (B, G, p, q, q)
+    weights = size[..., None, None] * small_inverse(covariance)               # (B, G, p, q, q)
     weighted = np.einsum("bgpij,bgpj->bgpi", weights, means)
-    total = weights.sum(axis=1)
     combined = weighted.sum(axis=1)
+    centre = np.einsum("bpij,bpj->bpi", small_inverse(weights.sum(axis=1)), combined)
     return (np.einsum("bgpi,bgpi->bp", means, weighted)
-            - np.einsum("bpi,bpi->bp", combined,
-                        np.linalg.solve(total, combined[..., None])[..., 0])), None
+            - np.einsum("bpi,bpi->bp", combined, centre)), None
 
 
 def wald_tail(normal: np.ndarray, right: np.ndarray, r: int) -> np.ndarray:
