@@ -59,11 +59,13 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     cells = model.triangles
     log_p = -np.log10(points.p_fwer)
     level = float(-np.log10(alpha))
-    # one fixed scale from 0 past the significance level: a null result stays dark
-    top = max(float(log_p.max()), level * 1.5)
+    # one fixed scale from 0 past the significance level: a null result stays dark; the scale's
+    # ends come from the values as the page stores them (4-byte floats), so that they cover
+    # every value shown
+    top = max(float(log_p.astype(np.float32).max()), level * 1.5)
     rows = [("-log10 p (FWER)", log_p, "viridis", 0.0, top, "-log10 p, family-wise")]
     for label, values in zip(effect_labels(analysis.subjects), analysis.normal_difference):
-        limit = float(np.max(np.abs(values))) or 1.0
+        limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((label, values, "coolwarm", -limit, limit, "along the normal [mm]"))
     parts = []
     if model.of_curves:
