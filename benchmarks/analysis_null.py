@@ -17,6 +17,10 @@ discovery (under the complete null of independent points, Benjamini-Hochberg's i
 ``--min-p-permutations B`` (0: not run), also the family-wise error of the variance groups by
 min-p with B permutations (B well above points / alpha).
 
+``--effect D``: power instead of the null: the larger group's mean shifted by D SDs at the
+first 10 points; per design, the share of those points family-wise significant and the share of
+data sets with one of them family-wise (FDR) significant.
+
 ``--build DIR``: real shapes instead: the build's cases, ``--small`` of them drawn at random
 ``--splits`` times and their deviations from the mean of all cases scaled by ``--ratio`` (no
 difference of mean shape in expectation), each split analysed with
@@ -45,10 +49,12 @@ from mdlshapemodel.analysis import permutation_test
 DESIGNS = ((6, 24, 3.0), (10, 30, 1.5), (20, 20, 1.0))
 ERRORS = ("normal", "t3")
 NUISANCE_COLUMNS = 3
+# with --effect, the larger group's mean is shifted at this many points
+EFFECT_POINTS = 10
 
 
 def data_set(rng, small: int, large: int, ratio: float, errors: str, points: int,
-             nuisance: bool):
+             nuisance: bool, effect: float = 0.0):
     """One null data set: (y (n, points), group indicator (n, 1), nuisance (n, c) or None,
     groups (n,))."""
     n = small + large
@@ -58,6 +64,7 @@ def data_set(rng, small: int, large: int, ratio: float, errors: str, points: int
     else:
         noise = rng.standard_t(3, size=(n, points)) / np.sqrt(3.0)
     y = noise * np.where(groups == 0, ratio, 1.0)[:, None]
+    y[:, :EFFECT_POINTS] += effect * groups[:, None]
     columns = None
     if nuisance:
         standard = (groups - groups.mean()) / groups.std()
@@ -76,15 +83,20 @@ def rates(args, small, large, ratio, errors, nuisance) -> dict:
     found = {name: [] for name, *_ in variants}
     for _ in range(args.replicates):
         y, group, columns, groups = data_set(rng, small, large, ratio, errors, args.points,
-                                             nuisance)
+                                             nuisance, args.effect)
         seed = int(rng.integers(1 << 30))
         for name, by_group, family_wise, permutations in variants:
             result = permutation_test(y, group, columns, permutations, seed,
                                       variance_groups=groups if by_group else None,
                                       family_wise=family_wise)
-            found[name].append((np.mean(result.p <= args.alpha),
-                                bool(np.any(result.p_fwer <= args.alpha)),
-                                bool(np.any(result.q_fdr <= args.alpha))))
+            if args.effect:
+                hits = result.p_fwer[:EFFECT_POINTS] <= args.alpha
+                found[name].append((np.mean(hits), bool(np.any(hits)),
+                                    bool(np.any(result.q_fdr[:EFFECT_POINTS] <= args.alpha))))
+            else:
+                found[name].append((np.mean(result.p <= args.alpha),
+                                    bool(np.any(result.p_fwer <= args.alpha)),
+                                    bool(np.any(result.q_fdr <= args.alpha))))
     return {name: np.mean(values, axis=0) for name, values in found.items()}
 
 
@@ -134,6 +146,11 @@ def main():
                              "B well above points / alpha)")
     parser.add_argument("--alpha", type=float, default=0.05)
     parser.add_argument("--seed", type=int, default=2014)
+    parser.add_argument("--effect", type=float, default=0.0,
+                        help="power instead: the larger group shifted by this many (larger "
+                             "group) SDs at the first 10 points; the columns become the share "
+                             "of those points family-wise significant and the share of data sets "
+                             "with one of them significant (family-wise, FDR)")
     parser.add_argument("--build", help="real shapes: a build's output folder")
     parser.add_argument("--splits", type=int, default=60)
     parser.add_argument("--small", type=int, default=5, help="cases of the scaled group")
@@ -143,13 +160,20 @@ def main():
         real_shapes(args)
         return
     se = np.sqrt(args.alpha * (1 - args.alpha) / args.replicates)
-    print(f"{args.replicates} replicates of {args.points} independent null points; "
+    print(f"{args.replicates} replicates of {args.points} independent points; "
           f"alpha {args.alpha}; SE of a family-wise rate {se:.4f}; "
           f"{args.permutations} permutations")
     extra = " FWER, variance groups, min-p |" if args.min_p_permutations else ""
-    print("| groups (SD ratio) | errors | nuisance | per point, pooled | per point, variance "
-          "groups | FWER, pooled | FWER, variance groups | any FDR, pooled | any FDR, variance "
-          "groups |" + extra)
+    if args.effect:
+        print(f"power: the larger group shifted by {args.effect:g} SD at {EFFECT_POINTS} points")
+        print("| groups (SD ratio) | errors | nuisance | shifted points found, pooled | shifted "
+              "points found, variance groups | any found (FWER), pooled | any found (FWER), "
+              "variance groups | any found (FDR), pooled | any found (FDR), variance groups |"
+              + extra)
+    else:
+        print("| groups (SD ratio) | errors | nuisance | per point, pooled | per point, variance "
+              "groups | FWER, pooled | FWER, variance groups | any FDR, pooled | any FDR, "
+              "variance groups |" + extra)
     print("|---|---|---|---|---|---|---|---|---|" + ("---|" if extra else ""))
     for small, large, ratio in DESIGNS:
         for errors in ERRORS:
@@ -159,6 +183,8 @@ def main():
 
                 def rate(name, column=1):
                     value = found[name][column]
+                    if args.effect:
+                        return f"{value:.3f}"
                     return f"{value:.3f} ({(value - args.alpha) / se:+.1f} SE)"
 
                 print(f"| {small} vs {large} ({ratio:g}) | {errors} | "
