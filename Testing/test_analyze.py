@@ -17,6 +17,7 @@ from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig, build_model
 from mdlshapemodel.analysis import align, permutation_test
+from mdlshapemodel.analysis.glm import drawn_flips, drawn_permutations
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import io
 
@@ -120,7 +121,8 @@ def test_every_number_of_analysis_json_is_recomputed(build, table, analysed):
         "fwer": int(np.sum(points["p_fwer"].astype(float) <= 0.05)),
         "fdr": int(np.sum(points["q_fdr"].astype(float) <= 0.05)), "of": 162}
 
-    # the per-point statistic: t^2 of the normal displacement, normals from VTK's filter
+    # the per-point statistic: Welch's v^2 of the normal displacement (a variance per group,
+    # the default), normals from VTK's filter
     model = ShapeModel.load(build / "model.h5")
     aligned = align(shapes_of(build, used), model.weights)
     mean = aligned.mean(axis=0)
@@ -131,7 +133,7 @@ def test_every_number_of_analysis_json_is_recomputed(build, table, analysed):
                                (vtk_normals(mean, model.triangles), 0.05)):
         unit = normals / np.linalg.norm(normals, axis=1)[:, None]
         normal = np.einsum("npd,pd->np", aligned - mean, unit)
-        t = stats.ttest_ind(normal[thin], normal[~thin]).statistic
+        t = stats.ttest_ind(normal[thin], normal[~thin], equal_var=False).statistic
         np.testing.assert_allclose(points["statistic"].astype(float), t ** 2, rtol=tolerance)
     difference = aligned[thin].mean(0) - aligned[~thin].mean(0)
     np.testing.assert_allclose(
@@ -202,6 +204,69 @@ def test_effects_vtp_holds_the_points_csv_values_for_vtk(analysed):
             in page)
     departures = list((analysed / "unusual").iterdir())
     assert len(departures) == N
+
+
+def normal_displacement(build: Path, names: list) -> np.ndarray:
+    """Each case's displacement from the mean along the mean's area-weighted normals (n, p)."""
+    model = ShapeModel.load(build / "model.h5")
+    aligned = align(shapes_of(build, names), model.weights)
+    mean = aligned.mean(axis=0)
+    normals = area_normals(mean, model.triangles)
+    unit = normals / np.linalg.norm(normals, axis=1)[:, None]
+    return np.einsum("npd,pd->np", aligned - mean, unit)
+
+
+def own_p(values: np.ndarray) -> np.ndarray:
+    """Each row's per-point p among all rows (smaller values: more extreme), by column."""
+    return np.mean(values[None] <= values[:, None] + 1e-9 * np.abs(values[:, None]), axis=1)
+
+
+def test_points_csv_p_is_each_points_own_and_recomputed_by_plain_loops(build, table, analysed,
+                                                                       tmp_path):
+    used = [f"case_{k:02d}" for k in range(N) if k != 5]
+    y = normal_displacement(build, used)
+    thin = np.array([int(n[-2:]) % 2 == 1 for n in used])
+    points = read_points(analysed / "points.csv")
+    summary = json.loads((analysed / "analysis.json").read_text())
+    assert summary["point_test"]["variance"] == "groups"
+    assert summary["point_test"]["variance_groups"] == {"full": 6, "thin": 5}
+    assert summary["point_test"]["smallest_p"] == pytest.approx(1 / 1000)
+    # the default: Welch's p of the sign-flipped residuals of a weighted mean, seed 0
+    a, b = y[~thin], y[thin]
+    wa, wb = len(a) / a.var(axis=0, ddof=1), len(b) / b.var(axis=0, ddof=1)
+    residuals = y - (wa * a.mean(0) + wb * b.mean(0)) / (wa + wb)
+    signs = np.vstack([np.ones(len(y))] + [s for _, s in drawn_flips(thin.astype(int), 999, 0)])
+    welch = np.array([stats.ttest_ind((s[:, None] * residuals)[thin],
+                                      (s[:, None] * residuals)[~thin], equal_var=False).pvalue
+                      for s in signs])
+    p = points["p"].astype(float)
+    expected = own_p(welch)[0]
+    assert np.mean(np.abs(p - expected) < 1e-9) > 0.95 and np.abs(p - expected).max() <= 0.003
+    np.testing.assert_allclose(points["q_fdr"].astype(float),
+                               stats.false_discovery_control(p, method="bh"), rtol=1e-4)
+    assert summary["point_test"]["uncorrected_significant"] == int(np.sum(p <= 0.05))
+
+    # the pooled statistic and min-p, asked for by name
+    output = tmp_path / "pooled"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "-o", output,
+                     "--variance", "pooled", "--family-wise", "min-p", "--permutations", "199",
+                     "-q")
+    assert result.returncode == 0, result.stderr
+    points = read_points(output / "points.csv")
+    summary = json.loads((output / "analysis.json").read_text())
+    assert summary["point_test"]["variance"] == "pooled"
+    assert summary["point_test"]["family_wise"] == "min-p"
+    student = stats.ttest_ind(y[thin], y[~thin]).statistic ** 2
+    np.testing.assert_allclose(points["statistic"].astype(float), student, rtol=1e-5)
+    rows = np.vstack([np.arange(len(y))] + list(drawn_permutations(len(y), 199, 0)))
+    squares = np.array([stats.ttest_ind(y[thin[order]], y[~thin[order]]).statistic ** 2
+                        for order in rows])
+    every = own_p(-squares)
+    p, p_fwer = points["p"].astype(float), points["p_fwer"].astype(float)
+    assert np.mean(np.abs(p - every[0]) < 1e-9) > 0.95 and np.abs(p - every[0]).max() <= 0.015
+    smallest = every[1:].min(axis=1)
+    expected = (1 + np.sum(smallest[:, None] <= every[0] * (1 + 1e-9), axis=0)) / 200
+    assert np.mean(np.abs(p_fwer - expected) < 1e-9) > 0.95
 
 
 def test_a_covariate_with_nuisance_writes_its_effect_per_unit(build, table, tmp_path):

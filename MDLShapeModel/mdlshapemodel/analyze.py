@@ -7,11 +7,14 @@ output folder holds a whole analysis or none (an interrupted run leaves nothing 
 The output folder::
 
     analysis.json   settings, the columns tested and adjusted for, cases per group, cases left
-                    out and why (with the columns and values missing), the global test, the
-                    number of significant points (FWER, FDR), the classification
+                    out and why (with the columns and values missing), the per-point test
+                    (statistic, variance groups, family-wise correction, smallest p), the global
+                    test, the number of significant points (FWER, FDR), the classification
     points.csv      one row per model point: point,part,x,y,z,statistic,p,p_fwer,q_fdr,
                     difference_x,difference_y,difference_z,normal_difference_mm
-                    (several effect columns: difference_<name>_x ... per column)
+                    (p: the point's own permutation p-value; p_fwer: family-wise corrected;
+                    q_fdr: Benjamini-Hochberg of p; several effect columns:
+                    difference_<name>_x ... per column)
     effects.vtp     the mean surface with the same values as point arrays (effects/<part>.vtp
                     for a multi-part model)
     unusual.csv     per case: Mahalanobis distance, p, flagged, largest departure from its
@@ -80,8 +83,7 @@ def summary_of(analysis: Analysis, build, table) -> dict:
         "version": __version__, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "build": str(build), "table": str(table), "settings": asdict(config),
         "n_cases": len(design.cases),
-        "n_per_group": ({level: design.groups.count(level) for level in design.levels}
-                        if design.groups is not None else None),
+        "n_per_group": design.n_per_group(),
         "tested": design.tested,
         "adjusted_for": design.adjusted_for,
         "effects": design.interest_names,
@@ -95,6 +97,16 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                                "fdr": int(analysis.significant("fdr").sum()),
                                "of": len(analysis.mean)},
         "degrees_of_freedom": analysis.points.df,
+        "point_test": {"statistic": analysis.points.name,
+                       "variance": analysis.points.variance,
+                       "variance_groups": (design.n_per_group() if analysis.points.variance
+                                           == "groups" else None),
+                       "family_wise": analysis.points.family_wise,
+                       "permutations": analysis.points.permutations,
+                       "p": "each point's own permutation p-value",
+                       "smallest_p": 1.0 / (analysis.points.permutations + 1),
+                       "uncorrected_significant": int(np.sum(analysis.points.p
+                                                             <= config.alpha))},
         "classification": None, "discriminant": None,
         "unusual": {"modes": analysis.unusual.distances.modes,
                     "threshold": analysis.unusual.distances.threshold,

@@ -16,8 +16,9 @@ from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Callable
 
-from .config import (ANALYSIS_SIZES, DISPLACEMENTS, OPTION_GROUPS, PART_ALIGNMENTS,
-                     STRATEGIES, AnalysisConfig, BuildConfig, parse_items)
+from .config import (ANALYSIS_SIZES, DISPLACEMENTS, FAMILY_WISE, OPTION_GROUPS,
+                     PART_ALIGNMENTS, STRATEGIES, VARIANCES, AnalysisConfig, BuildConfig,
+                     parse_items)
 from .correspondence.trace import stop_summary
 from .errors import Cancelled, ConfigError, InternalError, MDLShapeModelError
 from .progress import ctrl_c
@@ -355,7 +356,8 @@ def _run_analyze(args, live: bool) -> int:
                             nuisance=args.nuisance, categorical=args.categorical,
                             test=args.test, reference=args.reference,
                             permutations=args.permutations, size=args.size, parts=args.parts,
-                            displacement=args.displacement, alpha=args.alpha,
+                            displacement=args.displacement, variance=args.variance,
+                            family_wise=args.family_wise, alpha=args.alpha,
                             seed=args.seed).validate()
     with _ProgressDisplay(live) as progress:
         result = analyze_build(args.build, args.table, args.output, config, progress,
@@ -369,6 +371,8 @@ def _run_analyze(args, live: bool) -> int:
     lines = [f"  tested: {', '.join(summary['tested'])}; adjusted for: "
              f"{', '.join(summary['adjusted_for']) or 'nothing'} "
              f"({summary['degrees_of_freedom']} residual degrees of freedom)",
+             f"  per point: {summary['point_test']['statistic']}, family-wise by "
+             f"{summary['point_test']['family_wise']}",
              f"  cases: {summary['n_cases']}"
              + (" (" + ", ".join(f"{k}: {v}" for k, v in summary["n_per_group"].items()) + ")"
                 if summary["n_per_group"] else ""),
@@ -560,6 +564,19 @@ def main(argv=None) -> int:
                               "mean surface's normal (not changed by sliding correspondence); "
                               "vector, the displacement vector (Hotelling's T^2) "
                               "(default %(default)s)")
+    analyze.add_argument("--variance", choices=VARIANCES, default=analysis_defaults.variance,
+                         help="a tested group's per-point statistic: groups, a variance per "
+                              "group (Welch's v or G; James' statistic for --displacement "
+                              "vector), valid when groups differ in spread and size; pooled, "
+                              "one variance for all cases (t, F, Hotelling's T^2, Pillai's "
+                              "trace), which assumes equal spread; covariates are always tested "
+                              "pooled (default %(default)s)")
+    analyze.add_argument("--family-wise", choices=FAMILY_WISE,
+                         default=analysis_defaults.family_wise,
+                         help="family-wise correction over the points: maximum, of the "
+                              "per-point statistic; min-p, of the per-point p-values (no point "
+                              "dominates whatever its tails; needs --permutations well above "
+                              "the number of points / alpha) (default %(default)s)")
     analyze.add_argument("--alpha", type=float, default=analysis_defaults.alpha,
                          help="significance level (default %(default)s)")
     analyze.add_argument("--seed", type=int, default=analysis_defaults.seed)

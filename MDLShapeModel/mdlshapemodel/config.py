@@ -630,6 +630,16 @@ DISPLACEMENTS = ("normal", "vector")
 # How the analysis aligns the shapes: size kept (rigid; a loss of volume shows) or removed
 # (each scaled to the mean centroid size first).
 ANALYSIS_SIZES = ("kept", "removed")
+# The per-point statistic of a group comparison: one covariance per group ("groups": Welch's v or
+# G, James' statistic for the vector displacement; valid when the groups differ in variance and
+# size) or one pooled covariance for all cases ("pooled": Student's t, the F, Pillai's trace or
+# Hotelling's T^2, which assume equal covariances). Covariates are always tested pooled.
+VARIANCES = ("groups", "pooled")
+# The family-wise correction over the points: the maximum of the per-point statistic (pivotal:
+# the same null distribution at every point under normal errors) or min-p (the smallest
+# per-point p; no point dominates whatever its tails, but it needs permutations well above the
+# number of points / alpha)
+FAMILY_WISE = ("maximum", "min-p")
 # How the analysis aligns a multi-part object: as one (the parts' relative positions count) or
 # each part on its own (only each part's own shape counts).
 PART_ALIGNMENTS = ("whole", "each")
@@ -715,6 +725,8 @@ class AnalysisConfig:
     size: str = "kept"
     parts: str = "whole"              # multi-part objects: aligned as one, or each part alone
     displacement: str = "normal"
+    variance: str = "groups"          # a tested group's statistic: per-group or pooled variance
+    family_wise: str = "maximum"      # the family-wise correction over the points
     alpha: float = 0.05
     seed: int = 0
     folds: int = 10                   # cross-validation of the two-group classification
@@ -731,11 +743,25 @@ class AnalysisConfig:
              f"must be one of {', '.join(PART_ALIGNMENTS)}")
         need(self.displacement in DISPLACEMENTS, "displacement",
              f"must be one of {', '.join(DISPLACEMENTS)}")
+        need(self.variance in VARIANCES, "variance", f"must be one of {', '.join(VARIANCES)}")
+        need(self.family_wise in FAMILY_WISE, "family_wise",
+             f"must be one of {', '.join(FAMILY_WISE)}")
         need(0 < self.alpha < 1, "alpha", "must be between 0 and 1")
         need(self.folds >= 2, "folds", "must be at least 2")
         if self.group is not None or self.covariates:
-            self.roles()
+            roles = self.roles()
+            need(not (self.variance_groups() and self.displacement == "vector"
+                      and (roles.adjusted_for or len(roles.tested) > 1)), "variance",
+                 "per-group variances of the vector displacement (James' statistic) need the "
+                 "groups compared alone, nothing adjusted for; use --variance pooled or the "
+                 "normal displacement")
         return self
+
+    def variance_groups(self) -> bool:
+        """Whether the per-point test has a variance group per level of the group: a group is
+        tested and ``variance`` is "groups" (a covariate's test is always pooled)."""
+        return (self.variance == "groups" and self.group is not None
+                and self.group in self.roles().tested)
 
     def roles(self) -> Roles:
         """What each column of the model is (:func:`analysis_roles`); ConfigError when the

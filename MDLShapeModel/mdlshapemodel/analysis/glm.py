@@ -17,16 +17,27 @@ which is, for q = 1, the share of the residual sum of squares that X explains (F
 (T^2 = df V / (1 - V)): for two groups and no covariate, the two-sample T^2 of the point's
 displacement (n1 n2 / n) d' S^-1 d with S the pooled covariance.
 
+With variance groups (the groups compared, when they may differ in variance), the statistic is
+Welch's v / G or James' J instead (:mod:`.welch`); the pooled statistics assume one covariance
+for all cases.
+
 Inference by permutation, Freedman and Lane (1983): the residuals of the reduced model
 R = (I - P_Z) Y are permuted and the statistic is recomputed with the full model. A permutation
-sigma changes only which rows of the orthonormal bases of Z and of X after Z meet which rows of
-R, so with the bases' rows permuted instead, the statistic of each permutation is one product of
-an n x (z + r) matrix with the n x (p q) residuals, then q x q algebra per point. Family-wise
-error over all points by the maximum statistic (Nichols and Holmes 2002); per-point p-values
-count the observed statistic among the permuted ones, p = (1 + #{T_b >= T}) / (1 + B);
-Benjamini-Hochberg q-values from the permuted statistics pooled over all points (which resolve
-the p-values far below 1 / B that thousands of points need). Memory stays bounded: permutations are taken in chunks
-and only each permutation's maximum and each point's count are kept.
+sigma changes only which rows of the orthonormal bases of Z and of X after Z (and of the
+variance groups) meet which rows of R, so with the bases' rows permuted instead, the pooled
+statistic of each permutation is one product of an n x (z + r) matrix with the n x (p q)
+residuals, then q x q algebra per point. Per-point p-values count each point's observed
+statistic among its own permuted ones, p = (1 + #{b: T_b >= T}) / (1 + B), so they never
+assume that the points share a null distribution (under heavy tails or unequal variances they
+do not); their resolution is 1 / (B + 1). Benjamini-Hochberg q-values are computed from them.
+Family-wise error over all points by the maximum statistic (Nichols and Holmes 2002), valid
+always and balanced across the points when the statistic is pivotal (the same null distribution
+at every point: Pillai's trace under normal errors, Welch's -log p approximately); or by min-p
+(Westfall and Young 1993): each permutation's smallest per-point p-value over the points, each
+against its own point's permutation distribution, is the null distribution of the smallest p,
+so that no point dominates the correction because its statistic has heavier tails. Min-p keeps
+every permuted statistic, (B + 1) x p 4-byte numbers; the maximum keeps one number per
+permutation. The permutations are drawn in chunks.
 """
 
 from __future__ import annotations
@@ -35,8 +46,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import FAMILY_WISE
 from ..errors import InputError
 from ..progress import report
+from . import welch
 
 # permutations handled at once: bounds the memory to CHUNK x (z + r) x p x q floats; fixed so
 # that the drawn permutations (and so the p-values) do not depend on it changing
@@ -44,11 +57,12 @@ CHUNK = 250
 # a permuted statistic counts as reaching the observed one within this relative rounding, so that
 # the identity permutation, recomputed along another path, always counts
 TIES = 1e-10
-# the null distribution pooled over all points (for the FDR q-values): a histogram of log(V) in
-# this many bins from SMALLEST to LARGEST (a bin is 0.04 % of V wide); Pillai's trace is at
-# most min(q, r), and only LARGEST is needed as an upper bound of the bins
-HISTOGRAM_BINS = 1 << 16
-SMALLEST, LARGEST = 1e-12, 64.0
+# per-point p-values of the permuted statistics are ranked this many points at a time (bounds the
+# memory of the sort to BLOCK x (B + 1) indices)
+BLOCK = 256
+# permutations of the general Welch statistic computed at once (bounds its memory to
+# WELCH_CHUNK x n x p floats)
+WELCH_CHUNK = 25
 
 
 @dataclass
@@ -57,22 +71,23 @@ class PointTest:
 
     Attributes
     ----------
-    pillai : ndarray (p,)
-        Pillai's trace V of the effect at each point (the quantity permuted).
+    value : ndarray (p,)
+        The quantity permuted at each point: Pillai's trace V of the effect (``variance``
+        "pooled"); with variance groups, -log of Welch's G's parametric p-value (q = 1) or James'
+        J (q > 1).
     statistic : ndarray (p,)
-        The statistic reported: Hotelling's T^2 (q > 1) or F = t^2 (q = 1) when r = 1; else the
-        F of Pillai's trace (q = 1: the exact one-way F).
+        The statistic reported. Pooled: Hotelling's T^2 (q > 1) or F = t^2 (q = 1) when r = 1,
+        else the F of Pillai's trace (q = 1: the exact one-way F). Variance groups: Welch's G
+        (q = 1; v^2 for two groups) or James' J (q > 1).
     p : ndarray (p,)
-        Uncorrected permutation p-value against the permuted statistics of all points pooled,
-        (1 + #{b, k: V_bk >= V}) / (1 + B p) (to within a histogram bin, 0.04 % of V): the
-        statistic is pivotal (under normal errors its null distribution is the same at every
-        point), and the pooled distribution resolves p-values far below 1 / B, as a
-        false-discovery rate over thousands of points needs.
-    p_point : ndarray (p,)
-        The point's own permutation p-value, (1 + #{b: V_b >= V}) / (1 + B).
-    p_fwer, q_fdr : ndarray (p,)
-        Family-wise corrected over all points by the maximum statistic, and the
-        Benjamini-Hochberg q-value of ``p``.
+        The point's own permutation p-value, (1 + #{b: T_b >= T}) / (1 + B), at least
+        1 / (B + 1).
+    p_fwer : ndarray (p,)
+        Family-wise corrected over all points: by the maximum of ``value`` over the points,
+        (1 + #{b: max_k value_bk >= value}) / (1 + B), or by min-p, (1 + #{b: min over points of
+        the permutation's per-point p <= p}) / (1 + B).
+    q_fdr : ndarray (p,)
+        The Benjamini-Hochberg q-value of ``p``.
     effect : ndarray (r, p, q)
         The least-squares coefficients of the effect columns, adjusted for the nuisance: for a
         group indicator the adjusted mean difference from the reference group; for a
@@ -81,30 +96,39 @@ class PointTest:
         Residual degrees of freedom n - z - r.
     permutations : int
         Number of permutations drawn (B).
-    maxima : ndarray (B,)
-        Each permutation's largest Pillai trace over the points (the null distribution of the
-        family-wise test).
+    family_null : ndarray (B,)
+        The null distribution of the family-wise test: each permutation's largest ``value`` over
+        the points ("maximum"), or its smallest per-point p-value ("min-p").
+    variance : str
+        "pooled" (one covariance for all cases) or "groups" (one per variance group).
+    family_wise : str
+        "maximum" or "min-p" (:data:`FAMILY_WISE`).
     """
 
-    pillai: np.ndarray
+    value: np.ndarray
     statistic: np.ndarray
     p: np.ndarray
-    p_point: np.ndarray
     p_fwer: np.ndarray
     q_fdr: np.ndarray
     effect: np.ndarray
     df: int
     permutations: int
-    maxima: np.ndarray
+    family_null: np.ndarray
+    variance: str
+    family_wise: str
 
-
-def _bins(pillai: np.ndarray) -> np.ndarray:
-    """The bin of each Pillai trace in the pooled null histogram: equal steps of log(V) from
-    :data:`SMALLEST` to the largest trace possible (bin 0 holds everything below)."""
-    logs = np.log(np.maximum(np.asarray(pillai, dtype=np.float64), SMALLEST))
-    position = (logs - np.log(SMALLEST)) / (np.log(LARGEST) - np.log(SMALLEST))
-    return np.clip(np.floor(position * HISTOGRAM_BINS).astype(np.int64) + 1, 0,
-                   HISTOGRAM_BINS)
+    @property
+    def name(self) -> str:
+        """What the statistic is, in words (for the page, the terminal and analysis.json)."""
+        r, _, q = self.effect.shape
+        if self.variance == "groups":
+            return ("James' statistic (a covariance per group)" if q > 1 else
+                    "Welch's v^2 (a variance per group)" if r == 1 else
+                    "Welch's G (a variance per group)")
+        if r > 1:
+            return "the F of Pillai's trace (one pooled covariance)"
+        return ("Hotelling's T^2 (one pooled covariance)" if q > 1 else
+                "F = t^2 (one pooled variance)")
 
 
 def benjamini_hochberg(p: np.ndarray) -> np.ndarray:
@@ -181,8 +205,116 @@ def statistic_of(pillai: np.ndarray, q: int, r: int, df: int) -> np.ndarray:
     return (2 * nn + s + 1) / (2 * m + s + 1) * pillai / np.maximum(s - pillai, 1e-300)
 
 
+def smallest_p(table: np.ndarray) -> np.ndarray:
+    """Each row's smallest per-point p-value, every column's values ranked against that column.
+
+    Parameters
+    ----------
+    table : ndarray (m, p)
+        m values of a statistic at each of p points (larger: more extreme).
+
+    Returns
+    -------
+    ndarray (m,) int
+        For each row, the smallest over the points of #{rows whose value at the point is at
+        least the row's}: the row's smallest p-value times m.
+
+    Examples
+    --------
+    >>> smallest_p(np.array([[3.0, 0.0], [1.0, 5.0], [2.0, 5.0]])).tolist()
+    [1, 2, 2]
+    """
+    m, p = table.shape
+    index = np.arange(m)[:, None]
+    smallest = np.full(m, m, dtype=np.int64)
+    for start in range(0, p, BLOCK):
+        block = table[:, start:start + BLOCK]
+        order = np.argsort(block, axis=0)
+        ordered = np.take_along_axis(block, order, axis=0)
+        starts = np.ones(ordered.shape, dtype=bool)
+        starts[1:] = ordered[1:] != ordered[:-1]
+        # values below a row's: the position where its run of equal values starts
+        below = np.maximum.accumulate(np.where(starts, index, 0), axis=0)
+        counts = np.empty_like(below)
+        np.put_along_axis(counts, order, m - below, axis=0)
+        smallest = np.minimum(smallest, counts.min(axis=1))
+    return smallest
+
+
+def drawn_permutations(n: int, permutations: int, seed: int):
+    """The permutations :func:`permutation_test` draws, chunk by chunk.
+
+    Yields arrays (count, n) of :data:`CHUNK` rows (fewer in the last): in permutation b, case
+    i is given the design row (and variance group) of case ``rows[b, i]``, against the fixed
+    residuals of the reduced model; a plain loop over them recomputes every permuted statistic.
+
+    Examples
+    --------
+    >>> rows = np.vstack(list(drawn_permutations(5, 300, seed=0)))
+    >>> rows.shape, sorted(rows[0].tolist())
+    ((300, 5), [0, 1, 2, 3, 4])
+    """
+    rng = np.random.default_rng(seed)
+    done = 0
+    while done < permutations:
+        count = min(CHUNK, permutations - done)
+        yield np.argsort(rng.random((CHUNK, n)), axis=1)[:count]
+        done += count
+
+
+def drawn_flips(groups: np.ndarray, count: int, seed: int):
+    """The resamples of a test with variance groups, chunk by chunk: each a permutation within
+    the groups and a sign per case.
+
+    Parameters
+    ----------
+    groups : ndarray (n,) int
+        Each case's variance group.
+    count : int
+        Resamples drawn (B).
+    seed : int
+
+    Yields
+    ------
+    rows : ndarray (b, n)
+        Case i is given the design row of case ``rows[j, i]``, a case of its own group.
+    signs : ndarray (b, n)
+        +1 or -1 per case: the flipped data are ``signs * residuals``.
+
+    Examples
+    --------
+    >>> groups = np.array([0, 0, 1, 1, 1])
+    >>> rows, signs = next(drawn_flips(groups, 100, seed=0))
+    >>> bool(np.all(groups[rows] == groups)), sorted(np.unique(signs).tolist())
+    (True, [-1.0, 1.0])
+    """
+    rng = np.random.default_rng(seed)
+    n = len(groups)
+    order = np.argsort(groups, kind="stable")
+    done = 0
+    while done < count:
+        size = min(CHUNK, count - done)
+        keys = rng.random((CHUNK, n)) + 2.0 * groups[order]
+        rows = np.empty((CHUNK, n), dtype=np.int64)
+        rows[:, order] = order[np.argsort(keys, axis=1)]
+        signs = rng.integers(0, 2, (CHUNK, n)) * 2.0 - 1.0
+        yield rows[:size], signs[:size]
+        done += size
+
+
+def _one_way(interest: np.ndarray, codes: np.ndarray, count: int) -> bool:
+    """Whether [1, interest] spans exactly the indicators of the variance groups (a one-way
+    layout of the groups compared)."""
+    indicators = (codes[:, None] == np.arange(count)).astype(np.float64)
+    means = np.linalg.lstsq(indicators, interest, rcond=None)[0]
+    scale = max(float(np.abs(interest).max(initial=0.0)), 1e-300)
+    return bool(np.linalg.matrix_rank(np.hstack([np.ones((len(codes), 1)), interest])) == count
+                and np.allclose(indicators @ means, interest, atol=1e-12 * scale))
+
+
 def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarray | None = None,
-                     permutations: int = 10_000, seed: int = 0, progress=None) -> PointTest:
+                     permutations: int = 10_000, seed: int = 0, progress=None,
+                     variance_groups=None, family_wise: str = "maximum") -> PointTest:
     """Test an effect on per-point data by permutation (Freedman-Lane), with family-wise and FDR
     correction over the points.
 
@@ -199,6 +331,17 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     progress : callable(fraction, message), optional
         The library's progress protocol (:mod:`mdlshapemodel.progress`), called after each
         chunk of permutations; cancelling raises :class:`~mdlshapemodel.errors.Cancelled`.
+    variance_groups : sequence (n,), optional
+        Each case's variance group (for a group comparison: its group). With two or more, the
+        statistic is Welch's G (James' J for q > 1; :mod:`.welch`), valid when the groups
+        differ in variance; without (or with one), the pooled statistic. James' J needs a
+        one-way layout (the groups compared, nothing adjusted for).
+    family_wise : {"maximum", "min-p"}
+        The family-wise correction: the maximum over the points of the permuted statistic
+        (pivotal: Pillai's trace has the same null distribution at every point under normal
+        errors, Welch's -log p approximately), or min-p (no point dominates, whatever its
+        tails; resolution-limited: with m roughly independent points the smallest ``p_fwer`` is
+        about 1 - (1 - 1 / (B + 1))^m, so B should be well above m / alpha).
 
     Returns
     -------
@@ -212,6 +355,11 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     >>> result = permutation_test(data, group, permutations=999)
     >>> bool(np.all(result.p_fwer[:5] < 0.05)), int(np.sum(result.p_fwer[5:] < 0.05))
     (True, 0)
+    >>> welch = permutation_test(data, group, permutations=999, variance_groups=group[:, 0])
+    >>> welch.variance, bool(np.allclose(welch.statistic, result.statistic))  # n1 = n2: v = t
+    ('groups', True)
+    >>> bool(np.all(welch.p[:5] < 0.01)), int(np.sum(welch.p_fwer[5:] < 0.05))
+    (True, 0)
     """
     data = np.asarray(data, dtype=np.float64)
     if data.ndim == 2:
@@ -224,9 +372,23 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     z_columns = np.hstack(columns)
     z, r = z_columns.shape[1], interest.shape[1]
     df = n - z - r
+    if family_wise not in FAMILY_WISE:
+        raise ValueError(f"family_wise must be one of {FAMILY_WISE}, not {family_wise!r}")
     if df < q:
         raise InputError(f"too few cases: {n} cases for {z + r} model columns and {q} "
                          f"number(s) per point (need more than {z + r + q - 1})")
+    codes, sizes = None, None
+    if variance_groups is not None:
+        levels, codes = np.unique(np.asarray(variance_groups), return_inverse=True)
+        if len(codes) != n:
+            raise InputError(f"{len(codes)} variance groups for {n} cases")
+        sizes = np.bincount(codes, minlength=len(levels)).astype(np.float64)
+        if len(levels) < 2:
+            codes = None
+        elif sizes.min() <= q:
+            raise InputError(f"variance group {levels[np.argmin(sizes)]!r} has "
+                             f"{int(sizes.min())} case(s); with {q} number(s) per point each "
+                             f"needs more than {q} to estimate its own variance")
     basis_z = _basis(z_columns, "the nuisance columns")
     interest_after_z = interest - basis_z @ (basis_z.T @ interest)
     basis_x = _basis(interest_after_z, "the variables of interest and the nuisance",
@@ -239,43 +401,82 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     effect = coefficients[z:].reshape(r, p, q)
 
     stacked = residuals.reshape(n, p, q)
-    total = np.einsum("npi,npj->pij", stacked, stacked)
-    whitened = np.einsum("npj,pij->npi", stacked, _whitening(total)).reshape(n, p * q)
     # the intercept's basis is constant, so its permuted rows meet the centred residuals in zero:
     # it drops out of every permutation; the other nuisance columns do not
     permuted_z = basis_z[:, 1:]
     bases = np.hstack([permuted_z, basis_x])
     zp = permuted_z.shape[1]
+    if codes is None:
+        total = np.einsum("npi,npj->pij", stacked, stacked)
+        whitened = np.einsum("npj,pij->npi", stacked, _whitening(total)).reshape(n, p * q)
 
-    def pillai_of(rows: np.ndarray) -> np.ndarray:
-        """V for each permutation (rows: (B, n) indices into the bases)."""
-        permuted = np.ascontiguousarray(np.swapaxes(bases[rows], 1, 2))   # (B, k, n)
-        products = permuted.reshape(-1, n) @ whitened                      # one BLAS product
-        return _pillai(products.reshape(len(rows), zp + r, p, q), zp)
+        def values_of(rows: np.ndarray, signs) -> np.ndarray:
+            """Pillai's V for each permutation (rows: (B, n) indices into the bases)."""
+            permuted = np.ascontiguousarray(np.swapaxes(bases[rows], 1, 2))   # (B, k, n)
+            products = permuted.reshape(-1, n) @ whitened                      # one BLAS product
+            return _pillai(products.reshape(len(rows), zp + r, p, q), zp)
 
-    observed = pillai_of(np.arange(n)[None])[0]
+        resamples = ((rows, None) for rows in drawn_permutations(n, permutations, seed))
+    else:
+        one_way = z == 1 and _one_way(interest, codes, len(sizes))
+        if q > 1 and not one_way:
+            raise InputError("variance groups with a vector per point need the groups "
+                             "compared alone, nothing adjusted for (James' statistic): test "
+                             "the normal displacement, or use the pooled statistic")
+        full = np.hstack([basis_z, basis_x])
+        centred = welch.reduced_residuals(data, basis_z, full, codes, sizes)
+        if one_way:
+            def welch_of(rows: np.ndarray, signs: np.ndarray) -> tuple:
+                return welch.one_way(centred, codes, sizes, signs)
+        else:
+            def welch_of(rows: np.ndarray, signs: np.ndarray) -> tuple:
+                parts = [welch.general(centred[..., 0], full, r, codes, sizes,
+                                       rows[k:k + WELCH_CHUNK], signs[k:k + WELCH_CHUNK])
+                         for k in range(0, len(rows), WELCH_CHUNK)]
+                return tuple(np.concatenate(found) for found in zip(*parts))
+
+        def values_of(rows: np.ndarray, signs: np.ndarray) -> np.ndarray:
+            """Welch's G as -log of its parametric p (q = 1), James' J (q > 1)."""
+            found, welch_df = welch_of(rows, signs)
+            return found if welch_df is None else welch.pivotal(found, r, welch_df)
+
+        resamples = drawn_flips(codes, permutations, seed)
+
+    identity = np.arange(n)[None], np.ones((1, n))
+    observed = values_of(*identity)[0]
     threshold = observed - TIES * np.abs(observed)
-    rng = np.random.default_rng(seed)
     exceed = np.zeros(p, dtype=np.int64)
-    pooled = np.zeros(HISTOGRAM_BINS + 1, dtype=np.int64)
+    minimum_p = family_wise == "min-p"
+    # min-p keeps every permutation's statistic at every point (row 0: the observed); the
+    # maximum keeps each permutation's largest
+    table = np.empty((permutations + 1 if minimum_p else 0, p), dtype=np.float32)
+    if minimum_p:
+        table[0] = observed
     maxima = np.empty(permutations)
     done = 0
-    while done < permutations:
-        count = min(CHUNK, permutations - done)
-        rows = np.argsort(rng.random((CHUNK, n)), axis=1)[:count]
-        values = pillai_of(rows)
+    for rows, signs in resamples:
+        count = len(rows)
+        values = values_of(rows, signs)
         exceed += np.sum(values >= threshold, axis=0)
-        pooled += np.bincount(_bins(values.ravel()), minlength=HISTOGRAM_BINS + 1)
+        if minimum_p:
+            table[1 + done:1 + done + count] = values
         maxima[done:done + count] = values.max(axis=1)
         done += count
         report(progress, done / permutations, f"{done} of {permutations} permutations")
-    p_point = (1.0 + exceed) / (1.0 + permutations)
-    at_least = np.cumsum(pooled[::-1])[::-1]          # null values in this bin or above
-    p_pooled = (1.0 + at_least[_bins(threshold)]) / (1.0 + permutations * p)
-    sorted_maxima = np.sort(maxima)
-    above = permutations - np.searchsorted(sorted_maxima, threshold, side="left")
-    p_fwer = (1.0 + above) / (1.0 + permutations)
-    p_pooled = np.minimum(p_pooled, 1.0)
-    return PointTest(pillai=observed, statistic=statistic_of(observed, q, r, df), p=p_pooled,
-                     p_point=p_point, p_fwer=p_fwer, q_fdr=benjamini_hochberg(p_pooled),
-                     effect=effect, df=df, permutations=permutations, maxima=maxima)
+    at_least = 1 + exceed                         # the observed and the permuted reaching it
+    p_point = at_least / (1.0 + permutations)
+    if minimum_p:
+        smallest = smallest_p(table)[1:]
+        below = np.searchsorted(np.sort(smallest), at_least, side="right")
+        family_null = smallest / (1.0 + permutations)
+    else:
+        below = permutations - np.searchsorted(np.sort(maxima), threshold, side="left")
+        family_null = maxima
+    p_fwer = np.maximum((1.0 + below) / (1.0 + permutations), p_point)
+    statistic = (statistic_of(observed, q, r, df) if codes is None
+                 else welch_of(*identity)[0][0])
+    return PointTest(value=observed, statistic=statistic, p=p_point, p_fwer=p_fwer,
+                     q_fdr=benjamini_hochberg(p_point), effect=effect, df=df,
+                     permutations=permutations, family_null=family_null,
+                     variance="pooled" if codes is None else "groups",
+                     family_wise=family_wise)

@@ -130,13 +130,17 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     else:
         data = offsets[..., :2] if planar else offsets
     points = permutation_test(data, subjects.interest, subjects.nuisance, config.permutations,
-                              config.seed, progress)
+                              config.seed, progress,
+                              variance_groups=subjects.groups if config.variance_groups() else None,
+                              family_wise=config.family_wise)
     difference = _effects(offsets, subjects)
     normal_difference = np.einsum("rpd,pd->rp", difference, normals)
     r = subjects.interest.shape[1]
     z = 1 + subjects.nuisance.shape[1]
     _, _, scores = principal_scores(aligned, model.weights, max_modes=len(aligned) - z - r - 1)
     report(progress, None, "the global test")
+    # the global test is pooled: per-group covariances of k scores need more than k cases in
+    # every group
     overall = permutation_test(scores[:, None, :], subjects.interest, subjects.nuisance,
                                config.permutations, config.seed)
     global_test = GlobalTest(scores.shape[1], float(overall.statistic[0]), float(overall.p[0]),

@@ -104,6 +104,12 @@ class Subjects:
     left_out: list = field(default_factory=list)
     unmatched: list = field(default_factory=list)
 
+    def n_per_group(self) -> dict | None:
+        """Cases per group level, reference first (None without a group)."""
+        if self.groups is None:
+            return None
+        return {level: self.groups.count(level) for level in self.levels}
+
 
 def read_table(path) -> tuple[list, list]:
     """The header and rows (dicts) of a subjects table; InputError naming the file and the

@@ -28,13 +28,15 @@ log = logging.getLogger("mdlshapemodel")
 HOW_TO_READ = """
 <h2>How to read this page</h2>
 <ul>
-<li><b>What is tested at each point.</b> {what}. The statistic is {statistic}; its p-value counts
-how often {permutations} random relabellings of the cases (permutations of the residuals of the
-model without the effect, Freedman-Lane) gave a statistic at least as large.</li>
-<li><b>Family-wise correction</b> (p<sub>FWER</sub>): the largest statistic over all points is
+<li><b>What is tested at each point.</b> {what}. The statistic is {statistic}{assumes}; its
+p-value counts how often {permutations} random relabellings of the cases (permutations of the
+residuals of the model without the effect, Freedman-Lane) gave a statistic at least as large at
+that point (so it is at least 1/{permutations_plus_one}).</li>
+<li><b>Family-wise correction</b> (p<sub>FWER</sub>): {family_wise} over all points is
 compared, so the chance that <i>any</i> point is called significant when there is no effect is
 at most &alpha; = {alpha}. <b>FDR</b> (q): among the points called significant, the expected share
-of false ones is at most &alpha; (Benjamini-Hochberg); it finds more, with weaker guarantees.</li>
+of false ones is at most &alpha; (Benjamini-Hochberg of the per-point p-values); it finds more,
+with weaker guarantees.</li>
 <li><b>Effect along the normal</b>: the mean difference {effect_unit} projected on the mean
 surface's outward normal; negative values (blue) point inwards (a loss of volume there).</li>
 <li><b>Global test</b>: the same test on the first k principal scores together: is there any
@@ -57,11 +59,13 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     cells = model.triangles
     log_p = -np.log10(points.p_fwer)
     level = float(-np.log10(alpha))
-    # one fixed scale from 0 past the significance level: a null result stays dark
-    top = max(float(log_p.max()), level * 1.5)
+    # one fixed scale from 0 past the significance level: a null result stays dark; the scale's
+    # ends come from the values as the page stores them (4-byte floats), so that they cover
+    # every value shown
+    top = max(float(log_p.astype(np.float32).max()), level * 1.5)
     rows = [("-log10 p (FWER)", log_p, "viridis", 0.0, top, "-log10 p, family-wise")]
     for label, values in zip(effect_labels(analysis.subjects), analysis.normal_difference):
-        limit = float(np.max(np.abs(values))) or 1.0
+        limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((label, values, "coolwarm", -limit, limit, "along the normal [mm]"))
     parts = []
     if model.of_curves:
@@ -251,10 +255,15 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
             " sliding of the correspondence along the surface does not change it)"
             if config.displacement == "normal" else
             "the displacement vector of the point from the mean shape")
-    statistic = ("Hotelling's T<sup>2</sup> (F = t<sup>2</sup> for one number)"
-                 if analysis.points.effect.shape[0] == 1 else "the F of Pillai's trace")
+    points = analysis.points
+    assumes = (", which allows the groups to differ in spread" if points.variance == "groups"
+               else ", which assumes that every group varies alike")
+    family_wise = ("the largest statistic" if points.family_wise == "maximum" else
+                   "the smallest per-point p-value (min-p)")
     body.append(HOW_TO_READ.format(
-        what=what, statistic=statistic, permutations=config.permutations, alpha=config.alpha,
+        what=what, statistic=html.escape(points.name), assumes=assumes,
+        permutations=config.permutations, permutations_plus_one=config.permutations + 1,
+        family_wise=family_wise, alpha=config.alpha,
         effect_unit=("(mm)" if subjects.tested == [subjects.group] else
                      "per unit of the covariate (mm)" if subjects.group not in subjects.tested
                      else "(mm; per unit for a covariate)"),
