@@ -118,7 +118,7 @@ def test_each_label_is_guided_at_the_grid_vertex_nearest_its_place():
     maps = align_parameterizations([case.map for case in cases],
                                    landmarks=placed.images(0, [case.map for case in cases]))
     grid, _ = icosphere(2)
-    guides = guides_on_grid(placed, [maps], grid, 42, [0], weight=1.0, scale=1.0)
+    guides = guides_on_grid(placed, [maps], [grid], 42, [0], weight=1.0, scale=1.0)
     images = np.stack(placed.images(0, maps))                     # (cases, labels, 3)
     for label, vertex in enumerate(guides.indices):
         place = images[:, label].mean(axis=0)

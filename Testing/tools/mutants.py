@@ -195,8 +195,8 @@ MUTANTS = [
            ("test_markups.py",),
            "an unplaced control point of a markups JSON kept as a landmark"),
     Mutant("guides_at_the_farthest_vertex", "correspondence/guides.py",
-           "order = np.argsort(-(grid[:candidates] @ np.nan_to_num(place)), kind=\"stable\")",
-           "order = np.argsort(grid[:candidates] @ np.nan_to_num(place), kind=\"stable\")",
+           "order = np.argsort(-(grids[j][:candidates] @ np.nan_to_num(place)), kind=\"stable\")",
+           "order = np.argsort(grids[j][:candidates] @ np.nan_to_num(place), kind=\"stable\")",
            ("test_guides.py",),
            "a landmark guided at the grid vertex farthest from it", k="nearest_its_place"),
     # --- the build's tables (outputs.py) ---
