@@ -14,7 +14,7 @@ from vtk.util.numpy_support import vtk_to_numpy
 import harness
 import MDLShapeModel as module
 from mdlshapemodel import BuildConfig, ShapeModel
-from mdlshapemodel.config import SURFACE_POINTS
+from mdlshapemodel.config import SMOOTHNESS, SURFACE_POINTS
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.prepare import io, preprocess
 from mdlshapemodel.prepare.surface import (arrays_to_polydata, mask_to_surface,
@@ -91,14 +91,17 @@ def test_importing_the_module_loads_none_of_the_librarys_heavy_dependencies():
 
 def test_the_parameter_node_holds_the_build_configs_defaults_and_fills_it(scene):
     parameters = module.MDLShapeModelLogic().getParameterNode()
-    # (the panel builds surfaces: its points default is the sphere's, BuildConfig's is None)
-    assert module.buildConfigOf(parameters) == BuildConfig(points=SURFACE_POINTS)
+    # (the panel builds surfaces: its points and prior defaults are the surfaces', BuildConfig's
+    # are None, per kind of input)
+    defaults = BuildConfig(points=SURFACE_POINTS, smoothness=SMOOTHNESS)
+    assert module.buildConfigOf(parameters) == defaults
     parameters.labels = "1, 2"
     parameters.points = 642
     parameters.strategy = "one-at-a-time"
     parameters.baselines = "none cpd"
     assert module.buildConfigOf(parameters) == BuildConfig(
-        labels=[1, 2], points=642, strategy="one-at-a-time", baselines=["none", "cpd"])
+        labels=[1, 2], points=642, strategy="one-at-a-time", baselines=["none", "cpd"],
+        smoothness=SMOOTHNESS)
     with pytest.raises(ValueError):
         parameters.strategy = "fastest"          # the choices are BuildConfig's
     parameters.labels = "1, a"
