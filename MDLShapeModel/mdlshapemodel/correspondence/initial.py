@@ -61,7 +61,7 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
     if config.placement == "surface":
         aligned = CorrespondenceState(examples, grids, scaling=config.scaling)
         grids = surface_grids(aligned, nested if icosphere_level(nested) else 0)
-        examples = [Example(example.name, [part.on_grid(*grid)
+        examples = [Example(example.name, [part.on_grid(*grid, near=True)
                                            for part, grid in zip(example.parts, grids)])
                     for example in examples]
     guides = None

@@ -94,16 +94,24 @@ def farthest_points(points: np.ndarray, count: int, first: int = 0) -> np.ndarra
         raise ValueError(f"cannot take {count} of {n} points starting with {first}")
     chosen = np.empty(count, dtype=np.int64)
     chosen[:first] = np.arange(first)
+    columns = [np.ascontiguousarray(points[:, j]) for j in range(points.shape[1])]
+
+    def squared_distances(index):
+        total = np.zeros(n)
+        for column in columns:        # column by column: contiguous, several times faster
+            total += (column - column[index]) ** 2
+        return total
+
     if first:
         nearest = cKDTree(points[:first]).query(points)[0] ** 2
     else:
         chosen[0] = 0
-        nearest = np.sum((points - points[0]) ** 2, axis=1)
+        nearest = squared_distances(0)
         first = 1
     for k in range(first, count):
         index = int(np.argmax(nearest))
         chosen[k] = index
-        np.minimum(nearest, np.sum((points - points[index]) ** 2, axis=1), out=nearest)
+        np.minimum(nearest, squared_distances(index), out=nearest)
     return chosen
 
 

@@ -20,6 +20,7 @@ import contextlib
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..prepare.curve import segment_vertex_lengths
 from ..prepare.sphere import orientation
@@ -52,12 +53,18 @@ class PartState:
         self.cumulative_area = np.cumsum(areas) / areas.sum()
         self.start_at(grid, grid_triangles)
 
-    def on_grid(self, grid: np.ndarray, grid_cells: np.ndarray) -> "PartState":
+    def on_grid(self, grid: np.ndarray, grid_cells: np.ndarray, near: bool = False
+                ) -> "PartState":
         """The same surface and map sampled on another grid, with the same warps: a new part
-        that shares this one's surface, sphere map and locator (read-only there)."""
+        that shares this one's surface, sphere map and locator (read-only there). ``near``: the
+        new grid's points are located starting from the triangle of this part's nearest sample
+        (much faster where the new grid lies among the present samples)."""
         view = object.__new__(type(self))
         view.__dict__.update(self.__dict__)
-        view.start_at(grid, grid_cells)
+        hint = None
+        if near and self.hint is not None:
+            hint = self.hint[cKDTree(self.positions).query(np.asarray(grid))[1]]
+        view.start_at(grid, grid_cells, hint)
         if self.warps:
             view.replay(self.warps)
         return view
@@ -85,16 +92,16 @@ class PartState:
         self.points, self.hint = self.sample(self.positions)
         return len(kept)
 
-    def start_at(self, grid: np.ndarray, grid_cells: np.ndarray):
+    def start_at(self, grid: np.ndarray, grid_cells: np.ndarray, hint: np.ndarray | None = None):
         """No warp yet: the sample positions are the grid's (its triangles, or segments on a
-        circle), and the samples are taken there."""
+        circle), and the samples are taken there (located from ``hint``'s faces if given)."""
         #: every accepted warp, in order: ``apply_warps(grid, warps)`` gives ``positions``
         self.warps: list[Warp] = []
         self.grid = np.asarray(grid, dtype=np.float64)
         self.positions = self.grid.copy()
         self.grid_triangles = np.asarray(grid_cells, dtype=np.int64)
         self.hint = None
-        self.points, self.hint = self.sample(self.positions)
+        self.points, self.hint = self.sample(self.positions, hint)
 
     def sample(self, positions: np.ndarray, hint: np.ndarray | None = None):
         """S(phi(u_k)) at sphere positions; returns (points, located faces)."""
