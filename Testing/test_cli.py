@@ -251,6 +251,7 @@ NON_DEFAULT_OPTIONS = {
     "landmark_weight": (["--landmark-weight", "3"], 3.0),
     "check_landmarks": (["--check-landmarks", "--landmarks", "marks"], True),
     "smoothness": (["--smoothness", "0.1"], 0.1),
+    "placement": (["--placement", "sphere"], "sphere"),
     "seed": (["--seed", "5"], 5),
     "evaluation_modes": (["--evaluation-modes", "3"], 3),
     "specificity_samples": (["--specificity-samples", "300"], 300),
