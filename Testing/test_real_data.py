@@ -9,7 +9,7 @@ import SimpleITK as sitk
 from mdlshapemodel import BuildConfig, build_model
 from mdlshapemodel.prepare.io import read_csv
 from mdlshapemodel.prepare import prepare_case
-from mdlshapemodel.correspondence.sampling import sphere_grid
+from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare.sphere import orientation, solid_angles
 from mdlshapemodel.prepare.surface import topology
 
@@ -59,7 +59,7 @@ def test_small_hippocampus_build_is_faithful_and_fold_free(tmp_path):
     cases = read_csv(tmp_path / "cases.csv")
     assert max(float(c["mean_distance_voxels"]) for c in cases) < 0.5
     # every corresponded mesh is a homeomorphic image of the grid: no flipped triangle
-    _, triangles = sphere_grid(642)
+    triangles = ShapeModel.load(tmp_path / "model.h5").triangles     # the grid's triangles
     state = np.load(tmp_path / "checkpoint.npz")
     for i in range(5):
         positions = state[f"positions_{i}_0"]
@@ -108,7 +108,6 @@ def test_a_femur_label_map_at_half_a_millimetre_maps_at_the_sampling_grids_resol
 def test_hippocampi_as_head_and_tail_from_labels_and_from_one_file_per_part(tmp_path):
     """The shared hippocampi as two parts, head (label 1) and body/tail (label 2): from the label
     maps with --part, and split into one file per part listed in a manifest: the same model."""
-    from mdlshapemodel.model.shape_model import ShapeModel
     from synthetic import split_into_part_files
 
     paths = [hippocampus(n) for n in (1, 3, 4, 6, 7)]

@@ -409,10 +409,11 @@ def check_landmarks(prepared: list, config: BuildConfig, landmarks: dict,
     labels = tuple(sorted({label for marks in landmarks.values() for label in marks.labels}))
     given = landmark_array(prepared, landmarks, labels)
     surfaces = [case.surface() for case in prepared]
-    triangles = corresponded.state.triangles()
 
     def errors(state) -> tuple[np.ndarray, np.ndarray]:
-        return transfer_errors(state.raw_shapes(), triangles, given, surfaces,
+        # each optimisation's own triangles: with --placement surface the grid depends on the
+        # initial correspondence, which the guides steer
+        return transfer_errors(state.raw_shapes(), state.triangles(), given, surfaces,
                                single=False).per_label()
 
     built, cases = errors(corresponded.state)
