@@ -319,22 +319,46 @@ class CorrespondenceState:
         self.gram = flat @ flat.T
         self.guide_costs = (None if self.guides is None
                             else self.guides.costs(self.raw_shapes()))
-        self.smoothness_terms = (None if self.smoothness is None
-                                 else self.smoothness.at(self.reference))
-        self._smooth()
+        # the prior's terms about this reference, and its energy and B~ D of the current shapes,
+        # are made when first asked for: a state that is never evaluated with the prior (the
+        # model's grid while the fast strategy optimises on the coarse one) never pays for them
+        self._terms = None
+        self._smoothed = None
 
-    def _smooth(self):
-        """The prior's energy and B~ D_i of the current shapes (with its terms held fixed)."""
-        if self.smoothness_terms is None:
-            self.smooth_energy, self.bent = 0.0, None
-            return
-        terms = self.smoothness_terms
-        displacements = self.shapes - self.shapes.mean(axis=0)
-        n_s, n_p, _ = displacements.shape
-        # one matrix product (BLAS) for all examples: B~ (n_p, n_p) by (n_p, 3 n_s)
-        self.bent = np.ascontiguousarray((terms.matrix @ displacements.transpose(1, 0, 2).reshape(
-            n_p, -1)).reshape(n_p, n_s, 3).transpose(1, 0, 2))
-        self.smooth_energy = 0.5 * terms.factor * float(np.sum(displacements * self.bent))
+    @property
+    def smoothness_terms(self):
+        """The prior's terms about the reference of the last refresh (None without a prior)."""
+        if self.smoothness is None:
+            return None
+        if self._terms is None:
+            self._terms = self.smoothness.at(self.reference)
+        return self._terms
+
+    @property
+    def smooth_energy(self) -> float:
+        """The prior's energy E of the current shapes (0 without a prior)."""
+        return self._smooth()[0]
+
+    @property
+    def bent(self):
+        """B~ D_i of the current shapes, (n_s, n_p, 3) (None without a prior)."""
+        return self._smooth()[1]
+
+    def _smooth(self) -> tuple:
+        """(E, B~ D) of the current shapes, with the terms held fixed; made once per change."""
+        if self._smoothed is None:
+            terms = self.smoothness_terms
+            if terms is None:
+                self._smoothed = (0.0, None)
+            else:
+                displacements = self.shapes - self.shapes.mean(axis=0)
+                n_s, n_p, _ = displacements.shape
+                # one matrix product (BLAS) for all examples: B~ (n_p, n_p) by (n_p, 3 n_s)
+                bent = np.ascontiguousarray((terms.matrix @ displacements.transpose(1, 0, 2)
+                                             .reshape(n_p, -1)).reshape(n_p, n_s, 3)
+                                            .transpose(1, 0, 2))
+                self._smoothed = (0.5 * terms.factor * float(np.sum(displacements * bent)), bent)
+        return self._smoothed
 
     def _smooth_trial(self, i: int, shape: np.ndarray) -> tuple[float, np.ndarray]:
         """The prior's energy with example i's shape replaced by ``shape``, and B~ Delta
@@ -497,27 +521,27 @@ class CorrespondenceState:
         the same reference, O(n_s^2 n_p). The state is restored afterwards."""
         if self.guides is not None and raw is None:
             raise ValueError("a trial of a guided state needs its unposed samples (raw)")
-        saved = (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self.smooth_energy,
-                 self.bent)
+        saved = (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self._smoothed)
         centred = ((shapes - self.reference) * np.sqrt(self.weights)[None, :, None]).reshape(
             len(shapes), -1)
         self.shapes, self.sum_shapes, self.gram = shapes, shapes.sum(axis=0), centred @ centred.T
         if self.guides is not None:
             self.guide_costs = self.guides.costs(raw)
-        self._smooth()
+        self._smoothed = None
         try:
             yield self
         finally:
-            (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self.smooth_energy,
-             self.bent) = saved
+            (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self._smoothed) = saved
 
     def commit_shape(self, i: int):
         """Record that example i's parts or pose changed: update X, K and the sums."""
         shape = self.examples[i].pose.apply(self.examples[i].raw_points())
         if self.smoothness_terms is not None:
-            self.smooth_energy, bent_delta = self._smooth_trial(i, shape)
-            self.bent -= bent_delta / self.n_shapes
-            self.bent[i] += bent_delta
+            energy, bent_delta = self._smooth_trial(i, shape)
+            bent = self.bent
+            bent -= bent_delta / self.n_shapes
+            bent[i] += bent_delta
+            self._smoothed = (energy, bent)
         row, diagonal = self._row(shape)
         self.gram[i, :] = row
         self.gram[:, i] = row
