@@ -23,6 +23,21 @@ def write_label_map(path, mask, label: int = 1, spacing=None, origin=None) -> Pa
     return Path(path)
 
 
+def triangle_polydata(vertices, faces):
+    """A vtkPolyData of triangles from arrays (n, 3) and (m, 3)."""
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+    points = vtk.vtkPoints()
+    points.SetData(numpy_to_vtk(np.ascontiguousarray(vertices, dtype=np.float64)))
+    cells = vtk.vtkCellArray()
+    cells.SetCells(len(faces), numpy_to_vtkIdTypeArray(
+        np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel(), deep=True))
+    polydata = vtk.vtkPolyData()
+    polydata.SetPoints(points)
+    polydata.SetPolys(cells)
+    return polydata
+
+
 def read_polydata(path):
     """A .vtp file read by VTK's XML reader: its vtkPolyData."""
     import vtk

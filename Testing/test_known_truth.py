@@ -7,25 +7,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import vtk
-from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy
+from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel.correspondence.sampling import icosphere
-from files import read_polydata
+from files import read_polydata, triangle_polydata
 from common import run_cli
 
 
 def write_mesh(path, vertices, faces):
-    points = vtk.vtkPoints()
-    points.SetData(numpy_to_vtk(np.ascontiguousarray(vertices)))
-    cells = vtk.vtkCellArray()
-    cells.SetCells(len(faces), numpy_to_vtkIdTypeArray(
-        np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel(), deep=True))
-    polydata = vtk.vtkPolyData()
-    polydata.SetPoints(points)
-    polydata.SetPolys(cells)
     writer = vtk.vtkXMLPolyDataWriter()
     writer.SetFileName(str(path))
-    writer.SetInputData(polydata)
+    writer.SetInputData(triangle_polydata(vertices, faces))
     assert writer.Write() == 1
 
 
@@ -59,16 +51,8 @@ def truth_error(build, template, faces, cases) -> float:
     distance of each point's carried copies from their mean (mm)."""
     carried = []
     for k, shape in enumerate(cases):
-        polydata = vtk.vtkPolyData()
-        points = vtk.vtkPoints()
-        points.SetData(numpy_to_vtk(np.ascontiguousarray(shape)))
-        cells = vtk.vtkCellArray()
-        cells.SetCells(len(faces), numpy_to_vtkIdTypeArray(
-            np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel(), deep=True))
-        polydata.SetPoints(points)
-        polydata.SetPolys(cells)
         locator = vtk.vtkCellLocator()
-        locator.SetDataSet(polydata)
+        locator.SetDataSet(triangle_polydata(shape, faces))
         locator.BuildLocator()
         located = vtk_to_numpy(read_polydata(build / "correspondence" / f"case_{k:02d}.vtp")
                                .GetPoints().GetData())
