@@ -44,7 +44,8 @@ from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoada
                                            ScriptedLoadableModuleWidget)
 from slicer.util import VTKObservationMixin
 
-from mdlshapemodel.config import AnalysisConfig, BuildConfig, field_items
+from mdlshapemodel.config import (GUIDED_SMOOTHNESS, SMOOTHNESS, AnalysisConfig, BuildConfig,
+                                  field_items)
 
 MODULE_DIRECTORY = pathlib.Path(__file__).resolve().parent
 # The point arrays of an analysis's effect map that can colour it (effects.vtp): significance
@@ -115,7 +116,7 @@ def _settingMember(name: str, defaults: BuildConfig):
     value = getattr(defaults, name)
     if name == "points":       # None: per kind of input; the panel builds surfaces
         kind, value = int, defaults.points_for(curves=False)
-    if name == "smoothness":   # None: per kind of input, as ``points``
+    if name == "smoothness":   # used where ``defaultSmoothness`` is off
         kind, value = float, defaults.smoothness_for(curves=False)
     if typing.get_origin(kind) is list:
         return str, ", ".join(str(v) for v in value)
@@ -145,8 +146,12 @@ def _parameterNodeClass():
         "analysisNuisance": str,
         "analysisPermutations": Annotated[int, WithinRange(1, 10**7)],
         "analysisColorBy": Annotated[str, Choice(list(EFFECT_SCALARS))],
+        # the prior's weight by BuildConfig's rule (one weight unguided, another where landmarks
+        # guide); off: the ``smoothness`` setting
+        "defaultSmoothness": bool,
     }
     namespace = {"segments": "", "analysisGroup": "", "analysisCovariates": "",
+                 "defaultSmoothness": True,
                  "analysisNuisance": "",
                  "analysisPermutations": AnalysisConfig().permutations,
                  "analysisColorBy": EFFECT_SCALARS[0],
@@ -169,6 +174,8 @@ def buildConfigOf(parameters) -> BuildConfig:
         if typing.get_origin(typing.get_type_hints(BuildConfig)[name]) is list:
             value = field_items(name, value)
         values[name] = value
+    if parameters.defaultSmoothness:
+        values["smoothness"] = None
     return BuildConfig(**values).validate()
 
 
@@ -1059,6 +1066,11 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.cancelAnalysisButton.clicked.connect(self.onCancelAnalysis)
         self.ui.openAnalysisButton.clicked.connect(self.onOpenAnalysis)
         self.ui.analysisColorByComboBox.currentTextChanged.connect(self.onColorBy)
+        self.ui.defaultSmoothnessCheckBox.toolTip = (
+            f"The default weight: {SMOOTHNESS:g}, or {GUIDED_SMOOTHNESS:g} where landmarks guide "
+            "the correspondence")
+        self.ui.defaultSmoothnessCheckBox.toggled.connect(
+            lambda on: self.ui.smoothnessSpinBox.setEnabled(not on))
         self.ui.inputNodesSelector.checkedNodesChanged.connect(self.updateCaseList)
         self.ui.inputFolderSelector.currentPathChanged.connect(self.updateCaseList)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)

@@ -12,11 +12,12 @@ from mdlshapemodel.correspondence.guides import Guides, guides_on_grid, place_la
 from mdlshapemodel.correspondence.sampling import icosphere
 from mdlshapemodel.correspondence.smoothness import Smoothness
 from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
+from mdlshapemodel.model.fitting import build_config_of
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare.case import PreparedCase, PreparedPart
 from mdlshapemodel.prepare.landmarks import Landmarks, on_surface
 from mdlshapemodel.prepare.sphere import SphereMap, align_parameterizations
-from mdlshapemodel.config import OptimisationSettings
+from mdlshapemodel.config import GUIDED_SMOOTHNESS, SMOOTHNESS, OptimisationSettings
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.state import state_record
@@ -308,6 +309,8 @@ def test_a_guided_build_puts_its_corresponded_landmarks_on_the_given_ones(tmp_pa
     np.testing.assert_allclose(tips["s0"], small_bump_top(POSITIONS[0]), atol=1e-5)   # RAS read
     model = ShapeModel.load(tmp_path / "guided" / "model.h5")
     assert sorted(model.landmarks) == ["end", "tip"]
+    # the prior's default weight where landmarks guide, recorded as applied
+    assert build_config_of(model).smoothness == GUIDED_SMOOTHNESS
     metrics = json.loads((tmp_path / "guided" / "metrics.json").read_text())
     assert metrics["landmarks"]["given"] == 9
     assert metrics["landmarks"]["distance_mm"]["max"] == pytest.approx(distances.max())
@@ -329,6 +332,8 @@ def test_a_guided_build_puts_its_corresponded_landmarks_on_the_given_ones(tmp_pa
     plain = run_cli("build", data / "labels", "-o", tmp_path / "plain", *common)
     assert plain.returncode == 0, plain.stderr
     assert not (tmp_path / "plain" / "landmarks.csv").exists()
+    assert build_config_of(ShapeModel.load(tmp_path / "plain" / "model.h5")).smoothness \
+        == SMOOTHNESS
     from files import polydata_triangles
 
     row = model.landmarks["tip"]

@@ -35,6 +35,11 @@ or step by step:
     python benchmarks/ground_truth.py floor /tmp/gt-femur --output /tmp/gt-femur/floor
     python benchmarks/ground_truth.py evaluate /tmp/gt-femur /tmp/gt-femur/floor \\
         /tmp/gt-femur/initial /tmp/gt-femur/cpd /tmp/gt-femur/template /tmp/gt-femur/mdl
+
+``landmarks`` gives every case 22 landmarks at known places (template vertices) and splits them
+into halves, for guided builds (``--landmarks /tmp/gt-femur/landmarks-even``):
+
+    python benchmarks/ground_truth.py landmarks /tmp/gt-femur
 """
 
 from __future__ import annotations
@@ -244,6 +249,33 @@ def template_points(truth: Path, count: int) -> tuple[np.ndarray, np.ndarray]:
     chosen = np.random.default_rng(0).choice(len(template), min(count, len(template)),
                                              replace=False)
     return chosen, template[chosen]
+
+
+def write_landmarks(args):
+    """Landmarks with a known place: ``--count`` template vertices spread by farthest-point
+    sampling (from the top of the template), each case's landmark its true mesh's same vertex,
+    as CSV files ``label,x,y,z`` in ``landmarks-all``, and every other label in
+    ``landmarks-even`` and ``landmarks-odd`` (half the labels as guides, the other half held
+    out)."""
+    truth = Path(args.truth)
+    template = read_vtp_points(truth / "template.vtp")
+    chosen = [int(np.argmax(template[:, 2]))]
+    distance = np.linalg.norm(template - template[chosen[0]], axis=1)
+    while len(chosen) < args.count:
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(template - template[chosen[-1]], axis=1))
+    labels = [f"L{k:02d}" for k in range(args.count)]
+    halves = {"all": range(args.count), "even": range(0, args.count, 2),
+              "odd": range(1, args.count, 2)}
+    for name, picked in halves.items():
+        folder = truth / f"landmarks-{name}"
+        folder.mkdir(exist_ok=True)
+        for mesh in sorted((truth / "meshes").glob("*.vtp")):
+            points = read_vtp_points(mesh)
+            rows = [f"{labels[k]},{points[chosen[k]][0]:.4f},{points[chosen[k]][1]:.4f},"
+                    f"{points[chosen[k]][2]:.4f}" for k in picked]
+            (folder / f"{mesh.stem}.csv").write_text("label,x,y,z\n" + "\n".join(rows) + "\n")
+    print(f"{args.count} landmarks per case -> {truth}/landmarks-all, -even, -odd")
 
 
 def template_reference(args):
@@ -508,6 +540,9 @@ def main():
     floor.add_argument("truth")
     floor.add_argument("--points", type=int, default=2562)
     floor.add_argument("--output", required=True)
+    marker = commands.add_parser("landmarks", help="landmarks at known places, in halves")
+    marker.add_argument("truth")
+    marker.add_argument("--count", type=int, default=22)
     evaluator = commands.add_parser("evaluate", help="correspondence error of build outputs")
     evaluator.add_argument("truth")
     evaluator.add_argument("builds", nargs="+")
@@ -537,7 +572,7 @@ def main():
     everything.add_argument("--output", required=True)
     args = parser.parse_args()
     {"make": make, "template": template_reference, "floor": noise_floor,
-     "evaluate": evaluate, "run": run_all, "objective": objective_check,
+     "evaluate": evaluate, "run": run_all, "landmarks": write_landmarks, "objective": objective_check,
      "sliding": sliding, "from-truth": from_truth}[args.command](args)
 
 

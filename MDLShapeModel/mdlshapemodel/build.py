@@ -740,7 +740,8 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
     configuration (JSON), with the prior's weight as applied."""
     method = "cpd" if config.correspondence == "cpd" else config.strategy
     # the prior's weight as applied, so that ``fit`` applies the same whatever the default
-    config = replace(config, smoothness=config.smoothness_for(curves=state.planar))
+    config = replace(config, smoothness=config.smoothness_for(curves=state.planar,
+                                                              guided=state.guides is not None))
     model = ShapeModel.from_shapes(state.aligned_shapes(), state.weights,
                                    names=[e.name for e in state.examples],
                                    triangles=state.triangles(),

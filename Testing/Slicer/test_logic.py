@@ -91,17 +91,20 @@ def test_importing_the_module_loads_none_of_the_librarys_heavy_dependencies():
 
 def test_the_parameter_node_holds_the_build_configs_defaults_and_fills_it(scene):
     parameters = module.MDLShapeModelLogic().getParameterNode()
-    # (the panel builds surfaces: its points and prior defaults are the surfaces', BuildConfig's
-    # are None, per kind of input)
-    defaults = BuildConfig(points=SURFACE_POINTS, smoothness=SMOOTHNESS)
+    # (the panel builds surfaces: its points default is the surfaces', BuildConfig's is None,
+    # per kind of input; the prior's weight is BuildConfig's rule, None, while defaultSmoothness)
+    defaults = BuildConfig(points=SURFACE_POINTS)
     assert module.buildConfigOf(parameters) == defaults
+    assert parameters.smoothness == SMOOTHNESS
     parameters.labels = "1, 2"
     parameters.points = 642
     parameters.strategy = "one-at-a-time"
     parameters.baselines = "none cpd"
+    parameters.defaultSmoothness = False
+    parameters.smoothness = 0.02
     assert module.buildConfigOf(parameters) == BuildConfig(
         labels=[1, 2], points=642, strategy="one-at-a-time", baselines=["none", "cpd"],
-        smoothness=SMOOTHNESS)
+        smoothness=0.02)
     with pytest.raises(ValueError):
         parameters.strategy = "fastest"          # the choices are BuildConfig's
     parameters.labels = "1, a"

@@ -32,7 +32,8 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
     only): the alignment of the sphere maps also brings each label to one shared place, and the
     state gets their :class:`.guides.Guides` (weight ``config.landmark_weight``), on sample
     points of the coarse grid where the fast strategy runs one. A weight
-    ``config.smoothness_for(curves=False)`` > 0 gives the state the prior of :mod:`.smoothness`.
+    ``config.smoothness_for(curves=False, guided=...)`` > 0 (the guided weight where landmarks
+    guide) gives the state the prior of :mod:`.smoothness`.
     """
     # the mean voxel size: the unit of the coding accuracy, the guides and the prior
     voxel = float(np.mean([case.voxel_size for case in prepared]))
@@ -69,7 +70,7 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
         guides = guides_on_grid(placed, maps, [grid for grid, _ in grids], nested or n_points,
                                 [j * n_points for j in range(n_parts)],
                                 config.landmark_weight, voxel)
-    weight = config.smoothness_for(curves=False)
+    weight = config.smoothness_for(curves=False, guided=guides is not None)
     smoothness = Smoothness(weight, voxel) if weight > 0 else None
     state = CorrespondenceState(examples, grids,
                                 scaling=config.scaling, guides=guides, smoothness=smoothness)
