@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 from mdlshapemodel.errors import SphereMapError
 from mdlshapemodel.correspondence.sampling import SphereLocator, icosphere
 from mdlshapemodel.prepare.sphere import (SphereMap, align_parameterizations, check_bijective, distortion,
+                                         reference_frames,
                                   first_order_map, map_quality, minimise_distortion, orientation,
                                   principal_axes, solid_angles, sphere_map)
 from synthetic import torus
@@ -364,6 +365,27 @@ def test_principal_axes_of_a_rotated_ellipsoid(rng):
     np.testing.assert_allclose(centre, shift, atol=1e-10)        # the icosphere is symmetric
     assert np.linalg.det(axes) == pytest.approx(1.0)
     np.testing.assert_allclose(np.abs(axes.T @ rotation), np.eye(3), atol=1e-8)
+
+
+def rod_with_a_knob(cross_section, rotation):
+    """A long rod (principal axis x) of elliptic ``cross_section`` (y, z radii) with a knob near
+    one end on the +y side, rotated by ``rotation``; (vertices, faces)."""
+    sphere, faces = icosphere(4)
+    vertices = sphere * [20.0, *cross_section]
+    knob = np.exp(-np.sum((sphere - [0.6, 0.8, 0.0]) ** 2, axis=1) / 0.03)
+    vertices = vertices + 4.0 * knob[:, None] * sphere
+    return vertices @ rotation.T, faces
+
+
+def test_reference_frames_find_the_twist_that_near_equal_axes_leave_open():
+    # the cross-sections' longer axis is y in the reference and z in the case: their principal
+    # axes differ by a quarter turn about the rod, their knobs do not
+    twist = Rotation.from_rotvec([np.radians(35.0), 0.0, 0.0]).as_matrix()
+    reference = rod_with_a_knob((4.0, 3.6), np.eye(3))
+    case = rod_with_a_knob((3.6, 4.0), twist)
+    frame = reference_frames([reference, case])[1]
+    error = Rotation.from_matrix(frame @ twist).magnitude()      # the frame undoes the twist
+    assert np.degrees(error) < 5.0
 
 
 # --- alignment of parameterizations -----------------------------------------------------------------
