@@ -68,3 +68,23 @@ class SmoothnessTerms:
 
     factor: float
     matrix: np.ndarray
+
+    def energy(self, shapes: np.ndarray) -> tuple[float, np.ndarray]:
+        """E of shapes (n_s, n_p, 3) and B~ D_i of every example, (n_s, n_p, 3)."""
+        displacements = shapes - shapes.mean(axis=0)
+        n_s, n_p, _ = displacements.shape
+        # one matrix product (BLAS) for all examples: B~ (n_p, n_p) by (n_p, 3 n_s)
+        bent = np.ascontiguousarray((self.matrix @ displacements.transpose(1, 0, 2)
+                                     .reshape(n_p, -1)).reshape(n_p, n_s, 3).transpose(1, 0, 2))
+        return 0.5 * self.factor * float(np.sum(displacements * bent)), bent
+
+    def trial(self, energy: float, bent: np.ndarray, delta: np.ndarray, n_s: int
+              ) -> tuple[float, np.ndarray]:
+        """E' with one example's shape moved by ``delta`` (n_p, 3), from the energy ``energy`` of
+        n_s shapes and that example's B~ D_i (``bent``), and B~ Delta:
+        E' = E + w/h^2 [tr(Delta^T B~ D_i) + (1 - 1/n_s) tr(Delta^T B~ Delta) / 2] (the other
+        displacements move by -Delta / n_s, and sum_j D_j = 0)."""
+        bent_delta = self.matrix @ delta
+        change = self.factor * (float(np.sum(delta * bent))
+                                + 0.5 * (1.0 - 1.0 / n_s) * float(np.sum(delta * bent_delta)))
+        return energy + change, bent_delta

@@ -348,28 +348,14 @@ class CorrespondenceState:
         """(E, B~ D) of the current shapes, with the terms held fixed; made once per change."""
         if self._smoothed is None:
             terms = self.smoothness_terms
-            if terms is None:
-                self._smoothed = (0.0, None)
-            else:
-                displacements = self.shapes - self.shapes.mean(axis=0)
-                n_s, n_p, _ = displacements.shape
-                # one matrix product (BLAS) for all examples: B~ (n_p, n_p) by (n_p, 3 n_s)
-                bent = np.ascontiguousarray((terms.matrix @ displacements.transpose(1, 0, 2)
-                                             .reshape(n_p, -1)).reshape(n_p, n_s, 3)
-                                            .transpose(1, 0, 2))
-                self._smoothed = (0.5 * terms.factor * float(np.sum(displacements * bent)), bent)
+            self._smoothed = (0.0, None) if terms is None else terms.energy(self.shapes)
         return self._smoothed
 
     def _smooth_trial(self, i: int, shape: np.ndarray) -> tuple[float, np.ndarray]:
         """The prior's energy with example i's shape replaced by ``shape``, and B~ Delta
-        (Delta = shape - X_i): E' = E + w/h^2 [tr(Delta^T B~ D_i) + (1 - 1/n_s) tr(Delta^T B~
-        Delta) / 2] (the other displacements move by -Delta / n_s, and sum_j D_j = 0)."""
-        delta = shape - self.shapes[i]
-        bent_delta = self.smoothness_terms.matrix @ delta
-        factor = self.smoothness_terms.factor
-        change = factor * (float(np.sum(delta * self.bent[i]))
-                           + 0.5 * (1.0 - 1.0 / self.n_shapes) * float(np.sum(delta * bent_delta)))
-        return self.smooth_energy + change, bent_delta
+        (:meth:`.smoothness.SmoothnessTerms.trial`)."""
+        return self.smoothness_terms.trial(self.smooth_energy, self.bent[i],
+                                           shape - self.shapes[i], self.n_shapes)
 
     # ------------------------------------------------------------------ objective
     def _row(self, shape: np.ndarray) -> tuple[np.ndarray, float]:
