@@ -89,6 +89,7 @@ def summary_of(analysis: Analysis, build, table) -> dict:
         "effects": design.interest_names,
         "left_out": [asdict(case) for case in design.left_out],
         "unmatched_rows": design.unmatched,
+        "notes": design.notes,
         "global_test": {"modes": analysis.global_test.modes,
                         "statistic": analysis.global_test.statistic,
                         "p": analysis.global_test.p,

@@ -366,6 +366,8 @@ def _run_analyze(args, live: bool) -> int:
     counts, overall = summary["significant_points"], summary["global_test"]
     for case, reason in ((d["case"], d["reason"]) for d in summary["left_out"]):
         log.warning("left out %s: %s", case, reason)
+    for note in summary["notes"]:
+        log.warning("%s", note)
     if summary["unmatched_rows"]:
         log.warning("table rows matching no case: %s", ", ".join(summary["unmatched_rows"]))
     lines = [f"  tested: {', '.join(summary['tested'])}; adjusted for: "
@@ -511,7 +513,7 @@ def main(argv=None) -> int:
                     "One effect is tested: the --group, else the --covariate columns, or the "
                     "columns named by --test; every other column given is adjusted for, not "
                     "tested (so --covariate beside --group is adjusted for). A column's kind is "
-                    "its role: --group categorical, --covariate numeric, --nuisance numeric "
+                    "its role: --group categorical, --covariate and --nuisance numeric "
                     "unless named by --categorical. Empty cells, NA, nan, ? and other "
                     "non-numbers in a numeric column are missing values: the case is left out "
                     "and listed with the column and the value.",
@@ -546,8 +548,9 @@ def main(argv=None) -> int:
                          help="column adjusted for, never tested: numeric unless named by "
                               "--categorical; repeatable")
     analyze.add_argument("--categorical", metavar="NAME", action="append", default=[],
-                         help="a --nuisance column that is categorical (coded by its levels, "
-                              "e.g. a site coded 1, 2, 3); repeatable")
+                         help="a --covariate or --nuisance column that is categorical "
+                              "(coded by its levels, e.g. a site coded 1, 2, 3; a tested one is "
+                              "one test over its levels); repeatable")
     analyze.add_argument("--permutations", type=int, default=analysis_defaults.permutations,
                          help="random permutations (default %(default)s)")
     analyze.add_argument("--size", choices=ANALYSIS_SIZES, default=analysis_defaults.size,

@@ -658,15 +658,16 @@ class Roles:
 def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=(),
                    test=()) -> Roles:
     """The roles of the columns of one analysis, declared by how they are named: ``group`` is
-    categorical, ``covariates`` are numeric, ``nuisance`` columns are numeric unless named in
-    ``categorical``. The tested effect is ``test`` when given (each one the group or a
-    covariate), else the group, else the covariates; every other column is adjusted for.
+    categorical, ``covariates`` and ``nuisance`` columns are numeric unless named in
+    ``categorical`` (a tested categorical covariate is one test over its levels). The tested
+    effect is ``test`` when given (each one the group or a covariate), else the group, else the
+    covariates; every other column is adjusted for.
 
     Raises
     ------
     ConfigError
-        Nothing to test, a column named twice, ``test`` or ``categorical`` naming a column of
-        the wrong kind.
+        Nothing to test, a column named twice, ``test`` naming a column of the wrong kind,
+        ``categorical`` naming a column not in the model.
 
     Examples
     --------
@@ -675,6 +676,8 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
     (['diagnosis'], ['age', 'site'], ['diagnosis', 'site'])
     >>> analysis_roles("diagnosis", ["age"], test=["age"]).adjusted_for
     ['diagnosis']
+    >>> analysis_roles(None, ["site"], categorical=["site"]).categorical
+    ['site']
     """
     covariates, nuisance = list(covariates), list(nuisance)
     categorical, test = list(categorical), list(test)
@@ -690,12 +693,9 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
             raise ConfigError(f"test: {name!r} is not the group or a covariate (a tested "
                               "column is given by --group or --covariate)")
     for name in categorical:
-        if name in covariates:
-            raise ConfigError(f"categorical: {name!r} is a covariate, which is numeric (a "
-                              "categorical column is given by --group or --nuisance)")
-        if name != group and name not in nuisance:
-            raise ConfigError(f"categorical: {name!r} is not a nuisance column (give it with "
-                              f"--nuisance {name})")
+        if name != group and name not in covariates and name not in nuisance:
+            raise ConfigError(f"categorical: {name!r} is not a column of the model (give it "
+                              f"with --covariate {name} to test it, or --nuisance {name})")
     tested = test or ([group] if group else covariates)
     kinds = {name: name == group or name in categorical for name in model}
     return Roles(tested=[c for c in model if c in tested],
@@ -710,14 +710,15 @@ class AnalysisConfig:
     subjects table are tested and how. ``validate`` names the field at fault.
 
     A column's kind is declared by its role (:func:`analysis_roles`): the group is categorical,
-    covariates numeric, nuisance columns numeric unless named in ``categorical``. Beside a group,
+    covariates and nuisance columns numeric unless named in ``categorical``. Beside a group,
     covariates are adjusted for unless named in ``test``.
     """
 
     group: str | None = None          # categorical column: the groups compared
     covariates: list[str] = field(default_factory=list)   # numeric columns
     nuisance: list[str] = field(default_factory=list)     # columns adjusted for, never tested
-    categorical: list[str] = field(default_factory=list)  # nuisance columns that are categorical
+    categorical: list[str] = field(default_factory=list)  # covariate or nuisance columns that
+    #                                                       are categorical (coded by levels)
     test: list[str] = field(default_factory=list)  # the tested columns (default: group, else
     #                                                the covariates); the rest is adjusted for
     reference: str | None = None      # the group the others are compared with (default: first)

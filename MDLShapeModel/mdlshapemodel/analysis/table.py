@@ -3,8 +3,9 @@
 A CSV file with a ``case`` column whose values are the build's case names; every other column is
 a variable. A column's kind is declared by its role in the analysis
 (:func:`~mdlshapemodel.config.analysis_roles`), never guessed from its values: the group and the
-nuisance columns named categorical are categorical (coded as indicators of their levels), the
-covariates and the other nuisance columns numeric.
+columns named categorical are categorical (coded as indicators of their levels), the other
+covariates and nuisance columns numeric. A numeric column of a few whole numbers (a site coded
+1, 2, 3) is kept numeric, with a note naming it (:data:`FEW_CODES`).
 
 Missing values: in any column the analysis uses, an empty cell or a marker of
 :data:`MISSING_MARKERS` (any letter case); in a numeric column, also any other value that is not
@@ -32,6 +33,9 @@ CASE = "case"
 MISSING_MARKERS = ("", "na", "n/a", "nan", "null", "?", ".", "-", "#n/a")
 # the smallest group that is tested: fewer cases than this cannot estimate a group's spread
 MIN_GROUP = 3
+# a numeric column whose values are at most this many distinct whole numbers (and at least 3:
+# two codes are a linear covariate either way) is noted as possibly a coded factor
+FEW_CODES = 5
 
 
 @dataclass
@@ -88,6 +92,11 @@ class Subjects:
         Build cases that are not used, and why.
     unmatched : list of str
         Table rows whose case is not one of the build's.
+    levels_of : dict
+        Each categorical column of the model: its levels, reference first.
+    notes : list of str
+        Warnings about the design that do not stop it (a numeric column that looks like coded
+        categories).
     """
 
     cases: list
@@ -103,6 +112,8 @@ class Subjects:
     levels: list
     left_out: list = field(default_factory=list)
     unmatched: list = field(default_factory=list)
+    levels_of: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
 
     def n_per_group(self) -> dict | None:
         """Cases per group level, reference first (None without a group)."""
@@ -181,8 +192,35 @@ def _check_numeric(path: Path, rows: list, column: str, role: str):
         examples = ", ".join(repr(v) for v in list(dict.fromkeys(words))[:3])
         raise InputError(f"{path}: {role} {column!r} is not numeric: {len(words)} of "
                          f"{len(values)} values are not numbers ({examples}); a categorical "
-                         f"column goes to --group, or to --nuisance {column} with "
-                         f"--categorical {column}")
+                         f"column goes to --group, or is declared with --categorical {column}")
+
+
+def coded_factor_note(column: str, values: list) -> str | None:
+    """A note when a numeric column's values look like codes of categories: between 3 and
+    :data:`FEW_CODES` distinct whole numbers, each taken by more than one case (None otherwise).
+
+    Examples
+    --------
+    >>> coded_factor_note("site", [1, 2, 3, 1, 2, 3])[:46]
+    "numeric column 'site' takes only the values 1,"
+    >>> coded_factor_note("age", [41, 45, 47, 52, 60, 61]) is None
+    True
+    """
+    distinct = sorted(set(values))
+    if not 3 <= len(distinct) <= FEW_CODES or any(v != round(v) for v in distinct):
+        return None
+    if len(values) < 2 * len(distinct):
+        return None
+    codes = ", ".join(f"{v:g}" for v in distinct)
+    return (f"numeric column {column!r} takes only the values {codes}: it is used as a number "
+            f"(one slope); if it codes categories (sites, scanners), declare it with "
+            f"--categorical {column}")
+
+
+def _level_order(text: str) -> tuple:
+    """Levels in numeric order when they are numbers (2 before 10), else in text order."""
+    number = _number(text)
+    return (0, number, text) if number is not None else (1, 0.0, text)
 
 
 def _indicators(values: list, levels: list) -> np.ndarray:
@@ -203,15 +241,16 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
     group : str, optional
         A categorical column: the groups compared.
     covariates : sequence of str
-        Numeric columns: tested without ``group``; beside it, adjusted for unless named in
-        ``test``.
+        Columns tested without ``group`` (beside it, adjusted for unless named in ``test``):
+        numeric unless named in ``categorical``.
     nuisance : sequence of str
         Columns adjusted for, never tested: numeric unless named in ``categorical``.
     reference : str, optional
         The group level the others are compared with (default: the first in sorted order).
     categorical : sequence of str
-        Nuisance columns that are categorical (coded as indicators of their levels), such as a
-        site coded 1, 2, 3.
+        Covariate or nuisance columns that are categorical, such as a site coded 1, 2, 3: coded
+        as indicators of their levels other than the first (in numeric order when the levels
+        are numbers), named ``column=level``; a tested one is one test over its levels.
     test : sequence of str
         The columns tested, each the group or a covariate (default: the group, else the
         covariates); every other column is adjusted for.
@@ -292,14 +331,21 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
             raise InputError(f"{path}: group {group}={small[0]!r} has {sizes[small[0]]} "
                              f"case(s); each group needs at least {MIN_GROUP}")
 
+    levels_of = {column: levels if column == group else
+                 sorted(set(row[column] for row in chosen), key=_level_order)
+                 for column in roles.categorical}
+    notes = [note for column in roles.numeric
+             if (note := coded_factor_note(column, [_number(row[column]) for row in chosen]))]
+
     def block(column: str) -> tuple[np.ndarray, list]:
         """The design columns of one table column and their names."""
         values = [row[column] for row in chosen]
         if column in numeric:
             numbers = np.array([_number(v) for v in values])
             return (numbers - numbers.mean())[:, None], [column]
-        kinds = levels if column == group else sorted(set(values))
-        named = [f"{column}={k}" if len(roles.tested) > 1 else k for k in kinds[1:]]
+        kinds = levels_of[column]
+        named = [k if column == group and len(roles.tested) == 1 else f"{column}={k}"
+                 for k in kinds[1:]]
         return _indicators(values, kinds), named
 
     def design(columns: list) -> tuple[np.ndarray, list, list]:
@@ -316,4 +362,4 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
                     interest=interest, nuisance=nuisance_columns, interest_names=names,
                     interest_columns=sources, tested=roles.tested,
                     adjusted_for=roles.adjusted_for, group=group, groups=groups, levels=levels,
-                    left_out=left_out, unmatched=unmatched)
+                    left_out=left_out, unmatched=unmatched, levels_of=levels_of, notes=notes)

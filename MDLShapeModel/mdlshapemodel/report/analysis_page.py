@@ -83,10 +83,14 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
 def effect_labels(subjects) -> list:
     """A title per tested effect column: the tested column and, for a group, which level is
     compared with which (the reference)."""
-    labels, levels = [], iter(subjects.levels[1:])
+    labels, seen = [], {}
     for column in subjects.interest_columns:
-        labels.append(f"effect of {column}: {next(levels)} minus {subjects.levels[0]}"
-                      if column == subjects.group else f"effect of {column}, per unit")
+        levels = subjects.levels_of.get(column)
+        if levels:
+            seen[column] = seen.get(column, 0) + 1
+            labels.append(f"effect of {column}: {levels[seen[column]]} minus {levels[0]}")
+        else:
+            labels.append(f"effect of {column}, per unit")
     return labels
 
 
@@ -223,6 +227,7 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
 
     body.append(f"<p>Tested: {named(subjects.tested)}; adjusted for: "
                 f"{named(subjects.adjusted_for)}.</p>")
+    body += [f"<p class=note>{html.escape(note)}</p>" for note in subjects.notes]
     counts = summary["significant_points"]
     body += [f"<h2>Where the shapes differ by {named(subjects.tested)}</h2>",
              f"<p>{counts['fwer']} of {len(analysis.mean)} points significant at &alpha; = "
