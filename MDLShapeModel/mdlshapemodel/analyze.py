@@ -76,6 +76,18 @@ def _columns(analysis: Analysis) -> tuple[list, list]:
     return header, rows
 
 
+def design_summary(design) -> dict:
+    """analysis.json's ``design``: independent cases, or repeated measures and how."""
+    repeated = design.repeated
+    if repeated is None:
+        return {"kind": "independent cases"}
+    return {"kind": ("change between two times" if repeated.design == "change" else
+                     "time within subjects"),
+            "subject": repeated.subject, "time": repeated.time, "times": repeated.times,
+            "n_subjects": len(repeated.subjects),
+            "mean_change_tested": design.mean_change_tested}
+
+
 def summary_of(analysis: Analysis, build, table) -> dict:
     """The content of analysis.json."""
     config, design = analysis.config, analysis.subjects
@@ -83,6 +95,7 @@ def summary_of(analysis: Analysis, build, table) -> dict:
         "version": __version__, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "build": str(build), "table": str(table), "settings": asdict(config),
         "n_cases": len(design.cases),
+        "design": design_summary(design),
         "n_per_group": design.n_per_group(),
         "tested": design.tested,
         "adjusted_for": design.adjusted_for,
@@ -103,6 +116,8 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                        "variance_groups": (design.n_per_group() if analysis.points.variance
                                            == "groups" else None),
                        "family_wise": analysis.points.family_wise,
+                       "resampling": analysis.points.resampling,
+                       "tail": analysis.points.tail,
                        "permutations": analysis.points.permutations,
                        "p": "each point's own permutation p-value",
                        "smallest_p": 1.0 / (analysis.points.permutations + 1),
@@ -205,7 +220,8 @@ def analyze_build(build, table, output, config: AnalysisConfig | None = None, pr
     output = Path(output)
     built = read_build(build)
     design = subjects(table, built.model.names, config.group, config.covariates,
-                      config.nuisance, config.reference, config.categorical, config.test)
+                      config.nuisance, config.reference, config.categorical, config.test,
+                      config.subject, config.time, config.baseline)
     if output.resolve() == Path(build).resolve():
         raise InputError(f"{output}: the output folder is the build folder; choose another")
     io.refuse_earlier(output, earlier_analysis(output), overwrite, "analysis")

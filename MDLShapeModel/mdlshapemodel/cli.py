@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from .config import (ANALYSIS_SIZES, DISPLACEMENTS, FAMILY_WISE, OPTION_GROUPS,
-                     PART_ALIGNMENTS, STRATEGIES, VARIANCES, AnalysisConfig, BuildConfig,
+                     PART_ALIGNMENTS, STRATEGIES, TAILS, VARIANCES, AnalysisConfig, BuildConfig,
                      parse_items)
 from .correspondence.trace import stop_summary
 from .errors import Cancelled, ConfigError, InternalError, MDLShapeModelError
@@ -353,8 +353,12 @@ def _run_analyze(args, live: bool) -> int:
     from .analyze import analyze_build
 
     config = AnalysisConfig(group=args.group, covariates=args.covariate,
-                            nuisance=args.nuisance, categorical=args.categorical,
+                            nuisance=args.nuisance,
+                            categorical=[name.strip() for item in args.categorical
+                                         for name in item.split(",") if name.strip()],
                             test=args.test, reference=args.reference,
+                            subject=args.subject, time=args.time, baseline=args.baseline,
+                            tail=args.tail,
                             permutations=args.permutations, size=args.size, parts=args.parts,
                             displacement=args.displacement, variance=args.variance,
                             family_wise=args.family_wise, alpha=args.alpha,
@@ -373,8 +377,15 @@ def _run_analyze(args, live: bool) -> int:
     lines = [f"  tested: {', '.join(summary['tested'])}; adjusted for: "
              f"{', '.join(summary['adjusted_for']) or 'nothing'} "
              f"({summary['degrees_of_freedom']} residual degrees of freedom)",
-             f"  per point: {summary['point_test']['statistic']}, family-wise by "
-             f"{summary['point_test']['family_wise']}",
+             f"  design: {summary['design']['kind']}"
+             + (f" ({summary['design']['n_subjects']} subjects, {summary['design']['time']} "
+                f"{', '.join(summary['design']['times'])})" if "times" in summary["design"]
+                else ""),
+             f"  per point: {summary['point_test']['statistic']}, "
+             f"{summary['point_test']['resampling']}, family-wise by "
+             f"{summary['point_test']['family_wise']}"
+             + (f", one-sided ({summary['point_test']['tail']})"
+                if summary['point_test']['tail'] != "both" else ""),
              f"  cases: {summary['n_cases']}"
              + (" (" + ", ".join(f"{k}: {v}" for k, v in summary["n_per_group"].items()) + ")"
                 if summary["n_per_group"] else ""),
@@ -550,7 +561,24 @@ def main(argv=None) -> int:
     analyze.add_argument("--categorical", metavar="NAME", action="append", default=[],
                          help="a --covariate or --nuisance column that is categorical "
                               "(coded by its levels, e.g. a site coded 1, 2, 3; a tested one is "
-                              "one test over its levels); repeatable")
+                              "one test over its levels); repeatable or comma-separated")
+    analyze.add_argument("--subject", metavar="NAME",
+                         help="repeated measures: the column naming each case's subject "
+                              "(with --time)")
+    analyze.add_argument("--time", metavar="NAME",
+                         help="repeated measures: the column naming each case's time point. "
+                              "Two times: each subject's change (later minus --baseline) is "
+                              "tested, its mean by sign flips when nothing else is tested, "
+                              "else the tested columns' effect on it; more times: the effect "
+                              "of time within subjects, permuted within each subject")
+    analyze.add_argument("--baseline", metavar="LEVEL",
+                         help="the time the change is measured from (default: the first in "
+                              "numeric or sorted order)")
+    analyze.add_argument("--tail", choices=TAILS, default=analysis_defaults.tail,
+                         help="one-sided tests of a single-column effect (a covariate, two "
+                              "groups, the mean change) along the normal: greater, towards "
+                              "positive (outward) values; less, towards negative (inward: "
+                              "atrophy) (default %(default)s)")
     analyze.add_argument("--permutations", type=int, default=analysis_defaults.permutations,
                          help="random permutations (default %(default)s)")
     analyze.add_argument("--size", choices=ANALYSIS_SIZES, default=analysis_defaults.size,
@@ -604,8 +632,8 @@ def main(argv=None) -> int:
         if args.command == "compare":
             return _run_compare(args)
         if args.command == "analyze":
-            if args.group is None and not args.covariate:
-                analyze.error("give --group, --covariate or both")
+            if args.group is None and not args.covariate and args.time is None:
+                analyze.error("give --group, --covariate or both (or --subject and --time)")
             return _run_analyze(args, live)
         if args.command == "fit":
             if not args.inputs and not args.manifest:

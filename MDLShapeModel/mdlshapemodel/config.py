@@ -640,6 +640,9 @@ VARIANCES = ("groups", "pooled")
 # per-point p; no point dominates whatever its tails, but it needs permutations well above the
 # number of points / alpha)
 FAMILY_WISE = ("maximum", "min-p")
+# The alternative of a test of one effect column: two-sided, or one-sided towards a positive
+# ("greater") or a negative ("less": an inward displacement, atrophy) effect.
+TAILS = ("both", "greater", "less")
 # How the analysis aligns a multi-part object: as one (the parts' relative positions count) or
 # each part on its own (only each part's own shape counts).
 PART_ALIGNMENTS = ("whole", "each")
@@ -656,18 +659,25 @@ class Roles:
 
 
 def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=(),
-                   test=()) -> Roles:
+                   test=(), subject: str | None = None, time: str | None = None) -> Roles:
     """The roles of the columns of one analysis, declared by how they are named: ``group`` is
     categorical, ``covariates`` and ``nuisance`` columns are numeric unless named in
     ``categorical`` (a tested categorical covariate is one test over its levels). The tested
     effect is ``test`` when given (each one the group or a covariate), else the group, else the
     covariates; every other column is adjusted for.
 
+    Repeated measures: ``subject`` names each case's subject and ``time`` its time point; the
+    time is tested (the change within subjects) when nothing else is, else the tested columns'
+    effect on the change. The time's kind is decided with its levels
+    (:func:`~mdlshapemodel.analysis.table.subjects`): it is in neither ``categorical`` nor
+    ``numeric`` here.
+
     Raises
     ------
     ConfigError
         Nothing to test, a column named twice, ``test`` naming a column of the wrong kind,
-        ``categorical`` naming a column not in the model.
+        ``categorical`` naming a column not in the model, a subject without a time or a time
+        without a subject.
 
     Examples
     --------
@@ -678,12 +688,25 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
     ['diagnosis']
     >>> analysis_roles(None, ["site"], categorical=["site"]).categorical
     ['site']
+    >>> analysis_roles(None, subject="id", time="visit").tested
+    ['visit']
     """
     covariates, nuisance = list(covariates), list(nuisance)
     categorical, test = list(categorical), list(test)
-    if group is None and not covariates:
+    if (subject is None) != (time is None):
+        raise ConfigError("repeated measures need both --subject (whose case each is) and "
+                          "--time (its time point)" + (f"; got only --subject {subject}"
+                                                       if subject else f"; got only --time {time}"))
+    if group is None and not covariates and time is None:
         raise ConfigError("nothing to test: give a group column or a covariate")
     model = ([group] if group else []) + covariates + nuisance
+    if subject is not None:
+        for name in (subject, time):
+            if name in model:
+                raise ConfigError(f"column {name!r} is given twice (as --subject or --time and "
+                                  "as a column of the model)")
+        if subject == time:
+            raise ConfigError(f"column {subject!r} is given twice (as --subject and --time)")
     for names in (model, categorical, test):
         repeated = sorted({c for c in names if names.count(c) > 1})
         if repeated:
@@ -693,11 +716,15 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
             raise ConfigError(f"test: {name!r} is not the group or a covariate (a tested "
                               "column is given by --group or --covariate)")
     for name in categorical:
-        if name != group and name not in covariates and name not in nuisance:
+        if name != group and name not in covariates and name not in nuisance and name != time:
             raise ConfigError(f"categorical: {name!r} is not a column of the model (give it "
                               f"with --covariate {name} to test it, or --nuisance {name})")
     tested = test or ([group] if group else covariates)
     kinds = {name: name == group or name in categorical for name in model}
+    if not tested:
+        return Roles(tested=[time], adjusted_for=list(model),
+                     categorical=[c for c in model if kinds[c]],
+                     numeric=[c for c in model if not kinds[c]])
     return Roles(tested=[c for c in model if c in tested],
                  adjusted_for=[c for c in model if c not in tested],
                  categorical=[c for c in model if kinds[c]],
@@ -722,6 +749,10 @@ class AnalysisConfig:
     test: list[str] = field(default_factory=list)  # the tested columns (default: group, else
     #                                                the covariates); the rest is adjusted for
     reference: str | None = None      # the group the others are compared with (default: first)
+    subject: str | None = None        # repeated measures: the column naming each case's subject
+    time: str | None = None           # ... and the one naming its time point
+    baseline: str | None = None       # the time the change is measured from (default: first)
+    tail: str = "both"                # one-sided tests of a single-column effect
     permutations: int = 10_000
     size: str = "kept"
     parts: str = "whole"              # multi-part objects: aligned as one, or each part alone
@@ -748,8 +779,12 @@ class AnalysisConfig:
         need(self.family_wise in FAMILY_WISE, "family_wise",
              f"must be one of {', '.join(FAMILY_WISE)}")
         need(0 < self.alpha < 1, "alpha", "must be between 0 and 1")
+        need(self.tail in TAILS, "tail", f"must be one of {', '.join(TAILS)}")
+        need(self.baseline is None or self.time is not None, "baseline",
+             "is a level of the time column: give --time too")
         need(self.folds >= 2, "folds", "must be at least 2")
-        if self.group is not None or self.covariates:
+        if (self.group is not None or self.covariates or self.time is not None
+                or self.subject is not None):
             roles = self.roles()
             need(not (self.variance_groups() and self.displacement == "vector"
                       and (roles.adjusted_for or len(roles.tested) > 1)), "variance",
@@ -768,4 +803,4 @@ class AnalysisConfig:
         """What each column of the model is (:func:`analysis_roles`); ConfigError when the
         names contradict each other."""
         return analysis_roles(self.group, self.covariates, self.nuisance, self.categorical,
-                              self.test)
+                              self.test, self.subject, self.time)

@@ -129,27 +129,24 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
         data = np.einsum("npd,pd->np", offsets, normals)
     else:
         data = offsets[..., :2] if planar else offsets
-    points = permutation_test(data, subjects.interest, subjects.nuisance, config.permutations,
-                              config.seed, progress,
-                              variance_groups=subjects.groups if config.variance_groups() else None,
-                              family_wise=config.family_wise)
+    points = point_test(data, subjects, config, progress)
     difference = _effects(offsets, subjects)
     normal_difference = np.einsum("rpd,pd->rp", difference, normals)
     r = subjects.interest.shape[1]
-    z = 1 + subjects.nuisance.shape[1]
-    _, _, scores = principal_scores(aligned, model.weights, max_modes=len(aligned) - z - r - 1)
+    z = int(not subjects.mean_change_tested) + subjects.nuisance.shape[1]
+    _, _, scores = principal_scores(aligned, model.weights,
+                                    max_modes=len(subjects.interest) - z - r - 1)
     report(progress, None, "the global test")
     # the global test is pooled: per-group covariances of k scores need more than k cases in
     # every group
-    overall = permutation_test(scores[:, None, :], subjects.interest, subjects.nuisance,
-                               config.permutations, config.seed)
+    overall = point_test(scores[:, None, :], subjects, config, pooled=True)
     global_test = GlobalTest(scores.shape[1], float(overall.statistic[0]), float(overall.p[0]),
                              config.permutations)
     found_discriminant = found_classification = None
     # the discriminant and classification of two groups describe a tested group, not one
-    # adjusted for
+    # adjusted for, of independent cases
     if (subjects.groups is not None and len(subjects.levels) == 2
-            and subjects.group in subjects.tested):
+            and subjects.group in subjects.tested and subjects.repeated is None):
         second = np.array([g == subjects.levels[1] for g in subjects.groups])
         found_discriminant = discriminant(aligned, model.weights, second)
         found_classification = classify(aligned, model.weights, second, config.folds,
@@ -161,11 +158,62 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
                     unusual_cases(model))
 
 
+def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:
+    """Per-case values (n_cases, ...) as the design's rows: with two times per subject each
+    subject's change (its later case's values minus its baseline case's), else the cases."""
+    per_case = np.asarray(per_case)
+    repeated = subjects.repeated
+    if repeated is None or repeated.design != "change":
+        return per_case
+    return per_case[repeated.pairs[:, 1]] - per_case[repeated.pairs[:, 0]]
+
+
+def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,
+               progress=None, pooled: bool = False) -> PointTest:
+    """The per-point test of a design on per-case data, resampled as the design allows.
+
+    Independent cases: permutations (sign flips and permutations within the groups with
+    variance groups). Two times per subject: the test on each subject's change
+    (:func:`design_rows`); of the mean change (nothing else tested) with no intercept,
+    by sign flips (Winkler et al. 2014, independent and symmetric errors). More times: the
+    effect of time with each subject adjusted for, permuted within subjects (exchangeability
+    blocks).
+
+    Parameters
+    ----------
+    per_case : ndarray (n_cases, p) or (n_cases, p, q)
+        The data of the used cases, in :attr:`~.table.Subjects.cases` order.
+    subjects : Subjects
+    config : AnalysisConfig
+        Permutations, seed, variance, family-wise correction and tail (one-sided only where
+        there is one effect column and one number per point).
+    pooled : bool
+        Use the pooled statistic whatever ``config.variance`` says (the global test).
+
+    Returns
+    -------
+    PointTest
+    """
+    data = design_rows(per_case, subjects)
+    single = subjects.interest.shape[1] == 1 and (data.ndim == 2 or data.shape[2] == 1)
+    repeated = subjects.repeated
+    return permutation_test(
+        data, subjects.interest, subjects.nuisance, config.permutations, config.seed, progress,
+        variance_groups=(subjects.groups if config.variance_groups() and not pooled else None),
+        family_wise=config.family_wise, intercept=not subjects.mean_change_tested,
+        flips=subjects.mean_change_tested,
+        blocks=repeated.blocks if repeated is not None else None,
+        tail=config.tail if single and not pooled else "both")
+
+
 def _effects(offsets: np.ndarray, subjects: Subjects) -> np.ndarray:
     """The effect columns' least-squares coefficients on the point coordinates (r, p, 3),
-    adjusted for the nuisance."""
-    n, p, d = offsets.shape
-    design = np.hstack([np.ones((n, 1)), subjects.nuisance, subjects.interest])
-    coefficients, *_ = np.linalg.lstsq(design, offsets.reshape(n, -1), rcond=None)
+    adjusted for the nuisance (for the mean change: the mean change at the nuisance's mean)."""
+    rows = design_rows(offsets, subjects)
+    n, p, d = rows.shape
+    columns = [subjects.nuisance, subjects.interest]
+    if not subjects.mean_change_tested:
+        columns.insert(0, np.ones((n, 1)))
+    coefficients, *_ = np.linalg.lstsq(np.hstack(columns), rows.reshape(n, -1), rcond=None)
     r = subjects.interest.shape[1]
     return coefficients[-r:].reshape(r, p, d)

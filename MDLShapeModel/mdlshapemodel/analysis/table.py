@@ -59,6 +59,38 @@ class LeftOut:
 
 
 @dataclass
+class Repeated:
+    """Repeated measures: which cases are one subject's, at which time.
+
+    Attributes
+    ----------
+    subject, time : str
+        The table's columns naming each case's subject and its time point.
+    times : list of str
+        The time levels, the baseline first.
+    design : str
+        "change" (two times: one row per subject, its later case minus its baseline case) or
+        "within" (more times: one row per case, time tested within subjects).
+    subjects : list of str
+        The subjects, in the order of the design's rows ("change") or of the blocks
+        ("within").
+    pairs : ndarray (n_subjects, 2) or None
+        "change": each subject's rows in :attr:`Subjects.cases` at the baseline and the later
+        time.
+    blocks : ndarray (n,) or None
+        "within": each case's subject (an index into ``subjects``), its exchangeability block.
+    """
+
+    subject: str
+    time: str
+    times: list
+    design: str
+    subjects: list
+    pairs: np.ndarray | None
+    blocks: np.ndarray | None
+
+
+@dataclass
 class Subjects:
     """The cases an analysis uses and the design made of the table.
 
@@ -97,6 +129,9 @@ class Subjects:
     notes : list of str
         Warnings about the design that do not stop it (a numeric column that looks like coded
         categories).
+    repeated : Repeated or None
+        Repeated measures (``subject`` and ``time``). With two times ("change") the design's
+        rows (``interest``, ``nuisance``, ``groups``) are the subjects, not the cases.
     """
 
     cases: list
@@ -114,6 +149,14 @@ class Subjects:
     unmatched: list = field(default_factory=list)
     levels_of: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
+    repeated: Repeated | None = None
+
+    @property
+    def mean_change_tested(self) -> bool:
+        """Whether the test is of the mean change (two times, nothing else tested): the
+        one-sample test, no intercept in the nuisance, resampled by sign flips."""
+        return (self.repeated is not None and self.repeated.design == "change"
+                and self.tested == [self.repeated.time])
 
     def n_per_group(self) -> dict | None:
         """Cases per group level, reference first (None without a group)."""
@@ -229,7 +272,9 @@ def _indicators(values: list, levels: list) -> np.ndarray:
 
 
 def subjects(table, case_names: list, group: str | None = None, covariates=(),
-             nuisance=(), reference: str | None = None, categorical=(), test=()) -> Subjects:
+             nuisance=(), reference: str | None = None, categorical=(), test=(),
+             subject: str | None = None, time: str | None = None,
+             baseline: str | None = None) -> Subjects:
     """Match a subjects table to a build's cases and make the design of one analysis.
 
     Parameters
@@ -254,6 +299,17 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
     test : sequence of str
         The columns tested, each the group or a covariate (default: the group, else the
         covariates); every other column is adjusted for.
+    subject, time : str, optional
+        Repeated measures: the columns naming each case's subject and its time point. With two
+        times, each subject's change (the later case minus the baseline's) is analysed, one row
+        per subject: the mean change is tested when no other column is, else the tested
+        columns' effect on the change (the subject's values at the baseline; a categorical
+        column must agree between the times). A subject without a case at both times is left
+        out. With more times, the effect of time within subjects: the time (numeric unless
+        named in ``categorical``) tested, each subject adjusted for, every case its subject's
+        exchangeability block.
+    baseline : str, optional
+        The time the change is measured from (default: the first in numeric or sorted order).
 
     Returns
     -------
@@ -264,7 +320,8 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
     InputError
         One line naming the file and the problem: no ``case`` column, an unknown column, a
         group with one level or fewer than 3 cases, a numeric column of words, no case matched
-        or none with every value.
+        or none with every value; a subject with two cases at one time, a categorical column
+        that changes within a subject, no subject with both times.
     ConfigError
         Roles that contradict each other (:func:`~mdlshapemodel.config.analysis_roles`).
 
@@ -277,9 +334,11 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
         design.tested, design.adjusted_for        # ['age'], ['diagnosis']
     """
     path = Path(table)
-    roles = analysis_roles(group, covariates, nuisance, categorical, test)
+    roles = analysis_roles(group, covariates, nuisance, categorical, test, subject, time)
     header, rows = read_table(path)
+    model_columns = [c for c in roles.tested + roles.adjusted_for if c != time]
     used_columns = roles.tested + roles.adjusted_for
+    used_columns += [c for c in (subject, time) if c and c not in used_columns]
     for column in used_columns:
         if column not in header:
             raise InputError(f"{path}: no column {column!r} (columns: {', '.join(header)})")
@@ -313,18 +372,25 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
         counts = ", ".join(f"{c}: {sum(c in o.missing for o in left_out)}" for c in used_columns)
         raise InputError(f"{path}: no case of the build has a value in every column used "
                          f"(cases without one: {counts})")
+    repeated, design_rows = None, chosen
+    if subject is not None:
+        repeated, kept, design_rows, incomplete = _repeated(path, chosen, roles, subject, time,
+                                                            baseline)
+        left_out += incomplete
+        chosen, indices = [chosen[k] for k in kept], [indices[k] for k in kept]
+        if repeated.design == "within":
+            design_rows = chosen
+            if time in categorical:
+                roles.categorical.append(time)
+            else:
+                _check_numeric(path, chosen, time, "time column")
+                numeric.add(time)
+                roles.numeric.append(time)
     groups, levels = None, []
     if group:
-        groups = [row[group] for row in chosen]
-        levels = sorted(set(groups))
-        if reference is not None:
-            if reference not in levels:
-                raise InputError(f"{path}: no case of group {group}={reference!r} (levels: "
-                                 f"{', '.join(levels)})")
-            levels = [reference] + [level for level in levels if level != reference]
-        if len(levels) < 2:
-            raise InputError(f"{path}: group column {group!r} has one level ({levels[0]!r}) "
-                             "among the cases; a group test needs two or more")
+        groups = [row[group] for row in design_rows]
+        levels = _levels(path, group, groups, reference, sorted, "group",
+                         "a group test needs two or more")
         sizes = {level: groups.count(level) for level in levels}
         small = [level for level in levels if sizes[level] < MIN_GROUP]
         if small:
@@ -332,14 +398,15 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
                              f"case(s); each group needs at least {MIN_GROUP}")
 
     levels_of = {column: levels if column == group else
-                 sorted(set(row[column] for row in chosen), key=_level_order)
+                 repeated.times if column == time else
+                 sorted(set(row[column] for row in design_rows), key=_level_order)
                  for column in roles.categorical}
-    notes = [note for column in roles.numeric
-             if (note := coded_factor_note(column, [_number(row[column]) for row in chosen]))]
+    notes = [note for column in roles.numeric if column != time
+             if (note := coded_factor_note(column, [_number(row[column]) for row in design_rows]))]
 
     def block(column: str) -> tuple[np.ndarray, list]:
         """The design columns of one table column and their names."""
-        values = [row[column] for row in chosen]
+        values = [row[column] for row in design_rows]
         if column in numeric:
             numbers = np.array([_number(v) for v in values])
             return (numbers - numbers.mean())[:, None], [column]
@@ -351,15 +418,105 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
     def design(columns: list) -> tuple[np.ndarray, list, list]:
         blocks = [block(column) for column in columns]
         matrix = (np.hstack([b for b, _ in blocks]) if blocks
-                  else np.zeros((len(chosen), 0)))
+                  else np.zeros((len(design_rows), 0)))
         names = [name for _, block_names in blocks for name in block_names]
         sources = [c for c, (_, block_names) in zip(columns, blocks) for _ in block_names]
         return matrix, names, sources
 
-    interest, names, sources = design(roles.tested)
     nuisance_columns, _, _ = design(roles.adjusted_for)
+    if repeated is not None and repeated.design == "change" and roles.tested == [time]:
+        # the mean change is tested: no intercept, every nuisance column centred so that the
+        # mean change is the change at the nuisance's mean
+        interest, names, sources = np.ones((len(design_rows), 1)), ["change"], [time]
+        nuisance_columns = nuisance_columns - nuisance_columns.mean(axis=0)
+    else:
+        interest, names, sources = design(roles.tested)
+    if repeated is not None and repeated.design == "within":
+        constant = [c for c in roles.adjusted_for
+                    if all(len({chosen[k][c] for k in np.flatnonzero(repeated.blocks == b)}) == 1
+                           for b in range(len(repeated.subjects)))]
+        if constant:
+            raise InputError(f"{path}: {constant[0]!r} is the same at every time of each "
+                             f"subject: the effect of {time} within subjects is adjusted for "
+                             "each subject already (leave it out)")
+        own = _indicators(list(repeated.blocks), list(range(len(repeated.subjects))))
+        nuisance_columns = np.hstack([own, nuisance_columns])
     return Subjects(cases=[case_names[i] for i in indices], indices=np.array(indices),
                     interest=interest, nuisance=nuisance_columns, interest_names=names,
                     interest_columns=sources, tested=roles.tested,
                     adjusted_for=roles.adjusted_for, group=group, groups=groups, levels=levels,
-                    left_out=left_out, unmatched=unmatched, levels_of=levels_of, notes=notes)
+                    left_out=left_out, unmatched=unmatched, levels_of=levels_of, notes=notes,
+                    repeated=repeated)
+
+
+def _levels(path: Path, column: str, values: list, first: str | None, order, what: str,
+            need: str) -> list:
+    """The levels of a column among the cases, in ``order``, ``first`` (when given) first;
+    InputError naming the file when ``first`` is not one of them or there is only one."""
+    levels = order(set(values))
+    if first is not None:
+        if first not in levels:
+            raise InputError(f"{path}: no case of {what} {column}={first!r} (levels: "
+                             f"{', '.join(levels)})")
+        levels = [first] + [level for level in levels if level != first]
+    if len(levels) < 2:
+        raise InputError(f"{path}: {what} column {column!r} has one level ({levels[0]!r}) "
+                         f"among the cases; {need}")
+    return levels
+
+
+def _repeated(path: Path, chosen: list, roles, subject: str, time: str,
+              baseline: str | None) -> tuple:
+    """The repeated-measures design of the chosen rows: (Repeated, the rows kept, the design's
+    rows, the cases left out). Two times: each subject's pair of cases, the subject's row at the
+    baseline its design row; more: every case, blocked by subject."""
+    times = _levels(path, time, [row[time] for row in chosen], baseline,
+                    lambda values: sorted(values, key=_level_order), "time",
+                    "repeated measures need two or more")
+    members = {}
+    for k, row in enumerate(chosen):
+        members.setdefault(row[subject], []).append(k)
+    for name, ks in members.items():
+        seen = {}
+        for k in ks:
+            if chosen[k][time] in seen:
+                raise InputError(f"{path}: subject {name!r} has two cases at {time}="
+                                 f"{chosen[k][time]!r} ({chosen[seen[chosen[k][time]]][CASE]}, "
+                                 f"{chosen[k][CASE]})")
+            seen[chosen[k][time]] = k
+    order = list(members)
+    if len(times) > 2:
+        if roles.tested != [time]:
+            raise InputError(f"{path}: time column {time!r} has {len(times)} levels: with more "
+                             f"than two times the effect of {time} within subjects is tested "
+                             f"(not {', '.join(roles.tested)}); a tested column's effect on the "
+                             "change needs two times")
+        kept = list(range(len(chosen)))
+        blocks = np.array([order.index(row[subject]) for row in chosen])
+        return (Repeated(subject, time, times, "within", order, None, blocks), kept, chosen,
+                [])
+    first, second = times
+    pairs, incomplete = [], []
+    for name in order:
+        at = {chosen[k][time]: k for k in members[name]}
+        if len(at) < 2:
+            missing = second if first in at else first
+            incomplete += [LeftOut(chosen[k][CASE], f"subject {name!r} has no case at {time}="
+                                   f"{missing!r}") for k in members[name]]
+            continue
+        for column in roles.categorical:
+            values = chosen[at[first]][column], chosen[at[second]][column]
+            if values[0] != values[1]:
+                raise InputError(f"{path}: {column!r} differs between the times of subject "
+                                 f"{name!r} ({values[0]!r} at {first}, {values[1]!r} at "
+                                 f"{second}); a categorical column of the change must be the "
+                                 "subject's")
+        pairs.append((at[first], at[second]))
+    if not pairs:
+        raise InputError(f"{path}: no subject has a case at both times ({first}, {second})")
+    kept = sorted(k for pair in pairs for k in pair)
+    position = {k: j for j, k in enumerate(kept)}
+    rows_of_pairs = np.array([[position[a], position[b]] for a, b in pairs])
+    names = [chosen[a][subject] for a, _ in pairs]
+    return (Repeated(subject, time, times, "change", names, rows_of_pairs, None), kept,
+            [chosen[a] for a, _ in pairs], incomplete)

@@ -28,10 +28,10 @@ log = logging.getLogger("mdlshapemodel")
 HOW_TO_READ = """
 <h2>How to read this page</h2>
 <ul>
-<li><b>What is tested at each point.</b> {what}. The statistic is {statistic}{assumes}; its
-p-value counts how often {permutations} random relabellings of the cases (permutations of the
-residuals of the model without the effect, Freedman-Lane) gave a statistic at least as large at
-that point (so it is at least 1/{permutations_plus_one}).</li>
+<li><b>What is tested at each point.</b> {what}{design}. The statistic is
+{statistic}{assumes}; its p-value{tail} counts how often {permutations} random resamples (the
+residuals of the model without the effect {resampling}, Freedman-Lane) gave a statistic at least
+as extreme at that point (so it is at least 1/{permutations_plus_one}).</li>
 <li><b>Family-wise correction</b> (p<sub>FWER</sub>): {family_wise} over all points is
 compared, so the chance that <i>any</i> point is called significant when there is no effect is
 at most &alpha; = {alpha}. <b>FDR</b> (q): among the points called significant, the expected share
@@ -86,7 +86,10 @@ def effect_labels(subjects) -> list:
     labels, seen = [], {}
     for column in subjects.interest_columns:
         levels = subjects.levels_of.get(column)
-        if levels:
+        if subjects.mean_change_tested:
+            times = subjects.repeated.times
+            labels.append(f"mean change: {column} {times[1]} minus {times[0]}")
+        elif levels:
             seen[column] = seen.get(column, 0) + 1
             labels.append(f"effect of {column}: {levels[seen[column]]} minus {levels[0]}")
         else:
@@ -220,6 +223,17 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
         body[-1] += " (" + ", ".join(f"{html.escape(level)}: {count}" for level, count
                                      in summary["n_per_group"].items()) + ")"
     body[-1] += f"; {len(subjects.left_out)} left out.</p>"
+    repeated = subjects.repeated
+    if repeated is not None:
+        body.append(f"<p>Repeated measures: {len(repeated.subjects)} subjects "
+                    f"(<code>{html.escape(repeated.subject)}</code>) at "
+                    f"<code>{html.escape(repeated.time)}</code> "
+                    + ", ".join(html.escape(t) for t in repeated.times) + ": "
+                    + ("each subject's change, " + html.escape(repeated.times[1]) + " minus "
+                       + html.escape(repeated.times[0]) + ", is analysed."
+                       if repeated.design == "change" else
+                       "the effect of time within subjects, each subject adjusted for.")
+                    + "</p>")
 
     def named(columns: list) -> str:
         return ", ".join(("group " if c == subjects.group else "") + f"<b>{html.escape(c)}</b>"
@@ -267,7 +281,12 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
                    "the smallest per-point p-value (min-p)")
     body.append(HOW_TO_READ.format(
         what=what, statistic=html.escape(points.name), assumes=assumes,
-        permutations=config.permutations, permutations_plus_one=config.permutations + 1,
+        design=("" if repeated is None else
+                ", of each subject's change between the two times" if repeated.design == "change"
+                else ", within each subject"),
+        tail=("" if points.tail == "both" else
+              f" (one-sided: an effect {'above' if points.tail == 'greater' else 'below'} 0)"),
+        resampling=html.escape(points.resampling), permutations=config.permutations, permutations_plus_one=config.permutations + 1,
         family_wise=family_wise, alpha=config.alpha,
         effect_unit=("(mm)" if subjects.tested == [subjects.group] else
                      "per unit of the covariate (mm)" if subjects.group not in subjects.tested
