@@ -11,10 +11,12 @@ The output folder::
                     (statistic, variance groups, family-wise correction, smallest p), the global
                     test, the number of significant points (FWER, FDR), the classification
     points.csv      one row per model point: point,part,x,y,z,statistic,p,p_fwer,q_fdr,
-                    difference_x,difference_y,difference_z,normal_difference_mm
+                    difference_x,difference_y,difference_z,normal_difference_mm,t
                     (p: the point's own permutation p-value; p_fwer: family-wise corrected;
-                    q_fdr: Benjamini-Hochberg of p; several effect columns:
-                    difference_<name>_x ... per column)
+                    q_fdr: Benjamini-Hochberg of p; t: the signed t or Welch's v; several
+                    effect columns or the vector displacement: difference_<name>_x ... and
+                    t_<name>,p_<name>,p_fwer_<name>,q_fdr_<name> per column, each column's
+                    own signed test along the normal adjusted for the others)
     effects.vtp     the mean surface with the same values as point arrays (effects/<part>.vtp
                     for a multi-part model)
     unusual.csv     per case: Mahalanobis distance, p, flagged, largest departure from its
@@ -64,6 +66,8 @@ def _columns(analysis: Analysis) -> tuple[list, list]:
         prefix = "difference" if single else f"difference_{name}"
         header += [f"{prefix}_x", f"{prefix}_y", f"{prefix}_z"]
         header.append("normal_difference_mm" if single else f"normal_difference_{name}_mm")
+    signed = signed_columns(analysis)
+    header += list(signed)
     rows = []
     for k in range(len(mean)):
         row = [k, int(analysis.parts[k]), *(f"{v:.6g}" for v in mean[k]),
@@ -72,8 +76,24 @@ def _columns(analysis: Analysis) -> tuple[list, list]:
         for r in range(len(names)):
             row += [f"{v:.6g}" for v in analysis.difference[r, k]]
             row.append(f"{analysis.normal_difference[r, k]:.6g}")
+        row += [f"{values[k]:.6g}" for values in signed.values()]
         rows.append(row)
     return header, rows
+
+
+def signed_columns(analysis: Analysis) -> dict:
+    """The signed maps' columns of points.csv and arrays of effects.vtp: ``t`` when the
+    per-point test is itself the signed test of its one effect column; else per effect column
+    ``t_<name>``, ``p_<name>``, ``p_fwer_<name>``, ``q_fdr_<name>`` (its own test along the
+    normal, adjusted for the other effect columns)."""
+    columns = {}
+    for found in analysis.signed:
+        if found.joint:
+            columns["t"] = found.test.t
+            continue
+        for key in ("t", "p", "p_fwer", "q_fdr"):
+            columns[f"{key}_{found.name}"] = getattr(found.test, key)
+    return columns
 
 
 def design_summary(design) -> dict:
@@ -123,6 +143,16 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                        "smallest_p": 1.0 / (analysis.points.permutations + 1),
                        "uncorrected_significant": int(np.sum(analysis.points.p
                                                              <= config.alpha))},
+        "effect_tests": [{"name": found.name, "column": found.column,
+                          "statistic": ("Welch's v" if found.test.variance == "groups"
+                                        else "Student's t"),
+                          "tail": found.test.tail, "resampling": found.test.resampling,
+                          "degrees_of_freedom": found.test.df,
+                          "the_point_test": found.joint,
+                          "significant_points": {
+                              "fwer": int(np.sum(found.test.p_fwer <= config.alpha)),
+                              "fdr": int(np.sum(found.test.q_fdr <= config.alpha))}}
+                         for found in analysis.signed],
         "classification": None, "discriminant": None,
         "unusual": {"modes": analysis.unusual.distances.modes,
                     "threshold": analysis.unusual.distances.threshold,
@@ -153,6 +183,7 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model):
         suffix = "" if len(analysis.subjects.interest_names) == 1 else f"_{name}"
         arrays[f"difference{suffix}"] = difference
         arrays[f"normal_difference{suffix}_mm"] = normal
+    arrays.update(signed_columns(analysis))
     parts = model.part_meshes()
     if len(parts) == 1:
         io.write_polydata(folder / "effects.vtp", analysis.mean, model.triangles,

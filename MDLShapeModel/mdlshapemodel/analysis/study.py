@@ -9,7 +9,7 @@ job of :mod:`mdlshapemodel.analyze`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -46,6 +46,32 @@ class Unusual:
 
 
 @dataclass
+class SignedMap:
+    """The signed test of one effect column along the normal, adjusted for the other effect
+    columns and the nuisance (as MFSDA maps each covariate): Student's t of its coefficient
+    (Welch's v with variance groups) per point, its permutation p-values and corrections.
+
+    Attributes
+    ----------
+    name : str
+        The effect column (a covariate, ``group=level`` or a level, ``change``).
+    column : str
+        Its table column.
+    test : PointTest
+        The test: ``test.t`` the signed statistic, ``test.p``, ``test.p_fwer``, ``test.q_fdr``
+        (one-sided when ``test.tail`` says so).
+    joint : bool
+        Whether it is the analysis's per-point test itself (one effect column tested along the
+        normal), not a test of its own.
+    """
+
+    name: str
+    column: str
+    test: PointTest
+    joint: bool
+
+
+@dataclass
 class Analysis:
     """What :func:`analyze_shapes` found. Per-point arrays follow the model's points."""
 
@@ -59,6 +85,7 @@ class Analysis:
     difference: np.ndarray         # (r, p, 3) effect vectors (mm; per unit of a covariate)
     normal_difference: np.ndarray  # (r, p) their components along the normals (negative: inward)
     global_test: GlobalTest
+    signed: list                   # SignedMap per effect column (along the normal)
     discriminant: Discriminant | None
     classification: Classification | None
     unusual: Unusual
@@ -130,6 +157,9 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     else:
         data = offsets[..., :2] if planar else offsets
     points = point_test(data, subjects, config, progress)
+    along = data if config.displacement == "normal" else np.einsum("npd,pd->np", offsets,
+                                                                    normals)
+    signed = signed_maps(along, subjects, config, points)
     difference = _effects(offsets, subjects)
     normal_difference = np.einsum("rpd,pd->rp", difference, normals)
     r = subjects.interest.shape[1]
@@ -154,8 +184,8 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     parts = np.concatenate([np.full(s.stop - s.start, j)
                             for j, s in enumerate(model.part_slices())])
     return Analysis(config, subjects, aligned, mean, normals, parts, points, difference,
-                    normal_difference, global_test, found_discriminant, found_classification,
-                    unusual_cases(model))
+                    normal_difference, global_test, signed, found_discriminant,
+                    found_classification, unusual_cases(model))
 
 
 def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:
@@ -166,6 +196,37 @@ def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:
     if repeated is None or repeated.design != "change":
         return per_case
     return per_case[repeated.pairs[:, 1]] - per_case[repeated.pairs[:, 0]]
+
+
+def signed_maps(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig,
+                joint: PointTest | None = None, progress=None) -> list:
+    """A signed test along the normal per effect column, each adjusted for the other effect
+    columns and the nuisance (with ``config.tail``, one-sided).
+
+    Parameters
+    ----------
+    normal : ndarray (n_cases, p)
+        The used cases' displacements along the mean's normals.
+    subjects : Subjects
+    config : AnalysisConfig
+    joint : PointTest, optional
+        The analysis's per-point test: when it is already the signed test of the only effect
+        column (one column, the normal displacement), it is the map.
+
+    Returns
+    -------
+    list of SignedMap
+    """
+    names, columns = subjects.interest_names, subjects.interest_columns
+    if joint is not None and joint.t is not None:
+        return [SignedMap(names[0], columns[0], joint, True)]
+    maps = []
+    for j, (name, column) in enumerate(zip(names, columns)):
+        others = np.delete(subjects.interest, j, axis=1)
+        alone = replace(subjects, interest=subjects.interest[:, [j]],
+                        nuisance=np.hstack([subjects.nuisance, others]))
+        maps.append(SignedMap(name, column, point_test(normal, alone, config, progress), False))
+    return maps
 
 
 def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,

@@ -64,9 +64,21 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     # every value shown
     top = max(float(log_p.astype(np.float32).max()), level * 1.5)
     rows = [("-log10 p (FWER)", log_p, "viridis", 0.0, top, "-log10 p, family-wise")]
-    for label, values in zip(effect_labels(analysis.subjects), analysis.normal_difference):
+    labels = effect_labels(analysis.subjects)
+    for label, values in zip(labels, analysis.normal_difference):
         limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((label, values, "coolwarm", -limit, limit, "along the normal [mm]"))
+    # one signed map per effect column, and its own family-wise p when it is a test of its own
+    for label, found in zip(labels, analysis.signed):
+        values = found.test.t
+        limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
+        rows.append((f"signed t, {label}", values, "coolwarm", -limit, limit,
+                     "t along the normal"))
+        if not found.joint:
+            own = -np.log10(found.test.p_fwer)
+            rows.append((f"-log10 p (FWER), {label}", own, "viridis", 0.0,
+                         max(float(own.astype(np.float32).max()), level * 1.5),
+                         "-log10 p, family-wise"))
     parts = []
     if model.of_curves:
         return [_image(_curve_maps(analysis, rows, significant), "effect maps")]
