@@ -507,3 +507,36 @@ def test_each_covariate_gets_its_own_signed_map_adjusted_for_the_others(build, t
             points[f"p_fwer_{name}"].astype(float) <= 0.05))
         assert entry["significant_points"]["fdr"] == int(np.sum(
             points[f"q_fdr_{name}"].astype(float) <= 0.05))
+
+
+def test_long_csv_has_a_row_per_case_and_point_for_r_or_pandas(build, table, tmp_path):
+    output = tmp_path / "long"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "--long-table",
+                     "--permutations", "9", "-o", output, "-q")
+    assert result.returncode == 0, result.stderr
+    rows = io.read_csv(output / "long.csv")
+    used = [f"case_{k:02d}" for k in range(N) if k != 5]    # case_05 has no group: left out
+    model = ShapeModel.load(build / "model.h5")
+    points = len(model.mean)
+    assert len(rows) == len(used) * points
+    assert [rows[k * points]["case"] for k in range(len(used))] == used
+    assert [int(row["point"]) for row in rows[:points]] == list(range(points))
+    k = sum(key.startswith("score_") for key in rows[0])
+    assert list(rows[0])[:4 + k + 3] == (["case", "point", "part", "normal_displacement_mm"]
+                                         + [f"score_{j + 1}" for j in range(k)]
+                                         + ["group", "age", "sex"])
+    normal = np.array([float(row["normal_displacement_mm"]) for row in rows]).reshape(
+        len(used), points)
+    expected = normal_displacement(build, used)
+    assert np.median(np.abs(normal - expected)) < 1e-4 * np.abs(expected).max()
+    # the principal scores: the area-weighted PCA of the aligned shapes, up to each mode's sign
+    aligned = align(shapes_of(build, used), model.weights)
+    centred = ((aligned - aligned.mean(axis=0)) * np.sqrt(model.weights)[None, :, None])
+    u, singular, _ = np.linalg.svd(centred.reshape(len(used), -1), full_matrices=False)
+    scores = np.array([[float(rows[i * points][f"score_{j + 1}"]) for j in range(k)]
+                       for i in range(len(used))])
+    np.testing.assert_allclose(np.abs(scores), np.abs(u[:, :k] * singular[:k]), rtol=1e-3,
+                               atol=1e-4 * singular[0])
+    written = {row[0]: row for row in csv.reader(open(table))}
+    for row in rows[::points]:
+        assert [row["group"], row["age"], row["sex"]] == written[row["case"]][1:]

@@ -23,6 +23,9 @@ The output folder::
                     reconstruction
     unusual/        per case, the mean surface with the case's departure (mm) as point data
     analysis.html   the page of findings
+    long.csv        with ``long_table`` (``--long-table``): one row per used case and point,
+                    case,point,part,normal_displacement_mm,score_1 ... score_k and every column
+                    of the subjects table, for mixed models in R or pandas
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ import numpy as np
 
 from .analysis.shapes import read_build
 from .analysis.study import Analysis, analyze_shapes
-from .analysis.table import subjects
+from .analysis.table import CASE, read_table, subjects
 from .config import AnalysisConfig
 from .errors import InputError
 from .prepare import io
@@ -44,7 +47,7 @@ from .report.analysis_page import write_analysis_page
 from .version import __version__
 
 ANALYSIS_FILES = ("analysis.json", "points.csv", "effects.vtp", "effects", "unusual.csv",
-                  "unusual", "analysis.html")
+                  "unusual", "analysis.html", "long.csv")
 
 
 @dataclass
@@ -108,6 +111,26 @@ def design_summary(design) -> dict:
             "mean_change_tested": design.mean_change_tested}
 
 
+def long_table(analysis: Analysis, table) -> tuple[list, list]:
+    """The header and rows of long.csv: per used case and model point, the case's displacement
+    from the mean along the mean's normal (mm, as tested with ``--displacement normal``), its
+    principal scores (those of the global test) and its row of the subjects table."""
+    header_of_table, rows = read_table(table)
+    columns = [c for c in header_of_table if c != CASE]
+    by_case = {row[CASE]: row for row in rows}
+    normal = np.einsum("npd,pd->np", analysis.aligned - analysis.mean, analysis.normals)
+    k = analysis.scores.shape[1]
+    header = (["case", "point", "part", "normal_displacement_mm"]
+              + [f"score_{j + 1}" for j in range(k)] + columns)
+    body = []
+    for i, case in enumerate(analysis.subjects.cases):
+        per_case = ([f"{v:.6g}" for v in analysis.scores[i]]
+                    + [by_case[case].get(c, "") for c in columns])
+        body += [[case, point, int(analysis.parts[point]), f"{normal[i, point]:.6g}", *per_case]
+                 for point in range(normal.shape[1])]
+    return header, body
+
+
 def summary_of(analysis: Analysis, build, table) -> dict:
     """The content of analysis.json."""
     config, design = analysis.config, analysis.subjects
@@ -169,8 +192,10 @@ def summary_of(analysis: Analysis, build, table) -> dict:
     return summary
 
 
-def _write(folder: Path, analysis: Analysis, summary: dict, model):
+def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
     io.write_text(folder / "analysis.json", json.dumps(summary, indent=2))
+    if analysis.config.long_table:
+        io.write_csv(folder / "long.csv", *long_table(analysis, table))
     header, rows = _columns(analysis)
     io.write_csv(folder / "points.csv", header, rows)
     arrays = {"statistic": analysis.points.statistic, "p": analysis.points.p,
@@ -259,5 +284,5 @@ def analyze_build(build, table, output, config: AnalysisConfig | None = None, pr
     analysis = analyze_shapes(built.model, built.shapes, design, config, progress)
     summary = summary_of(analysis, build, table)
     with io.written_folder(output, ANALYSIS_FILES) as folder:
-        _write(folder, analysis, summary, built.model)
+        _write(folder, analysis, summary, built.model, table)
     return AnalysisResult(output, analysis, summary)

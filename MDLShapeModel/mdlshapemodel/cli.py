@@ -358,7 +358,7 @@ def _run_analyze(args, live: bool) -> int:
                                          for name in item.split(",") if name.strip()],
                             test=args.test, reference=args.reference,
                             subject=args.subject, time=args.time, baseline=args.baseline,
-                            tail=args.tail,
+                            tail=args.tail, long_table=args.long_table,
                             permutations=args.permutations, size=args.size, parts=args.parts,
                             displacement=args.displacement, variance=args.variance,
                             family_wise=args.family_wise, alpha=args.alpha,
@@ -611,6 +611,10 @@ def main(argv=None) -> int:
     analyze.add_argument("--alpha", type=float, default=analysis_defaults.alpha,
                          help="significance level (default %(default)s)")
     analyze.add_argument("--seed", type=int, default=analysis_defaults.seed)
+    analyze.add_argument("--long-table", action="store_true",
+                         help="also write long.csv: one row per case and point (normal "
+                              "displacement, principal scores, the table's columns) for R or "
+                              "pandas")
     analyze.add_argument("--overwrite", action="store_true",
                          help="replace an earlier analysis in the output folder")
     analyze.add_argument("-q", "--quiet", action="store_true")

@@ -762,6 +762,7 @@ class AnalysisConfig:
     alpha: float = 0.05
     seed: int = 0
     folds: int = 10                   # cross-validation of the two-group classification
+    long_table: bool = False          # also long.csv: one row per case and point (R, pandas)
 
     def validate(self) -> "AnalysisConfig":
         """Raise :class:`ConfigError` naming the first bad field; return self."""

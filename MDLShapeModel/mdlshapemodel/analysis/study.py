@@ -89,6 +89,7 @@ class Analysis:
     discriminant: Discriminant | None
     classification: Classification | None
     unusual: Unusual
+    scores: np.ndarray | None = None   # (n_cases, k) the principal scores of the global test
 
     def significant(self, correction: str = "fwer") -> np.ndarray:
         """Points significant at ``config.alpha`` after family-wise ("fwer") or FDR ("fdr")
@@ -185,7 +186,7 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
                             for j, s in enumerate(model.part_slices())])
     return Analysis(config, subjects, aligned, mean, normals, parts, points, difference,
                     normal_difference, global_test, signed, found_discriminant,
-                    found_classification, unusual_cases(model))
+                    found_classification, unusual_cases(model), scores)
 
 
 def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:
