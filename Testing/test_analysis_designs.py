@@ -14,7 +14,7 @@ from scipy import stats
 
 from mdlshapemodel.analysis import permutation_test, subjects
 from mdlshapemodel.analysis.glm import drawn_flips, drawn_signs
-from mdlshapemodel.analysis.study import design_rows, point_test
+from mdlshapemodel.analysis.study import design_rows, point_test, signed_maps
 from mdlshapemodel.config import AnalysisConfig
 from mdlshapemodel.errors import ConfigError, InputError
 
@@ -250,3 +250,67 @@ def test_paired_finds_a_change_in_half_the_subjects_that_the_unpaired_test_misse
     assert np.sum(found.p_fwer[:10] <= 0.05) >= 5
     assert np.sum(found.p_fwer[10:] <= 0.05) == 0
     assert np.sum(missed.p_fwer <= 0.05) == 0
+
+
+def three_groups(tmp_path, seed=12):
+    rng = np.random.default_rng(seed)
+    groups = ["control"] * 7 + ["mild"] * 6 + ["severe"] * 8
+    ages = np.round(rng.normal(60, 8, size=len(groups)), 3)   # as written to the table
+    names = [f"c{k:02d}" for k in range(len(groups))]
+    table = write(tmp_path / "three.csv", ["case", "stage", "age"],
+                  [[n, g, f"{a:.3f}"] for n, g, a in zip(names, groups, ages)])
+    spread = np.array([{"control": 1.0, "mild": 1.5, "severe": 3.0}[g] for g in groups])
+    data = (rng.normal(size=(len(groups), 30)) * spread[:, None]
+            + 0.05 * (ages - 60)[:, None] + 1.2 * (np.array(groups) == "severe")[:, None])
+    return table, names, np.array(groups), ages, data
+
+
+def test_a_contrast_of_levels_is_the_t_of_its_combination_of_coefficients(tmp_path):
+    table, names, groups, ages, data = three_groups(tmp_path)
+    design = subjects(table, names, group="stage", covariates=["age"])
+    config = AnalysisConfig(group="stage", covariates=["age"], variance="pooled",
+                            contrasts=["severe-mild", "mild+severe-2*control"],
+                            permutations=199)
+    maps = signed_maps(data, design, config)
+    assert [m.name for m in maps] == ["mild", "severe", "severe-mild", "mild+severe-2*control"]
+    assert maps[3].contrast == {"mild": 1.0, "severe": 1.0, "control": -2.0}
+    full = np.column_stack([np.ones(len(names)), ages - ages.mean(), groups == "mild",
+                            groups == "severe"]).astype(float)
+    coefficients = np.linalg.lstsq(full, data, rcond=None)[0]
+    errors = data - full @ coefficients
+    variance = np.sum(errors ** 2, axis=0) / (len(names) - 4)
+    inverse = np.linalg.inv(full.T @ full)
+    for found, c in ((maps[2], [0, 0, -1, 1]), (maps[3], [0, 0, 1, 1])):
+        c = np.array(c, dtype=float)
+        expected = c @ coefficients / np.sqrt(variance * (c @ inverse @ c))
+        np.testing.assert_allclose(found.test.t, expected, rtol=1e-9)
+        assert found.column == "stage" and found.test.df == len(names) - 4
+    # each level's own map is the contrast against the reference
+    np.testing.assert_allclose(maps[1].test.t, ols_t(data, full, column=3), rtol=1e-9)
+
+
+def test_a_contrast_with_a_variance_per_group_is_welchs_t_of_the_two_groups(tmp_path):
+    table, names, groups, _, data = three_groups(tmp_path)
+    design = subjects(table, names, group="stage")
+    maps = signed_maps(data, design, AnalysisConfig(group="stage", contrasts=["severe-mild"],
+                                                    tail="greater", permutations=199))
+    expected = stats.ttest_ind(data[groups == "severe"], data[groups == "mild"],
+                               equal_var=False).statistic
+    np.testing.assert_allclose(maps[-1].test.t, expected, rtol=1e-9)
+    assert maps[-1].test.variance == "groups" and maps[-1].test.tail == "greater"
+
+
+def test_contrasts_that_name_no_tested_levels_or_do_not_compare_are_refused(tmp_path):
+    table, names, *_ = three_groups(tmp_path)
+    design = subjects(table, names, group="stage")
+    with pytest.raises(InputError, match="contrast 'severe-moderate': its levels are not all "
+                                         "levels of one tested categorical column \\(levels: "
+                                         "stage: control, mild, severe\\)"):
+        signed_maps(np.zeros((len(names), 3)), design,
+                    AnalysisConfig(group="stage", contrasts=["severe-moderate"]))
+    with pytest.raises(ConfigError, match="contrast 'severe': write levels joined by"):
+        AnalysisConfig(group="stage", contrasts=["severe"]).validate()
+    with pytest.raises(ConfigError, match="add up to 1, not 0"):
+        AnalysisConfig(group="stage", contrasts=["2*severe-mild"]).validate()
+    with pytest.raises(ConfigError, match="'x' is not a number"):
+        AnalysisConfig(group="stage", contrasts=["x*severe-mild"]).validate()

@@ -540,3 +540,23 @@ def test_long_csv_has_a_row_per_case_and_point_for_r_or_pandas(build, table, tmp
     written = {row[0]: row for row in csv.reader(open(table))}
     for row in rows[::points]:
         assert [row["group"], row["age"], row["sex"]] == written[row["case"]][1:]
+
+
+def test_a_contrast_by_the_real_command_gets_its_map_and_a_bad_one_is_refused(build, table,
+                                                                             tmp_path):
+    output = tmp_path / "contrast"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "--contrast",
+                     "full-thin", "--permutations", "99", "-o", output)
+    assert result.returncode == 0, result.stderr
+    assert "signed map of full-thin (Welch's v)" in result.stdout
+    points = read_points(output / "points.csv")
+    # full minus thin is the group's map (thin minus full, the reference) with its sign turned
+    np.testing.assert_allclose(points["t_full-thin"].astype(float),
+                               -points["t"].astype(float), rtol=2e-5)
+    summary = json.loads((output / "analysis.json").read_text())
+    assert summary["effect_tests"][1]["contrast"] == {"full": 1.0, "thin": -1.0}
+    refused = run_cli("analyze", build, "--table", table, "--group", "group", "--contrast",
+                      "thin-fat", "-o", tmp_path / "refused")
+    assert refused.returncode == 2
+    assert "contrast 'thin-fat': its levels are not all levels of one tested" in refused.stderr
+    assert "Traceback" not in refused.stderr and not (tmp_path / "refused").exists()

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from .analysis.shapes import read_build
-from .analysis.study import Analysis, analyze_shapes
+from .analysis.study import Analysis, analyze_shapes, contrasts_of
 from .analysis.table import CASE, read_table, subjects
 from .config import AnalysisConfig
 from .errors import InputError
@@ -171,7 +171,7 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                                         else "Student's t"),
                           "tail": found.test.tail, "resampling": found.test.resampling,
                           "degrees_of_freedom": found.test.df,
-                          "the_point_test": found.joint,
+                          "the_point_test": found.joint, "contrast": found.contrast,
                           "significant_points": {
                               "fwer": int(np.sum(found.test.p_fwer <= config.alpha)),
                               "fdr": int(np.sum(found.test.q_fdr <= config.alpha))}}
@@ -278,6 +278,7 @@ def analyze_build(build, table, output, config: AnalysisConfig | None = None, pr
     design = subjects(table, built.model.names, config.group, config.covariates,
                       config.nuisance, config.reference, config.categorical, config.test,
                       config.subject, config.time, config.baseline)
+    contrasts_of(design, config)          # a contrast of untested levels: refused up front
     if output.resolve() == Path(build).resolve():
         raise InputError(f"{output}: the output folder is the build folder; choose another")
     io.refuse_earlier(output, earlier_analysis(output), overwrite, "analysis")

@@ -359,6 +359,7 @@ def _run_analyze(args, live: bool) -> int:
                             test=args.test, reference=args.reference,
                             subject=args.subject, time=args.time, baseline=args.baseline,
                             tail=args.tail, long_table=args.long_table,
+                            contrasts=args.contrast,
                             permutations=args.permutations, size=args.size, parts=args.parts,
                             displacement=args.displacement, variance=args.variance,
                             family_wise=args.family_wise, alpha=args.alpha,
@@ -392,6 +393,12 @@ def _run_analyze(args, live: bool) -> int:
              f"  points significant at alpha {config.alpha}: {counts['fwer']} family-wise, "
              f"{counts['fdr']} FDR, of {counts['of']}",
              f"  global test on {overall['modes']} principal scores: p = {overall['p']:.4g}"]
+    for found in summary["effect_tests"]:
+        if not found["the_point_test"]:
+            lines.append(f"  signed map of {found['name']} ({found['statistic']}"
+                         + (f", {found['tail']}" if found["tail"] != "both" else "")
+                         + f"): {found['significant_points']['fwer']} points family-wise, "
+                         f"{found['significant_points']['fdr']} FDR")
     if summary["classification"]:
         c = summary["classification"]
         lines.append(f"  classification ({c['folds']}-fold): accuracy {c['accuracy']:.3f} "
@@ -579,6 +586,11 @@ def main(argv=None) -> int:
                               "groups, the mean change) along the normal: greater, towards "
                               "positive (outward) values; less, towards negative (inward: "
                               "atrophy) (default %(default)s)")
+    analyze.add_argument("--contrast", metavar="TEXT", action="append", default=[],
+                         help="a comparison of the levels of the tested group (or of a tested "
+                              "categorical column), such as 'patient-control' or "
+                              "'mild+severe-2*control' (coefficients adding up to 0): its own "
+                              "signed map along the normal; repeatable")
     analyze.add_argument("--permutations", type=int, default=analysis_defaults.permutations,
                          help="random permutations (default %(default)s)")
     analyze.add_argument("--size", choices=ANALYSIS_SIZES, default=analysis_defaults.size,

@@ -658,6 +658,42 @@ class Roles:
     numeric: list         # the model's numeric columns
 
 
+def parse_contrast(text: str) -> dict:
+    """The levels and coefficients of a contrast written as text: level names joined by ``+``
+    and ``-``, each with an optional coefficient (``2*level``); the coefficients must add up to
+    0 (a comparison of levels, not of their overall mean). Levels whose names hold ``+``, ``-``
+    or ``*`` cannot be written.
+
+    Raises :class:`ConfigError` with a one-line message naming the contrast.
+
+    Examples
+    --------
+    >>> parse_contrast("patient-control")
+    {'patient': 1.0, 'control': -1.0}
+    >>> parse_contrast("0.5*mild + 0.5*severe - control")
+    {'mild': 0.5, 'severe': 0.5, 'control': -1.0}
+    """
+    terms = re.findall(r"([+-]?)([^+-]+)", text.replace(" ", ""))
+    coefficients = {}
+    for sign, term in terms:
+        weight, _, level = term.rpartition("*")
+        try:
+            value = float(weight) if weight else 1.0
+        except ValueError:
+            raise ConfigError(f"contrast {text!r}: {weight!r} is not a number") from None
+        if not level:
+            raise ConfigError(f"contrast {text!r}: a term without a level")
+        coefficients[level] = coefficients.get(level, 0.0) + (-value if sign == "-" else value)
+    if sum(1 for v in coefficients.values() if v != 0) < 2 or "".join(
+            sign + term for sign, term in terms) != text.replace(" ", ""):
+        raise ConfigError(f"contrast {text!r}: write levels joined by + and -, such as "
+                          "'patient-control' or 'mild+severe-2*control'")
+    if abs(sum(coefficients.values())) > 1e-9 * max(abs(v) for v in coefficients.values()):
+        raise ConfigError(f"contrast {text!r}: its coefficients add up to "
+                          f"{sum(coefficients.values()):g}, not 0")
+    return coefficients
+
+
 def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=(),
                    test=(), subject: str | None = None, time: str | None = None) -> Roles:
     """The roles of the columns of one analysis, declared by how they are named: ``group`` is
@@ -753,6 +789,8 @@ class AnalysisConfig:
     time: str | None = None           # ... and the one naming its time point
     baseline: str | None = None       # the time the change is measured from (default: first)
     tail: str = "both"                # one-sided tests of a single-column effect
+    contrasts: list[str] = field(default_factory=list)   # comparisons of a tested factor's
+    #                                                      levels, each with its signed map
     permutations: int = 10_000
     size: str = "kept"
     parts: str = "whole"              # multi-part objects: aligned as one, or each part alone
@@ -781,6 +819,8 @@ class AnalysisConfig:
              f"must be one of {', '.join(FAMILY_WISE)}")
         need(0 < self.alpha < 1, "alpha", "must be between 0 and 1")
         need(self.tail in TAILS, "tail", f"must be one of {', '.join(TAILS)}")
+        for contrast in self.contrasts:
+            parse_contrast(contrast)
         need(self.baseline is None or self.time is not None, "baseline",
              "is a level of the time column: give --time too")
         need(self.folds >= 2, "folds", "must be at least 2")

@@ -13,14 +13,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..config import AnalysisConfig
+from ..config import AnalysisConfig, parse_contrast
 from ..model.outliers import Distances, modes_explaining, training_distances
 from ..model.shape_model import ShapeModel
 from ..progress import report
 from .discriminant import Classification, Discriminant, classify, discriminant, principal_scores
 from .glm import PointTest, permutation_test
 from .shapes import align, vertex_normals
-from .table import Subjects
+from .table import Subjects, contrast_vector
 
 
 @dataclass
@@ -63,12 +63,15 @@ class SignedMap:
     joint : bool
         Whether it is the analysis's per-point test itself (one effect column tested along the
         normal), not a test of its own.
+    contrast : dict or None
+        For a contrast of levels (``config.contrasts``), each level's coefficient.
     """
 
     name: str
     column: str
     test: PointTest
     joint: bool
+    contrast: dict | None = None
 
 
 @dataclass
@@ -219,15 +222,40 @@ def signed_maps(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig,
     list of SignedMap
     """
     names, columns = subjects.interest_names, subjects.interest_columns
+    r = len(names)
+    contrasts = contrasts_of(subjects, config)
     if joint is not None and joint.t is not None:
-        return [SignedMap(names[0], columns[0], joint, True)]
-    maps = []
-    for j, (name, column) in enumerate(zip(names, columns)):
-        others = np.delete(subjects.interest, j, axis=1)
-        alone = replace(subjects, interest=subjects.interest[:, [j]],
-                        nuisance=np.hstack([subjects.nuisance, others]))
-        maps.append(SignedMap(name, column, point_test(normal, alone, config, progress), False))
+        maps = [SignedMap(names[0], columns[0], joint, True)]
+    else:
+        maps = [SignedMap(name, column, point_test(normal, _single(subjects, np.eye(r)[j]),
+                                                   config, progress), False)
+                for j, (name, column) in enumerate(zip(names, columns))]
+    for text, coefficients, column, vector in contrasts:
+        maps.append(SignedMap(text, column, point_test(normal, _single(subjects, vector), config,
+                                                       progress), False, coefficients))
     return maps
+
+
+def contrasts_of(subjects: Subjects, config: AnalysisConfig) -> list:
+    """Each of ``config.contrasts`` as (text, coefficients per level, the tested column, its
+    vector over the effect columns); InputError when one names levels that are not tested
+    (:func:`~.table.contrast_vector`)."""
+    found = []
+    for text in config.contrasts:
+        coefficients = parse_contrast(text)
+        found.append((text, coefficients, *contrast_vector(subjects, text, coefficients)))
+    return found
+
+
+def _single(subjects: Subjects, vector: np.ndarray) -> Subjects:
+    """The design reparameterised so that one effect column carries c'b (Smith et al. 2007;
+    Winkler et al. 2014): X c / (c'c) tested, X Q adjusted for (Q an orthonormal basis of the
+    coefficients orthogonal to c), the model's span unchanged."""
+    interest = subjects.interest
+    basis = np.linalg.svd(np.eye(len(vector)) - np.outer(vector, vector) / (vector @ vector))[0]
+    complement = basis[:, :len(vector) - 1]
+    return replace(subjects, interest=interest @ vector[:, None] / (vector @ vector),
+                   nuisance=np.hstack([subjects.nuisance, interest @ complement]))
 
 
 def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,

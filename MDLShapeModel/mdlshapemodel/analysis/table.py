@@ -449,6 +449,40 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
                     repeated=repeated)
 
 
+def contrast_vector(design: Subjects, text: str, coefficients: dict) -> tuple[str, np.ndarray]:
+    """A contrast of levels (:func:`~mdlshapemodel.config.parse_contrast`) as a vector over the
+    effect columns: the tested categorical column whose levels it names, and c (r,) such that
+    c'b is the contrast of the level means (b the effect columns' coefficients, the reference
+    level's being 0).
+
+    Raises
+    ------
+    InputError
+        The levels are not all of one tested categorical column (naming the contrast and the
+        levels there are).
+
+    Examples
+    --------
+    ::
+
+        column, c = contrast_vector(design, "mild-severe", {"mild": 1.0, "severe": -1.0})
+    """
+    for column in dict.fromkeys(design.interest_columns):
+        levels = design.levels_of.get(column)
+        if levels and set(coefficients) <= set(levels):
+            c = np.zeros(len(design.interest_columns))
+            at = [k for k, source in enumerate(design.interest_columns) if source == column]
+            for level, value in coefficients.items():
+                if level != levels[0]:
+                    c[at[levels.index(level) - 1]] = value
+            return column, c
+    known = "; ".join(f"{column}: {', '.join(design.levels_of[column])}"
+                      for column in dict.fromkeys(design.interest_columns)
+                      if column in design.levels_of) or "none (no categorical column is tested)"
+    raise InputError(f"contrast {text!r}: its levels are not all levels of one tested "
+                     f"categorical column (levels: {known})")
+
+
 def _levels(path: Path, column: str, values: list, first: str | None, order, what: str,
             need: str) -> list:
     """The levels of a column among the cases, in ``order``, ``first`` (when given) first;

@@ -69,7 +69,8 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
         limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((label, values, "coolwarm", -limit, limit, "along the normal [mm]"))
     # one signed map per effect column, and its own family-wise p when it is a test of its own
-    for label, found in zip(labels, analysis.signed):
+    for k, found in enumerate(analysis.signed):
+        label = labels[k] if k < len(labels) else f"contrast {found.name}"
         values = found.test.t
         limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((f"signed t, {label}", values, "coolwarm", -limit, limit,
