@@ -35,6 +35,7 @@ mean share of changed points found and the share with any unchanged point found.
 Examples (the tables in docs/analysis.md; seeds fixed)::
 
     python benchmarks/analysis_designs.py null --replicates 300
+    python benchmarks/analysis_designs.py null --replicates 1000 --design "change by group"
     python benchmarks/analysis_designs.py paired --replicates 100
 """
 
@@ -149,6 +150,8 @@ def null(args):
     print("| design | n | errors | statistic, resampling | per point | FWER |")
     print("|---|---|---|---|---|---|")
     for name, n in designs:
+        if args.design and name not in args.design:
+            continue
         design = Design(name, folder, n, rng)
         for errors in ERRORS:
             started = time.process_time()
@@ -224,6 +227,8 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--change", type=float, default=3.0)
     parser.add_argument("--subjects", type=int, nargs="+", default=[8, 12, 16, 24, 32])
+    parser.add_argument("--design", action="append", default=[],
+                        help="null: only this design (repeatable), e.g. 'change by group'")
     args = parser.parse_args(argv)
     (null if args.mode == "null" else paired)(args)
 
