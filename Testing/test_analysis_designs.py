@@ -13,7 +13,7 @@ import pytest
 from scipy import stats
 
 from mdlshapemodel.analysis import permutation_test, subjects
-from mdlshapemodel.analysis.glm import drawn_flips, drawn_signs
+from mdlshapemodel.analysis.glm import drawn_flips, drawn_signs, drawn_whole_blocks
 from mdlshapemodel.analysis.study import design_rows, point_test, signed_maps
 from mdlshapemodel.config import AnalysisConfig
 from mdlshapemodel.errors import ConfigError, InputError
@@ -230,8 +230,8 @@ def test_repeated_measures_tables_are_checked_naming_the_subject(tmp_path):
         ("c6", "subject 's3' has no case at visit='post'"),
         ("c7", "subject 's4' has no case at visit='pre'")]
     assert alone.repeated.subjects == ["s0", "s1", "s2"]
-    with pytest.raises(ConfigError, match="need both --subject .* and --time"):
-        AnalysisConfig(subject="id").validate()
+    with pytest.raises(ConfigError, match="--time visit needs --subject"):
+        AnalysisConfig(time="visit").validate()
     with pytest.raises(ConfigError, match="tail: must be one of"):
         AnalysisConfig(group="arm", tail="left").validate()
 
@@ -314,3 +314,40 @@ def test_contrasts_that_name_no_tested_levels_or_do_not_compare_are_refused(tmp_
         AnalysisConfig(group="stage", contrasts=["2*severe-mild"]).validate()
     with pytest.raises(ConfigError, match="'x' is not a number"):
         AnalysisConfig(group="stage", contrasts=["x*severe-mild"]).validate()
+
+
+def test_a_subjects_group_on_all_their_cases_permutes_whole_subjects(tmp_path):
+    """Two cases per subject (left and right, say) and no time: the group, each subject's own,
+    tested on every case with the subjects' cases permuted together."""
+    rng = np.random.default_rng(21)
+    names = [f"s{s}_{side}" for s in range(10) for side in "lr"]
+    arms = ["a" if s < 4 else "b" for s in range(10)]
+    table = write(tmp_path / "sides.csv", ["case", "id", "arm", "side"],
+                  [[f"s{s}_{side}", f"s{s}", arms[s], side] for s in range(10) for side in "lr"])
+    design = subjects(table, names, group="arm", nuisance=["side"], categorical=["side"],
+                      subject="id")
+    assert design.repeated.design == "blocks" and design.tested == ["arm"]
+    blocks = design.repeated.blocks
+    data = np.repeat(rng.normal(scale=3.0, size=(10, 12)), 2, axis=0) + rng.normal(size=(20, 12))
+    config = AnalysisConfig(group="arm", nuisance=["side"], categorical=["side"],
+                            subject="id", permutations=150, seed=4)
+    assert not config.variance_groups()                  # whole subjects: the pooled statistic
+    found = point_test(data, design, config)
+    assert found.resampling == "permuted in whole blocks" and found.variance == "pooled"
+    b = np.repeat(np.array(arms) == "b", 2).astype(float)
+    right = np.tile([0.0, 1.0], 10)
+    full = np.column_stack([np.ones(20), right, b])
+    np.testing.assert_allclose(found.t, ols_t(data, full), rtol=1e-9)
+    draws = np.vstack([np.arange(20)] + [r for r, _ in drawn_whole_blocks(blocks, 150, 4)])
+    assert np.all(blocks[draws][:, 0::2] == blocks[draws][:, 1::2])   # pairs stay together
+    assert np.all(right[draws] == right)                 # each side keeps its place
+    reduced = full[:, :-1]
+    residuals = data - reduced @ np.linalg.lstsq(reduced, data, rcond=None)[0]
+    values = np.array([ols_t(residuals, full[rows]) for rows in draws]) ** 2
+    np.testing.assert_allclose(found.p, np.mean(values >= values[0] * (1 - 1e-9), axis=0),
+                               rtol=1e-12)
+    moved = write(tmp_path / "moved.csv", ["case", "id", "arm", "side"],
+                  [[f"s{s}_{side}", f"s{s}", "b" if (s, side) == (2, "r") else arms[s], side]
+                   for s in range(10) for side in "lr"])
+    with pytest.raises(InputError, match="'arm' varies within subject 's2' \\(a, b\\)"):
+        subjects(moved, names, group="arm", subject="id")

@@ -20,6 +20,9 @@ tails). The designs:
   by 3 (Welch's v, sign flips and permutations within the groups);
 - ``time within``: three scans per subject, time tested with each subject adjusted for,
   permuted within the subjects;
+- ``two cases per subject``: 4 against 12 subjects (an arm of each subject's own) on both
+  cases of each subject (SD 3 between subjects, 1 within): ``whole subjects`` (``--subject``,
+  the subjects' cases permuted together) and ``cases as independent`` (no ``--subject``);
 - ``one-sided covariate``: a covariate's t, ``--tail less``, 30 cases;
 - ``one-sided groups``: Welch's v of 6 against 24 cases (SD ratio 3), ``--tail less``;
 - ``each covariate``: two covariates correlated 0.5 tested together, each its own signed map
@@ -82,7 +85,7 @@ class Design:
     def __init__(self, name: str, folder: Path, n: int, rng):
         self.name = name
         ages = rng.normal(size=n)
-        if name.startswith("change") or name == "time within":
+        if name.startswith("change") or name == "time within" or name.startswith("two cases"):
             times = 3 if name == "time within" else 2
             self.names = [f"s{s}_t{t}" for s in range(n) for t in range(times)]
             rows = [[f"s{s}_t{t}", f"s{s}", t, f"{ages[s]:.6f}", "small" if s < n // 4
@@ -90,6 +93,11 @@ class Design:
             table = write_table(folder, name.replace(" ", "_"),
                                 ["case", "id", "time", "age", "arm"], rows)
             settings = {"subject": "id", "time": "time", "baseline": "0"}
+            if name.startswith("two cases"):
+                # the arm, each subject's own, on both of its cases
+                settings = {"group": "arm", "reference": "large"}
+                if name == "two cases per subject, whole subjects":
+                    settings["subject"] = "id"
             if name == "change + age":
                 settings["nuisance"] = ["age"]
             if name == "change by group":
@@ -113,14 +121,15 @@ class Design:
             self.small = small
 
     def subjects_of(self, table: Path, settings: dict):
-        keys = ("group", "covariates", "nuisance", "subject", "time", "baseline")
+        keys = ("group", "covariates", "nuisance", "subject", "time", "baseline", "reference")
         self.design = subjects(table, self.names, **{k: v for k, v in settings.items()
                                                      if k in keys})
 
     def draw(self, rng, errors: str, points: int) -> np.ndarray:
         """A null data set (cases, points)."""
         n = len(self.names)
-        if self.name.startswith("change") or self.name == "time within":
+        if (self.name.startswith("change") or self.name == "time within"
+                or self.name.startswith("two cases")):
             subjects_n = n // self.times
             own = np.repeat(rng.normal(scale=3.0, size=(subjects_n, points)), self.times, axis=0)
             data = own + noise(rng, errors, (n, points))
@@ -142,8 +151,9 @@ def null(args):
     folder = Path(tempfile.mkdtemp())
     rng = np.random.default_rng(args.seed)
     designs = [("change", 10), ("change", 24), ("change + age", 24), ("change by group", 24),
-               ("time within", 10), ("one-sided covariate", 30), ("one-sided groups", 30),
-               ("each covariate", 30)]
+               ("time within", 10), ("two cases per subject, whole subjects", 16),
+               ("two cases per subject, cases as independent", 16),
+               ("one-sided covariate", 30), ("one-sided groups", 30), ("each covariate", 30)]
     se = np.sqrt(args.alpha * (1 - args.alpha) / args.replicates)
     print(f"{args.replicates} null data sets of {args.points} independent points, "
           f"{args.permutations} resamples, alpha {args.alpha}; FWER SE {se:.4f}")

@@ -105,7 +105,8 @@ def design_summary(design) -> dict:
     if repeated is None:
         return {"kind": "independent cases"}
     return {"kind": ("change between two times" if repeated.design == "change" else
-                     "time within subjects"),
+                     "time within subjects" if repeated.design == "within" else
+                     "whole subjects exchanged"),
             "subject": repeated.subject, "time": repeated.time, "times": repeated.times,
             "n_subjects": len(repeated.subjects),
             "mean_change_tested": design.mean_change_tested}

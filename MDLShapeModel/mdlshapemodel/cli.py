@@ -380,7 +380,7 @@ def _run_analyze(args, live: bool) -> int:
              f"({summary['degrees_of_freedom']} residual degrees of freedom)",
              f"  design: {summary['design']['kind']}"
              + (f" ({summary['design']['n_subjects']} subjects, {summary['design']['time']} "
-                f"{', '.join(summary['design']['times'])})" if "times" in summary["design"]
+                f"{', '.join(summary['design']['times'])})" if summary["design"].get("time")
                 else ""),
              f"  per point: {summary['point_test']['statistic']}, "
              f"{summary['point_test']['resampling']}, family-wise by "

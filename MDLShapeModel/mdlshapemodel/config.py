@@ -704,7 +704,8 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
 
     Repeated measures: ``subject`` names each case's subject and ``time`` its time point; the
     time is tested (the change within subjects) when nothing else is, else the tested columns'
-    effect on the change. The time's kind is decided with its levels
+    effect on the change. A ``subject`` without a time: the tested columns are the subjects'
+    (whole subjects are permuted). The time's kind is decided with its levels
     (:func:`~mdlshapemodel.analysis.table.subjects`): it is in neither ``categorical`` nor
     ``numeric`` here.
 
@@ -712,8 +713,7 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
     ------
     ConfigError
         Nothing to test, a column named twice, ``test`` naming a column of the wrong kind,
-        ``categorical`` naming a column not in the model, a subject without a time or a time
-        without a subject.
+        ``categorical`` naming a column not in the model, a time without a subject.
 
     Examples
     --------
@@ -729,10 +729,9 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
     """
     covariates, nuisance = list(covariates), list(nuisance)
     categorical, test = list(categorical), list(test)
-    if (subject is None) != (time is None):
-        raise ConfigError("repeated measures need both --subject (whose case each is) and "
-                          "--time (its time point)" + (f"; got only --subject {subject}"
-                                                       if subject else f"; got only --time {time}"))
+    if time is not None and subject is None:
+        raise ConfigError(f"--time {time} needs --subject (whose case each is): repeated "
+                          "measures are a subject's cases")
     if group is None and not covariates and time is None:
         raise ConfigError("nothing to test: give a group column or a covariate")
     model = ([group] if group else []) + covariates + nuisance
@@ -836,9 +835,11 @@ class AnalysisConfig:
 
     def variance_groups(self) -> bool:
         """Whether the per-point test has a variance group per level of the group: a group is
-        tested and ``variance`` is "groups" (a covariate's test is always pooled)."""
+        tested and ``variance`` is "groups" (a covariate's test is always pooled, and so is a
+        test that permutes whole subjects: ``subject`` without ``time``)."""
         return (self.variance == "groups" and self.group is not None
-                and self.group in self.roles().tested)
+                and self.group in self.roles().tested
+                and not (self.subject is not None and self.time is None))
 
     def roles(self) -> Roles:
         """What each column of the model is (:func:`analysis_roles`); ConfigError when the

@@ -351,13 +351,53 @@ def drawn_signs(n: int, count: int, seed: int):
         done += size
 
 
-def _resamples(n: int, count: int, seed: int, codes, blocks, flips: bool):
+def drawn_whole_blocks(blocks: np.ndarray, count: int, seed: int):
+    """Permutations of whole blocks, chunk by chunk: each block's cases take the design rows of
+    another block of the same size, case by case in their order (Winkler et al. 2014, whole-block
+    exchangeability: a subject's cases stay together).
+
+    Yields
+    ------
+    rows : ndarray (b, n)
+        Case i is given the design row of case ``rows[j, i]``.
+    signs : None
+
+    Examples
+    --------
+    >>> blocks = np.array([0, 0, 1, 1, 2, 2, 2])
+    >>> rows, _ = next(drawn_whole_blocks(blocks, 100, seed=0))
+    >>> moved = blocks[rows]
+    >>> bool(np.all(moved[:, 4:] == 2)), bool(np.all(moved[:, 0] == moved[:, 1]))
+    (True, True)
+    """
+    blocks = np.asarray(blocks)
+    members = [np.flatnonzero(blocks == b) for b in range(int(blocks.max()) + 1)]
+    sizes = {len(m) for m in members}
+    rng = np.random.default_rng(seed)
+    done = 0
+    while done < count:
+        size = min(CHUNK, count - done)
+        rows = np.empty((CHUNK, len(blocks)), dtype=np.int64)
+        for length in sorted(sizes):
+            alike = [m for m in members if len(m) == length]
+            cases = np.array(alike)                                   # (blocks, length)
+            order = np.argsort(rng.random((CHUNK, len(alike))), axis=1)
+            rows[:, cases.reshape(-1)] = cases[order].reshape(CHUNK, -1)
+        yield rows[:size], None
+        done += size
+
+
+def _resamples(n: int, count: int, seed: int, codes, blocks, flips: bool,
+               whole_blocks: bool = False):
     """The resamples of one test: (rows, signs) chunks, ``signs`` None when nothing is flipped.
 
     Variance groups: permutations within the groups with sign flips (:func:`drawn_flips`).
     Exchangeability blocks: permutations within the blocks (and within the groups, when both),
-    with sign flips if ``flips``. Flips alone: :func:`drawn_signs`. Else all permutations.
+    with sign flips if ``flips``. Flips alone: :func:`drawn_signs`. Whole blocks:
+    :func:`drawn_whole_blocks`. Else all permutations.
     """
+    if whole_blocks:
+        return drawn_whole_blocks(blocks, count, seed)
     if codes is None and blocks is None:
         if flips:
             return drawn_signs(n, count, seed)
@@ -373,8 +413,10 @@ def _resamples(n: int, count: int, seed: int, codes, blocks, flips: bool):
     return ((rows, None) for rows, _ in draws)
 
 
-def _resampling_name(codes, blocks, flips: bool) -> str:
+def _resampling_name(codes, blocks, flips: bool, whole_blocks: bool = False) -> str:
     """How the residuals are resampled, in words (for analysis.json and the page)."""
+    if whole_blocks:
+        return "permuted in whole blocks"
     flipped = codes is not None or flips
     moved = ("" if codes is None and blocks is None and flips else
              "permuted within the variance groups and blocks" if codes is not None
@@ -390,7 +432,7 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
                      permutations: int = 10_000, seed: int = 0, progress=None,
                      variance_groups=None, family_wise: str = "maximum", *,
                      intercept: bool = True, blocks=None, flips: bool = False,
-                     tail: str = "both") -> PointTest:
+                     whole_blocks: bool = False, tail: str = "both") -> PointTest:
     """Test an effect on per-point data by permutation (Freedman-Lane), with family-wise and FDR
     correction over the points.
 
@@ -429,6 +471,10 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         Resample by flipping the sign of each case's residual (independent and symmetric
         errors, "ISE"), alone or with the permutations within ``blocks``. Variance groups are
         always flipped.
+    whole_blocks : bool
+        Permute whole ``blocks`` instead (a subject's cases together, in their order, among
+        subjects with as many cases), for effects that are each block's own; the pooled
+        statistic.
     tail : {"both", "greater", "less"}
         One-sided tests of one effect column and one number per point: "greater", an effect
         above 0 (with the pooled statistic, larger t); "less", below 0 (an inward displacement:
@@ -492,8 +538,9 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
             raise InputError(f"variance group {levels[np.argmin(sizes)]!r} has "
                              f"{int(sizes.min())} case(s); with {q} number(s) per point each "
                              f"needs more than {q} to estimate its own variance")
-        elif not intercept:
-            raise ValueError("variance groups need the intercept in the nuisance")
+        elif not intercept or whole_blocks:
+            raise ValueError("variance groups need the intercept in the nuisance and cases "
+                             "permuted one by one")
     if blocks is not None:
         blocks = np.unique(np.asarray(blocks), return_inverse=True)[1].reshape(-1)
         if len(blocks) != n:
@@ -515,6 +562,8 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     # the intercept's basis is constant, so its permuted rows meet the centred residuals in zero:
     # it drops out of every permutation (not of sign flips); the other nuisance columns do not
     permuted_z = basis_z[:, 1:] if intercept and not flips else basis_z
+    if whole_blocks and blocks is None:
+        raise ValueError("whole_blocks needs blocks")
     bases = np.hstack([permuted_z, basis_x])
     zp = permuted_z.shape[1]
     if codes is None:
@@ -573,7 +622,7 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
                 return welch.pivotal(found, r, welch_df), v
             return welch.one_sided(v, welch_df, tail), v
 
-    resamples = _resamples(n, permutations, seed, codes, blocks, flips)
+    resamples = _resamples(n, permutations, seed, codes, blocks, flips, whole_blocks)
     identity = np.arange(n)[None], np.ones((1, n))
     observed, observed_t = values_of(*identity)
     observed = observed[0]
@@ -616,4 +665,4 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
                      variance="pooled" if codes is None else "groups",
                      family_wise=family_wise,
                      t=None if observed_t is None else observed_t[0], tail=tail,
-                     resampling=_resampling_name(codes, blocks, flips))
+                     resampling=_resampling_name(codes, blocks, flips, whole_blocks))

@@ -267,7 +267,8 @@ def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,
     (:func:`design_rows`); of the mean change (nothing else tested) with no intercept,
     by sign flips (Winkler et al. 2014, independent and symmetric errors). More times: the
     effect of time with each subject adjusted for, permuted within subjects (exchangeability
-    blocks).
+    blocks). Subjects without times: the subjects' columns on all their cases, whole subjects
+    permuted (the pooled statistic).
 
     Parameters
     ----------
@@ -293,6 +294,7 @@ def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,
         family_wise=config.family_wise, intercept=not subjects.mean_change_tested,
         flips=subjects.mean_change_tested,
         blocks=repeated.blocks if repeated is not None else None,
+        whole_blocks=repeated is not None and repeated.design == "blocks",
         tail=config.tail if single and not pooled else "both")
 
 

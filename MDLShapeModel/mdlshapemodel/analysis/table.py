@@ -64,13 +64,16 @@ class Repeated:
 
     Attributes
     ----------
-    subject, time : str
-        The table's columns naming each case's subject and its time point.
+    subject : str
+        The table's column naming each case's subject.
+    time : str or None
+        The one naming its time point (None: a subject's cases are alike, "blocks").
     times : list of str
-        The time levels, the baseline first.
+        The time levels, the baseline first (empty without a time).
     design : str
-        "change" (two times: one row per subject, its later case minus its baseline case) or
-        "within" (more times: one row per case, time tested within subjects).
+        "change" (two times: one row per subject, its later case minus its baseline case),
+        "within" (more times: one row per case, time tested within subjects) or "blocks" (no
+        time: one row per case, the subjects' columns tested, whole subjects permuted).
     subjects : list of str
         The subjects, in the order of the design's rows ("change") or of the blocks
         ("within").
@@ -78,11 +81,12 @@ class Repeated:
         "change": each subject's rows in :attr:`Subjects.cases` at the baseline and the later
         time.
     blocks : ndarray (n,) or None
-        "within": each case's subject (an index into ``subjects``), its exchangeability block.
+        "within" and "blocks": each case's subject (an index into ``subjects``), its
+        exchangeability block.
     """
 
     subject: str
-    time: str
+    time: str | None
     times: list
     design: str
     subjects: list
@@ -300,7 +304,9 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
         The columns tested, each the group or a covariate (default: the group, else the
         covariates); every other column is adjusted for.
     subject, time : str, optional
-        Repeated measures: the columns naming each case's subject and its time point. With two
+        Repeated measures: the columns naming each case's subject and its time point. Without
+        a time, every case is a row and the tested columns must be each subject's own (its
+        cases agree): whole subjects are permuted (exchangeability blocks). With two
         times, each subject's change (the later case minus the baseline's) is analysed, one row
         per subject: the mean change is tested when no other column is, else the tested
         columns' effect on the change (the subject's values at the baseline; a categorical
@@ -483,6 +489,22 @@ def contrast_vector(design: Subjects, text: str, coefficients: dict) -> tuple[st
                      f"categorical column (levels: {known})")
 
 
+def _whole_subjects(path: Path, chosen: list, roles, subject: str) -> tuple:
+    """Cases blocked by subject, the tested columns the subjects' own (constant within each)."""
+    order = list(dict.fromkeys(row[subject] for row in chosen))
+    blocks = np.array([order.index(row[subject]) for row in chosen])
+    for column in roles.tested:
+        for b, name in enumerate(order):
+            values = {chosen[k][column] for k in np.flatnonzero(blocks == b)}
+            if len(values) > 1:
+                raise InputError(f"{path}: {column!r} varies within subject {name!r} ("
+                                 f"{', '.join(sorted(values))}): with --subject and no --time "
+                                 "the tested columns are the subjects' (whole subjects are "
+                                 "permuted); give --time to test a change within subjects")
+    kept = list(range(len(chosen)))
+    return Repeated(subject, None, [], "blocks", order, None, blocks), kept, chosen, []
+
+
 def _levels(path: Path, column: str, values: list, first: str | None, order, what: str,
             need: str) -> list:
     """The levels of a column among the cases, in ``order``, ``first`` (when given) first;
@@ -499,11 +521,14 @@ def _levels(path: Path, column: str, values: list, first: str | None, order, wha
     return levels
 
 
-def _repeated(path: Path, chosen: list, roles, subject: str, time: str,
+def _repeated(path: Path, chosen: list, roles, subject: str, time: str | None,
               baseline: str | None) -> tuple:
     """The repeated-measures design of the chosen rows: (Repeated, the rows kept, the design's
     rows, the cases left out). Two times: each subject's pair of cases, the subject's row at the
-    baseline its design row; more: every case, blocked by subject."""
+    baseline its design row; more: every case, blocked by subject; no time: every case, whole
+    subjects exchanged."""
+    if time is None:
+        return _whole_subjects(path, chosen, roles, subject)
     times = _levels(path, time, [row[time] for row in chosen], baseline,
                     lambda values: sorted(values, key=_level_order), "time",
                     "repeated measures need two or more")

@@ -237,7 +237,11 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
                                      in summary["n_per_group"].items()) + ")"
     body[-1] += f"; {len(subjects.left_out)} left out.</p>"
     repeated = subjects.repeated
-    if repeated is not None:
+    if repeated is not None and repeated.design == "blocks":
+        body.append(f"<p>Repeated measures: {len(repeated.subjects)} subjects "
+                    f"(<code>{html.escape(repeated.subject)}</code>), each subject's cases "
+                    "permuted together (whole blocks).</p>")
+    elif repeated is not None:
         body.append(f"<p>Repeated measures: {len(repeated.subjects)} subjects "
                     f"(<code>{html.escape(repeated.subject)}</code>) at "
                     f"<code>{html.escape(repeated.time)}</code> "
@@ -296,7 +300,8 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
         what=what, statistic=html.escape(points.name), assumes=assumes,
         design=("" if repeated is None else
                 ", of each subject's change between the two times" if repeated.design == "change"
-                else ", within each subject"),
+                else ", within each subject" if repeated.design == "within"
+                else ", every case of a subject resampled with it"),
         tail=("" if points.tail == "both" else
               f" (one-sided: an effect {'above' if points.tail == 'greater' else 'below'} 0)"),
         resampling=html.escape(points.resampling), permutations=config.permutations, permutations_plus_one=config.permutations + 1,
