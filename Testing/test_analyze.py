@@ -459,6 +459,9 @@ def test_two_scans_per_subject_by_the_real_command_test_each_subjects_change(bui
         ("change", True, "Student's t")]
     assert found[0]["significant_points"]["fwer"] == int(np.sum(
         points["p_fwer"].astype(float) <= 0.05))
+    page = (output / "analysis.html").read_text()
+    assert "Repeated measures: 6 subjects (<code>id</code>) at <code>visit</code> pre, post" in page
+    assert "signed t, mean change: visit post minus pre" in html.unescape(page)
     # without --categorical the site is one slope, and the command says so naming the column
     numeric = run_cli("analyze", build, "--table", table, "--subject", "id", "--time", "visit",
                       "--nuisance", "site", "--permutations", "9", "-o", tmp_path / "numeric")

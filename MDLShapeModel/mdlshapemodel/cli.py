@@ -385,7 +385,7 @@ def _run_analyze(args, live: bool) -> int:
              f"  per point: {summary['point_test']['statistic']}, "
              f"{summary['point_test']['resampling']}, family-wise by "
              f"{summary['point_test']['family_wise']}"
-             + (f", one-sided ({summary['point_test']['tail']})"
+             + (f", tail {summary['point_test']['tail']}"
                 if summary['point_test']['tail'] != "both" else ""),
              f"  cases: {summary['n_cases']}"
              + (" (" + ", ".join(f"{k}: {v}" for k, v in summary["n_per_group"].items()) + ")"

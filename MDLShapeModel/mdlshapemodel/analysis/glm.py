@@ -134,6 +134,9 @@ class PointTest:
     def name(self) -> str:
         """What the statistic is, in words (for the page, the terminal and analysis.json)."""
         r, _, q = self.effect.shape
+        if self.tail != "both":
+            return ("Welch's v, one-sided (a variance per group)" if self.variance == "groups"
+                    else "Student's t, one-sided (one pooled variance)")
         if self.variance == "groups":
             return ("James' statistic (a covariance per group)" if q > 1 else
                     "Welch's v^2 (a variance per group)" if r == 1 else

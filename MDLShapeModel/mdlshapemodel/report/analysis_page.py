@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import logging
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,9 @@ orientation are not findings, differences in {sized} are.</li>
 </ul>
 """
 
+
+# characters per line of a map's title beside its picture
+LABEL_WIDTH = 26
 
 # what is not significant is greyed: its pictures without colour, its text grey
 STYLE = ("section.not-significant{color:#777}section.not-significant img{filter:grayscale(1);"
@@ -84,7 +88,9 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     if model.of_curves:
         return [_image(_curve_maps(analysis, rows, significant), "effect maps")]
     for row in rows:
-        png = render_maps(analysis.mean, cells, [row], outlined=significant)
+        # the row's title beside the picture, broken into lines that fit its height
+        wrapped = (textwrap.fill(row[0], LABEL_WIDTH), *row[1:])
+        png = render_maps(analysis.mean, cells, [wrapped], outlined=significant)
         parts.append(_image(_b64(png), row[0]))
     parts += effects_section(analysis.mean, cells, [
         EffectMap(label, values, diverging=cmap == "coolwarm", limit=high,
@@ -293,6 +299,8 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
             "the displacement vector of the point from the mean shape")
     points = analysis.points
     assumes = (", which allows the groups to differ in spread" if points.variance == "groups"
+               else ", which assumes that each subject's change is as likely as its negative "
+               "when there is no change" if subjects.mean_change_tested
                else ", which assumes that every group varies alike")
     family_wise = ("the largest statistic" if points.family_wise == "maximum" else
                    "the smallest per-point p-value (min-p)")
