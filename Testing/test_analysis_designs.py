@@ -351,3 +351,21 @@ def test_a_subjects_group_on_all_their_cases_permutes_whole_subjects(tmp_path):
                    for s in range(10) for side in "lr"])
     with pytest.raises(InputError, match="'arm' varies within subject 's2' \\(a, b\\)"):
         subjects(moved, names, group="arm", subject="id")
+
+
+def test_the_mean_change_of_a_vector_is_the_one_sample_hotelling_t2(tmp_path):
+    table, names, _ = longitudinal(tmp_path, 12, 4, seed=8)
+    design = subjects(table, names, subject="id", time="visit", baseline="pre")
+    rng = np.random.default_rng(8)
+    vectors = rng.normal(size=(24, 4, 3)) + np.repeat(rng.normal(size=(12, 4, 3)), 2, axis=0)
+    vectors[1::2, 0] += [0.8, 0.0, -0.5]                   # every post scan moves at point 0
+    found = point_test(vectors, design, AnalysisConfig(subject="id", time="visit",
+                                                       permutations=99))
+    change = vectors[1::2] - vectors[0::2]
+    for k in range(4):
+        mean = change[:, k].mean(axis=0)
+        covariance = np.cov(change[:, k], rowvar=False)
+        np.testing.assert_allclose(found.statistic[k],
+                                   12 * mean @ np.linalg.solve(covariance, mean), rtol=1e-9)
+    assert found.t is None and found.name == "Hotelling's T^2 (one pooled covariance)"
+    np.testing.assert_allclose(found.effect[0], change.mean(axis=0), rtol=1e-10)
