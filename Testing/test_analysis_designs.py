@@ -369,3 +369,23 @@ def test_the_mean_change_of_a_vector_is_the_one_sample_hotelling_t2(tmp_path):
                                    12 * mean @ np.linalg.solve(covariance, mean), rtol=1e-9)
     assert found.t is None and found.name == "Hotelling's T^2 (one pooled covariance)"
     np.testing.assert_allclose(found.effect[0], change.mean(axis=0), rtol=1e-10)
+
+
+def test_an_interaction_is_the_t_of_the_product_with_both_columns_adjusted_for(tmp_path):
+    table, names, groups, ages, data = three_groups(tmp_path)
+    two = groups != "mild"
+    names, ages, data = [n for n, k in zip(names, two) if k], ages[two], data[two]
+    design = subjects(table, names, group="stage", covariates=["age"],
+                      interactions=["stage:age"])
+    assert design.tested == ["stage:age"] and design.adjusted_for == ["stage", "age"]
+    assert design.interest_names == ["severe:age"]
+    found = point_test(data, design, AnalysisConfig(group="stage", covariates=["age"],
+                                                    interactions=["stage:age"],
+                                                    permutations=99))
+    assert found.variance == "pooled"                    # the group is adjusted for
+    severe = (groups[two] == "severe").astype(float)
+    centred = ages - ages.mean()
+    full = np.column_stack([np.ones(len(names)), severe, centred, severe * centred])
+    np.testing.assert_allclose(found.t, ols_t(data, full), rtol=1e-9)
+    with pytest.raises(ConfigError, match="interaction 'stage:height': write two different"):
+        AnalysisConfig(group="stage", covariates=["age"], interactions=["stage:height"]).roles()

@@ -563,3 +563,25 @@ def test_a_contrast_by_the_real_command_gets_its_map_and_a_bad_one_is_refused(bu
     assert refused.returncode == 2
     assert "contrast 'thin-fat': its levels are not all levels of one tested" in refused.stderr
     assert "Traceback" not in refused.stderr and not (tmp_path / "refused").exists()
+
+
+def test_an_interaction_by_the_real_command_is_tested_with_its_columns_adjusted_for(
+        build, table, tmp_path):
+    output = tmp_path / "interaction"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "--covariate",
+                     "age", "--interaction", "group:age", "--permutations", "99", "-o", output,
+                     "-q")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((output / "analysis.json").read_text())
+    assert summary["tested"] == ["group:age"] and summary["adjusted_for"] == ["group", "age"]
+    assert summary["effects"] == ["thin:age"] and summary["point_test"]["variance"] == "pooled"
+    used = [f"case_{k:02d}" for k in range(N) if k != 5]
+    y = normal_displacement(build, used)
+    thin = np.array([int(n[-2:]) % 2 for n in used], dtype=float)
+    age = np.array([40 + 3 * int(n[-2:]) for n in used], dtype=float)
+    product = thin * (age - age.mean())
+    full = np.column_stack([np.ones(len(used)), thin, age - age.mean(),
+                            product - product.mean()])
+    t = read_points(output / "points.csv")["t"].astype(float)
+    expected = ols_t(y, full)
+    assert np.median(np.abs(t - expected) / np.abs(expected)) < 1e-3

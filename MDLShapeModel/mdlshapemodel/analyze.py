@@ -278,7 +278,7 @@ def analyze_build(build, table, output, config: AnalysisConfig | None = None, pr
     built = read_build(build)
     design = subjects(table, built.model.names, config.group, config.covariates,
                       config.nuisance, config.reference, config.categorical, config.test,
-                      config.subject, config.time, config.baseline)
+                      config.subject, config.time, config.baseline, config.interactions)
     contrasts_of(design, config)          # a contrast of untested levels: refused up front
     if output.resolve() == Path(build).resolve():
         raise InputError(f"{output}: the output folder is the build folder; choose another")

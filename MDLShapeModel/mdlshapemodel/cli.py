@@ -359,7 +359,7 @@ def _run_analyze(args, live: bool) -> int:
                             test=args.test, reference=args.reference,
                             subject=args.subject, time=args.time, baseline=args.baseline,
                             tail=args.tail, long_table=args.long_table,
-                            contrasts=args.contrast,
+                            contrasts=args.contrast, interactions=args.interaction,
                             permutations=args.permutations, size=args.size, parts=args.parts,
                             displacement=args.displacement, variance=args.variance,
                             family_wise=args.family_wise, alpha=args.alpha,
@@ -586,6 +586,10 @@ def main(argv=None) -> int:
                               "groups, the mean change) along the normal: greater, towards "
                               "positive (outward) values; less, towards negative (inward: "
                               "atrophy) (default %(default)s)")
+    analyze.add_argument("--interaction", metavar="A:B", action="append", default=[],
+                         help="test the product of two columns of the model (e.g. "
+                              "diagnosis:age: does the effect of age differ between the "
+                              "groups?), both adjusted for; repeatable")
     analyze.add_argument("--contrast", metavar="TEXT", action="append", default=[],
                          help="a comparison of the levels of the tested group (or of a tested "
                               "categorical column), such as 'patient-control' or "

@@ -656,6 +656,7 @@ class Roles:
     adjusted_for: list    # the other columns of the model (nuisance)
     categorical: list     # the model's categorical columns (coded as indicators of levels)
     numeric: list         # the model's numeric columns
+    interactions: list = field(default_factory=list)   # tested products, "a:b"
 
 
 def parse_contrast(text: str) -> dict:
@@ -695,7 +696,8 @@ def parse_contrast(text: str) -> dict:
 
 
 def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=(),
-                   test=(), subject: str | None = None, time: str | None = None) -> Roles:
+                   test=(), subject: str | None = None, time: str | None = None,
+                   interactions=()) -> Roles:
     """The roles of the columns of one analysis, declared by how they are named: ``group`` is
     categorical, ``covariates`` and ``nuisance`` columns are numeric unless named in
     ``categorical`` (a tested categorical covariate is one test over its levels). The tested
@@ -705,7 +707,8 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
     Repeated measures: ``subject`` names each case's subject and ``time`` its time point; the
     time is tested (the change within subjects) when nothing else is, else the tested columns'
     effect on the change. A ``subject`` without a time: the tested columns are the subjects'
-    (whole subjects are permuted). The time's kind is decided with its levels
+    (whole subjects are permuted). ``interactions`` ("a:b", two columns of the model) are
+    tested, with the columns named by ``test`` if any; their columns are adjusted for. The time's kind is decided with its levels
     (:func:`~mdlshapemodel.analysis.table.subjects`): it is in neither ``categorical`` nor
     ``numeric`` here.
 
@@ -726,6 +729,9 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
     ['site']
     >>> analysis_roles(None, subject="id", time="visit").tested
     ['visit']
+    >>> roles = analysis_roles("diagnosis", ["age"], interactions=["diagnosis:age"])
+    >>> roles.tested, roles.adjusted_for
+    (['diagnosis:age'], ['diagnosis', 'age'])
     """
     covariates, nuisance = list(covariates), list(nuisance)
     categorical, test = list(categorical), list(test)
@@ -754,16 +760,24 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
         if name != group and name not in covariates and name not in nuisance and name != time:
             raise ConfigError(f"categorical: {name!r} is not a column of the model (give it "
                               f"with --covariate {name} to test it, or --nuisance {name})")
-    tested = test or ([group] if group else covariates)
+    interactions = list(interactions)
+    for term in interactions:
+        parts = term.split(":")
+        if len(parts) != 2 or parts[0] == parts[1] or not all(c in model for c in parts):
+            raise ConfigError(f"interaction {term!r}: write two different columns of the model "
+                              "(the group, covariates or nuisance columns) as a:b")
+    if len(set(interactions)) < len(interactions):
+        raise ConfigError(f"interaction {interactions[0]!r} is given twice")
+    tested = test or ([] if interactions else [group] if group else covariates)
     kinds = {name: name == group or name in categorical for name in model}
-    if not tested:
+    if not tested and not interactions:
         return Roles(tested=[time], adjusted_for=list(model),
                      categorical=[c for c in model if kinds[c]],
                      numeric=[c for c in model if not kinds[c]])
-    return Roles(tested=[c for c in model if c in tested],
+    return Roles(tested=[c for c in model if c in tested] + interactions,
                  adjusted_for=[c for c in model if c not in tested],
                  categorical=[c for c in model if kinds[c]],
-                 numeric=[c for c in model if not kinds[c]])
+                 numeric=[c for c in model if not kinds[c]], interactions=interactions)
 
 
 @dataclass
@@ -790,6 +804,8 @@ class AnalysisConfig:
     tail: str = "both"                # one-sided tests of a single-column effect
     contrasts: list[str] = field(default_factory=list)   # comparisons of a tested factor's
     #                                                      levels, each with its signed map
+    interactions: list[str] = field(default_factory=list)  # tested products "a:b" of two
+    #                                                        columns, which are adjusted for
     permutations: int = 10_000
     size: str = "kept"
     parts: str = "whole"              # multi-part objects: aligned as one, or each part alone
@@ -845,4 +861,4 @@ class AnalysisConfig:
         """What each column of the model is (:func:`analysis_roles`); ConfigError when the
         names contradict each other."""
         return analysis_roles(self.group, self.covariates, self.nuisance, self.categorical,
-                              self.test, self.subject, self.time)
+                              self.test, self.subject, self.time, self.interactions)

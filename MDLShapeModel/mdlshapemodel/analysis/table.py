@@ -278,7 +278,7 @@ def _indicators(values: list, levels: list) -> np.ndarray:
 def subjects(table, case_names: list, group: str | None = None, covariates=(),
              nuisance=(), reference: str | None = None, categorical=(), test=(),
              subject: str | None = None, time: str | None = None,
-             baseline: str | None = None) -> Subjects:
+             baseline: str | None = None, interactions=()) -> Subjects:
     """Match a subjects table to a build's cases and make the design of one analysis.
 
     Parameters
@@ -316,6 +316,10 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
         exchangeability block.
     baseline : str, optional
         The time the change is measured from (default: the first in numeric or sorted order).
+    interactions : sequence of str
+        Products "a:b" of two columns of the model, tested (each product of their design
+        columns, centred, named ``a_name:b_name``) with their columns adjusted for: does the
+        effect of one depend on the other?
 
     Returns
     -------
@@ -340,10 +344,10 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
         design.tested, design.adjusted_for        # ['age'], ['diagnosis']
     """
     path = Path(table)
-    roles = analysis_roles(group, covariates, nuisance, categorical, test, subject, time)
+    roles = analysis_roles(group, covariates, nuisance, categorical, test, subject, time,
+                           interactions)
     header, rows = read_table(path)
-    model_columns = [c for c in roles.tested + roles.adjusted_for if c != time]
-    used_columns = roles.tested + roles.adjusted_for
+    used_columns = [c for c in roles.tested if c not in roles.interactions] + roles.adjusted_for
     used_columns += [c for c in (subject, time) if c and c not in used_columns]
     for column in used_columns:
         if column not in header:
@@ -411,7 +415,13 @@ def subjects(table, case_names: list, group: str | None = None, covariates=(),
              if (note := coded_factor_note(column, [_number(row[column]) for row in design_rows]))]
 
     def block(column: str) -> tuple[np.ndarray, list]:
-        """The design columns of one table column and their names."""
+        """The design columns of one table column (or interaction) and their names."""
+        if column in roles.interactions:
+            # every product of the two columns' design columns, each centred
+            (left, left_names), (right, right_names) = (block(c) for c in column.split(":"))
+            products = np.einsum("ni,nj->nij", left, right).reshape(len(design_rows), -1)
+            return (products - products.mean(axis=0),
+                    [f"{a}:{b}" for a in left_names for b in right_names])
         values = [row[column] for row in design_rows]
         if column in numeric:
             numbers = np.array([_number(v) for v in values])

@@ -105,7 +105,9 @@ def effect_labels(subjects) -> list:
     labels, seen = [], {}
     for column in subjects.interest_columns:
         levels = subjects.levels_of.get(column)
-        if subjects.mean_change_tested:
+        if ":" in column:
+            labels.append(f"interaction {column}, per unit")
+        elif subjects.mean_change_tested:
             times = subjects.repeated.times
             labels.append(f"mean change: {column} {times[1]} minus {times[0]}")
         elif levels:
