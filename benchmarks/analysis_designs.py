@@ -26,7 +26,10 @@ tails). The designs:
 - ``one-sided covariate``: a covariate's t, ``--tail less``, 30 cases;
 - ``one-sided groups``: Welch's v of 6 against 24 cases (SD ratio 3), ``--tail less``;
 - ``each covariate``: two covariates correlated 0.5 tested together, each its own signed map
-  adjusted for the other (the rates of the first's map).
+  adjusted for the other (the rates of the first's map);
+- ``interaction``: three stages (10 cases each) by age, both moving the data, their interaction
+  tested;
+- ``contrast``: the contrast severe-mild of the three stages, where only control differs.
 
 ``paired``: the power of the paired test: two scans of ``n`` subjects whose own shapes differ
 with SD 3, scan noise SD 0.3, and in every other subject the second scan moved by ``--change``
@@ -109,19 +112,27 @@ class Design:
             self.names = [f"c{k}" for k in range(n)]
             other = 0.5 * ages + np.sqrt(0.75) * rng.normal(size=n)
             small = 6 if name == "one-sided groups" else n
+            stages = ["control", "mild", "severe"]
             rows = [[f"c{k}", f"{ages[k]:.6f}", f"{other[k]:.6f}",
-                     "small" if k < small else "large"] for k in range(n)]
+                     "small" if k < small else "large", stages[k % 3]] for k in range(n)]
             table = write_table(folder, name.replace(" ", "_"),
-                                ["case", "age", "height", "arm"], rows)
+                                ["case", "age", "height", "arm", "stage"], rows)
             settings = ({"covariates": ["age"], "tail": "less"} if name == "one-sided covariate"
                         else {"group": "arm", "tail": "less"} if name == "one-sided groups"
+                        else {"group": "stage", "covariates": ["age"],
+                              "interactions": ["stage:age"]} if name == "interaction"
+                        else {"group": "stage", "variance": "pooled",
+                              "contrasts": ["severe-mild"]} if name == "contrast"
                         else {"covariates": ["age", "height"]})
+            self.ages, self.stages = np.array([float(row[1]) for row in rows]), [
+                row[4] for row in rows]
             self.config = AnalysisConfig(**settings)
             self.subjects_of(table, settings)
             self.small = small
 
     def subjects_of(self, table: Path, settings: dict):
-        keys = ("group", "covariates", "nuisance", "subject", "time", "baseline", "reference")
+        keys = ("group", "covariates", "nuisance", "subject", "time", "baseline", "reference",
+                "interactions")
         self.design = subjects(table, self.names, **{k: v for k, v in settings.items()
                                                      if k in keys})
 
@@ -144,7 +155,14 @@ class Design:
                 data = own + spread[:, None] * noise(rng, errors, (n, points))
             return data
         scale = np.where(np.arange(n) < self.small, 3.0, 1.0) if self.small < n else 1.0
-        return noise(rng, errors, (n, points)) * np.reshape(scale, (-1, 1))
+        data = noise(rng, errors, (n, points)) * np.reshape(scale, (-1, 1))
+        if self.name in ("interaction", "contrast"):
+            # a main effect of the stage (control apart) and, with the interaction, of age:
+            # in the model, not tested
+            data += 1.5 * (np.array(self.stages) != "control")[:, None]
+        if self.name == "interaction":
+            data += self.ages[:, None]
+        return data
 
 
 def null(args):
@@ -153,7 +171,8 @@ def null(args):
     designs = [("change", 10), ("change", 24), ("change + age", 24), ("change by group", 24),
                ("time within", 10), ("two cases per subject, whole subjects", 16),
                ("two cases per subject, cases as independent", 16),
-               ("one-sided covariate", 30), ("one-sided groups", 30), ("each covariate", 30)]
+               ("one-sided covariate", 30), ("one-sided groups", 30), ("each covariate", 30),
+               ("interaction", 30), ("contrast", 30)]
     se = np.sqrt(args.alpha * (1 - args.alpha) / args.replicates)
     print(f"{args.replicates} null data sets of {args.points} independent points, "
           f"{args.permutations} resamples, alpha {args.alpha}; FWER SE {se:.4f}")
@@ -173,6 +192,8 @@ def null(args):
                                            "seed": int(rng.integers(1 << 30))})
                 if name == "each covariate":
                     result = signed_maps(data, design.design, config)[0].test
+                elif name == "contrast":
+                    result = signed_maps(data, design.design, config)[-1].test
                 else:
                     result = point_test(data, design.design, config)
                 statistic = (result.name if result.t is None else "Welch's v"
