@@ -470,17 +470,20 @@ def test_two_scans_per_subject_by_the_real_command_test_each_subjects_change(bui
 
 
 def test_each_covariate_gets_its_own_signed_map_adjusted_for_the_others(build, tmp_path):
-    """Age and height tested together (one joint test) with sex adjusted for, one-sided
-    (inward): per covariate t, p, p_fwer, q_fdr in points.csv, each against least squares and
-    a plain loop over the same permutations."""
+    """Age and height tested together (one joint test) with sex and a scanner coded 1, 2
+    adjusted for (``--categorical sex,scanner``), one-sided (inward): per covariate t, p,
+    p_fwer, q_fdr in points.csv, each against least squares and a plain loop over the same
+    permutations."""
     heights = [171, 165, 180, 158, 175, 169, 162, 177, 168, 173, 160, 183]
-    rows = [[f"case_{k:02d}", 40 + (5 * k) % 17, heights[k], "F" if k % 3 else "M"]
-            for k in range(N)]
-    table = write_table(tmp_path / "people.csv", rows, header=("case", "age", "height", "sex"))
+    rows = [[f"case_{k:02d}", 40 + (5 * k) % 17, heights[k], "F" if k % 3 else "M",
+             1 + k % 2] for k in range(N)]
+    table = write_table(tmp_path / "people.csv", rows,
+                        header=("case", "age", "height", "sex", "scanner"))
     output = tmp_path / "both"
     result = run_cli("analyze", build, "--table", table, "--covariate", "age", "--covariate",
-                     "height", "--nuisance", "sex", "--categorical", "sex", "--tail", "less",
-                     "--permutations", "199", "-o", output, "-q")
+                     "height", "--nuisance", "sex", "--nuisance", "scanner", "--categorical",
+                     "sex,scanner", "--tail", "less", "--permutations", "199", "-o", output,
+                     "-q")
     assert result.returncode == 0, result.stderr
     summary = json.loads((output / "analysis.json").read_text())
     points = read_points(output / "points.csv")
@@ -491,8 +494,11 @@ def test_each_covariate_gets_its_own_signed_map_adjusted_for_the_others(build, t
     age = np.array([row[1] for row in rows], dtype=float)
     height = np.array(heights, dtype=float)
     male = np.array([row[3] == "M" for row in rows], dtype=float)
+    second = np.array([row[4] == 2 for row in rows], dtype=float)
+    assert summary["adjusted_for"] == ["sex", "scanner"]
     for name, tested, other in (("age", age, height), ("height", height, age)):
-        full = np.column_stack([np.ones(N), male, other - other.mean(), tested - tested.mean()])
+        full = np.column_stack([np.ones(N), male, second, other - other.mean(),
+                                tested - tested.mean()])
         expected = ols_t(y, full)
         t = points[f"t_{name}"].astype(float)
         assert np.median(np.abs(t - expected) / np.abs(expected)) < 1e-3

@@ -163,6 +163,7 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     points = point_test(data, subjects, config, progress)
     along = data if config.displacement == "normal" else np.einsum("npd,pd->np", offsets,
                                                                     normals)
+    report(progress, None, "the signed map of each effect")
     signed = signed_maps(along, subjects, config, points)
     difference = _effects(offsets, subjects)
     normal_difference = np.einsum("rpd,pd->rp", difference, normals)
