@@ -543,7 +543,10 @@ def main(argv=None) -> int:
                "    (tested: age; adjusted for: diagnosis)\n"
                "  mdlshapemodel analyze out --table subjects.csv --covariate age "
                "--nuisance site --categorical site -o by-age\n"
-               "    (tested: age; adjusted for: site, a categorical column coded 1, 2, 3)",
+               "    (tested: age; adjusted for: site, a categorical column coded 1, 2, 3)\n"
+               "  mdlshapemodel analyze out --table visits.csv --subject id --time visit "
+               "--baseline pre --tail less -o change\n"
+               "    (each subject's change, post minus pre; its mean tested one-sided, inward)",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     analyze.add_argument("build", help="a build's output folder")
     analyze.add_argument("--table", required=True, metavar="CSV",
