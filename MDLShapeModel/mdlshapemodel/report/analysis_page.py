@@ -72,6 +72,8 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     for label, values in zip(labels, analysis.normal_difference):
         limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((label, values, "coolwarm", -limit, limit, "along the normal [mm]"))
+    # the region outlined on each map: the per-point test's, or a signed map's own
+    outlines = [significant] * len(rows)
     # one signed map per effect column, and its own family-wise p when it is a test of its own
     for k, found in enumerate(analysis.signed):
         label = labels[k] if k < len(labels) else f"contrast {found.name}"
@@ -79,18 +81,21 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
         limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((f"signed t, {label}", values, "coolwarm", -limit, limit,
                      "t along the normal"))
+        own_region = significant if found.joint else found.test.p_fwer <= alpha
+        outlines.append(own_region)
         if not found.joint:
             own = -np.log10(found.test.p_fwer)
             rows.append((f"-log10 p (FWER), {label}", own, "viridis", 0.0,
                          max(float(own.astype(np.float32).max()), level * 1.5),
                          "-log10 p, family-wise"))
+            outlines.append(own_region)
     parts = []
     if model.of_curves:
         return [_image(_curve_maps(analysis, rows, significant), "effect maps")]
-    for row in rows:
+    for row, outlined in zip(rows, outlines):
         # the row's title beside the picture, broken into lines that fit its height
         wrapped = (textwrap.fill(row[0], LABEL_WIDTH), *row[1:])
-        png = render_maps(analysis.mean, cells, [wrapped], outlined=significant)
+        png = render_maps(analysis.mean, cells, [wrapped], outlined=outlined)
         parts.append(_image(_b64(png), row[0]))
     parts += effects_section(analysis.mean, cells, [
         EffectMap(label, values, diverging=cmap == "coolwarm", limit=high,
@@ -115,6 +120,9 @@ def effect_labels(subjects) -> list:
             labels.append(f"effect of {column}: {levels[seen[column]]} minus {levels[0]}")
         else:
             labels.append(f"effect of {column}, per unit")
+    repeated = subjects.repeated
+    if repeated is not None and repeated.design == "change" and not subjects.mean_change_tested:
+        labels = [f"{label}, on the change" for label in labels]
     return labels
 
 
@@ -271,7 +279,8 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
     body += [f"<h2>Where the shapes differ by {named(subjects.tested)}</h2>",
              f"<p>{counts['fwer']} of {len(analysis.mean)} points significant at &alpha; = "
              f"{config.alpha} after family-wise correction, {counts['fdr']} after FDR "
-             "correction (outlined in black: family-wise).</p>"]
+             "correction (outlined in black: family-wise; on the signed map of an effect "
+             "column tested on its own, that map's family-wise region).</p>"]
     try:
         body += _maps(analysis, model)
     except (MDLShapeModelError, RuntimeError) as error:
