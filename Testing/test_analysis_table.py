@@ -101,6 +101,28 @@ def test_a_numeric_coded_factor_is_categorical_when_declared_so(tmp_path):
     assert factor.adjusted_for == ["site"]
 
 
+def test_a_tested_categorical_covariate_is_one_test_over_its_levels(tmp_path):
+    sites = [[1, 2, 10][k % 3] for k in range(N)]          # 10 after 2: levels in numeric order
+    table = write(tmp_path / "t.csv", rows_of(sites=sites))
+    design = subjects(table, NAMES, covariates=["site"], categorical=["site"])
+    assert design.tested == ["site"] and design.interest_names == ["site=2", "site=10"]
+    assert design.interest_columns == ["site", "site"]
+    assert design.levels_of == {"site": ["1", "2", "10"]}
+    np.testing.assert_array_equal(design.interest, [[s == 2, s == 10] for s in sites])
+    assert design.notes == []
+
+
+def test_a_numeric_column_of_few_whole_numbers_is_noted_by_name(tmp_path):
+    table = write(tmp_path / "t.csv", rows_of())
+    coded = subjects(table, NAMES, group="group", covariates=["age"], nuisance=["site"])
+    assert len(coded.notes) == 1
+    assert "'site' takes only the values 1, 2, 3" in coded.notes[0]
+    assert "--categorical site" in coded.notes[0]
+    declared = subjects(table, NAMES, group="group", covariates=["age"], nuisance=["site"],
+                        categorical=["site"])
+    assert declared.notes == []
+
+
 def test_a_covariate_beside_a_group_is_tested_when_named_by_test(tmp_path):
     table = write(tmp_path / "t.csv", rows_of())
     adjusted = subjects(table, NAMES, group="group", covariates=["age"])
@@ -118,9 +140,9 @@ def test_a_covariate_beside_a_group_is_tested_when_named_by_test(tmp_path):
 @pytest.mark.parametrize("arguments, message", [
     ({"group": "group", "nuisance": ["age"], "test": ["age"]},
      "test: 'age' is not the group or a covariate"),
-    ({"covariates": ["age"], "categorical": ["age"]}, "categorical: 'age' is a covariate"),
     ({"group": "group", "categorical": ["site"]},
-     "categorical: 'site' is not a nuisance column (give it with --nuisance site)"),
+     "categorical: 'site' is not a column of the model (give it with --covariate site to test "
+     "it, or --nuisance site)"),
     ({"group": "group", "covariates": ["group"]}, "column 'group' is given twice"),
     ({"nuisance": ["age"]}, "nothing to test"),
 ])

@@ -413,3 +413,181 @@ def test_a_covariate_beside_a_group_is_tested_with_test(build, tmp_path):
     assert "Tested: <b>age</b>; adjusted for: group <b>group</b>." in page
     assert "Where the shapes differ by <b>age</b>" in page
     assert "effect of age, per unit" in page and "Discriminant" not in page
+
+
+def ols_t(y: np.ndarray, design: np.ndarray) -> np.ndarray:
+    """Student's t of the last coefficient of ordinary least squares per column of ``y``:
+    b / sqrt(s^2 [(X'X)^-1]_last), s^2 = e'e / (n - columns)."""
+    coefficients = np.linalg.lstsq(design, y, rcond=None)[0]
+    errors = y - design @ coefficients
+    variance = np.sum(errors ** 2, axis=0) / (len(y) - design.shape[1])
+    return coefficients[-1] / np.sqrt(variance * np.linalg.inv(design.T @ design)[-1, -1])
+
+
+def test_two_scans_per_subject_by_the_real_command_test_each_subjects_change(build, tmp_path):
+    """The twelve cases as six subjects scanned twice (pre: even cases, post: odd, the thinner
+    ones), a site coded 1, 2, 3 declared categorical: the mean change, by sign flips."""
+    rows = [[f"case_{k:02d}", f"s{k // 2}", "post" if k % 2 else "pre", 1 + (k // 2) % 3]
+            for k in range(N)]
+    table = write_table(tmp_path / "visits.csv", rows, header=("case", "id", "visit", "site"))
+    output = tmp_path / "change"
+    result = run_cli("analyze", build, "--table", table, "--subject", "id", "--time", "visit",
+                     "--baseline", "pre", "--nuisance", "site", "--categorical", "site",
+                     "--permutations", "199", "-o", output)
+    assert result.returncode == 0, result.stderr
+    assert "change between two times (6 subjects, visit pre, post)" in result.stdout
+    assert "sign-flipped" in result.stdout and "takes only the values" not in result.stderr
+    summary = json.loads((output / "analysis.json").read_text())
+    assert summary["design"] == {"kind": "change between two times", "subject": "id",
+                                 "time": "visit", "times": ["pre", "post"], "n_subjects": 6,
+                                 "mean_change_tested": True}
+    assert summary["tested"] == ["visit"] and summary["adjusted_for"] == ["site"]
+    assert summary["point_test"]["resampling"] == "sign-flipped"
+    assert summary["degrees_of_freedom"] == 6 - 2 - 1 and summary["classification"] is None
+    y = normal_displacement(build, [row[0] for row in rows])
+    change = y[1::2] - y[0::2]
+    sites = np.array([1 + s % 3 for s in range(6)])
+    indicators = np.column_stack([sites == 2, sites == 3]).astype(float)
+    design = np.column_stack([indicators - indicators.mean(axis=0), np.ones(6)])
+    points = read_points(output / "points.csv")
+    t = points["t"].astype(float)
+    expected = ols_t(change, design)
+    assert np.median(np.abs(t - expected) / np.abs(expected)) < 1e-3
+    np.testing.assert_allclose(points["statistic"].astype(float), t ** 2, rtol=3e-5)  # 6 digits
+    found = summary["effect_tests"]
+    assert [(e["name"], e["the_point_test"], e["statistic"]) for e in found] == [
+        ("change", True, "Student's t")]
+    assert found[0]["significant_points"]["fwer"] == int(np.sum(
+        points["p_fwer"].astype(float) <= 0.05))
+    page = (output / "analysis.html").read_text()
+    assert "Repeated measures: 6 subjects (<code>id</code>) at <code>visit</code> pre, post" in page
+    assert "signed t, mean change: visit post minus pre" in html.unescape(page)
+    # without --categorical the site is one slope, and the command says so naming the column
+    numeric = run_cli("analyze", build, "--table", table, "--subject", "id", "--time", "visit",
+                      "--nuisance", "site", "--permutations", "9", "-o", tmp_path / "numeric")
+    assert numeric.returncode == 0, numeric.stderr
+    assert "numeric column 'site' takes only the values 1, 2, 3" in numeric.stderr
+
+
+def test_each_covariate_gets_its_own_signed_map_adjusted_for_the_others(build, tmp_path):
+    """Age and height tested together (one joint test) with sex and a scanner coded 1, 2
+    adjusted for (``--categorical sex,scanner``), one-sided (inward): per covariate t, p,
+    p_fwer, q_fdr in points.csv, each against least squares and a plain loop over the same
+    permutations."""
+    heights = [171, 165, 180, 158, 175, 169, 162, 177, 168, 173, 160, 183]
+    rows = [[f"case_{k:02d}", 40 + (5 * k) % 17, heights[k], "F" if k % 3 else "M",
+             1 + k % 2] for k in range(N)]
+    table = write_table(tmp_path / "people.csv", rows,
+                        header=("case", "age", "height", "sex", "scanner"))
+    output = tmp_path / "both"
+    result = run_cli("analyze", build, "--table", table, "--covariate", "age", "--covariate",
+                     "height", "--nuisance", "sex", "--nuisance", "scanner", "--categorical",
+                     "sex,scanner", "--tail", "less", "--permutations", "199", "-o", output,
+                     "-q")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((output / "analysis.json").read_text())
+    points = read_points(output / "points.csv")
+    assert summary["effects"] == ["age", "height"]
+    assert [(e["name"], e["tail"], e["the_point_test"]) for e in summary["effect_tests"]] == [
+        ("age", "less", False), ("height", "less", False)]
+    y = normal_displacement(build, [row[0] for row in rows])
+    age = np.array([row[1] for row in rows], dtype=float)
+    height = np.array(heights, dtype=float)
+    male = np.array([row[3] == "M" for row in rows], dtype=float)
+    second = np.array([row[4] == 2 for row in rows], dtype=float)
+    assert summary["adjusted_for"] == ["sex", "scanner"]
+    for name, tested, other in (("age", age, height), ("height", height, age)):
+        full = np.column_stack([np.ones(N), male, second, other - other.mean(),
+                                tested - tested.mean()])
+        expected = ols_t(y, full)
+        t = points[f"t_{name}"].astype(float)
+        assert np.median(np.abs(t - expected) / np.abs(expected)) < 1e-3
+        # Freedman-Lane, one-sided towards negative t: the residuals of the model without the
+        # covariate against each permutation's design rows
+        reduced = full[:, :-1]
+        residuals = y - reduced @ np.linalg.lstsq(reduced, y, rcond=None)[0]
+        draws = np.vstack([np.arange(N)] + list(drawn_permutations(N, 199, 0)))
+        values = -np.array([ols_t(residuals, full[order]) for order in draws])
+        p = points[f"p_{name}"].astype(float)
+        recomputed = np.mean(values >= values[0] - 1e-9 * np.abs(values[0]), axis=0)
+        assert np.mean(np.abs(p - recomputed) < 1e-9) > 0.95
+        entry = next(e for e in summary["effect_tests"] if e["name"] == name)
+        assert entry["significant_points"]["fwer"] == int(np.sum(
+            points[f"p_fwer_{name}"].astype(float) <= 0.05))
+        assert entry["significant_points"]["fdr"] == int(np.sum(
+            points[f"q_fdr_{name}"].astype(float) <= 0.05))
+
+
+def test_long_csv_has_a_row_per_case_and_point_for_r_or_pandas(build, table, tmp_path):
+    output = tmp_path / "long"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "--long-table",
+                     "--permutations", "9", "-o", output, "-q")
+    assert result.returncode == 0, result.stderr
+    rows = io.read_csv(output / "long.csv")
+    used = [f"case_{k:02d}" for k in range(N) if k != 5]    # case_05 has no group: left out
+    model = ShapeModel.load(build / "model.h5")
+    points = len(model.mean)
+    assert len(rows) == len(used) * points
+    assert [rows[k * points]["case"] for k in range(len(used))] == used
+    assert [int(row["point"]) for row in rows[:points]] == list(range(points))
+    k = sum(key.startswith("score_") for key in rows[0])
+    assert list(rows[0])[:4 + k + 3] == (["case", "point", "part", "normal_displacement_mm"]
+                                         + [f"score_{j + 1}" for j in range(k)]
+                                         + ["group", "age", "sex"])
+    normal = np.array([float(row["normal_displacement_mm"]) for row in rows]).reshape(
+        len(used), points)
+    expected = normal_displacement(build, used)
+    assert np.median(np.abs(normal - expected)) < 1e-4 * np.abs(expected).max()
+    # the principal scores: the area-weighted PCA of the aligned shapes, up to each mode's sign
+    aligned = align(shapes_of(build, used), model.weights)
+    centred = ((aligned - aligned.mean(axis=0)) * np.sqrt(model.weights)[None, :, None])
+    u, singular, _ = np.linalg.svd(centred.reshape(len(used), -1), full_matrices=False)
+    scores = np.array([[float(rows[i * points][f"score_{j + 1}"]) for j in range(k)]
+                       for i in range(len(used))])
+    np.testing.assert_allclose(np.abs(scores), np.abs(u[:, :k] * singular[:k]), rtol=1e-3,
+                               atol=1e-4 * singular[0])
+    written = {row[0]: row for row in csv.reader(open(table))}
+    for row in rows[::points]:
+        assert [row["group"], row["age"], row["sex"]] == written[row["case"]][1:]
+
+
+def test_a_contrast_by_the_real_command_gets_its_map_and_a_bad_one_is_refused(build, table,
+                                                                             tmp_path):
+    output = tmp_path / "contrast"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "--contrast",
+                     "full-thin", "--permutations", "99", "-o", output)
+    assert result.returncode == 0, result.stderr
+    assert "signed map of full-thin (Welch's v)" in result.stdout
+    points = read_points(output / "points.csv")
+    # full minus thin is the group's map (thin minus full, the reference) with its sign turned
+    np.testing.assert_allclose(points["t_full-thin"].astype(float),
+                               -points["t"].astype(float), rtol=2e-5)
+    summary = json.loads((output / "analysis.json").read_text())
+    assert summary["effect_tests"][1]["contrast"] == {"full": 1.0, "thin": -1.0}
+    refused = run_cli("analyze", build, "--table", table, "--group", "group", "--contrast",
+                      "thin-fat", "-o", tmp_path / "refused")
+    assert refused.returncode == 2
+    assert "contrast 'thin-fat': its levels are not all levels of one tested" in refused.stderr
+    assert "Traceback" not in refused.stderr and not (tmp_path / "refused").exists()
+
+
+def test_an_interaction_by_the_real_command_is_tested_with_its_columns_adjusted_for(
+        build, table, tmp_path):
+    output = tmp_path / "interaction"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "--covariate",
+                     "age", "--interaction", "group:age", "--permutations", "99", "-o", output,
+                     "-q")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((output / "analysis.json").read_text())
+    assert summary["tested"] == ["group:age"] and summary["adjusted_for"] == ["group", "age"]
+    assert summary["effects"] == ["thin:age"] and summary["point_test"]["variance"] == "pooled"
+    used = [f"case_{k:02d}" for k in range(N) if k != 5]
+    y = normal_displacement(build, used)
+    thin = np.array([int(n[-2:]) % 2 for n in used], dtype=float)
+    age = np.array([40 + 3 * int(n[-2:]) for n in used], dtype=float)
+    product = thin * (age - age.mean())
+    full = np.column_stack([np.ones(len(used)), thin, age - age.mean(),
+                            product - product.mean()])
+    t = read_points(output / "points.csv")["t"].astype(float)
+    expected = ols_t(y, full)
+    assert np.median(np.abs(t - expected) / np.abs(expected)) < 1e-3

@@ -60,7 +60,8 @@ def write_femurs(folder, count: int = 3) -> None:
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
     """labels/ (six two-label maps: labels 1 and 2), femurs/*.stl, new/ (cases to fit, one
-    named case.nii.gz) and subjects.csv (diagnosis, age, sex and a site coded 1-3 of the six cases)."""
+    named case.nii.gz), subjects.csv (diagnosis, age, sex and a site coded 1-3 of the six cases)
+    and visits.csv (the six cases as three subjects' pre and post scans)."""
     folder = tmp_path_factory.mktemp("examples")
     paths = write_demo_population(folder / "labels", 6, seed=1, parts=True)
     new = write_demo_population(folder / "new", 2, seed=2, parts=True)
@@ -71,6 +72,10 @@ def workspace(tmp_path_factory):
             f"{60 + rng.integers(0, 20)},{'f' if k % 3 else 'm'},{k % 3 + 1}"
             for k, path in enumerate(paths)]
     (folder / "subjects.csv").write_text("case,diagnosis,age,sex,site\n" + "\n".join(rows) + "\n")
+    # the six cases as three subjects scanned twice
+    visits = [f"{path.name.removesuffix('.nii.gz')},s{k // 2},{'post' if k % 2 else 'pre'}"
+              for k, path in enumerate(paths)]
+    (folder / "visits.csv").write_text("case,id,visit\n" + "\n".join(visits) + "\n")
     return folder
 
 

@@ -14,7 +14,11 @@ the centroid of label 2). Every case, pushed or not, goes through the same steps
 distance of its union of labels, resampled to ``--spacing`` mm (linear), pushed (or not) and
 thresholded a little less than half an original voxel out (where the Maurer distance puts the
 boundary).
-``DIR/planted.json`` records each case's push centre (LPS mm) and group.
+``DIR/planted.json`` records each case's push centre (LPS mm) and group. ``--rescans``: two
+scans per case instead (``<case>_pre``, ``<case>_post``), each resampled on a grid moved by a
+random offset of up to half an original voxel (a rescan's voxelisation), the push in the post
+scan of the planted cases only; ``groups.csv`` then has ``case,id,visit,arm`` (arm ``changed``
+or ``stable``) for ``analyze --subject id --time visit``.
 
 ``power DIR BUILD [BUILD ...]``: builds of the planted label maps (for example the default MDL
 build, ``--strategy none`` and ``--correspondence cpd``), each analysed with the planted and the
@@ -24,6 +28,11 @@ model: each point's mean distance from the planted cases' push centres; a signif
 displacement and group size: significant points at the push and far from it, the power (the
 share of subsets with any significant point at the push), the share with any far point, and the
 median distance of the significant points from the push.
+
+``paired DIR BUILD``: a build of ``plant --rescans`` label maps analysed as repeated measures
+(the mean change, and the change compared between the changed and the stable arm, two-sided
+and inward) and, ignoring the pairing, the post scans by arm (cross-sectional) and the post
+against the pre scans (unpaired): family-wise significant points at the push and far from it.
 
 ``speed BUILD``: the wall time of 10,000 permutations on the build's points.
 
@@ -102,6 +111,36 @@ def _push_centre(labels: np.ndarray, image) -> np.ndarray:
     return np.array(image.TransformContinuousIndexToPhysicalPoint(tuple(tip)))
 
 
+def _scan(image, distance, centre: np.ndarray, args, pushed: bool, offset=(0.0, 0.0, 0.0)):
+    """One scan of a case: its signed distance resampled to ``args.spacing`` mm (moved by
+    ``offset`` mm, so that a rescan falls on other voxels), pushed inward at ``centre`` or not,
+    and thresholded."""
+    import SimpleITK as sitk
+
+    size = [int(np.ceil(s * sp / args.spacing)) for s, sp in zip(image.GetSize(),
+                                                                   image.GetSpacing())]
+    fine = sitk.Resample(distance, size, sitk.TranslationTransform(3, tuple(offset)),
+                         sitk.sitkLinear, image.GetOrigin(), [args.spacing] * 3,
+                         image.GetDirection(), 10.0, sitk.sitkFloat32)
+    values = sitk.GetArrayFromImage(fine)
+    if pushed:
+        index = np.stack(np.meshgrid(*(np.arange(s) for s in size), indexing="ij"), -1)
+        physical = (np.asarray(fine.GetOrigin()) + (index * args.spacing)
+                    @ np.asarray(fine.GetDirection()).reshape(3, 3).T)
+        # the resampled object is moved by -offset: so is the push centre
+        push = args.amplitude * np.exp(-0.5 * np.sum((physical - centre + offset) ** 2,
+                                                     axis=-1) / args.width ** 2)
+        values = values + np.transpose(push, (2, 1, 0))   # inward: the object shrinks
+    # the Maurer distance is 0 on the object's boundary voxels and 1 voxel outside them, so
+    # the surface lies about half a voxel out; the threshold stays a little below that,
+    # because linear interpolation puts many samples at exactly half (half-way between a
+    # 0 and a 1), where a push of any size, however far away, would flip them all
+    result = sitk.GetImageFromArray((values < THRESHOLD * min(image.GetSpacing()))
+                                    .astype(np.uint8))
+    result.CopyInformation(fine)
+    return result
+
+
 def plant(args):
     import SimpleITK as sitk
 
@@ -109,9 +148,11 @@ def plant(args):
     output = Path(args.output)
     (output / "labels").mkdir(parents=True, exist_ok=True)
     record = {"amplitude": args.amplitude, "width": args.width, "spacing": args.spacing,
-              "seed": args.seed, "cases": {}}
+              "seed": args.seed, "rescans": args.rescans, "cases": {}}
     # a random half: the files' order follows the source's cohorts, which differ in shape
-    chosen = set(np.random.default_rng(args.seed).permutation(len(files))[:args.planted])
+    rng = np.random.default_rng(args.seed)
+    chosen = set(rng.permutation(len(files))[:args.planted])
+    rows = ["case,id,visit,arm"] if args.rescans else ["case,group"]
     for k, path in enumerate(files):
         image = sitk.ReadImage(str(path))
         labels = sitk.GetArrayFromImage(image)
@@ -119,34 +160,27 @@ def plant(args):
         mask = sitk.Cast(image > 0, sitk.sitkUInt8)
         distance = sitk.SignedMaurerDistanceMap(mask, insideIsPositive=False,
                                                 squaredDistance=False, useImageSpacing=True)
-        size = [int(np.ceil(s * sp / args.spacing)) for s, sp in zip(image.GetSize(),
-                                                                       image.GetSpacing())]
-        fine = sitk.Resample(distance, size, sitk.Transform(), sitk.sitkLinear,
-                             image.GetOrigin(), [args.spacing] * 3, image.GetDirection(),
-                             10.0, sitk.sitkFloat32)
-        values = sitk.GetArrayFromImage(fine)
         planted = k in chosen
-        if planted:
-            index = np.stack(np.meshgrid(*(np.arange(s) for s in size), indexing="ij"), -1)
-            physical = (np.asarray(fine.GetOrigin()) + (index * args.spacing)
-                        @ np.asarray(fine.GetDirection()).reshape(3, 3).T)
-            push = args.amplitude * np.exp(-0.5 * np.sum((physical - centre) ** 2, axis=-1)
-                                           / args.width ** 2)
-            values = values + np.transpose(push, (2, 1, 0))   # inward: the object shrinks
-        # the Maurer distance is 0 on the object's boundary voxels and 1 voxel outside them, so
-        # the surface lies about half a voxel out; the threshold stays a little below that,
-        # because linear interpolation puts many samples at exactly half (half-way between a
-        # 0 and a 1), where a push of any size, however far away, would flip them all
-        result = sitk.GetImageFromArray((values < THRESHOLD * min(image.GetSpacing()))
-                                        .astype(np.uint8))
-        result.CopyInformation(fine)
         name = path.name.split(".")[0]
-        sitk.WriteImage(result, str(output / "labels" / f"{name}.nii.gz"))
-        record["cases"][name] = {"planted": planted, "centre": centre.tolist()}
-        print(f"{name}: {'pushed' if planted else 'resampled'} at {np.round(centre, 1)}")
+        if not args.rescans:
+            sitk.WriteImage(_scan(image, distance, centre, args, planted),
+                            str(output / "labels" / f"{name}.nii.gz"))
+            record["cases"][name] = {"planted": planted, "centre": centre.tolist()}
+            rows.append(f"{name},{'pushed' if planted else 'plain'}")
+            print(f"{name}: {'pushed' if planted else 'resampled'} at {np.round(centre, 1)}")
+            continue
+        # two scans of the subject, each moved by up to half an original voxel; the later one
+        # pushed in the planted subjects
+        for visit in ("pre", "post"):
+            offset = rng.uniform(-0.5, 0.5, 3) * np.asarray(image.GetSpacing())
+            pushed = planted and visit == "post"
+            sitk.WriteImage(_scan(image, distance, centre, args, pushed, offset),
+                            str(output / "labels" / f"{name}_{visit}.nii.gz"))
+            record["cases"][f"{name}_{visit}"] = {"planted": pushed,
+                                                  "centre": (centre - offset).tolist()}
+            rows.append(f"{name}_{visit},{name},{visit},{'changed' if planted else 'stable'}")
+        print(f"{name}: two scans{', the later pushed' if planted else ''}")
     (output / "planted.json").write_text(json.dumps(record, indent=2))
-    rows = ["case,group"] + [f"{n},{'pushed' if c['planted'] else 'plain'}"
-                             for n, c in record["cases"].items()]
     (output / "groups.csv").write_text("\n".join(rows) + "\n")
 
 
@@ -211,6 +245,63 @@ def power(args):
               f"{int(far.sum())} far from it)")
 
 
+def paired(args):
+    """The analyses of a ``plant --rescans`` build: paired designs against cross-sectional and
+    unpaired ones, with the family-wise significant points at the push and far from it."""
+    import csv
+    import tempfile
+
+    from mdlshapemodel.analysis import analyze_shapes, read_build, subjects
+    from mdlshapemodel.config import AnalysisConfig
+
+    folder = Path(args.planted)
+    record = json.loads((folder / "planted.json").read_text())
+    built = read_build(args.build)
+    names = list(built.model.names)
+    distance = _distances(built, record)
+    near = distance <= NEAR * record["width"] + record["amplitude"]
+    far = distance >= FAR
+    table = folder / "groups.csv"
+    with open(table, newline="") as handle:
+        rows = list(csv.reader(handle))
+    later = Path(tempfile.mkdtemp()) / "post.csv"
+    later.write_text("\n".join(",".join(row) for row in rows
+                                if row[0] == "case" or row[2] == "post") + "\n")
+    repeated = {"subject": "id", "time": "visit", "baseline": "pre"}
+    arm = {"group": "arm", "reference": "stable"}
+    designs = [
+        ("mean change (paired)", table, repeated),
+        ("mean change (paired), inward", table, {**repeated, "tail": "less"}),
+        ("post against pre (unpaired)", table, {"group": "visit", "reference": "pre"}),
+        ("post against pre (unpaired), inward", table,
+         {"group": "visit", "reference": "pre", "tail": "less"}),
+    ]
+    if len({row[3] for row in rows[1:]}) == 2:            # a changed and a stable arm
+        designs += [
+            ("change by arm (paired)", table, {**repeated, **arm}),
+            ("change by arm (paired), inward", table, {**repeated, **arm, "tail": "less"}),
+            ("change by arm (paired), pooled", table, {**repeated, **arm, "variance": "pooled"}),
+            ("post scans by arm (cross-sectional)", later, arm),
+            ("post scans by arm (cross-sectional), pooled", later,
+             {**arm, "variance": "pooled"}),
+        ]
+    print(f"{record['amplitude']} mm inward push, {record['width']} mm wide, in the post scans of "
+          f"{sum(c['planted'] for c in record['cases'].values())} subjects; {len(names)} scans; "
+          f"{int(near.sum())} points at the push, {int(far.sum())} far; {args.permutations} "
+          f"resamples, alpha {args.alpha}")
+    print("| design | statistic, resampling | at push | far | smallest p_fwer at push |")
+    print("|---|---|---|---|---|")
+    for label, path, settings in designs:
+        keys = ("group", "reference", "subject", "time", "baseline")
+        design = subjects(path, names, **{k: v for k, v in settings.items() if k in keys})
+        config = AnalysisConfig(**settings, permutations=args.permutations, seed=args.seed)
+        found = analyze_shapes(built.model, built.shapes, design, config).points
+        significant = found.p_fwer <= args.alpha
+        print(f"| {label} | {found.name}, {found.resampling} | {int(np.sum(significant & near))}"
+              f" | {int(np.sum(significant & far))} | {found.p_fwer[near].min():.4f} |",
+              flush=True)
+
+
 def speed(args):
     from mdlshapemodel.analysis import permutation_test, read_build
 
@@ -242,6 +333,9 @@ def main():
     p.add_argument("--width", type=float, default=4.0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--spacing", type=float, default=0.5)
+    p.add_argument("--rescans", action="store_true",
+                   help="two scans per case (pre, post), each on a grid moved by up to half "
+                        "a voxel; the post scan pushed in the planted cases")
     p = commands.add_parser("power")
     p.add_argument("planted")
     p.add_argument("builds", nargs="+")
@@ -250,11 +344,18 @@ def main():
     p.add_argument("--permutations", type=int, default=1000)
     p.add_argument("--alpha", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=0)
+    p = commands.add_parser("paired")
+    p.add_argument("planted")
+    p.add_argument("build")
+    p.add_argument("--permutations", type=int, default=9999)
+    p.add_argument("--alpha", type=float, default=0.05)
+    p.add_argument("--seed", type=int, default=0)
     p = commands.add_parser("speed")
     p.add_argument("build")
     p.add_argument("--permutations", type=int, default=10_000)
     args = parser.parse_args()
-    {"null": null, "plant": plant, "power": power, "speed": speed}[args.command](args)
+    {"null": null, "plant": plant, "power": power, "paired": paired,
+     "speed": speed}[args.command](args)
 
 
 if __name__ == "__main__":

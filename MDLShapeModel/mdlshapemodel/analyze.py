@@ -11,16 +11,21 @@ The output folder::
                     (statistic, variance groups, family-wise correction, smallest p), the global
                     test, the number of significant points (FWER, FDR), the classification
     points.csv      one row per model point: point,part,x,y,z,statistic,p,p_fwer,q_fdr,
-                    difference_x,difference_y,difference_z,normal_difference_mm
+                    difference_x,difference_y,difference_z,normal_difference_mm,t
                     (p: the point's own permutation p-value; p_fwer: family-wise corrected;
-                    q_fdr: Benjamini-Hochberg of p; several effect columns:
-                    difference_<name>_x ... per column)
+                    q_fdr: Benjamini-Hochberg of p; t: the signed t or Welch's v; several
+                    effect columns or the vector displacement: difference_<name>_x ... and
+                    t_<name>,p_<name>,p_fwer_<name>,q_fdr_<name> per column, each column's
+                    own signed test along the normal adjusted for the others)
     effects.vtp     the mean surface with the same values as point arrays (effects/<part>.vtp
                     for a multi-part model)
     unusual.csv     per case: Mahalanobis distance, p, flagged, largest departure from its
                     reconstruction
     unusual/        per case, the mean surface with the case's departure (mm) as point data
     analysis.html   the page of findings
+    long.csv        with ``long_table`` (``--long-table``): one row per used case and point,
+                    case,point,part,normal_displacement_mm,score_1 ... score_k and every column
+                    of the subjects table, for mixed models in R or pandas
 """
 
 from __future__ import annotations
@@ -33,8 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from .analysis.shapes import read_build
-from .analysis.study import Analysis, analyze_shapes
-from .analysis.table import subjects
+from .analysis.study import Analysis, analyze_shapes, contrasts_of
+from .analysis.table import CASE, read_table, subjects
 from .config import AnalysisConfig
 from .errors import InputError
 from .prepare import io
@@ -42,7 +47,7 @@ from .report.analysis_page import write_analysis_page
 from .version import __version__
 
 ANALYSIS_FILES = ("analysis.json", "points.csv", "effects.vtp", "effects", "unusual.csv",
-                  "unusual", "analysis.html")
+                  "unusual", "analysis.html", "long.csv")
 
 
 @dataclass
@@ -64,6 +69,8 @@ def _columns(analysis: Analysis) -> tuple[list, list]:
         prefix = "difference" if single else f"difference_{name}"
         header += [f"{prefix}_x", f"{prefix}_y", f"{prefix}_z"]
         header.append("normal_difference_mm" if single else f"normal_difference_{name}_mm")
+    signed = signed_columns(analysis)
+    header += list(signed)
     rows = []
     for k in range(len(mean)):
         row = [k, int(analysis.parts[k]), *(f"{v:.6g}" for v in mean[k]),
@@ -72,8 +79,57 @@ def _columns(analysis: Analysis) -> tuple[list, list]:
         for r in range(len(names)):
             row += [f"{v:.6g}" for v in analysis.difference[r, k]]
             row.append(f"{analysis.normal_difference[r, k]:.6g}")
+        row += [f"{values[k]:.6g}" for values in signed.values()]
         rows.append(row)
     return header, rows
+
+
+def signed_columns(analysis: Analysis) -> dict:
+    """The signed maps' columns of points.csv and arrays of effects.vtp: ``t`` when the
+    per-point test is itself the signed test of its one effect column; else per effect column
+    ``t_<name>``, ``p_<name>``, ``p_fwer_<name>``, ``q_fdr_<name>`` (its own test along the
+    normal, adjusted for the other effect columns)."""
+    columns = {}
+    for found in analysis.signed:
+        if found.joint:
+            columns["t"] = found.test.t
+            continue
+        for key in ("t", "p", "p_fwer", "q_fdr"):
+            columns[f"{key}_{found.name}"] = getattr(found.test, key)
+    return columns
+
+
+def design_summary(design) -> dict:
+    """analysis.json's ``design``: independent cases, or repeated measures and how."""
+    repeated = design.repeated
+    if repeated is None:
+        return {"kind": "independent cases"}
+    return {"kind": ("change between two times" if repeated.design == "change" else
+                     "time within subjects" if repeated.design == "within" else
+                     "whole subjects exchanged"),
+            "subject": repeated.subject, "time": repeated.time, "times": repeated.times,
+            "n_subjects": len(repeated.subjects),
+            "mean_change_tested": design.mean_change_tested}
+
+
+def long_table(analysis: Analysis, table) -> tuple[list, list]:
+    """The header and rows of long.csv: per used case and model point, the case's displacement
+    from the mean along the mean's normal (mm, as tested with ``--displacement normal``), its
+    principal scores (those of the global test) and its row of the subjects table."""
+    header_of_table, rows = read_table(table)
+    columns = [c for c in header_of_table if c != CASE]
+    by_case = {row[CASE]: row for row in rows}
+    normal = np.einsum("npd,pd->np", analysis.aligned - analysis.mean, analysis.normals)
+    k = analysis.scores.shape[1]
+    header = (["case", "point", "part", "normal_displacement_mm"]
+              + [f"score_{j + 1}" for j in range(k)] + columns)
+    body = []
+    for i, case in enumerate(analysis.subjects.cases):
+        per_case = ([f"{v:.6g}" for v in analysis.scores[i]]
+                    + [by_case[case].get(c, "") for c in columns])
+        body += [[case, point, int(analysis.parts[point]), f"{normal[i, point]:.6g}", *per_case]
+                 for point in range(normal.shape[1])]
+    return header, body
 
 
 def summary_of(analysis: Analysis, build, table) -> dict:
@@ -83,12 +139,14 @@ def summary_of(analysis: Analysis, build, table) -> dict:
         "version": __version__, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "build": str(build), "table": str(table), "settings": asdict(config),
         "n_cases": len(design.cases),
+        "design": design_summary(design),
         "n_per_group": design.n_per_group(),
         "tested": design.tested,
         "adjusted_for": design.adjusted_for,
         "effects": design.interest_names,
         "left_out": [asdict(case) for case in design.left_out],
         "unmatched_rows": design.unmatched,
+        "notes": design.notes,
         "global_test": {"modes": analysis.global_test.modes,
                         "statistic": analysis.global_test.statistic,
                         "p": analysis.global_test.p,
@@ -102,11 +160,23 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                        "variance_groups": (design.n_per_group() if analysis.points.variance
                                            == "groups" else None),
                        "family_wise": analysis.points.family_wise,
+                       "resampling": analysis.points.resampling,
+                       "tail": analysis.points.tail,
                        "permutations": analysis.points.permutations,
                        "p": "each point's own permutation p-value",
                        "smallest_p": 1.0 / (analysis.points.permutations + 1),
                        "uncorrected_significant": int(np.sum(analysis.points.p
                                                              <= config.alpha))},
+        "effect_tests": [{"name": found.name, "column": found.column,
+                          "statistic": ("Welch's v" if found.test.variance == "groups"
+                                        else "Student's t"),
+                          "tail": found.test.tail, "resampling": found.test.resampling,
+                          "degrees_of_freedom": found.test.df,
+                          "the_point_test": found.joint, "contrast": found.contrast,
+                          "significant_points": {
+                              "fwer": int(np.sum(found.test.p_fwer <= config.alpha)),
+                              "fdr": int(np.sum(found.test.q_fdr <= config.alpha))}}
+                         for found in analysis.signed],
         "classification": None, "discriminant": None,
         "unusual": {"modes": analysis.unusual.distances.modes,
                     "threshold": analysis.unusual.distances.threshold,
@@ -123,8 +193,10 @@ def summary_of(analysis: Analysis, build, table) -> dict:
     return summary
 
 
-def _write(folder: Path, analysis: Analysis, summary: dict, model):
+def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
     io.write_text(folder / "analysis.json", json.dumps(summary, indent=2))
+    if analysis.config.long_table:
+        io.write_csv(folder / "long.csv", *long_table(analysis, table))
     header, rows = _columns(analysis)
     io.write_csv(folder / "points.csv", header, rows)
     arrays = {"statistic": analysis.points.statistic, "p": analysis.points.p,
@@ -137,6 +209,7 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model):
         suffix = "" if len(analysis.subjects.interest_names) == 1 else f"_{name}"
         arrays[f"difference{suffix}"] = difference
         arrays[f"normal_difference{suffix}_mm"] = normal
+    arrays.update(signed_columns(analysis))
     parts = model.part_meshes()
     if len(parts) == 1:
         io.write_polydata(folder / "effects.vtp", analysis.mean, model.triangles,
@@ -204,12 +277,14 @@ def analyze_build(build, table, output, config: AnalysisConfig | None = None, pr
     output = Path(output)
     built = read_build(build)
     design = subjects(table, built.model.names, config.group, config.covariates,
-                      config.nuisance, config.reference, config.categorical, config.test)
+                      config.nuisance, config.reference, config.categorical, config.test,
+                      config.subject, config.time, config.baseline, config.interactions)
+    contrasts_of(design, config)          # a contrast of untested levels: refused up front
     if output.resolve() == Path(build).resolve():
         raise InputError(f"{output}: the output folder is the build folder; choose another")
     io.refuse_earlier(output, earlier_analysis(output), overwrite, "analysis")
     analysis = analyze_shapes(built.model, built.shapes, design, config, progress)
     summary = summary_of(analysis, build, table)
     with io.written_folder(output, ANALYSIS_FILES) as folder:
-        _write(folder, analysis, summary, built.model)
+        _write(folder, analysis, summary, built.model, table)
     return AnalysisResult(output, analysis, summary)

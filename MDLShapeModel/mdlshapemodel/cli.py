@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from .config import (ANALYSIS_SIZES, DISPLACEMENTS, FAMILY_WISE, OPTION_GROUPS,
-                     PART_ALIGNMENTS, STRATEGIES, VARIANCES, AnalysisConfig, BuildConfig,
+                     PART_ALIGNMENTS, STRATEGIES, TAILS, VARIANCES, AnalysisConfig, BuildConfig,
                      parse_items)
 from .correspondence.trace import stop_summary
 from .errors import Cancelled, ConfigError, InternalError, MDLShapeModelError
@@ -353,8 +353,13 @@ def _run_analyze(args, live: bool) -> int:
     from .analyze import analyze_build
 
     config = AnalysisConfig(group=args.group, covariates=args.covariate,
-                            nuisance=args.nuisance, categorical=args.categorical,
+                            nuisance=args.nuisance,
+                            categorical=[name.strip() for item in args.categorical
+                                         for name in item.split(",") if name.strip()],
                             test=args.test, reference=args.reference,
+                            subject=args.subject, time=args.time, baseline=args.baseline,
+                            tail=args.tail, long_table=args.long_table,
+                            contrasts=args.contrast, interactions=args.interaction,
                             permutations=args.permutations, size=args.size, parts=args.parts,
                             displacement=args.displacement, variance=args.variance,
                             family_wise=args.family_wise, alpha=args.alpha,
@@ -366,19 +371,34 @@ def _run_analyze(args, live: bool) -> int:
     counts, overall = summary["significant_points"], summary["global_test"]
     for case, reason in ((d["case"], d["reason"]) for d in summary["left_out"]):
         log.warning("left out %s: %s", case, reason)
+    for note in summary["notes"]:
+        log.warning("%s", note)
     if summary["unmatched_rows"]:
         log.warning("table rows matching no case: %s", ", ".join(summary["unmatched_rows"]))
     lines = [f"  tested: {', '.join(summary['tested'])}; adjusted for: "
              f"{', '.join(summary['adjusted_for']) or 'nothing'} "
              f"({summary['degrees_of_freedom']} residual degrees of freedom)",
-             f"  per point: {summary['point_test']['statistic']}, family-wise by "
-             f"{summary['point_test']['family_wise']}",
+             f"  design: {summary['design']['kind']}"
+             + (f" ({summary['design']['n_subjects']} subjects, {summary['design']['time']} "
+                f"{', '.join(summary['design']['times'])})" if summary["design"].get("time")
+                else ""),
+             f"  per point: {summary['point_test']['statistic']}, "
+             f"{summary['point_test']['resampling']}, family-wise by "
+             f"{summary['point_test']['family_wise']}"
+             + (f", tail {summary['point_test']['tail']}"
+                if summary['point_test']['tail'] != "both" else ""),
              f"  cases: {summary['n_cases']}"
              + (" (" + ", ".join(f"{k}: {v}" for k, v in summary["n_per_group"].items()) + ")"
                 if summary["n_per_group"] else ""),
              f"  points significant at alpha {config.alpha}: {counts['fwer']} family-wise, "
              f"{counts['fdr']} FDR, of {counts['of']}",
              f"  global test on {overall['modes']} principal scores: p = {overall['p']:.4g}"]
+    for found in summary["effect_tests"]:
+        if not found["the_point_test"]:
+            lines.append(f"  signed map of {found['name']} ({found['statistic']}"
+                         + (f", {found['tail']}" if found["tail"] != "both" else "")
+                         + f"): {found['significant_points']['fwer']} points family-wise, "
+                         f"{found['significant_points']['fdr']} FDR")
     if summary["classification"]:
         c = summary["classification"]
         lines.append(f"  classification ({c['folds']}-fold): accuracy {c['accuracy']:.3f} "
@@ -511,7 +531,7 @@ def main(argv=None) -> int:
                     "One effect is tested: the --group, else the --covariate columns, or the "
                     "columns named by --test; every other column given is adjusted for, not "
                     "tested (so --covariate beside --group is adjusted for). A column's kind is "
-                    "its role: --group categorical, --covariate numeric, --nuisance numeric "
+                    "its role: --group categorical, --covariate and --nuisance numeric "
                     "unless named by --categorical. Empty cells, NA, nan, ? and other "
                     "non-numbers in a numeric column are missing values: the case is left out "
                     "and listed with the column and the value.",
@@ -523,7 +543,10 @@ def main(argv=None) -> int:
                "    (tested: age; adjusted for: diagnosis)\n"
                "  mdlshapemodel analyze out --table subjects.csv --covariate age "
                "--nuisance site --categorical site -o by-age\n"
-               "    (tested: age; adjusted for: site, a categorical column coded 1, 2, 3)",
+               "    (tested: age; adjusted for: site, a categorical column coded 1, 2, 3)\n"
+               "  mdlshapemodel analyze out --table visits.csv --subject id --time visit "
+               "--baseline pre --tail less -o change\n"
+               "    (each subject's change, post minus pre; its mean tested one-sided, inward)",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     analyze.add_argument("build", help="a build's output folder")
     analyze.add_argument("--table", required=True, metavar="CSV",
@@ -546,8 +569,35 @@ def main(argv=None) -> int:
                          help="column adjusted for, never tested: numeric unless named by "
                               "--categorical; repeatable")
     analyze.add_argument("--categorical", metavar="NAME", action="append", default=[],
-                         help="a --nuisance column that is categorical (coded by its levels, "
-                              "e.g. a site coded 1, 2, 3); repeatable")
+                         help="a --covariate or --nuisance column that is categorical "
+                              "(coded by its levels, e.g. a site coded 1, 2, 3; a tested one is "
+                              "one test over its levels); repeatable or comma-separated")
+    analyze.add_argument("--subject", metavar="NAME",
+                         help="repeated measures: the column naming each case's subject "
+                              "(with --time)")
+    analyze.add_argument("--time", metavar="NAME",
+                         help="repeated measures: the column naming each case's time point. "
+                              "Two times: each subject's change (later minus --baseline) is "
+                              "tested, its mean by sign flips when nothing else is tested, "
+                              "else the tested columns' effect on it; more times: the effect "
+                              "of time within subjects, permuted within each subject")
+    analyze.add_argument("--baseline", metavar="LEVEL",
+                         help="the time the change is measured from (default: the first in "
+                              "numeric or sorted order)")
+    analyze.add_argument("--tail", choices=TAILS, default=analysis_defaults.tail,
+                         help="one-sided tests of a single-column effect (a covariate, two "
+                              "groups, the mean change) along the normal: greater, towards "
+                              "positive (outward) values; less, towards negative (inward: "
+                              "atrophy) (default %(default)s)")
+    analyze.add_argument("--interaction", metavar="A:B", action="append", default=[],
+                         help="test the product of two columns of the model (e.g. "
+                              "diagnosis:age: does the effect of age differ between the "
+                              "groups?), both adjusted for; repeatable")
+    analyze.add_argument("--contrast", metavar="TEXT", action="append", default=[],
+                         help="a comparison of the levels of the tested group (or of a tested "
+                              "categorical column), such as 'patient-control' or "
+                              "'mild+severe-2*control' (coefficients adding up to 0): its own "
+                              "signed map along the normal; repeatable")
     analyze.add_argument("--permutations", type=int, default=analysis_defaults.permutations,
                          help="random permutations (default %(default)s)")
     analyze.add_argument("--size", choices=ANALYSIS_SIZES, default=analysis_defaults.size,
@@ -580,6 +630,10 @@ def main(argv=None) -> int:
     analyze.add_argument("--alpha", type=float, default=analysis_defaults.alpha,
                          help="significance level (default %(default)s)")
     analyze.add_argument("--seed", type=int, default=analysis_defaults.seed)
+    analyze.add_argument("--long-table", action="store_true",
+                         help="also write long.csv: one row per case and point (normal "
+                              "displacement, principal scores, the table's columns) for R or "
+                              "pandas")
     analyze.add_argument("--overwrite", action="store_true",
                          help="replace an earlier analysis in the output folder")
     analyze.add_argument("-q", "--quiet", action="store_true")
@@ -601,8 +655,8 @@ def main(argv=None) -> int:
         if args.command == "compare":
             return _run_compare(args)
         if args.command == "analyze":
-            if args.group is None and not args.covariate:
-                analyze.error("give --group, --covariate or both")
+            if args.group is None and not args.covariate and args.time is None:
+                analyze.error("give --group, --covariate or both (or --subject and --time)")
             return _run_analyze(args, live)
         if args.command == "fit":
             if not args.inputs and not args.manifest:

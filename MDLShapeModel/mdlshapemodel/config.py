@@ -652,6 +652,9 @@ VARIANCES = ("groups", "pooled")
 # per-point p; no point dominates whatever its tails, but it needs permutations well above the
 # number of points / alpha)
 FAMILY_WISE = ("maximum", "min-p")
+# The alternative of a test of one effect column: two-sided, or one-sided towards a positive
+# ("greater") or a negative ("less": an inward displacement, atrophy) effect.
+TAILS = ("both", "greater", "less")
 # How the analysis aligns a multi-part object: as one (the parts' relative positions count) or
 # each part on its own (only each part's own shape counts).
 PART_ALIGNMENTS = ("whole", "each")
@@ -665,20 +668,67 @@ class Roles:
     adjusted_for: list    # the other columns of the model (nuisance)
     categorical: list     # the model's categorical columns (coded as indicators of levels)
     numeric: list         # the model's numeric columns
+    interactions: list = field(default_factory=list)   # tested products, "a:b"
+
+
+def parse_contrast(text: str) -> dict:
+    """The levels and coefficients of a contrast written as text: level names joined by ``+``
+    and ``-``, each with an optional coefficient (``2*level``); the coefficients must add up to
+    0 (a comparison of levels, not of their overall mean). Levels whose names hold ``+``, ``-``
+    or ``*`` cannot be written.
+
+    Raises :class:`ConfigError` with a one-line message naming the contrast.
+
+    Examples
+    --------
+    >>> parse_contrast("patient-control")
+    {'patient': 1.0, 'control': -1.0}
+    >>> parse_contrast("0.5*mild + 0.5*severe - control")
+    {'mild': 0.5, 'severe': 0.5, 'control': -1.0}
+    """
+    terms = re.findall(r"([+-]?)([^+-]+)", text.replace(" ", ""))
+    coefficients = {}
+    for sign, term in terms:
+        weight, _, level = term.rpartition("*")
+        try:
+            value = float(weight) if weight else 1.0
+        except ValueError:
+            raise ConfigError(f"contrast {text!r}: {weight!r} is not a number") from None
+        if not level:
+            raise ConfigError(f"contrast {text!r}: a term without a level")
+        coefficients[level] = coefficients.get(level, 0.0) + (-value if sign == "-" else value)
+    if sum(1 for v in coefficients.values() if v != 0) < 2 or "".join(
+            sign + term for sign, term in terms) != text.replace(" ", ""):
+        raise ConfigError(f"contrast {text!r}: write levels joined by + and -, such as "
+                          "'patient-control' or 'mild+severe-2*control'")
+    if abs(sum(coefficients.values())) > 1e-9 * max(abs(v) for v in coefficients.values()):
+        raise ConfigError(f"contrast {text!r}: its coefficients add up to "
+                          f"{sum(coefficients.values()):g}, not 0")
+    return coefficients
 
 
 def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=(),
-                   test=()) -> Roles:
+                   test=(), subject: str | None = None, time: str | None = None,
+                   interactions=()) -> Roles:
     """The roles of the columns of one analysis, declared by how they are named: ``group`` is
-    categorical, ``covariates`` are numeric, ``nuisance`` columns are numeric unless named in
-    ``categorical``. The tested effect is ``test`` when given (each one the group or a
-    covariate), else the group, else the covariates; every other column is adjusted for.
+    categorical, ``covariates`` and ``nuisance`` columns are numeric unless named in
+    ``categorical`` (a tested categorical covariate is one test over its levels). The tested
+    effect is ``test`` when given (each one the group or a covariate), else the group, else the
+    covariates; every other column is adjusted for.
+
+    Repeated measures: ``subject`` names each case's subject and ``time`` its time point; the
+    time is tested (the change within subjects) when nothing else is, else the tested columns'
+    effect on the change. A ``subject`` without a time: the tested columns are the subjects'
+    (whole subjects are permuted). ``interactions`` ("a:b", two columns of the model) are
+    tested, with the columns named by ``test`` if any; their columns are adjusted for. The time's kind is decided with its levels
+    (:func:`~mdlshapemodel.analysis.table.subjects`): it is in neither ``categorical`` nor
+    ``numeric`` here.
 
     Raises
     ------
     ConfigError
-        Nothing to test, a column named twice, ``test`` or ``categorical`` naming a column of
-        the wrong kind.
+        Nothing to test, a column named twice, ``test`` naming a column of the wrong kind,
+        ``categorical`` naming a column not in the model, a time without a subject.
 
     Examples
     --------
@@ -687,12 +737,29 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
     (['diagnosis'], ['age', 'site'], ['diagnosis', 'site'])
     >>> analysis_roles("diagnosis", ["age"], test=["age"]).adjusted_for
     ['diagnosis']
+    >>> analysis_roles(None, ["site"], categorical=["site"]).categorical
+    ['site']
+    >>> analysis_roles(None, subject="id", time="visit").tested
+    ['visit']
+    >>> roles = analysis_roles("diagnosis", ["age"], interactions=["diagnosis:age"])
+    >>> roles.tested, roles.adjusted_for
+    (['diagnosis:age'], ['diagnosis', 'age'])
     """
     covariates, nuisance = list(covariates), list(nuisance)
     categorical, test = list(categorical), list(test)
-    if group is None and not covariates:
+    if time is not None and subject is None:
+        raise ConfigError(f"--time {time} needs --subject (whose case each is): repeated "
+                          "measures are a subject's cases")
+    if group is None and not covariates and time is None:
         raise ConfigError("nothing to test: give a group column or a covariate")
     model = ([group] if group else []) + covariates + nuisance
+    if subject is not None:
+        for name in (subject, time):
+            if name in model:
+                raise ConfigError(f"column {name!r} is given twice (as --subject or --time and "
+                                  "as a column of the model)")
+        if subject == time:
+            raise ConfigError(f"column {subject!r} is given twice (as --subject and --time)")
     for names in (model, categorical, test):
         repeated = sorted({c for c in names if names.count(c) > 1})
         if repeated:
@@ -702,18 +769,27 @@ def analysis_roles(group: str | None, covariates=(), nuisance=(), categorical=()
             raise ConfigError(f"test: {name!r} is not the group or a covariate (a tested "
                               "column is given by --group or --covariate)")
     for name in categorical:
-        if name in covariates:
-            raise ConfigError(f"categorical: {name!r} is a covariate, which is numeric (a "
-                              "categorical column is given by --group or --nuisance)")
-        if name != group and name not in nuisance:
-            raise ConfigError(f"categorical: {name!r} is not a nuisance column (give it with "
-                              f"--nuisance {name})")
-    tested = test or ([group] if group else covariates)
+        if name != group and name not in covariates and name not in nuisance and name != time:
+            raise ConfigError(f"categorical: {name!r} is not a column of the model (give it "
+                              f"with --covariate {name} to test it, or --nuisance {name})")
+    interactions = list(interactions)
+    for term in interactions:
+        parts = term.split(":")
+        if len(parts) != 2 or parts[0] == parts[1] or not all(c in model for c in parts):
+            raise ConfigError(f"interaction {term!r}: write two different columns of the model "
+                              "(the group, covariates or nuisance columns) as a:b")
+    if len(set(interactions)) < len(interactions):
+        raise ConfigError(f"interaction {interactions[0]!r} is given twice")
+    tested = test or ([] if interactions else [group] if group else covariates)
     kinds = {name: name == group or name in categorical for name in model}
-    return Roles(tested=[c for c in model if c in tested],
+    if not tested and not interactions:
+        return Roles(tested=[time], adjusted_for=list(model),
+                     categorical=[c for c in model if kinds[c]],
+                     numeric=[c for c in model if not kinds[c]])
+    return Roles(tested=[c for c in model if c in tested] + interactions,
                  adjusted_for=[c for c in model if c not in tested],
                  categorical=[c for c in model if kinds[c]],
-                 numeric=[c for c in model if not kinds[c]])
+                 numeric=[c for c in model if not kinds[c]], interactions=interactions)
 
 
 @dataclass
@@ -722,17 +798,26 @@ class AnalysisConfig:
     subjects table are tested and how. ``validate`` names the field at fault.
 
     A column's kind is declared by its role (:func:`analysis_roles`): the group is categorical,
-    covariates numeric, nuisance columns numeric unless named in ``categorical``. Beside a group,
+    covariates and nuisance columns numeric unless named in ``categorical``. Beside a group,
     covariates are adjusted for unless named in ``test``.
     """
 
     group: str | None = None          # categorical column: the groups compared
     covariates: list[str] = field(default_factory=list)   # numeric columns
     nuisance: list[str] = field(default_factory=list)     # columns adjusted for, never tested
-    categorical: list[str] = field(default_factory=list)  # nuisance columns that are categorical
+    categorical: list[str] = field(default_factory=list)  # covariate or nuisance columns that
+    #                                                       are categorical (coded by levels)
     test: list[str] = field(default_factory=list)  # the tested columns (default: group, else
     #                                                the covariates); the rest is adjusted for
     reference: str | None = None      # the group the others are compared with (default: first)
+    subject: str | None = None        # repeated measures: the column naming each case's subject
+    time: str | None = None           # ... and the one naming its time point
+    baseline: str | None = None       # the time the change is measured from (default: first)
+    tail: str = "both"                # one-sided tests of a single-column effect
+    contrasts: list[str] = field(default_factory=list)   # comparisons of a tested factor's
+    #                                                      levels, each with its signed map
+    interactions: list[str] = field(default_factory=list)  # tested products "a:b" of two
+    #                                                        columns, which are adjusted for
     permutations: int = 10_000
     size: str = "kept"
     parts: str = "whole"              # multi-part objects: aligned as one, or each part alone
@@ -742,6 +827,7 @@ class AnalysisConfig:
     alpha: float = 0.05
     seed: int = 0
     folds: int = 10                   # cross-validation of the two-group classification
+    long_table: bool = False          # also long.csv: one row per case and point (R, pandas)
 
     def validate(self) -> "AnalysisConfig":
         """Raise :class:`ConfigError` naming the first bad field; return self."""
@@ -759,8 +845,14 @@ class AnalysisConfig:
         need(self.family_wise in FAMILY_WISE, "family_wise",
              f"must be one of {', '.join(FAMILY_WISE)}")
         need(0 < self.alpha < 1, "alpha", "must be between 0 and 1")
+        need(self.tail in TAILS, "tail", f"must be one of {', '.join(TAILS)}")
+        for contrast in self.contrasts:
+            parse_contrast(contrast)
+        need(self.baseline is None or self.time is not None, "baseline",
+             "is a level of the time column: give --time too")
         need(self.folds >= 2, "folds", "must be at least 2")
-        if self.group is not None or self.covariates:
+        if (self.group is not None or self.covariates or self.time is not None
+                or self.subject is not None):
             roles = self.roles()
             need(not (self.variance_groups() and self.displacement == "vector"
                       and (roles.adjusted_for or len(roles.tested) > 1)), "variance",
@@ -771,12 +863,14 @@ class AnalysisConfig:
 
     def variance_groups(self) -> bool:
         """Whether the per-point test has a variance group per level of the group: a group is
-        tested and ``variance`` is "groups" (a covariate's test is always pooled)."""
+        tested and ``variance`` is "groups" (a covariate's test is always pooled, and so is a
+        test that permutes whole subjects: ``subject`` without ``time``)."""
         return (self.variance == "groups" and self.group is not None
-                and self.group in self.roles().tested)
+                and self.group in self.roles().tested
+                and not (self.subject is not None and self.time is None))
 
     def roles(self) -> Roles:
         """What each column of the model is (:func:`analysis_roles`); ConfigError when the
         names contradict each other."""
         return analysis_roles(self.group, self.covariates, self.nuisance, self.categorical,
-                              self.test)
+                              self.test, self.subject, self.time, self.interactions)

@@ -12,6 +12,9 @@ The stage after :mod:`mdlshapemodel.model`: functions over arrays and
   family-wise (maximum statistic) and FDR (:func:`~.glm.benjamini_hochberg`) correction;
 - :func:`~.discriminant.discriminant`, :func:`~.discriminant.classify`: the discriminant shape
   change of two groups and its cross-validated accuracy and AUC;
+- :func:`~.study.point_test`, :func:`~.study.signed_maps`: the per-point test of a design
+  (independent cases, each subject's change, time within subjects, whole subjects) and the
+  signed map of each effect column and contrast;
 - :func:`~.study.analyze_shapes`: all of them for one build and table (an
   :class:`~.study.Analysis`).
 """
@@ -19,9 +22,9 @@ The stage after :mod:`mdlshapemodel.model`: functions over arrays and
 from .discriminant import classify, discriminant
 from .glm import benjamini_hochberg, permutation_test
 from .shapes import align, read_build, vertex_normals
-from .study import Analysis, analyze_shapes, unusual_cases
+from .study import Analysis, analyze_shapes, point_test, signed_maps, unusual_cases
 from .table import Subjects, subjects
 
 __all__ = ["Analysis", "Subjects", "align", "analyze_shapes", "benjamini_hochberg", "classify",
-           "discriminant", "permutation_test", "read_build", "subjects", "unusual_cases",
-           "vertex_normals"]
+           "discriminant", "permutation_test", "point_test", "read_build", "signed_maps",
+           "subjects", "unusual_cases", "vertex_normals"]

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import FAMILY_WISE
+from ..config import FAMILY_WISE, TAILS
 from ..errors import InputError
 from ..progress import report
 from . import welch
@@ -103,6 +103,16 @@ class PointTest:
         "pooled" (one covariance for all cases) or "groups" (one per variance group).
     family_wise : str
         "maximum" or "min-p" (:data:`FAMILY_WISE`).
+    t : ndarray (p,) or None
+        For one effect column and one number per point, the signed statistic: Student's t of
+        the effect's coefficient (pooled), or Welch's v (variance groups); its sign is the
+        effect's (t^2 = ``statistic``). None otherwise.
+    tail : str
+        "both", or one-sided "greater" / "less" (:data:`TAILS`): then ``value``, ``p`` and
+        ``p_fwer`` are of the signed statistic in that direction.
+    resampling : str
+        How the residuals were resampled, in words ("permuted", "sign-flipped", "permuted
+        within the blocks", ...).
     """
 
     value: np.ndarray
@@ -116,11 +126,17 @@ class PointTest:
     family_null: np.ndarray
     variance: str
     family_wise: str
+    t: np.ndarray | None = None
+    tail: str = "both"
+    resampling: str = "permuted"
 
     @property
     def name(self) -> str:
         """What the statistic is, in words (for the page, the terminal and analysis.json)."""
         r, _, q = self.effect.shape
+        if self.tail != "both":
+            return ("Welch's v, one-sided (a variance per group)" if self.variance == "groups"
+                    else "Student's t, one-sided (one pooled variance)")
         if self.variance == "groups":
             return ("James' statistic (a covariance per group)" if q > 1 else
                     "Welch's v^2 (a variance per group)" if r == 1 else
@@ -312,9 +328,114 @@ def _one_way(interest: np.ndarray, codes: np.ndarray, count: int) -> bool:
                 and np.allclose(indicators @ means, interest, atol=1e-12 * scale))
 
 
+def drawn_signs(n: int, count: int, seed: int):
+    """Sign flips alone, chunk by chunk: each case's residual kept or negated at random, no
+    case moved (the one-sample test; independent and symmetric errors).
+
+    Yields
+    ------
+    rows : ndarray (b, n)
+        The identity (every case keeps its own design row).
+    signs : ndarray (b, n)
+        +1 or -1 per case.
+
+    Examples
+    --------
+    >>> rows, signs = next(drawn_signs(4, 300, seed=0))
+    >>> rows.shape, bool(np.all(rows == np.arange(4))), sorted(np.unique(signs).tolist())
+    ((250, 4), True, [-1.0, 1.0])
+    """
+    rng = np.random.default_rng(seed)
+    done = 0
+    while done < count:
+        size = min(CHUNK, count - done)
+        signs = rng.integers(0, 2, (CHUNK, n)) * 2.0 - 1.0
+        yield np.broadcast_to(np.arange(n), (size, n)), signs[:size]
+        done += size
+
+
+def drawn_whole_blocks(blocks: np.ndarray, count: int, seed: int):
+    """Permutations of whole blocks, chunk by chunk: each block's cases take the design rows of
+    another block of the same size, case by case in their order (Winkler et al. 2014, whole-block
+    exchangeability: a subject's cases stay together).
+
+    Yields
+    ------
+    rows : ndarray (b, n)
+        Case i is given the design row of case ``rows[j, i]``.
+    signs : None
+
+    Examples
+    --------
+    >>> blocks = np.array([0, 0, 1, 1, 2, 2, 2])
+    >>> rows, _ = next(drawn_whole_blocks(blocks, 100, seed=0))
+    >>> moved = blocks[rows]
+    >>> bool(np.all(moved[:, 4:] == 2)), bool(np.all(moved[:, 0] == moved[:, 1]))
+    (True, True)
+    """
+    blocks = np.asarray(blocks)
+    members = [np.flatnonzero(blocks == b) for b in range(int(blocks.max()) + 1)]
+    sizes = {len(m) for m in members}
+    rng = np.random.default_rng(seed)
+    done = 0
+    while done < count:
+        size = min(CHUNK, count - done)
+        rows = np.empty((CHUNK, len(blocks)), dtype=np.int64)
+        for length in sorted(sizes):
+            alike = [m for m in members if len(m) == length]
+            cases = np.array(alike)                                   # (blocks, length)
+            order = np.argsort(rng.random((CHUNK, len(alike))), axis=1)
+            rows[:, cases.reshape(-1)] = cases[order].reshape(CHUNK, -1)
+        yield rows[:size], None
+        done += size
+
+
+def _resamples(n: int, count: int, seed: int, codes, blocks, flips: bool,
+               whole_blocks: bool = False):
+    """The resamples of one test: (rows, signs) chunks, ``signs`` None when nothing is flipped.
+
+    Variance groups: permutations within the groups with sign flips (:func:`drawn_flips`).
+    Exchangeability blocks: permutations within the blocks (and within the groups, when both),
+    with sign flips if ``flips``. Flips alone: :func:`drawn_signs`. Whole blocks:
+    :func:`drawn_whole_blocks`. Else all permutations.
+    """
+    if whole_blocks:
+        return drawn_whole_blocks(blocks, count, seed)
+    if codes is None and blocks is None:
+        if flips:
+            return drawn_signs(n, count, seed)
+        return ((rows, None) for rows in drawn_permutations(n, count, seed))
+    cells = np.zeros(n, dtype=np.int64)
+    for codes_of in (codes, blocks):
+        if codes_of is not None:
+            cells = cells * (int(codes_of.max()) + 1) + codes_of
+    cells = np.unique(cells, return_inverse=True)[1]
+    draws = drawn_flips(cells, count, seed)
+    if codes is not None or flips:
+        return draws
+    return ((rows, None) for rows, _ in draws)
+
+
+def _resampling_name(codes, blocks, flips: bool, whole_blocks: bool = False) -> str:
+    """How the residuals are resampled, in words (for analysis.json and the page)."""
+    if whole_blocks:
+        return "permuted in whole blocks"
+    flipped = codes is not None or flips
+    moved = ("" if codes is None and blocks is None and flips else
+             "permuted within the variance groups and blocks" if codes is not None
+             and blocks is not None else
+             "permuted within the variance groups" if codes is not None else
+             "permuted within the blocks" if blocks is not None else "permuted")
+    if flipped and moved:
+        return f"sign-flipped and {moved}"
+    return "sign-flipped" if flipped else moved
+
+
 def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarray | None = None,
                      permutations: int = 10_000, seed: int = 0, progress=None,
-                     variance_groups=None, family_wise: str = "maximum") -> PointTest:
+                     variance_groups=None, family_wise: str = "maximum", *,
+                     intercept: bool = True, blocks=None, flips: bool = False,
+                     whole_blocks: bool = False, tail: str = "both") -> PointTest:
     """Test an effect on per-point data by permutation (Freedman-Lane), with family-wise and FDR
     correction over the points.
 
@@ -325,7 +446,7 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     interest : ndarray (n, r)
         The effect's columns (group indicators against a reference group, or covariates).
     nuisance : ndarray (n, c), optional
-        Covariates to adjust for; an intercept is always added.
+        Covariates to adjust for; an intercept is added unless ``intercept`` is False.
     permutations : int
         B, the number of random permutations (seeded by ``seed``).
     progress : callable(fraction, message), optional
@@ -342,6 +463,26 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         errors, Welch's -log p approximately), or min-p (no point dominates, whatever its
         tails; resolution-limited: with m roughly independent points the smallest ``p_fwer`` is
         about 1 - (1 - 1 / (B + 1))^m, so B should be well above m / alpha).
+    intercept : bool
+        Whether the nuisance has an intercept. Without one, ``interest`` may be a column of
+        ones: the one-sample test of a mean (for example of each subject's change between two
+        times), resampled by sign flips.
+    blocks : sequence (n,), optional
+        Exchangeability blocks (Winkler et al. 2014): cases are permuted only within their
+        block (a subject's scans, tested for an effect of time within subjects).
+    flips : bool
+        Resample by flipping the sign of each case's residual (independent and symmetric
+        errors, "ISE"), alone or with the permutations within ``blocks``. Variance groups are
+        always flipped.
+    whole_blocks : bool
+        Permute whole ``blocks`` instead (a subject's cases together, in their order, among
+        subjects with as many cases), for effects that are each block's own; the pooled
+        statistic.
+    tail : {"both", "greater", "less"}
+        One-sided tests of one effect column and one number per point: "greater", an effect
+        above 0 (with the pooled statistic, larger t); "less", below 0 (an inward displacement:
+        atrophy). The resampled statistic is then the signed t (Welch's one-sided ``-log p``
+        with variance groups).
 
     Returns
     -------
@@ -360,20 +501,31 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     ('groups', True)
     >>> bool(np.all(welch.p[:5] < 0.01)), int(np.sum(welch.p_fwer[5:] < 0.05))
     (True, 0)
+    >>> change = rng.normal(size=(12, 50)) + 2.0 * (np.arange(50) < 5)   # one-sample
+    >>> mean = permutation_test(change, np.ones((12, 1)), intercept=False, flips=True,
+    ...                         permutations=999, tail="greater")
+    >>> mean.resampling, bool(np.all(mean.t[:5] > 0)), bool(np.all(mean.p[:5] < 0.01))
+    ('sign-flipped', True, True)
     """
     data = np.asarray(data, dtype=np.float64)
     if data.ndim == 2:
         data = data[..., None]
     n, p, q = data.shape
     interest = np.asarray(interest, dtype=np.float64).reshape(n, -1)
-    columns = [np.ones((n, 1))]
+    columns = [np.ones((n, 1))] if intercept else []
     if nuisance is not None and np.size(nuisance):
         columns.append(np.asarray(nuisance, dtype=np.float64).reshape(n, -1))
-    z_columns = np.hstack(columns)
+    z_columns = np.hstack(columns) if columns else np.zeros((n, 0))
     z, r = z_columns.shape[1], interest.shape[1]
     df = n - z - r
     if family_wise not in FAMILY_WISE:
         raise ValueError(f"family_wise must be one of {FAMILY_WISE}, not {family_wise!r}")
+    if tail not in TAILS:
+        raise ValueError(f"tail must be one of {TAILS}, not {tail!r}")
+    signed = r == 1 and q == 1
+    if tail != "both" and not signed:
+        raise InputError(f"a one-sided test (tail {tail!r}) needs one effect column and one "
+                         f"number per point (here {r} column(s), {q} number(s) per point)")
     if df < q:
         raise InputError(f"too few cases: {n} cases for {z + r} model columns and {q} "
                          f"number(s) per point (need more than {z + r + q - 1})")
@@ -389,10 +541,19 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
             raise InputError(f"variance group {levels[np.argmin(sizes)]!r} has "
                              f"{int(sizes.min())} case(s); with {q} number(s) per point each "
                              f"needs more than {q} to estimate its own variance")
+        elif not intercept or whole_blocks:
+            raise ValueError("variance groups need the intercept in the nuisance and cases "
+                             "permuted one by one")
+    if blocks is not None:
+        blocks = np.unique(np.asarray(blocks), return_inverse=True)[1].reshape(-1)
+        if len(blocks) != n:
+            raise InputError(f"{len(blocks)} exchangeability blocks for {n} cases")
     basis_z = _basis(z_columns, "the nuisance columns")
     interest_after_z = interest - basis_z @ (basis_z.T @ interest)
     basis_x = _basis(interest_after_z, "the variables of interest and the nuisance",
                      scale=float(np.abs(interest).max(initial=0.0)) * np.sqrt(n))
+    if signed and basis_x[:, 0] @ interest_after_z[:, 0] < 0:
+        basis_x = -basis_x                     # its coefficient has the effect's sign
     flat = data.reshape(n, p * q)
     residuals = flat - basis_z @ (basis_z.T @ flat)
     # the effect: least squares of the full model, the coefficients of the effect's columns
@@ -402,21 +563,33 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
 
     stacked = residuals.reshape(n, p, q)
     # the intercept's basis is constant, so its permuted rows meet the centred residuals in zero:
-    # it drops out of every permutation; the other nuisance columns do not
-    permuted_z = basis_z[:, 1:]
+    # it drops out of every permutation (not of sign flips); the other nuisance columns do not
+    permuted_z = basis_z[:, 1:] if intercept and not flips else basis_z
+    if whole_blocks and blocks is None:
+        raise ValueError("whole_blocks needs blocks")
     bases = np.hstack([permuted_z, basis_x])
     zp = permuted_z.shape[1]
     if codes is None:
         total = np.einsum("npi,npj->pij", stacked, stacked)
         whitened = np.einsum("npj,pij->npi", stacked, _whitening(total)).reshape(n, p * q)
 
-        def values_of(rows: np.ndarray, signs) -> np.ndarray:
-            """Pillai's V for each permutation (rows: (B, n) indices into the bases)."""
-            permuted = np.ascontiguousarray(np.swapaxes(bases[rows], 1, 2))   # (B, k, n)
-            products = permuted.reshape(-1, n) @ whitened                      # one BLAS product
-            return _pillai(products.reshape(len(rows), zp + r, p, q), zp)
+        def measured(rows: np.ndarray, signs) -> tuple:
+            """Pillai's V and, for one effect column, the signed t of each resample."""
+            permuted = bases[rows] if signs is None else bases[rows] * signs[..., None]
+            permuted = np.ascontiguousarray(np.swapaxes(permuted, 1, 2))       # (B, k, n)
+            products = (permuted.reshape(-1, n) @ whitened).reshape(len(rows), zp + r, p, q)
+            pillai = _pillai(products, zp)
+            if not signed:
+                return pillai, None
+            return pillai, np.sign(products[:, zp, :, 0]) * np.sqrt(
+                statistic_of(pillai, 1, 1, df))
 
-        resamples = ((rows, None) for rows in drawn_permutations(n, permutations, seed))
+        def values_of(rows: np.ndarray, signs) -> tuple:
+            """The resampled quantity (Pillai's V, or the signed t one-sided) and the t."""
+            pillai, t = measured(rows, signs)
+            if tail == "both":
+                return pillai, t
+            return (t if tail == "greater" else -t), t
     else:
         one_way = z == 1 and _one_way(interest, codes, len(sizes))
         if q > 1 and not one_way:
@@ -426,24 +599,36 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         full = np.hstack([basis_z, basis_x])
         centred = welch.reduced_residuals(data, basis_z, full, codes, sizes)
         if one_way:
+            # the sign of the second variance group's mean minus the first's, as the effect's
+            orientation = (np.sign(interest[codes == 1, 0].mean() - interest[codes == 0, 0].mean())
+                           if len(sizes) == 2 else 1.0)
+
             def welch_of(rows: np.ndarray, signs: np.ndarray) -> tuple:
-                return welch.one_way(centred, codes, sizes, signs)
+                found, welch_df, direction = welch.one_way(centred, codes, sizes, signs)
+                return found, welch_df, None if direction is None else orientation * direction
         else:
             def welch_of(rows: np.ndarray, signs: np.ndarray) -> tuple:
                 parts = [welch.general(centred[..., 0], full, r, codes, sizes,
                                        rows[k:k + WELCH_CHUNK], signs[k:k + WELCH_CHUNK])
                          for k in range(0, len(rows), WELCH_CHUNK)]
-                return tuple(np.concatenate(found) for found in zip(*parts))
+                return tuple(None if found[0] is None else np.concatenate(found)
+                             for found in zip(*parts))
 
-        def values_of(rows: np.ndarray, signs: np.ndarray) -> np.ndarray:
-            """Welch's G as -log of its parametric p (q = 1), James' J (q > 1)."""
-            found, welch_df = welch_of(rows, signs)
-            return found if welch_df is None else welch.pivotal(found, r, welch_df)
+        def values_of(rows: np.ndarray, signs: np.ndarray) -> tuple:
+            """Welch's G as -log of its parametric p (q = 1; one-sided: of v), James' J (q > 1),
+            and Welch's signed v for one effect column."""
+            found, welch_df, direction = welch_of(rows, signs)
+            if welch_df is None:
+                return found, None
+            v = None if direction is None else direction * np.sqrt(found)
+            if tail == "both":
+                return welch.pivotal(found, r, welch_df), v
+            return welch.one_sided(v, welch_df, tail), v
 
-        resamples = drawn_flips(codes, permutations, seed)
-
+    resamples = _resamples(n, permutations, seed, codes, blocks, flips, whole_blocks)
     identity = np.arange(n)[None], np.ones((1, n))
-    observed = values_of(*identity)[0]
+    observed, observed_t = values_of(*identity)
+    observed = observed[0]
     threshold = observed - TIES * np.abs(observed)
     exceed = np.zeros(p, dtype=np.int64)
     minimum_p = family_wise == "min-p"
@@ -456,7 +641,7 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     done = 0
     for rows, signs in resamples:
         count = len(rows)
-        values = values_of(rows, signs)
+        values = values_of(rows, signs)[0]
         exceed += np.sum(values >= threshold, axis=0)
         if minimum_p:
             table[1 + done:1 + done + count] = values
@@ -473,10 +658,14 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         below = permutations - np.searchsorted(np.sort(maxima), threshold, side="left")
         family_null = maxima
     p_fwer = np.maximum((1.0 + below) / (1.0 + permutations), p_point)
-    statistic = (statistic_of(observed, q, r, df) if codes is None
-                 else welch_of(*identity)[0][0])
+    if codes is None:
+        statistic = statistic_of(measured(*identity)[0][0], q, r, df)
+    else:
+        statistic = welch_of(*identity)[0][0]
     return PointTest(value=observed, statistic=statistic, p=p_point, p_fwer=p_fwer,
                      q_fdr=benjamini_hochberg(p_point), effect=effect, df=df,
                      permutations=permutations, family_null=family_null,
                      variance="pooled" if codes is None else "groups",
-                     family_wise=family_wise)
+                     family_wise=family_wise,
+                     t=None if observed_t is None else observed_t[0], tail=tail,
+                     resampling=_resampling_name(codes, blocks, flips, whole_blocks))

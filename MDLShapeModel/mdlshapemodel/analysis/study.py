@@ -9,18 +9,18 @@ job of :mod:`mdlshapemodel.analyze`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..config import AnalysisConfig
+from ..config import AnalysisConfig, parse_contrast
 from ..model.outliers import Distances, modes_explaining, training_distances
 from ..model.shape_model import ShapeModel
 from ..progress import report
 from .discriminant import Classification, Discriminant, classify, discriminant, principal_scores
 from .glm import PointTest, permutation_test
 from .shapes import align, vertex_normals
-from .table import Subjects
+from .table import Subjects, contrast_vector
 
 
 @dataclass
@@ -46,6 +46,35 @@ class Unusual:
 
 
 @dataclass
+class SignedMap:
+    """The signed test of one effect column along the normal, adjusted for the other effect
+    columns and the nuisance (as MFSDA maps each covariate): Student's t of its coefficient
+    (Welch's v with variance groups) per point, its permutation p-values and corrections.
+
+    Attributes
+    ----------
+    name : str
+        The effect column (a covariate, ``group=level`` or a level, ``change``).
+    column : str
+        Its table column.
+    test : PointTest
+        The test: ``test.t`` the signed statistic, ``test.p``, ``test.p_fwer``, ``test.q_fdr``
+        (one-sided when ``test.tail`` says so).
+    joint : bool
+        Whether it is the analysis's per-point test itself (one effect column tested along the
+        normal), not a test of its own.
+    contrast : dict or None
+        For a contrast of levels (``config.contrasts``), each level's coefficient.
+    """
+
+    name: str
+    column: str
+    test: PointTest
+    joint: bool
+    contrast: dict | None = None
+
+
+@dataclass
 class Analysis:
     """What :func:`analyze_shapes` found. Per-point arrays follow the model's points."""
 
@@ -59,9 +88,11 @@ class Analysis:
     difference: np.ndarray         # (r, p, 3) effect vectors (mm; per unit of a covariate)
     normal_difference: np.ndarray  # (r, p) their components along the normals (negative: inward)
     global_test: GlobalTest
+    signed: list                   # SignedMap per effect column (along the normal)
     discriminant: Discriminant | None
     classification: Classification | None
     unusual: Unusual
+    scores: np.ndarray | None = None   # (n_cases, k) the principal scores of the global test
 
     def significant(self, correction: str = "fwer") -> np.ndarray:
         """Points significant at ``config.alpha`` after family-wise ("fwer") or FDR ("fdr")
@@ -129,27 +160,28 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
         data = np.einsum("npd,pd->np", offsets, normals)
     else:
         data = offsets[..., :2] if planar else offsets
-    points = permutation_test(data, subjects.interest, subjects.nuisance, config.permutations,
-                              config.seed, progress,
-                              variance_groups=subjects.groups if config.variance_groups() else None,
-                              family_wise=config.family_wise)
+    points = point_test(data, subjects, config, progress)
+    along = data if config.displacement == "normal" else np.einsum("npd,pd->np", offsets,
+                                                                    normals)
+    report(progress, None, "the signed map of each effect")
+    signed = signed_maps(along, subjects, config, points)
     difference = _effects(offsets, subjects)
     normal_difference = np.einsum("rpd,pd->rp", difference, normals)
     r = subjects.interest.shape[1]
-    z = 1 + subjects.nuisance.shape[1]
-    _, _, scores = principal_scores(aligned, model.weights, max_modes=len(aligned) - z - r - 1)
+    z = int(not subjects.mean_change_tested) + subjects.nuisance.shape[1]
+    _, _, scores = principal_scores(aligned, model.weights,
+                                    max_modes=len(subjects.interest) - z - r - 1)
     report(progress, None, "the global test")
     # the global test is pooled: per-group covariances of k scores need more than k cases in
     # every group
-    overall = permutation_test(scores[:, None, :], subjects.interest, subjects.nuisance,
-                               config.permutations, config.seed)
+    overall = point_test(scores[:, None, :], subjects, config, pooled=True)
     global_test = GlobalTest(scores.shape[1], float(overall.statistic[0]), float(overall.p[0]),
                              config.permutations)
     found_discriminant = found_classification = None
     # the discriminant and classification of two groups describe a tested group, not one
-    # adjusted for
+    # adjusted for, of independent cases
     if (subjects.groups is not None and len(subjects.levels) == 2
-            and subjects.group in subjects.tested):
+            and subjects.group in subjects.tested and subjects.repeated is None):
         second = np.array([g == subjects.levels[1] for g in subjects.groups])
         found_discriminant = discriminant(aligned, model.weights, second)
         found_classification = classify(aligned, model.weights, second, config.folds,
@@ -157,15 +189,124 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     parts = np.concatenate([np.full(s.stop - s.start, j)
                             for j, s in enumerate(model.part_slices())])
     return Analysis(config, subjects, aligned, mean, normals, parts, points, difference,
-                    normal_difference, global_test, found_discriminant, found_classification,
-                    unusual_cases(model))
+                    normal_difference, global_test, signed, found_discriminant,
+                    found_classification, unusual_cases(model), scores)
+
+
+def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:
+    """Per-case values (n_cases, ...) as the design's rows: with two times per subject each
+    subject's change (its later case's values minus its baseline case's), else the cases."""
+    per_case = np.asarray(per_case)
+    repeated = subjects.repeated
+    if repeated is None or repeated.design != "change":
+        return per_case
+    return per_case[repeated.pairs[:, 1]] - per_case[repeated.pairs[:, 0]]
+
+
+def signed_maps(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig,
+                joint: PointTest | None = None, progress=None) -> list:
+    """A signed test along the normal per effect column, each adjusted for the other effect
+    columns and the nuisance (with ``config.tail``, one-sided).
+
+    Parameters
+    ----------
+    normal : ndarray (n_cases, p)
+        The used cases' displacements along the mean's normals.
+    subjects : Subjects
+    config : AnalysisConfig
+    joint : PointTest, optional
+        The analysis's per-point test: when it is already the signed test of the only effect
+        column (one column, the normal displacement), it is the map.
+
+    Returns
+    -------
+    list of SignedMap
+    """
+    names, columns = subjects.interest_names, subjects.interest_columns
+    r = len(names)
+    contrasts = contrasts_of(subjects, config)
+    if joint is not None and joint.t is not None:
+        maps = [SignedMap(names[0], columns[0], joint, True)]
+    else:
+        maps = [SignedMap(name, column, point_test(normal, _single(subjects, np.eye(r)[j]),
+                                                   config, progress), False)
+                for j, (name, column) in enumerate(zip(names, columns))]
+    for text, coefficients, column, vector in contrasts:
+        maps.append(SignedMap(text, column, point_test(normal, _single(subjects, vector), config,
+                                                       progress), False, coefficients))
+    return maps
+
+
+def contrasts_of(subjects: Subjects, config: AnalysisConfig) -> list:
+    """Each of ``config.contrasts`` as (text, coefficients per level, the tested column, its
+    vector over the effect columns); InputError when one names levels that are not tested
+    (:func:`~.table.contrast_vector`)."""
+    found = []
+    for text in config.contrasts:
+        coefficients = parse_contrast(text)
+        found.append((text, coefficients, *contrast_vector(subjects, text, coefficients)))
+    return found
+
+
+def _single(subjects: Subjects, vector: np.ndarray) -> Subjects:
+    """The design reparameterised so that one effect column carries c'b (Smith et al. 2007;
+    Winkler et al. 2014): X c / (c'c) tested, X Q adjusted for (Q an orthonormal basis of the
+    coefficients orthogonal to c), the model's span unchanged."""
+    interest = subjects.interest
+    basis = np.linalg.svd(np.eye(len(vector)) - np.outer(vector, vector) / (vector @ vector))[0]
+    complement = basis[:, :len(vector) - 1]
+    return replace(subjects, interest=interest @ vector[:, None] / (vector @ vector),
+                   nuisance=np.hstack([subjects.nuisance, interest @ complement]))
+
+
+def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,
+               progress=None, pooled: bool = False) -> PointTest:
+    """The per-point test of a design on per-case data, resampled as the design allows.
+
+    Independent cases: permutations (sign flips and permutations within the groups with
+    variance groups). Two times per subject: the test on each subject's change
+    (:func:`design_rows`); of the mean change (nothing else tested) with no intercept,
+    by sign flips (Winkler et al. 2014, independent and symmetric errors). More times: the
+    effect of time with each subject adjusted for, permuted within subjects (exchangeability
+    blocks). Subjects without times: the subjects' columns on all their cases, whole subjects
+    permuted (the pooled statistic).
+
+    Parameters
+    ----------
+    per_case : ndarray (n_cases, p) or (n_cases, p, q)
+        The data of the used cases, in :attr:`~.table.Subjects.cases` order.
+    subjects : Subjects
+    config : AnalysisConfig
+        Permutations, seed, variance, family-wise correction and tail (one-sided only where
+        there is one effect column and one number per point).
+    pooled : bool
+        Use the pooled statistic whatever ``config.variance`` says (the global test).
+
+    Returns
+    -------
+    PointTest
+    """
+    data = design_rows(per_case, subjects)
+    single = subjects.interest.shape[1] == 1 and (data.ndim == 2 or data.shape[2] == 1)
+    repeated = subjects.repeated
+    return permutation_test(
+        data, subjects.interest, subjects.nuisance, config.permutations, config.seed, progress,
+        variance_groups=(subjects.groups if config.variance_groups() and not pooled else None),
+        family_wise=config.family_wise, intercept=not subjects.mean_change_tested,
+        flips=subjects.mean_change_tested,
+        blocks=repeated.blocks if repeated is not None else None,
+        whole_blocks=repeated is not None and repeated.design == "blocks",
+        tail=config.tail if single and not pooled else "both")
 
 
 def _effects(offsets: np.ndarray, subjects: Subjects) -> np.ndarray:
     """The effect columns' least-squares coefficients on the point coordinates (r, p, 3),
-    adjusted for the nuisance."""
-    n, p, d = offsets.shape
-    design = np.hstack([np.ones((n, 1)), subjects.nuisance, subjects.interest])
-    coefficients, *_ = np.linalg.lstsq(design, offsets.reshape(n, -1), rcond=None)
+    adjusted for the nuisance (for the mean change: the mean change at the nuisance's mean)."""
+    rows = design_rows(offsets, subjects)
+    n, p, d = rows.shape
+    columns = [subjects.nuisance, subjects.interest]
+    if not subjects.mean_change_tested:
+        columns.insert(0, np.ones((n, 1)))
+    coefficients, *_ = np.linalg.lstsq(np.hstack(columns), rows.reshape(n, -1), rcond=None)
     r = subjects.interest.shape[1]
     return coefficients[-r:].reshape(r, p, d)

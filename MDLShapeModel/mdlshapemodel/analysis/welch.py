@@ -62,6 +62,21 @@ def pivotal(statistic: np.ndarray, s: int, df: np.ndarray) -> np.ndarray:
     return -np.log(np.maximum(special.fdtrc(s, df, statistic), 1e-300))
 
 
+def one_sided(v: np.ndarray, df: np.ndarray, tail: str) -> np.ndarray:
+    """``-log p`` of Welch's v under Student's t(df), one-sided: ``tail`` "greater" (p = P(T >=
+    v)) or "less" (p = P(T <= v)); larger is more extreme.
+
+    Examples
+    --------
+    >>> from scipy import stats
+    >>> bool(np.isclose(one_sided(np.array([2.1]), np.array([9.4]), "greater")[0],
+    ...                 -np.log(stats.t.sf(2.1, 9.4))))
+    True
+    """
+    toward = v if tail == "greater" else -v
+    return -np.log(np.maximum(special.stdtr(df, -toward), 1e-300))
+
+
 def lambda_and_df(weights: np.ndarray, sizes: np.ndarray, residual_df: np.ndarray, s: int):
     """Welch's Lambda and the denominator degrees of freedom of G.
 
@@ -182,6 +197,9 @@ def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
     statistic : ndarray (B, p)
     df : ndarray (B, p) or None
         G's denominator degrees of freedom (None for James' J).
+    direction : ndarray (B, p) or None
+        For two groups and q = 1, the sign of the second group's mean minus the first's (so
+        that ``direction * sqrt(statistic)`` is Welch's v); else None.
     """
     n, p, q = residuals.shape
     count = len(sizes)
@@ -209,7 +227,8 @@ def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
         wald = np.sum(weights * (mean - centre) ** 2, axis=1)
         s = count - 1
         lam, df = lambda_and_df(1.0 / variance, sizes, (sizes - 1.0)[:, None], s)
-        return wald / (s * lam), df
+        direction = np.sign(mean[:, 1] - mean[:, 0]) if count == 2 else None
+        return wald / (s * lam), df, direction
     covariance = scatter / (size - 1)[..., None, None]
     covariance += floor[:, None, None] * np.eye(q)
     weights = size[..., None, None] * small_inverse(covariance)               # (B, G, p, q, q)
@@ -217,12 +236,13 @@ def one_way(residuals: np.ndarray, groups: np.ndarray, sizes: np.ndarray,
     combined = weighted.sum(axis=1)
     centre = np.einsum("bpij,bpj->bpi", small_inverse(weights.sum(axis=1)), combined)
     return (np.einsum("bgpi,bgpi->bp", means, weighted)
-            - np.einsum("bpi,bpi->bp", combined, centre)), None
+            - np.einsum("bpi,bpi->bp", combined, centre)), None, None
 
 
-def wald_tail(normal: np.ndarray, right: np.ndarray, r: int) -> np.ndarray:
+def wald_tail(normal: np.ndarray, right: np.ndarray, r: int) -> tuple:
     """The Wald statistic of the last r coefficients of the weighted least-squares problems
-    ``normal psi = right``, ``psi_X' [normal^-1]_XX^-1 psi_X``, for many small problems at once.
+    ``normal psi = right``, ``psi_X' [normal^-1]_XX^-1 psi_X``, for many small problems at once,
+    and the sign of the last coefficient.
 
     With the Cholesky factor ``normal = L L'`` and ``u = L^-1 right``, ``[normal^-1]_XX =
     L_XX^-T L_XX^-1`` and ``psi_X = L_XX^-T u_X``, so the statistic is ``|u_X|^2``: the sum of
@@ -239,14 +259,18 @@ def wald_tail(normal: np.ndarray, right: np.ndarray, r: int) -> np.ndarray:
 
     Returns
     -------
-    ndarray (...)
+    wald : ndarray (...)
+    direction : ndarray (...)
+        The sign of the last coefficient (``u``'s last entry has it: ``L_XX`` is positive).
 
     Examples
     --------
     >>> a = np.array([[4.0, 1.0], [1.0, 3.0]]); b = np.array([1.0, 2.0])
     >>> psi = np.linalg.solve(a, b)
-    >>> bool(np.isclose(wald_tail(a[..., None], b[..., None], 1)[0],
-    ...                 psi[1] ** 2 / np.linalg.inv(a)[1, 1]))
+    >>> wald, direction = wald_tail(a[..., None], b[..., None], 1)
+    >>> bool(np.isclose(wald[0], psi[1] ** 2 / np.linalg.inv(a)[1, 1]))
+    True
+    >>> bool(direction[0] == np.sign(psi[1]))
     True
     """
     m = len(right)
@@ -260,7 +284,7 @@ def wald_tail(normal: np.ndarray, right: np.ndarray, r: int) -> np.ndarray:
             factor[i][j] = (normal[i, j] - sum(factor[i][k] * factor[j][k] for k in range(j))
                             ) / diagonal
         solved.append((right[j] - sum(factor[j][k] * solved[k] for k in range(j))) / diagonal)
-    return sum(u ** 2 for u in solved[m - r:])
+    return sum(u ** 2 for u in solved[m - r:]), np.sign(solved[-1])
 
 
 def general(residuals: np.ndarray, basis: np.ndarray, r: int, groups: np.ndarray,
@@ -287,6 +311,9 @@ def general(residuals: np.ndarray, basis: np.ndarray, r: int, groups: np.ndarray
     -------
     statistic, df : ndarray (B, p)
         G and its denominator degrees of freedom.
+    direction : ndarray (B, p) or None
+        For r = 1, the sign of the effect's coefficient on the basis's last column (so that
+        ``direction * sqrt(statistic)`` is Welch's v); else None.
     """
     n, p = residuals.shape
     count = len(sizes)
@@ -309,6 +336,6 @@ def general(residuals: np.ndarray, basis: np.ndarray, r: int, groups: np.ndarray
     # M'WM and M'Wy per point, as sums over the groups, each entry an array over (B, p)
     normal = np.einsum("bgp,gij->ijbp", weights, cross)                         # (m, m, B, p)
     right = np.einsum("bgp,bigp->ibp", weights, moments)                        # (m, B, p)
-    wald = wald_tail(normal, right, r)
+    wald, direction = wald_tail(normal, right, r)
     lam, df = lambda_and_df(weights, sizes, residual_df[:, None], r)
-    return wald / (r * lam), df
+    return wald / (r * lam), df, direction if r == 1 else None

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import logging
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +29,10 @@ log = logging.getLogger("mdlshapemodel")
 HOW_TO_READ = """
 <h2>How to read this page</h2>
 <ul>
-<li><b>What is tested at each point.</b> {what}. The statistic is {statistic}{assumes}; its
-p-value counts how often {permutations} random relabellings of the cases (permutations of the
-residuals of the model without the effect, Freedman-Lane) gave a statistic at least as large at
-that point (so it is at least 1/{permutations_plus_one}).</li>
+<li><b>What is tested at each point.</b> {what}{design}. The statistic is
+{statistic}{assumes}; its p-value{tail} counts how often {permutations} random resamples (the
+residuals of the model without the effect {resampling}, Freedman-Lane) gave a statistic at least
+as extreme at that point (so it is at least 1/{permutations_plus_one}).</li>
 <li><b>Family-wise correction</b> (p<sub>FWER</sub>): {family_wise} over all points is
 compared, so the chance that <i>any</i> point is called significant when there is no effect is
 at most &alpha; = {alpha}. <b>FDR</b> (q): among the points called significant, the expected share
@@ -46,6 +47,9 @@ orientation are not findings, differences in {sized} are.</li>
 </ul>
 """
 
+
+# characters per line of a map's title beside its picture
+LABEL_WIDTH = 26
 
 # what is not significant is greyed: its pictures without colour, its text grey
 STYLE = ("section.not-significant{color:#777}section.not-significant img{filter:grayscale(1);"
@@ -64,14 +68,34 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     # every value shown
     top = max(float(log_p.astype(np.float32).max()), level * 1.5)
     rows = [("-log10 p (FWER)", log_p, "viridis", 0.0, top, "-log10 p, family-wise")]
-    for label, values in zip(effect_labels(analysis.subjects), analysis.normal_difference):
+    labels = effect_labels(analysis.subjects)
+    for label, values in zip(labels, analysis.normal_difference):
         limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((label, values, "coolwarm", -limit, limit, "along the normal [mm]"))
+    # the region outlined on each map: the per-point test's, or a signed map's own
+    outlines = [significant] * len(rows)
+    # one signed map per effect column, and its own family-wise p when it is a test of its own
+    for k, found in enumerate(analysis.signed):
+        label = labels[k] if k < len(labels) else f"contrast {found.name}"
+        values = found.test.t
+        limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
+        rows.append((f"signed t, {label}", values, "coolwarm", -limit, limit,
+                     "t along the normal"))
+        own_region = significant if found.joint else found.test.p_fwer <= alpha
+        outlines.append(own_region)
+        if not found.joint:
+            own = -np.log10(found.test.p_fwer)
+            rows.append((f"-log10 p (FWER), {label}", own, "viridis", 0.0,
+                         max(float(own.astype(np.float32).max()), level * 1.5),
+                         "-log10 p, family-wise"))
+            outlines.append(own_region)
     parts = []
     if model.of_curves:
         return [_image(_curve_maps(analysis, rows, significant), "effect maps")]
-    for row in rows:
-        png = render_maps(analysis.mean, cells, [row], outlined=significant)
+    for row, outlined in zip(rows, outlines):
+        # the row's title beside the picture, broken into lines that fit its height
+        wrapped = (textwrap.fill(row[0], LABEL_WIDTH), *row[1:])
+        png = render_maps(analysis.mean, cells, [wrapped], outlined=outlined)
         parts.append(_image(_b64(png), row[0]))
     parts += effects_section(analysis.mean, cells, [
         EffectMap(label, values, diverging=cmap == "coolwarm", limit=high,
@@ -83,10 +107,22 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
 def effect_labels(subjects) -> list:
     """A title per tested effect column: the tested column and, for a group, which level is
     compared with which (the reference)."""
-    labels, levels = [], iter(subjects.levels[1:])
+    labels, seen = [], {}
     for column in subjects.interest_columns:
-        labels.append(f"effect of {column}: {next(levels)} minus {subjects.levels[0]}"
-                      if column == subjects.group else f"effect of {column}, per unit")
+        levels = subjects.levels_of.get(column)
+        if ":" in column:
+            labels.append(f"interaction {column}, per unit")
+        elif subjects.mean_change_tested:
+            times = subjects.repeated.times
+            labels.append(f"mean change: {column} {times[1]} minus {times[0]}")
+        elif levels:
+            seen[column] = seen.get(column, 0) + 1
+            labels.append(f"effect of {column}: {levels[seen[column]]} minus {levels[0]}")
+        else:
+            labels.append(f"effect of {column}, per unit")
+    repeated = subjects.repeated
+    if repeated is not None and repeated.design == "change" and not subjects.mean_change_tested:
+        labels = [f"{label}, on the change" for label in labels]
     return labels
 
 
@@ -216,6 +252,21 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
         body[-1] += " (" + ", ".join(f"{html.escape(level)}: {count}" for level, count
                                      in summary["n_per_group"].items()) + ")"
     body[-1] += f"; {len(subjects.left_out)} left out.</p>"
+    repeated = subjects.repeated
+    if repeated is not None and repeated.design == "blocks":
+        body.append(f"<p>Repeated measures: {len(repeated.subjects)} subjects "
+                    f"(<code>{html.escape(repeated.subject)}</code>), each subject's cases "
+                    "permuted together (whole blocks).</p>")
+    elif repeated is not None:
+        body.append(f"<p>Repeated measures: {len(repeated.subjects)} subjects "
+                    f"(<code>{html.escape(repeated.subject)}</code>) at "
+                    f"<code>{html.escape(repeated.time)}</code> "
+                    + ", ".join(html.escape(t) for t in repeated.times) + ": "
+                    + ("each subject's change, " + html.escape(repeated.times[1]) + " minus "
+                       + html.escape(repeated.times[0]) + ", is analysed."
+                       if repeated.design == "change" else
+                       "the effect of time within subjects, each subject adjusted for.")
+                    + "</p>")
 
     def named(columns: list) -> str:
         return ", ".join(("group " if c == subjects.group else "") + f"<b>{html.escape(c)}</b>"
@@ -223,11 +274,13 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
 
     body.append(f"<p>Tested: {named(subjects.tested)}; adjusted for: "
                 f"{named(subjects.adjusted_for)}.</p>")
+    body += [f"<p class=note>{html.escape(note)}</p>" for note in subjects.notes]
     counts = summary["significant_points"]
     body += [f"<h2>Where the shapes differ by {named(subjects.tested)}</h2>",
              f"<p>{counts['fwer']} of {len(analysis.mean)} points significant at &alpha; = "
              f"{config.alpha} after family-wise correction, {counts['fdr']} after FDR "
-             "correction (outlined in black: family-wise).</p>"]
+             "correction (outlined in black: family-wise; on the signed map of an effect "
+             "column tested on its own, that map's family-wise region).</p>"]
     try:
         body += _maps(analysis, model)
     except (MDLShapeModelError, RuntimeError) as error:
@@ -257,12 +310,20 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
             "the displacement vector of the point from the mean shape")
     points = analysis.points
     assumes = (", which allows the groups to differ in spread" if points.variance == "groups"
+               else ", which assumes that each subject's change is as likely as its negative "
+               "when there is no change" if subjects.mean_change_tested
                else ", which assumes that every group varies alike")
     family_wise = ("the largest statistic" if points.family_wise == "maximum" else
                    "the smallest per-point p-value (min-p)")
     body.append(HOW_TO_READ.format(
         what=what, statistic=html.escape(points.name), assumes=assumes,
-        permutations=config.permutations, permutations_plus_one=config.permutations + 1,
+        design=("" if repeated is None else
+                ", of each subject's change between the two times" if repeated.design == "change"
+                else ", within each subject" if repeated.design == "within"
+                else ", every case of a subject resampled with it"),
+        tail=("" if points.tail == "both" else
+              f" (one-sided: an effect {'above' if points.tail == 'greater' else 'below'} 0)"),
+        resampling=html.escape(points.resampling), permutations=config.permutations, permutations_plus_one=config.permutations + 1,
         family_wise=family_wise, alpha=config.alpha,
         effect_unit=("(mm)" if subjects.tested == [subjects.group] else
                      "per unit of the covariate (mm)" if subjects.group not in subjects.tested
