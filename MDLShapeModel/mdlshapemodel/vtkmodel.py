@@ -57,8 +57,8 @@ from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from .build import correspond
 from .config import BuildConfig
 from .errors import BuildError, Cancelled, ConfigError, InputError
+from .folders import BuildFolder, physical_shapes
 from .model.shape_model import ShapeModel
-from .outputs import physical_shapes
 from .prepare import io, surface
 from .prepare.case import PreparedCase, PreparedPart
 from .prepare.landmarks import read_landmark_folder
@@ -426,7 +426,8 @@ class ShapeModelBuilder(_Filter):
         if stopped_by is not None:
             _add_field(result, STOPPED_BY, stopped_by.value)
         blocks = vtk.vtkMultiBlockDataSet()
-        shapes = physical_shapes(corresponded.state.raw_shapes(), prepared)
+        shapes = physical_shapes(corresponded.state.raw_shapes(),
+                                 [case.mirrored for case in prepared])
         for i, (name, points) in enumerate(zip(names, shapes)):
             blocks.SetBlock(i, surface.arrays_to_polydata(points, model.triangles))
             blocks.GetMetaData(i).Set(vtk.vtkCompositeDataSet.NAME(), name)
@@ -495,11 +496,12 @@ class ShapeModelInstance(_Filter):
 class ShapeModelReader(_Filter):
     """A model file -> the model polydata (the output 0 of :class:`ShapeModelBuilder`).
 
-    ``SetFileName``: a ``model.h5`` written by ``build``, :class:`ShapeModelWriter` or
-    :meth:`ShapeModel.save <mdlshapemodel.model.shape_model.ShapeModel.save>`, or any
-    Statismo/Scalismo shape model (:meth:`ShapeModel.load
-    <mdlshapemodel.model.shape_model.ShapeModel.load>`). A missing or unreadable file is an error
-    that names it.
+    ``SetFileName``: a build's output folder or its ``model.h5``
+    (:meth:`~mdlshapemodel.folders.BuildFolder.model`), a model file written by
+    :class:`ShapeModelWriter` or :meth:`ShapeModel.save
+    <mdlshapemodel.model.shape_model.ShapeModel.save>`, or any Statismo/Scalismo shape model
+    (:meth:`ShapeModel.load <mdlshapemodel.model.shape_model.ShapeModel.load>`). A missing or
+    unreadable file is an error that names it.
 
     Examples
     --------
@@ -520,7 +522,7 @@ class ShapeModelReader(_Filter):
     def _execute(self, in_info, out_info):
         if not self._file_name:
             raise InputError("no model file (SetFileName)")
-        model = ShapeModel.load(self._file_name)
+        model = BuildFolder(self._file_name).model()
         vtk.vtkPolyData.GetData(out_info).ShallowCopy(model_to_polydata(model))
 
 
