@@ -43,7 +43,7 @@ from .model.evaluation import evaluate_state
 from .model.landmarks import LandmarkCheck, landmark_array, transfer_errors
 from .model.shape_model import ShapeModel
 from .folders import BuildFolder, Checkpoint, find_inputs
-from .outputs import BuildResult, against_baselines, write_outputs
+from .outputs import BuildResult, against_baselines, write_outputs, write_shapes
 from .parallel import Task, dask_executor, helper_for
 from .prepare import io, preprocess
 from .prepare.case import Rejection
@@ -352,12 +352,13 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
         report(progress, 0.5, "evaluating the model, writing outputs")
         corresponded.state.release_sampling()   # final: its point locators' memory goes
+        written = write_shapes(output, corresponded, prepared)
         waited = time.perf_counter()
         quality = evaluate_state(corresponded.state, config, prepared, corresponded.model,
                                  pool=pool, background=False, jackknife=bool(baselines))
         baselines = against_baselines(quality, baselines)
         log.info("evaluated the model in %.1f s", time.perf_counter() - waited)
-        result = write_outputs(output, corresponded, prepared, rejected, quality, baselines,
+        result = write_outputs(output, corresponded, rejected, written, quality, baselines,
                                warnings, checked)
         report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)

@@ -1,7 +1,8 @@
 """A build's outputs: what goes into its folder's files (the model, the meshes, the tables of the
 cases, scores and landmarks, the metrics) and the report, written through
-:class:`~.folders.BuildFolder`, which alone knows the files' names and columns. The measures of the
-model are taken by the build (:func:`~.model.evaluation.evaluate_state`) and given here."""
+:class:`~.folders.BuildFolder`, which alone knows the files' names and columns. In two steps:
+:func:`write_shapes` (the model, meshes and tables), then, once the build has evaluated the model
+(:func:`~.model.evaluation.evaluate_state`), :func:`write_outputs` (metrics.json and the report)."""
 
 from __future__ import annotations
 
@@ -172,22 +173,25 @@ def against_baselines(quality: dict, baselines: dict) -> dict:
     return recorded
 
 
-def write_outputs(output: Path, corresponded, prepared: list, rejected: list, quality: dict,
-                  baselines: dict | None = None, warnings=(),
-                  landmark_check=None) -> BuildResult:
-    """The files of a build's folder (:class:`~.folders.BuildFolder`: the model, the mean,
-    correspondence/, aligned/, scores.csv, cases.csv, metrics.json, report.html and for a
-    guided build landmarks.csv) of the :class:`~mdlshapemodel.build.Correspondence` of the
-    ``prepared`` cases; ``quality`` is the model's measures
-    (:func:`~.model.evaluation.evaluate_state`) and ``baselines`` the baselines' with their
-    differences (:func:`against_baselines`); ``landmark_check`` (a
-    :class:`~mdlshapemodel.model.landmarks.LandmarkCheck`, optional) goes to metrics.json and
-    the report."""
+@dataclass
+class WrittenShapes:
+    """What :func:`write_shapes` wrote and found, for metrics.json and the report."""
+
+    cases: list               # the rows of cases.csv
+    landmarks: list           # CorrespondedLandmark, the rows of landmarks.csv
+    normals: object           # NormalAgreement, None for 2-D curves
+    outlier: dict             # score_outliers
+    flagged: dict             # flagged_cases
+    aligned: np.ndarray       # the corresponded shapes in the model's frame
+    distances: np.ndarray | None   # corresponded_distances
+
+
+def write_shapes(output: Path, corresponded, prepared: list) -> WrittenShapes:
+    """The first files of a build's folder (:class:`~.folders.BuildFolder`): the model, the
+    mean, correspondence/, aligned/, scores.csv, cases.csv and for a guided build landmarks.csv,
+    of the :class:`~mdlshapemodel.build.Correspondence` of the ``prepared`` cases."""
     folder = BuildFolder(output)
     state, model = corresponded.state, corresponded.model
-    initial, final = corresponded.initial_objective, corresponded.final_objective
-    voxel, data_range = corresponded.voxel_size, corresponded.data_range
-    interrupted = corresponded.interrupted
     triangles = model.triangles
     aligned = state.aligned_shapes()
     raw = state.raw_shapes()
@@ -230,6 +234,25 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list, qu
     landmarks = corresponded_landmarks(model, physical, prepared, corresponded.landmarks)
     folder.write_landmarks(landmarks)
     log.info("wrote the model, meshes and tables in %.1f s", time.perf_counter() - started)
+    return WrittenShapes(cases, landmarks, normals, outlier, flagged, aligned,
+                         corresponded_distances(raw, prepared, parts))
+
+
+def write_outputs(output: Path, corresponded, rejected: list, written: WrittenShapes,
+                  quality: dict, baselines: dict | None = None, warnings=(),
+                  landmark_check=None) -> BuildResult:
+    """The last files of a build's folder, after :func:`write_shapes` (``written``):
+    metrics.json and report.html. ``quality`` is the model's measures
+    (:func:`~.model.evaluation.evaluate_state`) and ``baselines`` the baselines' with their
+    differences (:func:`against_baselines`); ``landmark_check`` (a
+    :class:`~mdlshapemodel.model.landmarks.LandmarkCheck`, optional) goes to metrics.json and
+    the report."""
+    state, model = corresponded.state, corresponded.model
+    initial, final = corresponded.initial_objective, corresponded.final_objective
+    voxel, data_range = corresponded.voxel_size, corresponded.data_range
+    interrupted = corresponded.interrupted
+    names = model.names
+    cases, normals, outlier = written.cases, written.normals, written.outlier
     metrics = {"objective": {"initial": initial, "final": final,
                              "n_points": corresponded.objective_points,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
@@ -242,7 +265,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list, qu
                "variances": model.variances.tolist(), **quality,
                "score_outliers": {"modes": outlier["modes"], "threshold": outlier["threshold"],
                                   "cases": [n for n, o in zip(names, outlier["outlier"]) if o]},
-               "flagged_cases": flagged,
+               "flagged_cases": written.flagged,
                "normals": None if normals is None else {
                    "spread_degrees_median": float(np.median(normals.spread_degrees)),
                    "flagged_points": int(np.count_nonzero(normals.flagged)),
@@ -252,13 +275,13 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list, qu
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
-               "landmarks": landmark_summary(model, landmarks),
+               "landmarks": landmark_summary(model, written.landmarks),
                "landmark_check": None if landmark_check is None else landmark_check.to_json(),
                "baselines": baselines or {}, "warnings": list(warnings)}
-    folder.write_metrics(metrics)
+    BuildFolder(output).write_metrics(metrics)
     started = time.perf_counter()
-    write_report(output, metrics, cases, rejected, model, aligned, names,
-                 corresponded_distances(raw, prepared, parts), normals)
+    write_report(output, metrics, cases, rejected, model, written.aligned, names,
+                 written.distances, normals)
     log.info("wrote the report in %.1f s", time.perf_counter() - started)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted,
                        list(warnings), corresponded.optimisation.converged)
