@@ -397,20 +397,18 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         """The nodes of a build's output folder: the model (:meth:`loadModel`) and every case's
         corresponded model, in the build's case order, and for a build guided by landmarks
         every case's corresponded landmarks (``landmarks.csv``) as a point list."""
-        from mdlshapemodel.prepare.io import case_file
+        from mdlshapemodel.folders import BuildFolder
 
-        outputDirectory = pathlib.Path(outputDirectory)
-        result = self.loadModel(outputDirectory / "model.h5")
+        build = BuildFolder(outputDirectory)
+        result = self.loadModel(build.model_file)
         for name in result.caseNames:
             for part in result.partNames or [""]:   # several parts: a node per part
-                node = _readModel(case_file(outputDirectory / "correspondence" / part, name),
-                                  f"{name} {part}".strip())
+                node = _readModel(build.case_mesh(part, name), f"{name} {part}".strip())
                 _placeInFolder(node, result.folderItemID)
                 result.correspondenceModelNodes.append(node)
         marks = {}
-        for row in _readCsv(outputDirectory / "landmarks.csv"):
-            marks.setdefault(row["case"], []).append(
-                (row["label"], [float(row[c]) for c in ("x", "y", "z")]))
+        for landmark in build.landmarks():
+            marks.setdefault(landmark.case, []).append((landmark.label, landmark.point))
         for name, points in marks.items():
             node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode",
                                                       f"{name} landmarks")
@@ -418,14 +416,11 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                 node.AddControlPoint(list(_toRas([point])[0]), label)
             _placeInFolder(node, result.folderItemID)
             result.landmarkNodes.append(node)
-        result.rejected = list(rejected) + [(row["case"], row["reason"]) for row in
-                                            _readCsv(outputDirectory / "rejected.csv")]
+        result.rejected = list(rejected) + [(r.name, r.reason) for r in build.rejected()]
         result.interrupted = interrupted
-        report = outputDirectory / "report.html"
-        result.reportFile = report if report.exists() else None
-        metrics = outputDirectory / "metrics.json"
-        if metrics.exists():
-            written = json.loads(metrics.read_text())
+        result.reportFile = build.report_file if build.report_file.exists() else None
+        written = build.metrics()
+        if written is not None:
             result.warnings = list(written.get("warnings", []))
             result.converged = written.get("optimisation", {}).get("converged")
         return result
@@ -433,9 +428,10 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
     def loadModel(self, path) -> ShapeModelResult:
         """A model.h5 (or a build's folder) as nodes: the mean, a shape explorer and, when the
         build's tables are next to it, the metrics and scores tables. No correspondence nodes."""
-        from mdlshapemodel.model.fitting import load_model
+        from mdlshapemodel.folders import BuildFolder
 
-        model, modelFile = load_model(path)
+        build = BuildFolder(path)
+        model, modelFile = build.model(), build.model_file
         folderName = modelFile.parent.name or "model"
         hierarchy = _subjectHierarchy()
         folder = hierarchy.CreateFolderItem(hierarchy.GetSceneItemID(),
@@ -452,11 +448,11 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         explorer.GetDisplayNode().SetActiveScalarName("Displacement")
         explorer.GetDisplayNode().SetScalarVisibility(True)
         mean.GetDisplayNode().SetVisibility(False)
-        metrics = _metricsTable(modelFile.parent / "metrics.json", folderName)
-        scores = _scoresTable(modelFile.parent / "scores.csv", folderName)
+        metrics = _metricsTable(build, folderName)
+        scores = _scoresTable(build, folderName)
         for node in filter(None, (mean, explorer, metrics, scores)):
             _placeInFolder(node, folder)
-        return ShapeModelResult(modelFile.parent if modelFile.name == "model.h5" else None,
+        return ShapeModelResult(build.path if build.is_build_model else None,
                                 modelFile, folder, mean, explorer, metrics, scores,
                                 caseNames=list(model.names), partNames=list(model.part_names))
 
@@ -616,9 +612,10 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         """Fit one new segmentation (or label map, model, file) to a model, as the command
         line's ``fit`` does; returns (corresponded model node, reconstruction model node, the
         library's FitResult)."""
-        from mdlshapemodel.model.fitting import build_config_of, fit_case, load_model
+        from mdlshapemodel.folders import BuildFolder
+        from mdlshapemodel.model.fitting import build_config_of, fit_case
 
-        model, _ = load_model(modelPath)
+        model = BuildFolder(modelPath).model()
         config = build_config_of(model)
         outputDirectory = pathlib.Path(outputDirectory)
         exported = self.exportInputs([inputNode], outputDirectory / "inputs", config, segments)
@@ -999,32 +996,24 @@ def _table(name: str, columns: dict):
     return node
 
 
-# the per-mode measures of metrics.json shown in the metrics table, with their standard errors
-MEASURES = (("compactness", "C"), ("generalization", "G"), ("specificity", "S"),
-            ("generalization_mm", "G (mm)"), ("specificity_mm", "S (mm)"))
+def _metricsTable(build, name: str):
+    """The build's measures per mode with their standard errors (``BuildFolder.measures``) as
+    a table node; None without them."""
+    columns = build.measures()
+    return None if columns is None else _table(f"{name} measures", columns)
 
 
-def _metricsTable(path: pathlib.Path, name: str):
-    if not path.exists():
+def _scoresTable(build, name: str):
+    """The cases' scores per mode (``BuildFolder.scores``) as a table node; None without them."""
+    from mdlshapemodel.folders import score_header
+
+    scores = build.scores()
+    if scores is None:
         return None
-    metrics = json.loads(path.read_text())
-    modes = metrics.get("modes") or list(range(1, len(metrics.get("compactness", [])) + 1))
-    columns = {"mode": [float(m) for m in modes]}
-    for key, title in MEASURES:
-        if key in metrics:
-            columns[title] = [float(v) for v in metrics[key]]
-            columns[f"{title} SE"] = [float(v) for v in metrics.get(f"{key}_se", metrics[key])]
-    return _table(f"{name} measures", columns)
-
-
-def _scoresTable(path: pathlib.Path, name: str):
-    rows = _readCsv(path)
-    if not rows:
-        return None
-    columns = {"case": [row["case"] for row in rows]}
-    for key in rows[0]:
-        if key != "case":
-            columns[key] = [float(row[key]) for row in rows]
+    names, values = scores
+    columns = {"case": list(names)}
+    for k, title in enumerate(score_header(values.shape[1])[1:]):
+        columns[title] = [float(v) for v in values[:, k]]
     return _table(f"{name} scores", columns)
 
 
@@ -1116,7 +1105,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         folder = str(self._parameterNode.inputFolder)
         if folder not in ("", "."):
             try:
-                from mdlshapemodel.prepare.io import find_inputs
+                from mdlshapemodel.folders import find_inputs
             except ImportError:      # the library's packages are not installed yet: Apply asks
                 return nodes + [folder]
             nodes += find_inputs([folder])
@@ -1135,14 +1124,14 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onApply(self):
         if not ensureDependencies(ask=True):
             return
-        from mdlshapemodel.outputs import earlier_build
+        from mdlshapemodel.folders import BuildFolder
 
         with slicer.util.tryWithErrorDisplay("Could not start the build.", waitCursor=True):
             markups = list(self.ui.landmarkNodesSelector.checkedNodes())
             config = landmarkConfigOf(buildConfigOf(self._parameterNode), self._parameterNode,
                                       bool(markups))
             output = pathlib.Path(str(self._parameterNode.outputDirectory))
-            overwrite = bool(earlier_build(output))
+            overwrite = bool(BuildFolder(output).earlier_build())
             if overwrite and not slicer.util.confirmYesNoDisplay(
                     f"{output} holds an earlier build. Replace it?"):
                 return

@@ -1,8 +1,8 @@
 """The house: data flows one way between the rooms, no import circles, light leaves.
 
 Stages, upstream first: the leaves (config, errors, progress, parallel, version), prepare,
-correspondence, model, analysis, report, the build and the analysis's files (build, outputs,
-analyze), the faces (cli, vtkfilters, vtkmodel, demo, and the package front door, whose heavy
+correspondence, model, the build folder (folders: its files read and written), analysis, report,
+the commands (build, outputs, analyze, fit, compare), the faces (cli, vtkfilters, vtkmodel, demo, and the package front door, whose heavy
 names load on first use). A module may import its own stage and the stages upstream of it, never
 one downstream.
 """
@@ -22,9 +22,10 @@ STAGES = [
     {"prepare"},
     {"correspondence"},
     {"model"},
+    {"folders"},
     {"analysis"},
     {"report"},
-    {"build", "outputs", "analyze", "kernels"},
+    {"build", "outputs", "analyze", "fit", "compare", "kernels"},
     {"cli", "vtkfilters", "vtkmodel", "demo", "__init__"},
 ]
 

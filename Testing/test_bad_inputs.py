@@ -605,7 +605,7 @@ def test_a_cache_entry_holding_a_pickle_is_made_anew_not_run(tmp_path):
 
 
 def test_a_checkpoint_holding_a_pickle_is_refused_not_run(tmp_path):
-    from mdlshapemodel.outputs import load_checkpoint
+    from mdlshapemodel.folders import load_checkpoint
 
     marker = tmp_path / "the pickle ran"
     np.savez(tmp_path / "checkpoint.npz", names=np.array([Planted(marker)], dtype=object))

@@ -8,7 +8,7 @@ import SimpleITK as sitk
 
 from mdlshapemodel import BuildConfig, ShapeModel, build_model
 from mdlshapemodel.correspondence.strategies.base import PhasePoint
-from mdlshapemodel.outputs import read_checkpoint
+from mdlshapemodel.folders import read_checkpoint
 from mdlshapemodel.prepare.io import read_csv
 from mdlshapemodel.errors import BuildError
 

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from mdlshapemodel.report.compare import (Population, compare_populations, comparison_rows,
-                                   load_population, write_comparison)
+from mdlshapemodel.compare import load_population, write_comparison
+from mdlshapemodel.report.compare import Population, compare_populations, comparison_rows
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.evaluation import (evaluate, generalization, generalization_difference,
                                            generalization_jackknife, model_space)

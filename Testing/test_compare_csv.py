@@ -12,7 +12,8 @@ from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.model.evaluation import evaluate, generalization
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import io
-from mdlshapemodel.report.compare import Population, compare_populations, write_comparison
+from mdlshapemodel.compare import write_comparison
+from mdlshapemodel.report.compare import Population, compare_populations
 
 MODES, SAMPLES = 3, 300
 

@@ -12,7 +12,8 @@ from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.warps import (WARP_KINDS, AsymmetricTheta, FieldWarp, Rotation,
                                                 ShearTwist, SymmetricTheta, apply_warps)
-from mdlshapemodel.outputs import load_checkpoint, save_checkpoint, warp_summary
+from mdlshapemodel.folders import load_checkpoint, save_checkpoint
+from mdlshapemodel.outputs import warp_summary
 
 from synthetic import build_objectives, small_state
 

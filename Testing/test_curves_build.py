@@ -11,7 +11,7 @@ from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel.demo import demo_curve, write_demo_curves
 from mdlshapemodel.model.shape_model import ShapeModel
-from mdlshapemodel.outputs import load_checkpoint
+from mdlshapemodel.folders import load_checkpoint
 from mdlshapemodel.prepare.io import read_csv
 
 from common import run_cli

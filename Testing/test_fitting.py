@@ -10,7 +10,9 @@ from mdlshapemodel import BuildConfig, build_model
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.evaluation import generalization
 from mdlshapemodel.correspondence.smoothness import bending_matrix
-from mdlshapemodel.model.fitting import build_config_of, fit_case, fit_cases, load_model
+from mdlshapemodel.fit import fit_cases
+from mdlshapemodel.folders import BuildFolder
+from mdlshapemodel.model.fitting import build_config_of, fit_case
 from mdlshapemodel.prepare.io import read_csv
 from mdlshapemodel.prepare import prepare_case
 from mdlshapemodel.prepare.surface import point_surface_distances
@@ -46,7 +48,7 @@ def models(tmp_path_factory):
 @pytest.fixture(scope="module")
 def fitted(models):
     _, partial, path = models
-    model, _ = load_model(partial.output)
+    model = BuildFolder(partial.output).model()
     return model, fit_case(model, path, max_time=600, max_sweeps=3)
 
 
@@ -148,7 +150,7 @@ def test_fit_cases_writes_outputs_and_rejects_bad_inputs(models, tmp_path):
     entry = summary[f"case_{HELD_BACK}"]
     assert len(entry["reconstruction_squared_mm2"]) == results[0].squared_error.size
     # the case's distance from the mean in the model it was fitted to, and its scores there
-    model, _ = load_model(partial.output)
+    model = BuildFolder(partial.output).model()
     assert entry["mahalanobis"] == pytest.approx(
         np.sqrt(np.sum(results[0].scores ** 2 / model.variances)), rel=1e-12)
     rows = read_csv(out / "scores.csv")
@@ -162,4 +164,4 @@ def test_fit_cases_writes_outputs_and_rejects_bad_inputs(models, tmp_path):
 
 def test_missing_model_is_a_clear_error(tmp_path):
     with pytest.raises(InputError, match="no such model file"):
-        load_model(tmp_path / "nothing")
+        BuildFolder(tmp_path / "nothing").model()

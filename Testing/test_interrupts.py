@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from mdlshapemodel import BuildConfig, Cancelled, ShapeModel
-from mdlshapemodel.outputs import earlier_build
+from mdlshapemodel.folders import BuildFolder
 from mdlshapemodel.parallel import ProcessPool, Task, Threads
 from mdlshapemodel.prepare import io
 from mdlshapemodel.progress import ctrl_c
@@ -170,7 +170,7 @@ def assert_ended_well(run: Run):
         assert not any(PHASES["optimising"] in line for line in run.before + run.after), said
         assert [line for line in run.after if not PREPARING_PROGRESS.match(line)] == [
             "mdlshapemodel: interrupted"], said
-        assert earlier_build(run.output) == [] and not (run.output / "model.h5").exists()
+        assert BuildFolder(run.output).earlier_build() == [] and not (run.output / "model.h5").exists()
         return
     assert run.returncode == 0, said
     assert_whole_build(run.output)
@@ -394,4 +394,4 @@ def test_build_model_finishes_its_outputs_after_a_ctrl_c_and_gives_the_handler_b
     with pytest.raises(Cancelled):
         build_model([labels], tmp_path / "stopped", config, progress=press_preparing)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    assert earlier_build(tmp_path / "stopped") == []
+    assert BuildFolder(tmp_path / "stopped").earlier_build() == []

@@ -11,7 +11,8 @@ import json
 import numpy as np
 import pytest
 
-from mdlshapemodel.outputs import LANDMARK_COLUMNS, CorrespondedLandmark, landmark_summary
+from mdlshapemodel.folders import LANDMARK_COLUMNS, CorrespondedLandmark
+from mdlshapemodel.outputs import landmark_summary
 from mdlshapemodel.prepare.landmarks import read_landmark_folder, read_landmarks
 
 SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/"

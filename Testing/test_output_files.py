@@ -8,7 +8,7 @@ import pytest
 import SimpleITK as sitk
 
 from mdlshapemodel import ShapeModel
-from mdlshapemodel.outputs import BUILD_FILES, previous_build
+from mdlshapemodel.folders import BUILD_FILES, BuildFolder
 from mdlshapemodel.prepare.io import write_csv, written_whole
 
 from common import run_cli
@@ -51,7 +51,7 @@ def test_a_second_build_into_the_same_folder_is_refused_unless_overwrite(labels,
     first = build(labels, output)
     assert first.returncode == 0, first.stderr
     # every file of a build but landmarks.csv, which a build guided by landmarks writes
-    assert {p.name for p in previous_build(output)} == set(BUILD_FILES) - {"landmarks.csv"}
+    assert {p.name for p in BuildFolder(output).previous_build()} == set(BUILD_FILES) - {"landmarks.csv"}
     assert not [p for p in output.rglob("*") if ".partial" in p.name]
     model = (output / "model.h5").read_bytes()
     stamp = os.stat(output / "model.h5").st_mtime_ns

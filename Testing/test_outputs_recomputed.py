@@ -313,7 +313,7 @@ def test_fit_json_of_a_new_case(build, tmp_path):
     Mahalanobis distance, its p-value against F(k, n - k) of (n - k) d^2 / (k (n + 1)) and its
     largest departure from the reconstruction by k modes, all from the written scores and
     the model, with a weighted least-squares projection done here."""
-    from mdlshapemodel.model.fitting import fit_cases
+    from mdlshapemodel.fit import fit_cases
 
     mask = small_mask(0.2, 0.96).astype(np.uint8)
     image = sitk.GetImageFromArray(mask)

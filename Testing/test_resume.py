@@ -18,7 +18,7 @@ from mdlshapemodel.config import OptimisationSettings
 from mdlshapemodel.correspondence.state import state_record
 from mdlshapemodel.correspondence.strategies.base import PhasePoint
 from mdlshapemodel.errors import BuildError
-from mdlshapemodel.outputs import earlier_build, read_checkpoint
+from mdlshapemodel.folders import BuildFolder, read_checkpoint
 from mdlshapemodel.prepare import io
 
 from common import TIMEOUT, run_cli
@@ -188,7 +188,7 @@ def test_a_build_killed_at_any_stage_resumes_to_the_uninterrupted_model(
         assert len(pids) >= 2             # the pool's workers were there, and ended
     assert_whole_outputs(output)
     if stage == "preparing":    # killed before any checkpoint: nothing blocks a plain rerun
-        assert earlier_build(output) == []
+        assert BuildFolder(output).earlier_build() == []
     else:
         refused = run_cli(*command(labels, output))
         assert refused.returncode == 2 and "--overwrite" in refused.stderr   # not without --resume

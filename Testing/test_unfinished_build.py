@@ -10,7 +10,7 @@ import shlex
 import pytest
 
 from mdlshapemodel.correspondence.strategies.base import PhasePoint
-from mdlshapemodel.outputs import read_checkpoint
+from mdlshapemodel.folders import read_checkpoint
 
 from common import run_cli
 from synthetic import write_population

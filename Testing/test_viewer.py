@@ -382,7 +382,8 @@ def test_the_normals_check_shows_its_map_and_the_cases_most_off(browser, tmp_pat
 
 
 def test_the_landmarks_section_lists_each_label_and_its_farthest_case(browser, tmp_path):
-    from mdlshapemodel.outputs import CorrespondedLandmark, landmark_summary
+    from mdlshapemodel.folders import CorrespondedLandmark
+    from mdlshapemodel.outputs import landmark_summary
 
     model, shapes, names = population(n_s=4, n_points=42)
     model.landmarks = {"tip": 3, "base": 17}

@@ -20,7 +20,7 @@ import numpy as np
 
 from mdlshapemodel.model.evaluation import (JACKKNIFE_GROUPS, generalization_difference,
                                            generalization_jackknife, model_space)
-from mdlshapemodel.report.compare import load_population
+from mdlshapemodel.compare import load_population
 
 
 def trial(shapes, weights, rng, cases, sigma, ratio, modes, groups):

@@ -66,7 +66,7 @@ def inputs(build: Path, cases: int, labels: tuple) -> tuple:
     from mdlshapemodel.config import BuildConfig
     from mdlshapemodel.correspondence.initial import initial_state
     from mdlshapemodel.correspondence.state import replay_record
-    from mdlshapemodel.outputs import load_checkpoint
+    from mdlshapemodel.folders import load_checkpoint
     from mdlshapemodel.prepare.batch import preprocess
 
     config = BuildConfig(labels=labels, workers=1)

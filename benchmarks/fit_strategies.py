@@ -34,7 +34,8 @@ def main() -> int:
     args = parser.parse_args()
 
     from mdlshapemodel import BuildConfig, build_model
-    from mdlshapemodel.model.fitting import build_config_of, fit_case, load_model
+    from mdlshapemodel.folders import BuildFolder
+    from mdlshapemodel.model.fitting import build_config_of, fit_case
     from mdlshapemodel.prepare import prepare_case
 
     paths = sorted(Path(args.data).glob("*.nii.gz"))
@@ -47,7 +48,7 @@ def main() -> int:
         started = time.perf_counter()
         build_model([str(p) for p in training], folder, BuildConfig(labels=[1, 2]))
         print(f"model of {len(training)} cases built in {time.perf_counter() - started:.0f} s")
-    model, _ = load_model(folder)
+    model = BuildFolder(folder).model()
     config = build_config_of(model)
     prepared = [prepare_case(str(p), config) for p in held_out]
     columns = [m for m in (1, 3, 10) if m <= model.n_modes] + [model.n_modes]

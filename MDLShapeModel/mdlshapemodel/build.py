@@ -42,8 +42,8 @@ from .kernels import compile_ahead
 from .model.evaluation import evaluate_state
 from .model.landmarks import LandmarkCheck, landmark_array, transfer_errors
 from .model.shape_model import ShapeModel
-from .outputs import (BuildResult, Checkpoint, clear_previous_build, earlier_build,
-                      read_checkpoint, remove_partial_files, save_checkpoint, write_outputs)
+from .folders import BuildFolder, Checkpoint, find_inputs
+from .outputs import BuildResult, against_baselines, write_outputs, write_shapes
 from .parallel import Task, dask_executor, helper_for
 from .prepare import io, preprocess
 from .prepare.case import Rejection
@@ -126,17 +126,18 @@ def build_model(inputs, output, config: BuildConfig | None = None,
     cases = _cases(inputs, config, manifest, output)      # before anything is written
     landmarks = (None if config.landmarks is None
                  else read_landmark_folder(config.landmarks, [case.name for case in cases]))
-    io.refuse_earlier(output, [] if resume else earlier_build(output), overwrite, "build",
+    folder = BuildFolder(output)
+    io.refuse_earlier(output, [] if resume else folder.earlier_build(), overwrite, "build",
                       ", --resume to carry it on", BuildError)
     with ctrl_c() as interrupt:
         interrupt.check()    # Ctrl-C already (the command line's, as it started): nothing touched
         if resume:
-            _refuse_other_settings(output, config)         # before any case is prepared
-            remove_partial_files(output)
+            _refuse_other_settings(folder, config)         # before any case is prepared
+            folder.remove_partial_files()
         else:
-            clear_previous_build(output)
+            folder.clear()
         output.mkdir(parents=True, exist_ok=True)    # its folders come with what goes in them
-        handler = logging.FileHandler(output / "build.log", mode="a" if resume else "w")
+        handler = logging.FileHandler(folder.log_file, mode="a" if resume else "w")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(handler)
         if log.level == logging.NOTSET or log.level > logging.INFO:
@@ -182,24 +183,25 @@ def _refuse_difference(path: Path, then: dict, now: dict):
                          "with the same ones, or build anew with --overwrite")
 
 
-def _refuse_other_settings(output: Path, config: BuildConfig):
+def _refuse_other_settings(folder: BuildFolder, config: BuildConfig):
     """On ``--resume``, the checkpoint's settings against this build's, before any work (the
     input files are compared once they are prepared: :func:`_resumption`)."""
-    path = output / "checkpoint.npz"
-    if path.exists():
+    checkpoint = folder.checkpoint()
+    if checkpoint is not None:
         settings = fingerprint([], config)["settings"]
-        _refuse_difference(path, read_checkpoint(path).fingerprint, {"settings": settings})
+        _refuse_difference(folder.checkpoint_file, checkpoint.fingerprint,
+                           {"settings": settings})
 
 
-def _resumption(output: Path, print_of: dict):
+def _resumption(folder: BuildFolder, print_of: dict) -> Checkpoint | None:
     """The checkpoint to resume from (None: there is none, start over), checked against this
     build's :func:`fingerprint` ``print_of``."""
-    path = output / "checkpoint.npz"
-    if not path.exists():
+    checkpoint = folder.checkpoint()
+    path = folder.checkpoint_file
+    if checkpoint is None:
         log.info("no checkpoint in %s: starting over (the prepared cases come from the cache)",
-                 output)
+                 folder.path)
         return None
-    checkpoint = read_checkpoint(path)
     _refuse_difference(path, checkpoint.fingerprint, print_of)
     log.info("resuming from %s (%s, step %d)", path, checkpoint.point.phase,
              checkpoint.point.sweep)
@@ -223,7 +225,7 @@ def _cases(inputs, config: BuildConfig, manifest, output: Path) -> list:
     for path in paths:
         if path.is_dir() and path.resolve() == output.resolve():
             raise InputError(f"{path}: is the output folder; give the inputs' folder")
-    cases = case_inputs(io.find_inputs(paths), config)
+    cases = case_inputs(find_inputs(paths), config)
     if manifest is not None:
         cases += read_manifest(manifest, config)
     if not cases:
@@ -278,7 +280,7 @@ def _build(cases: list, output: Path, config: BuildConfig, progress, executor,
            resume: bool, landmarks: dict | None, interrupt: Interrupt) -> BuildResult:
     started = time.perf_counter()
     progress = interrupt.watch(progress)
-    io.write_text(output / "config.json", json.dumps(config.to_dict(), indent=2))
+    BuildFolder(output).write_settings(config)
     if config.scheduler is None:
         log.info("preprocessing %d cases with %d workers", len(cases), config.workers)
         return _build_from(cases, output, config, progress, executor, resume, started,
@@ -292,13 +294,13 @@ def _build(cases: list, output: Path, config: BuildConfig, progress, executor,
 def _build_from(cases: list, output: Path, config: BuildConfig, progress, executor,
                 resume: bool, started: float, landmarks: dict | None,
                 interrupt: Interrupt) -> BuildResult:
+    folder = BuildFolder(output)
     prepared, rejected = preprocess(cases, config, executor, progress)
     prepared, odd = one_kind(prepared)
     rejected = rejected + odd
     for line in io.rejection_lines((r.path, r.reason) for r in rejected):
         log.warning("rejected %s", line)            # the same reason once, with its count
-    io.write_csv(output / "rejected.csv", ("case", "file", "reason"),
-                 [(r.name, r.path, r.reason) for r in rejected])
+    folder.write_rejected(rejected)
     if rejected and config.strict:
         raise BuildError(f"{len(rejected)} input(s) rejected and --strict is set")
     warnings = absent_labels(prepared, config)
@@ -315,10 +317,10 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
                                                    jackknife=True))
 
         print_of = fingerprint(prepared, config, landmarks)
-        resumed = _resumption(output, print_of) if resume else None
+        resumed = _resumption(folder, print_of) if resume else None
 
         def checkpoint(state, point, rng, trace):
-            save_checkpoint(output / "checkpoint.npz", state, point, rng, trace, print_of)
+            folder.save_checkpoint(state, point, rng, trace, print_of)
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
                                   evaluate_baseline, resumed, landmarks)
@@ -338,7 +340,7 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         if unfinished is not None:
             log.warning("%s", unfinished)
             warnings = [*warnings, unfinished]
-        io.write_csv(output / "convergence.csv", Trace.HEADER, corresponded.trace.rows)
+        folder.write_convergence(corresponded.trace)
         # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
         # then the model's, with the outputs
         report(progress, 0.0, "evaluating the baselines" if pending else "evaluating")
@@ -350,7 +352,13 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
         report(progress, 0.5, "evaluating the model, writing outputs")
         corresponded.state.release_sampling()   # final: its point locators' memory goes
-        result = write_outputs(output, corresponded, prepared, rejected, config, baselines, pool,
+        written = write_shapes(output, corresponded, prepared)
+        waited = time.perf_counter()
+        quality = evaluate_state(corresponded.state, config, prepared, corresponded.model,
+                                 pool=pool, background=False, jackknife=bool(baselines))
+        baselines = against_baselines(quality, baselines)
+        log.info("evaluated the model in %.1f s", time.perf_counter() - waited)
+        result = write_outputs(output, corresponded, rejected, written, quality, baselines,
                                warnings, checked)
         report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)

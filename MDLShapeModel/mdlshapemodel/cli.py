@@ -280,14 +280,17 @@ def _summary(result) -> str:
                      + (f"{check['mean']['held_out_mm']:.2f} mm left out of the guides, "
                         f"{check['mean']['guided_mm']:.2f} mm guiding" if check["guided"] else
                         f"{check['mean']['held_out_mm']:.2f} mm (not guiding)"))
-    lines.append(f"  report: {result.output / 'report.html'}")
+    from .folders import CASES, BuildFolder
+
+    folder = BuildFolder(result.output)
+    lines.append(f"  report: {folder.report_file}")
     flagged = m.get("flagged_cases", {})
     if flagged:
-        lines.append(f"  {len(flagged)} case(s) flagged, to look at (report, cases.csv 'flags'): "
+        lines.append(f"  {len(flagged)} case(s) flagged, to look at (report, {CASES} 'flags'): "
                      + "; ".join(f"{name}: {', '.join(reasons)}"
                                  for name, reasons in flagged.items()))
     if result.rejected:
-        lines.append(f"  {len(result.rejected)} input(s) rejected: see {result.output / 'rejected.csv'}")
+        lines.append(f"  {len(result.rejected)} input(s) rejected: see {folder.rejected_file}")
     lines += [f"  warning: {warning}" for warning in result.warnings]
     return "\n".join(lines)
 
@@ -318,24 +321,20 @@ def _run_build(inputs, output, config, live: bool, overwrite: bool = False,
 
 
 def _run_compare(args) -> int:
-    from .report.compare import (compare_populations, load_population,
-                                 refuse_earlier_comparison, summary_lines, write_comparison)
+    from .compare import compare_builds
+    from .report.compare import summary_lines
 
-    refuse_earlier_comparison(args.output, args.overwrite)     # before any work
-    populations = [load_population(path) for path in args.outputs]
-    labels = [p.label for p in populations]
-    for k, population in enumerate(populations):  # labels must be unique keys
-        if labels.count(population.label) > 1:
-            population.label = f"{population.label} #{k + 1}"
-    result = compare_populations(populations, args.modes, args.samples, args.seed)
-    page = write_comparison(result, args.output, args.overwrite)
+    result, page = compare_builds(args.outputs, args.output, args.modes, args.samples,
+                                  args.seed, args.overwrite)
     print("\n".join(summary_lines(result)))
-    print(f"comparison of {len(populations)} models on {result['n_cases']} shared cases: {page}")
+    print(f"comparison of {len(result['models'])} models on {result['n_cases']} shared cases: "
+          f"{page}")
     return 0
 
 
 def _run_fit(args) -> int:
-    from .model.fitting import fit_cases
+    from .fit import fit_cases
+    from .folders import FitFolder
 
     results, _ = fit_cases(args.model, args.inputs, args.output, args.label, args.max_time,
                            args.max_sweeps, args.seed, strategy=args.strategy,
@@ -345,7 +344,7 @@ def _run_fit(args) -> int:
               f"{result.squared_error[-1]:.4f} mm^2 ({result.distance_error[-1]:.3f} mm mean), "
               f"mean shape only {result.squared_error[0]:.4f} mm^2; objective "
               f"{result.objective['initial']:.3f} -> {result.objective['final']:.3f}")
-    print(f"fitted {len(results)} case(s) to {args.model}: {Path(args.output) / 'fit.json'}")
+    print(f"fitted {len(results)} case(s) to {args.model}: {FitFolder(args.output).summary_file}")
     return 0
 
 
@@ -483,7 +482,7 @@ def main(argv=None) -> int:
                     "(the first model is the reference). Writes compare.html/.csv/.json.",
         epilog="examples:\n  mdlshapemodel compare out both -o comparison",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    compare.add_argument("outputs", nargs="+", help="build output folders (or their model.h5)")
+    compare.add_argument("outputs", nargs="+", help="build output folders (or their model files)")
     compare.add_argument("-o", "--output", default="comparison", help="folder for the comparison "
                          "(default %(default)s)")
     compare.add_argument("--modes", type=int, default=defaults.evaluation_modes,
@@ -500,9 +499,9 @@ def main(argv=None) -> int:
                     "new case's reparameterization and pose, with the model's training shapes "
                     "fixed) and write their scores and reconstructions.",
         epilog="examples:\n  mdlshapemodel fit out new/ -o fitted\n"
-               "  mdlshapemodel fit out/model.h5 new/case.nii.gz -o fitted --overwrite",
+               "  mdlshapemodel fit out new/case.nii.gz -o fitted --overwrite",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    fit.add_argument("model", help="model.h5 or the build output folder holding it")
+    fit.add_argument("model", help="a build's output folder, or its model file")
     fit.add_argument("inputs", nargs="*", help="label maps, meshes, or folders of them")
     fit.add_argument("-o", "--output", required=True, help="output folder")
     fit.add_argument("--manifest", metavar="CSV",

@@ -448,7 +448,7 @@ class BuildConfig:
                          "where it does not guide it: the optimisation runs again with the "
                          f"label left out of the guides (up to {LANDMARK_CHECK_FOLDS} labels one "
                          f"at a time, more in {LANDMARK_CHECK_FOLDS} groups: one more "
-                         "optimisation each); the errors go to metrics.json and the report"))
+                         "optimisation each); the errors go to the build's metrics and report"))
     # None: SMOOTHNESS on surfaces (GUIDED_SMOOTHNESS with guides), none on 2-D curves
     # (smoothness_for)
     smoothness: float | None = field(default=None, metadata=option(

@@ -1,27 +1,22 @@
-"""The files of a build's output folder: model.h5, mean.vtp, correspondence/, aligned/ (with a
-sub-folder per part of a multi-part object), the tables, metrics.json, the checkpoint, and (through
-:mod:`.report`) report.html."""
+"""A build's outputs: what goes into its folder's files (the model, the meshes, the tables of the
+cases, scores and landmarks, the metrics) and the report, written through
+:class:`~.folders.BuildFolder`, which alone knows the files' names and columns. In two steps:
+:func:`write_shapes` (the model, meshes and tables), then, once the build has evaluated the model
+(:func:`~.model.evaluation.evaluate_state`), :func:`write_outputs` (metrics.json and the report)."""
 
 from __future__ import annotations
 
-import json
 import logging
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .config import BuildConfig
-from .correspondence.state import CorrespondenceState, state_record
-from .correspondence.strategies.base import PhasePoint
-from .correspondence.trace import TraceRow
-from .errors import BuildError
-from .model.evaluation import evaluate_state, measure_differences
+from .folders import BuildFolder, CorrespondedLandmark, physical_shapes
+from .model.evaluation import measure_differences
 from .model.normals import CASE_OFF_SHARE, OFF_DEGREES, SPREAD_DEGREES, normal_agreement
 from .model.shape_model import ShapeModel, score_outliers
-from .prepare import io
 from .prepare.curve import CurveMap, point_curve_distances
 from .prepare.surface import point_surface_distances
 from .report.html import write_report
@@ -45,120 +40,6 @@ class BuildResult:
     # the optimisation ended by its stopping rule (None: nothing was optimised); metrics.json's
     # ``optimisation`` says more
     converged: bool | None = None
-
-
-# What a build writes into its output folder. Other entries are not a build's: the inputs/ that the
-# demo and the Slicer module write there first, or anything else a user keeps there.
-BUILD_FILES = ("model.h5", "mean.vtp", "correspondence", "aligned", "scores.csv", "cases.csv",
-               "landmarks.csv", "metrics.json", "report.html", "rejected.csv", "convergence.csv",
-               "config.json", "checkpoint.npz", "build.log")
-
-
-def previous_build(output) -> list:
-    """The files and (non-empty) folders of an earlier build in ``output``, in
-    :data:`BUILD_FILES` order; empty when there is none."""
-    output = Path(output)
-    found = []
-    for name in BUILD_FILES:
-        path = output / name
-        if path.is_file() or (path.is_dir() and any(path.iterdir())):
-            found.append(path)
-    return found
-
-
-# The files whose presence makes a folder hold a build that a new one must not replace unasked:
-# a finished build's model, or the checkpoint of one that can be resumed. What a failed or
-# cancelled start leaves (build.log, config.json, rejected.csv, empty folders) is cleared by the
-# next build without asking.
-KEPT_BUILD_FILES = ("model.h5", "checkpoint.npz")
-
-
-def earlier_build(output) -> list:
-    """The files of a finished or resumable build in ``output`` (:data:`KEPT_BUILD_FILES`);
-    empty when there is none, also when a failed start left other files there."""
-    return [Path(output) / name for name in KEPT_BUILD_FILES if (Path(output) / name).is_file()]
-
-
-def clear_previous_build(output) -> None:
-    """Remove an earlier build's files and folders from ``output`` (and nothing else)."""
-    for path in previous_build(output):
-        if path.is_dir():
-            shutil.rmtree(path)
-        else:
-            path.unlink()
-    remove_partial_files(output)
-
-
-def remove_partial_files(output) -> None:
-    """Remove the temporary files of writes that a killed build left unfinished
-    (:func:`~.prepare.io.written_whole`; they never hold a final name)."""
-    for name in BUILD_FILES:
-        folder = Path(output) / name
-        if folder.is_dir():
-            for path in folder.rglob(f".*{io.PARTIAL}*"):   # parts have folders of their own
-                path.unlink(missing_ok=True)
-    for path in Path(output).glob(f".*{io.PARTIAL}*"):
-        path.unlink(missing_ok=True)
-
-
-@dataclass
-class Checkpoint:
-    """What ``--resume`` needs of a checkpoint: the state's record, the point the optimisation
-    had reached (``PhasePoint.DONE`` once it ended), the random generator's state, the trace so
-    far and the evaluation count, and the fingerprint of the inputs and settings it is of."""
-
-    record: dict              # :func:`~.correspondence.state.state_record` arrays
-    point: PhasePoint
-    rng_state: dict | None    # ``numpy.random.Generator.bit_generator.state``
-    trace_rows: list          # TraceRow
-    evaluations: int
-    fingerprint: dict
-
-
-def save_checkpoint(path: Path, state: CorrespondenceState, point: PhasePoint | None = None,
-                    rng=None, trace=None, fingerprint: dict | None = None):
-    """The state's correspondence (:func:`~.correspondence.state.state_record`: every accepted
-    warp, every pose, the area weights) and, for resuming, the point reached, the generator's
-    state, the trace and the fingerprint: data only (numbers, strings, JSON; no pickle), written
-    whole or not at all."""
-    arrays = dict(state_record(state))
-    arrays["evaluations"] = np.array(state.evaluations)
-    if point is not None:
-        arrays["point"] = np.array(point.to_json())
-    if rng is not None:
-        arrays["rng_state"] = np.array(json.dumps(rng.bit_generator.state))
-    if trace is not None:
-        rows = trace.rows
-        arrays["trace_numbers"] = np.array([[r.wall_seconds, r.cpu_seconds, r.evaluations,
-                                             r.objective, r.sweep] for r in rows],
-                                           dtype=np.float64).reshape(-1, 5)
-        arrays["trace_phases"] = np.array([r.phase for r in rows], dtype=str)
-    if fingerprint is not None:
-        arrays["fingerprint"] = np.array(json.dumps(fingerprint, sort_keys=True))
-    with io.written_whole(path) as temporary, open(temporary, "wb") as handle:
-        np.savez(handle, **arrays)
-
-
-def load_checkpoint(path: Path) -> dict:
-    """The arrays of a checkpoint written by :func:`save_checkpoint`, for
-    :func:`~.correspondence.state.replay_record` (data only: no pickle is read)."""
-    with np.load(path, allow_pickle=False) as data:
-        return {name: data[name] for name in data.files}
-
-
-def read_checkpoint(path: Path) -> Checkpoint:
-    """The :class:`Checkpoint` of a build's ``checkpoint.npz``; :class:`~.errors.BuildError`
-    when it is not one that can be resumed from."""
-    try:
-        arrays = load_checkpoint(path)
-        numbers, phases = arrays["trace_numbers"], arrays["trace_phases"]
-        rows = [TraceRow(float(w), float(c), int(e), float(f), str(phase), int(s))
-                for (w, c, e, f, s), phase in zip(numbers, phases)]
-        return Checkpoint(arrays, PhasePoint.from_json(str(arrays["point"])),
-                          json.loads(str(arrays["rng_state"])), rows,
-                          int(arrays["evaluations"]), json.loads(str(arrays["fingerprint"])))
-    except (OSError, ValueError, KeyError, TypeError) as error:
-        raise BuildError(f"{path}: not a checkpoint to resume from ({error})") from None
 
 
 def warp_summary(example) -> str:
@@ -216,40 +97,6 @@ def corresponded_distances(raw: np.ndarray, prepared: list, parts: list) -> np.n
             _, nearest = cKDTree(points).query(prepared_part.map.vertices)
             np.maximum.at(result[i, part.rows], nearest, away)
     return result
-
-
-def physical_shapes(raw: np.ndarray, prepared: list) -> list:
-    """The corresponded shapes in the physical space of their inputs, so that they overlay them:
-    ``raw`` (the state's samples of the prepared surfaces) with those of mirrored cases
-    reflected back (x -> -x)."""
-    return [points * [-1.0, 1.0, 1.0] if case.mirrored else points
-            for points, case in zip(raw, prepared)]
-
-
-LANDMARK_COLUMNS = ("case", "label", "x", "y", "z", "given_x", "given_y", "given_z",
-                    "distance_mm")
-
-
-@dataclass(frozen=True)
-class CorrespondedLandmark:
-    """One case's corresponded point of one of the model's landmarks, in its input's coordinates,
-    and the landmark it was given (None where it has none): a row of landmarks.csv."""
-
-    case: str
-    label: str
-    point: np.ndarray
-    given: np.ndarray | None
-
-    @property
-    def distance(self) -> float | None:
-        """mm between the corresponded point and the given landmark (None: none given)."""
-        return None if self.given is None else float(np.linalg.norm(self.point - self.given))
-
-    def row(self) -> list:
-        """The row of landmarks.csv (:data:`LANDMARK_COLUMNS`)."""
-        given = (["", "", "", ""] if self.given is None else
-                 [*(f"{v:.6f}" for v in self.given), f"{self.distance:.6f}"])
-        return [self.case, self.label, *(f"{v:.6f}" for v in self.point)] + given
 
 
 def corresponded_landmarks(model, physical: list, prepared: list, given: dict | None) -> list:
@@ -326,45 +173,41 @@ def against_baselines(quality: dict, baselines: dict) -> dict:
     return recorded
 
 
-def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
-                  config: BuildConfig, baselines: dict | None = None, pool=None,
-                  warnings=(), landmark_check=None) -> BuildResult:
-    """model.h5, mean.vtp, correspondence/, aligned/, scores.csv, metrics.json, report.html (and
-    for a guided build landmarks.csv), of the :class:`~mdlshapemodel.build.Correspondence` of
-    the ``prepared`` cases; ``landmark_check`` (a
-    :class:`~mdlshapemodel.model.landmarks.LandmarkCheck`, optional) goes to metrics.json and
-    the report."""
+@dataclass
+class WrittenShapes:
+    """What :func:`write_shapes` wrote and found, for metrics.json and the report."""
+
+    cases: list               # the rows of cases.csv
+    landmarks: list           # CorrespondedLandmark, the rows of landmarks.csv
+    normals: object           # NormalAgreement, None for 2-D curves
+    outlier: dict             # score_outliers
+    flagged: dict             # flagged_cases
+    aligned: np.ndarray       # the corresponded shapes in the model's frame
+    distances: np.ndarray | None   # corresponded_distances
+
+
+def write_shapes(output: Path, corresponded, prepared: list) -> WrittenShapes:
+    """The first files of a build's folder (:class:`~.folders.BuildFolder`): the model, the
+    mean, correspondence/, aligned/, scores.csv, cases.csv and for a guided build landmarks.csv,
+    of the :class:`~mdlshapemodel.build.Correspondence` of the ``prepared`` cases."""
+    folder = BuildFolder(output)
     state, model = corresponded.state, corresponded.model
-    initial, final = corresponded.initial_objective, corresponded.final_objective
-    voxel, data_range = corresponded.voxel_size, corresponded.data_range
-    interrupted = corresponded.interrupted
     triangles = model.triangles
     aligned = state.aligned_shapes()
     raw = state.raw_shapes()
     names = model.names
     started = time.perf_counter()
-    model.save(output / "model.h5")
     parts = model.part_meshes()
     normals = None if triangles is None else normal_agreement(aligned, triangles,
                                                               model.part_of_triangles())
-    io.write_polydata(output / "mean.vtp", model.mean, triangles,
-                      point_data=None if normals is None else {
-                          "normal_spread_degrees": normals.spread_degrees,
-                          "normal_agreement": normals.resultant},
-                      cell_data={"part": model.part_of_triangles()} if model.part_names else None)
+    folder.write_model(model, normals)
     outlier = score_outliers(model)
     normals_off = None if normals is None else normals.cases_off()
     flagged = flagged_cases(names, outlier, normals)
     cases = []
-    physical = physical_shapes(raw, prepared)
-    for folder in ("correspondence", "aligned"):
-        for part in parts:
-            (output / folder / part.name).mkdir(parents=True, exist_ok=True)
+    physical = physical_shapes(raw, [case.mirrored for case in prepared])
+    folder.write_case_meshes(model, [case.name for case in prepared], physical, aligned)
     for i, case in enumerate(prepared):
-        for folder, shape in (("correspondence", physical[i]), ("aligned", aligned[i])):
-            for part in parts:
-                io.write_polydata(io.case_file(output / folder / part.name, case.name),
-                                  shape[part.rows], part.triangles)
         # from each input-surface vertex (curve point) to the corresponded mesh of its part
         distances = np.concatenate([
             input_distances(prepared_part.map, raw[i][part.rows], part.triangles)
@@ -386,21 +229,30 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                       "smoothing_sigma": ("" if case.smoothing_sigma is None
                                           else case.smoothing_sigma),
                       "repair": case.repair, "mirrored": case.mirrored})
-    n_modes = model.n_modes
-    io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(n_modes)],
-                 [[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, model.scores)])
-    io.write_csv(output / "cases.csv", list(cases[0].keys()),
-                 [[c.get(k, "") for k in cases[0]] for c in cases])
+    folder.write_scores(names, model.scores)
+    folder.write_cases(cases)
     landmarks = corresponded_landmarks(model, physical, prepared, corresponded.landmarks)
-    if landmarks:
-        io.write_csv(output / "landmarks.csv", LANDMARK_COLUMNS,
-                     [record.row() for record in landmarks])
+    folder.write_landmarks(landmarks)
     log.info("wrote the model, meshes and tables in %.1f s", time.perf_counter() - started)
-    started = time.perf_counter()
-    quality = evaluate_state(state, config, prepared, model, pool=pool, background=False,
-                             jackknife=bool(baselines))
-    baselines = against_baselines(quality, baselines or {})
-    log.info("evaluated the model in %.1f s", time.perf_counter() - started)
+    return WrittenShapes(cases, landmarks, normals, outlier, flagged, aligned,
+                         corresponded_distances(raw, prepared, parts))
+
+
+def write_outputs(output: Path, corresponded, rejected: list, written: WrittenShapes,
+                  quality: dict, baselines: dict | None = None, warnings=(),
+                  landmark_check=None) -> BuildResult:
+    """The last files of a build's folder, after :func:`write_shapes` (``written``):
+    metrics.json and report.html. ``quality`` is the model's measures
+    (:func:`~.model.evaluation.evaluate_state`) and ``baselines`` the baselines' with their
+    differences (:func:`against_baselines`); ``landmark_check`` (a
+    :class:`~mdlshapemodel.model.landmarks.LandmarkCheck`, optional) goes to metrics.json and
+    the report."""
+    state, model = corresponded.state, corresponded.model
+    initial, final = corresponded.initial_objective, corresponded.final_objective
+    voxel, data_range = corresponded.voxel_size, corresponded.data_range
+    interrupted = corresponded.interrupted
+    names = model.names
+    cases, normals, outlier = written.cases, written.normals, written.outlier
     metrics = {"objective": {"initial": initial, "final": final,
                              "n_points": corresponded.objective_points,
                              "units": "nats (eq. 14, Delta averaged over delta_range)"},
@@ -413,7 +265,7 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "variances": model.variances.tolist(), **quality,
                "score_outliers": {"modes": outlier["modes"], "threshold": outlier["threshold"],
                                   "cases": [n for n, o in zip(names, outlier["outlier"]) if o]},
-               "flagged_cases": flagged,
+               "flagged_cases": written.flagged,
                "normals": None if normals is None else {
                    "spread_degrees_median": float(np.median(normals.spread_degrees)),
                    "flagged_points": int(np.count_nonzero(normals.flagged)),
@@ -423,13 +275,13 @@ def write_outputs(output: Path, corresponded, prepared: list, rejected: list,
                "surface_distance_mm": {
                    "mean": float(np.mean([c["mean_distance_mm"] for c in cases])),
                    "max": float(np.max([c["max_distance_mm"] for c in cases]))},
-               "landmarks": landmark_summary(model, landmarks),
+               "landmarks": landmark_summary(model, written.landmarks),
                "landmark_check": None if landmark_check is None else landmark_check.to_json(),
-               "baselines": baselines, "warnings": list(warnings)}
-    io.write_text(output / "metrics.json", json.dumps(metrics, indent=2))
+               "baselines": baselines or {}, "warnings": list(warnings)}
+    BuildFolder(output).write_metrics(metrics)
     started = time.perf_counter()
-    write_report(output, metrics, cases, rejected, model, aligned, names,
-                 corresponded_distances(raw, prepared, parts), normals)
+    write_report(output, metrics, cases, rejected, model, written.aligned, names,
+                 written.distances, normals)
     log.info("wrote the report in %.1f s", time.perf_counter() - started)
     return BuildResult(output, model, metrics, initial, final, cases, rejected, interrupted,
                        list(warnings), corresponded.optimisation.converged)

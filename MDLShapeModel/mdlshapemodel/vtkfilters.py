@@ -47,7 +47,7 @@ SPHERE_COORDINATES = "SphereCoordinates"
 MIRRORED = "Mirrored"
 
 
-def _accessors(attribute: str, cast):
+def accessors(attribute: str, cast):
     """A VTK-style Set/Get method pair for ``attribute``; Set calls Modified() only on a change."""
     def setter(self, value):
         self._set(attribute, cast(value))
@@ -77,7 +77,7 @@ def _optional_float(value) -> float | None:
     return None if value is None else float(value)
 
 
-def _add_field(polydata, name: str, value):
+def add_field(polydata, name: str, value):
     """Add a one-value field-data array (a number, or a string as a vtkStringArray)."""
     if isinstance(value, str):
         array = vtk.vtkStringArray()
@@ -88,7 +88,7 @@ def _add_field(polydata, name: str, value):
     polydata.GetFieldData().AddArray(array)
 
 
-def _field(polydata, name: str):
+def field_value(polydata, name: str):
     """The first value of a field-data array, or None when there is none."""
     array = polydata.GetFieldData().GetAbstractArray(name) if polydata is not None else None
     if array is None or array.GetNumberOfValues() == 0:
@@ -98,7 +98,7 @@ def _field(polydata, name: str):
     return float(array.GetTuple1(0))
 
 
-class _Filter(VTKPythonAlgorithmBase):
+class LibraryFilter(VTKPythonAlgorithmBase):
     """Shared parameter handling: every parameter is set through :meth:`_set`."""
 
     def __init__(self, **kwargs):
@@ -171,7 +171,7 @@ class _Filter(VTKPythonAlgorithmBase):
         return 1
 
 
-class LabelMapToClosedSurface(_Filter):
+class LabelMapToClosedSurface(LibraryFilter):
     """Label map (vtkImageData with integer scalars) -> closed genus-0 surface (vtkPolyData).
 
     The steps of ``build`` for a label map: the union of the labels
@@ -203,14 +203,14 @@ class LabelMapToClosedSurface(_Filter):
         self._edge_length = defaults.edge_length
         self._target_vertices = defaults.target_vertices
 
-    SetSurfaceMethod, GetSurfaceMethod = _accessors("_surface_method", str)
-    SetSmoothingFactor, GetSmoothingFactor = _accessors("_smoothing_factor", float)
-    SetDecimation, GetDecimation = _accessors("_decimation", float)
-    SetLabels, GetLabels = _accessors("_labels", _labels)
-    SetSmoothingSigma, GetSmoothingSigma = _accessors("_smoothing_sigma", float)
-    SetMaxSmoothingSigma, GetMaxSmoothingSigma = _accessors("_max_smoothing_sigma", float)
-    SetEdgeLength, GetEdgeLength = _accessors("_edge_length", float)
-    SetTargetVertices, GetTargetVertices = _accessors("_target_vertices", int)
+    SetSurfaceMethod, GetSurfaceMethod = accessors("_surface_method", str)
+    SetSmoothingFactor, GetSmoothingFactor = accessors("_smoothing_factor", float)
+    SetDecimation, GetDecimation = accessors("_decimation", float)
+    SetLabels, GetLabels = accessors("_labels", _labels)
+    SetSmoothingSigma, GetSmoothingSigma = accessors("_smoothing_sigma", float)
+    SetMaxSmoothingSigma, GetMaxSmoothingSigma = accessors("_max_smoothing_sigma", float)
+    SetEdgeLength, GetEdgeLength = accessors("_edge_length", float)
+    SetTargetVertices, GetTargetVertices = accessors("_target_vertices", int)
 
     def RequestUpdateExtent(self, request, in_info, out_info):
         """Ask the source for the whole image, as VTK's image-to-surface filters do.
@@ -244,13 +244,13 @@ class LabelMapToClosedSurface(_Filter):
         vertices, faces, sigma, note = surface_of_mask(
             label_map.mask, label_map.spacing, label_map.origin, label_map.direction, config)
         result = surface.arrays_to_polydata(vertices, faces)
-        _add_field(result, VOXEL_SIZE, label_map.voxel_size)
-        _add_field(result, "SmoothingSigma", sigma)
-        _add_field(result, "Repair", note)
+        add_field(result, VOXEL_SIZE, label_map.voxel_size)
+        add_field(result, "SmoothingSigma", sigma)
+        add_field(result, "Repair", note)
         vtk.vtkPolyData.GetData(out_info).ShallowCopy(result)
 
 
-class SurfaceToSphereMap(_Filter):
+class SurfaceToSphereMap(LibraryFilter):
     """Closed genus-0 surface -> the prepared surface with its bijective sphere map.
 
     The steps of ``build`` after reading (:func:`~mdlshapemodel.prepare.case.prepare_surface`):
@@ -284,12 +284,12 @@ class SurfaceToSphereMap(_Filter):
         self._area_weight = AREA_WEIGHT
         self._max_iterations = MAX_ITERATIONS
 
-    SetTargetVertices, GetTargetVertices = _accessors("_target_vertices", int)
-    SetVoxelSize, GetVoxelSize = _accessors("_voxel_size", _optional_float)
-    SetMirrored, GetMirrored = _accessors("_mirrored", bool)
+    SetTargetVertices, GetTargetVertices = accessors("_target_vertices", int)
+    SetVoxelSize, GetVoxelSize = accessors("_voxel_size", _optional_float)
+    SetMirrored, GetMirrored = accessors("_mirrored", bool)
     MirroredOn, MirroredOff = _switches("_mirrored")
-    SetAreaWeight, GetAreaWeight = _accessors("_area_weight", float)
-    SetMaxIterations, GetMaxIterations = _accessors("_max_iterations", int)
+    SetAreaWeight, GetAreaWeight = accessors("_area_weight", float)
+    SetMaxIterations, GetMaxIterations = accessors("_max_iterations", int)
 
     def GetConfig(self) -> BuildConfig:
         """The build configuration that these parameters amount to (validated)."""
@@ -304,11 +304,11 @@ class SurfaceToSphereMap(_Filter):
         config = self.GetConfig()
         polydata = vtk.vtkPolyData.GetData(in_info[0])
         vertices, faces = io.mesh_arrays(polydata)
-        voxel_size = _field(polydata, VOXEL_SIZE)  # None: a mesh, cleaned as build does
+        voxel_size = field_value(polydata, VOXEL_SIZE)  # None: a mesh, cleaned as build does
         facts = {}
         if voxel_size is not None:
-            facts = {"repair": str(_field(polydata, "Repair") or ""),
-                     "smoothing_sigma": _field(polydata, "SmoothingSigma")}
+            facts = {"repair": str(field_value(polydata, "Repair") or ""),
+                     "smoothing_sigma": field_value(polydata, "SmoothingSigma")}
         case = prepare_surface(vertices, faces, "", "", voxel_size, config,
                                mirrored=self._mirrored, area_weight=self._area_weight,
                                max_iterations=self._max_iterations, **facts)
@@ -320,10 +320,10 @@ class SurfaceToSphereMap(_Filter):
         for name, key in (("FlippedTriangles", "flipped_triangles"),
                           ("MeanAbsLogAreaRatio", "mean_abs_log_area_ratio"),
                           ("P95AbsLogAreaRatio", "p95_abs_log_area_ratio")):
-            _add_field(result, name, mapped.quality[key])
-        _add_field(result, VOXEL_SIZE, case.voxel_size)
-        _add_field(result, "Repair", case.repair)
-        _add_field(result, MIRRORED, int(case.mirrored))
+            add_field(result, name, mapped.quality[key])
+        add_field(result, VOXEL_SIZE, case.voxel_size)
+        add_field(result, "Repair", case.repair)
+        add_field(result, MIRRORED, int(case.mirrored))
         vtk.vtkPolyData.GetData(out_info.GetInformationObject(0)).ShallowCopy(result)
         vtk.vtkPolyData.GetData(out_info.GetInformationObject(1)).ShallowCopy(
             surface.arrays_to_polydata(mapped.sphere, mapped.faces))

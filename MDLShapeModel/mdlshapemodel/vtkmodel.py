@@ -57,14 +57,14 @@ from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from .build import correspond
 from .config import BuildConfig
 from .errors import BuildError, Cancelled, ConfigError, InputError
+from .folders import BuildFolder, physical_shapes
 from .model.shape_model import ShapeModel
-from .outputs import physical_shapes
 from .prepare import io, surface
 from .prepare.case import PreparedCase, PreparedPart
 from .prepare.landmarks import read_landmark_folder
 from .prepare.sphere import SphereMap
-from .vtkfilters import (MIRRORED, SPHERE_COORDINATES, VOXEL_SIZE, _accessors, _add_field,
-                         _field, _Filter)
+from .vtkfilters import (MIRRORED, SPHERE_COORDINATES, VOXEL_SIZE, LibraryFilter, accessors,
+                         add_field, field_value)
 
 __all__ = ["BUILDER_SETTINGS", "ShapeModelBuilder", "ShapeModelInstance", "ShapeModelReader",
            "ShapeModelWriter", "model_to_polydata", "polydata_to_model"]
@@ -183,7 +183,7 @@ def model_to_polydata(model: ShapeModel) -> vtk.vtkPolyData:
     if model.landmarks:
         _add_strings(fields, LANDMARK_LABELS, list(model.landmarks))
         _add_array(fields, LANDMARK_ROWS, np.array(list(model.landmarks.values()), dtype=np.int64))
-    _add_field(polydata, METADATA, json.dumps(model.metadata, default=_json_value))
+    add_field(polydata, METADATA, json.dumps(model.metadata, default=_json_value))
     return polydata
 
 
@@ -225,7 +225,7 @@ def _model_of(polydata) -> ShapeModel:
     names = _strings(fields, CASE_NAMES)
     n_points, n_modes = len(mean), len(variances)
     modes = _array(point_data, UNIT_MODES, "point") if n_modes else np.zeros((n_points, 0))
-    metadata = json.loads(_field(polydata, METADATA) or "{}")
+    metadata = json.loads(field_value(polydata, METADATA) or "{}")
     parameters = point_data.GetArray(SPHERE_COORDINATES)
     return ShapeModel(
         mean=mean,
@@ -264,12 +264,12 @@ def _prepared_case(polydata, name: str, config: BuildConfig) -> PreparedCase:
     if not np.all(np.isfinite(sphere)) or np.max(np.abs(np.linalg.norm(sphere, axis=1) - 1)) > 1e-6:
         raise InputError(f"{name}: point data {SPHERE_COORDINATES} are not unit vectors")
     vertices, faces = surface.polydata_to_arrays(polydata)
-    voxel_size = _field(polydata, VOXEL_SIZE) or config.voxel_size
+    voxel_size = field_value(polydata, VOXEL_SIZE) or config.voxel_size
     if voxel_size is None:
         raise InputError(f"{name}: no field data {VOXEL_SIZE} and no BuildConfig.voxel_size")
     mapped = SphereMap(vertices, faces, sphere)
-    part = PreparedPart("", "", mapped, repair=str(_field(polydata, "Repair") or ""))
-    return PreparedCase(name, [part], float(voxel_size), bool(_field(polydata, MIRRORED)))
+    part = PreparedPart("", "", mapped, repair=str(field_value(polydata, "Repair") or ""))
+    return PreparedCase(name, [part], float(voxel_size), bool(field_value(polydata, MIRRORED)))
 
 
 class _PipelineProgress:
@@ -311,7 +311,7 @@ def _names(values) -> tuple:
     return tuple(str(v) for v in (values or ()))
 
 
-class ShapeModelBuilder(_Filter):
+class ShapeModelBuilder(LibraryFilter):
     """Sphere-mapped surfaces -> an optimised statistical shape model and the corresponded surfaces.
 
     Input: one repeatable port (``AddInputConnection``, ``AddInputData``), at least three outputs
@@ -390,7 +390,7 @@ class ShapeModelBuilder(_Filter):
         :class:`~mdlshapemodel.errors.ConfigError` naming the field)."""
         return copy.deepcopy(self._config).validate()
 
-    SetCaseNames, GetCaseNames = _accessors("_case_names", _names)
+    SetCaseNames, GetCaseNames = accessors("_case_names", _names)
 
     def _case_names_of(self, inputs: list) -> list:
         if self._case_names:
@@ -398,7 +398,7 @@ class ShapeModelBuilder(_Filter):
                 raise ConfigError(f"CaseNames: {len(self._case_names)} names for "
                                   f"{len(inputs)} inputs")
             return list(self._case_names)
-        return [str(_field(data, CASE_NAME) or f"case_{i}") for i, data in enumerate(inputs)]
+        return [str(field_value(data, CASE_NAME) or f"case_{i}") for i, data in enumerate(inputs)]
 
     def _execute(self, in_info, out_info):
         config = self.GetConfig()
@@ -421,12 +421,13 @@ class ShapeModelBuilder(_Filter):
         self.UpdateProgress(END)
         model = corresponded.model
         result = model_to_polydata(model)
-        _add_field(result, INITIAL_OBJECTIVE, corresponded.initial_objective)
+        add_field(result, INITIAL_OBJECTIVE, corresponded.initial_objective)
         stopped_by = corresponded.optimisation.stopped_by
         if stopped_by is not None:
-            _add_field(result, STOPPED_BY, stopped_by.value)
+            add_field(result, STOPPED_BY, stopped_by.value)
         blocks = vtk.vtkMultiBlockDataSet()
-        shapes = physical_shapes(corresponded.state.raw_shapes(), prepared)
+        shapes = physical_shapes(corresponded.state.raw_shapes(),
+                                 [case.mirrored for case in prepared])
         for i, (name, points) in enumerate(zip(names, shapes)):
             blocks.SetBlock(i, surface.arrays_to_polydata(points, model.triangles))
             blocks.GetMetaData(i).Set(vtk.vtkCompositeDataSet.NAME(), name)
@@ -455,7 +456,7 @@ def _file_name(value) -> str | None:
     return None if value is None else str(value)
 
 
-class ShapeModelInstance(_Filter):
+class ShapeModelInstance(LibraryFilter):
     """A model polydata -> the shape ``mean + sum_k Weights[k] * mode_k`` (same triangles).
 
     ``Weights`` (Set/Get; default none: the mean) are in standard deviations of the first modes,
@@ -479,7 +480,7 @@ class ShapeModelInstance(_Filter):
                          outputType="vtkPolyData")
         self._weights = ()
 
-    SetWeights, GetWeights = _accessors("_weights", _weights)
+    SetWeights, GetWeights = accessors("_weights", _weights)
 
     def _execute(self, in_info, out_info):
         model = polydata_to_model(vtk.vtkPolyData.GetData(in_info[0]))
@@ -492,14 +493,15 @@ class ShapeModelInstance(_Filter):
             surface.arrays_to_polydata(points, model.triangles))
 
 
-class ShapeModelReader(_Filter):
+class ShapeModelReader(LibraryFilter):
     """A model file -> the model polydata (the output 0 of :class:`ShapeModelBuilder`).
 
-    ``SetFileName``: a ``model.h5`` written by ``build``, :class:`ShapeModelWriter` or
-    :meth:`ShapeModel.save <mdlshapemodel.model.shape_model.ShapeModel.save>`, or any
-    Statismo/Scalismo shape model (:meth:`ShapeModel.load
-    <mdlshapemodel.model.shape_model.ShapeModel.load>`). A missing or unreadable file is an error
-    that names it.
+    ``SetFileName``: a build's output folder or its ``model.h5``
+    (:meth:`~mdlshapemodel.folders.BuildFolder.model`), a model file written by
+    :class:`ShapeModelWriter` or :meth:`ShapeModel.save
+    <mdlshapemodel.model.shape_model.ShapeModel.save>`, or any Statismo/Scalismo shape model
+    (:meth:`ShapeModel.load <mdlshapemodel.model.shape_model.ShapeModel.load>`). A missing or
+    unreadable file is an error that names it.
 
     Examples
     --------
@@ -515,16 +517,16 @@ class ShapeModelReader(_Filter):
         super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkPolyData")
         self._file_name = None
 
-    SetFileName, GetFileName = _accessors("_file_name", _file_name)
+    SetFileName, GetFileName = accessors("_file_name", _file_name)
 
     def _execute(self, in_info, out_info):
         if not self._file_name:
             raise InputError("no model file (SetFileName)")
-        model = ShapeModel.load(self._file_name)
+        model = BuildFolder(self._file_name).model()
         vtk.vtkPolyData.GetData(out_info).ShallowCopy(model_to_polydata(model))
 
 
-class ShapeModelWriter(_Filter):
+class ShapeModelWriter(LibraryFilter):
     """A model polydata -> a model file (``model.h5``, the Statismo layout of
     :meth:`ShapeModel.save <mdlshapemodel.model.shape_model.ShapeModel.save>`).
 
@@ -545,7 +547,7 @@ class ShapeModelWriter(_Filter):
         super().__init__(nInputPorts=1, inputType="vtkPolyData", nOutputPorts=0)
         self._file_name = None
 
-    SetFileName, GetFileName = _accessors("_file_name", _file_name)
+    SetFileName, GetFileName = accessors("_file_name", _file_name)
 
     def Write(self) -> int:
         """Write the input's model to the file: 1 on success, 0 on a failure."""

@@ -1,10 +1,10 @@
 """The corresponded shapes an analysis compares: read from a build, aligned, and the mean
 surface's outward normals along which displacements are measured.
 
-A build writes each case's corresponded points in the physical space of its input
-(``correspondence/``; a mirrored case reflected back over its input). The analysis takes them in
-the model's frame (mirrored cases reflected again, so that all are of one side) and aligns them
-by weighted generalized Procrustes (eq. 18, the model's area weights):
+A build writes each case's corresponded points in the physical space of its input (a mirrored
+case reflected back over its input). The analysis takes them in the model's frame (mirrored cases
+reflected again, so that all are of one side: :meth:`~mdlshapemodel.folders.BuildFolder.shapes`)
+and aligns them by weighted generalized Procrustes (eq. 18, the model's area weights):
 
 - ``size="kept"`` (default): rotation and translation only, so that a difference in size (a loss
   of volume) shows as a difference of shape, in mm;
@@ -14,66 +14,23 @@ by weighted generalized Procrustes (eq. 18, the model's area weights):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from pathlib import Path
-
 import numpy as np
 
 from ..correspondence.pose import centroid_size, generalized_procrustes
 from ..errors import InputError
+from ..folders import BuildFolder, BuildShapes
 from ..model.normals import outward_normals
-from ..model.shape_model import ShapeModel
-from ..prepare import io
 
 SIZES = ("kept", "removed")
 
 
-@dataclass
-class BuildShapes:
-    """A build's model and its cases' corresponded points in the model's frame (unaligned)."""
-
-    model: ShapeModel
-    shapes: np.ndarray        # (n_s, n_p, 3), in the model's order
-    folder: Path
-
-
 def read_build(folder) -> BuildShapes:
-    """The model and corresponded shapes of a build folder (``mdlshapemodel build -o FOLDER``).
+    """The model and corresponded shapes of a build folder (``mdlshapemodel build -o FOLDER``)
+    in the model's frame (:meth:`~mdlshapemodel.folders.BuildFolder.shapes`).
 
     Raises InputError naming the folder and what is missing when it is not a finished build.
     """
-    folder = Path(folder)
-    if not (folder / "model.h5").is_file():
-        raise InputError(f"{folder}: not a build folder (no model.h5)")
-    model = ShapeModel.load(folder / "model.h5")
-    cases = folder / "cases.csv"
-    if not cases.is_file():
-        raise InputError(f"{folder}: not a finished build (no cases.csv)")
-    mirrored = {row["case"]: row.get("mirrored") == "True" for row in io.read_csv(cases)}
-    shapes = []
-    for name in model.names:
-        points = []
-        for part in model.part_meshes():
-            path = io.case_file(folder / "correspondence" / part.name, name)
-            if not path.is_file():
-                raise InputError(f"{folder}: no corresponded shape of case {name!r} ({path})")
-            vertices, _ = _points_of(path)
-            points.append(vertices)
-        shape = np.concatenate(points)
-        if shape.shape != model.mean.shape:
-            raise InputError(f"{path}: {len(shape)} points; the model has {len(model.mean)}")
-        shapes.append(shape * [-1.0, 1.0, 1.0] if mirrored.get(name) else shape)
-    return BuildShapes(model, np.stack(shapes), folder)
-
-
-def _points_of(path):
-    polydata = io.read_polydata(path)
-    from ..prepare.surface import polydata_to_arrays
-    from vtk.util.numpy_support import vtk_to_numpy
-
-    if polydata.GetNumberOfPolys():
-        return polydata_to_arrays(polydata)
-    return vtk_to_numpy(polydata.GetPoints().GetData()).astype(np.float64), None
+    return BuildFolder(folder).shapes()
 
 
 def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",

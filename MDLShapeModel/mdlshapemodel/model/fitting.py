@@ -12,15 +12,16 @@ and reconstructed.
 The new case goes through the same preprocessing as the model's training cases (the build's
 settings are stored in the model file), and its sphere map is aligned to the model's own
 parameterization: the mean mesh with the sampling grid as its sphere map.
+
+The command ``mdlshapemodel fit`` (fitting the cases of files and writing its folder) is
+:mod:`mdlshapemodel.fit`.
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import time
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 
@@ -32,15 +33,14 @@ from ..correspondence.smoothness import Smoothness
 from ..correspondence.state import CorrespondenceState, Example, FixedExample, PartState
 from ..correspondence.strategies import optimise
 from ..correspondence.trace import Trace
-from ..errors import InputError, MDLShapeModelError
-from ..prepare import PreparedCase, io
-from ..prepare.parts import CaseInput, case_inputs, prepare_object, read_manifest
+from ..errors import InputError
+from ..prepare import PreparedCase
+from ..prepare.parts import CaseInput, case_inputs, prepare_object
 from ..prepare.curve import align_curve_origins, curve_map
 from ..prepare.sphere import SphereMap, align_parameterizations, reference_frames
+from ..prepare.surface import MIRROR, mirror_points
 from .shape_model import ShapeModel
 from .outliers import modes_explaining, new_case_distances
-
-log = logging.getLogger("mdlshapemodel")
 
 
 @dataclass
@@ -66,16 +66,6 @@ class FitResult:
         if not physical:
             return shape
         return self.to_model.inverse().apply(shape)
-
-
-def load_model(path) -> tuple[ShapeModel, Path]:
-    """Read a model from a model.h5 file or a build's output folder."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "model.h5"
-    if not path.exists():
-        raise InputError(f"{path}: no such model file")
-    return ShapeModel.load(path), path
 
 
 def build_config_of(model: ShapeModel) -> BuildConfig:
@@ -176,9 +166,8 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
     squared, distance = reconstruction_errors(model, aligned, scores)
     physical = raw
     if case.mirrored:  # the pose acts on the mirrored copy: reflect points first
-        reflection = Pose(1.0, np.diag([-1.0, 1.0, 1.0]), np.zeros(3))
-        physical = reflection.apply(raw)
-        to_model = to_model.compose(reflection)
+        physical = mirror_points(raw)
+        to_model = to_model.compose(Pose(1.0, np.diag(MIRROR), np.zeros(3)))
     return FitResult(case.name, str(case.path), physical, aligned, to_model, scores, squared,
                      distance, {"initial": float(initial), "final": float(final),
                                 "evaluations": state.evaluations,
@@ -214,97 +203,3 @@ def unusual_fit(model: ShapeModel, result: FitResult) -> dict | None:
             "flagged": bool(found.outlier[0]), "threshold": found.threshold,
             "max_departure_mm": float(departure.max()),
             "at_point": int(departure.argmax())}
-
-
-# what fit_cases writes into its output folder
-FIT_FILES = ("correspondence", "reconstruction", "scores.csv", "fit.json", "rejected.csv",
-             "landmarks.csv")
-
-
-def fit_cases(model_path, inputs, output, labels=None, max_time: float = 60.0,
-              max_sweeps: int = 10_000, seed: int = 0, progress=None,
-              strategy: str | None = None, manifest=None,
-              overwrite: bool = False) -> tuple[list, list]:
-    """Fit every input to the model and write the results to ``output``.
-
-    ``inputs`` are files or folders (one case per file; a multi-part model's parts are split
-    by its labels) and ``manifest`` a table of one file per part (case,part,file; see
-    :func:`~.prepare.parts.read_manifest`; each file is its part: all its labels). Writes ``correspondence/<case>.vtp`` (the case's
-    corresponded points, its own coordinates), ``reconstruction/<case>.vtp`` (the model's
-    reconstruction with all modes, same coordinates), both in a sub-folder per part for a
-    multi-part model, ``scores.csv``, ``fit.json`` (errors for M = 0..n_modes, objective),
-    ``rejected.csv`` and, for a model built with landmarks, ``landmarks.csv``: every case's
-    landmarks where its fitted correspondence puts them (its own coordinates). Returns
-    (results, rejections as (name, path, reason)); the rejections' reasons are logged, each
-    once with its count (:func:`~.prepare.io.rejection_lines`).
-
-    The output folder's rule is build's (:func:`~.prepare.io.refuse_earlier`): one that holds an
-    earlier fit is refused unless ``overwrite``, and a build's folder always (their files
-    would mix). Everything is written into a folder beside it that takes its place at the end
-    (:func:`~.prepare.io.written_folder`): the output holds a whole fit or nothing. No usable
-    case raises :class:`InputError` with the reasons, and nothing is written.
-    """
-    model, model_file = load_model(model_path)
-    output = Path(output)
-    if (output / "model.h5").exists() or output.resolve() == model_file.parent.resolve():
-        raise InputError(f"{output}: is a build's output folder; give the fit another one")
-    io.refuse_earlier(output, io.earlier_outputs(output, FIT_FILES), overwrite, "fit")
-    config = build_config_of(model)
-    if labels:
-        config.labels = list(labels)
-        config.validate()
-    meshes = model.part_meshes()
-    cases = case_inputs(io.find_inputs(inputs), config)
-    if manifest is not None:   # a file per part holds that part: no labels select within it
-        names_only = replace(config, parts=[spec.name for spec in config.part_specs()])
-        cases += read_manifest(manifest, names_only)
-    if not cases:
-        raise InputError("no input files found")
-    with io.written_folder(output, FIT_FILES) as folder:
-        results, rejected = _fit_into(folder, model, meshes, cases, config, max_time,
-                                      max_sweeps, seed, progress, strategy)
-    return results, rejected
-
-
-def _fit_into(output: Path, model, meshes, cases, config, max_time, max_sweeps, seed, progress,
-              strategy) -> tuple[list, list]:
-    """Fit ``cases`` and write the outputs of :func:`fit_cases` into the folder ``output``."""
-    for folder in ("correspondence", "reconstruction"):
-        for mesh in meshes:
-            (output / folder / mesh.name).mkdir(parents=True, exist_ok=True)
-    results, rejected = [], []
-    for case in cases:
-        try:
-            result = fit_case(model, case, config, max_time, max_sweeps, seed, progress,
-                              strategy=strategy)
-        except MDLShapeModelError as error:
-            reason = str(error).removeprefix(f"{case.path}: ")
-            rejected.append((case.name, case.path, reason))
-            continue
-        results.append(result)
-        for folder, points in (("correspondence", result.corresponded),
-                               ("reconstruction", result.reconstruction(model))):
-            for mesh in meshes:
-                io.write_polydata(io.case_file(output / folder / mesh.name, result.name),
-                                  points[mesh.rows], mesh.triangles)
-    reasons = io.rejection_lines((path, reason) for _, path, reason in rejected)
-    if not results:
-        raise InputError(f"no usable case: every one of the {len(cases)} input(s) was "
-                         f"rejected ({'; '.join(reasons)})")
-    for line in reasons:
-        log.warning("rejected %s", line)            # the same reason once, with its count
-    io.write_csv(output / "scores.csv", ["case"] + [f"mode_{m + 1}" for m in range(model.n_modes)],
-                 [[r.name] + [f"{v:.6g}" for v in r.scores] for r in results])
-    io.write_csv(output / "rejected.csv", ("case", "file", "reason"), rejected)
-    if model.landmarks:
-        io.write_csv(output / "landmarks.csv", ("case", "label", "x", "y", "z"),
-                     [[r.name, label, *(f"{v:.6f}" for v in point)] for r in results
-                      for label, point in model.landmark_points(r.corresponded).items()])
-    summary = {r.name: {"file": r.path, "modes": list(range(model.n_modes + 1)),
-                        "reconstruction_squared_mm2": r.squared_error.tolist(),
-                        "reconstruction_distance_mm": r.distance_error.tolist(),
-                        "mahalanobis": float(np.sqrt(np.sum(r.scores ** 2 / model.variances))),
-                        "unusual": unusual_fit(model, r),
-                        "objective": r.objective, "notes": r.notes} for r in results}
-    io.write_text(output / "fit.json", json.dumps(summary, indent=2))
-    return results, rejected

@@ -390,7 +390,7 @@ class ShapeModel:
         try:
             f = h5py.File(path, "r")
         except OSError:
-            raise InputError(f"{path}: not an HDF5 file (expected a model.h5 written by "
+            raise InputError(f"{path}: not an HDF5 file (expected a model file written by "
                              "mdlshapemodel, Statismo or Scalismo)") from None
         with f:
             try:

@@ -74,14 +74,11 @@ def find_inputs(paths) -> list[Path]:
     """Expand folders into their supported files (sorted; not .txt files, which are given by
     name); keep files as given.
 
-    Raises :class:`InputError` for a path that does not exist and for a build's output folder
-    (which holds model.h5 and config.json: its meshes and tables are not inputs).
+    Raises :class:`InputError` for a path that does not exist. (The commands refuse a build's
+    output folder first: :func:`mdlshapemodel.folders.find_inputs`.)
     """
     found = []
     for path in map(Path, paths):
-        if path.is_dir() and (path / "model.h5").is_file() and (path / "config.json").is_file():
-            raise InputError(f"{path}: a build's output folder (it holds model.h5), not a "
-                             "folder of inputs")
         if path.is_dir():
             found.extend(sorted(p for p in path.iterdir() if p.is_file() and suffix_of(p)
                                 and suffix_of(p) not in FOLDER_SKIPS))

@@ -654,6 +654,16 @@ def mask_components(mask: np.ndarray, min_fraction: float = 0.1) -> tuple[np.nda
     return filled, "; ".join(notes)
 
 
+# the reflection of ``BuildConfig.mirror``: x -> -x (left <-> right in RAS/LPS), its own inverse
+MIRROR = np.array([-1.0, 1.0, 1.0])
+
+
+def mirror_points(points: np.ndarray) -> np.ndarray:
+    """Points (n, 3) reflected x -> -x (:data:`MIRROR`): a mirrored case's, or its corresponded
+    points taken back to its input's side."""
+    return points * MIRROR
+
+
 def mirror(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Reflect x -> -x (left <-> right in RAS/LPS) keeping the normals outwards."""
     mirrored = vertices.copy()

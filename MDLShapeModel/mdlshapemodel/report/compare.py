@@ -1,4 +1,5 @@
-"""Side-by-side evaluation of several models of the same cases (``mdlshapemodel compare``).
+"""Side-by-side evaluation of several models of the same cases: the computing and the page of
+``mdlshapemodel compare`` (whose loading and writing are :mod:`mdlshapemodel.compare`'s).
 
 Every model is evaluated again on the cases all of them share, with the same number of modes, the
 same specificity samples and the same random seed, so that the measures are comparable. A
@@ -19,18 +20,16 @@ different models, can be told apart. False positives and power: benchmarks/compa
 from __future__ import annotations
 
 import html
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..folders import BuildFolder
 from ..model.evaluation import (COMPARED_MEASURES, SIGNIFICANT_SE, evaluate,
                                 generalization_jackknife, measure_differences, model_space,
                                 verdict)
 from ..model.shape_model import ShapeModel
-from ..prepare import io
 
 MEASURES = COMPARED_MEASURES
 # the jackknife of the generalization difference leaves each case out and then each other case:
@@ -47,24 +46,6 @@ class Population:
     shapes: np.ndarray
     weights: np.ndarray
     folder: str = ""          # the build's output folder it was read from ("" when none)
-
-
-def load_population(output, label: str | None = None) -> Population:
-    """Training shapes of a build's model (``OUT`` folder or its model.h5), in the model frame."""
-    path = Path(output)
-    folder = path if path.is_dir() else path.parent
-    file = path / "model.h5" if path.is_dir() else path
-    if not file.exists():
-        raise InputError(f"{output}: no model.h5 (not a build output folder)")
-    model = ShapeModel.load(file)
-    if label is None:
-        metrics = folder / "metrics.json"
-        strategy = model.metadata.get("strategy", "")
-        if metrics.exists():
-            strategy = json.loads(metrics.read_text()).get("strategy", strategy)
-        label = f"{folder.name} ({strategy})" if strategy else folder.name
-    shapes = model.instance(model.scores)
-    return Population(label, list(model.names), shapes, model.weights, str(folder.resolve()))
 
 
 def compare_populations(populations: list, max_modes: int = 10, n_samples: int = 10_000,
@@ -132,39 +113,15 @@ ROW_HEADER = ("measure", "M", "model", "value_mm2", "se", "difference", "differe
               "verdict")
 
 
-# what write_comparison writes into its folder
-COMPARE_FILES = ("compare.json", "compare.csv", "compare.html")
-
-
-def refuse_earlier_comparison(destination, overwrite: bool = False) -> None:
-    """Refuse a folder that holds an earlier comparison unless ``overwrite`` (the rule of every
-    command's output folder: :func:`~mdlshapemodel.prepare.io.refuse_earlier`)."""
-    io.refuse_earlier(destination, io.earlier_outputs(destination, COMPARE_FILES), overwrite,
-                      "comparison")
-
-
-def write_comparison(result: dict, destination, overwrite: bool = False) -> Path:
-    """compare.json, compare.csv and a self-contained compare.html with the plot, written
-    whole or not at all into ``destination``
-    (:func:`~mdlshapemodel.prepare.io.written_folder`; an earlier comparison there is refused
-    unless ``overwrite``)."""
-    refuse_earlier_comparison(destination, overwrite)
-    destination = Path(destination)
-    with io.written_folder(destination, COMPARE_FILES) as folder:
-        _write_comparison(result, destination, folder)
-    return destination / "compare.html"
-
-
-def _write_comparison(result: dict, destination: Path, into: Path):
-    """The files of :func:`write_comparison` into the folder ``into``; links are relative to
-    ``destination``, where they end up."""
+def comparison_page(result: dict, destination) -> str:
+    """compare.html of a comparison (self-contained, with the measures' plot and a viewer of
+    each model); its links to the builds' reports are relative to ``destination``, the folder
+    it goes to."""
     import os
 
     from .html import HOW_TO_READ, html_page, measure_plot, run_table, table
 
-    io.write_text(into / "compare.json", json.dumps(result, indent=2))
     rows = comparison_rows(result)
-    io.write_csv(into / "compare.csv", ROW_HEADER, rows)
     series = [(values, label) for label, values in result["models"].items()]
     plot = measure_plot(series)
     body = [f"<h1>Comparison of {len(series)} models</h1>",
@@ -176,7 +133,7 @@ def _write_comparison(result: dict, destination: Path, into: Path):
             "<h2>What was run</h2>", run_table()]
     models = []
     for label, folder in result.get("folders", {}).items():
-        report = Path(folder) / "report.html" if folder else None
+        report = BuildFolder(folder).report_file if folder else None
         link = (f" (<a href='{html.escape(os.path.relpath(report, destination))}'>its report"
                 f"</a>)" if report is not None and report.exists() else "")
         models.append(f"<li>{html.escape(label)}: <code>{html.escape(folder)}</code>{link}</li>")
@@ -190,7 +147,7 @@ def _write_comparison(result: dict, destination: Path, into: Path):
     if excluded:
         body.append("<h2>Cases left out (not in every model)</h2>")
         body.append(table(("model", "cases"), [(k, ", ".join(v)) for k, v in excluded.items()]))
-    io.write_text(into / "compare.html", html_page("MDLShapeModel comparison", body))
+    return html_page("MDLShapeModel comparison", body)
 
 
 def _viewers(result: dict) -> list:
@@ -199,10 +156,10 @@ def _viewers(result: dict) -> list:
 
     parts = []
     for label, folder in result.get("folders", {}).items():
-        file = Path(folder) / "model.h5" if folder else None
-        if file is None or not file.exists():
+        build = BuildFolder(folder) if folder else None
+        if build is None or not build.model_file.exists():
             continue
-        section = viewer_section(ShapeModel.load(file), prefix=f"viewer{len(parts)}",
+        section = viewer_section(build.model(), prefix=f"viewer{len(parts)}",
                                  heading=f"<h3>{html.escape(label)}</h3>",
                                  with_plotly=not parts)
         if any("id='viewer" in fragment for fragment in section):

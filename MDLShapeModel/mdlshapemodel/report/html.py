@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import folders
 from ..correspondence.trace import stop_summary
 from ..errors import MDLShapeModelError
 from ..model.evaluation import verdict
@@ -237,7 +238,8 @@ def _normals_section(model, normals, names) -> list:
              f"variation spreads normals too. <b>{flagged} of {len(spread)} points "
              f"({100.0 * flagged / len(spread):.1f}%)</b> spread more than "
              f"{SPREAD_DEGREES:.0f}°; median spread {np.median(spread):.1f}°. Every point's "
-             f"value is in mean.vtp (point arrays normal_spread_degrees and normal_agreement, "
+             f"value is in {folders.MEAN} (point arrays normal_spread_degrees and "
+             f"normal_agreement, "
              f"the mean resultant length).</p>"]
     if not model.of_curves:
         from . import rendering
@@ -277,15 +279,16 @@ CASE_COLUMNS = {
 
 # The files of a build's output folder that the report links to, and what each holds.
 OUTPUT_FILES = (
-    ("model.h5", "the model (Statismo/Scalismo format, with this package's exact copy)"),
-    ("mean.vtp", "the mean shape"), ("correspondence/", "each case's corresponded mesh, "
-                                     "in its input's space"),
-    ("aligned/", "each case's corresponded mesh in the model's frame"),
-    ("scores.csv", "each case's scores per mode"), ("cases.csv", "the table below"),
-    ("landmarks.csv", "each case's corresponded landmarks beside the ones given"),
-    ("metrics.json", "every number of this page"), ("convergence.csv", "the objective by time"),
-    ("config.json", "every setting of the build"), ("rejected.csv", "inputs left out and why"),
-    ("build.log", "the build's log"))
+    (folders.MODEL, "the model (Statismo/Scalismo format, with this package's exact copy)"),
+    (folders.MEAN, "the mean shape"),
+    (folders.CORRESPONDENCE + "/", "each case's corresponded mesh, in its input's space"),
+    (folders.ALIGNED + "/", "each case's corresponded mesh in the model's frame"),
+    (folders.SCORES, "each case's scores per mode"), (folders.CASES, "the table below"),
+    (folders.LANDMARKS, "each case's corresponded landmarks beside the ones given"),
+    (folders.METRICS, "every number of this page"),
+    (folders.CONVERGENCE, "the objective by time"),
+    (folders.CONFIG, "every setting of the build"),
+    (folders.REJECTED, "inputs left out and why"), (folders.LOG, "the build's log"))
 
 
 def _landmarks_section(summary: dict) -> list:
@@ -296,8 +299,8 @@ def _landmarks_section(summary: dict) -> list:
     return ["<h2>Landmarks that guided the correspondence</h2>",
             f"<p>{len(summary['labels'])} labels, {summary['given']} landmarks given. Each "
             "case's corresponded landmark is the model point of its label; its distance from "
-            "the landmark given shows how closely the correspondence follows it (landmarks.csv "
-            "has every case's).</p>",
+            f"the landmark given shows how closely the correspondence follows it "
+            f"({folders.LANDMARKS} has every case's).</p>",
             table(("label", "cases", "mean distance [mm]", "largest [mm]", "case of the largest"),
                   rows)]
 
@@ -358,17 +361,13 @@ def _measured_on(objective: dict, n_points: int) -> str:
 
 def _run_parts(output: Path, metrics: dict) -> list:
     """What was run: version, date, command, settings, and links to the output files."""
-    config = output / "config.json"
-    settings = {}
-    if config.exists():
-        import json
-
-        settings = json.loads(config.read_text())
+    folder = folders.BuildFolder(output)
+    settings = folder.settings()
+    there = folder.existing()
     links = "".join(f"<li><a href='{html.escape(name)}'>{html.escape(name)}</a>: "
-                    f"{html.escape(what)}</li>" for name, what in OUTPUT_FILES
-                    if (output / name.rstrip("/")).exists())
+                    f"{html.escape(what)}</li>" for name, what in OUTPUT_FILES if name in there)
     return ["<h2>What was run</h2>", run_table(),
-            "<details><summary>Settings (config.json)</summary>",
+            f"<details><summary>Settings ({folders.CONFIG})</summary>",
             table(("setting", "value"), [(k, v if v != "" else "''") for k, v in settings.items()]),
             "</details>", "<h3>Output files</h3>", f"<ul>{links}</ul>"]
 
@@ -427,7 +426,8 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
               "difference ('MDL worse': falls short of it), by the rule of "
               "<code>mdlshapemodel compare</code>: for G, whose cases are the same, the paired "
               "difference with its jackknife standard error over the cases; for S, the two "
-              "Monte Carlo errors together. metrics.json has each difference and its standard "
+              f"Monte Carlo errors together. {folders.METRICS} has each difference and its "
+              "standard "
               "error (<code>baselines</code>, <code>differences</code>).</p>",
               _image(measure_plot(_series(metrics)), "quality measures"),
               _measure_table(metrics), HOW_TO_READ]
@@ -436,7 +436,7 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
                   _image(measure_plot(_series(metrics), keys=("generalization_surface_mm",
                                                               "specificity_surface_mm")),
                          "surface-to-surface measures")]
-    convergence = convergence_plot(output / "convergence.csv")
+    convergence = convergence_plot(folders.BuildFolder(output).convergence_file)
     if convergence:
         parts += ["<h2>Convergence</h2>", _image(convergence, "convergence")]
     parts += _renderings(model, shapes, names)
@@ -467,6 +467,6 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
     if rejected:
         parts += ["<h2>Rejected inputs</h2>",
                   table(("case", "file", "reason"), [(r.name, r.path, r.reason) for r in rejected])]
-    path = output / "report.html"
+    path = folders.BuildFolder(output).report_file
     io.write_text(path, html_page("MDLShapeModel report", parts))
     return path
