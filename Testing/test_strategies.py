@@ -232,13 +232,14 @@ def test_snapshot_and_restore_return_the_exact_state():
 
 
 def test_a_budget_too_short_to_help_keeps_the_initial_correspondence():
-    """With an evaluation budget of a few sweeps, the final value is never above the start."""
+    """With an evaluation budget of a few sweeps, the full objective's phase never ends above
+    its start (the fixed-Delta phase, left out here, may: optimise's docstring)."""
     for seed in range(3):
         state = small_state()
         fixed, integrated = build_objectives(state)
         state.objective = integrated
         start = state.value()
-        settings = OptimisationSettings(max_sweeps=1, pose_evaluations=10)
+        settings = OptimisationSettings(max_sweeps=1, pose_evaluations=10, fixed_fraction=0.0)
         final = optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), Trace())
         assert final <= start + 1e-9
         assert state.value() == pytest.approx(final, rel=1e-9)
