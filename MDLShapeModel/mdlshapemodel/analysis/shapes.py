@@ -19,13 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import ANALYSIS_SIZES as SIZES
+from ..config import SUPERIMPOSITIONS
 from ..correspondence.pose import centroid_size, generalized_procrustes
 from ..errors import InputError
 from ..model.normals import outward_normals
 from ..model.shape_model import ShapeModel
 from ..prepare import io
-
-SIZES = ("kept", "removed")
+from .superimposition import resistant_procrustes
 
 
 @dataclass
@@ -77,9 +78,11 @@ def _points_of(path):
 
 
 def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
-          planar: bool = False) -> np.ndarray:
+          planar: bool = False, superimposition: str = "least-squares") -> np.ndarray:
     """Shapes (n, p, 3) aligned by weighted generalized Procrustes without scaling (eq. 18);
-    ``size="removed"`` scales each to the mean centroid size first.
+    ``size="removed"`` scales each to the mean centroid size first; ``superimposition=
+    "resistant"`` reweights each case's points by a biweight of their residuals
+    (:func:`~.superimposition.resistant_procrustes`).
 
     Examples
     --------
@@ -92,6 +95,9 @@ def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
     """
     if size not in SIZES:
         raise InputError(f"size must be one of {', '.join(SIZES)}, not {size!r}")
+    if superimposition not in SUPERIMPOSITIONS:
+        raise InputError(f"superimposition must be one of {', '.join(SUPERIMPOSITIONS)}, "
+                         f"not {superimposition!r}")
     shapes = np.asarray(shapes, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     weights = weights / weights.sum()          # Procrustes takes weights that sum to 1
@@ -100,6 +106,8 @@ def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
         centres = np.einsum("p,npd->nd", weights, shapes)
         shapes = ((shapes - centres[:, None]) * (sizes.mean() / sizes)[:, None, None]
                   + centres[:, None])
+    if superimposition == "resistant":
+        return resistant_procrustes(shapes, weights, planar=planar).aligned
     aligned, _ = generalized_procrustes(shapes, weights, scaling=False, planar=planar)
     return aligned
 

@@ -150,9 +150,9 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
         aligned = np.empty_like(used)
         for rows in model.part_slices():
             aligned[:, rows] = align(used[:, rows], model.weights[rows], config.size,
-                                     planar=planar)
+                                     planar, config.superimposition)
     else:
-        aligned = align(used, model.weights, config.size, planar=planar)
+        aligned = align(used, model.weights, config.size, planar, config.superimposition)
     mean = aligned.mean(axis=0)
     normals = vertex_normals(mean, model.triangles, model.part_of_triangles())
     offsets = aligned - mean
