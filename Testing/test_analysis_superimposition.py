@@ -82,7 +82,7 @@ def test_a_local_change_moves_the_least_squares_superimposition_not_the_resistan
     assert resistant.max() < least_squares.max()
     # the changed points are the ones the resistant fit gave up on
     robust = resistant_procrustes(changed, weights).robust
-    assert robust[planted][:, tip].mean() < 0.1 < 0.9 < robust[:, ~tip].mean()
+    assert robust[planted][:, tip].mean() < 0.3 < 0.7 < robust[:, ~tip].mean()
 
 
 def test_bad_input_to_the_resistant_superimposition_is_refused():

@@ -20,16 +20,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
 
 from ..correspondence.pose import align, centroid_size, weighted_centroid
 from ..errors import InputError
 
-# Tukey's biweight tuning constant: 95 % efficiency under normal errors (in units of the scale
-# below)
+# Tukey's biweight tuning constant, in robust standard deviations of a coordinate: 95 %
+# efficiency under normal errors
 BIWEIGHT = 4.685
-# the median of the residual norms times this is the scale of the biweight (1 / Phi^-1(0.75),
-# which makes the median absolute deviation a standard deviation under normal errors)
-MAD_SCALE = 1.4826
 
 
 @dataclass
@@ -54,23 +52,27 @@ class Superimposition:
     iterations: int
 
 
-def biweight(residuals: np.ndarray, tuning: float = BIWEIGHT) -> np.ndarray:
+def biweight(residuals: np.ndarray, tuning: float = BIWEIGHT, dimensions: int = 3) -> np.ndarray:
     """Tukey's biweight of residual norms (n_s, n_p), each case scaled by its own median
-    residual norm: w = (1 - u^2)^2 for u < 1, else 0, with u = r / (tuning * 1.4826 * median r).
+    residual norm: w = (1 - u^2)^2 for u < 1, else 0, with u = r / (tuning * sigma).
+
+    sigma = median(r) / sqrt(median of chi^2 with ``dimensions`` degrees of freedom) is the
+    standard deviation per coordinate of normal residuals with that median norm (1.538 sigma in
+    3-D, 1.177 sigma in 2-D), so that ``tuning`` has its usual meaning.
 
     Examples
     --------
     >>> r = np.array([[1.0, 1.0, 1.0, 1.0, 50.0]])
     >>> biweight(r).round(3).tolist()
-    [[0.959, 0.959, 0.959, 0.959, 0.0]]
+    [[0.796, 0.796, 0.796, 0.796, 0.0]]
     """
     residuals = np.asarray(residuals, dtype=np.float64)
     if not np.isfinite(tuning):
         return np.ones_like(residuals)
-    scale = MAD_SCALE * np.median(residuals, axis=1, keepdims=True)
+    sigma = np.median(residuals, axis=1, keepdims=True) / np.sqrt(chi2.median(dimensions))
     # a case that fits exactly: every point counts
-    scale = np.where(scale > 0, scale, np.inf)
-    u = residuals / (tuning * scale)
+    sigma = np.where(sigma > 0, sigma, np.inf)
+    u = residuals / (tuning * sigma)
     return np.where(u < 1, (1 - u ** 2) ** 2, 0.0)
 
 
@@ -94,7 +96,8 @@ def resistant_procrustes(shapes: np.ndarray, weights: np.ndarray, tuning: float 
     weights : ndarray (n_p,)
         Non-negative area weights (normalised here to sum to 1).
     tuning : float
-        The biweight's constant in robust standard deviations (``np.inf``: least squares).
+        The biweight's constant in robust standard deviations of a coordinate (``np.inf``:
+        least squares).
     planar : bool
         Shapes in the plane z = 0, rotated about z only.
     iterations : int
@@ -139,7 +142,7 @@ def resistant_procrustes(shapes: np.ndarray, weights: np.ndarray, tuning: float 
         poses = [align(x, mean, _normalised(weights * r), scaling=False, planar=planar)
                  for x, r in zip(shapes, robust)]
         previous, aligned = aligned, _apply(poses, shapes)
-        robust = biweight(np.linalg.norm(aligned - mean, axis=2), tuning)
+        robust = biweight(np.linalg.norm(aligned - mean, axis=2), tuning, 2 if planar else 3)
         if np.abs(aligned - previous).max() <= tolerance * target_size:
             break
     return Superimposition(aligned, poses, robust, rounds)
