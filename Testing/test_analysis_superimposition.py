@@ -45,7 +45,7 @@ def ellipsoids(n: int, seed: int, points: int = 600, planar: bool = False) -> np
 def test_unit_weights_give_the_least_squares_alignment(planar):
     shapes = ellipsoids(8, seed=1, planar=planar)
     weights = np.random.default_rng(2).uniform(0.5, 1.5, shapes.shape[1])
-    least_squares = align(shapes, weights, planar=planar)
+    least_squares = align(shapes, weights, planar=planar, superimposition="least-squares")
     unit = resistant_procrustes(shapes, weights, tuning=np.inf, planar=planar)
     np.testing.assert_allclose(unit.aligned, least_squares, atol=1e-6)
     assert np.all(unit.robust == 1)
@@ -61,7 +61,7 @@ def test_a_local_change_moves_the_least_squares_superimposition_not_the_resistan
     planted = np.arange(20) % 2 == 1
     # in the frame of each case, the points of one end (first axis above 20 of 30) retracted
     # by 8 along that axis: found from the unrotated ellipsoid's coordinates
-    reference = align(shapes, weights)          # the cases aligned with no change
+    reference = align(shapes, weights, superimposition="least-squares")   # with no change
     tip = reference.mean(axis=0)[:, 0] > 20
     for i in np.flatnonzero(planted):
         axis = np.linalg.lstsq(reference[i] - reference[i].mean(0),
@@ -108,8 +108,8 @@ def test_analyze_superimposition_resistant_by_the_real_command(build, table, tmp
     shapes = shapes_of(build, used)
     points = read_points(output / "points.csv")
     written = np.column_stack([points[c].astype(float) for c in "xyz"])
-    resistant = align(shapes, model.weights, superimposition="resistant").mean(axis=0)
-    least_squares = align(shapes, model.weights).mean(axis=0)
+    resistant = align(shapes, model.weights).mean(axis=0)            # the default
+    least_squares = align(shapes, model.weights, superimposition="least-squares").mean(axis=0)
     np.testing.assert_allclose(written, resistant, atol=5e-5 * np.abs(resistant).max())
     assert np.abs(written - least_squares).max() > 1e-3
 

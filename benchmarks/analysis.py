@@ -73,10 +73,12 @@ import numpy as np
 
 
 def _split_tests(shapes, weights, cells, labels, permutations, seed, displacement,
-                 superimposition="least-squares", variance_groups=None):
+                 superimposition=None, variance_groups=None):
     from mdlshapemodel.analysis import align, permutation_test, vertex_normals
+    from mdlshapemodel.config import AnalysisConfig
 
-    aligned = align(shapes, weights, superimposition=superimposition)
+    aligned = align(shapes, weights,
+                    superimposition=superimposition or AnalysisConfig.superimposition)
     mean = aligned.mean(axis=0)
     normals = vertex_normals(mean, cells)
     offsets = aligned - mean
@@ -359,7 +361,7 @@ def superimpose(args):
     built = read_build(args.build)
     shapes, cells, weights = built.shapes, built.model.triangles, built.model.weights
     n = len(shapes)
-    mean = align(shapes, weights).mean(axis=0)
+    mean = align(shapes, weights, superimposition="least-squares").mean(axis=0)
     tip, _ = _long_axis_tip(mean)
     # per point, its mean distance over the cases from their tip
     distance = np.mean(np.linalg.norm(shapes - shapes[:, tip:tip + 1], axis=2), axis=0)
@@ -489,7 +491,7 @@ def main():
     p.add_argument("--permutations", type=int, default=9999)
     p.add_argument("--alpha", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--superimposition", default="least-squares")
+    p.add_argument("--superimposition", default="resistant")
     p = commands.add_parser("superimpose")
     p.add_argument("build")
     p.add_argument("--amplitude", type=float, default=2.0)

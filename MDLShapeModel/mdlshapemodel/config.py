@@ -644,7 +644,8 @@ DISPLACEMENTS = ("normal", "vector")
 ANALYSIS_SIZES = ("kept", "removed")
 # How the analysis superimposes the shapes: least-squares generalized Procrustes (every point
 # pulls on a case's pose by its squared residual) or resistant (iteratively reweighted, a
-# biweight of each point's residual, so that a local change moves the poses little).
+# biweight of each point's residual, so that a local change moves the poses little; the
+# default, as it found planted local changes with fewer far findings and kept the level).
 SUPERIMPOSITIONS = ("least-squares", "resistant")
 # The per-point statistic of a group comparison: one covariance per group ("groups": Welch's v or
 # G, James' statistic for the vector displacement; valid when the groups differ in variance and
@@ -824,7 +825,7 @@ class AnalysisConfig:
     #                                                        columns, which are adjusted for
     permutations: int = 10_000
     size: str = "kept"
-    superimposition: str = "least-squares"
+    superimposition: str = "resistant"
     parts: str = "whole"              # multi-part objects: aligned as one, or each part alone
     displacement: str = "normal"
     variance: str = "groups"          # a tested group's statistic: per-group or pooled variance

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import ANALYSIS_SIZES as SIZES
-from ..config import SUPERIMPOSITIONS
+from ..config import SUPERIMPOSITIONS, AnalysisConfig
 from ..correspondence.pose import centroid_size, generalized_procrustes
 from ..errors import InputError
 from ..model.normals import outward_normals
@@ -78,11 +78,12 @@ def _points_of(path):
 
 
 def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
-          planar: bool = False, superimposition: str = "least-squares") -> np.ndarray:
+          planar: bool = False,
+          superimposition: str = AnalysisConfig.superimposition) -> np.ndarray:
     """Shapes (n, p, 3) aligned by weighted generalized Procrustes without scaling (eq. 18);
     ``size="removed"`` scales each to the mean centroid size first; ``superimposition=
-    "resistant"`` reweights each case's points by a biweight of their residuals
-    (:func:`~.superimposition.resistant_procrustes`).
+    "resistant"`` (the analysis's default) reweights each case's points by a biweight of their
+    residuals (:func:`~.superimposition.resistant_procrustes`), ``"least-squares"`` does not.
 
     Examples
     --------
