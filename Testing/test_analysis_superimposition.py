@@ -125,7 +125,8 @@ def test_analyze_superimposition_resistant_by_the_real_command(build, table, tmp
     welch = stats.ttest_ind(sizes[thin], sizes[~thin], equal_var=False).statistic
     assert size["statistic"] == pytest.approx(welch ** 2, rel=1e-6)
     assert size["p"] < 0.05
-    assert "Centroid size" in (output / "analysis.html").read_text()
+    page = (output / "analysis.html").read_text()
+    assert "Centroid size" in page and "superimposed by resistant" in page
 
     refused = run_cli("analyze", build, "--table", table, "--group", "group", "-o",
                       tmp_path / "bad", "--superimposition", "robust", "-q")

@@ -9,7 +9,8 @@ The output folder::
     analysis.json   settings, the columns tested and adjusted for, cases per group, cases left
                     out and why (with the columns and values missing), the per-point test
                     (statistic, variance groups, family-wise correction, smallest p), the global
-                    test, the number of significant points (FWER, FDR), the classification
+                    test, the effect on centroid size, the number of significant points (FWER,
+                    FDR), the classification
     points.csv      one row per model point: point,part,x,y,z,statistic,p,p_fwer,q_fdr,
                     difference_x,difference_y,difference_z,normal_difference_mm,t
                     (p: the point's own permutation p-value; p_fwer: family-wise corrected;

@@ -294,7 +294,9 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
     effects = ", ".join(f"{html.escape(name)} {value:+.3g} mm"
                         for name, value in size["effects_mm"].items())
     body += ["<h2>Size</h2>",
-             f"<p>Centroid size (area-weighted, before alignment) {size['mean_mm']:.4g} mm on "
+             f"<p>The shapes are superimposed by {html.escape(config.superimposition)} "
+             "generalized Procrustes. "
+             f"Centroid size (area-weighted, before alignment) {size['mean_mm']:.4g} mm on "
              f"average; effect: {effects} ({html.escape(size['test'])}, permutation p = "
              f"{size['p']:.4g}). With <code>--size kept</code> a difference of size shows in the "
              "maps as a difference of shape.</p>"]
