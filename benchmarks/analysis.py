@@ -34,6 +34,18 @@ median distance of the significant points from the push.
 and inward) and, ignoring the pairing, the post scans by arm (cross-sectional) and the post
 against the pre scans (unpaired): family-wise significant points at the push and far from it.
 
+``superimpose BUILD``: least-squares against resistant superimposition (``analyze
+--superimposition``) with the change planted on the build's corresponded shapes, so that the
+correspondence is the same and only the alignment differs: a ``--amplitude`` mm Gaussian
+(sigma ``--width`` mm) at the tip of the hippocampal head (the end of the mean's long axis
+where it is wider), pushed inward along each case's normals (a dent) or back along the case's
+long axis (a retraction: the tip retracts, its sides slide), in a random half of the cases.
+Per change, group size and superimposition: family-wise significant points at the change and
+far from it (as ``power``), the normal difference at the change and the group difference that
+the change made far from it by moving the poses; then the null (random half splits of the
+unchanged cases). The alignment is done once per analysis on all its cases, before and
+without the labels, so the permutations stay valid.
+
 ``speed BUILD``: the wall time of 10,000 permutations on the build's points.
 
 Examples::
@@ -47,6 +59,7 @@ Examples::
     mdlshapemodel build /tmp/plant2/labels -o /tmp/plant2/cpd --correspondence cpd
     python benchmarks/analysis.py power /tmp/plant2 /tmp/plant2/mdl /tmp/plant2/none \\
         /tmp/plant2/cpd
+    python benchmarks/analysis.py superimpose /tmp/hip --group-sizes 10 20 41
 """
 
 from __future__ import annotations
@@ -59,16 +72,19 @@ from pathlib import Path
 import numpy as np
 
 
-def _split_tests(shapes, weights, cells, labels, permutations, seed, displacement):
+def _split_tests(shapes, weights, cells, labels, permutations, seed, displacement,
+                 superimposition=None, variance_groups=None):
     from mdlshapemodel.analysis import align, permutation_test, vertex_normals
+    from mdlshapemodel.config import AnalysisConfig
 
-    aligned = align(shapes, weights)
+    aligned = align(shapes, weights,
+                    superimposition=superimposition or AnalysisConfig.superimposition)
     mean = aligned.mean(axis=0)
     normals = vertex_normals(mean, cells)
     offsets = aligned - mean
     data = np.einsum("npd,pd->np", offsets, normals) if displacement == "normal" else offsets
     return permutation_test(data, labels[:, None].astype(float), permutations=permutations,
-                            seed=seed)
+                            seed=seed, variance_groups=variance_groups)
 
 
 def null(args):
@@ -294,12 +310,137 @@ def paired(args):
     for label, path, settings in designs:
         keys = ("group", "reference", "subject", "time", "baseline")
         design = subjects(path, names, **{k: v for k, v in settings.items() if k in keys})
-        config = AnalysisConfig(**settings, permutations=args.permutations, seed=args.seed)
+        config = AnalysisConfig(**settings, permutations=args.permutations, seed=args.seed,
+                                superimposition=args.superimposition)
         found = analyze_shapes(built.model, built.shapes, design, config).points
         significant = found.p_fwer <= args.alpha
         print(f"| {label} | {found.name}, {found.resampling} | {int(np.sum(significant & near))}"
               f" | {int(np.sum(significant & far))} | {found.p_fwer[near].min():.4f} |",
               flush=True)
+
+
+def _long_axis_tip(mean: np.ndarray) -> tuple[int, np.ndarray]:
+    """The mean shape's point at the end of its long axis (first principal axis) where it is
+    wider (the hippocampal head), and the axis pointing towards it."""
+    centred = mean - mean.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    along = centred @ axis
+    radial = np.linalg.norm(centred - np.outer(along, axis), axis=1)
+    ends = [along >= along.max() - 10, along <= along.min() + 10]
+    if radial[ends[1]].mean() > radial[ends[0]].mean():
+        axis, along = -axis, -along
+    return int(np.argmax(along)), axis
+
+
+def _planted(shapes, cells, tip, axis_of_mean, kind, amplitude, width):
+    """Copies of shapes (n, p, 3) changed at point ``tip``: ``dent``, a Gaussian push inward
+    along each case's own normals; ``retraction``, the same Gaussian moving the points back
+    along the case's long axis (the tip retracts, its sides slide)."""
+    from mdlshapemodel.analysis import vertex_normals
+
+    changed = shapes.copy()
+    for i, shape in enumerate(shapes):
+        gauss = amplitude * np.exp(-0.5 * np.sum((shape - shape[tip]) ** 2, axis=1) / width ** 2)
+        if kind == "dent":
+            direction = vertex_normals(shape, cells)
+        else:
+            centred = shape - shape.mean(axis=0)
+            axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+            direction = np.broadcast_to(axis if axis @ (shape[tip] - shape.mean(axis=0)) > 0
+                                        else -axis, shape.shape)
+        changed[i] = shape - gauss[:, None] * direction
+    return changed
+
+
+def superimpose(args):
+    """Least-squares against resistant superimposition, effects planted on a build's
+    corresponded shapes (so that only the alignment differs): at the change and far from it,
+    and under the null."""
+    from mdlshapemodel.analysis import align, read_build
+
+    built = read_build(args.build)
+    shapes, cells, weights = built.shapes, built.model.triangles, built.model.weights
+    n = len(shapes)
+    mean = align(shapes, weights, superimposition="least-squares").mean(axis=0)
+    tip, _ = _long_axis_tip(mean)
+    # per point, its mean distance over the cases from their tip
+    distance = np.mean(np.linalg.norm(shapes - shapes[:, tip:tip + 1], axis=2), axis=0)
+    near = distance <= NEAR * args.width + args.amplitude
+    far = distance >= FAR
+    methods = ("least-squares", "resistant")
+    rng = np.random.default_rng(args.seed)
+    print(f"{args.build}: {n} cases, {len(mean)} points; {args.amplitude} mm, Gaussian sigma "
+          f"{args.width} mm at the head's tip (point {tip}); {int(near.sum())} points at the "
+          f"change, {int(far.sum())} >= {FAR:.0f} mm from it; {args.permutations} permutations, "
+          f"Welch's v (variance groups), alpha {args.alpha}, {args.subsets} subsets per size")
+    print("| change | per group | superimposition | at change | far | power | any far "
+          "| normal difference at change (mm) | difference made far from it (mm) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for kind in ("dent", "retraction"):
+        planted = np.zeros(n, bool)
+        planted[rng.permutation(n)[:n // 2]] = True
+        changed = np.where(planted[:, None, None],
+                           _planted(shapes, cells, tip, None, kind, args.amplitude,
+                                    args.width), shapes)
+        for size in args.group_sizes:
+            subsets = 1 if size >= min(planted.sum(), (~planted).sum()) else args.subsets
+            chosen = [np.concatenate([rng.choice(np.flatnonzero(planted), size, replace=False),
+                                      rng.choice(np.flatnonzero(~planted), size,
+                                                 replace=False)])
+                      for _ in range(subsets)]
+            seeds = rng.integers(1 << 30, size=subsets)
+            for method in methods:
+                at, beyond, hits, false, shift_at, shift_far = [], [], 0, 0, [], []
+                for rows, seed in zip(chosen, seeds):
+                    labels = planted[rows]
+                    result = _split_tests(changed[rows], weights, cells, labels,
+                                          args.permutations, int(seed), "normal", method,
+                                          labels.astype(int))
+                    significant = result.p_fwer <= args.alpha
+                    at.append(int(np.sum(significant & near)))
+                    beyond.append(int(np.sum(significant & far)))
+                    hits += bool(np.any(significant & near))
+                    false += bool(np.any(significant & far))
+                    normal, moved = _moved(changed[rows], shapes[rows], weights, cells, labels,
+                                           method)
+                    shift_at.append(normal[near].mean())
+                    shift_far.append(moved[far].mean())
+                print(f"| {kind} | {size} | {method} | {np.mean(at):.1f} | {np.mean(beyond):.1f} "
+                      f"| {hits / subsets:.2f} | {false / subsets:.2f} | "
+                      f"{np.mean(shift_at):+.2f} | {np.mean(shift_far):.3f} |", flush=True)
+    se = np.sqrt(args.alpha * (1 - args.alpha) / args.splits)
+    print(f"\nnull: {args.splits} random half splits of the unchanged cases (SE of a rate "
+          f"{se:.4f})")
+    print("| superimposition | any FWER-significant | any FDR-significant |")
+    print("|---|---|---|")
+    splits = [rng.permutation(n) < n // 2 for _ in range(args.splits)]
+    seeds = rng.integers(1 << 30, size=args.splits)
+    for method in methods:
+        fwer = fdr = 0
+        for labels, seed in zip(splits, seeds):
+            result = _split_tests(shapes, weights, cells, labels, args.permutations, int(seed),
+                                  "normal", method, labels.astype(int))
+            fwer += bool(np.any(result.p_fwer <= args.alpha))
+            fdr += bool(np.any(result.q_fdr <= args.alpha))
+        print(f"| {method} | {fwer / args.splits:.3f} ({(fwer / args.splits - args.alpha) / se:+.1f}"
+              f" SE) | {fdr / args.splits:.3f} ({(fdr / args.splits - args.alpha) / se:+.1f} SE) |",
+              flush=True)
+
+
+def _moved(changed, unchanged, weights, cells, labels, method):
+    """The planted minus the unchanged cases' mean displacement along the mean's normals, and
+    per point the group difference the change made by moving the aligned points (the planted
+    minus the unchanged cases' mean movement from the same cases aligned without the change,
+    its norm, mm): away from the change, all of it is the superimposition's doing."""
+    from mdlshapemodel.analysis import align, vertex_normals
+
+    aligned = align(changed, weights, superimposition=method)
+    reference = align(unchanged, weights, superimposition=method)
+    mean = aligned.mean(axis=0)
+    normal = np.einsum("npd,pd->np", aligned - mean, vertex_normals(mean, cells))
+    moved = aligned - reference
+    moved = np.linalg.norm(moved[labels].mean(axis=0) - moved[~labels].mean(axis=0), axis=1)
+    return normal[labels].mean(axis=0) - normal[~labels].mean(axis=0), moved
 
 
 def speed(args):
@@ -350,12 +491,23 @@ def main():
     p.add_argument("--permutations", type=int, default=9999)
     p.add_argument("--alpha", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--superimposition", default="resistant")
+    p = commands.add_parser("superimpose")
+    p.add_argument("build")
+    p.add_argument("--amplitude", type=float, default=2.0)
+    p.add_argument("--width", type=float, default=4.0)
+    p.add_argument("--group-sizes", type=int, nargs="+", default=[10, 20, 40])
+    p.add_argument("--subsets", type=int, default=5)
+    p.add_argument("--splits", type=int, default=100)
+    p.add_argument("--permutations", type=int, default=1000)
+    p.add_argument("--alpha", type=float, default=0.05)
+    p.add_argument("--seed", type=int, default=0)
     p = commands.add_parser("speed")
     p.add_argument("build")
     p.add_argument("--permutations", type=int, default=10_000)
     args = parser.parse_args()
     {"null": null, "plant": plant, "power": power, "paired": paired,
-     "speed": speed}[args.command](args)
+     "superimpose": superimpose, "speed": speed}[args.command](args)
 
 
 if __name__ == "__main__":

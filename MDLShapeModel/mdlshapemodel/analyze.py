@@ -9,7 +9,8 @@ The output folder::
     analysis.json   settings, the columns tested and adjusted for, cases per group, cases left
                     out and why (with the columns and values missing), the per-point test
                     (statistic, variance groups, family-wise correction, smallest p), the global
-                    test, the number of significant points (FWER, FDR), the classification
+                    test, the effect on centroid size, the number of significant points (FWER,
+                    FDR), the classification
     points.csv      one row per model point: point,part,x,y,z,statistic,p,p_fwer,q_fdr,
                     difference_x,difference_y,difference_z,normal_difference_mm,t
                     (p: the point's own permutation p-value; p_fwer: family-wise corrected;
@@ -132,6 +133,21 @@ def long_table(analysis: Analysis, table) -> tuple[list, list]:
     return header, body
 
 
+def size_summary(analysis: Analysis) -> dict:
+    """analysis.json's ``centroid_size``: the cases' mean centroid size (mm, before alignment),
+    per group, each effect column's effect on it and the design's test of it (how much of the
+    shape difference is a difference of size; pose is left out, the cases' positions being
+    those of their scans)."""
+    size, design = analysis.size, analysis.subjects
+    per_group = (None if design.groups is None or design.repeated is not None else
+                 {level: float(np.mean([s for s, g in zip(size.sizes, design.groups)
+                                        if g == level])) for level in design.levels})
+    return {"mean_mm": float(size.sizes.mean()), "per_group_mm": per_group,
+            "effects_mm": dict(zip(design.interest_names, size.effects.tolist())),
+            "statistic": float(size.test.statistic[0]), "test": size.test.name,
+            "p": float(size.test.p[0])}
+
+
 def summary_of(analysis: Analysis, build, table) -> dict:
     """The content of analysis.json."""
     config, design = analysis.config, analysis.subjects
@@ -151,6 +167,7 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                         "statistic": analysis.global_test.statistic,
                         "p": analysis.global_test.p,
                         "permutations": analysis.global_test.permutations},
+        "centroid_size": size_summary(analysis),
         "significant_points": {"fwer": int(analysis.significant("fwer").sum()),
                                "fdr": int(analysis.significant("fdr").sum()),
                                "of": len(analysis.mean)},

@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Callable
 
 from .config import (ANALYSIS_SIZES, DISPLACEMENTS, FAMILY_WISE, OPTION_GROUPS,
-                     PART_ALIGNMENTS, STRATEGIES, TAILS, VARIANCES, AnalysisConfig, BuildConfig,
-                     parse_items)
+                     PART_ALIGNMENTS, STRATEGIES, SUPERIMPOSITIONS, TAILS, VARIANCES,
+                     AnalysisConfig, BuildConfig, parse_items)
 from .correspondence.trace import stop_summary
 from .errors import Cancelled, ConfigError, InternalError, MDLShapeModelError
 from .progress import ctrl_c
@@ -359,7 +359,8 @@ def _run_analyze(args, live: bool) -> int:
                             subject=args.subject, time=args.time, baseline=args.baseline,
                             tail=args.tail, long_table=args.long_table,
                             contrasts=args.contrast, interactions=args.interaction,
-                            permutations=args.permutations, size=args.size, parts=args.parts,
+                            permutations=args.permutations, size=args.size,
+                            superimposition=args.superimposition, parts=args.parts,
                             displacement=args.displacement, variance=args.variance,
                             family_wise=args.family_wise, alpha=args.alpha,
                             seed=args.seed).validate()
@@ -602,6 +603,12 @@ def main(argv=None) -> int:
     analyze.add_argument("--size", choices=ANALYSIS_SIZES, default=analysis_defaults.size,
                          help="kept: aligned by rotation and translation, so size differences "
                               "show; removed: each case scaled to the mean size first "
+                              "(default %(default)s)")
+    analyze.add_argument("--superimposition", choices=SUPERIMPOSITIONS,
+                         default=analysis_defaults.superimposition,
+                         help="least-squares: generalized Procrustes; resistant: each case's "
+                              "points reweighted by a biweight of their residuals, so that a "
+                              "local change (a dent, a retracted tip) moves the poses little "
                               "(default %(default)s)")
     analyze.add_argument("--parts", choices=PART_ALIGNMENTS, default=analysis_defaults.parts,
                          help="multi-part objects: whole, aligned as one (the parts' relative "

@@ -642,6 +642,11 @@ DISPLACEMENTS = ("normal", "vector")
 # How the analysis aligns the shapes: size kept (rigid; a loss of volume shows) or removed
 # (each scaled to the mean centroid size first).
 ANALYSIS_SIZES = ("kept", "removed")
+# How the analysis superimposes the shapes: least-squares generalized Procrustes (every point
+# pulls on a case's pose by its squared residual) or resistant (iteratively reweighted, a
+# biweight of each point's residual, so that a local change moves the poses little; the
+# default, as it found planted local changes with fewer far findings and kept the level).
+SUPERIMPOSITIONS = ("least-squares", "resistant")
 # The per-point statistic of a group comparison: one covariance per group ("groups": Welch's v or
 # G, James' statistic for the vector displacement; valid when the groups differ in variance and
 # size) or one pooled covariance for all cases ("pooled": Student's t, the F, Pillai's trace or
@@ -820,6 +825,7 @@ class AnalysisConfig:
     #                                                        columns, which are adjusted for
     permutations: int = 10_000
     size: str = "kept"
+    superimposition: str = "resistant"
     parts: str = "whole"              # multi-part objects: aligned as one, or each part alone
     displacement: str = "normal"
     variance: str = "groups"          # a tested group's statistic: per-group or pooled variance
@@ -837,6 +843,8 @@ class AnalysisConfig:
 
         need(self.permutations >= 1, "permutations", "must be at least 1")
         need(self.size in ANALYSIS_SIZES, "size", f"must be one of {', '.join(ANALYSIS_SIZES)}")
+        need(self.superimposition in SUPERIMPOSITIONS, "superimposition",
+             f"must be one of {', '.join(SUPERIMPOSITIONS)}")
         need(self.parts in PART_ALIGNMENTS, "parts",
              f"must be one of {', '.join(PART_ALIGNMENTS)}")
         need(self.displacement in DISPLACEMENTS, "displacement",

@@ -8,6 +8,8 @@ The stage after :mod:`mdlshapemodel.model`: functions over arrays and
   cases, and the design of one test;
 - :func:`~.shapes.read_build`, :func:`~.shapes.align`, :func:`~.shapes.vertex_normals`: the
   corresponded shapes, aligned, and the mean surface's normals;
+- :func:`~.superimposition.resistant_procrustes`: the alignment that a local change moves
+  little (``align(..., superimposition="resistant")``);
 - :func:`~.glm.permutation_test`: per-point linear models, Freedman-Lane permutations,
   family-wise (maximum statistic) and FDR (:func:`~.glm.benjamini_hochberg`) correction;
 - :func:`~.discriminant.discriminant`, :func:`~.discriminant.classify`: the discriminant shape

@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..config import ANALYSIS_SIZES as SIZES
+from ..config import SUPERIMPOSITIONS, AnalysisConfig
 from ..correspondence.pose import centroid_size, generalized_procrustes
 from ..errors import InputError
 from ..folders import BuildFolder, BuildShapes
 from ..model.normals import outward_normals
-
-SIZES = ("kept", "removed")
+from .superimposition import resistant_procrustes
 
 
 def read_build(folder) -> BuildShapes:
@@ -34,9 +35,12 @@ def read_build(folder) -> BuildShapes:
 
 
 def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
-          planar: bool = False) -> np.ndarray:
+          planar: bool = False,
+          superimposition: str = AnalysisConfig.superimposition) -> np.ndarray:
     """Shapes (n, p, 3) aligned by weighted generalized Procrustes without scaling (eq. 18);
-    ``size="removed"`` scales each to the mean centroid size first.
+    ``size="removed"`` scales each to the mean centroid size first; ``superimposition=
+    "resistant"`` (the analysis's default) reweights each case's points by a biweight of their
+    residuals (:func:`~.superimposition.resistant_procrustes`), ``"least-squares"`` does not.
 
     Examples
     --------
@@ -49,6 +53,9 @@ def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
     """
     if size not in SIZES:
         raise InputError(f"size must be one of {', '.join(SIZES)}, not {size!r}")
+    if superimposition not in SUPERIMPOSITIONS:
+        raise InputError(f"superimposition must be one of {', '.join(SUPERIMPOSITIONS)}, "
+                         f"not {superimposition!r}")
     shapes = np.asarray(shapes, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     weights = weights / weights.sum()          # Procrustes takes weights that sum to 1
@@ -57,6 +64,8 @@ def align(shapes: np.ndarray, weights: np.ndarray, size: str = "kept",
         centres = np.einsum("p,npd->nd", weights, shapes)
         shapes = ((shapes - centres[:, None]) * (sizes.mean() / sizes)[:, None, None]
                   + centres[:, None])
+    if superimposition == "resistant":
+        return resistant_procrustes(shapes, weights, planar=planar).aligned
     aligned, _ = generalized_procrustes(shapes, weights, scaling=False, planar=planar)
     return aligned
 

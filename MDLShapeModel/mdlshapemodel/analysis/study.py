@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import AnalysisConfig, parse_contrast
+from ..correspondence.pose import centroid_size
 from ..model.outliers import Distances, modes_explaining, training_distances
 from ..model.shape_model import ShapeModel
 from ..progress import report
@@ -32,6 +33,28 @@ class GlobalTest:
     statistic: float
     p: float
     permutations: int
+
+
+@dataclass
+class SizeTest:
+    """How much of the difference is size: the effect of each effect column on the cases'
+    centroid size (the root area-weighted mean squared distance of the points from their
+    centroid, mm, before any scaling), tested like a point.
+
+    Attributes
+    ----------
+    sizes : ndarray (n_cases,)
+        The used cases' centroid sizes (mm).
+    effects : ndarray (r,)
+        Each effect column's least-squares coefficient on them (mm; per unit of a covariate),
+        adjusted for the nuisance.
+    test : PointTest
+        The design's test on the sizes (one "point").
+    """
+
+    sizes: np.ndarray
+    effects: np.ndarray
+    test: PointTest
 
 
 @dataclass
@@ -93,6 +116,7 @@ class Analysis:
     classification: Classification | None
     unusual: Unusual
     scores: np.ndarray | None = None   # (n_cases, k) the principal scores of the global test
+    size: SizeTest | None = None       # the effect on centroid size
 
     def significant(self, correction: str = "fwer") -> np.ndarray:
         """Points significant at ``config.alpha`` after family-wise ("fwer") or FDR ("fdr")
@@ -150,9 +174,9 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
         aligned = np.empty_like(used)
         for rows in model.part_slices():
             aligned[:, rows] = align(used[:, rows], model.weights[rows], config.size,
-                                     planar=planar)
+                                     planar, config.superimposition)
     else:
-        aligned = align(used, model.weights, config.size, planar=planar)
+        aligned = align(used, model.weights, config.size, planar, config.superimposition)
     mean = aligned.mean(axis=0)
     normals = vertex_normals(mean, model.triangles, model.part_of_triangles())
     offsets = aligned - mean
@@ -171,6 +195,11 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     z = int(not subjects.mean_change_tested) + subjects.nuisance.shape[1]
     _, _, scores = principal_scores(aligned, model.weights,
                                     max_modes=len(subjects.interest) - z - r - 1)
+    report(progress, None, "the effect on size")
+    unit = model.weights / model.weights.sum()
+    sizes = np.array([centroid_size(x, unit) for x in used])
+    size = SizeTest(sizes, _effects(sizes[:, None, None], subjects)[:, 0, 0],
+                    point_test(sizes[:, None], subjects, config))
     report(progress, None, "the global test")
     # the global test is pooled: per-group covariances of k scores need more than k cases in
     # every group
@@ -190,7 +219,7 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
                             for j, s in enumerate(model.part_slices())])
     return Analysis(config, subjects, aligned, mean, normals, parts, points, difference,
                     normal_difference, global_test, signed, found_discriminant,
-                    found_classification, unusual_cases(model), scores)
+                    found_classification, unusual_cases(model), scores, size)
 
 
 def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:

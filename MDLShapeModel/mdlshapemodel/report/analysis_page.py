@@ -290,6 +290,16 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
     body += ["<h2>Global test</h2>",
              f"<p>On the first {overall['modes']} principal scores: statistic "
              f"{overall['statistic']:.4g}, permutation p = {overall['p']:.4g}.</p>"]
+    size = summary["centroid_size"]
+    effects = ", ".join(f"{html.escape(name)} {value:+.3g} mm"
+                        for name, value in size["effects_mm"].items())
+    body += ["<h2>Size</h2>",
+             f"<p>The shapes are superimposed by {html.escape(config.superimposition)} "
+             "generalized Procrustes. "
+             f"Centroid size (area-weighted, before alignment) {size['mean_mm']:.4g} mm on "
+             f"average; effect: {effects} ({html.escape(size['test'])}, permutation p = "
+             f"{size['p']:.4g}). With <code>--size kept</code> a difference of size shows in the "
+             "maps as a difference of shape.</p>"]
     note = _not_significant(analysis)
     body += _section("discriminant", _discriminant_parts(analysis, model), note)
     body += _section("classification", _classification_parts(analysis, summary), note)
