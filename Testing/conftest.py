@@ -4,10 +4,15 @@ Building the surface and its map takes a second or two, so both are computed onc
 """
 
 import os
+import signal
 import tempfile
 
 import numpy as np
 import pytest
+
+# A test run started in the background by a shell without job control inherits SIGINT ignored;
+# the Ctrl-C tests need Python's own handler, which a run from a terminal has.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # Every test session gets its own, empty preprocessing cache (also inherited by CLI subprocesses):
 # results never leak in from a user's cache or from an earlier run.

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import mdlshapemodel
 from mdlshapemodel import folders
 from mdlshapemodel.folders import BuildFolder
 from mdlshapemodel.model.shape_model import ShapeModel
@@ -17,8 +16,9 @@ from files import write_label_map
 from synthetic import small_mask
 from test_guides import write_guided_population
 
-PACKAGE = Path(mdlshapemodel.__file__).parent
-# the package and the Slicer module beside it
+# the source tree's package (the tests may run against an installed copy) and the Slicer module
+# beside it
+PACKAGE = Path(__file__).resolve().parents[1] / "MDLShapeModel" / "mdlshapemodel"
 SOURCES = sorted(PACKAGE.rglob("*.py")) + [PACKAGE.parent / "MDLShapeModel.py"]
 
 
@@ -59,7 +59,7 @@ def mentions(path: Path, names: set) -> set:
 def test_every_file_name_of_a_build_is_known_in_folders_alone():
     names = folder_names()
     assert {"model.h5", "metrics.json", "scores.csv", "landmarks.csv", "correspondence"} <= names
-    here = Path(folders.__file__)
+    here = PACKAGE / "folders.py"
     tree = ast.parse(here.read_text())
     assert names <= {node.value for node in ast.walk(tree) if isinstance(node, ast.Constant)}
     elsewhere = {f"{path.relative_to(PACKAGE.parent)}: {', '.join(sorted(found))}"
