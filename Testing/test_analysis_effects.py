@@ -12,9 +12,11 @@ import vtk
 from scipy import stats
 from vtk.util.numpy_support import vtk_to_numpy
 
-from mdlshapemodel.analysis import align
+from mdlshapemodel.analysis import align, subjects
 from mdlshapemodel.analysis.effects import (PREDICTED_AT, cohens_d, interval,
                                             partial_eta_squared)
+from mdlshapemodel.analysis.study import effects_of
+from mdlshapemodel.config import AnalysisConfig
 from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.report.html import html_page
@@ -173,6 +175,57 @@ def test_the_interval_covers_the_planted_truth_at_its_level(rng, sizes, spreads,
     covered = np.mean((found.lower <= truth) & (truth <= found.upper))
     se = np.sqrt(0.95 * 0.05 / points)
     assert abs(covered - 0.95) < 3 * se, covered
+
+
+def test_each_covariate_and_contrast_gets_its_interval_adjusted_for_the_rest(rng, tmp_path):
+    """Two covariates and a site nuisance from a real table: each covariate's interval and
+    partial eta^2 are those of its coefficient with the other covariate and the site in the
+    model; three groups with a contrast: Welch-type intervals, and d only for the levels."""
+    n = 36
+    names = [f"c{k}" for k in range(n)]
+    age, volume = rng.normal(60, 8, n), rng.normal(3, 0.4, n)
+    site = rng.integers(1, 4, n)
+    group = np.array(["control", "mild", "severe"])[np.arange(n) % 3]
+    data = (rng.normal(size=(n, 15)) + 0.04 * age[:, None] - 0.8 * volume[:, None]
+            + 0.3 * (site == 2)[:, None])
+    table = write_table(tmp_path / "subjects.csv",
+                        [[c, g, a, v, s] for c, g, a, v, s in zip(names, group, age, volume,
+                                                                  site)],
+                        header=("case", "group", "age", "volume", "site"))
+    design = subjects(table, names, covariates=["age", "volume"], nuisance=["site"],
+                      categorical=["site"])
+    config = AnalysisConfig(covariates=["age", "volume"], nuisance=["site"],
+                            categorical=["site"], alpha=0.1)
+    found = effects_of(data, design, config)
+    assert [e.name for e in found] == ["age", "volume"]
+    matrix = np.column_stack([np.ones(n), site == 2, site == 3, age, volume])
+    for column, effect in zip((3, 4), found):
+        assert effect.d is None and effect.interval.level == pytest.approx(0.9)
+        for k in range(data.shape[1]):
+            beta, covariance, df = ols(data[:, k], matrix)
+            half = stats.t.ppf(0.95, df) * np.sqrt(covariance[column, column])
+            assert effect.interval.lower[k] == pytest.approx(beta[column] - half, abs=1e-10)
+            assert effect.interval.upper[k] == pytest.approx(beta[column] + half, abs=1e-10)
+            t2 = beta[column] ** 2 / covariance[column, column]
+            assert effect.partial_eta2[k] == pytest.approx(t2 / (t2 + df), rel=1e-9)
+
+    design = subjects(table, names, group="group", nuisance=["age"])
+    config = AnalysisConfig(group="group", nuisance=["age"], contrasts=["severe-mild"])
+    found = effects_of(data, design, config)
+    assert [e.name for e in found] == ["mild", "severe", "severe-mild"]
+    assert all(e.interval.variance == "groups" for e in found)
+    codes = np.searchsorted(["control", "mild", "severe"], group)
+    indicators = np.column_stack([codes == 1, codes == 2]).astype(float)
+    contrast = interval(data, indicators, np.array([-1.0, 1.0]),
+                        (age - age.mean())[:, None], groups=codes)
+    np.testing.assert_allclose(found[2].interval.lower, contrast.lower, atol=1e-10)
+    np.testing.assert_allclose(found[2].interval.upper, contrast.upper, atol=1e-10)
+    np.testing.assert_allclose(found[2].d, contrast.estimate / np.sqrt(
+        (contrast.spread[1] + contrast.spread[2]) / 2), rtol=1e-10)
+    severe = interval(data, indicators, np.array([0.0, 1.0]), (age - age.mean())[:, None],
+                      groups=codes)
+    np.testing.assert_allclose(found[1].d, severe.estimate / np.sqrt(
+        (severe.spread[0] + severe.spread[2]) / 2), rtol=1e-10)
 
 
 @pytest.fixture(scope="module")

@@ -112,8 +112,8 @@ class EffectSize:
         The per-point confidence interval at level 1 - alpha of the effect column's coefficient
         (or the contrast), with the nuisance.
     d : ndarray (p,) or None
-        Cohen's d, for a column that compares two levels of a categorical column (or the mean
-        change); else None.
+        Cohen's d, for a column or contrast that compares two levels of a categorical column
+        (or the mean change); else None.
     partial_eta2 : ndarray (p,)
         The column's partial eta^2 (adjusted for everything else in the model).
     """
@@ -442,7 +442,8 @@ def effects_of(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig) -
         codes = np.array([subjects.levels.index(g) for g in subjects.groups])
     vectors = [(name, np.eye(r)[j], _compared(subjects, j))
                for j, name in enumerate(names)]
-    vectors += [(text, vector, None) for text, _, _, vector in contrasts_of(subjects, config)]
+    vectors += [(text, vector, _contrasted(subjects, coefficients, column))
+                for text, coefficients, column, vector in contrasts_of(subjects, config)]
     found = []
     for name, vector, compared in vectors:
         single = _single(subjects, vector)
@@ -467,6 +468,19 @@ def _compared(subjects: Subjects, column: int):
         return None
     first = subjects.interest_columns.index(source)
     return (0, 1 + column - first)
+
+
+def _contrasted(subjects: Subjects, coefficients: dict, column: str):
+    """Which variance groups a contrast compares, for Cohen's d, as :func:`_compared`: a
+    difference of two levels (coefficients +1 and -1) of the group, their codes (the level
+    subtracted first); of another categorical column, None (the pooled SD); any other
+    combination, False (no d)."""
+    if sorted(coefficients.values()) != [-1.0, 1.0]:
+        return False
+    if column != subjects.group:
+        return None
+    return tuple(subjects.levels.index(level)
+                 for level in sorted(coefficients, key=coefficients.get))
 
 
 def effect_shapes(aligned: np.ndarray, normals: np.ndarray, difference: np.ndarray,
