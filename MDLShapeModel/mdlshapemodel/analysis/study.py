@@ -434,7 +434,7 @@ def effects_of(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig) -
     if repeated is not None and repeated.design == "blocks":
         return []
     data = design_rows(normal, subjects)
-    names, columns = subjects.interest_names, subjects.interest_columns
+    names = subjects.interest_names
     r = len(names)
     intercept = not subjects.mean_change_tested
     codes = None
