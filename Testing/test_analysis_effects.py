@@ -228,6 +228,32 @@ def test_each_covariate_and_contrast_gets_its_interval_adjusted_for_the_rest(rng
         (severe.spread[0] + severe.spread[2]) / 2), rtol=1e-10)
 
 
+def test_the_mean_change_has_the_paired_interval_and_d_and_whole_subjects_none(rng,
+                                                                                tmp_path):
+    """Two scans per subject, nothing else tested: the interval of the mean change is the
+    one-sample t interval of the subjects' changes, d their mean over their SD (Cohen's d_z);
+    a subject's columns on all its cases (--subject alone): no interval (cases not
+    independent)."""
+    n = 12
+    names = [f"s{k}_{visit}" for k in range(n) for visit in ("pre", "post")]
+    table = write_table(tmp_path / "visits.csv",
+                        [[f"s{k}_{visit}", k, visit, k % 2] for k in range(n)
+                         for visit in ("pre", "post")], header=("case", "id", "visit", "arm"))
+    data = rng.normal(size=(2 * n, 8))
+    data[1::2] += 0.5
+    design = subjects(table, names, subject="id", time="visit", baseline="pre")
+    config = AnalysisConfig(subject="id", time="visit", baseline="pre")
+    (found,) = effects_of(data, design, config)
+    change = data[1::2] - data[0::2]
+    paired = stats.ttest_1samp(change, 0.0).confidence_interval()
+    np.testing.assert_allclose(found.interval.lower, paired.low, rtol=1e-10)
+    np.testing.assert_allclose(found.interval.upper, paired.high, rtol=1e-10)
+    np.testing.assert_allclose(found.d, change.mean(0) / change.std(0, ddof=1), rtol=1e-10)
+
+    whole = subjects(table, names, covariates=["arm"], subject="id")
+    assert effects_of(data, whole, AnalysisConfig(covariates=["arm"], subject="id")) == []
+
+
 @pytest.fixture(scope="module")
 def findings(build, tmp_path_factory):
     """The real command on the fixture build: a group with age as nuisance, and age alone."""
