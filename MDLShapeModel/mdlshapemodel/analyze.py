@@ -17,9 +17,17 @@ The output folder::
                     q_fdr: Benjamini-Hochberg of p; t: the signed t or Welch's v; several
                     effect columns or the vector displacement: difference_<name>_x ... and
                     t_<name>,p_<name>,p_fwer_<name>,q_fdr_<name> per column, each column's
-                    own signed test along the normal adjusted for the others)
+                    own signed test along the normal adjusted for the others); the effect
+                    sizes: partial_eta2 (the per-point test's), ci_lower_mm,ci_upper_mm
+                    (the confidence interval at 1 - alpha of the effect along the normal),
+                    cohens_d (two levels compared), or per column ci_lower_<name>_mm,
+                    ci_upper_<name>_mm,cohens_d_<name>,partial_eta2_<name>
     effects.vtp     the mean surface with the same values as point arrays (effects/<part>.vtp
                     for a multi-part model)
+    shapes/         the shapes of the tested effect on the mean's triangles: each group's
+                    mean shape (<group>=<level>.vtp), a covariate's predicted shapes at its
+                    10th and 90th percentile (<covariate>_p10.vtp, _p90.vtp), with the
+                    displacement between them (vector and along the normal) as point data
     unusual.csv     per case: Mahalanobis distance, p, flagged, largest departure from its
                     reconstruction
     unusual/        per case, the mean surface with the case's departure (mm) as point data
@@ -48,7 +56,9 @@ from .report.analysis_page import write_analysis_page
 from .version import __version__
 
 ANALYSIS_FILES = ("analysis.json", "points.csv", "effects.vtp", "effects", "unusual.csv",
-                  "unusual", "analysis.html", "long.csv")
+                  "unusual", "analysis.html", "long.csv", "shapes")
+# the folder of the effect's shapes (group means, predicted shapes), one .vtp per shape
+SHAPES = "shapes"
 
 
 @dataclass
@@ -71,6 +81,7 @@ def _columns(analysis: Analysis) -> tuple[list, list]:
         header += [f"{prefix}_x", f"{prefix}_y", f"{prefix}_z"]
         header.append("normal_difference_mm" if single else f"normal_difference_{name}_mm")
     signed = signed_columns(analysis)
+    signed.update(effect_columns(analysis))
     header += list(signed)
     rows = []
     for k in range(len(mean)):
@@ -98,6 +109,78 @@ def signed_columns(analysis: Analysis) -> dict:
         for key in ("t", "p", "p_fwer", "q_fdr"):
             columns[f"{key}_{found.name}"] = getattr(found.test, key)
     return columns
+
+
+def effect_columns(analysis: Analysis) -> dict:
+    """The effect sizes' columns of points.csv and arrays of effects.vtp: ``partial_eta2`` of
+    the per-point test, and per signed map the ends of its confidence interval along the normal
+    (mm) and Cohen's d where it has one: ``ci_lower_mm``, ``ci_upper_mm``, ``cohens_d`` when the
+    per-point test is the signed test of its one effect column, else ``ci_lower_<name>_mm``,
+    ``ci_upper_<name>_mm``, ``cohens_d_<name>``, ``partial_eta2_<name>``."""
+    columns = {}
+    if analysis.effect_sizes:
+        columns["partial_eta2"] = analysis.point_eta2
+    for found, effect in zip(analysis.signed, analysis.effect_sizes):
+        suffix = "" if found.joint else f"_{found.name}"
+        columns[f"ci_lower{suffix}_mm"] = effect.interval.lower
+        columns[f"ci_upper{suffix}_mm"] = effect.interval.upper
+        if effect.d is not None:
+            columns[f"cohens_d{suffix}"] = effect.d
+        if not found.joint:
+            columns[f"partial_eta2{suffix}"] = effect.partial_eta2
+    return columns
+
+
+def effects_summary(analysis: Analysis) -> dict:
+    """analysis.json's ``effect_sizes``: the interval's kind and level, and per signed map the
+    median and largest half-width of the interval (mm), the largest |d| (with its point) and
+    the median |d|, and the same of partial eta^2."""
+    if not analysis.effect_sizes:
+        return {"intervals": None, "maps": []}
+    first = analysis.effect_sizes[0].interval
+    maps = []
+    for effect in analysis.effect_sizes:
+        half = (effect.interval.upper - effect.interval.lower) / 2
+        entry = {"name": effect.name,
+                 "half_width_mm": {"median": float(np.median(half)), "largest": float(half.max())},
+                 "partial_eta2": {"median": float(np.median(effect.partial_eta2)),
+                                  "largest": float(effect.partial_eta2.max()),
+                                  "at_point": int(effect.partial_eta2.argmax())},
+                 "cohens_d": None}
+        if effect.d is not None:
+            size = np.abs(effect.d)
+            entry["cohens_d"] = {"median_abs": float(np.median(size)),
+                                 "largest_abs": float(size.max()),
+                                 "at_point": int(size.argmax()),
+                                 "value": float(effect.d[size.argmax()])}
+        maps.append(entry)
+    return {"intervals": {"kind": first.name, "level": first.level},
+            "partial_eta2": {"median": float(np.median(analysis.point_eta2)),
+                             "largest": float(analysis.point_eta2.max())},
+            "maps": maps}
+
+
+def shapes_summary(analysis: Analysis, table) -> list:
+    """analysis.json's ``shapes``: each effect shape's file (in the analysis folder), what it
+    is, and for a covariate the value it is predicted at (in the table's units)."""
+    found = []
+    means = {}
+    if any(shape.offset is not None for shape in analysis.shapes):
+        _, rows = read_table(table)
+        by_case = {row[CASE]: row for row in rows}
+        for shape in analysis.shapes:
+            if shape.offset is not None and shape.column not in means:
+                means[shape.column] = float(np.mean([float(by_case[c][shape.column])
+                                                     for c in analysis.subjects.cases]))
+    for shape in analysis.shapes:
+        found.append({"file": f"{SHAPES}/{io.case_file('', shape.name).name}",
+                      "label": shape.label, "column": shape.column, "level": shape.level,
+                      "percentile": shape.percentile,
+                      "value": (None if shape.offset is None
+                                else means[shape.column] + shape.offset),
+                      "largest_normal_displacement_mm":
+                          float(np.abs(shape.normal_displacement).max())})
+    return found
 
 
 def design_summary(design) -> dict:
@@ -194,6 +277,8 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                               "fwer": int(np.sum(found.test.p_fwer <= config.alpha)),
                               "fdr": int(np.sum(found.test.q_fdr <= config.alpha))}}
                          for found in analysis.signed],
+        "effect_sizes": effects_summary(analysis),
+        "shapes": shapes_summary(analysis, table),
         "classification": None, "discriminant": None,
         "unusual": {"modes": analysis.unusual.distances.modes,
                     "threshold": analysis.unusual.distances.threshold,
@@ -227,6 +312,7 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
         arrays[f"difference{suffix}"] = difference
         arrays[f"normal_difference{suffix}_mm"] = normal
     arrays.update(signed_columns(analysis))
+    arrays.update(effect_columns(analysis))
     parts = model.part_meshes()
     if len(parts) == 1:
         io.write_polydata(folder / "effects.vtp", analysis.mean, model.triangles,
@@ -237,6 +323,13 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
             io.write_polydata(folder / "effects" / f"{part.name}.vtp", analysis.mean[part.rows],
                               part.triangles,
                               point_data={k: v[part.rows] for k, v in arrays.items()})
+    if analysis.shapes:
+        (folder / SHAPES).mkdir()
+    for shape in analysis.shapes:
+        io.write_polydata(io.case_file(folder / SHAPES, shape.name), shape.points,
+                          model.triangles,
+                          point_data={"displacement": shape.displacement,
+                                      "normal_displacement_mm": shape.normal_displacement})
     unusual = analysis.unusual
     io.write_csv(folder / "unusual.csv",
                  ["case", "mahalanobis", "p", "flagged", "max_departure_mm", "at_point"],

@@ -12,6 +12,9 @@ The stage after :mod:`mdlshapemodel.model`: functions over arrays and
   little (``align(..., superimposition="resistant")``);
 - :func:`~.glm.permutation_test`: per-point linear models, Freedman-Lane permutations,
   family-wise (maximum statistic) and FDR (:func:`~.glm.benjamini_hochberg`) correction;
+- :func:`~.effects.interval`, :func:`~.effects.cohens_d`,
+  :func:`~.effects.partial_eta_squared`: how large and how certain an effect is at each point
+  (:func:`~.study.effects_of`), and the shapes it describes (:func:`~.study.effect_shapes`);
 - :func:`~.discriminant.discriminant`, :func:`~.discriminant.classify`: the discriminant shape
   change of two groups and its cross-validated accuracy and AUC;
 - :func:`~.study.point_test`, :func:`~.study.signed_maps`: the per-point test of a design

@@ -9,7 +9,7 @@ job of :mod:`mdlshapemodel.analyze`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,6 +19,8 @@ from ..model.outliers import Distances, modes_explaining, training_distances
 from ..model.shape_model import ShapeModel
 from ..progress import report
 from .discriminant import Classification, Discriminant, classify, discriminant, principal_scores
+from .effects import (PREDICTED_AT, Interval, cohens_d, interval, partial_eta_squared,
+                      predicted_offsets)
 from .glm import PointTest, permutation_test
 from .shapes import align, vertex_normals
 from .table import Subjects, contrast_vector
@@ -98,6 +100,71 @@ class SignedMap:
 
 
 @dataclass
+class EffectSize:
+    """How large one signed map's effect is along the normal, and how well it is known
+    (:mod:`.effects`).
+
+    Attributes
+    ----------
+    name : str
+        The signed map's name (:attr:`SignedMap.name`).
+    interval : Interval
+        The per-point confidence interval at level 1 - alpha of the effect column's coefficient
+        (or the contrast), with the nuisance.
+    d : ndarray (p,) or None
+        Cohen's d, for a column or contrast that compares two levels of a categorical column
+        (or the mean change); else None.
+    partial_eta2 : ndarray (p,)
+        The column's partial eta^2 (adjusted for everything else in the model).
+    """
+
+    name: str
+    interval: Interval
+    d: np.ndarray | None
+    partial_eta2: np.ndarray
+
+
+@dataclass
+class EffectShape:
+    """A shape an effect describes, on the mean surface's triangles: a group's mean shape, or
+    the shape predicted at a covariate's percentile with every other column at its mean.
+
+    Attributes
+    ----------
+    name : str
+        Its file's stem (``group=level``, ``age_p10``).
+    column : str
+        The table column.
+    label : str
+        What it is, in words.
+    level : str or None
+        The group level (a group's mean).
+    offset : float or None
+        The covariate's value minus its mean over the used cases (a predicted shape).
+    percentile : float or None
+        Which percentile of the covariate.
+    points : ndarray (p, 3)
+        The shape (aligned like the analysis's cases).
+    displacement : ndarray (p, 3)
+        The change it belongs to: for a group, the level's mean minus the reference level's
+        mean (the reference's own: the second level's minus its); for a covariate, the
+        prediction at the higher percentile minus that at the lower.
+    normal_displacement : ndarray (p,)
+        ``displacement`` along the mean surface's outward normals (negative: inward).
+    """
+
+    name: str
+    column: str
+    label: str
+    level: str | None
+    offset: float | None
+    percentile: float | None
+    points: np.ndarray
+    displacement: np.ndarray
+    normal_displacement: np.ndarray
+
+
+@dataclass
 class Analysis:
     """What :func:`analyze_shapes` found. Per-point arrays follow the model's points."""
 
@@ -117,6 +184,9 @@ class Analysis:
     unusual: Unusual
     scores: np.ndarray | None = None   # (n_cases, k) the principal scores of the global test
     size: SizeTest | None = None       # the effect on centroid size
+    effect_sizes: list = field(default_factory=list)   # EffectSize per signed map
+    shapes: list = field(default_factory=list)         # EffectShape per group level / percentile
+    point_eta2: np.ndarray | None = None   # (p,) partial eta^2 of the per-point test
 
     def significant(self, correction: str = "fwer") -> np.ndarray:
         """Points significant at ``config.alpha`` after family-wise ("fwer") or FDR ("fdr")
@@ -189,6 +259,11 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
                                                                     normals)
     report(progress, None, "the signed map of each effect")
     signed = signed_maps(along, subjects, config, points)
+    effect_sizes = effects_of(along, subjects, config)
+    point_eta2 = None
+    if effect_sizes:
+        point_eta2 = partial_eta_squared(design_rows(data, subjects), subjects.interest,
+                                         subjects.nuisance, not subjects.mean_change_tested)
     difference = _effects(offsets, subjects)
     normal_difference = np.einsum("rpd,pd->rp", difference, normals)
     r = subjects.interest.shape[1]
@@ -219,7 +294,8 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
                             for j, s in enumerate(model.part_slices())])
     return Analysis(config, subjects, aligned, mean, normals, parts, points, difference,
                     normal_difference, global_test, signed, found_discriminant,
-                    found_classification, unusual_cases(model), scores, size)
+                    found_classification, unusual_cases(model), scores, size, effect_sizes,
+                    effect_shapes(aligned, normals, difference, subjects), point_eta2)
 
 
 def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:
@@ -339,3 +415,114 @@ def _effects(offsets: np.ndarray, subjects: Subjects) -> np.ndarray:
     coefficients, *_ = np.linalg.lstsq(np.hstack(columns), rows.reshape(n, -1), rcond=None)
     r = subjects.interest.shape[1]
     return coefficients[-r:].reshape(r, p, d)
+
+
+def effects_of(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig) -> list:
+    """The :class:`EffectSize` of each signed map (in :func:`signed_maps`' order): the
+    confidence interval at level 1 - ``config.alpha`` (Welch-Satterthwaite with variance groups,
+    else Student's), Cohen's d and partial eta^2. None for a design that exchanges whole
+    subjects (its cases are not independent): an empty list.
+
+    Parameters
+    ----------
+    normal : ndarray (n_cases, p)
+        The used cases' displacements along the mean's normals.
+    subjects : Subjects
+    config : AnalysisConfig
+    """
+    repeated = subjects.repeated
+    if repeated is not None and repeated.design == "blocks":
+        return []
+    data = design_rows(normal, subjects)
+    names = subjects.interest_names
+    r = len(names)
+    intercept = not subjects.mean_change_tested
+    codes = None
+    if config.variance_groups():
+        codes = np.array([subjects.levels.index(g) for g in subjects.groups])
+    vectors = [(name, np.eye(r)[j], _compared(subjects, j))
+               for j, name in enumerate(names)]
+    vectors += [(text, vector, _contrasted(subjects, coefficients, column))
+                for text, coefficients, column, vector in contrasts_of(subjects, config)]
+    found = []
+    for name, vector, compared in vectors:
+        single = _single(subjects, vector)
+        bounds = interval(data, subjects.interest, vector, subjects.nuisance, intercept, codes,
+                          1.0 - config.alpha)
+        d = None if compared is False else cohens_d(bounds, compared)
+        found.append(EffectSize(name, bounds, d, partial_eta_squared(
+            data, single.interest, single.nuisance, intercept)))
+    return found
+
+
+def _compared(subjects: Subjects, column: int):
+    """Which variance groups effect column ``column`` compares, for Cohen's d: (reference,
+    level) codes for a level of the group; None (the pooled SD) for a level of another
+    categorical column or the mean change; False for a covariate or an interaction (no d)."""
+    source = subjects.interest_columns[column]
+    if subjects.mean_change_tested:
+        return None
+    if ":" in source or source not in subjects.levels_of:
+        return False
+    if source != subjects.group:
+        return None
+    first = subjects.interest_columns.index(source)
+    return (0, 1 + column - first)
+
+
+def _contrasted(subjects: Subjects, coefficients: dict, column: str):
+    """Which variance groups a contrast compares, for Cohen's d, as :func:`_compared`: a
+    difference of two levels (coefficients +1 and -1) of the group, their codes (the level
+    subtracted first); of another categorical column, None (the pooled SD); any other
+    combination, False (no d)."""
+    if sorted(coefficients.values()) != [-1.0, 1.0]:
+        return False
+    if column != subjects.group:
+        return None
+    return tuple(subjects.levels.index(level)
+                 for level in sorted(coefficients, key=coefficients.get))
+
+
+def effect_shapes(aligned: np.ndarray, normals: np.ndarray, difference: np.ndarray,
+                  subjects: Subjects) -> list:
+    """The shapes the tested effects describe (:class:`EffectShape`), for independent cases:
+    each level's mean shape of a tested group, and the shapes predicted at a tested covariate's
+    percentiles (:data:`~.effects.PREDICTED_AT`) with every other column at its mean. None for
+    repeated measures (an empty list).
+
+    Parameters
+    ----------
+    aligned : ndarray (n_cases, p, 3)
+        The used cases, superimposed as the analysis does.
+    normals : ndarray (p, 3)
+        The mean surface's outward normals.
+    difference : ndarray (r, p, 3)
+        The effect columns' coefficients on the coordinates (:attr:`Analysis.difference`).
+    subjects : Subjects
+    """
+    if subjects.repeated is not None:
+        return []
+    shapes = []
+    if subjects.group is not None and subjects.group in subjects.tested:
+        groups = np.array(subjects.groups)
+        means = [aligned[groups == level].mean(axis=0) for level in subjects.levels]
+        for k, (level, mean) in enumerate(zip(subjects.levels, means)):
+            other = means[1] if k == 0 else mean
+            change = other - means[0]
+            shapes.append(EffectShape(
+                f"{subjects.group}={level}", subjects.group,
+                f"mean shape of {subjects.group} {level} ({int(np.sum(groups == level))} cases)",
+                level, None, None, mean, change, np.einsum("pd,pd->p", change, normals)))
+    centre = aligned.mean(axis=0)
+    for j, source in enumerate(subjects.interest_columns):
+        if ":" in source or source in subjects.levels_of:
+            continue
+        offsets = predicted_offsets(subjects.interest[:, j])
+        change = (offsets[-1] - offsets[0]) * difference[j]
+        normal = np.einsum("pd,pd->p", change, normals)
+        for percentile, offset in zip(PREDICTED_AT, offsets):
+            shapes.append(EffectShape(
+                f"{source}_p{percentile:g}", source,
+                f"predicted at the {percentile:g}th percentile of {source}", None,
+                float(offset), percentile, centre + offset * difference[j], change, normal))
+    return shapes

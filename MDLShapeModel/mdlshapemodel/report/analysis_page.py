@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..analysis.effects import PREDICTED_AT
 from ..analysis.study import Analysis
 from ..errors import MDLShapeModelError
 from ..model.shape_model import ShapeModel
@@ -100,7 +101,67 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     parts += effects_section(analysis.mean, cells, [
         EffectMap(label, values, diverging=cmap == "coolwarm", limit=high,
                   marks=() if cmap == "coolwarm" else ((level, f"α = {alpha:g}"),))
-        for label, values, cmap, _, high, _ in rows])
+        for label, values, cmap, _, high, _ in rows] + uncertainty_maps(analysis))
+    return parts
+
+
+def uncertainty_maps(analysis: Analysis) -> list:
+    """The viewer's maps of how large and how certain each effect is: per signed map the
+    half-width of its confidence interval (mm) and Cohen's d; then each effect shape drawn as
+    itself, coloured by the displacement it belongs to along the normal (choosing between a
+    pair switches the shapes)."""
+    labels = effect_labels(analysis.subjects)
+    maps = []
+    for k, effect in enumerate(analysis.effect_sizes):
+        label = labels[k] if k < len(labels) else f"contrast {effect.name}"
+        level = f"{100 * effect.interval.level:g} %"
+        maps.append(EffectMap(f"{level} confidence interval half-width [mm], {label}",
+                              (effect.interval.upper - effect.interval.lower) / 2))
+        if effect.d is not None:
+            maps.append(EffectMap(f"Cohen's d, {label}", effect.d, diverging=True))
+    levels = analysis.subjects.levels
+    for shape in analysis.shapes:
+        limit = float(np.max(np.abs(shape.normal_displacement))) or 1.0
+        change = (f"{PREDICTED_AT[-1]:g}th minus {PREDICTED_AT[0]:g}th percentile"
+                  if shape.level is None else
+                  f"{levels[1] if shape.level == levels[0] else shape.level} minus {levels[0]}")
+        maps.append(EffectMap(f"{shape.label}, coloured by {change} along the normal [mm]",
+                              shape.normal_displacement, diverging=True, limit=limit,
+                              points=shape.points))
+    return maps
+
+
+def _effect_size_parts(analysis: Analysis, summary: dict) -> list:
+    """The table of effect sizes and the list of the effect's shapes."""
+    sizes = summary["effect_sizes"]
+    if not sizes["maps"]:
+        return []
+    labels = effect_labels(analysis.subjects)
+    rows = []
+    for k, entry in enumerate(sizes["maps"]):
+        d, half, eta = entry["cohens_d"], entry["half_width_mm"], entry["partial_eta2"]
+        rows.append((labels[k] if k < len(labels) else f"contrast {entry['name']}",
+                     f"{half['median']:.3g} ({half['largest']:.3g})",
+                     "" if d is None else
+                     f"{d['median_abs']:.3g} ({d['value']:+.3g} at point {d['at_point']})",
+                     f"{eta['median']:.3g} ({eta['largest']:.3g})"))
+    level = f"{100 * sizes['intervals']['level']:g} %"
+    parts = ["<h2>Effect sizes</h2>",
+             f"<p>At each point, the {level} confidence interval of the effect along the normal "
+             f"({html.escape(sizes['intervals']['kind'])}), Cohen's d (the effect over the "
+             "residual standard deviation of the groups compared) and partial &eta;<sup>2</sup> "
+             "(the share of the variation left by the columns adjusted for that the effect "
+             "explains); in <code>points.csv</code>, <code>effects.vtp</code> and the viewer "
+             "above.</p>",
+             table(("effect", f"{level} CI half-width, mm: median (largest)",
+                    "|d|: median (largest)", "partial eta^2: median (largest)"), rows)]
+    if summary["shapes"]:
+        parts.append("<p>The effect as shapes, in <code>shapes/</code> (on the mean's "
+                     "triangles, with the displacement between them as point data; in the "
+                     "viewer, choose one to see it): "
+                     + "; ".join(f"<code>{html.escape(s['file'])}</code> {html.escape(s['label'])}"
+                                 + ("" if s["value"] is None else f" ({s['value']:.4g})")
+                                 for s in summary["shapes"]) + ".</p>")
     return parts
 
 
@@ -286,6 +347,7 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
     except (MDLShapeModelError, RuntimeError) as error:
         log.warning("analysis page: no renderings (%s)", error)
         body.append(f"<p>Renderings left out: {html.escape(str(error))}</p>")
+    body += _effect_size_parts(analysis, summary)
     overall = summary["global_test"]
     body += ["<h2>Global test</h2>",
              f"<p>On the first {overall['modes']} principal scores: statistic "

@@ -385,10 +385,16 @@ EFFECT_SCRIPT = r"""
   var mean = floats(D.mean), cells = ints(D.triangles), n = D.n_points;
   var maps = D.maps.map(function (m) { return {name: m.name, values: floats(m.values),
                                               diverging: m.diverging, limit: m.limit,
-                                              ticks: m.ticks, labels: m.labels}; });
-  var x = [], y = [], z = [], I = [], J = [], K = [];
-  for (var p = 0; p < n; p++) { x.push(mean[3 * p]); y.push(mean[3 * p + 1]);
-                                z.push(mean[3 * p + 2]); }
+                                              ticks: m.ticks, labels: m.labels,
+                                              points: m.points ? floats(m.points) : null}; });
+  function coordinates(map) {     // the map's own shape (a group's mean), else the mean
+    var source = map.points || mean, out = {x: [], y: [], z: []};
+    for (var p = 0; p < n; p++) { out.x.push(source[3 * p]); out.y.push(source[3 * p + 1]);
+                                  out.z.push(source[3 * p + 2]); }
+    return out;
+  }
+  var I = [], J = [], K = [], shape = coordinates(maps[0]);
+  var x = shape.x, y = shape.y, z = shape.z;
   for (var t = 0; t < cells.length; t += 3) { I.push(cells[t]); J.push(cells[t + 1]);
                                               K.push(cells[t + 2]); }
   var choice = document.getElementById('effects-map');
@@ -426,8 +432,9 @@ EFFECT_SCRIPT = r"""
                lighting: {ambient: 0.6, diffuse: 0.6, specular: 0.1}};
   Plotly.newPlot('effects-plot', [trace], layout, {displaylogo: false, responsive: true});
   function update() {
-    var s = scale();
+    var s = scale(), c = coordinates(maps[+choice.value]);
     Plotly.restyle('effects-plot', {intensity: [colours()], cmin: [s.cmin], cmax: [s.cmax],
+                                    x: [c.x], y: [c.y], z: [c.z],
                                     colorscale: [s.colorscale],
                                     colorbar: [bar(s, maps[+choice.value].name)]});
   }
@@ -451,6 +458,7 @@ class EffectMap:
     diverging: bool = False
     limit: float | None = None
     marks: tuple = ()          # ((value, label), ...)
+    points: np.ndarray | None = None   # (p, 3) the surface it is drawn on; None: the mean
 
     def scale_end(self) -> float:
         """The colour scale's end: ``limit``, or the largest |value| (1 when all are 0)."""
@@ -475,7 +483,8 @@ def effects_section(mean: np.ndarray, triangles: np.ndarray, maps: list) -> list
     """An interactive 3-D view of effect maps on the mean surface (HTML fragments): a picker of
     the ``maps`` (:class:`EffectMap`), each on its fixed colour scale with its marks on the
     colour bar, and a threshold below which a point shows the neutral colour (a share of the
-    scale's end). Offline: plotly.js inlined."""
+    scale's end). A map with its own ``points`` is drawn on that shape (a group's mean shape):
+    choosing between two such maps switches between the shapes. Offline: plotly.js inlined."""
     if triangles is None or len(triangles) == 0 or np.shape(triangles)[1] != 3:
         return []
     try:
@@ -491,7 +500,9 @@ def effects_section(mean: np.ndarray, triangles: np.ndarray, maps: list) -> list
         encoded.append({"name": effect.name,
                         "values": _b64(np.asarray(effect.values), np.float32),
                         "diverging": bool(effect.diverging), "limit": effect.scale_end(),
-                        "ticks": ticks, "labels": labels})
+                        "ticks": ticks, "labels": labels,
+                        "points": (None if effect.points is None
+                                   else _b64(np.asarray(effect.points), np.float32))})
     data = {"eye": [float(v) for v in eye],
             "n_points": int(len(mean)), "mean": _b64(np.asarray(mean), np.float32),
             "triangles": _b64(np.asarray(triangles), np.int32), "maps": encoded}
