@@ -32,7 +32,7 @@ import shutil
 import sys
 import threading
 import typing
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Annotated
 
 import qt
@@ -44,7 +44,8 @@ from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoada
                                            ScriptedLoadableModuleWidget)
 from slicer.util import VTKObservationMixin
 
-from mdlshapemodel.config import (GUIDED_SMOOTHNESS, SMOOTHNESS, AnalysisConfig, BuildConfig,
+from mdlshapemodel.config import (CORRESPONDENCES, GUIDED_SMOOTHNESS, PLACEMENTS, SMOOTHNESS,
+                                  STRATEGIES, SURFACE_METHODS, AnalysisConfig, BuildConfig,
                                   field_items)
 
 MODULE_DIRECTORY = pathlib.Path(__file__).resolve().parent
@@ -97,8 +98,9 @@ class MDLShapeModel(ScriptedLoadableModule):
 
 
 # ---------------------------------------------------------------------------------------------
-# Parameter node: the panel's settings. The build settings are BuildConfig fields of the same
-# names, with BuildConfig's defaults and choices (list settings are written as text, "1, 2").
+# Parameter node: every setting of the panel, saved with the scene. The build settings are the
+# BuildConfig fields of the same names, with BuildConfig's defaults and choices (read from it here:
+# one source); list settings are written as text ("1, 2").
 
 MAIN_SETTINGS = ("labels", "surface_method", "points", "strategy", "max_time", "baselines")
 ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror", "parts", "seed",
@@ -107,62 +109,72 @@ ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror
 BUILD_SETTINGS = MAIN_SETTINGS + ADVANCED_SETTINGS
 # beside the landmark point lists: settings of a build given landmarks (landmarkConfigOf)
 LANDMARK_SETTINGS = ("check_landmarks",)
+# the parameters holding several nodes, and the checkable node selectors that show them (the
+# Widget keeps the two in step: Slicer's GUI binding has no connector for such selectors)
+CHECKED_NODE_PARAMETERS = {"inputNodes": "inputNodesSelector",
+                           "landmarkNodes": "landmarkNodesSelector"}
+
+_BUILD_DEFAULTS = BuildConfig()
+_ANALYSIS_DEFAULTS = AnalysisConfig()
+_COUNT = WithinRange(0, 10**9)   # a count or number entered in a spin box
 
 
-def _settingMember(name: str, defaults: BuildConfig):
-    """(annotation, default) of the parameter-node member of BuildConfig field ``name``."""
-    metadata = next(f for f in fields(BuildConfig) if f.name == name).metadata
-    kind = typing.get_type_hints(BuildConfig)[name]
-    value = getattr(defaults, name)
-    if name == "points":       # None: per kind of input; the panel builds surfaces
-        kind, value = int, defaults.points_for(curves=False)
-    if name == "smoothness":   # used where ``defaultSmoothness`` is off
-        kind, value = float, defaults.smoothness_for(curves=False)
-    if typing.get_origin(kind) is list:
-        return str, ", ".join(str(v) for v in value)
-    if "choices" in metadata:
-        return Annotated[kind, Choice(list(metadata["choices"]))], value
-    if kind is int:
-        return Annotated[int, WithinRange(0, 10**9)], value
-    return kind, value
+def _defaultText(name: str) -> str:
+    """BuildConfig's default of the list setting ``name`` written as the panel's text."""
+    return ", ".join(str(v) for v in getattr(_BUILD_DEFAULTS, name))
 
 
-def _parameterNodeClass():
-    defaults = BuildConfig()
-    annotations = {
-        # inputs beside the selected nodes: a folder of label maps or meshes
-        "inputFolder": pathlib.Path,
-        # segment names (comma separated) whose union is the object; empty: all segments
-        "segments": str,
-        "outputDirectory": pathlib.Path,
-        # the result being explored, and the model to fit new cases to
-        "explorerModel": slicer.vtkMRMLModelNode,
-        "modelFile": pathlib.Path,
-        # the analysis: a subjects table (a CSV file or a table node), the columns tested
-        "analysisTable": pathlib.Path,
-        "analysisTableNode": slicer.vtkMRMLTableNode,
-        "analysisGroup": str,
-        "analysisCovariates": str,
-        "analysisNuisance": str,
-        "analysisPermutations": Annotated[int, WithinRange(1, 10**7)],
-        "analysisColorBy": Annotated[str, Choice(list(EFFECT_SCALARS))],
-        # the prior's weight by BuildConfig's rule (one weight unguided, another where landmarks
-        # guide); off: the ``smoothness`` setting
-        "defaultSmoothness": bool,
-    }
-    namespace = {"segments": "", "analysisGroup": "", "analysisCovariates": "",
-                 "defaultSmoothness": True,
-                 "analysisNuisance": "",
-                 "analysisPermutations": AnalysisConfig().permutations,
-                 "analysisColorBy": EFFECT_SCALARS[0],
-                 "__doc__": "The MDLShapeModel module's parameters."}
-    for name in BUILD_SETTINGS + LANDMARK_SETTINGS:
-        annotations[name], namespace[name] = _settingMember(name, defaults)
-    namespace["__annotations__"] = annotations
-    return parameterNodeWrapper(type("MDLShapeModelParameterNode", (), namespace))
+@parameterNodeWrapper
+class MDLShapeModelParameterNode:
+    """The MDLShapeModel module's parameters: the inputs, every build setting, the results shown
+    and the analysis's choices. Stored in the module's parameter node, so saved with the scene."""
 
+    # -- inputs: checked nodes, a folder of label maps or meshes, the segments of segmentations
+    inputNodes: list[slicer.vtkMRMLNode]
+    landmarkNodes: list[slicer.vtkMRMLMarkupsFiducialNode]
+    inputFolder: pathlib.Path
+    segments: str = ""              # segment names (comma separated); empty: all segments
+    check_landmarks: bool = _BUILD_DEFAULTS.check_landmarks
 
-MDLShapeModelParameterNode = _parameterNodeClass()
+    # -- the build's main settings
+    labels: str = _defaultText("labels")
+    surface_method: Annotated[str, Choice(list(SURFACE_METHODS))] = _BUILD_DEFAULTS.surface_method
+    points: Annotated[int, _COUNT] = _BUILD_DEFAULTS.points_for(curves=False)  # the panel's
+    strategy: Annotated[str, Choice(list(STRATEGIES))] = _BUILD_DEFAULTS.strategy  # surfaces
+    max_time: float = _BUILD_DEFAULTS.max_time
+    baselines: str = _defaultText("baselines")
+    outputDirectory: pathlib.Path
+
+    # -- advanced settings
+    correspondence: Annotated[str, Choice(list(CORRESPONDENCES))] = _BUILD_DEFAULTS.correspondence
+    smoothing_sigma: float = _BUILD_DEFAULTS.smoothing_sigma
+    edge_length: float = _BUILD_DEFAULTS.edge_length
+    mirror: str = _defaultText("mirror")
+    parts: str = _defaultText("parts")
+    seed: Annotated[int, _COUNT] = _BUILD_DEFAULTS.seed
+    evaluation_modes: Annotated[int, _COUNT] = _BUILD_DEFAULTS.evaluation_modes
+    specificity_samples: Annotated[int, _COUNT] = _BUILD_DEFAULTS.specificity_samples
+    workers: Annotated[int, _COUNT] = _BUILD_DEFAULTS.workers
+    strict: bool = _BUILD_DEFAULTS.strict
+    allow_duplicates: bool = _BUILD_DEFAULTS.allow_duplicates
+    # the prior's weight by BuildConfig's rule (one weight unguided, another where landmarks
+    # guide); off: ``smoothness``
+    defaultSmoothness: bool = True
+    smoothness: float = _BUILD_DEFAULTS.smoothness_for(curves=False)
+    placement: Annotated[str, Choice(list(PLACEMENTS))] = _BUILD_DEFAULTS.placement
+
+    # -- results: the model being explored, and the model that new cases are fitted to
+    explorerModel: slicer.vtkMRMLModelNode
+    modelFile: pathlib.Path
+
+    # -- the analysis: a subjects table (a CSV file or a table node), the columns tested
+    analysisTable: pathlib.Path
+    analysisTableNode: slicer.vtkMRMLTableNode
+    analysisGroup: str = ""
+    analysisCovariates: str = ""
+    analysisNuisance: str = ""
+    analysisPermutations: Annotated[int, WithinRange(1, 10**7)] = _ANALYSIS_DEFAULTS.permutations
+    analysisColorBy: Annotated[str, Choice(list(EFFECT_SCALARS))] = EFFECT_SCALARS[0]
 
 
 def buildConfigOf(parameters) -> BuildConfig:
@@ -1060,7 +1072,8 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             "the correspondence")
         self.ui.defaultSmoothnessCheckBox.toggled.connect(
             lambda on: self.ui.smoothnessSpinBox.setEnabled(not on))
-        self.ui.inputNodesSelector.checkedNodesChanged.connect(self.updateCaseList)
+        self.ui.inputNodesSelector.checkedNodesChanged.connect(self.onCheckedNodesChanged)
+        self.ui.landmarkNodesSelector.checkedNodesChanged.connect(self.onCheckedNodesChanged)
         self.ui.inputFolderSelector.currentPathChanged.connect(self.updateCaseList)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
@@ -1098,10 +1111,31 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._parameterNode = self.logic.getParameterNode()
         if self._parameterNodeGuiTag is None:
             self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+        self._showCheckedNodes()
+        self.updateCaseList()
+
+    def _showCheckedNodes(self):
+        """Check in the node selectors the nodes that the parameter node holds
+        (:data:`CHECKED_NODE_PARAMETERS`), e.g. after a scene is loaded."""
+        for name, selectorName in CHECKED_NODE_PARAMETERS.items():
+            selector = getattr(self.ui, selectorName)
+            chosen = {node.GetID() for node in getattr(self._parameterNode, name) if node}
+            wasBlocked = selector.blockSignals(True)
+            for node in selector.nodes():
+                selector.setCheckState(node, qt.Qt.Checked if node.GetID() in chosen
+                                       else qt.Qt.Unchecked)
+            selector.blockSignals(wasBlocked)
+
+    def onCheckedNodesChanged(self, *unused):
+        """The checked nodes into the parameter node (so they are saved with the scene)."""
+        if self._parameterNode is not None:
+            for name, selectorName in CHECKED_NODE_PARAMETERS.items():
+                setattr(self._parameterNode, name,
+                        list(getattr(self.ui, selectorName).checkedNodes()))
         self.updateCaseList()
 
     def inputs(self) -> list:
-        nodes = list(self.ui.inputNodesSelector.checkedNodes())
+        nodes = [node for node in self._parameterNode.inputNodes if node is not None]
         folder = str(self._parameterNode.inputFolder)
         if folder not in ("", "."):
             try:
@@ -1127,7 +1161,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         from mdlshapemodel.folders import BuildFolder
 
         with slicer.util.tryWithErrorDisplay("Could not start the build.", waitCursor=True):
-            markups = list(self.ui.landmarkNodesSelector.checkedNodes())
+            markups = [node for node in self._parameterNode.landmarkNodes if node is not None]
             config = landmarkConfigOf(buildConfigOf(self._parameterNode), self._parameterNode,
                                       bool(markups))
             output = pathlib.Path(str(self._parameterNode.outputDirectory))

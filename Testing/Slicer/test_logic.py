@@ -125,13 +125,25 @@ def test_check_landmarks_beside_the_point_lists_joins_a_build_given_them(scene):
 
 def test_the_parameter_node_survives_saving_and_reloading_the_scene(scene, tmp_path):
     explorer = scene.AddNewNodeByClass("vtkMRMLModelNode", "explorer")
+    inputs = [scene.AddNewNodeByClass(kind, name) for kind, name in (
+        ("vtkMRMLSegmentationNode", "left"), ("vtkMRMLLabelMapVolumeNode", "right"),
+        ("vtkMRMLModelNode", "third"))]
+    marks = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "left_landmarks")
     parameters = module.MDLShapeModelLogic().getParameterNode()
     parameters.points = 642
     parameters.max_time = 90.5
     parameters.strict = True
+    parameters.labels = "1, 2"
+    parameters.strategy = "one-at-a-time"
+    parameters.defaultSmoothness = False
+    parameters.smoothness = 0.02
+    parameters.check_landmarks = True
     parameters.segments = "Left hippocampus, head"
     parameters.outputDirectory = tmp_path / "out"
     parameters.explorerModel = explorer
+    parameters.inputNodes = inputs
+    parameters.landmarkNodes = [marks]
+    parameters.analysisPermutations = 999
     scene.SetURL(str(tmp_path / "scene.mrml"))
     assert scene.Commit()
     reloaded = harness.new_scene()
@@ -143,7 +155,19 @@ def test_the_parameter_node_survives_saving_and_reloading_the_scene(scene, tmp_p
     assert module.segmentNames(again.segments) == ["Left hippocampus", "head"]
     assert again.outputDirectory == tmp_path / "out"
     assert again.explorerModel is not None and again.explorerModel.GetName() == "explorer"
-    assert again.strategy == BuildConfig().strategy
+    # the input selections and the landmark point lists are saved with the scene, in order
+    assert [node.GetName() for node in again.inputNodes] == ["left", "right", "third"]
+    assert [node.GetClassName() for node in again.inputNodes] == [
+        "vtkMRMLSegmentationNode", "vtkMRMLLabelMapVolumeNode", "vtkMRMLModelNode"]
+    assert [node.GetName() for node in again.landmarkNodes] == ["left_landmarks"]
+    assert module.buildConfigOf(again) == BuildConfig(
+        labels=[1, 2], points=642, max_time=90.5, strict=True, strategy="one-at-a-time",
+        smoothness=0.02)
+    assert again.check_landmarks is True and again.analysisPermutations == 999
+    assert again.analysisColorBy == module.EFFECT_SCALARS[0]
+    # fewer nodes written over more leave no stale entry behind
+    again.inputNodes = [again.inputNodes[2]]
+    assert [node.GetName() for node in again.inputNodes] == ["third"]
 
 
 def test_segmentation_nodes_build_the_same_model_as_the_command_line_and_overlay(
