@@ -26,18 +26,12 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-import queue
-import re
-import shutil
-import sys
-import threading
 import typing
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Annotated
 
 import qt
 import slicer
-import vtk
 from slicer.parameterNodeWrapper import Choice, WithinRange, parameterNodeWrapper
 from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoadableModuleLogic,
                                            ScriptedLoadableModuleTest,
@@ -47,27 +41,19 @@ from slicer.util import VTKObservationMixin
 from mdlshapemodel.config import (CORRESPONDENCES, GUIDED_SMOOTHNESS, PLACEMENTS, SMOOTHNESS,
                                   STRATEGIES, SURFACE_METHODS, AnalysisConfig, BuildConfig,
                                   field_items)
+from MDLShapeModelLib.dependencies import ensureDependencies
+from MDLShapeModelLib.jobs import AnalysisJob, BuildJob, workerPool
+from MDLShapeModelLib.nodes import (INPUT_NODE_TYPES, addModel, addPointArray, caseName,
+                                    checkData, colorLegend, colorNode, metricsTable,
+                                    placeInFolder, readCsv, readModel, scoresTable,
+                                    segmentNames, subjectHierarchy, tableNode, temporaryFolder,
+                                    toRas, uniqueName, writeNode, writeSegmentation)
+from MDLShapeModelLib.records import AnalysisNodes, ExportedInputs, ShapeModelResult
+from MDLShapeModelLib.resources import resourcePath
 
-MODULE_DIRECTORY = pathlib.Path(__file__).resolve().parent
 # The point arrays of an analysis's effect map that can colour it (effects.vtp): significance
 # (-log10 of the family-wise p-value) and the effect along the outward normal (mm).
 EFFECT_SCALARS = ("minus_log10_p_fwer", "normal_difference_mm")
-# The node types a build takes as inputs.
-INPUT_NODE_TYPES = ("vtkMRMLSegmentationNode", "vtkMRMLLabelMapVolumeNode", "vtkMRMLModelNode")
-# Python packages the library needs that Slicer ships itself and that must never be installed
-# into Slicer by pip (another vtk breaks Slicer).
-SHIPPED_BY_SLICER = ("vtk", "SimpleITK")
-
-
-def resourcePath(relativePath: str) -> pathlib.Path:
-    """A file of ``Resources/``: next to this file in a built or installed extension (the build
-    copies the project's top-level Resources/ there), else in a checkout's top-level Resources/
-    (the module added to Slicer through "Additional module paths")."""
-    for base in (MODULE_DIRECTORY / "Resources", MODULE_DIRECTORY.parent / "Resources"):
-        if (base / relativePath).exists():
-            return base / relativePath
-    raise FileNotFoundError(f"MDLShapeModel resource {relativePath!r} not found next to "
-                            f"{MODULE_DIRECTORY} nor in {MODULE_DIRECTORY.parent / 'Resources'}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -206,53 +192,6 @@ def landmarkConfigOf(config: BuildConfig, parameters, landmarks: bool) -> BuildC
 # Logic
 
 
-@dataclass
-class ShapeModelResult:
-    """The MRML nodes of a built or loaded model."""
-
-    outputDirectory: pathlib.Path | None
-    modelFile: pathlib.Path
-    folderItemID: int                       # subject-hierarchy folder holding the nodes
-    meanModelNode: object                   # vtkMRMLModelNode, the mean shape (model frame)
-    explorerModelNode: object               # vtkMRMLModelNode deformed by setModeWeights
-    metricsTableNode: object | None         # vtkMRMLTableNode: C, G, S per mode with SEs
-    scoresTableNode: object | None          # vtkMRMLTableNode: the cases' scores per mode
-    # input order, rejected left out; several parts: each case's parts in turn ("case part")
-    correspondenceModelNodes: list = field(default_factory=list)
-    caseNames: list = field(default_factory=list)
-    partNames: list = field(default_factory=list)     # [] for a one-part object
-    rejected: list = field(default_factory=list)  # (name, reason)
-    # a build guided by landmarks: each case's corresponded landmarks, a point list per case
-    landmarkNodes: list = field(default_factory=list)
-    interrupted: bool = False
-    reportFile: pathlib.Path | None = None
-    warnings: list = field(default_factory=list)  # the build's (metrics.json), e.g. absent labels
-    # the optimisation ended by its stopping rule (None: nothing was optimised); when False, a
-    # warning says what stopped it and how to carry it on
-    converged: bool | None = None
-
-
-@dataclass
-class AnalysisNodes:
-    """The MRML nodes of an analysis (:meth:`MDLShapeModelLogic.analyzeModel`)."""
-
-    outputDirectory: pathlib.Path
-    folderItemID: int
-    effectModelNode: object           # vtkMRMLModelNode: the mean surface with the effect arrays
-    pointsTableNode: object           # vtkMRMLTableNode: points.csv
-    summary: dict                     # analysis.json
-    pageFile: pathlib.Path            # analysis.html
-
-
-@dataclass
-class ExportedInputs:
-    """Inputs written as files for the library, and those that could not be."""
-
-    paths: list
-    rejected: list                          # (name, reason)
-    config: BuildConfig | None = None       # the build's settings, with the landmarks' folder
-
-
 class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
     """Everything the module does, without any GUI.
 
@@ -301,26 +240,26 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             marks.mkdir(exist_ok=True)
             config = replace(config, landmarks=str(marks))
         for item, node in zip(inputs, markups):
-            name = _caseName(item)
+            name = caseName(item)
             if isinstance(item, (str, os.PathLike)):
                 paths.append(pathlib.Path(item))
             else:
-                name = _uniqueName(name, used)
+                name = uniqueName(name, used)
             if node is not None:     # named after the case, as the build looks for it
-                _writeNode(node, marks / f"{name}.mrk.json", "vtkMRMLMarkupsJsonStorageNode")
+                writeNode(node, marks / f"{name}.mrk.json", "vtkMRMLMarkupsJsonStorageNode")
             if isinstance(item, (str, os.PathLike)):
                 continue
             try:
                 if item.IsA("vtkMRMLSegmentationNode"):
                     value = config.labels[0] if config.labels else 1
-                    paths.append(_writeSegmentation(item, segments, value, folder / f"{name}.nrrd"))
+                    paths.append(writeSegmentation(item, segments, value, folder / f"{name}.nrrd"))
                 elif item.IsA("vtkMRMLLabelMapVolumeNode"):
-                    _checkData(item)
-                    paths.append(_writeNode(item, folder / f"{name}.nrrd",
+                    checkData(item)
+                    paths.append(writeNode(item, folder / f"{name}.nrrd",
                                             "vtkMRMLVolumeArchetypeStorageNode"))
                 elif item.IsA("vtkMRMLModelNode"):
-                    _checkData(item)
-                    paths.append(_writeNode(item, folder / f"{name}.vtp", "vtkMRMLModelStorageNode"))
+                    checkData(item)
+                    paths.append(writeNode(item, folder / f"{name}.vtp", "vtkMRMLModelStorageNode"))
                 else:
                     raise ValueError(f"a {item.GetClassName()} is not an input (use "
                                      f"{', '.join(INPUT_NODE_TYPES)})")
@@ -333,7 +272,7 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         """The markups node of each input (None where it has none): the one named after the
         input's case (a node's name; a file's name without its suffix), or that name followed
         by "_landmarks". Raises ValueError where a markups node matches no input."""
-        names = [_caseName(item) for item in inputs]
+        names = [caseName(item) for item in inputs]
         byName = {}
         for node in markupsNodes:
             name = node.GetName().removesuffix("_landmarks")
@@ -415,8 +354,8 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         result = self.loadModel(build.model_file)
         for name in result.caseNames:
             for part in result.partNames or [""]:   # several parts: a node per part
-                node = _readModel(build.case_mesh(part, name), f"{name} {part}".strip())
-                _placeInFolder(node, result.folderItemID)
+                node = readModel(build.case_mesh(part, name), f"{name} {part}".strip())
+                placeInFolder(node, result.folderItemID)
                 result.correspondenceModelNodes.append(node)
         marks = {}
         for landmark in build.landmarks():
@@ -425,8 +364,8 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode",
                                                       f"{name} landmarks")
             for label, point in points:
-                node.AddControlPoint(list(_toRas([point])[0]), label)
-            _placeInFolder(node, result.folderItemID)
+                node.AddControlPoint(list(toRas([point])[0]), label)
+            placeInFolder(node, result.folderItemID)
             result.landmarkNodes.append(node)
         result.rejected = list(rejected) + [(r.name, r.reason) for r in build.rejected()]
         result.interrupted = interrupted
@@ -445,25 +384,25 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         build = BuildFolder(path)
         model, modelFile = build.model(), build.model_file
         folderName = modelFile.parent.name or "model"
-        hierarchy = _subjectHierarchy()
+        hierarchy = subjectHierarchy()
         folder = hierarchy.CreateFolderItem(hierarchy.GetSceneItemID(),
                                             f"MDL shape model {folderName}")
-        mean = _addModel(f"{folderName} mean", _toRas(model.mean), model.triangles)
-        explorer = _addModel(f"{folderName} shape explorer", _toRas(model.mean), model.triangles)
+        mean = addModel(f"{folderName} mean", toRas(model.mean), model.triangles)
+        explorer = addModel(f"{folderName} shape explorer", toRas(model.mean), model.triangles)
         polydata = explorer.GetPolyData()
-        _addPointArray(polydata, "MeanPoints", _toRas(model.mean))
+        addPointArray(polydata, "MeanPoints", toRas(model.mean))
         for k in range(model.n_modes):
             standardDeviation = float(model.variances[k]) ** 0.5
-            _addPointArray(polydata, f"mode_{k + 1}", _toRas(model.modes[k] * standardDeviation))
-        _addPointArray(polydata, "Displacement", [0.0] * len(model.mean))
+            addPointArray(polydata, f"mode_{k + 1}", toRas(model.modes[k] * standardDeviation))
+        addPointArray(polydata, "Displacement", [0.0] * len(model.mean))
         polydata.GetPointData().SetActiveScalars("Displacement")
         explorer.GetDisplayNode().SetActiveScalarName("Displacement")
         explorer.GetDisplayNode().SetScalarVisibility(True)
         mean.GetDisplayNode().SetVisibility(False)
-        metrics = _metricsTable(build, folderName)
-        scores = _scoresTable(build, folderName)
+        metrics = metricsTable(build, folderName)
+        scores = scoresTable(build, folderName)
         for node in filter(None, (mean, explorer, metrics, scores)):
-            _placeInFolder(node, folder)
+            placeInFolder(node, folder)
         return ShapeModelResult(build.path if build.is_build_model else None,
                                 modelFile, folder, mean, explorer, metrics, scores,
                                 caseNames=list(model.names), partNames=list(model.part_names))
@@ -514,7 +453,7 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         buildDirectory = pathlib.Path(buildDirectory)
         outputDirectory = pathlib.Path(outputDirectory or buildDirectory / "analysis")
         config = self.analysisConfig(group, covariates, nuisance, **settings)
-        path = self.exportTable(table, _temporaryFolder())
+        path = self.exportTable(table, temporaryFolder())
         return AnalysisJob(self, buildDirectory, path, outputDirectory, config)
 
     def analyzeModel(self, buildDirectory, table, group=None, covariates=(), nuisance=(),
@@ -548,7 +487,7 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         buildDirectory = pathlib.Path(buildDirectory)
         outputDirectory = pathlib.Path(outputDirectory or buildDirectory / "analysis")
         config = self.analysisConfig(group, covariates, nuisance, **settings)
-        path = self.exportTable(table, _temporaryFolder())
+        path = self.exportTable(table, temporaryFolder())
         self.runAnalysis(buildDirectory, path, outputDirectory, config, progress)
         return self.loadAnalysis(outputDirectory)
 
@@ -557,19 +496,19 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         node) coloured by significance with a colour legend, and points.csv as a table."""
         outputDirectory = pathlib.Path(outputDirectory)
         summary = json.loads((outputDirectory / "analysis.json").read_text())
-        folder = _subjectHierarchy().CreateFolderItem(
-            _subjectHierarchy().GetSceneItemID(), f"{outputDirectory.name} analysis")
+        folder = subjectHierarchy().CreateFolderItem(
+            subjectHierarchy().GetSceneItemID(), f"{outputDirectory.name} analysis")
         effects = ([outputDirectory / "effects.vtp"] if (outputDirectory / "effects.vtp").exists()
                    else sorted((outputDirectory / "effects").glob("*.vtp")))
-        nodes = [_readModel(path, f"{outputDirectory.name} effect {path.stem}") for path in effects]
+        nodes = [readModel(path, f"{outputDirectory.name} effect {path.stem}") for path in effects]
         for node in nodes:
             self.colorEffectMap(node, EFFECT_SCALARS[0])
-            _placeInFolder(node, folder)
-        rows = _readCsv(outputDirectory / "points.csv")
+            placeInFolder(node, folder)
+        rows = readCsv(outputDirectory / "points.csv")
         columns = {key: ([float(r[key]) for r in rows] if key not in ("point", "part")
                          else [int(r[key]) for r in rows]) for key in rows[0]}
-        points = _table(f"{outputDirectory.name} points", columns)
-        _placeInFolder(points, folder)
+        points = tableNode(f"{outputDirectory.name} points", columns)
+        placeInFolder(points, folder)
         return AnalysisNodes(outputDirectory, folder, nodes[0], points, summary,
                              outputDirectory / "analysis.html")
 
@@ -588,11 +527,11 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             colors, high = "coolwarm", max(abs(low), abs(high), 1e-9)
             low = -high
         display.SetActiveScalarName(scalars)
-        display.SetAndObserveColorNodeID(_colorNode(colors).GetID())
+        display.SetAndObserveColorNodeID(colorNode(colors).GetID())
         display.SetScalarRangeFlag(display.UseManualScalarRange)
         display.SetScalarRange(low, high)
         display.SetScalarVisibility(True)
-        _colorLegend(display, "-log10 p (FWER)" if scalars == EFFECT_SCALARS[0]
+        colorLegend(display, "-log10 p (FWER)" if scalars == EFFECT_SCALARS[0]
                      else "effect along the normal [mm]")
 
     def setModeWeights(self, explorerModelNode, weights) -> None:
@@ -638,395 +577,8 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         nodes = []
         for suffix, points in (("fitted", fitted.corresponded),
                                ("reconstruction", fitted.reconstruction(model))):
-            nodes.append(_addModel(f"{name} {suffix}", _toRas(points), model.triangles))
+            nodes.append(addModel(f"{name} {suffix}", toRas(points), model.triangles))
         return nodes[0], nodes[1], fitted
-
-
-class BackgroundJob:
-    """Library work running in a background thread, so that Slicer stays responsive.
-
-    The main thread polls :meth:`messages` (progress reports: (fraction or None, text)), may
-    :meth:`cancel` (the work stops at its next report), and once :attr:`done` calls
-    :meth:`finish` to load the results into the scene (MRML is touched only on the main thread).
-    ``work(progress)`` is the library call; its result is kept in :attr:`result`.
-    """
-
-    def __init__(self, work, name: str):
-        self.result = None
-        self.error = None
-        self._reports = queue.Queue()
-        self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(work,), daemon=True, name=name)
-        self._thread.start()
-
-    def _progress(self, fraction, message):
-        self._reports.put((fraction, message))
-        if self._cancel.is_set():
-            # one False per Cancel: a build's optimisation stops there and the library goes on
-            # to write the model of the state reached (elsewhere the work stops: Cancelled)
-            self._cancel.clear()
-            return False
-        return True
-
-    def _run(self, work):
-        try:
-            self.result = work(self._progress)
-        except BaseException as error:  # handed to the main thread, which reports it
-            self.error = error
-
-    @property
-    def done(self) -> bool:
-        return not self._thread.is_alive()
-
-    def wait(self, timeout: float | None = None) -> bool:
-        self._thread.join(timeout)
-        return self.done
-
-    def cancel(self) -> None:
-        self._cancel.set()
-
-    def messages(self) -> list:
-        """The progress reports since the last call, oldest first."""
-        reports = []
-        while True:
-            try:
-                reports.append(self._reports.get_nowait())
-            except queue.Empty:
-                return reports
-
-    def finish(self):
-        """The results in the scene (main thread, after :attr:`done`); re-raises the work's
-        error."""
-        if self.error is not None:
-            raise self.error
-        return self._load()
-
-    def _load(self):
-        return self.result
-
-
-class BuildJob(BackgroundJob):
-    """A build in a background thread (:class:`BackgroundJob`); Cancel stops the optimisation
-    and the model of the state reached is written; :meth:`finish` loads the build's results."""
-
-    def __init__(self, logic: MDLShapeModelLogic, exported: ExportedInputs, outputDirectory,
-                 config: BuildConfig | None, overwrite: bool = False):
-        self.logic = logic
-        self.exported = exported
-        self.outputDirectory = pathlib.Path(outputDirectory)
-        super().__init__(lambda progress: logic.runBuild(exported.paths, self.outputDirectory,
-                                                         config, progress, overwrite),
-                         "MDLShapeModel build")
-
-    @property
-    def built(self):
-        """The library's BuildResult (None until the build has ended)."""
-        return self.result
-
-    def _load(self) -> ShapeModelResult:
-        return self.logic.loadResults(self.outputDirectory, self.exported.rejected,
-                                      self.result.interrupted)
-
-
-class AnalysisJob(BackgroundJob):
-    """An analysis in a background thread (:class:`BackgroundJob`); Cancel stops it (nothing is
-    written); :meth:`finish` loads its effect map and table."""
-
-    def __init__(self, logic: MDLShapeModelLogic, buildDirectory, table: pathlib.Path,
-                 outputDirectory, config: AnalysisConfig):
-        self.logic = logic
-        self.outputDirectory = pathlib.Path(outputDirectory)
-        super().__init__(lambda progress: logic.runAnalysis(buildDirectory, table,
-                                                            self.outputDirectory, config,
-                                                            progress),
-                         "MDLShapeModel analysis")
-
-    def _load(self) -> AnalysisNodes:
-        return self.logic.loadAnalysis(self.outputDirectory)
-
-
-def workerPool(config: BuildConfig):
-    """The executor for a build's per-case work. Inside the Slicer application, Python's
-    ``sys.executable`` is the application itself, which cannot run worker processes: there the
-    workers are started with Slicer's ``PythonSlicer`` interpreter. Elsewhere None: the library's
-    own pools."""
-    if config.workers <= 1 or not os.path.basename(sys.executable).lower().startswith("slicer"):
-        return None
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    interpreter = shutil.which("PythonSlicer") or os.path.join(
-        os.path.dirname(sys.executable), "PythonSlicer")
-    context = multiprocessing.get_context("spawn")
-    context.set_executable(interpreter)
-    return ProcessPoolExecutor(max_workers=config.workers, mp_context=context)
-
-
-def requirements() -> list:
-    """The pip requirements the library needs beyond what Slicer ships
-    (``Resources/requirements.txt``)."""
-    lines = resourcePath("requirements.txt").read_text().splitlines()
-    return [line.strip() for line in lines if line.strip() and not line.startswith("#")]
-
-
-def missingRequirements() -> list:
-    """The requirements whose distribution is not installed (or too old)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    from packaging.requirements import Requirement
-
-    missing = []
-    for text in requirements():
-        requirement = Requirement(text)
-        try:
-            if not requirement.specifier.contains(version(requirement.name), prereleases=True):
-                missing.append(text)
-        except PackageNotFoundError:
-            missing.append(text)
-    return missing
-
-
-def ensureDependencies(ask: bool = True) -> bool:
-    """Install the missing requirements into Slicer's Python after asking the user; never vtk or
-    SimpleITK (Slicer's own). True when everything is there."""
-    missing = missingRequirements()
-    if not missing:
-        return True
-    if ask and not slicer.util.confirmOkCancelDisplay(
-            "MDLShapeModel needs these Python packages, which will be installed now:\n"
-            + "\n".join(missing)):
-        return False
-    if hasattr(slicer, "packaging") and hasattr(slicer.packaging, "pip_ensure"):
-        slicer.packaging.pip_ensure(missing)        # Slicer 5.11 and later
-    else:
-        slicer.util.pip_install(" ".join(f'"{r}"' for r in missing))
-    return not missingRequirements()
-
-
-# -- helpers: files and nodes ------------------------------------------------------------------
-
-
-def segmentNames(text: str) -> list:
-    """Segment names written as text: separated by commas (names may hold spaces)."""
-    return [name.strip() for name in text.split(",") if name.strip()]
-
-
-def _fileSafe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "case"
-
-
-def _caseName(item) -> str:
-    """The case name a build gives an input: a file's name without its suffix, a node's name
-    made safe for a file name (exportInputs also makes node names unique)."""
-    if isinstance(item, (str, os.PathLike)):
-        from mdlshapemodel.prepare.io import case_name
-
-        return case_name(item)
-    return _fileSafe(item.GetName() or item.GetID())
-
-
-def _uniqueName(name: str, used: set) -> str:
-    candidate, k = name, 1
-    while candidate.lower() in used:
-        k += 1
-        candidate = f"{name}_{k}"
-    used.add(candidate.lower())
-    return candidate
-
-
-def _checkData(node):
-    """A volume's or model's data checked before a storage node reads it to write the file, as
-    the library checks VTK data: an image's scalars against its extent, a mesh's cells against
-    its points (a storage node would read past a shorter array). ValueError with the reason."""
-    from mdlshapemodel.errors import InputError
-    from mdlshapemodel.prepare import io
-
-    try:
-        if node.IsA("vtkMRMLVolumeNode"):
-            io.image_values(node.GetImageData())
-        elif node.GetPolyData() is None or node.GetPolyData().GetNumberOfPoints() == 0:
-            raise InputError("the model has no mesh")
-        else:
-            io.require_valid_cells(node.GetPolyData())
-    except InputError as error:
-        raise ValueError(str(error)) from None
-
-
-def _writeNode(node, path: pathlib.Path, storageClass: str) -> pathlib.Path:
-    storage = slicer.mrmlScene.CreateNodeByClass(storageClass)
-    if storage is None:     # a class the scene has not registered (markups outside Slicer)
-        storage = getattr(slicer, storageClass)()
-    else:
-        storage.UnRegister(None)
-    storage.SetFileName(str(path))
-    if not storage.WriteData(node):
-        raise ValueError(f"could not be written to {path}")
-    return path
-
-
-def _writeSegmentation(node, segments, value: int, path: pathlib.Path) -> pathlib.Path:
-    from vtk.util.numpy_support import vtk_to_numpy
-
-    segmentation = node.GetSegmentation()
-    ids = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
-    if segments:
-        byName = {segmentation.GetSegment(i).GetName(): i for i in ids}
-        missing = [s for s in segments if s not in byName]
-        if missing:
-            raise ValueError(f"no segment named {missing[0]!r} (it has "
-                             f"{', '.join(sorted(byName)) or 'none'})")
-        ids = [byName[s] for s in segments]
-    if not ids:
-        raise ValueError("the segmentation has no segments")
-    chosen = vtk.vtkStringArray()
-    for i in ids:
-        chosen.InsertNextValue(i)
-    hasGeometry = bool(segmentation.GetConversionParameter("Reference image geometry"))
-    extent = (slicer.vtkSegmentation.EXTENT_REFERENCE_GEOMETRY if hasGeometry
-              else slicer.vtkSegmentation.EXTENT_UNION_OF_EFFECTIVE_SEGMENTS)
-    labelmap = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode")
-    try:
-        if not slicer.vtkSlicerSegmentationsModuleLogic.ExportSegmentsToLabelmapNode(
-                node, chosen, labelmap, None, extent) or labelmap.GetImageData() is None:
-            raise ValueError("its segments could not be exported as a label map")
-        voxels = vtk_to_numpy(labelmap.GetImageData().GetPointData().GetScalars())
-        if not voxels.any():
-            raise ValueError("the chosen segments are empty")
-        voxels[voxels != 0] = value   # the union of the chosen segments
-        labelmap.GetImageData().Modified()
-        return _writeNode(labelmap, path, "vtkMRMLVolumeArchetypeStorageNode")
-    finally:
-        slicer.mrmlScene.RemoveNode(labelmap)
-
-
-def _subjectHierarchy():
-    return slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(slicer.mrmlScene)
-
-
-def _placeInFolder(node, folder: int):
-    hierarchy = _subjectHierarchy()
-    item = hierarchy.GetItemByDataNode(node)
-    if item:
-        hierarchy.SetItemParent(item, folder)
-    else:
-        hierarchy.CreateItem(folder, node)
-
-
-def _temporaryFolder() -> pathlib.Path:
-    """A new folder under Slicer's temporary folder (for a table node written as CSV)."""
-    import tempfile
-
-    base = pathlib.Path(slicer.app.temporaryPath)
-    base.mkdir(parents=True, exist_ok=True)
-    return pathlib.Path(tempfile.mkdtemp(prefix="MDLShapeModel-", dir=base))
-
-
-def _colorNode(colormap: str):
-    """A colour node of the matplotlib colour map ``colormap`` (the colours of the library's
-    report pages), made once per scene."""
-    name = f"MDLShapeModel {colormap}"
-    existing = slicer.mrmlScene.GetFirstNodeByName(name)
-    if existing is not None:
-        return existing
-    import matplotlib
-
-    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLColorTableNode", name)
-    node.SetTypeToUser()          # a lookup table: the display's scalar range spreads over it
-    node.SetNumberOfColors(256)
-    samples = matplotlib.colormaps[colormap]
-    for k in range(256):
-        red, green, blue, _ = samples(k / 255)
-        node.SetColor(k, f"{k}", red, green, blue, 1.0)
-    node.SetAttribute("Category", "MDLShapeModel")
-    return node
-
-
-def _colorLegend(displayNode, title: str):
-    """The colour legend of a display node (the Colors module's default one), titled."""
-    legend = slicer.modules.colors.logic().AddDefaultColorLegendDisplayNode(displayNode)
-    legend.SetTitleText(title)
-    return legend
-
-
-def _toRas(points):
-    """LPS <-> RAS (the same map both ways): x and y negated. (n, 3) array-like -> array."""
-    import numpy as np
-
-    return np.asarray(points, dtype=np.float64) * np.array([-1.0, -1.0, 1.0])
-
-
-def _addPointArray(polydata, name: str, values):
-    import numpy as np
-    from vtk.util.numpy_support import numpy_to_vtk
-
-    array = numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
-    array.SetName(name)
-    polydata.GetPointData().AddArray(array)
-
-
-def _addModel(name: str, points, triangles):
-    """A model node of points (RAS) and triangles, with display nodes."""
-    from mdlshapemodel.prepare.surface import arrays_to_polydata
-
-    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", name)
-    node.SetAndObservePolyData(arrays_to_polydata(points, triangles))
-    node.CreateDefaultDisplayNodes()
-    return node
-
-
-def _readModel(path: pathlib.Path, name: str):
-    """A model node read by Slicer's model storage node (which honours the file's SPACE)."""
-    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", name)
-    storage = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelStorageNode")
-    storage.SetFileName(str(path))
-    if not storage.ReadData(node):
-        raise OSError(f"{path}: could not be read as a model")
-    node.SetAndObserveStorageNodeID(storage.GetID())
-    node.CreateDefaultDisplayNodes()
-    return node
-
-
-def _readCsv(path: pathlib.Path) -> list:
-    """The rows of a table of the build (none when it is absent)."""
-    from mdlshapemodel.prepare.io import read_csv
-
-    return read_csv(path) if path.exists() else []
-
-
-def _table(name: str, columns: dict):
-    """A table node of named columns (str or float values, all of one length)."""
-    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLTableNode", name)
-    table = node.GetTable()
-    for title, values in columns.items():
-        numeric = all(isinstance(v, (int, float)) for v in values)
-        array = vtk.vtkDoubleArray() if numeric else vtk.vtkStringArray()
-        array.SetName(title)
-        for v in values:
-            array.InsertNextValue(float(v) if numeric else str(v))
-        table.AddColumn(array)
-    node.Modified()
-    return node
-
-
-def _metricsTable(build, name: str):
-    """The build's measures per mode with their standard errors (``BuildFolder.measures``) as
-    a table node; None without them."""
-    columns = build.measures()
-    return None if columns is None else _table(f"{name} measures", columns)
-
-
-def _scoresTable(build, name: str):
-    """The cases' scores per mode (``BuildFolder.scores``) as a table node; None without them."""
-    from mdlshapemodel.folders import score_header
-
-    scores = build.scores()
-    if scores is None:
-        return None
-    names, values = scores
-    columns = {"case": list(names)}
-    for k, title in enumerate(score_header(values.shape[1])[1:]):
-        columns[title] = [float(v) for v in values[:, k]]
-    return _table(f"{name} scores", columns)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ from vtk.util.numpy_support import vtk_to_numpy
 
 import harness
 import MDLShapeModel as module
+from MDLShapeModelLib import dependencies
 from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.config import SMOOTHNESS, SURFACE_POINTS
 from mdlshapemodel.errors import ConfigError
@@ -349,11 +350,11 @@ def test_slicer_reads_the_librarys_meshes_as_lps_and_the_library_reads_slicers(s
         np.testing.assert_allclose(read, vertices, atol=1e-5)
 
 
-def test_resources_are_found_in_the_checkouts_resources_folder():
-    root = harness.HERE.parents[1]
-    assert module.resourcePath("UI/MDLShapeModel.ui") == root / "Resources" / "UI" / "MDLShapeModel.ui"
-    assert module.requirements() and not any(r.split(">")[0].lower() in ("vtk", "simpleitk")
-                                             for r in module.requirements())
+def test_resources_are_found_in_the_modules_resources_folder():
+    folder = harness.MODULE_DIRECTORY / "Resources"
+    assert module.resourcePath("UI/MDLShapeModel.ui") == folder / "UI" / "MDLShapeModel.ui"
+    assert dependencies.requirements() and not any(
+        r.split(">")[0].lower() in ("vtk", "simpleitk") for r in dependencies.requirements())
     with pytest.raises(FileNotFoundError, match="nothing.txt"):
         module.resourcePath("nothing.txt")
 
@@ -376,11 +377,10 @@ def test_a_new_segmentation_is_fitted_to_a_loaded_model(mixed_build, generated_f
     assert point_surface_distances(points_of(fitted), vertices, triangles).mean() < 0.5
 
 
-def test_missing_requirements_are_the_ones_not_installed(monkeypatch):
-    assert module.missingRequirements() == []          # this virtualenv has the library's packages
-    monkeypatch.setattr(module, "requirements",
-                        lambda: ["numpy>=1.0", "numpy>=999", "no-such-package-mdl>=1"])
-    assert module.missingRequirements() == ["numpy>=999", "no-such-package-mdl>=1"]
+def test_missing_requirements_are_the_ones_not_installed():
+    assert dependencies.missingRequirements() == []    # this virtualenv has the library's packages
+    wanted = ["numpy>=1.0", "numpy>=999", "no-such-package-mdl>=1"]
+    assert dependencies.missingRequirements(wanted) == ["numpy>=999", "no-such-package-mdl>=1"]
 
 
 def test_a_two_part_object_is_built_from_label_map_nodes_and_loaded_part_by_part(tmp_path):
