@@ -8,8 +8,12 @@ the MRML scene and the library's files.
 
 - :class:`MDLShapeModelLogic` works without any GUI (scripts, tests, other modules, batch):
   ``buildModel``, ``loadModel``, ``setModeWeights``, ``fitSegmentation``.
-- :class:`MDLShapeModelWidget` is the panel: it fills the parameter node, runs a build in a
-  background thread (:class:`BuildJob`) and shows the results.
+- :class:`MDLShapeModelWidget` is the panel: it fills the parameter node, starts the Logic's
+  work in a process of its own (:class:`~MDLShapeModelLib.jobs.WorkerJob`: a build, an
+  analysis, a fit), polls its progress from a timer and shows the results.
+
+The module's helpers are in ``MDLShapeModelLib/`` beside this file: the nodes (``nodes``), the
+worker process and its jobs (``worker``, ``jobs``), the panel's messages (``messages``).
 
 Coordinates: Slicer's world is RAS; the library's physical space is LPS, like the image files
 SimpleITK reads. Inputs go to the library as files written by Slicer's own storage nodes (which
@@ -23,11 +27,13 @@ installed (after asking) by the panel if Slicer lacks them (:func:`ensureDepende
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pathlib
+import traceback
 import typing
-from dataclasses import replace
+from dataclasses import asdict, replace
 from typing import Annotated
 
 import qt
@@ -42,7 +48,8 @@ from mdlshapemodel.config import (CORRESPONDENCES, GUIDED_SMOOTHNESS, PLACEMENTS
                                   STRATEGIES, SURFACE_METHODS, AnalysisConfig, BuildConfig,
                                   field_items)
 from MDLShapeModelLib.dependencies import ensureDependencies
-from MDLShapeModelLib.jobs import AnalysisJob, BuildJob, workerPool
+from MDLShapeModelLib.jobs import WorkerJob
+from MDLShapeModelLib.messages import panelLabels, panelMessage
 from MDLShapeModelLib.nodes import (INPUT_NODE_TYPES, addModel, addPointArray, caseName,
                                     checkData, colorLegend, colorNode, metricsTable,
                                     placeInFolder, readCsv, readModel, scoresTable,
@@ -284,20 +291,11 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
 
     # -- the build ---------------------------------------------------------------------------
 
-    def runBuild(self, paths, outputDirectory, config: BuildConfig | None = None, progress=None,
-                 overwrite: bool = False):
-        """The library's build on files (no MRML: safe in a background thread). Returns the
-        library's ``BuildResult``."""
-        from mdlshapemodel import build_model
-
-        return build_model([str(p) for p in paths], str(outputDirectory), config,
-                           progress=progress, executor=workerPool(config or BuildConfig()),
-                           overwrite=overwrite)
-
     def buildModel(self, inputs, outputDirectory, config: BuildConfig | None = None,
                    progress=None, segments=None, overwrite: bool = False,
-                   landmarks=None) -> ShapeModelResult:
-        """Build a model of ``inputs`` and load it into the scene (blocking).
+                   landmarks=None, resume: bool = False) -> ShapeModelResult:
+        """Build a model of ``inputs`` and load it into the scene, waiting for the build's
+        process (:meth:`startBuild`): the headless way, for scripts and batch use.
 
         Parameters
         ----------
@@ -319,27 +317,39 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         landmarks : list, optional
             One vtkMRMLMarkupsFiducialNode (or None) per input: its control points, matched
             across the cases by label, guide the correspondence (``build --landmarks``).
+        resume : bool
+            Carry on an interrupted build in ``outputDirectory`` from its checkpoint (cancelled,
+            its process ended, or stopped by its time budget).
 
         Returns
         -------
         ShapeModelResult
             With ``rejected`` holding every input that could not be used and why.
         """
-        outputDirectory = pathlib.Path(outputDirectory)
-        exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments,
-                                     landmarks)
-        built = self.runBuild(exported.paths, outputDirectory, exported.config, progress,
-                              overwrite)
-        return self.loadResults(outputDirectory, exported.rejected, built.interrupted)
+        job = self.startBuild(inputs, outputDirectory, config, segments, overwrite, landmarks,
+                              resume)
+        job.wait(progress=progress)
+        return job.finish()
 
     def startBuild(self, inputs, outputDirectory, config: BuildConfig | None = None,
-                   segments=None, overwrite: bool = False, landmarks=None) -> "BuildJob":
-        """Export the inputs (here, on the main thread), then run the build in a background
-        thread; load its results with ``job.finish(logic)`` once ``job.done``."""
+                   segments=None, overwrite: bool = False, landmarks=None,
+                   resume: bool = False) -> WorkerJob:
+        """Export the inputs (here: they are nodes of the scene), then start the build in a
+        process of its own (:class:`~MDLShapeModelLib.jobs.WorkerJob`); ``job.poll()`` gives its
+        progress, ``job.finish()`` loads its results once ``job.done``. ``job.exported`` holds
+        the inputs written and those rejected."""
         outputDirectory = pathlib.Path(outputDirectory)
         exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments,
                                      landmarks)
-        return BuildJob(self, exported, outputDirectory, exported.config, overwrite)
+        config = (exported.config or BuildConfig()).validate()
+        job = WorkerJob({"command": "build", "inputs": [str(p) for p in exported.paths],
+                         "output": str(outputDirectory), "config": config.to_dict(),
+                         "overwrite": overwrite, "resume": resume}, "build",
+                        lambda end: self.loadResults(outputDirectory, exported.rejected,
+                                                     end["interrupted"]),
+                        temporaryFolder())
+        job.exported = exported
+        return job
 
     # -- results -> scene --------------------------------------------------------------------
 
@@ -415,15 +425,6 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         return AnalysisConfig(group=group or None, covariates=list(covariates),
                               nuisance=list(nuisance), **settings).validate()
 
-    def runAnalysis(self, buildDirectory, table, outputDirectory, config: AnalysisConfig,
-                    progress=None, overwrite: bool = True):
-        """The library's analysis on files (no MRML: safe in a background thread); returns the
-        library's ``AnalysisResult``. ``table`` is a CSV file path."""
-        from mdlshapemodel.analyze import analyze_build
-
-        return analyze_build(str(buildDirectory), str(table), str(outputDirectory), config,
-                             progress=progress, overwrite=overwrite)
-
     def exportTable(self, table, folder) -> pathlib.Path:
         """A subjects table as a CSV file: a path passes through, a table node is written (its
         columns as they are, one row per case) to ``folder/subjects.csv``."""
@@ -447,18 +448,22 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         return path
 
     def startAnalysis(self, buildDirectory, table, group=None, covariates=(), nuisance=(),
-                      outputDirectory=None, **settings) -> "AnalysisJob":
-        """Export the table (here, on the main thread), then run the analysis in a background
-        thread; load its nodes with ``job.finish()`` once ``job.done``."""
+                      outputDirectory=None, **settings) -> WorkerJob:
+        """Export the table (here: it may be a node), then start the analysis in a process of
+        its own; ``job.finish()`` loads its nodes once ``job.done`` (see :meth:`startBuild`)."""
         buildDirectory = pathlib.Path(buildDirectory)
         outputDirectory = pathlib.Path(outputDirectory or buildDirectory / "analysis")
         config = self.analysisConfig(group, covariates, nuisance, **settings)
         path = self.exportTable(table, temporaryFolder())
-        return AnalysisJob(self, buildDirectory, path, outputDirectory, config)
+        return WorkerJob({"command": "analyze", "build": str(buildDirectory), "table": str(path),
+                          "output": str(outputDirectory), "config": asdict(config)},
+                         "analysis", lambda end: self.loadAnalysis(outputDirectory),
+                         temporaryFolder())
 
     def analyzeModel(self, buildDirectory, table, group=None, covariates=(), nuisance=(),
                      outputDirectory=None, progress=None, **settings) -> AnalysisNodes:
-        """Test a build's shapes against a subjects table and load the findings (blocking).
+        """Test a build's shapes against a subjects table and load the findings, waiting for
+        the analysis's process (:meth:`startAnalysis`).
 
         Parameters
         ----------
@@ -484,12 +489,10 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         AnalysisNodes
             The effect map (coloured by -log10 p, family-wise) and the per-point table.
         """
-        buildDirectory = pathlib.Path(buildDirectory)
-        outputDirectory = pathlib.Path(outputDirectory or buildDirectory / "analysis")
-        config = self.analysisConfig(group, covariates, nuisance, **settings)
-        path = self.exportTable(table, temporaryFolder())
-        self.runAnalysis(buildDirectory, path, outputDirectory, config, progress)
-        return self.loadAnalysis(outputDirectory)
+        job = self.startAnalysis(buildDirectory, table, group, covariates, nuisance,
+                                 outputDirectory, **settings)
+        job.wait(progress=progress)
+        return job.finish()
 
     def loadAnalysis(self, outputDirectory) -> AnalysisNodes:
         """The nodes of an analysis's output folder: the effect map of each part (one part: one
@@ -558,27 +561,43 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                                        " ".join(f"{float(w):g}" for w in weights))
         explorerModelNode.Modified()
 
-    def fitSegmentation(self, inputNode, modelPath, outputDirectory, segments=None,
-                        maxTime: float = 60.0):
-        """Fit one new segmentation (or label map, model, file) to a model, as the command
-        line's ``fit`` does; returns (corresponded model node, reconstruction model node, the
-        library's FitResult)."""
-        from mdlshapemodel.folders import BuildFolder
-        from mdlshapemodel.model.fitting import build_config_of, fit_case
+    def startFit(self, inputNode, modelPath, outputDirectory, segments=None,
+                 maxTime: float = 60.0) -> WorkerJob:
+        """Export one new segmentation (or label map, model, file) and start fitting it to a
+        model in a process of its own, as the command line's ``fit`` does (its folder is
+        ``outputDirectory``); ``job.finish()`` gives (corresponded model node, reconstruction
+        model node, the fit's summary of the case from fit.json)."""
+        from mdlshapemodel.folders import BuildFolder, FitFolder
+        from mdlshapemodel.model.fitting import build_config_of
 
-        model = BuildFolder(modelPath).model()
-        config = build_config_of(model)
+        config = build_config_of(BuildFolder(modelPath).model())
         outputDirectory = pathlib.Path(outputDirectory)
-        exported = self.exportInputs([inputNode], outputDirectory / "inputs", config, segments)
+        exported = self.exportInputs([inputNode], temporaryFolder(), config, segments)
         if exported.rejected:
             raise ValueError(f"{exported.rejected[0][0]}: {exported.rejected[0][1]}")
-        fitted = fit_case(model, exported.paths[0], config, max_time=maxTime)
-        name = fitted.name
-        nodes = []
-        for suffix, points in (("fitted", fitted.corresponded),
-                               ("reconstruction", fitted.reconstruction(model))):
-            nodes.append(addModel(f"{name} {suffix}", toRas(points), model.triangles))
-        return nodes[0], nodes[1], fitted
+
+        def load(end):
+            if not end["cases"]:
+                raise ValueError(f"{end['rejected'][0][0]}: {end['rejected'][0][1]}")
+            name = end["cases"][0]
+            fit = FitFolder(outputDirectory)
+            return (readModel(fit.case_mesh("", name), f"{name} fitted"),
+                    readModel(fit.case_mesh("", name, reconstruction=True),
+                              f"{name} reconstruction"),
+                    fit.summary()[name])
+
+        return WorkerJob({"command": "fit", "model": str(modelPath),
+                          "inputs": [str(p) for p in exported.paths],
+                          "output": str(outputDirectory), "max_time": maxTime}, "fit", load,
+                         temporaryFolder())
+
+    def fitSegmentation(self, inputNode, modelPath, outputDirectory, segments=None,
+                        maxTime: float = 60.0):
+        """:meth:`startFit`, waiting for its process: (corresponded model node, reconstruction
+        model node, the fit's summary of the case)."""
+        job = self.startFit(inputNode, modelPath, outputDirectory, segments, maxTime)
+        job.wait()
+        return job.finish()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -594,13 +613,14 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.logic = None
         self._parameterNode = None
         self._parameterNodeGuiTag = None
-        self._job = None
-        self._timer = None
+        self._job = None            # the build's WorkerJob while it runs
+        self._analysisJob = None
+        self._fitJob = None
+        self._timer = None          # polls the running jobs (the main thread never waits)
         self._result = None
         self._sliders = []
-        self._analysisJob = None
         self._analysis = None
-        self._analysisTimer = None
+        self._labels = {}           # parameter -> its field's label (messages name fields)
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)
@@ -608,6 +628,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.layout.addWidget(uiWidget)
         self.ui = slicer.util.childWidgetVariables(uiWidget)
         uiWidget.setMRMLScene(slicer.mrmlScene)
+        self._labels = panelLabels(resourcePath("UI/MDLShapeModel.ui"))
         self.logic = MDLShapeModelLogic()
         self.ui.inputNodesSelector.nodeTypes = list(INPUT_NODE_TYPES)
         self.ui.applyButton.clicked.connect(self.onApply)
@@ -632,16 +653,14 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._timer = qt.QTimer()
         self._timer.setInterval(200)
         self._timer.timeout.connect(self.onPoll)
-        self._analysisTimer = qt.QTimer()
-        self._analysisTimer.setInterval(200)
-        self._analysisTimer.timeout.connect(self.onAnalysisPoll)
         self.initializeParameterNode()
 
     def cleanup(self):
         self.removeObservers()
-        for job in (self._job, self._analysisJob):
+        self._timer.stop()
+        for job in (self._job, self._analysisJob, self._fitJob):
             if job is not None:
-                job.cancel()
+                job.terminate()
 
     def enter(self):
         self.initializeParameterNode()
@@ -707,17 +726,30 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def _segments(self) -> list:
         return segmentNames(self._parameterNode.segments)
 
+    @contextlib.contextmanager
+    def _errorsShown(self, title: str):
+        """Errors of the block shown in a message box, a setting at fault named by its field's
+        label (:func:`~MDLShapeModelLib.messages.panelMessage`); the panel goes on."""
+        try:
+            yield
+        except Exception as error:
+            slicer.util.errorDisplay(f"{title}\n{panelMessage(error, self._labels)}",
+                                     detailedText=traceback.format_exc())
+
     def onApply(self):
         if not ensureDependencies(ask=True):
             return
         from mdlshapemodel.folders import BuildFolder
 
-        with slicer.util.tryWithErrorDisplay("Could not start the build.", waitCursor=True):
+        with self._errorsShown("Could not start the build."):
             markups = [node for node in self._parameterNode.landmarkNodes if node is not None]
             config = landmarkConfigOf(buildConfigOf(self._parameterNode), self._parameterNode,
                                       bool(markups))
             output = pathlib.Path(str(self._parameterNode.outputDirectory))
-            overwrite = bool(BuildFolder(output).earlier_build())
+            build = BuildFolder(output)
+            resume = build.unfinished() and slicer.util.confirmYesNoDisplay(
+                f"{output} holds an unfinished build. Carry it on (No: start again)?")
+            overwrite = not resume and bool(build.earlier_build())
             if overwrite and not slicer.util.confirmYesNoDisplay(
                     f"{output} holds an earlier build. Replace it?"):
                 return
@@ -725,7 +757,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             inputs = self.inputs()
             self._job = self.logic.startBuild(
                 inputs, output, config, self._segments(), overwrite,
-                self.logic.landmarksOf(inputs, markups) if markups else None)
+                self.logic.landmarksOf(inputs, markups) if markups else None, resume)
             for name, reason in self._job.exported.rejected:
                 self.ui.logText.appendPlainText(f"rejected {name}: {reason}")
             self.ui.applyButton.enabled = False
@@ -733,30 +765,60 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._timer.start()
 
     def onCancel(self):
-        if self._job is not None:
+        """The first Cancel stops the build at its next report (the state reached is kept);
+        a second one ends its process at once (the build resumes from its checkpoint)."""
+        if self._job is None:
+            return
+        if self._job.cancelled:
+            self._job.terminate()
+            self.ui.logText.appendPlainText("stopped: Apply carries the build on")
+        else:
             self._job.cancel()
-            self.ui.logText.appendPlainText("cancelling: the state reached will be kept")
+            self.ui.logText.appendPlainText("cancelling: the state reached will be kept "
+                                            "(Cancel again to stop at once)")
 
     @staticmethod
     def _showReports(job, progressBar, logText=None):
-        """A job's progress reports on a progress bar (and in a log)."""
-        for fraction, message in job.messages():
-            if fraction is not None:
-                progressBar.value = int(100 * fraction)
-            progressBar.format = message
+        """A job's new reports on a progress bar (and its warnings and reports in a log)."""
+        for report in job.poll():
+            if report.warning:
+                if logText is not None:
+                    logText.appendPlainText(f"warning: {report.message}")
+                continue
+            if report.fraction is not None:
+                progressBar.value = int(100 * report.fraction)
+            progressBar.format = report.message
             if logText is not None:
-                logText.appendPlainText(message)
+                logText.appendPlainText(report.message)
 
     def onPoll(self):
-        self._showReports(self._job, self.ui.progressBar, self.ui.logText)
-        if not self._job.done:
-            return
-        self._timer.stop()
-        job, self._job = self._job, None
-        self.ui.cancelButton.enabled = False
-        self.updateCaseList()
-        with slicer.util.tryWithErrorDisplay("The build failed.", waitCursor=True):
-            self.showResult(job.finish())
+        """The timer's tick: every running job's reports shown, those that ended finished."""
+        if self._job is not None:
+            self._showReports(self._job, self.ui.progressBar, self.ui.logText)
+            if self._job.done:
+                job, self._job = self._job, None
+                self.ui.cancelButton.enabled = False
+                self.updateCaseList()
+                with self._errorsShown("The build did not finish."):
+                    self.showResult(job.finish())
+        if self._analysisJob is not None:
+            self._showReports(self._analysisJob, self.ui.analysisProgressBar)
+            if self._analysisJob.done:
+                job, self._analysisJob = self._analysisJob, None
+                self.ui.analyzeButton.enabled = True
+                self.ui.cancelAnalysisButton.enabled = False
+                with self._errorsShown("The analysis did not finish."):
+                    self._analysis = job.finish()
+                    self.ui.analysisTableView.setMRMLTableNode(self._analysis.pointsTableNode)
+                    self.ui.openAnalysisButton.enabled = True
+                    self.onColorBy()
+        if self._fitJob is not None and self._fitJob.done:
+            job, self._fitJob = self._fitJob, None
+            self.ui.fitButton.enabled = True
+            with self._errorsShown("The fit did not finish."):
+                job.finish()
+        if self._job is None and self._analysisJob is None and self._fitJob is None:
+            self._timer.stop()
 
     def showResult(self, result: ShapeModelResult):
         self._result = result
@@ -796,23 +858,24 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onLoadModel(self):
         if not ensureDependencies(ask=True):
             return
-        with slicer.util.tryWithErrorDisplay("Could not load the model.", waitCursor=True):
+        with self._errorsShown("Could not load the model."):
             self.showResult(self.logic.loadModel(str(self._parameterNode.modelFile)))
 
     def onFit(self):
         if not ensureDependencies(ask=True):
             return
-        with slicer.util.tryWithErrorDisplay("Could not fit the segmentation.", waitCursor=True):
+        with self._errorsShown("Could not start the fit."):
             node = self.ui.fitInputSelector.currentNode()
             output = pathlib.Path(str(self._parameterNode.outputDirectory)) / "fitted"
-            self.logic.fitSegmentation(node, str(self._parameterNode.modelFile), output,
-                                       self._segments())
-
+            self._fitJob = self.logic.startFit(node, str(self._parameterNode.modelFile), output,
+                                               self._segments())
+            self.ui.fitButton.enabled = False
+            self._timer.start()
 
     def onAnalyze(self):
         if not ensureDependencies(ask=True):
             return
-        with slicer.util.tryWithErrorDisplay("Could not start the analysis.", waitCursor=True):
+        with self._errorsShown("Could not start the analysis."):
             parameters = self._parameterNode
             table = parameters.analysisTableNode or str(parameters.analysisTable)
             if table in ("", "."):
@@ -824,25 +887,11 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 permutations=parameters.analysisPermutations)
             self.ui.analyzeButton.enabled = False
             self.ui.cancelAnalysisButton.enabled = True
-            self._analysisTimer.start()
+            self._timer.start()
 
     def onCancelAnalysis(self):
         if self._analysisJob is not None:
             self._analysisJob.cancel()
-
-    def onAnalysisPoll(self):
-        self._showReports(self._analysisJob, self.ui.analysisProgressBar)
-        if not self._analysisJob.done:
-            return
-        self._analysisTimer.stop()
-        job, self._analysisJob = self._analysisJob, None
-        self.ui.analyzeButton.enabled = True
-        self.ui.cancelAnalysisButton.enabled = False
-        with slicer.util.tryWithErrorDisplay("The analysis failed.", waitCursor=True):
-            self._analysis = job.finish()
-            self.ui.analysisTableView.setMRMLTableNode(self._analysis.pointsTableNode)
-            self.ui.openAnalysisButton.enabled = True
-            self.onColorBy()
 
     def onColorBy(self, *unused):
         if self._analysis is not None:

@@ -17,6 +17,7 @@ from MDLShapeModelLib import dependencies
 from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.config import SMOOTHNESS, SURFACE_POINTS
 from mdlshapemodel.errors import ConfigError
+from mdlshapemodel.folders import FitFolder, mesh_points
 from mdlshapemodel.prepare import io, preprocess
 from mdlshapemodel.prepare.surface import (arrays_to_polydata, mask_to_surface,
                                            point_surface_distances)
@@ -312,14 +313,14 @@ def test_a_background_build_reports_progress_and_cancel_keeps_the_state_reached(
     job = module.MDLShapeModelLogic().startBuild(volumes, tmp_path, config)
     seen, started, cancelled = [], time.monotonic(), False
     while not job.done and time.monotonic() - started < 300:
-        seen += job.messages()
-        if not cancelled and any("F =" in message for _, message in seen):
+        seen += job.poll()
+        if not cancelled and any("F =" in report.message for report in seen):
             job.cancel()         # once the optimisation runs
             cancelled = True
         time.sleep(0.05)
     assert job.wait(300)
-    seen += job.messages()
-    messages = [message for _, message in seen]
+    seen += job.poll()
+    messages = [report.message for report in seen]
     # each case reported prepared, in turn, before the optimisation's first report
     prepared = [k for k, message in enumerate(messages) if message.startswith("prepared")]
     assert [messages[k] for k in prepared] == [f"prepared {k}/5" for k in range(1, 6)]
@@ -368,11 +369,19 @@ def test_a_new_segmentation_is_fitted_to_a_loaded_model(mixed_build, generated_f
     result, *_ = mixed_build
     segmentation = harness.segmentations_logic().LoadSegmentationFromFile(
         str(generated_files[4]), True, "new_case")
-    fitted, reconstruction, fit = module.MDLShapeModelLogic().fitSegmentation(
+    fitted, reconstruction, summary = module.MDLShapeModelLogic().fitSegmentation(
         segmentation, result.modelFile, tmp_path, maxTime=20)
-    assert fit.name == "new_case"
+    assert fitted.GetName() == "new_case fitted"
     assert points_of(fitted).shape == points_of(reconstruction).shape == (162, 3)
-    np.testing.assert_allclose(points_of(fitted), fit.corresponded * LPS_TO_RAS)
+    # the fit's files (the library's, LPS) overlay the segmentation as nodes (RAS)
+    fit = FitFolder(tmp_path)
+    np.testing.assert_allclose(points_of(fitted),
+                               mesh_points(fit.case_mesh("", "new_case")) * LPS_TO_RAS,
+                               atol=1e-5)
+    np.testing.assert_allclose(
+        points_of(reconstruction),
+        mesh_points(fit.case_mesh("", "new_case", reconstruction=True)) * LPS_TO_RAS, atol=1e-5)
+    assert summary == fit.summary()["new_case"] and summary["reconstruction_distance_mm"]
     vertices, triangles = closed_surface_ras(segmentation)
     assert point_surface_distances(points_of(fitted), vertices, triangles).mean() < 0.5
 

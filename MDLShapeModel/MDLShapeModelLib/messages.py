@@ -1,0 +1,51 @@
+"""The library's messages as the panel says them: a setting at fault named by its field's label.
+
+The library's :class:`~mdlshapemodel.errors.ConfigError` carries the name of the setting at fault
+(``setting``) and the message without it (``problem``); the command line names the setting by its
+flag, the panel by the label of the field bound to it in the .ui (the one source of the labels).
+"""
+
+from __future__ import annotations
+
+import pathlib
+import xml.etree.ElementTree as ElementTree
+
+# The parameter-node names of the analysis's settings (AnalysisConfig field -> parameter).
+ANALYSIS_PARAMETERS = {"group": "analysisGroup", "covariates": "analysisCovariates",
+                       "nuisance": "analysisNuisance", "permutations": "analysisPermutations"}
+
+
+def panelLabels(uiFile) -> dict:
+    """Parameter name -> the label of its field in the .ui (without the colon): the text of the
+    label beside the widget bound to the parameter (``SlicerParameterName``), or beside the
+    widget that holds it."""
+    root = ElementTree.parse(pathlib.Path(uiFile)).getroot()
+    labels = {}
+    for layout in root.iter("layout"):
+        rows = {}
+        for item in layout.findall("item"):
+            widget = item.find("widget")
+            if widget is not None:
+                rows.setdefault(item.get("row"), {})[item.get("column")] = widget
+        for columns in rows.values():
+            label, field = columns.get("0"), columns.get("1")
+            if label is None or field is None or label.get("class") != "QLabel":
+                continue
+            text = label.find("property[@name='text']/string")
+            if text is None or not text.text:
+                continue
+            for bound in field.iter("property"):
+                if bound.get("name") == "SlicerParameterName":
+                    labels[bound.find("string").text] = text.text.strip().rstrip(":")
+    return labels
+
+
+def panelMessage(error: Exception, labels: dict) -> str:
+    """The message of ``error`` for the panel: a setting at fault (``error.setting``, a build
+    setting or an AnalysisConfig field) named by its field's label in ``labels``
+    (:func:`panelLabels`); other messages as they are."""
+    setting = getattr(error, "setting", None)
+    setting = ANALYSIS_PARAMETERS.get(setting, setting)
+    if setting in labels:
+        return f"{labels[setting]}: {error.problem}"
+    return str(error)
