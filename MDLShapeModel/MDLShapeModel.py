@@ -28,7 +28,6 @@ installed (after asking) by the panel if Slicer lacks them (:func:`ensureDepende
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import pathlib
 import traceback
@@ -52,7 +51,7 @@ from MDLShapeModelLib.jobs import WorkerJob
 from MDLShapeModelLib.messages import panelLabels, panelMessage
 from MDLShapeModelLib.nodes import (INPUT_NODE_TYPES, addModel, addPointArray, caseName,
                                     checkData, colorLegend, colorNode, metricsTable,
-                                    placeInFolder, readCsv, readModel, scoresTable,
+                                    placeInFolder, readModel, scoresTable,
                                     segmentNames, subjectHierarchy, tableNode, temporaryFolder,
                                     toRas, uniqueName, writeNode, writeSegmentation)
 from MDLShapeModelLib.records import AnalysisNodes, ExportedInputs, ShapeModelResult
@@ -497,23 +496,21 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
     def loadAnalysis(self, outputDirectory) -> AnalysisNodes:
         """The nodes of an analysis's output folder: the effect map of each part (one part: one
         node) coloured by significance with a colour legend, and points.csv as a table."""
+        from mdlshapemodel.analyze import AnalysisFolder
+
         outputDirectory = pathlib.Path(outputDirectory)
-        summary = json.loads((outputDirectory / "analysis.json").read_text())
+        analysis = AnalysisFolder(outputDirectory)
         folder = subjectHierarchy().CreateFolderItem(
             subjectHierarchy().GetSceneItemID(), f"{outputDirectory.name} analysis")
-        effects = ([outputDirectory / "effects.vtp"] if (outputDirectory / "effects.vtp").exists()
-                   else sorted((outputDirectory / "effects").glob("*.vtp")))
-        nodes = [readModel(path, f"{outputDirectory.name} effect {path.stem}") for path in effects]
+        nodes = [readModel(path, f"{outputDirectory.name} effect {path.stem}")
+                 for path in analysis.effect_meshes()]
         for node in nodes:
             self.colorEffectMap(node, EFFECT_SCALARS[0])
             placeInFolder(node, folder)
-        rows = readCsv(outputDirectory / "points.csv")
-        columns = {key: ([float(r[key]) for r in rows] if key not in ("point", "part")
-                         else [int(r[key]) for r in rows]) for key in rows[0]}
-        points = tableNode(f"{outputDirectory.name} points", columns)
+        points = tableNode(f"{outputDirectory.name} points", analysis.points())
         placeInFolder(points, folder)
-        return AnalysisNodes(outputDirectory, folder, nodes[0], points, summary,
-                             outputDirectory / "analysis.html")
+        return AnalysisNodes(outputDirectory, folder, nodes[0], points, analysis.summary(),
+                             analysis.page_file)
 
     def colorEffectMap(self, effectModelNode, scalars: str) -> None:
         """Colour an effect map by one of :data:`EFFECT_SCALARS`: significance (-log10 of the

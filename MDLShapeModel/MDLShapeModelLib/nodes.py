@@ -198,13 +198,6 @@ def readModel(path: pathlib.Path, name: str):
     return node
 
 
-def readCsv(path: pathlib.Path) -> list:
-    """The rows of a table of the build (none when it is absent)."""
-    from mdlshapemodel.prepare.io import read_csv
-
-    return read_csv(path) if path.exists() else []
-
-
 def tableNode(name: str, columns: dict):
     """A table node of named columns (str or float values, all of one length)."""
     node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLTableNode", name)
