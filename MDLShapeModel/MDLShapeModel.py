@@ -790,17 +790,20 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onPoll(self):
         """The timer's tick: every running job's reports shown, those that ended finished."""
+        # each job's end is seen before its last reports are read, so that none is left unread
         if self._job is not None:
+            ended = self._job.done
             self._showReports(self._job, self.ui.progressBar, self.ui.logText)
-            if self._job.done:
+            if ended:
                 job, self._job = self._job, None
                 self.ui.cancelButton.enabled = False
                 self.updateCaseList()
                 with self._errorsShown("The build did not finish."):
                     self.showResult(job.finish())
         if self._analysisJob is not None:
+            ended = self._analysisJob.done
             self._showReports(self._analysisJob, self.ui.analysisProgressBar)
-            if self._analysisJob.done:
+            if ended:
                 job, self._analysisJob = self._analysisJob, None
                 self.ui.analyzeButton.enabled = True
                 self.ui.cancelAnalysisButton.enabled = False
