@@ -3,11 +3,14 @@
 The library's :class:`~mdlshapemodel.errors.ConfigError` carries the name of the setting at fault
 (``setting``) and the message without it (``problem``); the command line names the setting by its
 flag, the panel by the label of the field bound to it in the .ui (the one source of the labels).
+Other messages that advise a setting name it by the command line's flag (``--allow-duplicates``:
+the field's name with hyphens), which the panel says as its field's label.
 """
 
 from __future__ import annotations
 
 import pathlib
+import re
 import xml.etree.ElementTree as ElementTree
 
 # The parameter-node names of the analysis's settings (AnalysisConfig field -> parameter).
@@ -43,9 +46,15 @@ def panelLabels(uiFile) -> dict:
 def panelMessage(error: Exception, labels: dict) -> str:
     """The message of ``error`` for the panel: a setting at fault (``error.setting``, a build
     setting or an AnalysisConfig field) named by its field's label in ``labels``
-    (:func:`panelLabels`); other messages as they are."""
+    (:func:`panelLabels`), and a flag of the command line that stands for a field of the panel
+    (``--allow-duplicates``) by that field's label; the rest as it is."""
     setting = getattr(error, "setting", None)
     setting = ANALYSIS_PARAMETERS.get(setting, setting)
-    if setting in labels:
-        return f"{labels[setting]}: {error.problem}"
-    return str(error)
+    message = f"{labels[setting]}: {error.problem}" if setting in labels else str(error)
+
+    def label(flag):
+        name = flag.group(1).replace("-", "_")
+        name = ANALYSIS_PARAMETERS.get(name, name)
+        return f"'{labels[name]}'" if name in labels else flag.group(0)
+
+    return re.sub(r"--([a-z][a-z0-9-]*)", label, message)

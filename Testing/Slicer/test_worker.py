@@ -4,6 +4,7 @@ group (the build then resumes), a worker killed with SIGKILL reported while the 
 and a setting the library refuses named by the panel's field."""
 
 import os
+import shutil
 import signal
 import time
 
@@ -13,7 +14,7 @@ import MDLShapeModel as module
 from MDLShapeModelLib.jobs import WorkerEnded, WorkerJob
 from MDLShapeModelLib.messages import panelLabels, panelMessage
 from mdlshapemodel import BuildConfig
-from mdlshapemodel.errors import ConfigError
+from mdlshapemodel.errors import BuildError, ConfigError
 from mdlshapemodel.folders import BuildFolder
 
 pytestmark = pytest.mark.skipif(os.name == "nt", reason="process groups and SIGKILL: POSIX")
@@ -119,3 +120,18 @@ def test_a_setting_the_library_refuses_is_named_by_the_panels_field(scene, tmp_p
     with pytest.raises(ConfigError) as raised:
         module.buildConfigOf(parameters)
     assert panelMessage(raised.value, labels) == "Labels: labels must be integers, got '1, a'"
+
+
+def test_a_refused_build_advises_the_panels_field_not_the_command_lines_flag(
+        scene, hippocampus_files, tmp_path):
+    labels = panelLabels(module.resourcePath("UI/MDLShapeModel.ui"))
+    twice = tmp_path / "again.nii.gz"
+    shutil.copyfile(hippocampus_files[0], twice)
+    job = module.MDLShapeModelLogic().startBuild(hippocampus_files + [twice], tmp_path / "out",
+                                                 BuildConfig(**SMALL))
+    assert job.wait(300)
+    with pytest.raises(BuildError, match="--allow-duplicates") as raised:
+        job.finish()
+    said = panelMessage(raised.value, labels)
+    assert "'Allow duplicates'" in said and "--" not in said
+    assert "are identical files" in said
