@@ -168,8 +168,9 @@ class WorkerJob:
         self.process.wait()
 
     def _killGroup(self):
-        """Kill the worker's process group (the worker and its pools), once it is known to be
-        this job's: only before the worker has been reaped, or right after."""
+        """Kill the worker's process group (the worker and its pools). Its id stays this job's
+        while the worker runs or any process of the group lives; :meth:`finish` kills it once,
+        as soon as the job is finished, never later."""
         if self._reapedGroup:
             return
         if os.name == "nt":
@@ -189,7 +190,8 @@ class WorkerJob:
         if not self.done:
             raise RuntimeError(f"the {self.name} is still running")
         self.poll()
-        self._killGroup()             # what the worker started and left behind (it died)
+        if self.end is None:          # it died: what it started may live on in its group
+            self._killGroup()
         self._reapedGroup = True
         from mdlshapemodel import errors
 
