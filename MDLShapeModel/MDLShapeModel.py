@@ -8,8 +8,12 @@ the MRML scene and the library's files.
 
 - :class:`MDLShapeModelLogic` works without any GUI (scripts, tests, other modules, batch):
   ``buildModel``, ``loadModel``, ``setModeWeights``, ``fitSegmentation``.
-- :class:`MDLShapeModelWidget` is the panel: it fills the parameter node, runs a build in a
-  background thread (:class:`BuildJob`) and shows the results.
+- :class:`MDLShapeModelWidget` is the panel: it fills the parameter node, starts the Logic's
+  work in a process of its own (:class:`~MDLShapeModelLib.jobs.WorkerJob`: a build, an
+  analysis, a fit), polls its progress from a timer and shows the results.
+
+The module's helpers are in ``MDLShapeModelLib/`` beside this file: the nodes (``nodes``), the
+worker process and its jobs (``worker``, ``jobs``), the panel's messages (``messages``).
 
 Coordinates: Slicer's world is RAS; the library's physical space is LPS, like the image files
 SimpleITK reads. Inputs go to the library as files written by Slicer's own storage nodes (which
@@ -23,50 +27,39 @@ installed (after asking) by the panel if Slicer lacks them (:func:`ensureDepende
 
 from __future__ import annotations
 
-import json
+import contextlib
 import os
 import pathlib
-import queue
-import re
-import shutil
-import sys
-import threading
+import traceback
 import typing
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, replace
 from typing import Annotated
 
 import qt
 import slicer
-import vtk
 from slicer.parameterNodeWrapper import Choice, WithinRange, parameterNodeWrapper
 from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoadableModuleLogic,
                                            ScriptedLoadableModuleTest,
                                            ScriptedLoadableModuleWidget)
 from slicer.util import VTKObservationMixin
 
-from mdlshapemodel.config import (GUIDED_SMOOTHNESS, SMOOTHNESS, AnalysisConfig, BuildConfig,
+from mdlshapemodel.config import (CORRESPONDENCES, GUIDED_SMOOTHNESS, PLACEMENTS, SMOOTHNESS,
+                                  STRATEGIES, SURFACE_METHODS, AnalysisConfig, BuildConfig,
                                   field_items)
+from MDLShapeModelLib.dependencies import ensureDependencies
+from MDLShapeModelLib.jobs import WorkerJob
+from MDLShapeModelLib.messages import panelLabels, panelMessage
+from MDLShapeModelLib.nodes import (INPUT_NODE_TYPES, addModel, addPointArray, caseName,
+                                    checkData, colorLegend, colorNode, metricsTable,
+                                    placeInFolder, readModel, scoresTable,
+                                    segmentNames, subjectHierarchy, tableNode, temporaryFolder,
+                                    toRas, uniqueName, writeNode, writeSegmentation)
+from MDLShapeModelLib.records import AnalysisNodes, ExportedInputs, ShapeModelResult
+from MDLShapeModelLib.resources import resourcePath
 
-MODULE_DIRECTORY = pathlib.Path(__file__).resolve().parent
 # The point arrays of an analysis's effect map that can colour it (effects.vtp): significance
 # (-log10 of the family-wise p-value) and the effect along the outward normal (mm).
 EFFECT_SCALARS = ("minus_log10_p_fwer", "normal_difference_mm")
-# The node types a build takes as inputs.
-INPUT_NODE_TYPES = ("vtkMRMLSegmentationNode", "vtkMRMLLabelMapVolumeNode", "vtkMRMLModelNode")
-# Python packages the library needs that Slicer ships itself and that must never be installed
-# into Slicer by pip (another vtk breaks Slicer).
-SHIPPED_BY_SLICER = ("vtk", "SimpleITK")
-
-
-def resourcePath(relativePath: str) -> pathlib.Path:
-    """A file of ``Resources/``: next to this file in a built or installed extension (the build
-    copies the project's top-level Resources/ there), else in a checkout's top-level Resources/
-    (the module added to Slicer through "Additional module paths")."""
-    for base in (MODULE_DIRECTORY / "Resources", MODULE_DIRECTORY.parent / "Resources"):
-        if (base / relativePath).exists():
-            return base / relativePath
-    raise FileNotFoundError(f"MDLShapeModel resource {relativePath!r} not found next to "
-                            f"{MODULE_DIRECTORY} nor in {MODULE_DIRECTORY.parent / 'Resources'}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -97,8 +90,9 @@ class MDLShapeModel(ScriptedLoadableModule):
 
 
 # ---------------------------------------------------------------------------------------------
-# Parameter node: the panel's settings. The build settings are BuildConfig fields of the same
-# names, with BuildConfig's defaults and choices (list settings are written as text, "1, 2").
+# Parameter node: every setting of the panel, saved with the scene. The build settings are the
+# BuildConfig fields of the same names, with BuildConfig's defaults and choices (read from it here:
+# one source); list settings are written as text ("1, 2").
 
 MAIN_SETTINGS = ("labels", "surface_method", "points", "strategy", "max_time", "baselines")
 ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror", "parts", "seed",
@@ -107,62 +101,72 @@ ADVANCED_SETTINGS = ("correspondence", "smoothing_sigma", "edge_length", "mirror
 BUILD_SETTINGS = MAIN_SETTINGS + ADVANCED_SETTINGS
 # beside the landmark point lists: settings of a build given landmarks (landmarkConfigOf)
 LANDMARK_SETTINGS = ("check_landmarks",)
+# the parameters holding several nodes, and the checkable node selectors that show them (the
+# Widget keeps the two in step: Slicer's GUI binding has no connector for such selectors)
+CHECKED_NODE_PARAMETERS = {"inputNodes": "inputNodesSelector",
+                           "landmarkNodes": "landmarkNodesSelector"}
+
+_BUILD_DEFAULTS = BuildConfig()
+_ANALYSIS_DEFAULTS = AnalysisConfig()
+_COUNT = WithinRange(0, 10**9)   # a count or number entered in a spin box
 
 
-def _settingMember(name: str, defaults: BuildConfig):
-    """(annotation, default) of the parameter-node member of BuildConfig field ``name``."""
-    metadata = next(f for f in fields(BuildConfig) if f.name == name).metadata
-    kind = typing.get_type_hints(BuildConfig)[name]
-    value = getattr(defaults, name)
-    if name == "points":       # None: per kind of input; the panel builds surfaces
-        kind, value = int, defaults.points_for(curves=False)
-    if name == "smoothness":   # used where ``defaultSmoothness`` is off
-        kind, value = float, defaults.smoothness_for(curves=False)
-    if typing.get_origin(kind) is list:
-        return str, ", ".join(str(v) for v in value)
-    if "choices" in metadata:
-        return Annotated[kind, Choice(list(metadata["choices"]))], value
-    if kind is int:
-        return Annotated[int, WithinRange(0, 10**9)], value
-    return kind, value
+def _defaultText(name: str) -> str:
+    """BuildConfig's default of the list setting ``name`` written as the panel's text."""
+    return ", ".join(str(v) for v in getattr(_BUILD_DEFAULTS, name))
 
 
-def _parameterNodeClass():
-    defaults = BuildConfig()
-    annotations = {
-        # inputs beside the selected nodes: a folder of label maps or meshes
-        "inputFolder": pathlib.Path,
-        # segment names (comma separated) whose union is the object; empty: all segments
-        "segments": str,
-        "outputDirectory": pathlib.Path,
-        # the result being explored, and the model to fit new cases to
-        "explorerModel": slicer.vtkMRMLModelNode,
-        "modelFile": pathlib.Path,
-        # the analysis: a subjects table (a CSV file or a table node), the columns tested
-        "analysisTable": pathlib.Path,
-        "analysisTableNode": slicer.vtkMRMLTableNode,
-        "analysisGroup": str,
-        "analysisCovariates": str,
-        "analysisNuisance": str,
-        "analysisPermutations": Annotated[int, WithinRange(1, 10**7)],
-        "analysisColorBy": Annotated[str, Choice(list(EFFECT_SCALARS))],
-        # the prior's weight by BuildConfig's rule (one weight unguided, another where landmarks
-        # guide); off: the ``smoothness`` setting
-        "defaultSmoothness": bool,
-    }
-    namespace = {"segments": "", "analysisGroup": "", "analysisCovariates": "",
-                 "defaultSmoothness": True,
-                 "analysisNuisance": "",
-                 "analysisPermutations": AnalysisConfig().permutations,
-                 "analysisColorBy": EFFECT_SCALARS[0],
-                 "__doc__": "The MDLShapeModel module's parameters."}
-    for name in BUILD_SETTINGS + LANDMARK_SETTINGS:
-        annotations[name], namespace[name] = _settingMember(name, defaults)
-    namespace["__annotations__"] = annotations
-    return parameterNodeWrapper(type("MDLShapeModelParameterNode", (), namespace))
+@parameterNodeWrapper
+class MDLShapeModelParameterNode:
+    """The MDLShapeModel module's parameters: the inputs, every build setting, the results shown
+    and the analysis's choices. Stored in the module's parameter node, so saved with the scene."""
 
+    # -- inputs: checked nodes, a folder of label maps or meshes, the segments of segmentations
+    inputNodes: list[slicer.vtkMRMLNode]
+    landmarkNodes: list[slicer.vtkMRMLMarkupsFiducialNode]
+    inputFolder: pathlib.Path
+    segments: str = ""              # segment names (comma separated); empty: all segments
+    check_landmarks: bool = _BUILD_DEFAULTS.check_landmarks
 
-MDLShapeModelParameterNode = _parameterNodeClass()
+    # -- the build's main settings
+    labels: str = _defaultText("labels")
+    surface_method: Annotated[str, Choice(list(SURFACE_METHODS))] = _BUILD_DEFAULTS.surface_method
+    points: Annotated[int, _COUNT] = _BUILD_DEFAULTS.points_for(curves=False)  # the panel's
+    strategy: Annotated[str, Choice(list(STRATEGIES))] = _BUILD_DEFAULTS.strategy  # surfaces
+    max_time: float = _BUILD_DEFAULTS.max_time
+    baselines: str = _defaultText("baselines")
+    outputDirectory: pathlib.Path
+
+    # -- advanced settings
+    correspondence: Annotated[str, Choice(list(CORRESPONDENCES))] = _BUILD_DEFAULTS.correspondence
+    smoothing_sigma: float = _BUILD_DEFAULTS.smoothing_sigma
+    edge_length: float = _BUILD_DEFAULTS.edge_length
+    mirror: str = _defaultText("mirror")
+    parts: str = _defaultText("parts")
+    seed: Annotated[int, _COUNT] = _BUILD_DEFAULTS.seed
+    evaluation_modes: Annotated[int, _COUNT] = _BUILD_DEFAULTS.evaluation_modes
+    specificity_samples: Annotated[int, _COUNT] = _BUILD_DEFAULTS.specificity_samples
+    workers: Annotated[int, _COUNT] = _BUILD_DEFAULTS.workers
+    strict: bool = _BUILD_DEFAULTS.strict
+    allow_duplicates: bool = _BUILD_DEFAULTS.allow_duplicates
+    # the prior's weight by BuildConfig's rule (one weight unguided, another where landmarks
+    # guide); off: ``smoothness``
+    defaultSmoothness: bool = True
+    smoothness: float = _BUILD_DEFAULTS.smoothness_for(curves=False)
+    placement: Annotated[str, Choice(list(PLACEMENTS))] = _BUILD_DEFAULTS.placement
+
+    # -- results: the model being explored, and the model that new cases are fitted to
+    explorerModel: slicer.vtkMRMLModelNode
+    modelFile: pathlib.Path
+
+    # -- the analysis: a subjects table (a CSV file or a table node), the columns tested
+    analysisTable: pathlib.Path
+    analysisTableNode: slicer.vtkMRMLTableNode
+    analysisGroup: str = ""
+    analysisCovariates: str = ""
+    analysisNuisance: str = ""
+    analysisPermutations: Annotated[int, WithinRange(1, 10**7)] = _ANALYSIS_DEFAULTS.permutations
+    analysisColorBy: Annotated[str, Choice(list(EFFECT_SCALARS))] = EFFECT_SCALARS[0]
 
 
 def buildConfigOf(parameters) -> BuildConfig:
@@ -192,53 +196,6 @@ def landmarkConfigOf(config: BuildConfig, parameters, landmarks: bool) -> BuildC
 
 # ---------------------------------------------------------------------------------------------
 # Logic
-
-
-@dataclass
-class ShapeModelResult:
-    """The MRML nodes of a built or loaded model."""
-
-    outputDirectory: pathlib.Path | None
-    modelFile: pathlib.Path
-    folderItemID: int                       # subject-hierarchy folder holding the nodes
-    meanModelNode: object                   # vtkMRMLModelNode, the mean shape (model frame)
-    explorerModelNode: object               # vtkMRMLModelNode deformed by setModeWeights
-    metricsTableNode: object | None         # vtkMRMLTableNode: C, G, S per mode with SEs
-    scoresTableNode: object | None          # vtkMRMLTableNode: the cases' scores per mode
-    # input order, rejected left out; several parts: each case's parts in turn ("case part")
-    correspondenceModelNodes: list = field(default_factory=list)
-    caseNames: list = field(default_factory=list)
-    partNames: list = field(default_factory=list)     # [] for a one-part object
-    rejected: list = field(default_factory=list)  # (name, reason)
-    # a build guided by landmarks: each case's corresponded landmarks, a point list per case
-    landmarkNodes: list = field(default_factory=list)
-    interrupted: bool = False
-    reportFile: pathlib.Path | None = None
-    warnings: list = field(default_factory=list)  # the build's (metrics.json), e.g. absent labels
-    # the optimisation ended by its stopping rule (None: nothing was optimised); when False, a
-    # warning says what stopped it and how to carry it on
-    converged: bool | None = None
-
-
-@dataclass
-class AnalysisNodes:
-    """The MRML nodes of an analysis (:meth:`MDLShapeModelLogic.analyzeModel`)."""
-
-    outputDirectory: pathlib.Path
-    folderItemID: int
-    effectModelNode: object           # vtkMRMLModelNode: the mean surface with the effect arrays
-    pointsTableNode: object           # vtkMRMLTableNode: points.csv
-    summary: dict                     # analysis.json
-    pageFile: pathlib.Path            # analysis.html
-
-
-@dataclass
-class ExportedInputs:
-    """Inputs written as files for the library, and those that could not be."""
-
-    paths: list
-    rejected: list                          # (name, reason)
-    config: BuildConfig | None = None       # the build's settings, with the landmarks' folder
 
 
 class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
@@ -289,26 +246,26 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             marks.mkdir(exist_ok=True)
             config = replace(config, landmarks=str(marks))
         for item, node in zip(inputs, markups):
-            name = _caseName(item)
+            name = caseName(item)
             if isinstance(item, (str, os.PathLike)):
                 paths.append(pathlib.Path(item))
             else:
-                name = _uniqueName(name, used)
+                name = uniqueName(name, used)
             if node is not None:     # named after the case, as the build looks for it
-                _writeNode(node, marks / f"{name}.mrk.json", "vtkMRMLMarkupsJsonStorageNode")
+                writeNode(node, marks / f"{name}.mrk.json", "vtkMRMLMarkupsJsonStorageNode")
             if isinstance(item, (str, os.PathLike)):
                 continue
             try:
                 if item.IsA("vtkMRMLSegmentationNode"):
                     value = config.labels[0] if config.labels else 1
-                    paths.append(_writeSegmentation(item, segments, value, folder / f"{name}.nrrd"))
+                    paths.append(writeSegmentation(item, segments, value, folder / f"{name}.nrrd"))
                 elif item.IsA("vtkMRMLLabelMapVolumeNode"):
-                    _checkData(item)
-                    paths.append(_writeNode(item, folder / f"{name}.nrrd",
+                    checkData(item)
+                    paths.append(writeNode(item, folder / f"{name}.nrrd",
                                             "vtkMRMLVolumeArchetypeStorageNode"))
                 elif item.IsA("vtkMRMLModelNode"):
-                    _checkData(item)
-                    paths.append(_writeNode(item, folder / f"{name}.vtp", "vtkMRMLModelStorageNode"))
+                    checkData(item)
+                    paths.append(writeNode(item, folder / f"{name}.vtp", "vtkMRMLModelStorageNode"))
                 else:
                     raise ValueError(f"a {item.GetClassName()} is not an input (use "
                                      f"{', '.join(INPUT_NODE_TYPES)})")
@@ -321,7 +278,7 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         """The markups node of each input (None where it has none): the one named after the
         input's case (a node's name; a file's name without its suffix), or that name followed
         by "_landmarks". Raises ValueError where a markups node matches no input."""
-        names = [_caseName(item) for item in inputs]
+        names = [caseName(item) for item in inputs]
         byName = {}
         for node in markupsNodes:
             name = node.GetName().removesuffix("_landmarks")
@@ -333,20 +290,11 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
 
     # -- the build ---------------------------------------------------------------------------
 
-    def runBuild(self, paths, outputDirectory, config: BuildConfig | None = None, progress=None,
-                 overwrite: bool = False):
-        """The library's build on files (no MRML: safe in a background thread). Returns the
-        library's ``BuildResult``."""
-        from mdlshapemodel import build_model
-
-        return build_model([str(p) for p in paths], str(outputDirectory), config,
-                           progress=progress, executor=workerPool(config or BuildConfig()),
-                           overwrite=overwrite)
-
     def buildModel(self, inputs, outputDirectory, config: BuildConfig | None = None,
                    progress=None, segments=None, overwrite: bool = False,
-                   landmarks=None) -> ShapeModelResult:
-        """Build a model of ``inputs`` and load it into the scene (blocking).
+                   landmarks=None, resume: bool = False) -> ShapeModelResult:
+        """Build a model of ``inputs`` and load it into the scene, waiting for the build's
+        process (:meth:`startBuild`): the headless way, for scripts and batch use.
 
         Parameters
         ----------
@@ -368,27 +316,39 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         landmarks : list, optional
             One vtkMRMLMarkupsFiducialNode (or None) per input: its control points, matched
             across the cases by label, guide the correspondence (``build --landmarks``).
+        resume : bool
+            Carry on an interrupted build in ``outputDirectory`` from its checkpoint (cancelled,
+            its process ended, or stopped by its time budget).
 
         Returns
         -------
         ShapeModelResult
             With ``rejected`` holding every input that could not be used and why.
         """
-        outputDirectory = pathlib.Path(outputDirectory)
-        exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments,
-                                     landmarks)
-        built = self.runBuild(exported.paths, outputDirectory, exported.config, progress,
-                              overwrite)
-        return self.loadResults(outputDirectory, exported.rejected, built.interrupted)
+        job = self.startBuild(inputs, outputDirectory, config, segments, overwrite, landmarks,
+                              resume)
+        job.wait(progress=progress)
+        return job.finish()
 
     def startBuild(self, inputs, outputDirectory, config: BuildConfig | None = None,
-                   segments=None, overwrite: bool = False, landmarks=None) -> "BuildJob":
-        """Export the inputs (here, on the main thread), then run the build in a background
-        thread; load its results with ``job.finish(logic)`` once ``job.done``."""
+                   segments=None, overwrite: bool = False, landmarks=None,
+                   resume: bool = False) -> WorkerJob:
+        """Export the inputs (here: they are nodes of the scene), then start the build in a
+        process of its own (:class:`~MDLShapeModelLib.jobs.WorkerJob`); ``job.poll()`` gives its
+        progress, ``job.finish()`` loads its results once ``job.done``. ``job.exported`` holds
+        the inputs written and those rejected."""
         outputDirectory = pathlib.Path(outputDirectory)
         exported = self.exportInputs(inputs, outputDirectory / "inputs", config, segments,
                                      landmarks)
-        return BuildJob(self, exported, outputDirectory, exported.config, overwrite)
+        config = (exported.config or BuildConfig()).validate()
+        job = WorkerJob({"command": "build", "inputs": [str(p) for p in exported.paths],
+                         "output": str(outputDirectory), "config": config.to_dict(),
+                         "overwrite": overwrite, "resume": resume}, "build",
+                        lambda end: self.loadResults(outputDirectory, exported.rejected,
+                                                     end["interrupted"]),
+                        temporaryFolder())
+        job.exported = exported
+        return job
 
     # -- results -> scene --------------------------------------------------------------------
 
@@ -403,8 +363,8 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         result = self.loadModel(build.model_file)
         for name in result.caseNames:
             for part in result.partNames or [""]:   # several parts: a node per part
-                node = _readModel(build.case_mesh(part, name), f"{name} {part}".strip())
-                _placeInFolder(node, result.folderItemID)
+                node = readModel(build.case_mesh(part, name), f"{name} {part}".strip())
+                placeInFolder(node, result.folderItemID)
                 result.correspondenceModelNodes.append(node)
         marks = {}
         for landmark in build.landmarks():
@@ -413,8 +373,8 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode",
                                                       f"{name} landmarks")
             for label, point in points:
-                node.AddControlPoint(list(_toRas([point])[0]), label)
-            _placeInFolder(node, result.folderItemID)
+                node.AddControlPoint(list(toRas([point])[0]), label)
+            placeInFolder(node, result.folderItemID)
             result.landmarkNodes.append(node)
         result.rejected = list(rejected) + [(r.name, r.reason) for r in build.rejected()]
         result.interrupted = interrupted
@@ -433,25 +393,25 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         build = BuildFolder(path)
         model, modelFile = build.model(), build.model_file
         folderName = modelFile.parent.name or "model"
-        hierarchy = _subjectHierarchy()
+        hierarchy = subjectHierarchy()
         folder = hierarchy.CreateFolderItem(hierarchy.GetSceneItemID(),
                                             f"MDL shape model {folderName}")
-        mean = _addModel(f"{folderName} mean", _toRas(model.mean), model.triangles)
-        explorer = _addModel(f"{folderName} shape explorer", _toRas(model.mean), model.triangles)
+        mean = addModel(f"{folderName} mean", toRas(model.mean), model.triangles)
+        explorer = addModel(f"{folderName} shape explorer", toRas(model.mean), model.triangles)
         polydata = explorer.GetPolyData()
-        _addPointArray(polydata, "MeanPoints", _toRas(model.mean))
+        addPointArray(polydata, "MeanPoints", toRas(model.mean))
         for k in range(model.n_modes):
             standardDeviation = float(model.variances[k]) ** 0.5
-            _addPointArray(polydata, f"mode_{k + 1}", _toRas(model.modes[k] * standardDeviation))
-        _addPointArray(polydata, "Displacement", [0.0] * len(model.mean))
+            addPointArray(polydata, f"mode_{k + 1}", toRas(model.modes[k] * standardDeviation))
+        addPointArray(polydata, "Displacement", [0.0] * len(model.mean))
         polydata.GetPointData().SetActiveScalars("Displacement")
         explorer.GetDisplayNode().SetActiveScalarName("Displacement")
         explorer.GetDisplayNode().SetScalarVisibility(True)
         mean.GetDisplayNode().SetVisibility(False)
-        metrics = _metricsTable(build, folderName)
-        scores = _scoresTable(build, folderName)
+        metrics = metricsTable(build, folderName)
+        scores = scoresTable(build, folderName)
         for node in filter(None, (mean, explorer, metrics, scores)):
-            _placeInFolder(node, folder)
+            placeInFolder(node, folder)
         return ShapeModelResult(build.path if build.is_build_model else None,
                                 modelFile, folder, mean, explorer, metrics, scores,
                                 caseNames=list(model.names), partNames=list(model.part_names))
@@ -463,15 +423,6 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         """The library's :class:`AnalysisConfig` of these choices (validated)."""
         return AnalysisConfig(group=group or None, covariates=list(covariates),
                               nuisance=list(nuisance), **settings).validate()
-
-    def runAnalysis(self, buildDirectory, table, outputDirectory, config: AnalysisConfig,
-                    progress=None, overwrite: bool = True):
-        """The library's analysis on files (no MRML: safe in a background thread); returns the
-        library's ``AnalysisResult``. ``table`` is a CSV file path."""
-        from mdlshapemodel.analyze import analyze_build
-
-        return analyze_build(str(buildDirectory), str(table), str(outputDirectory), config,
-                             progress=progress, overwrite=overwrite)
 
     def exportTable(self, table, folder) -> pathlib.Path:
         """A subjects table as a CSV file: a path passes through, a table node is written (its
@@ -496,18 +447,22 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         return path
 
     def startAnalysis(self, buildDirectory, table, group=None, covariates=(), nuisance=(),
-                      outputDirectory=None, **settings) -> "AnalysisJob":
-        """Export the table (here, on the main thread), then run the analysis in a background
-        thread; load its nodes with ``job.finish()`` once ``job.done``."""
+                      outputDirectory=None, **settings) -> WorkerJob:
+        """Export the table (here: it may be a node), then start the analysis in a process of
+        its own; ``job.finish()`` loads its nodes once ``job.done`` (see :meth:`startBuild`)."""
         buildDirectory = pathlib.Path(buildDirectory)
         outputDirectory = pathlib.Path(outputDirectory or buildDirectory / "analysis")
         config = self.analysisConfig(group, covariates, nuisance, **settings)
-        path = self.exportTable(table, _temporaryFolder())
-        return AnalysisJob(self, buildDirectory, path, outputDirectory, config)
+        path = self.exportTable(table, temporaryFolder())
+        return WorkerJob({"command": "analyze", "build": str(buildDirectory), "table": str(path),
+                          "output": str(outputDirectory), "config": asdict(config)},
+                         "analysis", lambda end: self.loadAnalysis(outputDirectory),
+                         temporaryFolder())
 
     def analyzeModel(self, buildDirectory, table, group=None, covariates=(), nuisance=(),
                      outputDirectory=None, progress=None, **settings) -> AnalysisNodes:
-        """Test a build's shapes against a subjects table and load the findings (blocking).
+        """Test a build's shapes against a subjects table and load the findings, waiting for
+        the analysis's process (:meth:`startAnalysis`).
 
         Parameters
         ----------
@@ -533,33 +488,29 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         AnalysisNodes
             The effect map (coloured by -log10 p, family-wise) and the per-point table.
         """
-        buildDirectory = pathlib.Path(buildDirectory)
-        outputDirectory = pathlib.Path(outputDirectory or buildDirectory / "analysis")
-        config = self.analysisConfig(group, covariates, nuisance, **settings)
-        path = self.exportTable(table, _temporaryFolder())
-        self.runAnalysis(buildDirectory, path, outputDirectory, config, progress)
-        return self.loadAnalysis(outputDirectory)
+        job = self.startAnalysis(buildDirectory, table, group, covariates, nuisance,
+                                 outputDirectory, **settings)
+        job.wait(progress=progress)
+        return job.finish()
 
     def loadAnalysis(self, outputDirectory) -> AnalysisNodes:
         """The nodes of an analysis's output folder: the effect map of each part (one part: one
         node) coloured by significance with a colour legend, and points.csv as a table."""
+        from mdlshapemodel.analyze import AnalysisFolder
+
         outputDirectory = pathlib.Path(outputDirectory)
-        summary = json.loads((outputDirectory / "analysis.json").read_text())
-        folder = _subjectHierarchy().CreateFolderItem(
-            _subjectHierarchy().GetSceneItemID(), f"{outputDirectory.name} analysis")
-        effects = ([outputDirectory / "effects.vtp"] if (outputDirectory / "effects.vtp").exists()
-                   else sorted((outputDirectory / "effects").glob("*.vtp")))
-        nodes = [_readModel(path, f"{outputDirectory.name} effect {path.stem}") for path in effects]
+        analysis = AnalysisFolder(outputDirectory)
+        folder = subjectHierarchy().CreateFolderItem(
+            subjectHierarchy().GetSceneItemID(), f"{outputDirectory.name} analysis")
+        nodes = [readModel(path, f"{outputDirectory.name} effect {path.stem}")
+                 for path in analysis.effect_meshes()]
         for node in nodes:
             self.colorEffectMap(node, EFFECT_SCALARS[0])
-            _placeInFolder(node, folder)
-        rows = _readCsv(outputDirectory / "points.csv")
-        columns = {key: ([float(r[key]) for r in rows] if key not in ("point", "part")
-                         else [int(r[key]) for r in rows]) for key in rows[0]}
-        points = _table(f"{outputDirectory.name} points", columns)
-        _placeInFolder(points, folder)
-        return AnalysisNodes(outputDirectory, folder, nodes[0], points, summary,
-                             outputDirectory / "analysis.html")
+            placeInFolder(node, folder)
+        points = tableNode(f"{outputDirectory.name} points", analysis.points())
+        placeInFolder(points, folder)
+        return AnalysisNodes(outputDirectory, folder, nodes[0], points, analysis.summary(),
+                             analysis.page_file)
 
     def colorEffectMap(self, effectModelNode, scalars: str) -> None:
         """Colour an effect map by one of :data:`EFFECT_SCALARS`: significance (-log10 of the
@@ -576,11 +527,11 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
             colors, high = "coolwarm", max(abs(low), abs(high), 1e-9)
             low = -high
         display.SetActiveScalarName(scalars)
-        display.SetAndObserveColorNodeID(_colorNode(colors).GetID())
+        display.SetAndObserveColorNodeID(colorNode(colors).GetID())
         display.SetScalarRangeFlag(display.UseManualScalarRange)
         display.SetScalarRange(low, high)
         display.SetScalarVisibility(True)
-        _colorLegend(display, "-log10 p (FWER)" if scalars == EFFECT_SCALARS[0]
+        colorLegend(display, "-log10 p (FWER)" if scalars == EFFECT_SCALARS[0]
                      else "effect along the normal [mm]")
 
     def setModeWeights(self, explorerModelNode, weights) -> None:
@@ -607,414 +558,43 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
                                        " ".join(f"{float(w):g}" for w in weights))
         explorerModelNode.Modified()
 
-    def fitSegmentation(self, inputNode, modelPath, outputDirectory, segments=None,
-                        maxTime: float = 60.0):
-        """Fit one new segmentation (or label map, model, file) to a model, as the command
-        line's ``fit`` does; returns (corresponded model node, reconstruction model node, the
-        library's FitResult)."""
-        from mdlshapemodel.folders import BuildFolder
-        from mdlshapemodel.model.fitting import build_config_of, fit_case
+    def startFit(self, inputNode, modelPath, outputDirectory, segments=None,
+                 maxTime: float = 60.0) -> WorkerJob:
+        """Export one new segmentation (or label map, model, file) and start fitting it to a
+        model in a process of its own, as the command line's ``fit`` does (its folder is
+        ``outputDirectory``); ``job.finish()`` gives (corresponded model node, reconstruction
+        model node, the fit's summary of the case from fit.json)."""
+        from mdlshapemodel.folders import BuildFolder, FitFolder
+        from mdlshapemodel.model.fitting import build_config_of
 
-        model = BuildFolder(modelPath).model()
-        config = build_config_of(model)
+        config = build_config_of(BuildFolder(modelPath).model())
         outputDirectory = pathlib.Path(outputDirectory)
-        exported = self.exportInputs([inputNode], outputDirectory / "inputs", config, segments)
+        exported = self.exportInputs([inputNode], temporaryFolder(), config, segments)
         if exported.rejected:
             raise ValueError(f"{exported.rejected[0][0]}: {exported.rejected[0][1]}")
-        fitted = fit_case(model, exported.paths[0], config, max_time=maxTime)
-        name = fitted.name
-        nodes = []
-        for suffix, points in (("fitted", fitted.corresponded),
-                               ("reconstruction", fitted.reconstruction(model))):
-            nodes.append(_addModel(f"{name} {suffix}", _toRas(points), model.triangles))
-        return nodes[0], nodes[1], fitted
 
-
-class BackgroundJob:
-    """Library work running in a background thread, so that Slicer stays responsive.
-
-    The main thread polls :meth:`messages` (progress reports: (fraction or None, text)), may
-    :meth:`cancel` (the work stops at its next report), and once :attr:`done` calls
-    :meth:`finish` to load the results into the scene (MRML is touched only on the main thread).
-    ``work(progress)`` is the library call; its result is kept in :attr:`result`.
-    """
-
-    def __init__(self, work, name: str):
-        self.result = None
-        self.error = None
-        self._reports = queue.Queue()
-        self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(work,), daemon=True, name=name)
-        self._thread.start()
-
-    def _progress(self, fraction, message):
-        self._reports.put((fraction, message))
-        if self._cancel.is_set():
-            # one False per Cancel: a build's optimisation stops there and the library goes on
-            # to write the model of the state reached (elsewhere the work stops: Cancelled)
-            self._cancel.clear()
-            return False
-        return True
-
-    def _run(self, work):
-        try:
-            self.result = work(self._progress)
-        except BaseException as error:  # handed to the main thread, which reports it
-            self.error = error
-
-    @property
-    def done(self) -> bool:
-        return not self._thread.is_alive()
-
-    def wait(self, timeout: float | None = None) -> bool:
-        self._thread.join(timeout)
-        return self.done
-
-    def cancel(self) -> None:
-        self._cancel.set()
-
-    def messages(self) -> list:
-        """The progress reports since the last call, oldest first."""
-        reports = []
-        while True:
-            try:
-                reports.append(self._reports.get_nowait())
-            except queue.Empty:
-                return reports
-
-    def finish(self):
-        """The results in the scene (main thread, after :attr:`done`); re-raises the work's
-        error."""
-        if self.error is not None:
-            raise self.error
-        return self._load()
-
-    def _load(self):
-        return self.result
-
-
-class BuildJob(BackgroundJob):
-    """A build in a background thread (:class:`BackgroundJob`); Cancel stops the optimisation
-    and the model of the state reached is written; :meth:`finish` loads the build's results."""
-
-    def __init__(self, logic: MDLShapeModelLogic, exported: ExportedInputs, outputDirectory,
-                 config: BuildConfig | None, overwrite: bool = False):
-        self.logic = logic
-        self.exported = exported
-        self.outputDirectory = pathlib.Path(outputDirectory)
-        super().__init__(lambda progress: logic.runBuild(exported.paths, self.outputDirectory,
-                                                         config, progress, overwrite),
-                         "MDLShapeModel build")
-
-    @property
-    def built(self):
-        """The library's BuildResult (None until the build has ended)."""
-        return self.result
-
-    def _load(self) -> ShapeModelResult:
-        return self.logic.loadResults(self.outputDirectory, self.exported.rejected,
-                                      self.result.interrupted)
-
-
-class AnalysisJob(BackgroundJob):
-    """An analysis in a background thread (:class:`BackgroundJob`); Cancel stops it (nothing is
-    written); :meth:`finish` loads its effect map and table."""
-
-    def __init__(self, logic: MDLShapeModelLogic, buildDirectory, table: pathlib.Path,
-                 outputDirectory, config: AnalysisConfig):
-        self.logic = logic
-        self.outputDirectory = pathlib.Path(outputDirectory)
-        super().__init__(lambda progress: logic.runAnalysis(buildDirectory, table,
-                                                            self.outputDirectory, config,
-                                                            progress),
-                         "MDLShapeModel analysis")
-
-    def _load(self) -> AnalysisNodes:
-        return self.logic.loadAnalysis(self.outputDirectory)
-
-
-def workerPool(config: BuildConfig):
-    """The executor for a build's per-case work. Inside the Slicer application, Python's
-    ``sys.executable`` is the application itself, which cannot run worker processes: there the
-    workers are started with Slicer's ``PythonSlicer`` interpreter. Elsewhere None: the library's
-    own pools."""
-    if config.workers <= 1 or not os.path.basename(sys.executable).lower().startswith("slicer"):
-        return None
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    interpreter = shutil.which("PythonSlicer") or os.path.join(
-        os.path.dirname(sys.executable), "PythonSlicer")
-    context = multiprocessing.get_context("spawn")
-    context.set_executable(interpreter)
-    return ProcessPoolExecutor(max_workers=config.workers, mp_context=context)
-
-
-def requirements() -> list:
-    """The pip requirements the library needs beyond what Slicer ships
-    (``Resources/requirements.txt``)."""
-    lines = resourcePath("requirements.txt").read_text().splitlines()
-    return [line.strip() for line in lines if line.strip() and not line.startswith("#")]
-
-
-def missingRequirements() -> list:
-    """The requirements whose distribution is not installed (or too old)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    from packaging.requirements import Requirement
-
-    missing = []
-    for text in requirements():
-        requirement = Requirement(text)
-        try:
-            if not requirement.specifier.contains(version(requirement.name), prereleases=True):
-                missing.append(text)
-        except PackageNotFoundError:
-            missing.append(text)
-    return missing
-
-
-def ensureDependencies(ask: bool = True) -> bool:
-    """Install the missing requirements into Slicer's Python after asking the user; never vtk or
-    SimpleITK (Slicer's own). True when everything is there."""
-    missing = missingRequirements()
-    if not missing:
-        return True
-    if ask and not slicer.util.confirmOkCancelDisplay(
-            "MDLShapeModel needs these Python packages, which will be installed now:\n"
-            + "\n".join(missing)):
-        return False
-    if hasattr(slicer, "packaging") and hasattr(slicer.packaging, "pip_ensure"):
-        slicer.packaging.pip_ensure(missing)        # Slicer 5.11 and later
-    else:
-        slicer.util.pip_install(" ".join(f'"{r}"' for r in missing))
-    return not missingRequirements()
-
-
-# -- helpers: files and nodes ------------------------------------------------------------------
-
-
-def segmentNames(text: str) -> list:
-    """Segment names written as text: separated by commas (names may hold spaces)."""
-    return [name.strip() for name in text.split(",") if name.strip()]
-
-
-def _fileSafe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "case"
-
-
-def _caseName(item) -> str:
-    """The case name a build gives an input: a file's name without its suffix, a node's name
-    made safe for a file name (exportInputs also makes node names unique)."""
-    if isinstance(item, (str, os.PathLike)):
-        from mdlshapemodel.prepare.io import case_name
-
-        return case_name(item)
-    return _fileSafe(item.GetName() or item.GetID())
-
-
-def _uniqueName(name: str, used: set) -> str:
-    candidate, k = name, 1
-    while candidate.lower() in used:
-        k += 1
-        candidate = f"{name}_{k}"
-    used.add(candidate.lower())
-    return candidate
-
-
-def _checkData(node):
-    """A volume's or model's data checked before a storage node reads it to write the file, as
-    the library checks VTK data: an image's scalars against its extent, a mesh's cells against
-    its points (a storage node would read past a shorter array). ValueError with the reason."""
-    from mdlshapemodel.errors import InputError
-    from mdlshapemodel.prepare import io
-
-    try:
-        if node.IsA("vtkMRMLVolumeNode"):
-            io.image_values(node.GetImageData())
-        elif node.GetPolyData() is None or node.GetPolyData().GetNumberOfPoints() == 0:
-            raise InputError("the model has no mesh")
-        else:
-            io.require_valid_cells(node.GetPolyData())
-    except InputError as error:
-        raise ValueError(str(error)) from None
-
-
-def _writeNode(node, path: pathlib.Path, storageClass: str) -> pathlib.Path:
-    storage = slicer.mrmlScene.CreateNodeByClass(storageClass)
-    if storage is None:     # a class the scene has not registered (markups outside Slicer)
-        storage = getattr(slicer, storageClass)()
-    else:
-        storage.UnRegister(None)
-    storage.SetFileName(str(path))
-    if not storage.WriteData(node):
-        raise ValueError(f"could not be written to {path}")
-    return path
-
-
-def _writeSegmentation(node, segments, value: int, path: pathlib.Path) -> pathlib.Path:
-    from vtk.util.numpy_support import vtk_to_numpy
-
-    segmentation = node.GetSegmentation()
-    ids = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
-    if segments:
-        byName = {segmentation.GetSegment(i).GetName(): i for i in ids}
-        missing = [s for s in segments if s not in byName]
-        if missing:
-            raise ValueError(f"no segment named {missing[0]!r} (it has "
-                             f"{', '.join(sorted(byName)) or 'none'})")
-        ids = [byName[s] for s in segments]
-    if not ids:
-        raise ValueError("the segmentation has no segments")
-    chosen = vtk.vtkStringArray()
-    for i in ids:
-        chosen.InsertNextValue(i)
-    hasGeometry = bool(segmentation.GetConversionParameter("Reference image geometry"))
-    extent = (slicer.vtkSegmentation.EXTENT_REFERENCE_GEOMETRY if hasGeometry
-              else slicer.vtkSegmentation.EXTENT_UNION_OF_EFFECTIVE_SEGMENTS)
-    labelmap = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode")
-    try:
-        if not slicer.vtkSlicerSegmentationsModuleLogic.ExportSegmentsToLabelmapNode(
-                node, chosen, labelmap, None, extent) or labelmap.GetImageData() is None:
-            raise ValueError("its segments could not be exported as a label map")
-        voxels = vtk_to_numpy(labelmap.GetImageData().GetPointData().GetScalars())
-        if not voxels.any():
-            raise ValueError("the chosen segments are empty")
-        voxels[voxels != 0] = value   # the union of the chosen segments
-        labelmap.GetImageData().Modified()
-        return _writeNode(labelmap, path, "vtkMRMLVolumeArchetypeStorageNode")
-    finally:
-        slicer.mrmlScene.RemoveNode(labelmap)
-
-
-def _subjectHierarchy():
-    return slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(slicer.mrmlScene)
-
-
-def _placeInFolder(node, folder: int):
-    hierarchy = _subjectHierarchy()
-    item = hierarchy.GetItemByDataNode(node)
-    if item:
-        hierarchy.SetItemParent(item, folder)
-    else:
-        hierarchy.CreateItem(folder, node)
-
-
-def _temporaryFolder() -> pathlib.Path:
-    """A new folder under Slicer's temporary folder (for a table node written as CSV)."""
-    import tempfile
-
-    base = pathlib.Path(slicer.app.temporaryPath)
-    base.mkdir(parents=True, exist_ok=True)
-    return pathlib.Path(tempfile.mkdtemp(prefix="MDLShapeModel-", dir=base))
-
-
-def _colorNode(colormap: str):
-    """A colour node of the matplotlib colour map ``colormap`` (the colours of the library's
-    report pages), made once per scene."""
-    name = f"MDLShapeModel {colormap}"
-    existing = slicer.mrmlScene.GetFirstNodeByName(name)
-    if existing is not None:
-        return existing
-    import matplotlib
-
-    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLColorTableNode", name)
-    node.SetTypeToUser()          # a lookup table: the display's scalar range spreads over it
-    node.SetNumberOfColors(256)
-    samples = matplotlib.colormaps[colormap]
-    for k in range(256):
-        red, green, blue, _ = samples(k / 255)
-        node.SetColor(k, f"{k}", red, green, blue, 1.0)
-    node.SetAttribute("Category", "MDLShapeModel")
-    return node
-
-
-def _colorLegend(displayNode, title: str):
-    """The colour legend of a display node (the Colors module's default one), titled."""
-    legend = slicer.modules.colors.logic().AddDefaultColorLegendDisplayNode(displayNode)
-    legend.SetTitleText(title)
-    return legend
-
-
-def _toRas(points):
-    """LPS <-> RAS (the same map both ways): x and y negated. (n, 3) array-like -> array."""
-    import numpy as np
-
-    return np.asarray(points, dtype=np.float64) * np.array([-1.0, -1.0, 1.0])
-
-
-def _addPointArray(polydata, name: str, values):
-    import numpy as np
-    from vtk.util.numpy_support import numpy_to_vtk
-
-    array = numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
-    array.SetName(name)
-    polydata.GetPointData().AddArray(array)
-
-
-def _addModel(name: str, points, triangles):
-    """A model node of points (RAS) and triangles, with display nodes."""
-    from mdlshapemodel.prepare.surface import arrays_to_polydata
-
-    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", name)
-    node.SetAndObservePolyData(arrays_to_polydata(points, triangles))
-    node.CreateDefaultDisplayNodes()
-    return node
-
-
-def _readModel(path: pathlib.Path, name: str):
-    """A model node read by Slicer's model storage node (which honours the file's SPACE)."""
-    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelNode", name)
-    storage = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLModelStorageNode")
-    storage.SetFileName(str(path))
-    if not storage.ReadData(node):
-        raise OSError(f"{path}: could not be read as a model")
-    node.SetAndObserveStorageNodeID(storage.GetID())
-    node.CreateDefaultDisplayNodes()
-    return node
-
-
-def _readCsv(path: pathlib.Path) -> list:
-    """The rows of a table of the build (none when it is absent)."""
-    from mdlshapemodel.prepare.io import read_csv
-
-    return read_csv(path) if path.exists() else []
-
-
-def _table(name: str, columns: dict):
-    """A table node of named columns (str or float values, all of one length)."""
-    node = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLTableNode", name)
-    table = node.GetTable()
-    for title, values in columns.items():
-        numeric = all(isinstance(v, (int, float)) for v in values)
-        array = vtk.vtkDoubleArray() if numeric else vtk.vtkStringArray()
-        array.SetName(title)
-        for v in values:
-            array.InsertNextValue(float(v) if numeric else str(v))
-        table.AddColumn(array)
-    node.Modified()
-    return node
-
-
-def _metricsTable(build, name: str):
-    """The build's measures per mode with their standard errors (``BuildFolder.measures``) as
-    a table node; None without them."""
-    columns = build.measures()
-    return None if columns is None else _table(f"{name} measures", columns)
-
-
-def _scoresTable(build, name: str):
-    """The cases' scores per mode (``BuildFolder.scores``) as a table node; None without them."""
-    from mdlshapemodel.folders import score_header
-
-    scores = build.scores()
-    if scores is None:
-        return None
-    names, values = scores
-    columns = {"case": list(names)}
-    for k, title in enumerate(score_header(values.shape[1])[1:]):
-        columns[title] = [float(v) for v in values[:, k]]
-    return _table(f"{name} scores", columns)
+        def load(end):
+            if not end["cases"]:
+                raise ValueError(f"{end['rejected'][0][0]}: {end['rejected'][0][1]}")
+            name = end["cases"][0]
+            fit = FitFolder(outputDirectory)
+            return (readModel(fit.case_mesh("", name), f"{name} fitted"),
+                    readModel(fit.case_mesh("", name, reconstruction=True),
+                              f"{name} reconstruction"),
+                    fit.summary()[name])
+
+        return WorkerJob({"command": "fit", "model": str(modelPath),
+                          "inputs": [str(p) for p in exported.paths],
+                          "output": str(outputDirectory), "max_time": maxTime}, "fit", load,
+                         temporaryFolder())
+
+    def fitSegmentation(self, inputNode, modelPath, outputDirectory, segments=None,
+                        maxTime: float = 60.0):
+        """:meth:`startFit`, waiting for its process: (corresponded model node, reconstruction
+        model node, the fit's summary of the case)."""
+        job = self.startFit(inputNode, modelPath, outputDirectory, segments, maxTime)
+        job.wait()
+        return job.finish()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1030,13 +610,14 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.logic = None
         self._parameterNode = None
         self._parameterNodeGuiTag = None
-        self._job = None
-        self._timer = None
+        self._job = None            # the build's WorkerJob while it runs
+        self._analysisJob = None
+        self._fitJob = None
+        self._timer = None          # polls the running jobs (the main thread never waits)
         self._result = None
         self._sliders = []
-        self._analysisJob = None
         self._analysis = None
-        self._analysisTimer = None
+        self._labels = {}           # parameter -> its field's label (messages name fields)
 
     def setup(self):
         ScriptedLoadableModuleWidget.setup(self)
@@ -1044,6 +625,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.layout.addWidget(uiWidget)
         self.ui = slicer.util.childWidgetVariables(uiWidget)
         uiWidget.setMRMLScene(slicer.mrmlScene)
+        self._labels = panelLabels(resourcePath("UI/MDLShapeModel.ui"))
         self.logic = MDLShapeModelLogic()
         self.ui.inputNodesSelector.nodeTypes = list(INPUT_NODE_TYPES)
         self.ui.applyButton.clicked.connect(self.onApply)
@@ -1060,23 +642,22 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             "the correspondence")
         self.ui.defaultSmoothnessCheckBox.toggled.connect(
             lambda on: self.ui.smoothnessSpinBox.setEnabled(not on))
-        self.ui.inputNodesSelector.checkedNodesChanged.connect(self.updateCaseList)
+        self.ui.inputNodesSelector.checkedNodesChanged.connect(self.onCheckedNodesChanged)
+        self.ui.landmarkNodesSelector.checkedNodesChanged.connect(self.onCheckedNodesChanged)
         self.ui.inputFolderSelector.currentPathChanged.connect(self.updateCaseList)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
         self._timer = qt.QTimer()
         self._timer.setInterval(200)
         self._timer.timeout.connect(self.onPoll)
-        self._analysisTimer = qt.QTimer()
-        self._analysisTimer.setInterval(200)
-        self._analysisTimer.timeout.connect(self.onAnalysisPoll)
         self.initializeParameterNode()
 
     def cleanup(self):
         self.removeObservers()
-        for job in (self._job, self._analysisJob):
+        self._timer.stop()
+        for job in (self._job, self._analysisJob, self._fitJob):
             if job is not None:
-                job.cancel()
+                job.terminate()
 
     def enter(self):
         self.initializeParameterNode()
@@ -1098,10 +679,31 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._parameterNode = self.logic.getParameterNode()
         if self._parameterNodeGuiTag is None:
             self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+        self._showCheckedNodes()
+        self.updateCaseList()
+
+    def _showCheckedNodes(self):
+        """Check in the node selectors the nodes that the parameter node holds
+        (:data:`CHECKED_NODE_PARAMETERS`), e.g. after a scene is loaded."""
+        for name, selectorName in CHECKED_NODE_PARAMETERS.items():
+            selector = getattr(self.ui, selectorName)
+            chosen = {node.GetID() for node in getattr(self._parameterNode, name) if node}
+            wasBlocked = selector.blockSignals(True)
+            for node in selector.nodes():
+                selector.setCheckState(node, qt.Qt.Checked if node.GetID() in chosen
+                                       else qt.Qt.Unchecked)
+            selector.blockSignals(wasBlocked)
+
+    def onCheckedNodesChanged(self, *unused):
+        """The checked nodes into the parameter node (so they are saved with the scene)."""
+        if self._parameterNode is not None:
+            for name, selectorName in CHECKED_NODE_PARAMETERS.items():
+                setattr(self._parameterNode, name,
+                        list(getattr(self.ui, selectorName).checkedNodes()))
         self.updateCaseList()
 
     def inputs(self) -> list:
-        nodes = list(self.ui.inputNodesSelector.checkedNodes())
+        nodes = [node for node in self._parameterNode.inputNodes if node is not None]
         folder = str(self._parameterNode.inputFolder)
         if folder not in ("", "."):
             try:
@@ -1121,17 +723,30 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def _segments(self) -> list:
         return segmentNames(self._parameterNode.segments)
 
+    @contextlib.contextmanager
+    def _errorsShown(self, title: str):
+        """Errors of the block shown in a message box, a setting at fault named by its field's
+        label (:func:`~MDLShapeModelLib.messages.panelMessage`); the panel goes on."""
+        try:
+            yield
+        except Exception as error:
+            slicer.util.errorDisplay(f"{title}\n{panelMessage(error, self._labels)}",
+                                     detailedText=traceback.format_exc())
+
     def onApply(self):
         if not ensureDependencies(ask=True):
             return
         from mdlshapemodel.folders import BuildFolder
 
-        with slicer.util.tryWithErrorDisplay("Could not start the build.", waitCursor=True):
-            markups = list(self.ui.landmarkNodesSelector.checkedNodes())
+        with self._errorsShown("Could not start the build."):
+            markups = [node for node in self._parameterNode.landmarkNodes if node is not None]
             config = landmarkConfigOf(buildConfigOf(self._parameterNode), self._parameterNode,
                                       bool(markups))
             output = pathlib.Path(str(self._parameterNode.outputDirectory))
-            overwrite = bool(BuildFolder(output).earlier_build())
+            build = BuildFolder(output)
+            resume = build.unfinished() and slicer.util.confirmYesNoDisplay(
+                f"{output} holds an unfinished build. Carry it on (No: start again)?")
+            overwrite = not resume and bool(build.earlier_build())
             if overwrite and not slicer.util.confirmYesNoDisplay(
                     f"{output} holds an earlier build. Replace it?"):
                 return
@@ -1139,7 +754,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             inputs = self.inputs()
             self._job = self.logic.startBuild(
                 inputs, output, config, self._segments(), overwrite,
-                self.logic.landmarksOf(inputs, markups) if markups else None)
+                self.logic.landmarksOf(inputs, markups) if markups else None, resume)
             for name, reason in self._job.exported.rejected:
                 self.ui.logText.appendPlainText(f"rejected {name}: {reason}")
             self.ui.applyButton.enabled = False
@@ -1147,30 +762,63 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._timer.start()
 
     def onCancel(self):
-        if self._job is not None:
+        """The first Cancel stops the build at its next report (the state reached is kept);
+        a second one ends its process at once (the build resumes from its checkpoint)."""
+        if self._job is None:
+            return
+        if self._job.cancelled:
+            self._job.terminate()
+            self.ui.logText.appendPlainText("stopped: Apply carries the build on")
+        else:
             self._job.cancel()
-            self.ui.logText.appendPlainText("cancelling: the state reached will be kept")
+            self.ui.logText.appendPlainText("cancelling: the state reached will be kept "
+                                            "(Cancel again to stop at once)")
 
     @staticmethod
     def _showReports(job, progressBar, logText=None):
-        """A job's progress reports on a progress bar (and in a log)."""
-        for fraction, message in job.messages():
-            if fraction is not None:
-                progressBar.value = int(100 * fraction)
-            progressBar.format = message
+        """A job's new reports on a progress bar (and its warnings and reports in a log)."""
+        for report in job.poll():
+            if report.warning:
+                if logText is not None:
+                    logText.appendPlainText(f"warning: {report.message}")
+                continue
+            if report.fraction is not None:
+                progressBar.value = int(100 * report.fraction)
+            progressBar.format = report.message
             if logText is not None:
-                logText.appendPlainText(message)
+                logText.appendPlainText(report.message)
 
     def onPoll(self):
-        self._showReports(self._job, self.ui.progressBar, self.ui.logText)
-        if not self._job.done:
-            return
-        self._timer.stop()
-        job, self._job = self._job, None
-        self.ui.cancelButton.enabled = False
-        self.updateCaseList()
-        with slicer.util.tryWithErrorDisplay("The build failed.", waitCursor=True):
-            self.showResult(job.finish())
+        """The timer's tick: every running job's reports shown, those that ended finished."""
+        # each job's end is seen before its last reports are read, so that none is left unread
+        if self._job is not None:
+            ended = self._job.done
+            self._showReports(self._job, self.ui.progressBar, self.ui.logText)
+            if ended:
+                job, self._job = self._job, None
+                self.ui.cancelButton.enabled = False
+                self.updateCaseList()
+                with self._errorsShown("The build did not finish."):
+                    self.showResult(job.finish())
+        if self._analysisJob is not None:
+            ended = self._analysisJob.done
+            self._showReports(self._analysisJob, self.ui.analysisProgressBar)
+            if ended:
+                job, self._analysisJob = self._analysisJob, None
+                self.ui.analyzeButton.enabled = True
+                self.ui.cancelAnalysisButton.enabled = False
+                with self._errorsShown("The analysis did not finish."):
+                    self._analysis = job.finish()
+                    self.ui.analysisTableView.setMRMLTableNode(self._analysis.pointsTableNode)
+                    self.ui.openAnalysisButton.enabled = True
+                    self.onColorBy()
+        if self._fitJob is not None and self._fitJob.done:
+            job, self._fitJob = self._fitJob, None
+            self.ui.fitButton.enabled = True
+            with self._errorsShown("The fit did not finish."):
+                job.finish()
+        if self._job is None and self._analysisJob is None and self._fitJob is None:
+            self._timer.stop()
 
     def showResult(self, result: ShapeModelResult):
         self._result = result
@@ -1210,23 +858,24 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onLoadModel(self):
         if not ensureDependencies(ask=True):
             return
-        with slicer.util.tryWithErrorDisplay("Could not load the model.", waitCursor=True):
+        with self._errorsShown("Could not load the model."):
             self.showResult(self.logic.loadModel(str(self._parameterNode.modelFile)))
 
     def onFit(self):
         if not ensureDependencies(ask=True):
             return
-        with slicer.util.tryWithErrorDisplay("Could not fit the segmentation.", waitCursor=True):
+        with self._errorsShown("Could not start the fit."):
             node = self.ui.fitInputSelector.currentNode()
             output = pathlib.Path(str(self._parameterNode.outputDirectory)) / "fitted"
-            self.logic.fitSegmentation(node, str(self._parameterNode.modelFile), output,
-                                       self._segments())
-
+            self._fitJob = self.logic.startFit(node, str(self._parameterNode.modelFile), output,
+                                               self._segments())
+            self.ui.fitButton.enabled = False
+            self._timer.start()
 
     def onAnalyze(self):
         if not ensureDependencies(ask=True):
             return
-        with slicer.util.tryWithErrorDisplay("Could not start the analysis.", waitCursor=True):
+        with self._errorsShown("Could not start the analysis."):
             parameters = self._parameterNode
             table = parameters.analysisTableNode or str(parameters.analysisTable)
             if table in ("", "."):
@@ -1238,25 +887,11 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 permutations=parameters.analysisPermutations)
             self.ui.analyzeButton.enabled = False
             self.ui.cancelAnalysisButton.enabled = True
-            self._analysisTimer.start()
+            self._timer.start()
 
     def onCancelAnalysis(self):
         if self._analysisJob is not None:
             self._analysisJob.cancel()
-
-    def onAnalysisPoll(self):
-        self._showReports(self._analysisJob, self.ui.analysisProgressBar)
-        if not self._analysisJob.done:
-            return
-        self._analysisTimer.stop()
-        job, self._analysisJob = self._analysisJob, None
-        self.ui.analyzeButton.enabled = True
-        self.ui.cancelAnalysisButton.enabled = False
-        with slicer.util.tryWithErrorDisplay("The analysis failed.", waitCursor=True):
-            self._analysis = job.finish()
-            self.ui.analysisTableView.setMRMLTableNode(self._analysis.pointsTableNode)
-            self.ui.openAnalysisButton.enabled = True
-            self.onColorBy()
 
     def onColorBy(self, *unused):
         if self._analysis is not None:

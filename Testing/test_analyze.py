@@ -16,6 +16,7 @@ from scipy import stats
 from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig, build_model
+from mdlshapemodel.analyze import AnalysisFolder
 from mdlshapemodel.analysis import align, permutation_test
 from mdlshapemodel.analysis.glm import drawn_flips, drawn_permutations
 from mdlshapemodel.model.shape_model import ShapeModel
@@ -209,6 +210,19 @@ def test_effects_vtp_holds_the_points_csv_values_for_vtk(analysed):
             in page)
     departures = list((analysed / "unusual").iterdir())
     assert len(departures) == N
+
+
+def test_the_analysis_folder_reads_what_the_analysis_wrote(analysed):
+    folder = AnalysisFolder(analysed)
+    assert folder.summary() == json.loads((analysed / "analysis.json").read_text())
+    assert folder.effect_meshes() == [analysed / "effects.vtp"]
+    assert folder.page_file == analysed / "analysis.html" and folder.page_file.is_file()
+    columns = folder.points()
+    with open(analysed / "points.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(columns) == list(rows[0]) and len(columns["p_fwer"]) == len(rows) == 162
+    assert columns["point"] == list(range(162)) and set(columns["part"]) == {0}
+    np.testing.assert_array_equal(columns["p_fwer"], [float(r["p_fwer"]) for r in rows])
 
 
 def normal_displacement(build: Path, names: list) -> np.ndarray:

@@ -1,6 +1,7 @@
 """The 3D Slicer extension's files agree with the package: the module's CMake list names every file
-of the library, its resources exist, and Resources/requirements.txt is pyproject.toml's
-dependencies without the two that Slicer ships. (Testing/Slicer/test_extension.py configures the
+of the module's helpers and of the library, its resources exist in the module's Resources/
+folder, and Resources/requirements.txt is pyproject.toml's dependencies without the two that
+Slicer ships. (Testing/Slicer/test_extension.py configures the
 CMake files themselves.)"""
 
 import re
@@ -21,21 +22,23 @@ def cmake_list(name: str) -> list:
 def test_the_module_cmake_list_names_every_python_file_of_the_package_and_no_other():
     listed = cmake_list("MODULE_PYTHON_SCRIPTS")
     tree = ["MDLShapeModel.py"] + sorted(str(p.relative_to(MODULE))
-                                         for p in (MODULE / "mdlshapemodel").rglob("*.py"))
+                                         for package in ("MDLShapeModelLib", "mdlshapemodel")
+                                         for p in (MODULE / package).rglob("*.py"))
     assert sorted(listed) == sorted(tree)
     assert len(set(listed)) == len(listed)
 
 
-def test_the_listed_resources_exist_in_the_top_level_resources_folder():
+def test_the_listed_resources_exist_in_the_modules_resources_folder():
     resources = cmake_list("MODULE_PYTHON_RESOURCES")
-    assert {"Icons/MDLShapeModel.png", "UI/MDLShapeModel.ui", "requirements.txt"} <= set(resources)
+    assert {"Resources/Icons/MDLShapeModel.png", "Resources/UI/MDLShapeModel.ui",
+            "Resources/requirements.txt"} <= set(resources)
     for resource in resources:
-        assert (ROOT / "Resources" / resource).is_file(), resource
+        assert (MODULE / resource).is_file(), resource
 
 
 def test_requirements_are_the_dependencies_slicer_lacks():
     dependencies = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
-    lines = (ROOT / "Resources" / "requirements.txt").read_text().splitlines()
+    lines = (MODULE / "Resources" / "requirements.txt").read_text().splitlines()
     requirements = [line.strip() for line in lines if line.strip() and not line.startswith("#")]
     shipped = {"vtk", "simpleitk"}
     expected = [d for d in dependencies if re.split(r"[<>=!~ ]", d)[0].lower() not in shipped]

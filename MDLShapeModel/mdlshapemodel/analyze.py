@@ -55,10 +55,39 @@ from .prepare import io
 from .report.analysis_page import write_analysis_page
 from .version import __version__
 
-ANALYSIS_FILES = ("analysis.json", "points.csv", "effects.vtp", "effects", "unusual.csv",
-                  "unusual", "analysis.html", "long.csv", "shapes")
+SUMMARY = "analysis.json"
+POINTS = "points.csv"
+EFFECTS = "effects.vtp"          # one part; several: effects/<part>.vtp
+EFFECTS_PARTS = "effects"
+PAGE = "analysis.html"
 # the folder of the effect's shapes (group means, predicted shapes), one .vtp per shape
 SHAPES = "shapes"
+ANALYSIS_FILES = (SUMMARY, POINTS, EFFECTS, EFFECTS_PARTS, "unusual.csv", "unusual", PAGE,
+                  "long.csv", SHAPES)
+
+
+class AnalysisFolder:
+    """An analysis's output folder (:func:`analyze_build`) read by its files' names: the faces
+    (the Slicer module) read it through this, never by the names themselves."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.page_file = self.path / PAGE
+
+    def summary(self) -> dict:
+        """analysis.json: the settings, the columns tested, the cases, the findings."""
+        return json.loads((self.path / SUMMARY).read_text())
+
+    def points(self) -> dict:
+        """points.csv as columns by name: ``point`` and ``part`` integers, the others numbers."""
+        rows = io.read_csv(self.path / POINTS)
+        return {key: [int(r[key]) if key in ("point", "part") else float(r[key]) for r in rows]
+                for key in (rows[0] if rows else {})}
+
+    def effect_meshes(self) -> list:
+        """The effect map's mesh files: effects.vtp, or effects/<part>.vtp per part."""
+        single = self.path / EFFECTS
+        return [single] if single.exists() else sorted((self.path / EFFECTS_PARTS).glob("*.vtp"))
 
 
 @dataclass
@@ -296,11 +325,11 @@ def summary_of(analysis: Analysis, build, table) -> dict:
 
 
 def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
-    io.write_text(folder / "analysis.json", json.dumps(summary, indent=2))
+    io.write_text(folder / SUMMARY, json.dumps(summary, indent=2))
     if analysis.config.long_table:
         io.write_csv(folder / "long.csv", *long_table(analysis, table))
     header, rows = _columns(analysis)
-    io.write_csv(folder / "points.csv", header, rows)
+    io.write_csv(folder / POINTS, header, rows)
     arrays = {"statistic": analysis.points.statistic, "p": analysis.points.p,
               "p_fwer": analysis.points.p_fwer, "q_fdr": analysis.points.q_fdr,
               "minus_log10_p_fwer": -np.log10(analysis.points.p_fwer),
@@ -315,12 +344,12 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
     arrays.update(effect_columns(analysis))
     parts = model.part_meshes()
     if len(parts) == 1:
-        io.write_polydata(folder / "effects.vtp", analysis.mean, model.triangles,
+        io.write_polydata(folder / EFFECTS, analysis.mean, model.triangles,
                           point_data=arrays)
     else:
-        (folder / "effects").mkdir()
+        (folder / EFFECTS_PARTS).mkdir()
         for part in parts:
-            io.write_polydata(folder / "effects" / f"{part.name}.vtp", analysis.mean[part.rows],
+            io.write_polydata(folder / EFFECTS_PARTS / f"{part.name}.vtp", analysis.mean[part.rows],
                               part.triangles,
                               point_data={k: v[part.rows] for k, v in arrays.items()})
     if analysis.shapes:
@@ -342,7 +371,7 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
     for name, departure in zip(unusual.names, unusual.departure):
         io.write_polydata(io.case_file(folder / "unusual", name), model.mean, model.triangles,
                           point_data={"departure_mm": departure})
-    write_analysis_page(folder / "analysis.html", summary, analysis, model)
+    write_analysis_page(folder / PAGE, summary, analysis, model)
 
 
 def earlier_analysis(output) -> list:

@@ -248,14 +248,18 @@ def split_parts(text: str) -> list:
 def field_items(name: str, text: str) -> list:
     """The value of :class:`BuildConfig`'s list field ``name`` written as text (see
     :func:`parse_items`, or :func:`split_parts` for ``parts``; its item kind, noun and choices
-    are the field's)."""
-    if name == "parts":
-        return split_parts(text)
-    f = next(f for f in fields(BuildConfig) if f.name == name)
-    (kind,) = typing.get_args(typing.get_type_hints(BuildConfig)[name])
-    metadata = f.metadata
-    return parse_items(text, kind, metadata.get("item", "value"), metadata.get("choices"),
-                       metadata.get("nonempty", False))
+    are the field's). A bad item raises :class:`ConfigError` naming it, its ``setting``
+    ``name``."""
+    try:
+        if name == "parts":
+            return split_parts(text)
+        f = next(f for f in fields(BuildConfig) if f.name == name)
+        (kind,) = typing.get_args(typing.get_type_hints(BuildConfig)[name])
+        metadata = f.metadata
+        return parse_items(text, kind, metadata.get("item", "value"), metadata.get("choices"),
+                           metadata.get("nonempty", False))
+    except ConfigError as error:
+        raise ConfigError(str(error), setting=name) from None
 
 
 def option(group: str, help: str, *, flag: str | None = None, metavar=None, choices=None,
@@ -501,14 +505,15 @@ class BuildConfig:
         """Raise :class:`ConfigError` naming the first bad field; return self."""
         def need(condition: bool, name: str, text: str):
             if not condition:
-                raise ConfigError(f"{name}: {text} (got {getattr(self, name)!r})")
+                problem = f"{text} (got {getattr(self, name)!r})"
+                raise ConfigError(f"{name}: {problem}", setting=name, problem=problem)
 
         need(all(isinstance(v, int) and v > 0 for v in self.labels), "labels",
              "label values must be positive integers")
         try:
             names = [part.name for part in self.part_specs()]
         except ConfigError as error:
-            raise ConfigError(f"parts: {error}") from None
+            raise ConfigError(f"parts: {error}", setting="parts", problem=str(error)) from None
         need(len(set(names)) == len(names), "parts", "part names must differ")
         need(self.voxel_size is None or self.voxel_size > 0, "voxel_size", "must be positive")
         need(self.surface_method in SURFACE_METHODS, "surface_method",
@@ -839,7 +844,8 @@ class AnalysisConfig:
         """Raise :class:`ConfigError` naming the first bad field; return self."""
         def need(condition: bool, name: str, text: str):
             if not condition:
-                raise ConfigError(f"{name}: {text} (got {getattr(self, name)!r})")
+                problem = f"{text} (got {getattr(self, name)!r})"
+                raise ConfigError(f"{name}: {problem}", setting=name, problem=problem)
 
         need(self.permutations >= 1, "permutations", "must be at least 1")
         need(self.size in ANALYSIS_SIZES, "size", f"must be one of {', '.join(ANALYSIS_SIZES)}")

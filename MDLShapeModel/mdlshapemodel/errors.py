@@ -1,5 +1,7 @@
 """Exceptions with messages meant for users: one line naming the problem."""
 
+from __future__ import annotations
+
 
 class MDLShapeModelError(Exception):
     """Base class of every error this package raises on purpose."""
@@ -18,7 +20,17 @@ class SphereMapError(MDLShapeModelError):
 
 
 class ConfigError(MDLShapeModelError):
-    """A configuration value is out of range; the message names the field."""
+    """A configuration value is out of range; the message names the field.
+
+    ``setting`` is the name of the setting at fault (a field of the config record; None where
+    no one setting is), so that each face names it its own way (the command line by its flag,
+    the Slicer panel by its field's label); ``problem`` is the message without that name.
+    """
+
+    def __init__(self, message: str, setting: str | None = None, problem: str | None = None):
+        super().__init__(message)
+        self.setting = setting
+        self.problem = message if problem is None else problem
 
 
 class BuildError(MDLShapeModelError):

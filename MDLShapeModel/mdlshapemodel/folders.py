@@ -373,6 +373,14 @@ class BuildFolder:
         when the file is not one)."""
         return read_checkpoint(self.checkpoint_file) if self.checkpoint_file.exists() else None
 
+    def unfinished(self) -> bool:
+        """Whether the folder holds a build that ``resume`` carries on: a checkpoint of an
+        optimisation that had not ended (cancelled, killed, out of time), or of one that had
+        ended but whose outputs were not all written (no cases.csv)."""
+        checkpoint = self.checkpoint()
+        return checkpoint is not None and (checkpoint.point.phase != PhasePoint.DONE
+                                           or not (self.path / CASES).is_file())
+
     def previous_build(self) -> list:
         """The files and (non-empty) folders of an earlier build, in :data:`BUILD_FILES` order;
         empty when there is none."""
@@ -531,3 +539,13 @@ class FitFolder:
     @property
     def summary_file(self) -> Path:
         return self.path / FIT_SUMMARY
+
+    def case_mesh(self, part: str, name: str, reconstruction: bool = False) -> Path:
+        """The file of a fitted case's corresponded points of one part (``part`` '' for a
+        one-part model), or of their reconstruction by the model."""
+        return io.case_file(self.path / (RECONSTRUCTION if reconstruction else CORRESPONDENCE)
+                            / part, name)
+
+    def summary(self) -> dict:
+        """fit.json: each fitted case's errors, scores' distance and objective, by name."""
+        return json.loads(self.summary_file.read_text())

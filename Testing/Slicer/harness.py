@@ -18,8 +18,8 @@ Stand-ins, each for exactly one thing the application provides:
   classes with the behaviour the module relies on (``getParameterNode`` finds or makes the
   module's singleton ``vtkMRMLScriptedModuleNode`` as Slicer's does; no GUI);
 - ``slicer.parameterNodeWrapper``: the typed parameter-node decorator -> :func:`parameterNodeWrapper`
-  for the types the module uses (int, float, str, bool, pathlib.Path, MRML nodes, with ``Choice``
-  and ``WithinRange``), storing values exactly as Slicer's does (``SetParameter`` strings, node
+  for the types the module uses (int, float, str, bool, pathlib.Path, MRML nodes, lists of these,
+  with ``Choice`` and ``WithinRange``), storing values exactly as Slicer's does (``SetParameter`` strings, node
   references), so a scene saved here holds the parameters as Slicer writes them; no GUI binding;
 - ``qt``: PythonQt's flat ``qt`` module -> PySide6's QtCore, QtGui, QtWidgets and QtUiTools in
   one namespace (when PySide6 is installed; an offscreen QApplication is made on first use).
@@ -114,7 +114,8 @@ class WithinRange:
 
 
 class _Parameter:
-    """One typed parameter of a parameter node, stored as Slicer's serializers store it."""
+    """One typed parameter of a parameter node, stored as Slicer's serializers store it: a list
+    as ``name_len`` and one entry ``name_<index>`` per item (a node: a node reference)."""
 
     def __init__(self, name, annotated, default):
         import slicer
@@ -125,37 +126,61 @@ class _Parameter:
         if typing.get_origin(annotated) is typing.Annotated:
             kind, *extras = typing.get_args(annotated)
             self.validators = [e for e in extras if hasattr(e, "validate")]
+        self.item = None
+        if typing.get_origin(kind) is list:
+            (item,) = typing.get_args(kind)
+            self.item = _Parameter(name, item, _NO_DEFAULT)
+            kind = list
         self.kind = kind
         self.is_node = isinstance(kind, type) and issubclass(kind, slicer.vtkMRMLNode)
         if default is _NO_DEFAULT:
             default = {int: 0, float: 0.0, str: "", bool: False}.get(kind)
             if kind is pathlib.Path:
                 default = pathlib.Path()
+            if kind is list:
+                default = []
         self.default = default
 
-    def write(self, node, value):
+    def write(self, node, value, name=None):
+        name = name or self.name
+        if self.item is not None:
+            old = int(node.GetParameter(f"{name}_len") or 0)
+            for index, item in enumerate(value):
+                self.item.write(node, item, f"{name}_{index}")
+            node.SetParameter(f"{name}_len", str(len(value)))
+            for index in range(len(value), old):
+                node.UnsetParameter(f"{name}_{index}")
+                node.RemoveNodeReferenceIDs(f"{name}_{index}")
+            return
         if self.is_node:
             if value is not None and not isinstance(value, self.kind):
-                raise TypeError(f"{self.name}: expected a {self.kind.__name__}")
-            node.SetParameter(self.name, "")
-            node.SetNodeReferenceID(self.name, value.GetID() if value is not None else None)
+                raise TypeError(f"{name}: expected a {self.kind.__name__}")
+            node.SetParameter(name, "")
+            node.SetNodeReferenceID(name, value.GetID() if value is not None else None)
             return
         if self.kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if not isinstance(value, self.kind):
-            raise TypeError(f"{self.name}: expected {self.kind.__name__}, got {value!r}")
+            raise TypeError(f"{name}: expected {self.kind.__name__}, got {value!r}")
         for validator in self.validators:
             validator.validate(value)
         text = ("True" if value else "False") if self.kind is bool else str(value)
-        node.SetParameter(self.name, text)
+        node.SetParameter(name, text)
 
-    def read(self, node):
+    def read(self, node, name=None):
+        name = name or self.name
+        if self.item is not None:
+            count = int(node.GetParameter(f"{name}_len") or 0)
+            return [self.item.read(node, f"{name}_{index}") for index in range(count)]
         if self.is_node:
-            return node.GetNodeReference(self.name)
-        text = node.GetParameter(self.name)
+            return node.GetNodeReference(name)
+        text = node.GetParameter(name)
         if self.kind is bool:
             return text == "True"
         return self.kind(text)
+
+    def stored(self, node) -> bool:
+        return node.HasParameter(f"{self.name}_len" if self.item is not None else self.name)
 
 
 _NO_DEFAULT = object()
@@ -171,7 +196,7 @@ def parameterNodeWrapper(classtype):
     def __init__(self, parameterNode):
         self.parameterNode = parameterNode
         for parameter in parameters.values():
-            if not parameterNode.HasParameter(parameter.name):
+            if not parameter.stored(parameterNode):
                 parameter.write(parameterNode, parameter.default)
 
     for name, parameter in parameters.items():

@@ -1,5 +1,5 @@
-"""The module's panel (Resources/UI/MDLShapeModel.ui) loaded by a real Qt loader: PySide6's
-QUiLoader, offscreen, with stand-ins for the CTK and qMRML widget classes that only Slicer has.
+"""The module's panel (MDLShapeModel/Resources/UI/MDLShapeModel.ui) loaded by a real Qt loader:
+PySide6's QUiLoader, offscreen, with stand-ins for the CTK and qMRML widget classes that only Slicer has.
 
 The stand-ins are plain Qt widgets of the same names, with the properties the .ui sets (a
 collapsible section shows its title and hides its body when collapsed; the node selectors are

@@ -1,4 +1,4 @@
-"""The module's analysis (Logic.analyzeModel, the background AnalysisJob) on a real MRML scene
+"""The module's analysis (Logic.analyzeModel, the analysis's process) on a real MRML scene
 and a real build: the effect map as a coloured model node with a legend, the points as a table."""
 
 import json
@@ -30,7 +30,7 @@ def build(tmp_path_factory):
         sitk.WriteImage(sitk.GetImageFromArray(mask), str(paths[-1]))
     config = BuildConfig(points=162, strategy="none", baselines=[], workers=1,
                          evaluation_modes=2, specificity_samples=100, surface_samples=0)
-    module.MDLShapeModelLogic().runBuild(paths, folder / "build", config)
+    module.MDLShapeModelLogic().buildModel(paths, folder / "build", config)
     return folder / "build"
 
 
@@ -96,9 +96,10 @@ def test_the_background_job_reports_progress_and_a_csv_table_works_too(scene, bu
                                                     outputDirectory=tmp_path / "out",
                                                     permutations=99)
     assert job.wait(300)
+    reports = job.poll()
     nodes = job.finish()
     assert nodes.summary["settings"]["permutations"] == 99
-    assert any("permutations" in message for _, message in job.messages())
+    assert any("permutations" in report.message for report in reports)
     assert nodes.pageFile.is_file()
 
 

@@ -34,7 +34,8 @@ def test_configuring_lists_every_package_file_and_copies_the_module_with_its_res
     listed = (build_tree / "standin-MDLShapeModel-scripts.txt").read_text().split()
     package = ROOT / "MDLShapeModel"
     tree = ["MDLShapeModel.py"] + [str(p.relative_to(package))
-                                   for p in (package / "mdlshapemodel").rglob("*.py")]
+                                   for folder in ("MDLShapeModelLib", "mdlshapemodel")
+                                   for p in (package / folder).rglob("*.py")]
     assert sorted(listed) == sorted(tree)
     modules = build_tree / MODULES
     for relative in tree:
@@ -62,8 +63,7 @@ def test_a_listed_file_that_is_missing_fails_the_configuration(tmp_path):
     source = tmp_path / "source"
     source.mkdir()
     shutil.copy(ROOT / "CMakeLists.txt", source)
-    for folder in ("MDLShapeModel", "Resources"):
-        shutil.copytree(ROOT / folder, source / folder)
+    shutil.copytree(ROOT / "MDLShapeModel", source / "MDLShapeModel")
     (source / "MDLShapeModel" / "mdlshapemodel" / "demo.py").unlink()
     done = configure(source, tmp_path / "build")
     assert done.returncode != 0

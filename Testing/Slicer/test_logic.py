@@ -13,9 +13,11 @@ from vtk.util.numpy_support import vtk_to_numpy
 
 import harness
 import MDLShapeModel as module
+from MDLShapeModelLib import dependencies
 from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.config import SMOOTHNESS, SURFACE_POINTS
 from mdlshapemodel.errors import ConfigError
+from mdlshapemodel.folders import FitFolder, mesh_points
 from mdlshapemodel.prepare import io, preprocess
 from mdlshapemodel.prepare.surface import (arrays_to_polydata, mask_to_surface,
                                            point_surface_distances)
@@ -125,13 +127,25 @@ def test_check_landmarks_beside_the_point_lists_joins_a_build_given_them(scene):
 
 def test_the_parameter_node_survives_saving_and_reloading_the_scene(scene, tmp_path):
     explorer = scene.AddNewNodeByClass("vtkMRMLModelNode", "explorer")
+    inputs = [scene.AddNewNodeByClass(kind, name) for kind, name in (
+        ("vtkMRMLSegmentationNode", "left"), ("vtkMRMLLabelMapVolumeNode", "right"),
+        ("vtkMRMLModelNode", "third"))]
+    marks = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "left_landmarks")
     parameters = module.MDLShapeModelLogic().getParameterNode()
     parameters.points = 642
     parameters.max_time = 90.5
     parameters.strict = True
+    parameters.labels = "1, 2"
+    parameters.strategy = "one-at-a-time"
+    parameters.defaultSmoothness = False
+    parameters.smoothness = 0.02
+    parameters.check_landmarks = True
     parameters.segments = "Left hippocampus, head"
     parameters.outputDirectory = tmp_path / "out"
     parameters.explorerModel = explorer
+    parameters.inputNodes = inputs
+    parameters.landmarkNodes = [marks]
+    parameters.analysisPermutations = 999
     scene.SetURL(str(tmp_path / "scene.mrml"))
     assert scene.Commit()
     reloaded = harness.new_scene()
@@ -143,7 +157,19 @@ def test_the_parameter_node_survives_saving_and_reloading_the_scene(scene, tmp_p
     assert module.segmentNames(again.segments) == ["Left hippocampus", "head"]
     assert again.outputDirectory == tmp_path / "out"
     assert again.explorerModel is not None and again.explorerModel.GetName() == "explorer"
-    assert again.strategy == BuildConfig().strategy
+    # the input selections and the landmark point lists are saved with the scene, in order
+    assert [node.GetName() for node in again.inputNodes] == ["left", "right", "third"]
+    assert [node.GetClassName() for node in again.inputNodes] == [
+        "vtkMRMLSegmentationNode", "vtkMRMLLabelMapVolumeNode", "vtkMRMLModelNode"]
+    assert [node.GetName() for node in again.landmarkNodes] == ["left_landmarks"]
+    assert module.buildConfigOf(again) == BuildConfig(
+        labels=[1, 2], points=642, max_time=90.5, strict=True, strategy="one-at-a-time",
+        smoothness=0.02)
+    assert again.check_landmarks is True and again.analysisPermutations == 999
+    assert again.analysisColorBy == module.EFFECT_SCALARS[0]
+    # fewer nodes written over more leave no stale entry behind
+    again.inputNodes = [again.inputNodes[2]]
+    assert [node.GetName() for node in again.inputNodes] == ["third"]
 
 
 def test_segmentation_nodes_build_the_same_model_as_the_command_line_and_overlay(
@@ -287,14 +313,14 @@ def test_a_background_build_reports_progress_and_cancel_keeps_the_state_reached(
     job = module.MDLShapeModelLogic().startBuild(volumes, tmp_path, config)
     seen, started, cancelled = [], time.monotonic(), False
     while not job.done and time.monotonic() - started < 300:
-        seen += job.messages()
-        if not cancelled and any("F =" in message for _, message in seen):
+        seen += job.poll()
+        if not cancelled and any("F =" in report.message for report in seen):
             job.cancel()         # once the optimisation runs
             cancelled = True
         time.sleep(0.05)
     assert job.wait(300)
-    seen += job.messages()
-    messages = [message for _, message in seen]
+    seen += job.poll()
+    messages = [report.message for report in seen]
     # each case reported prepared, in turn, before the optimisation's first report
     prepared = [k for k, message in enumerate(messages) if message.startswith("prepared")]
     assert [messages[k] for k in prepared] == [f"prepared {k}/5" for k in range(1, 6)]
@@ -325,11 +351,11 @@ def test_slicer_reads_the_librarys_meshes_as_lps_and_the_library_reads_slicers(s
         np.testing.assert_allclose(read, vertices, atol=1e-5)
 
 
-def test_resources_are_found_in_the_checkouts_resources_folder():
-    root = harness.HERE.parents[1]
-    assert module.resourcePath("UI/MDLShapeModel.ui") == root / "Resources" / "UI" / "MDLShapeModel.ui"
-    assert module.requirements() and not any(r.split(">")[0].lower() in ("vtk", "simpleitk")
-                                             for r in module.requirements())
+def test_resources_are_found_in_the_modules_resources_folder():
+    folder = harness.MODULE_DIRECTORY / "Resources"
+    assert module.resourcePath("UI/MDLShapeModel.ui") == folder / "UI" / "MDLShapeModel.ui"
+    assert dependencies.requirements() and not any(
+        r.split(">")[0].lower() in ("vtk", "simpleitk") for r in dependencies.requirements())
     with pytest.raises(FileNotFoundError, match="nothing.txt"):
         module.resourcePath("nothing.txt")
 
@@ -343,20 +369,27 @@ def test_a_new_segmentation_is_fitted_to_a_loaded_model(mixed_build, generated_f
     result, *_ = mixed_build
     segmentation = harness.segmentations_logic().LoadSegmentationFromFile(
         str(generated_files[4]), True, "new_case")
-    fitted, reconstruction, fit = module.MDLShapeModelLogic().fitSegmentation(
+    fitted, reconstruction, summary = module.MDLShapeModelLogic().fitSegmentation(
         segmentation, result.modelFile, tmp_path, maxTime=20)
-    assert fit.name == "new_case"
+    assert fitted.GetName() == "new_case fitted"
     assert points_of(fitted).shape == points_of(reconstruction).shape == (162, 3)
-    np.testing.assert_allclose(points_of(fitted), fit.corresponded * LPS_TO_RAS)
+    # the fit's files (the library's, LPS) overlay the segmentation as nodes (RAS)
+    fit = FitFolder(tmp_path)
+    np.testing.assert_allclose(points_of(fitted),
+                               mesh_points(fit.case_mesh("", "new_case")) * LPS_TO_RAS,
+                               atol=1e-5)
+    np.testing.assert_allclose(
+        points_of(reconstruction),
+        mesh_points(fit.case_mesh("", "new_case", reconstruction=True)) * LPS_TO_RAS, atol=1e-5)
+    assert summary == fit.summary()["new_case"] and summary["reconstruction_distance_mm"]
     vertices, triangles = closed_surface_ras(segmentation)
     assert point_surface_distances(points_of(fitted), vertices, triangles).mean() < 0.5
 
 
-def test_missing_requirements_are_the_ones_not_installed(monkeypatch):
-    assert module.missingRequirements() == []          # this virtualenv has the library's packages
-    monkeypatch.setattr(module, "requirements",
-                        lambda: ["numpy>=1.0", "numpy>=999", "no-such-package-mdl>=1"])
-    assert module.missingRequirements() == ["numpy>=999", "no-such-package-mdl>=1"]
+def test_missing_requirements_are_the_ones_not_installed():
+    assert dependencies.missingRequirements() == []    # this virtualenv has the library's packages
+    wanted = ["numpy>=1.0", "numpy>=999", "no-such-package-mdl>=1"]
+    assert dependencies.missingRequirements(wanted) == ["numpy>=999", "no-such-package-mdl>=1"]
 
 
 def test_a_two_part_object_is_built_from_label_map_nodes_and_loaded_part_by_part(tmp_path):

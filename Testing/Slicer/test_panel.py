@@ -49,7 +49,12 @@ def test_every_parameter_has_exactly_one_widget_of_its_kind(loaded):
     root, _ = loaded
     widgets = panel.parameter_widgets(root)
     parameters = module.MDLShapeModelParameterNode.allParameters
-    assert set(widgets) == set(parameters)
+    # the parameters of several nodes are shown by checkable selectors, kept in step by the Widget
+    checked = module.CHECKED_NODE_PARAMETERS
+    assert set(widgets) == set(parameters) - set(checked)
+    for name, selector in checked.items():
+        assert isinstance(root.findChild(QtWidgets.QWidget, selector),
+                          panel.qMRMLCheckableNodeComboBox), name
     hints = typing.get_type_hints(module.MDLShapeModelParameterNode, include_extras=True)
     for name, (widget,) in widgets.items():
         kind = typing.get_args(hints[name])[0] if typing.get_origin(hints[name]) else hints[name]
@@ -63,6 +68,16 @@ def test_every_parameter_has_exactly_one_widget_of_its_kind(loaded):
                         bool: QtWidgets.QCheckBox, str: QtWidgets.QLineEdit,
                         pathlib.Path: panel.ctkPathLineEdit}[kind]
         assert isinstance(widget, expected), name
+
+
+def test_every_parameter_the_ui_binds_is_declared_by_name_in_the_modules_source(loaded):
+    root, _ = loaded
+    source = pathlib.Path(module.__file__).read_text()
+    declared = set(re.findall(r"^    (\w+): ", source, re.M))
+    bound = set(panel.parameter_widgets(root))
+    assert {"labels", "strategy", "outputDirectory", "analysisColorBy"} <= bound
+    assert bound - declared == set()
+    assert set(module.CHECKED_NODE_PARAMETERS) <= declared
 
 
 def test_the_sections_are_inputs_parameters_run_results_with_advanced_and_analysis_collapsed(

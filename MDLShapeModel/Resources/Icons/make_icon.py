@@ -1,7 +1,8 @@
-"""Draws Resources/Icons/MDLShapeModel.png (128 x 128): a shape model's mean surface coloured by
+"""Draws MDLShapeModel/Resources/Icons/MDLShapeModel.png (128 x 128): a shape model's mean surface coloured by
 the displacement of its first mode. Run with the mean.vtp and model.h5 of any build:
 
-    python Resources/Icons/make_icon.py BUILD_FOLDER Resources/Icons/MDLShapeModel.png
+    python MDLShapeModel/Resources/Icons/make_icon.py BUILD_FOLDER \
+        MDLShapeModel/Resources/Icons/MDLShapeModel.png
 """
 
 import sys
