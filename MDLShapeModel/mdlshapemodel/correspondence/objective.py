@@ -388,8 +388,7 @@ class Objective:
         active = np.flatnonzero(positive[:resolved] & (d_range[:resolved] != 0))
         if not active.size:
             return value, coded @ mixing
-        columns = coded[:, active]
-        top, bottom = np.argmax(columns, axis=0), np.argmin(columns, axis=0)
+        top, bottom = np.argmax(coded, axis=0)[active], np.argmin(coded, axis=0)[active]
         difference = (coded[top, :resolved] - coded[bottom, :resolved]) / root[:resolved]
         gaps = raw[active][:, None] - raw[None, :resolved]                # delta_m: (n_active, r)
         with np.errstate(divide="ignore", invalid="ignore"):
