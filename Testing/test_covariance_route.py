@@ -100,7 +100,8 @@ def derivative_along(state, i, base, direction, step=1e-6):
     scale = step * np.abs(state.shapes).max()
 
     def central(h):
-        return (state.value(i, base + h * direction) - state.value(i, base - h * direction)) / (2 * h)
+        return (state.value(i, base + h * direction)
+                - state.value(i, base - h * direction)) / (2 * h)
     return (4 * central(scale) - central(2 * scale)) / 3
 
 

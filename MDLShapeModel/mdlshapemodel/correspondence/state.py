@@ -589,8 +589,8 @@ class CorrespondenceState:
     def trial_shapes(self, shapes: np.ndarray, raw: np.ndarray | None = None):
         """Within the block, :meth:`value`, :meth:`covariance` and :meth:`shape_gradient` see
         *every* example's shape replaced by ``shapes`` (n_s, n_p, 3) (and a guided state's
-        unposed samples by ``raw``, needed then): the Gram matrix (if kept) is rebuilt from scratch about
-        the same reference, O(n_s^2 n_p). The state is restored afterwards."""
+        unposed samples by ``raw``, needed then): the Gram matrix (if kept) is rebuilt from
+        scratch about the same reference, O(n_s^2 n_p). The state is restored afterwards."""
         if self.guides is not None and raw is None:
             raise ValueError("a trial of a guided state needs its unposed samples (raw)")
         saved = (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self._smoothed)
