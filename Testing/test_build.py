@@ -119,6 +119,29 @@ def test_model_file_scores_and_metrics_agree(built):
     assert [row.objective for row in checkpoint.trace_rows] == pytest.approx(rows, rel=1e-9)
 
 
+def test_the_reported_objective_is_the_minimised_one_with_its_parts(population, tmp_path):
+    """With the prior on smooth correspondence (the default weight), metrics.json's objective is
+    the F the optimisation minimised, the sum of its named parts: the last value convergence.csv
+    traces, the model's metadata and the report's."""
+    folder, paths = population
+    config = BuildConfig(points=162, coarse_points=42, max_time=3.0, workers=1,
+                         specificity_samples=200, evaluation_modes=2)
+    result = build_model(paths, tmp_path / "out", config)
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    objective = metrics["objective"]
+    for when in ("initial", "final"):
+        parts = objective["parts"][when]
+        assert set(parts) == {"description_length", "prior", "guides"}
+        assert parts["prior"] > 0 and parts["guides"] == 0.0
+        assert objective[when] == pytest.approx(
+            parts["description_length"] + parts["prior"] + parts["guides"], rel=1e-12)
+    convergence = read_csv(tmp_path / "out" / "convergence.csv")
+    assert float(convergence[-1]["objective"]) == pytest.approx(objective["final"], rel=1e-9)
+    assert result.model.metadata["objective"] == objective["final"]
+    report = (tmp_path / "out" / "report.html").read_text()
+    assert f"smoothness prior {objective['parts']['final']['prior']:.3f}" in report
+
+
 def test_too_few_usable_cases_is_an_error(population, tmp_path):
     _, paths = population
     with pytest.raises(BuildError, match="at least 3"):

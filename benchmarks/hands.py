@@ -59,7 +59,7 @@ def build(args) -> int:
     metrics = json.loads((output / "metrics.json").read_text())
     baseline = metrics["baselines"]["none"]
     print(f"{metrics['n_shapes']} outlines, n_p = {metrics['n_points']}, {seconds:.1f} s wall "
-          f"(CLI in a subprocess); eq. 14 {metrics['objective']['initial']:.2f} -> "
+          f"(CLI in a subprocess); objective {metrics['objective']['initial']:.2f} -> "
           f"{metrics['objective']['final']:.2f}")
     for key in ("generalization", "specificity"):
         print(f"\n{key} [mm^2 +- SE]  M = 1..5")

@@ -43,7 +43,7 @@ def main() -> int:
     metrics = json.loads((Path(args.output) / "metrics.json").read_text())
     print(f"\n{metrics['n_shapes']} hippocampi, {metrics['n_points']} points, strategy "
           f"{metrics['strategy']}, {metrics['n_rejected']} rejected; wall time {wall:.0f} s")
-    print(f"objective (eq. 14): initial {metrics['objective']['initial']:.2f}, "
+    print(f"objective (eq. 14 + prior + guides): initial {metrics['objective']['initial']:.2f}, "
           f"final {metrics['objective']['final']:.2f} nats")
     for name, base in metrics["baselines"].items():
         print(f"\n=== optimised against baseline '{name}' (objective {base['objective']:.2f}) ===")

@@ -77,7 +77,8 @@ def main():
               f"largest difference {np.abs(a - b).max():.3g}")
     objectives = [json.loads((output / n / "metrics.json").read_text())["objective"]["final"]
                   for n in ("slicer", "cli")]
-    print(f"  objective (eq. 14): Logic {objectives[0]:.4f}, command line {objectives[1]:.4f}")
+    print(f"  objective (eq. 14 + prior + guides): Logic {objectives[0]:.4f}, "
+          f"command line {objectives[1]:.4f}")
     largest, distances = 0.0, []
     for node, segmentation in zip(result.correspondenceModelNodes, nodes):
         ras = vtk_to_numpy(node.GetPolyData().GetPoints().GetData()).astype(float)

@@ -32,7 +32,7 @@ import numpy as np
 from .config import BuildConfig
 from .correspondence.cpd import cpd_state
 from .correspondence.initial import initial_state
-from .correspondence.state import CorrespondenceState
+from .correspondence.state import CorrespondenceState, ObjectiveParts
 from .correspondence.coarse import coarse_view
 from .correspondence.strategies import optimise, runs_coarse
 from .correspondence.strategies.base import PhasePoint, Resumption
@@ -535,14 +535,24 @@ class Correspondence:
 
     state: CorrespondenceState   # every example's warps and pose, in the order of the cases
     model: ShapeModel            # the model of ``state`` (:func:`shape_model_of`)
-    initial_objective: float     # eq. 14 of the initial correspondence (cpd: of the CPD one)
-    final_objective: float       # eq. 14 of ``state``
+    initial: ObjectiveParts      # F of the initial correspondence (cpd: of the CPD one)
+    final: ObjectiveParts        # F of ``state``: eq. 14, the prior and the guides' term
     voxel_size: float            # mm, the mean over the cases: the unit of the coding accuracy
     data_range: float            # mm, of the initially aligned shapes
     trace: Trace                 # the optimisation's rows (convergence.csv)
     optimisation: OptimisationEnd   # converged or what stopped it
     objective_points: int        # the sample points (all parts) the objectives are measured on
     landmarks: dict | None = None   # case name -> the Landmarks that guided it (None: unguided)
+
+    @property
+    def initial_objective(self) -> float:
+        """F (eq. 14 with the prior and the guides' term) of the initial correspondence."""
+        return self.initial.total
+
+    @property
+    def final_objective(self) -> float:
+        """F of ``state``, as the optimisation minimised it."""
+        return self.final.total
 
     @property
     def interrupted(self) -> bool:
@@ -654,17 +664,19 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                         "are its coordinates those of the case's file (LPS, or RAS where the "
                         "file says so)?", label, name, distance)
     settings = config.optimisation_settings()
-    # eq. 14 is measured where the optimisation minimises it (the fast strategy's coarse grid)
+    # F is measured where the optimisation minimises it (the fast strategy's coarse grid)
     coarse = (settings.coarse_points if config.correspondence != "cpd"
               and runs_coarse(state, settings) else None)
 
-    def measured(current: CorrespondenceState) -> float:
-        return integrated((current if coarse is None
-                           else coarse_view(current, coarse)).covariance())
+    def measured(current: CorrespondenceState) -> ObjectiveParts:
+        """The F the optimisation's last phase minimises (eq. 14, the prior, the guides)."""
+        return (current if coarse is None
+                else coarse_view(current, coarse)).objective_parts(integrated)
 
-    initial = measured(state)
-    log.info("initial objective %.4f (n_s=%d, n_p=%d%s, voxel %.3f mm, range %.2f mm)", initial,
-             state.n_shapes, state.n_points,
+    initial_parts = measured(state)
+    initial = initial_parts.total
+    log.info("initial objective %.4f (%s; n_s=%d, n_p=%d%s, voxel %.3f mm, range %.2f mm)",
+             initial, described(initial_parts), state.n_shapes, state.n_points,
              "" if coarse is None else f", measured on {coarse} points per part", voxel,
              data_range)
     wanted = config.baselines if baselines is not None else []
@@ -680,9 +692,9 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         if config.correspondence != "cpd":
             log.info("evaluating the CPD template correspondence as a baseline")
             try:
-                objective = measured(cpd)
+                objective = measured(cpd).total
             except ValueError:      # the coarse grid is not within the build's (not icospheres)
-                objective = integrated(cpd.covariance())
+                objective = cpd.objective_parts(integrated).total
                 log.info("the CPD baseline's objective is measured on its %d points per part",
                          len(cpd.grids[0][0]))
             baselines("cpd", cpd, {"objective": objective,
@@ -692,7 +704,8 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     if config.correspondence == "cpd":
         state = cpd
         state.objective = integrated
-        initial = final = state.value()
+        initial_parts = final_parts = state.objective_parts()
+        initial = final = final_parts.total
         trace.record(state, final, "integrated", 0)
         log.info("CPD correspondence (template %s): objective %.4f", template, final)
     else:
@@ -719,12 +732,14 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
             trace.stopped_by = Stop.INTERRUPTED
         if resume is None or resume.point.phase != PhasePoint.DONE:
             state.rebuild()  # also makes the state consistent after an interruption mid-step
-        final = measured(state)
-        log.info("final objective %.4f after %.1f s, %d evaluations; optimisation %s", final,
+        final_parts = measured(state)
+        final = final_parts.total
+        log.info("final objective %.4f (%s) after %.1f s, %d evaluations; optimisation %s", final,
+                 described(final_parts),
                  trace.last.wall_seconds if trace.rows else 0.0, state.evaluations,
                  stop_summary(trace.stopped_by))
         if final > initial and not math.isclose(final, initial, rel_tol=OBJECTIVE_RTOL):
-            log.info("eq. 14 ended above the initial correspondence's (%.4f): the fixed-Delta "
+            log.info("F ended above the initial correspondence's (%.4f): the fixed-Delta "
                      "phase trades the smallest modes' description length for a more compact "
                      "model; generalization and specificity against the initial correspondence's "
                      "(the report) say which model is better", initial)
@@ -734,9 +749,15 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     ending = OptimisationEnd(trace.stopped_by, config.max_time, config.max_sweeps,
                              trace.last.wall_seconds if trace.rows else 0.0)
     return Correspondence(state, shape_model_of(state, config, final, voxel, data_range, named),
-                          initial, final, voxel, data_range, trace, ending,
+                          initial_parts, final_parts, voxel, data_range, trace, ending,
                           state.n_points if coarse is None else coarse * len(state.grids),
                           landmarks if state.guides is not None else None)
+
+
+def described(parts: ObjectiveParts) -> str:
+    """The parts of F for the log."""
+    return (f"description length {parts.description_length:.4f}, prior {parts.prior:.4f}, "
+            f"guides {parts.guides:.4f}")
 
 
 def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: float,

@@ -263,7 +263,8 @@ def _summary(result) -> str:
     m = result.metrics
     measured = m["objective"].get("n_points", m["n_points"])
     lines = [f"model of {m['n_shapes']} cases written to {result.output}",
-             f"  objective (eq. 14): {result.initial_objective:.3f} -> {result.final_objective:.3f}"
+             f"  objective (eq. 14) + prior + guides: {result.initial_objective:.3f} -> "
+             f"{result.final_objective:.3f}"
              f" nats ({m['strategy']}"
              f"{'' if measured == m['n_points'] else f', on {measured} sample points'})",
              f"  optimisation: {stop_summary(m['optimisation']['stopped_by'])}"]

@@ -254,8 +254,12 @@ def write_outputs(output: Path, corresponded, rejected: list, written: WrittenSh
     names = model.names
     cases, normals, outlier = written.cases, written.normals, written.outlier
     metrics = {"objective": {"initial": initial, "final": final,
+                             "parts": {"initial": corresponded.initial.to_json(),
+                                       "final": corresponded.final.to_json()},
                              "n_points": corresponded.objective_points,
-                             "units": "nats (eq. 14, Delta averaged over delta_range)"},
+                             "units": "nats: the description length (eq. 14, Delta averaged over "
+                                      "delta_range) + the smoothness prior + the landmark "
+                                      "guides' term"},
                "strategy": model.metadata["strategy"], "n_shapes": state.n_shapes,
                "n_points": state.n_points,
                "n_rejected": len(rejected), "voxel_size_mm": voxel, "data_range_mm": data_range,

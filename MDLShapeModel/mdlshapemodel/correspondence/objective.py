@@ -244,6 +244,14 @@ def _eigen(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return eigenvalues[::-1], vectors[:, ::-1]
 
 
+def covariance_route(n_shapes: int, dimension: int) -> bool:
+    """Whether eq. 14 and its gradient for n_s shapes of ``dimension`` coordinates (3 n_p) go
+    through the dimension x dimension covariance (:meth:`Objective.data_gradient`) rather than the
+    n_s x n_s Gram matrix (:meth:`Objective.gradient`): where it is the smaller of the two (both
+    routes cost the cube of their matrix's size plus n_s d min(n_s, d) for the products)."""
+    return n_shapes > dimension
+
+
 @dataclass
 class Objective:
     """F as a function of the centred covariance D' of the training set.
@@ -292,19 +300,10 @@ class Objective:
         root = np.sqrt(mu)
         coded = vectors * root
         value = self.from_coded(coded)
-        sigma, ranges, sum_squares = mode_statistics(coded)
-        if self.kind == "fixed":
-            d_sigma, d_sum, d_range = _fixed_mode_slopes(sigma, ranges, n_s, self.delta,
-                                                         self.variant, self.free_below_delta)
-        else:
-            d_sigma, d_sum, d_range = _integrated_mode_slopes(
-                sigma, ranges, sum_squares, n_s, self.delta_min, self.delta_max, self.data_range)
-        positive = raw > 0
+        slope, d_range, positive = self._mode_slopes(coded, raw, root, n_s)
         spread = np.ptp(vectors, axis=0)
         safe_root = np.where(positive, root, 1.0)
-        safe_sigma = np.where(positive & (sigma > 0), sigma, 1.0)
-        slope = np.where(positive, d_sigma / (2.0 * n_s * safe_sigma) + d_sum
-                         + d_range * spread / (2.0 * safe_root), 0.0)
+        slope = np.where(positive, slope + d_range * spread / (2.0 * safe_root), 0.0)
         grad = (vectors * slope) @ vectors.T
         active = np.flatnonzero(positive & (d_range != 0))
         if active.size:
@@ -319,6 +318,96 @@ class Objective:
             part = (directions * (d_range[active] * root[active])) @ columns.T
             grad += 0.5 * (part + part.T)
         return value, 0.5 * (grad + grad.T)
+
+    def _mode_slopes(self, coded, raw, root, n_s):
+        """Per mode, dF/dmu_m from sigma_m and S_m (0 where mu_m <= 0), dF/drange_m, and which
+        modes have mu_m > 0: the pieces of :meth:`gradient` and :meth:`data_gradient`."""
+        sigma, ranges, sum_squares = mode_statistics(coded)
+        if self.kind == "fixed":
+            d_sigma, d_sum, d_range = _fixed_mode_slopes(sigma, ranges, n_s, self.delta,
+                                                         self.variant, self.free_below_delta)
+        else:
+            d_sigma, d_sum, d_range = _integrated_mode_slopes(
+                sigma, ranges, sum_squares, n_s, self.delta_min, self.delta_max, self.data_range)
+        positive = raw > 0
+        safe_sigma = np.where(positive & (sigma > 0), sigma, 1.0)
+        return d_sigma / (2.0 * n_s * safe_sigma) + d_sum, d_range, positive
+
+    def from_data(self, data: np.ndarray) -> float:
+        """F(D') for D' = A A^T, from A (n_s, d) through the d x d matrix A^T A (its nonzero
+        eigenvalues are D''s): O(n_s d^2 + d^3) work and O(n_s d) memory, where the n_s x n_s
+        route costs O(n_s^3) and O(n_s^2). The same value as ``self(data @ data.T)`` to rounding."""
+        data = np.asarray(data, dtype=np.float64)
+        raw, axes = _eigen(data.T @ data)
+        coded = data @ axes
+        coded[:, raw <= 0] = 0.0
+        return self._value_of_modes(coded, data.shape[0])
+
+    def _value_of_modes(self, coded, n_s):
+        """F from the coded values of the covariance's d modes: D' has n_s eigenvalues, the
+        d of A^T A and n_s - d zeros (fewer if d > n_s), whose cost is added (0 but for the
+        fixed kind without case 3)."""
+        value = self.from_coded(coded)
+        missing = n_s - coded.shape[1]
+        if missing:
+            value += missing * self.from_coded(np.zeros((n_s, 1)))
+        return value
+
+    def data_gradient(self, data: np.ndarray) -> tuple[float, np.ndarray]:
+        """F(D') and dF/dA = 2 (dF/dD') A for D' = A A^T, through the d x d matrix A^T A
+        (:meth:`from_data`): linear in n_s, and nothing n_s x n_s is formed.
+
+        With A^T A = sum_m mu_m w_m w_m^T (eigh), Y_m = A w_m = sqrt(mu_m) u_m are D''s coded
+        values and u_m its unit eigenvectors. The terms of :meth:`gradient` become
+
+            2 sum_m g_m u_m u_m^T A = 2 sum_m g_m Y_m w_m^T,
+
+        and for the range term P = sum_m c_m v_m u_m^T (c_m = dF/drange_m sqrt(mu_m)), (P + P^T) A
+        with u_m^T A = sqrt(mu_m) w_m^T. D''s eigenvectors beyond the r resolved modes (mu_n
+        <= 1e-12 mu_1: its null space, of which A^T A knows nothing) enter v_m only as a whole,
+        sum_{n null} (u_an - u_bn) u_n / mu_m = (e_a - e_b - U_r (U_r[a] - U_r[b])^T) / mu_m, so
+        that v_m = (e_a - e_b) / mu_m + U_r beta_m with beta_mn = delta_mn / (mu_m - mu_n)
+        - delta_mn / mu_m (delta_m = U_r[a] - U_r[b], the first term 0 for n = m).
+        """
+        data = np.asarray(data, dtype=np.float64)
+        n_s = data.shape[0]
+        raw, axes = _eigen(data.T @ data)
+        mu = np.clip(raw, 0.0, None)
+        root = np.sqrt(mu)
+        coded = data @ axes
+        coded[:, raw <= 0] = 0.0
+        value = self._value_of_modes(coded, n_s)
+        slope, d_range, positive = self._mode_slopes(coded, raw, root, n_s)
+        safe_mu = np.where(positive, mu, 1.0)
+        slope = np.where(positive, slope + d_range * np.ptp(coded, axis=0) / (2.0 * safe_mu),
+                         0.0)
+        # grad = Y M: the d x d matrix M gathers every term of the form Y (...) before the one
+        # product with Y (n_s x d x d, the cost of an evaluation with A^T A and Y = A W)
+        mixing = 2.0 * slope[:, None] * axes.T
+        resolved = int(np.count_nonzero(raw > 1e-12 * max(raw[0], 0.0)))
+        active = np.flatnonzero(positive[:resolved] & (d_range[:resolved] != 0))
+        if not active.size:
+            return value, coded @ mixing
+        top, bottom = np.argmax(coded, axis=0)[active], np.argmin(coded, axis=0)[active]
+        difference = (coded[top, :resolved] - coded[bottom, :resolved]) / root[:resolved]
+        gaps = raw[active][:, None] - raw[None, :resolved]                # delta_m: (n_active, r)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            coefficients = np.where(gaps != 0, difference / gaps, 0.0)
+        coefficients[np.arange(active.size), active] = 0.0
+        beta = coefficients - difference / raw[active][:, None]
+        along = d_range[active]                           # c_m sqrt(mu_m) / mu_m = dF/drange_m
+        # P A = sum_m c_m sqrt(mu_m) v_m w_m^T: its U_r beta part through M, its e_a - e_b part
+        # on rows a and b
+        rows = along[:, None] * axes[:, active].T                        # (n_active, d)
+        mixing[:resolved] += (beta.T / root[:resolved, None]) @ (mu[active, None] * rows)
+        # P^T A = sum_m c_m u_m (v_m^T A), v_m^T A = (A[a] - A[b]) / mu_m + beta_m^T U_r^T A
+        projected = ((data[top] - data[bottom]) / raw[active][:, None]
+                     + (beta * root[:resolved]) @ axes[:, :resolved].T)
+        mixing[active] += along[:, None] * projected
+        grad = coded @ mixing
+        np.add.at(grad, top, rows)
+        np.subtract.at(grad, bottom, rows)
+        return value, grad
 
     def from_coded(self, coded: np.ndarray) -> float:
         if self.kind == "fixed":
@@ -349,3 +438,9 @@ class NoDescription:
 
     def gradient(self, gram: np.ndarray) -> tuple[float, np.ndarray]:
         return 0.0, np.zeros_like(np.asarray(gram, dtype=np.float64))
+
+    def from_data(self, data: np.ndarray) -> float:
+        return 0.0
+
+    def data_gradient(self, data: np.ndarray) -> tuple[float, np.ndarray]:
+        return 0.0, np.zeros_like(np.asarray(data, dtype=np.float64))

@@ -7,7 +7,10 @@ parts. The shape vector x_i concatenates the parts' samples S_ij(phi_ij(u_k)) af
 The objective F is a function of the reduced covariance D'_ij = sum_k w_k (x_ik - xbar_k).(x_jk - xbar_k)
 (eq. 15-17), with the area weights w on the mean shape. We keep the uncentred weighted Gram matrix
 K_ij = sum_k w_k (x_ik - r_k).(x_jk - r_k) about a fixed reference r, so that changing one example
-costs O(n_s n_p) (one row of K) and D' = H K H with H = I - 11^T / n_s.
+costs O(n_s n_p) (one row of K) and D' = H K H with H = I - 11^T / n_s. Past
+:func:`~.objective.covariance_route` (more shapes than coordinates, 3 n_p), no K is kept: F and
+its gradient come from the centred, weighted shapes A (D' = A A^T) through the 3 n_p x 3 n_p
+matrix A^T A, in time and memory linear in n_s.
 
 Scale: with pose in the optimisation, F must not fall by shrinking the population. F is always
 evaluated on the population rescaled so that the mean shape keeps the centroid size it had after
@@ -27,7 +30,7 @@ from ..prepare.sphere import orientation
 from ..prepare.surface import face_areas, triangle_vertex_areas
 from .guides import Guides
 from .smoothness import Smoothness
-from .objective import Objective
+from .objective import Objective, covariance_route
 from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from .sampling import SphereLocator, grid_order, icosphere
 from .warps import WARP_KINDS, SymmetricTheta, Warp, apply_symmetric_theta, apply_warps
@@ -222,6 +225,26 @@ class FixedExample:
         return self.points
 
 
+@dataclass(frozen=True)
+class ObjectiveParts:
+    """The objective the optimisation minimises and its parts (nats): the description length
+    (eq. 14, or eq. 13 for the fixed-Delta objective), the smoothness prior's energy and the
+    landmark guides' term (each 0 where the state has none)."""
+
+    description_length: float
+    prior: float
+    guides: float
+
+    @property
+    def total(self) -> float:
+        """F: their sum, in the order :meth:`CorrespondenceState.value` adds them."""
+        return self.description_length + self.guides + self.prior
+
+    def to_json(self) -> dict:
+        return {"description_length": self.description_length, "prior": self.prior,
+                "guides": self.guides}
+
+
 class CorrespondenceState:
     """All examples, the sampling grids, the area weights and the incrementally updated covariance.
 
@@ -314,9 +337,7 @@ class CorrespondenceState:
         self.shapes = np.stack([e.pose.apply(e.raw_points()) for e in self.examples])
         self.reference = self.shapes.mean(axis=0)
         self.sum_shapes = self.shapes.sum(axis=0)
-        centred = (self.shapes - self.reference) * np.sqrt(self.weights)[None, :, None]
-        flat = centred.reshape(self.n_shapes, -1)
-        self.gram = flat @ flat.T
+        self.gram = None if self.by_covariance else self._gram(self.shapes)
         self.guide_costs = (None if self.guides is None
                             else self.guides.costs(self.raw_shapes()))
         # the prior's terms about this reference, and its energy and B~ D of the current shapes,
@@ -324,6 +345,30 @@ class CorrespondenceState:
         # model's grid while the fast strategy optimises on the coarse one) never pays for them
         self._terms = None
         self._smoothed = None
+
+    @property
+    def by_covariance(self) -> bool:
+        """Whether F goes through the 3 n_p x 3 n_p covariance (no n_s x n_s Gram matrix K)."""
+        return covariance_route(self.n_shapes, 3 * self.n_points)
+
+    def _gram(self, shapes: np.ndarray) -> np.ndarray:
+        """K of ``shapes`` (n_s, n_p, 3) about the reference."""
+        centred = ((shapes - self.reference) * np.sqrt(self.weights)[None, :, None]).reshape(
+            len(shapes), -1)
+        return centred @ centred.T
+
+    def _scaled_data(self, i: int | None = None, shape: np.ndarray | None = None):
+        """A (n_s, 3 n_p), the shapes centred on their mean, times sqrt(w_k) and the rescaling f,
+        so that D' = A A^T (shape i replaced by ``shape`` if given); the sum of the shapes; f."""
+        shapes, total = self.shapes, self.sum_shapes
+        if i is not None:
+            shapes = shapes.copy()
+            shapes[i] = shape
+            total = total - self.shapes[i] + shape
+        factor = self.target_size / centroid_size(total / self.n_shapes, self.weights)
+        data = shapes - total / self.n_shapes
+        data *= (factor * np.sqrt(self.weights))[None, :, None]
+        return data.reshape(self.n_shapes, -1), total, factor
 
     @property
     def smoothness_terms(self):
@@ -365,7 +410,11 @@ class CorrespondenceState:
 
     def covariance(self, i: int | None = None, shape: np.ndarray | None = None) -> np.ndarray:
         """Reduced covariance D' (eq. 15), with shape i replaced by ``shape`` if given, rescaled so
-        that the mean keeps ``target_size``."""
+        that the mean keeps ``target_size``. An n_s x n_s matrix, also past the covariance route
+        (:meth:`description_length` measures F without it)."""
+        if self.gram is None:
+            data = self._scaled_data(i, shape)[0]
+            return data @ data.T
         gram = self.gram
         total = self.sum_shapes
         if i is not None:
@@ -387,8 +436,23 @@ class CorrespondenceState:
         of the covariance, plus the landmark term of the guides (if any), for which a trial also
         gives ``raw``, its unposed samples, and the smoothness prior's energy (if any)."""
         self.evaluations += 1
-        return (self.objective(self.covariance(i, shape)) + self.guide_cost(i, raw)
+        return (self.description_length(None, i, shape) + self.guide_cost(i, raw)
                 + self.smoothness_energy(i, shape))
+
+    def description_length(self, objective: Objective | None = None, i: int | None = None,
+                           shape: np.ndarray | None = None) -> float:
+        """``objective`` (the state's by default) of D', with shape i replaced by ``shape`` if
+        given: through K, or past the covariance route through A^T A."""
+        objective = self.objective if objective is None else objective
+        if self.gram is None:
+            return objective.from_data(self._scaled_data(i, shape)[0])
+        return objective(self.covariance(i, shape))
+
+    def objective_parts(self, objective: Objective | None = None) -> ObjectiveParts:
+        """The parts of F of the current state, with ``objective`` (the state's by default) as
+        its description length: their total is :meth:`value` with that objective."""
+        return ObjectiveParts(self.description_length(objective), self.smoothness_energy(),
+                              self.guide_cost())
 
     def smoothness_energy(self, i: int | None = None, shape: np.ndarray | None = None) -> float:
         """The prior's energy (0 without a prior) of the population rescaled as F sees it,
@@ -439,16 +503,22 @@ class CorrespondenceState:
             dF/dx_ik = 2 w_k sum_j M_ij (x_jk - r_k) - (2 / n_s) <Gd, D'> w_k (xbar_k - c) / cs^2,
 
         the second term from the rescaling (c, cs: weighted centroid and centroid size of the
-        mean xbar). Cost: one (n_s x n_s) by (n_s x 3 n_p) product, O(n_s^2 n_p).
+        mean xbar). Cost: one (n_s x n_s) by (n_s x 3 n_p) product, O(n_s^2 n_p). Past the
+        covariance route, dF/dx_ik = f sqrt(w_k) (H dF/dA)_ik, dF/dA from
+        :meth:`Objective.data_gradient`, and <Gd, D'> = <dF/dA, A> / 2: O(n_s n_p^2).
         """
-        value, grad_cov, covariance, multiplier = self._covariance_gradient(None, None)
-        # flat, contiguous element-wise products: broadcasting over a last axis of 3 is slow
-        flat = (self.shapes - self.reference).reshape(self.n_shapes, -1)
-        flat *= np.repeat(2.0 * self.weights, 3)
-        grad = multiplier @ flat
-        grad += self.scale_gradient(self.sum_shapes,
-                                    float(np.sum(grad_cov * covariance))).reshape(1, -1)
-        grad = grad.reshape(self.shapes.shape)
+        if self.gram is None:
+            value, grad, total, amount = self._data_gradient(None, None)
+            grad += self.scale_gradient(total, amount)
+        else:
+            value, grad_cov, covariance, multiplier = self._covariance_gradient(None, None)
+            # flat, contiguous element-wise products: broadcasting over a last axis of 3 is slow
+            flat = (self.shapes - self.reference).reshape(self.n_shapes, -1)
+            flat *= np.repeat(2.0 * self.weights, 3)
+            grad = multiplier @ flat
+            grad += self.scale_gradient(self.sum_shapes,
+                                        float(np.sum(grad_cov * covariance))).reshape(1, -1)
+            grad = grad.reshape(self.shapes.shape)
         if self.smoothness_terms is not None:
             grad += self._smoothness_gradient(self.sum_shapes, self.smooth_energy, self.bent)
         return value + self.guide_cost() + self.smoothness_energy(), grad
@@ -456,16 +526,21 @@ class CorrespondenceState:
     def example_gradient(self, i: int, shape: np.ndarray | None = None
                          ) -> tuple[float, np.ndarray]:
         """F and dF/dX_i, (n_p, 3), for example i alone (its shape replaced by ``shape`` if
-        given, as in :meth:`covariance`). Cost O(n_s n_p) beyond the O(n_s^3) objective."""
-        value, grad_cov, covariance, multiplier = self._covariance_gradient(
-            None if shape is None else i, shape)
-        total = self.sum_shapes
-        row = np.tensordot(multiplier[i], self.shapes - self.reference, axes=1)
-        if shape is not None:
-            row += multiplier[i, i] * (shape - self.shapes[i])
-            total = total - self.shapes[i] + shape
-        data = 2.0 * row * self.weights[:, None]
-        gradient = data + self.scale_gradient(total, float(np.sum(grad_cov * covariance)))
+        given, as in :meth:`covariance`). Cost O(n_s n_p) beyond the O(n_s^3) objective (past
+        the covariance route, the whole dF/dX, O(n_s n_p^2), of which row i is kept)."""
+        if self.gram is None:
+            value, grad, total, amount = self._data_gradient(None if shape is None else i, shape)
+            gradient = grad[i] + self.scale_gradient(total, amount)
+        else:
+            value, grad_cov, covariance, multiplier = self._covariance_gradient(
+                None if shape is None else i, shape)
+            total = self.sum_shapes
+            row = np.tensordot(multiplier[i], self.shapes - self.reference, axes=1)
+            if shape is not None:
+                row += multiplier[i, i] * (shape - self.shapes[i])
+                total = total - self.shapes[i] + shape
+            data = 2.0 * row * self.weights[:, None]
+            gradient = data + self.scale_gradient(total, float(np.sum(grad_cov * covariance)))
         if self.smoothness_terms is not None:
             bent = self.bent[i]
             if shape is not None:
@@ -488,6 +563,17 @@ class CorrespondenceState:
         centred = centred - centred.mean(axis=0)[None, :]
         return value, grad_cov, covariance, centred * factor ** 2
 
+    def _data_gradient(self, i, shape):
+        """F, dF/dX (n_s, n_p, 3) without the rescaling's term, the sum of the shapes and
+        <dF/dD', D'> at the current (or trial) state, through the covariance route."""
+        self.gradient_evaluations += 1
+        data, total, factor = self._scaled_data(i, shape)
+        value, grad = self.objective.data_gradient(data)
+        amount = 0.5 * float(np.sum(grad * data))
+        grad -= grad.mean(axis=0)
+        grad *= factor * np.repeat(np.sqrt(self.weights), 3)
+        return value, grad.reshape(self.shapes.shape), total, amount
+
     def scale_gradient(self, total, amount: float) -> np.ndarray:
         """(n_p, 3): the part of dT/dx_ik (the same for every example i) due to the rescaling
         factor f = target_size / cs(mean), for a term T of F evaluated on the rescaled
@@ -503,14 +589,13 @@ class CorrespondenceState:
     def trial_shapes(self, shapes: np.ndarray, raw: np.ndarray | None = None):
         """Within the block, :meth:`value`, :meth:`covariance` and :meth:`shape_gradient` see
         *every* example's shape replaced by ``shapes`` (n_s, n_p, 3) (and a guided state's
-        unposed samples by ``raw``, needed then): the Gram matrix is rebuilt from scratch about
-        the same reference, O(n_s^2 n_p). The state is restored afterwards."""
+        unposed samples by ``raw``, needed then): the Gram matrix (if kept) is rebuilt from
+        scratch about the same reference, O(n_s^2 n_p). The state is restored afterwards."""
         if self.guides is not None and raw is None:
             raise ValueError("a trial of a guided state needs its unposed samples (raw)")
         saved = (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self._smoothed)
-        centred = ((shapes - self.reference) * np.sqrt(self.weights)[None, :, None]).reshape(
-            len(shapes), -1)
-        self.shapes, self.sum_shapes, self.gram = shapes, shapes.sum(axis=0), centred @ centred.T
+        self.shapes, self.sum_shapes = shapes, shapes.sum(axis=0)
+        self.gram = None if self.gram is None else self._gram(shapes)
         if self.guides is not None:
             self.guide_costs = self.guides.costs(raw)
         self._smoothed = None
@@ -528,10 +613,11 @@ class CorrespondenceState:
             bent -= bent_delta / self.n_shapes
             bent[i] += bent_delta
             self._smoothed = (energy, bent)
-        row, diagonal = self._row(shape)
-        self.gram[i, :] = row
-        self.gram[:, i] = row
-        self.gram[i, i] = diagonal
+        if self.gram is not None:
+            row, diagonal = self._row(shape)
+            self.gram[i, :] = row
+            self.gram[:, i] = row
+            self.gram[i, i] = diagonal
         self.sum_shapes += shape - self.shapes[i]
         self.shapes[i] = shape
         if self.guides is not None:

@@ -150,13 +150,13 @@ def fit_case(model: ShapeModel, path, config: BuildConfig | None = None, max_tim
 
     data_range = float(np.max(np.ptp(state.aligned_shapes().reshape(-1, 3), axis=0)))
     fixed, integrated = objectives(config, voxel, data_range)
-    initial = integrated(state.covariance())
+    initial = state.description_length(integrated)
     settings = replace(config, strategy=strategy or config.strategy, max_time=max_time,
                        max_sweeps=max_sweeps).optimisation_settings()
     trace = Trace()
     optimise(state, (fixed, integrated), settings, np.random.default_rng(seed), trace, progress,
              active=[len(examples) - 1])
-    final = integrated(state.covariance())       # eq. 14, as ``initial`` (without the prior)
+    final = state.description_length(integrated)     # eq. 14, as ``initial`` (without the prior)
 
     raw = examples[-1].raw_points()
     to_model = align(raw, model.mean, model.weights, scaling=config.scaling,

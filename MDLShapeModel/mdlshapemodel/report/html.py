@@ -353,6 +353,15 @@ def run_table() -> str:
             + f"<p>Command:</p><pre class=command>{html.escape(shlex.join(sys.argv))}</pre>")
 
 
+def _objective_parts(objective: dict) -> str:
+    """The final objective's parts, as the report names them ('' where metrics.json has none)."""
+    parts = objective.get("parts", {}).get("final")
+    if not parts:
+        return ""
+    return (f" (description length {parts['description_length']:.3f}, smoothness prior "
+            f"{parts['prior']:.3f}, landmark guides {parts['guides']:.3f})")
+
+
 def _measured_on(objective: dict, n_points: int) -> str:
     """", on the N sample points the optimisation ran on" where they are not the model's."""
     measured = objective.get("n_points", n_points)
@@ -407,8 +416,10 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
         f"<p>{metrics['n_shapes']} shapes, {metrics['n_points']} points each, correspondence "
         f"<b>{html.escape(metrics['strategy'])}</b>; {metrics['n_rejected']} input(s) rejected"
         f"{' (listed at the end)' if metrics['n_rejected'] else ''}. "
-        f"Objective (eq. 14{_measured_on(objective, metrics['n_points'])}): "
-        f"{objective['initial']:.3f} before, {objective['final']:.3f} after. "
+        f"Objective (eq. 14 with the prior and the guides' term"
+        f"{_measured_on(objective, metrics['n_points'])}): "
+        f"{objective['initial']:.3f} before, {objective['final']:.3f} after"
+        f"{_objective_parts(objective)}. "
         f"Optimisation: <b>{html.escape(stop_summary(ending.get('stopped_by')))}</b>.</p>",
     ]
     parts += [f"<p class=flag>Warning: {html.escape(warning)}.</p>"
