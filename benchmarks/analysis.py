@@ -44,7 +44,10 @@ Per change, group size and superimposition: family-wise significant points at th
 far from it (as ``power``), the normal difference at the change and the group difference that
 the change made far from it by moving the poses; then the null (random half splits of the
 unchanged cases). The alignment is done once per analysis on all its cases, before and
-without the labels, so the permutations stay valid.
+without the labels, so the permutations stay valid. ``--tfce``: each analysis also with
+threshold-free cluster enhancement (``analyze --tfce``; the same resamples), a row per way of
+correcting: the share of the change's points significant beside the counts, and in the null the
+share of splits with any point significant by TFCE.
 
 ``speed BUILD``: the wall time of 10,000 permutations on the build's points.
 
@@ -60,6 +63,7 @@ Examples::
     python benchmarks/analysis.py power /tmp/plant2 /tmp/plant2/mdl /tmp/plant2/none \\
         /tmp/plant2/cpd
     python benchmarks/analysis.py superimpose /tmp/hip --group-sizes 10 20 41
+    python benchmarks/analysis.py superimpose /tmp/hip --group-sizes 10 20 40 --tfce
 """
 
 from __future__ import annotations
@@ -73,8 +77,9 @@ import numpy as np
 
 
 def _split_tests(shapes, weights, cells, labels, permutations, seed, displacement,
-                 superimposition=None, variance_groups=None):
+                 superimposition=None, variance_groups=None, tfce=False):
     from mdlshapemodel.analysis import align, permutation_test, vertex_normals
+    from mdlshapemodel.analysis.tfce import surface_of
     from mdlshapemodel.config import AnalysisConfig
 
     aligned = align(shapes, weights,
@@ -84,7 +89,8 @@ def _split_tests(shapes, weights, cells, labels, permutations, seed, displacemen
     offsets = aligned - mean
     data = np.einsum("npd,pd->np", offsets, normals) if displacement == "normal" else offsets
     return permutation_test(data, labels[:, None].astype(float), permutations=permutations,
-                            seed=seed, variance_groups=variance_groups)
+                            seed=seed, variance_groups=variance_groups,
+                            surface=surface_of(mean, cells) if tfce else None)
 
 
 def null(args):
@@ -373,9 +379,11 @@ def superimpose(args):
           f"{args.width} mm at the head's tip (point {tip}); {int(near.sum())} points at the "
           f"change, {int(far.sum())} >= {FAR:.0f} mm from it; {args.permutations} permutations, "
           f"Welch's v (variance groups), alpha {args.alpha}, {args.subsets} subsets per size")
-    print("| change | per group | superimposition | at change | far | power | any far "
-          "| normal difference at change (mm) | difference made far from it (mm) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    corrections = ("maximum", "TFCE") if args.tfce else ("maximum",)
+    print("| change | per group | superimposition | family-wise | at change | share at change "
+          "| far | power | any far | normal difference at change (mm) | difference made far "
+          "from it (mm) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for kind in ("dent", "retraction"):
         planted = np.zeros(n, bool)
         planted[rng.permutation(n)[:n // 2]] = True
@@ -390,41 +398,52 @@ def superimpose(args):
                       for _ in range(subsets)]
             seeds = rng.integers(1 << 30, size=subsets)
             for method in methods:
-                at, beyond, hits, false, shift_at, shift_far = [], [], 0, 0, [], []
+                found = {c: {"at": [], "far": [], "hits": 0, "false": 0} for c in corrections}
+                shift_at, shift_far = [], []
                 for rows, seed in zip(chosen, seeds):
                     labels = planted[rows]
                     result = _split_tests(changed[rows], weights, cells, labels,
                                           args.permutations, int(seed), "normal", method,
-                                          labels.astype(int))
-                    significant = result.p_fwer <= args.alpha
-                    at.append(int(np.sum(significant & near)))
-                    beyond.append(int(np.sum(significant & far)))
-                    hits += bool(np.any(significant & near))
-                    false += bool(np.any(significant & far))
+                                          labels.astype(int), args.tfce)
+                    for correction, counts in found.items():
+                        significant = (result.p_fwer if correction == "maximum" else
+                                       result.tfce_p_fwer) <= args.alpha
+                        counts["at"].append(int(np.sum(significant & near)))
+                        counts["far"].append(int(np.sum(significant & far)))
+                        counts["hits"] += bool(np.any(significant & near))
+                        counts["false"] += bool(np.any(significant & far))
                     normal, moved = _moved(changed[rows], shapes[rows], weights, cells, labels,
                                            method)
                     shift_at.append(normal[near].mean())
                     shift_far.append(moved[far].mean())
-                print(f"| {kind} | {size} | {method} | {np.mean(at):.1f} | {np.mean(beyond):.1f} "
-                      f"| {hits / subsets:.2f} | {false / subsets:.2f} | "
-                      f"{np.mean(shift_at):+.2f} | {np.mean(shift_far):.3f} |", flush=True)
+                for correction, counts in found.items():
+                    print(f"| {kind} | {size} | {method} | {correction} | "
+                          f"{np.mean(counts['at']):.1f} | {np.mean(counts['at']) / near.sum():.2f}"
+                          f" | {np.mean(counts['far']):.1f} | {counts['hits'] / subsets:.2f} | "
+                          f"{counts['false'] / subsets:.2f} | {np.mean(shift_at):+.2f} | "
+                          f"{np.mean(shift_far):.3f} |", flush=True)
     se = np.sqrt(args.alpha * (1 - args.alpha) / args.splits)
     print(f"\nnull: {args.splits} random half splits of the unchanged cases (SE of a rate "
           f"{se:.4f})")
-    print("| superimposition | any FWER-significant | any FDR-significant |")
-    print("|---|---|---|")
+    print("| superimposition | any FWER-significant | any FDR-significant"
+          + (" | any TFCE FWER-significant |" if args.tfce else " |"))
+    print("|---|---|---|" + ("---|" if args.tfce else ""))
     splits = [rng.permutation(n) < n // 2 for _ in range(args.splits)]
     seeds = rng.integers(1 << 30, size=args.splits)
+
+    def rate(count: int) -> str:
+        return f"{count / args.splits:.3f} ({(count / args.splits - args.alpha) / se:+.1f} SE)"
+
     for method in methods:
-        fwer = fdr = 0
+        fwer = fdr = enhanced = 0
         for labels, seed in zip(splits, seeds):
             result = _split_tests(shapes, weights, cells, labels, args.permutations, int(seed),
-                                  "normal", method, labels.astype(int))
+                                  "normal", method, labels.astype(int), args.tfce)
             fwer += bool(np.any(result.p_fwer <= args.alpha))
             fdr += bool(np.any(result.q_fdr <= args.alpha))
-        print(f"| {method} | {fwer / args.splits:.3f} ({(fwer / args.splits - args.alpha) / se:+.1f}"
-              f" SE) | {fdr / args.splits:.3f} ({(fdr / args.splits - args.alpha) / se:+.1f} SE) |",
-              flush=True)
+            enhanced += args.tfce and bool(np.any(result.tfce_p_fwer <= args.alpha))
+        print(f"| {method} | {rate(fwer)} | {rate(fdr)} |"
+              + (f" {rate(enhanced)} |" if args.tfce else ""), flush=True)
 
 
 def _moved(changed, unchanged, weights, cells, labels, method):
@@ -502,6 +521,8 @@ def main():
     p.add_argument("--permutations", type=int, default=1000)
     p.add_argument("--alpha", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tfce", action="store_true",
+                   help="also threshold-free cluster enhancement: a row per correction")
     p = commands.add_parser("speed")
     p.add_argument("build")
     p.add_argument("--permutations", type=int, default=10_000)

@@ -21,6 +21,13 @@ min-p with B permutations (B well above points / alpha).
 first 10 points; per design, the share of those points family-wise significant and the share of
 data sets with one of them family-wise (FDR) significant.
 
+``--tfce``: the points are the vertices of an icosphere (``--subdivisions``, radius 20 mm) and
+each case's errors are smoothed over it (a Gaussian of ``--smoothing`` mm, rescaled to unit
+variance per point), and every test also enhances its map by threshold-free cluster enhancement
+(``analyze --tfce``); the table gives the family-wise error by the maximum statistic and by the
+maximum of the enhanced maps, with variance groups, and pooled where the groups vary alike. Smoothing makes the Student's t
+errors less heavy-tailed (a sum of several).
+
 ``--build DIR``: real shapes instead: the build's cases, ``--small`` of them drawn at random
 ``--splits`` times and their deviations from the mean of all cases scaled by ``--ratio`` (no
 difference of mean shape in expectation), each split analysed with
@@ -33,6 +40,7 @@ Examples (the tables in docs/analysis.md; seeds fixed)::
     python benchmarks/analysis_null.py --replicates 300
     python benchmarks/analysis_null.py --replicates 100 --min-p-permutations 4999
     python benchmarks/analysis_null.py --build hip20 --splits 60
+    python benchmarks/analysis_null.py --tfce --replicates 200 --permutations 499
 """
 
 from __future__ import annotations
@@ -54,15 +62,17 @@ EFFECT_POINTS = 10
 
 
 def data_set(rng, small: int, large: int, ratio: float, errors: str, points: int,
-             nuisance: bool, effect: float = 0.0):
+             nuisance: bool, effect: float = 0.0, smoothing=None):
     """One null data set: (y (n, points), group indicator (n, 1), nuisance (n, c) or None,
-    groups (n,))."""
+    groups (n,)). ``smoothing`` (points, points): each case's errors smoothed by it."""
     n = small + large
     groups = np.r_[np.zeros(small), np.ones(large)]
     if errors == "normal":
         noise = rng.normal(size=(n, points))
     else:
         noise = rng.standard_t(3, size=(n, points)) / np.sqrt(3.0)
+    if smoothing is not None:
+        noise = noise @ smoothing.T
     y = noise * np.where(groups == 0, ratio, 1.0)[:, None]
     y[:, :EFFECT_POINTS] += effect * groups[:, None]
     columns = None
@@ -73,22 +83,39 @@ def data_set(rng, small: int, large: int, ratio: float, errors: str, points: int
     return y, groups[:, None], columns, groups
 
 
+def icosphere_smoothing(args):
+    """The icosphere's surface and the matrix that smooths errors over it (``--tfce``)."""
+    from mdlshapemodel.analysis.tfce import surface_of
+    from mdlshapemodel.correspondence.sampling import icosphere
+
+    unit, triangles = icosphere(args.subdivisions)
+    points = 20.0 * unit
+    apart = np.linalg.norm(points[:, None] - points[None], axis=2)
+    kernel = np.exp(-0.5 * (apart / args.smoothing) ** 2)
+    return surface_of(points, triangles), kernel / np.sqrt(np.sum(kernel ** 2, axis=1))[:, None]
+
+
 def rates(args, small, large, ratio, errors, nuisance) -> dict:
-    """Per-point rejection rate and family-wise error of each variant over the replicates."""
+    """Per-point rejection rate and family-wise error of each variant over the replicates
+    (with ``--tfce``, the share of data sets with any point significant by TFCE last)."""
     rng = np.random.default_rng(args.seed)
+    surface, smoothing = icosphere_smoothing(args) if args.tfce else (None, None)
+    points = args.points if surface is None else surface.n_points
     variants = [("pooled", None, "maximum", args.permutations),
                 ("groups", True, "maximum", args.permutations)]
+    if args.tfce and ratio != 1:
+        variants = variants[1:]        # the pooled test is not valid there (the table above)
     if args.min_p_permutations:
         variants.append(("groups_min_p", True, "min-p", args.min_p_permutations))
     found = {name: [] for name, *_ in variants}
     for _ in range(args.replicates):
-        y, group, columns, groups = data_set(rng, small, large, ratio, errors, args.points,
-                                             nuisance, args.effect)
+        y, group, columns, groups = data_set(rng, small, large, ratio, errors, points,
+                                             nuisance, args.effect, smoothing)
         seed = int(rng.integers(1 << 30))
         for name, by_group, family_wise, permutations in variants:
             result = permutation_test(y, group, columns, permutations, seed,
                                       variance_groups=groups if by_group else None,
-                                      family_wise=family_wise)
+                                      family_wise=family_wise, surface=surface)
             if args.effect:
                 hits = result.p_fwer[:EFFECT_POINTS] <= args.alpha
                 found[name].append((np.mean(hits), bool(np.any(hits)),
@@ -96,7 +123,9 @@ def rates(args, small, large, ratio, errors, nuisance) -> dict:
             else:
                 found[name].append((np.mean(result.p <= args.alpha),
                                     bool(np.any(result.p_fwer <= args.alpha)),
-                                    bool(np.any(result.q_fdr <= args.alpha))))
+                                    bool(np.any(result.q_fdr <= args.alpha)))
+                                   + ((bool(np.any(result.tfce_p_fwer <= args.alpha)),)
+                                      if surface is not None else ()))
     return {name: np.mean(values, axis=0) for name, values in found.items()}
 
 
@@ -136,6 +165,38 @@ def real_shapes(args):
               f"{args.splits} splits; points with p <= {args.alpha}: {values[:, 1].mean():.4f}")
 
 
+def designs_of(args) -> tuple:
+    """The designs run: all of :data:`DESIGNS`, or the one ``--design`` gives."""
+    if args.design is None:
+        return DESIGNS
+    small, large, ratio = args.design
+    return ((int(small), int(large), ratio),)
+
+
+def tfce_rates(args, se: float):
+    """The family-wise error of TFCE beside the maximum statistic's, per design (``--tfce``)."""
+    surface, _ = icosphere_smoothing(args)
+    print(f"{args.replicates} replicates of {surface.n_points} points on an icosphere of radius "
+          f"20 mm, errors smoothed over {args.smoothing:g} mm; alpha {args.alpha}; SE of a "
+          f"family-wise rate {se:.4f}; {args.permutations} permutations")
+    print("| groups (SD ratio) | errors | nuisance | FWER, pooled | FWER, variance groups | "
+          "TFCE FWER, pooled | TFCE FWER, variance groups |")
+    print("|---|---|---|---|---|---|---|")
+    for small, large, ratio in designs_of(args):
+        for errors in ERRORS:
+            for nuisance in (False, True):
+                start = time.perf_counter()
+                found = rates(args, small, large, ratio, errors, nuisance)
+                cells = [f"{found[name][column]:.3f} "
+                         f"({(found[name][column] - args.alpha) / se:+.1f} SE)"
+                         if name in found else "-"
+                         for column in (1, 3) for name in ("pooled", "groups")]
+                print(f"| {small} vs {large} ({ratio:g}) | {errors} | "
+                      f"{'3 columns' if nuisance else 'none'} | " + " | ".join(cells) + " |",
+                      flush=True)
+                print(f"{time.perf_counter() - start:.0f} s", file=sys.stderr, flush=True)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--replicates", type=int, default=300)
@@ -151,6 +212,15 @@ def main():
                              "group) SDs at the first 10 points; the columns become the share "
                              "of those points family-wise significant and the share of data sets "
                              "with one of them significant (family-wise, FDR)")
+    parser.add_argument("--tfce", action="store_true",
+                        help="points on an icosphere, errors smoothed over it, and the "
+                             "family-wise error of threshold-free cluster enhancement")
+    parser.add_argument("--subdivisions", type=int, default=2,
+                        help="with --tfce: the icosphere's subdivisions (2: 162 points)")
+    parser.add_argument("--smoothing", type=float, default=3.0,
+                        help="with --tfce: the errors' smoothing, Gaussian sigma in mm")
+    parser.add_argument("--design", type=float, nargs=3, metavar=("SMALL", "LARGE", "RATIO"),
+                        help="one design only: the group sizes and the smaller group's SD ratio")
     parser.add_argument("--build", help="real shapes: a build's output folder")
     parser.add_argument("--splits", type=int, default=60)
     parser.add_argument("--small", type=int, default=5, help="cases of the scaled group")
@@ -160,6 +230,9 @@ def main():
         real_shapes(args)
         return
     se = np.sqrt(args.alpha * (1 - args.alpha) / args.replicates)
+    if args.tfce:
+        tfce_rates(args, se)
+        return
     print(f"{args.replicates} replicates of {args.points} independent points; "
           f"alpha {args.alpha}; SE of a family-wise rate {se:.4f}; "
           f"{args.permutations} permutations")
@@ -175,7 +248,7 @@ def main():
               "groups | FWER, pooled | FWER, variance groups | any FDR, pooled | any FDR, "
               "variance groups |" + extra)
     print("|---|---|---|---|---|---|---|---|---|" + ("---|" if extra else ""))
-    for small, large, ratio in DESIGNS:
+    for small, large, ratio in designs_of(args):
         for errors in ERRORS:
             for nuisance in (False, True):
                 start = time.perf_counter()

@@ -17,7 +17,10 @@ The output folder::
                     q_fdr: Benjamini-Hochberg of p; t: the signed t or Welch's v; several
                     effect columns or the vector displacement: difference_<name>_x ... and
                     t_<name>,p_<name>,p_fwer_<name>,q_fdr_<name> per column, each column's
-                    own signed test along the normal adjusted for the others); the effect
+                    own signed test along the normal adjusted for the others; with ``tfce``,
+                    tfce,tfce_p_fwer after q_fdr, the map's threshold-free cluster enhancement
+                    (signed as the effect) and its family-wise p, and tfce_<name>,
+                    tfce_p_fwer_<name> per column's own test); the effect
                     sizes: partial_eta2 (the per-point test's), ci_lower_mm,ci_upper_mm
                     (the confidence interval at 1 - alpha of the effect along the normal),
                     cohens_d (two levels compared), or per column ci_lower_<name>_mm,
@@ -49,7 +52,7 @@ import numpy as np
 from .analysis.shapes import read_build
 from .analysis.study import Analysis, analyze_shapes, contrasts_of
 from .analysis.table import CASE, read_table, subjects
-from .config import AnalysisConfig
+from .config import TFCE_EXTENT, TFCE_HEIGHT, TFCE_STEP, AnalysisConfig
 from .errors import InputError
 from .prepare import io
 from .report.analysis_page import write_analysis_page
@@ -104,6 +107,8 @@ def _columns(analysis: Analysis) -> tuple[list, list]:
     names = analysis.subjects.interest_names
     mean, points = analysis.mean, analysis.points
     header = ["point", "part", "x", "y", "z", "statistic", "p", "p_fwer", "q_fdr"]
+    enhanced = tfce_columns(points)
+    header += list(enhanced)
     single = len(names) == 1
     for name in names:
         prefix = "difference" if single else f"difference_{name}"
@@ -116,13 +121,20 @@ def _columns(analysis: Analysis) -> tuple[list, list]:
     for k in range(len(mean)):
         row = [k, int(analysis.parts[k]), *(f"{v:.6g}" for v in mean[k]),
                f"{points.statistic[k]:.6g}", f"{points.p[k]:.6g}", f"{points.p_fwer[k]:.6g}",
-               f"{points.q_fdr[k]:.6g}"]
+               f"{points.q_fdr[k]:.6g}", *(f"{values[k]:.6g}" for values in enhanced.values())]
         for r in range(len(names)):
             row += [f"{v:.6g}" for v in analysis.difference[r, k]]
             row.append(f"{analysis.normal_difference[r, k]:.6g}")
         row += [f"{values[k]:.6g}" for values in signed.values()]
         rows.append(row)
     return header, rows
+
+
+def tfce_columns(test, suffix: str = "") -> dict:
+    """A test's TFCE columns (``tfce``, ``tfce_p_fwer`` + ``suffix``), empty without TFCE."""
+    if test.tfce is None:
+        return {}
+    return {f"tfce{suffix}": test.tfce, f"tfce_p_fwer{suffix}": test.tfce_p_fwer}
 
 
 def signed_columns(analysis: Analysis) -> dict:
@@ -137,6 +149,7 @@ def signed_columns(analysis: Analysis) -> dict:
             continue
         for key in ("t", "p", "p_fwer", "q_fdr"):
             columns[f"{key}_{found.name}"] = getattr(found.test, key)
+        columns.update(tfce_columns(found.test, f"_{found.name}"))
     return columns
 
 
@@ -260,6 +273,22 @@ def size_summary(analysis: Analysis) -> dict:
             "p": float(size.test.p[0])}
 
 
+def tfce_summary(test, alpha: float) -> dict | None:
+    """analysis.json's ``tfce`` of a test: what was enhanced, the settings, the family-wise
+    significant points (None without TFCE)."""
+    if test.tfce is None:
+        return None
+    r, _, q = test.effect.shape
+    enhanced = ("the signed t" if test.t is not None and test.variance == "pooled" else
+                "the normal quantile of Welch's v's p, with v's sign" if test.t is not None else
+                "the square root of the F" if test.variance == "pooled" else
+                "the normal quantile of Welch's G's p" if q == 1 else
+                "the square root of James' statistic")
+    return {"enhanced": enhanced, "extent_power": TFCE_EXTENT, "height_power": TFCE_HEIGHT,
+            "step": TFCE_STEP, "family_wise": "maximum of the enhanced maps",
+            "significant_points": int(np.sum(test.tfce_p_fwer <= alpha))}
+
+
 def summary_of(analysis: Analysis, build, table) -> dict:
     """The content of analysis.json."""
     config, design = analysis.config, analysis.subjects
@@ -295,7 +324,8 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                        "p": "each point's own permutation p-value",
                        "smallest_p": 1.0 / (analysis.points.permutations + 1),
                        "uncorrected_significant": int(np.sum(analysis.points.p
-                                                             <= config.alpha))},
+                                                             <= config.alpha)),
+                       "tfce": tfce_summary(analysis.points, config.alpha)},
         "effect_tests": [{"name": found.name, "column": found.column,
                           "statistic": ("Welch's v" if found.test.variance == "groups"
                                         else "Student's t"),
@@ -304,7 +334,8 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                           "the_point_test": found.joint, "contrast": found.contrast,
                           "significant_points": {
                               "fwer": int(np.sum(found.test.p_fwer <= config.alpha)),
-                              "fdr": int(np.sum(found.test.q_fdr <= config.alpha))}}
+                              "fdr": int(np.sum(found.test.q_fdr <= config.alpha))},
+                          "tfce": tfce_summary(found.test, config.alpha)}
                          for found in analysis.signed],
         "effect_sizes": effects_summary(analysis),
         "shapes": shapes_summary(analysis, table),
@@ -334,7 +365,8 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
               "p_fwer": analysis.points.p_fwer, "q_fdr": analysis.points.q_fdr,
               "minus_log10_p_fwer": -np.log10(analysis.points.p_fwer),
               "significant_fwer": analysis.significant("fwer").astype(np.uint8),
-              "significant_fdr": analysis.significant("fdr").astype(np.uint8)}
+              "significant_fdr": analysis.significant("fdr").astype(np.uint8),
+              **tfce_columns(analysis.points)}
     for name, difference, normal in zip(analysis.subjects.interest_names, analysis.difference,
                                         analysis.normal_difference):
         suffix = "" if len(analysis.subjects.interest_names) == 1 else f"_{name}"

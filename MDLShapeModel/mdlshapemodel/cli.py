@@ -363,7 +363,7 @@ def _run_analyze(args, live: bool) -> int:
                             permutations=args.permutations, size=args.size,
                             superimposition=args.superimposition, parts=args.parts,
                             displacement=args.displacement, variance=args.variance,
-                            family_wise=args.family_wise, alpha=args.alpha,
+                            family_wise=args.family_wise, tfce=args.tfce, alpha=args.alpha,
                             seed=args.seed).validate()
     with _ProgressDisplay(live) as progress:
         result = analyze_build(args.build, args.table, args.output, config, progress,
@@ -392,14 +392,18 @@ def _run_analyze(args, live: bool) -> int:
              + (" (" + ", ".join(f"{k}: {v}" for k, v in summary["n_per_group"].items()) + ")"
                 if summary["n_per_group"] else ""),
              f"  points significant at alpha {config.alpha}: {counts['fwer']} family-wise, "
-             f"{counts['fdr']} FDR, of {counts['of']}",
+             f"{counts['fdr']} FDR"
+             + (f", {summary['point_test']['tfce']['significant_points']} TFCE"
+                if summary['point_test']['tfce'] else "") + f", of {counts['of']}",
              f"  global test on {overall['modes']} principal scores: p = {overall['p']:.4g}"]
     for found in summary["effect_tests"]:
         if not found["the_point_test"]:
             lines.append(f"  signed map of {found['name']} ({found['statistic']}"
                          + (f", {found['tail']}" if found["tail"] != "both" else "")
                          + f"): {found['significant_points']['fwer']} points family-wise, "
-                         f"{found['significant_points']['fdr']} FDR")
+                         f"{found['significant_points']['fdr']} FDR"
+                         + (f", {found['tfce']['significant_points']} TFCE" if found["tfce"]
+                            else ""))
     if summary["classification"]:
         c = summary["classification"]
         lines.append(f"  classification ({c['folds']}-fold): accuracy {c['accuracy']:.3f} "
@@ -636,6 +640,11 @@ def main(argv=None) -> int:
                               "per-point statistic; min-p, of the per-point p-values (no point "
                               "dominates whatever its tails; needs --permutations well above "
                               "the number of points / alpha) (default %(default)s)")
+    analyze.add_argument("--tfce", action="store_true",
+                         help="also threshold-free cluster enhancement of each map over the mean "
+                              "surface (E 1, H 2), tested family-wise by the enhanced maps' "
+                              "maximum over the same resamples: more power for effects that "
+                              "spread over a region (columns tfce, tfce_p_fwer)")
     analyze.add_argument("--alpha", type=float, default=analysis_defaults.alpha,
                          help="significance level (default %(default)s)")
     analyze.add_argument("--seed", type=int, default=analysis_defaults.seed)

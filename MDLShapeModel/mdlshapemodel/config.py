@@ -665,6 +665,15 @@ FAMILY_WISE = ("maximum", "min-p")
 # The alternative of a test of one effect column: two-sided, or one-sided towards a positive
 # ("greater") or a negative ("less": an inward displacement, atrophy) effect.
 TAILS = ("both", "greater", "less")
+# Threshold-free cluster enhancement of a per-point map over the mean surface (``--tfce``; Smith
+# and Nichols 2009): TFCE(v) = sum over the heights h = dh, 2 dh, ... up to the point's own of
+# e(h)^E h^H dh, e(h) the area (mm^2; the length of a curve, mm) of the connected region above h
+# that holds the point. E = 1, H = 2 as is usual on surfaces; dh in units of the enhanced map (a
+# t or z value). Heights are clipped at TFCE_LEVELS steps.
+TFCE_EXTENT = 1.0
+TFCE_HEIGHT = 2.0
+TFCE_STEP = 0.1
+TFCE_LEVELS = 100_000
 # How the analysis aligns a multi-part object: as one (the parts' relative positions count) or
 # each part on its own (only each part's own shape counts).
 PART_ALIGNMENTS = ("whole", "each")
@@ -835,6 +844,7 @@ class AnalysisConfig:
     displacement: str = "normal"
     variance: str = "groups"          # a tested group's statistic: per-group or pooled variance
     family_wise: str = "maximum"      # the family-wise correction over the points
+    tfce: bool = False                # also each map enhanced over the mean surface (TFCE)
     alpha: float = 0.05
     seed: int = 0
     folds: int = 10                   # cross-validation of the two-group classification

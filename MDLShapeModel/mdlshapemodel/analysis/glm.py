@@ -38,6 +38,14 @@ against its own point's permutation distribution, is the null distribution of th
 so that no point dominates the correction because its statistic has heavier tails. Min-p keeps
 every permuted statistic, (B + 1) x p 4-byte numbers; the maximum keeps one number per
 permutation. The permutations are drawn in chunks.
+
+With a surface, each resample's map is also enhanced by threshold-free cluster enhancement
+(:mod:`.tfce`) and the family-wise p of each point's enhanced value is counted against the
+maximum of the enhanced maps over the same resamples. What is enhanced is a map that means the
+same at every point: the signed t (Welch's: the normal quantile of v's p, with v's sign), each
+sign on its own, for one effect column and one number per point; else the square root of the
+pooled statistic (its F, the same degrees of freedom at every point), the normal quantile of
+Welch's G's p, or the square root of James' J.
 """
 
 from __future__ import annotations
@@ -46,10 +54,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scipy import special
+
 from ..config import FAMILY_WISE, TAILS
 from ..errors import InputError
 from ..progress import report
 from . import welch
+from .tfce import Surface, enhance
 
 # permutations handled at once: bounds the memory to CHUNK x (z + r) x p x q floats; fixed so
 # that the drawn permutations (and so the p-values) do not depend on it changing
@@ -113,6 +124,13 @@ class PointTest:
     resampling : str
         How the residuals were resampled, in words ("permuted", "sign-flipped", "permuted
         within the blocks", ...).
+    tfce : ndarray (p,) or None
+        With a surface, the threshold-free cluster enhancement of the map (:mod:`.tfce`), with
+        the effect's sign where the map has one (negative: below 0); else None.
+    tfce_p_fwer : ndarray (p,) or None
+        Its family-wise p: (1 + #{b: max_k |TFCE_bk| >= |TFCE|}) / (1 + B).
+    tfce_null : ndarray (B,) or None
+        Each resample's largest enhanced value over the points (two-sided: of either sign).
     """
 
     value: np.ndarray
@@ -129,6 +147,9 @@ class PointTest:
     t: np.ndarray | None = None
     tail: str = "both"
     resampling: str = "permuted"
+    tfce: np.ndarray | None = None
+    tfce_p_fwer: np.ndarray | None = None
+    tfce_null: np.ndarray | None = None
 
     @property
     def name(self) -> str:
@@ -435,7 +456,8 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
                      permutations: int = 10_000, seed: int = 0, progress=None,
                      variance_groups=None, family_wise: str = "maximum", *,
                      intercept: bool = True, blocks=None, flips: bool = False,
-                     whole_blocks: bool = False, tail: str = "both") -> PointTest:
+                     whole_blocks: bool = False, tail: str = "both",
+                     surface: Surface | None = None) -> PointTest:
     """Test an effect on per-point data by permutation (Freedman-Lane), with family-wise and FDR
     correction over the points.
 
@@ -483,6 +505,10 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         above 0 (with the pooled statistic, larger t); "less", below 0 (an inward displacement:
         atrophy). The resampled statistic is then the signed t (Welch's one-sided ``-log p``
         with variance groups).
+    surface : Surface, optional
+        The mesh of the points (:func:`.tfce.surface_of`): each resample's map is also enhanced
+        (threshold-free cluster enhancement) and tested family-wise by the enhanced maps'
+        maximum (``tfce``, ``tfce_p_fwer``).
 
     Returns
     -------
@@ -526,6 +552,8 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     if tail != "both" and not signed:
         raise InputError(f"a one-sided test (tail {tail!r}) needs one effect column and one "
                          f"number per point (here {r} column(s), {q} number(s) per point)")
+    if surface is not None and surface.n_points != p:
+        raise ValueError(f"a surface of {surface.n_points} points for data of {p}")
     if df < q:
         raise InputError(f"too few cases: {n} cases for {z + r} model columns and {q} "
                          f"number(s) per point (need more than {z + r + q - 1})")
@@ -625,9 +653,28 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
                 return welch.pivotal(found, r, welch_df), v
             return welch.one_sided(v, welch_df, tail), v
 
+    def enhanced_of(values: np.ndarray, t) -> np.ndarray:
+        """TFCE of the resamples' maps (B, p), signed as the effect where it has a sign."""
+        # with variance groups, values are -log of Welch's p (James' J for q > 1)
+        p_values = None if codes is None else np.exp(-np.minimum(values, 690.0))
+        if tail != "both":
+            # the statistic towards the tail: the signed t, or the normal quantile of Welch's p
+            toward = values if codes is None else -special.ndtri(p_values)
+            found = enhance(np.maximum(toward, 0.0), surface)
+            return found if tail == "greater" else 0.0 - found
+        if t is not None:
+            z = t if codes is None else np.sign(t) * -special.ndtri(p_values / 2.0)
+            return (enhance(np.maximum(z, 0.0), surface)
+                    - enhance(np.maximum(-z, 0.0), surface))
+        if codes is None:
+            return enhance(np.sqrt(statistic_of(values, q, r, df)), surface)
+        return enhance(-special.ndtri(p_values) if q == 1 else np.sqrt(values), surface)
+
     resamples = _resamples(n, permutations, seed, codes, blocks, flips, whole_blocks)
     identity = np.arange(n)[None], np.ones((1, n))
     observed, observed_t = values_of(*identity)
+    tfce = None if surface is None else enhanced_of(observed, observed_t)[0]
+    enhanced_maxima = np.empty(permutations if surface is not None else 0)
     observed = observed[0]
     threshold = observed - TIES * np.abs(observed)
     exceed = np.zeros(p, dtype=np.int64)
@@ -641,8 +688,10 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     done = 0
     for rows, signs in resamples:
         count = len(rows)
-        values = values_of(rows, signs)[0]
+        values, t = values_of(rows, signs)
         exceed += np.sum(values >= threshold, axis=0)
+        if surface is not None:
+            enhanced_maxima[done:done + count] = np.abs(enhanced_of(values, t)).max(axis=1)
         if minimum_p:
             table[1 + done:1 + done + count] = values
         maxima[done:done + count] = values.max(axis=1)
@@ -662,10 +711,18 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         statistic = statistic_of(measured(*identity)[0][0], q, r, df)
     else:
         statistic = welch_of(*identity)[0][0]
+    tfce_p_fwer = None
+    if surface is not None:
+        enhanced = np.abs(tfce)
+        reached = permutations - np.searchsorted(np.sort(enhanced_maxima),
+                                                 enhanced - TIES * enhanced, side="left")
+        tfce_p_fwer = (1.0 + reached) / (1.0 + permutations)
     return PointTest(value=observed, statistic=statistic, p=p_point, p_fwer=p_fwer,
                      q_fdr=benjamini_hochberg(p_point), effect=effect, df=df,
                      permutations=permutations, family_null=family_null,
                      variance="pooled" if codes is None else "groups",
                      family_wise=family_wise,
                      t=None if observed_t is None else observed_t[0], tail=tail,
-                     resampling=_resampling_name(codes, blocks, flips, whole_blocks))
+                     resampling=_resampling_name(codes, blocks, flips, whole_blocks),
+                     tfce=tfce, tfce_p_fwer=tfce_p_fwer,
+                     tfce_null=None if surface is None else enhanced_maxima)

@@ -24,6 +24,7 @@ from .effects import (PREDICTED_AT, Interval, cohens_d, interval, partial_eta_sq
 from .glm import PointTest, permutation_test
 from .shapes import align, vertex_normals
 from .table import Subjects, contrast_vector
+from .tfce import Surface, surface_of
 
 
 @dataclass
@@ -254,11 +255,12 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
         data = np.einsum("npd,pd->np", offsets, normals)
     else:
         data = offsets[..., :2] if planar else offsets
-    points = point_test(data, subjects, config, progress)
+    surface = surface_of(mean, model.triangles) if config.tfce else None
+    points = point_test(data, subjects, config, progress, surface=surface)
     along = data if config.displacement == "normal" else np.einsum("npd,pd->np", offsets,
                                                                     normals)
     report(progress, None, "the signed map of each effect")
-    signed = signed_maps(along, subjects, config, points)
+    signed = signed_maps(along, subjects, config, points, surface=surface)
     effect_sizes = effects_of(along, subjects, config)
     point_eta2 = None
     if effect_sizes:
@@ -309,7 +311,8 @@ def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:
 
 
 def signed_maps(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig,
-                joint: PointTest | None = None, progress=None) -> list:
+                joint: PointTest | None = None, progress=None,
+                surface: Surface | None = None) -> list:
     """A signed test along the normal per effect column, each adjusted for the other effect
     columns and the nuisance (with ``config.tail``, one-sided).
 
@@ -322,6 +325,8 @@ def signed_maps(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig,
     joint : PointTest, optional
         The analysis's per-point test: when it is already the signed test of the only effect
         column (one column, the normal displacement), it is the map.
+    surface : Surface, optional
+        The mean surface's mesh: each map also enhanced by TFCE (:mod:`.tfce`).
 
     Returns
     -------
@@ -334,11 +339,12 @@ def signed_maps(normal: np.ndarray, subjects: Subjects, config: AnalysisConfig,
         maps = [SignedMap(names[0], columns[0], joint, True)]
     else:
         maps = [SignedMap(name, column, point_test(normal, _single(subjects, np.eye(r)[j]),
-                                                   config, progress), False)
+                                                   config, progress, surface=surface), False)
                 for j, (name, column) in enumerate(zip(names, columns))]
     for text, coefficients, column, vector in contrasts:
         maps.append(SignedMap(text, column, point_test(normal, _single(subjects, vector), config,
-                                                       progress), False, coefficients))
+                                                       progress, surface=surface), False,
+                              coefficients))
     return maps
 
 
@@ -365,7 +371,8 @@ def _single(subjects: Subjects, vector: np.ndarray) -> Subjects:
 
 
 def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,
-               progress=None, pooled: bool = False) -> PointTest:
+               progress=None, pooled: bool = False, surface: Surface | None = None
+               ) -> PointTest:
     """The per-point test of a design on per-case data, resampled as the design allows.
 
     Independent cases: permutations (sign flips and permutations within the groups with
@@ -386,6 +393,8 @@ def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,
         there is one effect column and one number per point).
     pooled : bool
         Use the pooled statistic whatever ``config.variance`` says (the global test).
+    surface : Surface, optional
+        The points' mesh: the map also enhanced by TFCE and tested by its maximum.
 
     Returns
     -------
@@ -401,7 +410,7 @@ def point_test(per_case: np.ndarray, subjects: Subjects, config: AnalysisConfig,
         flips=subjects.mean_change_tested,
         blocks=repeated.blocks if repeated is not None else None,
         whole_blocks=repeated is not None and repeated.design == "blocks",
-        tail=config.tail if single and not pooled else "both")
+        tail=config.tail if single and not pooled else "both", surface=surface)
 
 
 def _effects(offsets: np.ndarray, subjects: Subjects) -> np.ndarray:

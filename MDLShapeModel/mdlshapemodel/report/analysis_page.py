@@ -39,7 +39,7 @@ compared, so the chance that <i>any</i> point is called significant when there i
 at most &alpha; = {alpha}. <b>FDR</b> (q): among the points called significant, the expected share
 of false ones is at most &alpha; (Benjamini-Hochberg of the per-point p-values); it finds more,
 with weaker guarantees.</li>
-<li><b>Effect along the normal</b>: the mean difference {effect_unit} projected on the mean
+{tfce}<li><b>Effect along the normal</b>: the mean difference {effect_unit} projected on the mean
 surface's outward normal; negative values (blue) point inwards (a loss of volume there).</li>
 <li><b>Global test</b>: the same test on the first k principal scores together: is there any
 difference in shape at all?</li>
@@ -69,12 +69,16 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
     # every value shown
     top = max(float(log_p.astype(np.float32).max()), level * 1.5)
     rows = [("-log10 p (FWER)", log_p, "viridis", 0.0, top, "-log10 p, family-wise")]
+    outlines = [significant]
+    if points.tfce is not None:
+        rows.append(_tfce_row("-log10 p (FWER, TFCE)", points.tfce_p_fwer, level))
+        outlines.append(points.tfce_p_fwer <= alpha)
     labels = effect_labels(analysis.subjects)
     for label, values in zip(labels, analysis.normal_difference):
         limit = float(np.max(np.abs(values.astype(np.float32)))) or 1.0
         rows.append((label, values, "coolwarm", -limit, limit, "along the normal [mm]"))
     # the region outlined on each map: the per-point test's, or a signed map's own
-    outlines = [significant] * len(rows)
+    outlines += [significant] * (len(rows) - len(outlines))
     # one signed map per effect column, and its own family-wise p when it is a test of its own
     for k, found in enumerate(analysis.signed):
         label = labels[k] if k < len(labels) else f"contrast {found.name}"
@@ -90,6 +94,10 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
                          max(float(own.astype(np.float32).max()), level * 1.5),
                          "-log10 p, family-wise"))
             outlines.append(own_region)
+            if found.test.tfce is not None:
+                rows.append(_tfce_row(f"-log10 p (FWER, TFCE), {label}",
+                                      found.test.tfce_p_fwer, level))
+                outlines.append(found.test.tfce_p_fwer <= alpha)
     parts = []
     if model.of_curves:
         return [_image(_curve_maps(analysis, rows, significant), "effect maps")]
@@ -163,6 +171,14 @@ def _effect_size_parts(analysis: Analysis, summary: dict) -> list:
                                  + ("" if s["value"] is None else f" ({s['value']:.4g})")
                                  for s in summary["shapes"]) + ".</p>")
     return parts
+
+
+def _tfce_row(label: str, p_fwer: np.ndarray, level: float) -> tuple:
+    """A map's row of the family-wise p of its threshold-free cluster enhancement, on the
+    same fixed scale as the other -log10 p maps."""
+    values = -np.log10(p_fwer)
+    return (label, values, "viridis", 0.0, max(float(values.astype(np.float32).max()),
+                                                level * 1.5), "-log10 p, family-wise (TFCE)")
 
 
 def effect_labels(subjects) -> list:
@@ -397,6 +413,14 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
               f" (one-sided: an effect {'above' if points.tail == 'greater' else 'below'} 0)"),
         resampling=html.escape(points.resampling), permutations=config.permutations, permutations_plus_one=config.permutations + 1,
         family_wise=family_wise, alpha=config.alpha,
+        tfce=("" if points.tfce is None else
+              "<li><b>TFCE</b> (threshold-free cluster enhancement; maps marked TFCE): each "
+              "point's statistic is enhanced by the area of the region around it where the "
+              "statistic is as high, summed over the heights up to the point's own (Smith and "
+              "Nichols 2009), and compared with the largest enhanced value of every resample: "
+              "an effect that spreads over a region is found with more power, but a significant "
+              "point says that the region it lies in differs, not that the point itself "
+              "does.</li>\n"),
         effect_unit=("(mm)" if subjects.tested == [subjects.group] else
                      "per unit of the covariate (mm)" if subjects.group not in subjects.tested
                      else "(mm; per unit for a covariate)"),
