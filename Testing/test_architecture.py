@@ -1,6 +1,6 @@
 """The house: data flows one way between the rooms, no import circles, light leaves.
 
-Stages, upstream first: the leaves (config, errors, progress, parallel, version), prepare,
+Stages, upstream first: the leaves (config, errors, progress, cluster, parallel, version), prepare,
 correspondence, model, the build folder (folders: its files read and written), analysis, report,
 the commands (build, outputs, analyze, fit, compare), the faces (cli, vtkfilters, vtkmodel, demo, and the package front door, whose heavy
 names load on first use). A module may import its own stage and the stages upstream of it, never
@@ -18,7 +18,7 @@ import mdlshapemodel
 
 PACKAGE = Path(mdlshapemodel.__file__).parent
 STAGES = [
-    {"config", "errors", "progress", "parallel", "version"},
+    {"config", "errors", "progress", "cluster", "parallel", "version"},
     {"prepare"},
     {"correspondence"},
     {"model"},
