@@ -42,9 +42,9 @@ _ONE_CALL_AT_A_TIME = threading.Lock()
 class InTurn:
     """``function`` as a Dask worker runs it: after any other call of this package in the same
     worker process (one at a time: see ``_ONE_CALL_AT_A_TIME``), with one BLAS thread, as in a
-    :class:`~.parallel.ProcessPool`'s workers, and only on the mdlshapemodel version that submitted it
-    (another raises :class:`~.errors.ConfigError`). Pickles small: ``function`` travels by
-    name, and the worker imports it from its own installation."""
+    :class:`~.parallel.ProcessPool`'s workers, and only on the mdlshapemodel version that submitted
+    it (another raises :class:`~.errors.ConfigError`). Pickles small: ``function`` travels by name,
+    and the worker imports it from its own installation."""
 
     def __init__(self, function, version: str = __version__):
         self.function, self.version = function, version
@@ -62,8 +62,9 @@ class InTurn:
 
 class ClusterExecutor(Executor):
     """A Dask client's executor (``Client.get_executor()``) whose calls run :class:`InTurn`, so
-    that they give what they give in a :class:`~.parallel.ProcessPool`, bit for bit, on workers with any
-    number of threads. Shutting it down shuts down the client's executor, not the client."""
+    that they give what they give in a :class:`~.parallel.ProcessPool`, bit for bit, on workers
+    with any number of threads. Shutting it down shuts down the client's executor, not the
+    client."""
 
     def __init__(self, executor: Executor):
         self.executor = executor

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 
 
-#: A direction of the shapes whose variance is below this share of the largest one's is no mode:
-#: it holds rounding (identical cases differ there in the last digits), so the model spaces here
-#: and the leave-one-out models leave it out, as :meth:`.shape_model.ShapeModel.from_shapes` leaves it out of
-#: a model (its ``relative_tolerance``). The measures of aligned shapes and of the model's own
-#: reconstruction of them (``mdlshapemodel compare`` reads those) are then the same.
+#: A direction of the shapes whose variance is below this share of the largest one's is no mode: it
+#: holds rounding (identical cases differ there in the last digits), so the model spaces here and
+#: the leave-one-out models leave it out, as :meth:`.shape_model.ShapeModel.from_shapes` leaves it
+#: out of a model (its ``relative_tolerance``). The measures of aligned shapes and of the model's
+#: own reconstruction of them (``mdlshapemodel compare`` reads those) are then the same.
 ROUNDING_VARIANCE = 1e-10
 
 

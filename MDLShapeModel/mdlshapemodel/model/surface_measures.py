@@ -210,12 +210,12 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     """Leave-one-out generalization measured surface to surface against the true surfaces.
 
     For each training shape i and M = 1..max_modes, the reconstruction x_i'(M) of
-    :func:`.evaluation.generalization` (the model built without shape i, M modes) is turned back into points
-    and meshed with ``triangles``; it is compared with the TRUE surface i by the symmetric surface
-    distance: the mean of (a) the mean distance from the reconstruction's points to surface i and
-    (b) the mean distance from surface i's vertices to the reconstruction mesh. Distances are
-    exact point-to-triangle distances (:class:`MeshSearch`; with each further mode, every point's
-    search starts from the triangle found nearest with the previous one).
+    :func:`.evaluation.generalization` (the model built without shape i, M modes) is turned back
+    into points and meshed with ``triangles``; it is compared with the TRUE surface i by the
+    symmetric surface distance: the mean of (a) the mean distance from the reconstruction's points
+    to surface i and (b) the mean distance from surface i's vertices to the reconstruction mesh.
+    Distances are exact point-to-triangle distances (:class:`MeshSearch`; with each further mode,
+    every point's search starts from the triangle found nearest with the previous one).
 
     Parameters
     ----------
@@ -290,11 +290,11 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
                         max_points: int | None = 64, space: ModelSpace | None = None) -> dict:
     """Specificity measured surface to surface: model samples against the true training surfaces.
 
-    Samples are drawn as :func:`.evaluation.specificity` draws them: scores b_m ~ N(0, lambda_m) on the first
-    M modes, from one (n_samples, n_s - 1) array of standard normals taken first from ``rng`` (so a
-    generator in the same state gives the same samples as the first n_samples of
-    :func:`.evaluation.specificity`). Each sample, meshed with ``triangles``, is compared with the nearest
-    training SURFACE by the symmetric surface distance of :func:`surface_generalization`.
+    Samples are drawn as :func:`.evaluation.specificity` draws them: scores b_m ~ N(0, lambda_m) on
+    the first M modes, from one (n_samples, n_s - 1) array of standard normals taken first from
+    ``rng`` (so a generator in the same state gives the same samples as the first n_samples of
+    :func:`.evaluation.specificity`). Each sample, meshed with ``triangles``, is compared with the
+    nearest training SURFACE by the symmetric surface distance of :func:`surface_generalization`.
 
     To stay cheap, only the ``candidates`` training shapes nearest to the sample in model space
     (area-weighted squared distance of corresponded points) are compared surface to surface; the
