@@ -19,7 +19,8 @@ from mdlshapemodel.correspondence.strategies.one_at_a_time import (optimise_shif
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.warps import (WARP_KINDS, apply_warps, make_warp,
                                                 minimum_amplitude)
-from mdlshapemodel.prepare.curve import curve_map, read_curve, resample_curve, segment_lengths
+from mdlshapemodel.prepare.curve import curve_map, resample_curve, segment_lengths
+from mdlshapemodel.prepare.curve_io import read_curve
 
 from common import DATA, HANDS
 from resuming import assert_same_record, optimised_with_checkpoints, resumed_from

@@ -28,7 +28,7 @@ log = logging.getLogger("mdlshapemodel")
 IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".hdr", ".img", ".img.gz")
 MESH_SUFFIXES = (".vtk", ".vtp", ".stl", ".ply", ".obj")
 # files that only hold 2-D curves (a .vtk/.vtp polyline or a one-slice image is one too: see
-# prepare.curve.is_curve_file)
+# prepare.curve_io.is_curve_file)
 CURVE_SUFFIXES = (".csv", ".txt", ".png")
 # left out of a folder's inputs (READMEs, licences): a .txt curve is given by its name
 FOLDER_SKIPS = (".txt",)
