@@ -2,7 +2,7 @@
 
 Stages, upstream first: the leaves (config, errors, progress, cluster, parallel, version), prepare,
 correspondence, model, the build folder (folders: its files read and written), analysis, report,
-the commands (build, outputs, analyze, fit, compare), the faces (cli, vtkfilters, vtkmodel, demo, and the package front door, whose heavy
+the commands (build, outputs, analyze, fit, compare), the faces (cli and its options, vtkfilters, vtkmodel, demo, and the package front door, whose heavy
 names load on first use). A module may import its own stage and the stages upstream of it, never
 one downstream.
 """
@@ -26,7 +26,7 @@ STAGES = [
     {"analysis"},
     {"report"},
     {"build", "outputs", "analyze", "fit", "compare", "kernels"},
-    {"cli", "vtkfilters", "vtkmodel", "demo", "__init__"},
+    {"cli", "options", "vtkfilters", "vtkmodel", "demo", "__init__"},
 ]
 
 
