@@ -1,10 +1,11 @@
 """The house: data flows one way between the rooms, no import circles, light leaves.
 
-Stages, upstream first: the leaves (config, errors, progress, cluster, parallel, version), prepare,
-correspondence, model, the build folder (folders: its files read and written), analysis, report,
-the commands (build, outputs, analyze, fit, compare), the faces (cli and its options, vtkfilters, vtkmodel, demo, and the package front door, whose heavy
-names load on first use). A module may import its own stage and the stages upstream of it, never
-one downstream.
+Stages, upstream first: the leaves (config, errors, progress, cluster, parallel, version),
+geometry (rigid alignment, for every stage below it), prepare, correspondence, model, the build
+folder (folders: its files read and written), analysis, report, the commands (build, outputs,
+analyze, fit, compare), the faces (cli and its options, vtkfilters, vtkmodel, demo, and the
+package front door, whose heavy names load on first use). A module may import its own stage and
+the stages upstream of it, never one downstream.
 """
 
 import ast
@@ -19,6 +20,7 @@ import mdlshapemodel
 PACKAGE = Path(mdlshapemodel.__file__).parent
 STAGES = [
     {"config", "errors", "progress", "cluster", "parallel", "version"},
+    {"geometry"},
     {"prepare"},
     {"correspondence"},
     {"model"},

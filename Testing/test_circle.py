@@ -10,7 +10,7 @@ from mdlshapemodel.correspondence.circle import (CIRCLE_WARP_KINDS, CircleField,
                                                  CircleFieldBasis, CircleKernel, CircleShift,
                                                  CurvePart, apply_circle_kernel, circle_grid,
                                                  curve_state)
-from mdlshapemodel.correspondence.pose import align, generalized_procrustes
+from mdlshapemodel.geometry import align, generalized_procrustes
 from mdlshapemodel.correspondence.state import replay_record, state_record
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at

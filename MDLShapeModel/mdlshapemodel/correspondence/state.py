@@ -22,13 +22,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..geometry import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from ..prepare.curve import segment_vertex_lengths
 from ..prepare.sphere import orientation
 from ..prepare.surface import face_areas, triangle_vertex_areas
 from .guides import Guides
 from .smoothness import Smoothness
 from .objective import Objective
-from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from .sampling import SphereLocator, grid_order, icosphere
 from .warps import WARP_KINDS, SymmetricTheta, Warp, apply_symmetric_theta, apply_warps
 

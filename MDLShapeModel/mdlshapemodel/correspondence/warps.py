@@ -37,8 +37,8 @@ from typing import Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 
+from ..geometry import rotation_from_vector
 from .fields import FieldBasis
-from .pose import rotation_from_vector
 
 
 def minimum_amplitude(omega: float) -> float:

@@ -16,9 +16,9 @@ import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
 from ...config import WARPS, OptimisationSettings
+from ...geometry import Pose, pose_from_parameters, weighted_centroid
 from ...progress import report
 from ..objective import Objective
-from ..pose import Pose, pose_from_parameters, weighted_centroid
 from ..state import CorrespondenceState
 from ..trace import Stop, Trace
 from ..warps import (AsymmetricTheta, Rotation, ShearTwist, SymmetricTheta,
