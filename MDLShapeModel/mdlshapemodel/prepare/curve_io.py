@@ -215,7 +215,7 @@ def read_label_region(path, labels=()) -> tuple[np.ndarray, np.ndarray, np.ndarr
     from scipy import ndimage
 
     from . import integrity
-    from .io import _itk_reading, select_labels
+    from .io import itk_reading, select_labels
 
     if not Path(path).is_file():
         raise InputError("no such file")
@@ -223,7 +223,7 @@ def read_label_region(path, labels=()) -> tuple[np.ndarray, np.ndarray, np.ndarr
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
     # SimpleITK's errors and what its reader printed -> one InputError, as for 3-D label maps
-    with _itk_reading(path):
+    with itk_reading(path):
         reader.ReadImageInformation()
         size = reader.GetSize()
         singleton, matrix = _image_geometry(size, reader.GetSpacing(), reader.GetOrigin(),
@@ -262,11 +262,11 @@ def pixel_size(path) -> float | None:
         return None
     import SimpleITK as sitk
 
-    from .io import _itk_reading
+    from .io import itk_reading
 
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
-    with _itk_reading(path):
+    with itk_reading(path):
         reader.ReadImageInformation()
     singleton, matrix = _image_geometry(reader.GetSize(), reader.GetSpacing(),
                                         reader.GetOrigin(), reader.GetDirection())
