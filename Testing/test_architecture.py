@@ -180,6 +180,29 @@ def test_the_private_name_checker_sees_both_forms():
                                                       "line 4: nearest._grid"]
 
 
+def bare_value_errors(source: str) -> list:
+    """The lines of ``source`` that raise ``ValueError`` itself (not one of its subclasses)."""
+    return sorted(node.lineno for node in ast.walk(ast.parse(source))
+                  if isinstance(node, ast.Raise) and node.exc is not None
+                  and getattr(node.exc.func if isinstance(node.exc, ast.Call) else node.exc,
+                              "id", None) == "ValueError")
+
+
+# analysis/glm.py's argument checks are the one room still raising ValueError itself
+BARE_VALUE_ERRORS_LEFT = {"analysis.glm"}
+
+
+def test_errors_are_of_the_package_hierarchy():
+    """A rejected input raises an error of mdlshapemodel.errors, a bad argument its
+    ArgumentError (a ValueError, as numpy's are), a bug InternalError: no bare ValueError."""
+    found = {module_name(path): bare_value_errors(path.read_text())
+             for path in PACKAGE.rglob("*.py")}
+    assert not {m: lines for m, lines in found.items()
+                if lines and m not in BARE_VALUE_ERRORS_LEFT}
+    assert bare_value_errors("if x:\n    raise ValueError('a')\nraise ValueError\n"
+                             "raise ArgumentError('b')\n") == [2, 3]
+
+
 def test_the_checker_sees_an_upward_import(tmp_path):
     # the parser must resolve relative imports, or the two tests above would pass vacuously
     imports = package_imports(PACKAGE / "build.py")

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..correspondence import hotloops
+from ..errors import ArgumentError
 from ..parallel import Task
 from . import evaluation_kernels
 from .shape_model import ShapeModel
@@ -103,9 +104,9 @@ def generalization_jackknife(space: ModelSpace, max_modes: int,
     ``groups`` groups (case k in group k mod groups)."""
     n_s = len(space.coordinates)
     if n_s < 4:
-        raise ValueError(f"the jackknife needs at least 4 cases, not {n_s}")
+        raise ArgumentError(f"the jackknife needs at least 4 cases, not {n_s}")
     if groups < 2:
-        raise ValueError(f"the jackknife needs at least 2 groups, not {groups}")
+        raise ArgumentError(f"the jackknife needs at least 2 groups, not {groups}")
     count = min(n_s, groups)
     group_of = np.arange(n_s) % count
     left_out = np.array([
@@ -141,7 +142,7 @@ def generalization_difference(a: GeneralizationJackknife, b: GeneralizationJackk
     True
     """
     if a.per_case.shape != b.per_case.shape or a.left_out.shape != b.left_out.shape:
-        raise ValueError(f"two jackknifes of the same cases, groups and modes are needed (got "
+        raise ArgumentError(f"two jackknifes of the same cases, groups and modes are needed (got "
                          f"{a.per_case.shape}, {a.left_out.shape} and {b.per_case.shape}, "
                          f"{b.left_out.shape})")
     per_case = b.per_case - a.per_case
@@ -318,7 +319,7 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
     n_s = len(shapes)
     max_modes = max(1, min(max_modes, n_s - 1))
     if surfaces is not None and triangles is None:
-        raise ValueError("surface measures need the triangles of the corresponded points")
+        raise ArgumentError("surface measures need the triangles of the corresponded points")
     rng = np.random.default_rng(0) if rng is None else rng
     # BLAS on one thread, as in a pool's worker: the surface generalization may have the other
     # core, where threaded BLAS costs many times what it gains, and the numbers are then those a

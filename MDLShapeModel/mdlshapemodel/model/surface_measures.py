@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import ArgumentError
 from ..prepare.nearest import TriangleGrid
 from . import evaluation_kernels
 from .space import ModelSpace, displacements, leave_one_out, space_of
@@ -47,7 +48,7 @@ class MeshSearch:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         self.faces = np.ascontiguousarray(faces, dtype=np.int64)
         if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
-            raise ValueError(f"need at least one triangle, got faces of shape {self.faces.shape}")
+            raise ArgumentError(f"need at least one triangle, got faces of shape {self.faces.shape}")
         self.grid = TriangleGrid(vertices, self.faces)
         self._moved()
 
@@ -193,7 +194,7 @@ def _faces_near(shape: np.ndarray, triangles: np.ndarray, points: np.ndarray) ->
 
 def _true_surfaces(surfaces, n_s: int) -> list:
     if len(surfaces) != n_s:
-        raise ValueError(f"need one true surface per shape: {len(surfaces)} surfaces, {n_s} shapes")
+        raise ArgumentError(f"need one true surface per shape: {len(surfaces)} surfaces, {n_s} shapes")
     return [_TrueSurface(vertices, faces) for vertices, faces in surfaces]
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import BuildConfig
-from ..errors import InputError, MDLShapeModelError
+from ..errors import ArgumentError, InputError, MDLShapeModelError
 from . import curve, curve_io, io, surface
 from .sphere import AREA_WEIGHT, MAX_ITERATIONS, SphereMap, sphere_map
 
@@ -75,7 +75,7 @@ class PreparedCase:
     def map(self) -> SphereMap:
         """The sphere map of a one-part case."""
         if len(self.parts) != 1:
-            raise ValueError(f"{self.name} has {len(self.parts)} parts: use parts[j].map")
+            raise ArgumentError(f"{self.name} has {len(self.parts)} parts: use parts[j].map")
         return self.parts[0].map
 
     @property
