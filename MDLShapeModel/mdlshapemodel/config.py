@@ -47,21 +47,21 @@ class OptimisationSettings:
     # threads for the per-example loops of an evaluation (the fast strategy's field sampling and
     # its chain rule); the result does not depend on it (``BuildConfig.workers``)
     threads: int = 1
-    # the fast strategy: coarse-to-fine passes over its field levels; another pass only while the
-    # last one gained more than ``tolerance`` of the phase's gain (the second pass took the
-    # ground-truth error of a femur population with no sliding from 1.134 to 0.992 mm, with each
-    # example's size free in the pose)
+    # the fast strategy: coarse-to-fine passes over its field levels at most; another pass only
+    # while the last one gained more than ``tolerance`` of the phase's gain. A second pass lets
+    # the coarse levels move again after the fine ones have, which brings the correspondence
+    # closer to a population's known truth (docs/benchmarks.md)
     field_passes: int = 2
     # the fast strategy: quasi-Newton iterations per round at most. Each round ends with a rebuild
-    # (area weights of the new mean, the next fields centred where the points now are): shorter
-    # rounds gave lower G and S in fewer evaluations (benchmarks/fast_variants.py iterationsN)
+    # (area weights of the new mean, the next fields centred where the points are then): shorter
+    # rounds reach lower G and S in fewer evaluations (benchmarks/fast_variants.py, iterationsN)
     round_iterations: int = 15
     # the fast strategy's coarse grid (correspondence/coarse.py): both objectives on this many
     # sample points per part (an icosphere: 10 * 4**k + 2), and the maps then carried over to
     # the build's own points; 0, or a build with no more points than this, optimises on the
     # build's points. There the fixed-Delta phase makes ``coarse_passes`` passes over the field
-    # levels and the full objective's phase one (further passes lowered eq. 14, not G or S:
-    # fast_variants.py integrated1)
+    # levels and the full objective's phase one (further passes lower eq. 14 but not G or S:
+    # benchmarks/fast_variants.py, integrated1)
     coarse_points: int = 642
     coarse_passes: int = 3
     # the simplex strategies (III-D1, III-D2)
@@ -104,21 +104,20 @@ LANDMARK_CHECK_FOLDS = 6
 
 # ``--smoothness``: w of the prior on smooth correspondence of surfaces
 # (correspondence/smoothness.py); 0: none. The default is the weight that brings the benchmark
-# populations' correspondence closest to their known truth and expert landmarks while the 82
-# shared hippocampi keep generalization and specificity (modes 1-10) within 5 % of the model
+# populations' correspondence closest to their known truth and expert landmarks while the
+# hippocampi's generalization and specificity (modes 1-10) stay within 5 % of those of the model
 # without the prior (docs/benchmarks.md). 2-D curves have no prior.
 SMOOTHNESS = 0.01
 
 # ``--smoothness`` where landmarks guide the correspondence: the guides hold the correspondence
-# at the experts' places and the prior makes it a smooth deformation between them. The weight
-# past which doubling it brings the held-out half of the femurs' expert landmarks less than 5 %
-# closer; the known-truth femurs, deformed by smooth fields, gain at every weight and cannot
-# bound it (docs/benchmarks.md, "Landmarks as guides").
+# at the experts' places and the prior makes it a smooth deformation between them. The default
+# is the weight past which doubling it brings held-out expert landmarks less than 5 % closer
+# (docs/benchmarks.md, "Landmarks as guides").
 GUIDED_SMOOTHNESS = 0.04
 
 # Unless set, the surfaces mapped to the sphere have about this many vertices per sample point,
 # and at least MIN_SURFACE_VERTICES: ``BuildConfig.target_vertices``. A surface many times finer
-# than the sampling grid buys nothing and costs time (a 0.5 mm femur contour has 146,000).
+# than the sampling grid buys nothing and costs time.
 SURFACE_VERTICES_PER_POINT = 2
 MIN_SURFACE_VERTICES = 5000
 
