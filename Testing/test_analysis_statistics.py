@@ -269,7 +269,7 @@ def test_a_new_case_far_away_is_flagged(rng):
 
 
 def test_a_fitted_case_is_scored_against_the_new_case_reference(rng):
-    from mdlshapemodel.correspondence.pose import Pose
+    from mdlshapemodel.geometry import Pose
     from mdlshapemodel.model.fitting import FitResult, unusual_fit
 
     shapes, _ = gaussian_model(rng, 30)

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from mdlshapemodel.analysis import align
 from mdlshapemodel.analysis.superimposition import resistant_procrustes
-from mdlshapemodel.correspondence.pose import centroid_size
+from mdlshapemodel.geometry import centroid_size
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.shape_model import ShapeModel
 

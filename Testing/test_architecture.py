@@ -1,10 +1,11 @@
 """The house: data flows one way between the rooms, no import circles, light leaves.
 
-Stages, upstream first: the leaves (config, errors, progress, parallel, version), prepare,
-correspondence, model, the build folder (folders: its files read and written), analysis, report,
-the commands (build, outputs, analyze, fit, compare), the faces (cli, vtkfilters, vtkmodel, demo, and the package front door, whose heavy
-names load on first use). A module may import its own stage and the stages upstream of it, never
-one downstream.
+Stages, upstream first: the leaves (config, errors, progress, cluster, parallel, version),
+geometry (rigid alignment, for every stage below it), prepare, correspondence, model, the build
+folder (folders: its files read and written), analysis, report, the commands (build, outputs,
+analyze, fit, compare), the faces (cli and its options, vtkfilters, vtkmodel, demo, and the
+package front door, whose heavy names load on first use). A module may import its own stage and
+the stages upstream of it, never one downstream.
 """
 
 import ast
@@ -18,7 +19,8 @@ import mdlshapemodel
 
 PACKAGE = Path(mdlshapemodel.__file__).parent
 STAGES = [
-    {"config", "errors", "progress", "parallel", "version"},
+    {"config", "errors", "progress", "cluster", "parallel", "version"},
+    {"geometry"},
     {"prepare"},
     {"correspondence"},
     {"model"},
@@ -26,7 +28,7 @@ STAGES = [
     {"analysis"},
     {"report"},
     {"build", "outputs", "analyze", "fit", "compare", "kernels"},
-    {"cli", "vtkfilters", "vtkmodel", "demo", "__init__"},
+    {"cli", "options", "vtkfilters", "vtkmodel", "demo", "__init__"},
 ]
 
 
@@ -127,6 +129,73 @@ def test_the_package_has_no_import_circle():
     for node in sorted(adjacency):
         if node not in state:
             visit(node)
+
+
+def private_imports(module: str, source: str) -> list:
+    """The names private to another package module (a leading underscore, dunders aside) that
+    the source of ``module`` (e.g. "prepare.case") imports or reads from such a module:
+    ``from .x import _y``, ``x._y``."""
+    package = module.split(".")[:-1]
+    tree = ast.parse(source)
+    modules, found = {}, []   # modules: local name -> the package module it is
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level == 0:
+                if not (node.module or "").startswith("mdlshapemodel"):
+                    continue
+                base = node.module.split(".")[1:]
+            else:
+                base = package[:len(package) - (node.level - 1)] + (
+                    node.module.split(".") if node.module else [])
+            for alias in node.names:
+                if resolve(base + [alias.name]):
+                    modules[alias.asname or alias.name] = base + [alias.name]
+                elif alias.name.startswith("_") and not alias.name.startswith("__"):
+                    found.append(f"line {node.lineno}: from {'.'.join(base)} import {alias.name}")
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("mdlshapemodel.") and alias.asname:
+                    modules[alias.asname] = alias.name.split(".")[1:]
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                and node.value.id in modules and node.attr.startswith("_")
+                and not node.attr.startswith("__")):
+            found.append(f"line {node.lineno}: {node.value.id}.{node.attr}")
+    return found
+
+
+def test_no_room_uses_a_name_private_to_another():
+    """What two rooms share is public in the room that owns it: no ``from .x import _y``, no
+    ``x._y`` on a package module."""
+    found = {module_name(path): private_imports(module_name(path), path.read_text())
+             for path in PACKAGE.rglob("*.py")}
+    assert not {m: names for m, names in found.items() if names}
+
+
+def test_the_private_name_checker_sees_both_forms():
+    # the checker must see both forms, or the test above would pass vacuously
+    code = ("from .io import _hidden, read_polydata\nfrom . import nearest\n"
+            "from ..version import __version__\nvalue = nearest._grid, nearest.TriangleGrid\n")
+    assert private_imports("prepare.probe", code) == ["line 1: from prepare.io import _hidden",
+                                                      "line 4: nearest._grid"]
+
+
+def bare_value_errors(source: str) -> list:
+    """The lines of ``source`` that raise ``ValueError`` itself (not one of its subclasses)."""
+    return sorted(node.lineno for node in ast.walk(ast.parse(source))
+                  if isinstance(node, ast.Raise) and node.exc is not None
+                  and getattr(node.exc.func if isinstance(node.exc, ast.Call) else node.exc,
+                              "id", None) == "ValueError")
+
+
+def test_errors_are_of_the_package_hierarchy():
+    """A rejected input raises an error of mdlshapemodel.errors, a bad argument its
+    ArgumentError (a ValueError, as numpy's are), a bug InternalError: no bare ValueError."""
+    found = {module_name(path): bare_value_errors(path.read_text())
+             for path in PACKAGE.rglob("*.py")}
+    assert not {m: lines for m, lines in found.items() if lines}
+    assert bare_value_errors("if x:\n    raise ValueError('a')\nraise ValueError\n"
+                             "raise ArgumentError('b')\n") == [2, 3]
 
 
 def test_the_checker_sees_an_upward_import(tmp_path):

@@ -10,7 +10,7 @@ from mdlshapemodel.correspondence.circle import (CIRCLE_WARP_KINDS, CircleField,
                                                  CircleFieldBasis, CircleKernel, CircleShift,
                                                  CurvePart, apply_circle_kernel, circle_grid,
                                                  curve_state)
-from mdlshapemodel.correspondence.pose import align, generalized_procrustes
+from mdlshapemodel.geometry import align, generalized_procrustes
 from mdlshapemodel.correspondence.state import replay_record, state_record
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
@@ -19,7 +19,8 @@ from mdlshapemodel.correspondence.strategies.one_at_a_time import (optimise_shif
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.warps import (WARP_KINDS, apply_warps, make_warp,
                                                 minimum_amplitude)
-from mdlshapemodel.prepare.curve import curve_map, read_curve, resample_curve, segment_lengths
+from mdlshapemodel.prepare.curve import curve_map, resample_curve, segment_lengths
+from mdlshapemodel.prepare.curve_io import read_curve
 
 from common import DATA, HANDS
 from resuming import assert_same_record, optimised_with_checkpoints, resumed_from

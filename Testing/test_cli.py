@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from mdlshapemodel.config import BuildConfig
+from mdlshapemodel.options import BUILD_OPTIONS, NOT_OFFERED
 from files import write_label_map
 from synthetic import small_mask
 
@@ -281,13 +282,15 @@ def config_of_command_line(tmp_path: Path, name: str, *options) -> dict:
 
 
 def test_build_options_are_the_fields_of_build_config(tmp_path):
-    """Every build option sets a BuildConfig field and shows its help; every field that carries
-    a help text has an option; the defaults are the fields' defaults."""
+    """Every build option sets a BuildConfig field and shows its help; every field is offered
+    or named as not offered, with why; the defaults are the fields' defaults."""
     defaults = BuildConfig()
-    offered = [f for f in dataclasses.fields(BuildConfig) if "help" in f.metadata]
+    offered = [f for f in dataclasses.fields(BuildConfig) if f.name in BUILD_OPTIONS]
     assert {f.name for f in offered} == set(NON_DEFAULT_OPTIONS)
-    for f in dataclasses.fields(BuildConfig):  # each field is offered or says why not
-        assert ("help" in f.metadata) != ("internal" in f.metadata), f.name
+    names = [f.name for f in dataclasses.fields(BuildConfig)]
+    assert set(BUILD_OPTIONS) <= set(names)
+    for name in names:  # each field is offered or says why not
+        assert (name in BUILD_OPTIONS) != (name in NOT_OFFERED), name
 
     def squeezed(text):  # argparse rewraps help texts
         return re.sub(r"\s+", "", text)
@@ -306,9 +309,9 @@ def test_build_options_are_the_fields_of_build_config(tmp_path):
     for f in offered:
         default = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
         flag = NON_DEFAULT_OPTIONS[f.name][0][0]
-        assert squeezed(f.metadata["help"] % {"default": default}) in entries[flag], f.name
+        assert squeezed(BUILD_OPTIONS[f.name].help % {"default": default}) in entries[flag], f.name
     cache_dir = next(f for f in offered if f.name == "cache_dir")
-    assert squeezed(cache_dir.metadata["off_help"]) in entries["--no-cache"]
+    assert squeezed(BUILD_OPTIONS[cache_dir.name].off_help) in entries["--no-cache"]
 
     # no options: the defaults, with the blur rule (max_smoothing_sigma = max(2, smoothing))
     assert config_of_command_line(tmp_path, "defaults") == json.loads(

@@ -9,7 +9,8 @@ from mdlshapemodel.compare import load_population, write_comparison
 from mdlshapemodel.report.compare import Population, compare_populations, comparison_rows
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.evaluation import (evaluate, generalization, generalization_difference,
-                                           generalization_jackknife, model_space)
+                                           generalization_jackknife)
+from mdlshapemodel.model.space import model_space
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.correspondence.sampling import sphere_grid
 

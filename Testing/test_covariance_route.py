@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mdlshapemodel.correspondence.objective import Objective, covariance_route
-from mdlshapemodel.correspondence.pose import centroid_size
+from mdlshapemodel.geometry import centroid_size
 from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.correspondence.state import CorrespondenceState, FixedExample
 

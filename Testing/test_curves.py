@@ -11,9 +11,9 @@ from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
 
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.prepare.curve import (align_curve_origins, check_curve, curve_map,
-                                         find_crossing, is_curve_file, point_at, read_curve,
-                                         resample_curve, segment_lengths,
-                                         segment_vertex_lengths, signed_area)
+                                         find_crossing, point_at, resample_curve,
+                                         segment_lengths, segment_vertex_lengths, signed_area)
+from mdlshapemodel.prepare.curve_io import is_curve_file, read_curve
 
 from common import DATA, HANDS
 

@@ -27,7 +27,8 @@ from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.build import fingerprint
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel import parallel
-from mdlshapemodel.parallel import Task, map_cases, on_cluster
+from mdlshapemodel.cluster import on_cluster
+from mdlshapemodel.parallel import Task, map_cases
 from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.io import read_csv
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from mdlshapemodel.model.evaluation import (SURFACE_GENERALIZATION_POINTS, compactness, evaluate,
-                                      generalization, specificity, surface_generalization,
-                                      surface_specificity)
+                                      generalization, specificity)
+from mdlshapemodel.model.surface_measures import surface_generalization, surface_specificity
 from mdlshapemodel.parallel import process_pool
 from mdlshapemodel.prepare.surface import SurfaceDistance, point_surface_distances
 
@@ -558,7 +558,7 @@ def test_surface_specificity_subsampling_agrees_with_all_points(rng):
 def test_stratified_sampling_is_unbiased(rng):
     """The strata partition the points; one random point per stratum, weighted by the stratum's
     share, estimates the mean over all points without bias, with less noise than a random subset."""
-    from mdlshapemodel.model.evaluation import weighted_means, RandomPoints, StratifiedPoints
+    from mdlshapemodel.model.surface_measures import weighted_means, RandomPoints, StratifiedPoints
 
     _, _, _, surfaces = radial_population(rng, 1, 4)
     vertices = surfaces[0][0]

@@ -1,5 +1,5 @@
 """The evaluation's compiled loops (model/evaluation_kernels.py) and the search built on them
-(evaluation.MeshSearch), against direct formulas written here: closest points searched from any
+(surface_measures.MeshSearch), against direct formulas written here: closest points searched from any
 guessed triangle equal testing every triangle, bit for bit; the specificity samples' point
 distances equal building each sample and measuring it; farthest-point samples and triangle boxes
 equal numpy's."""
@@ -9,8 +9,10 @@ import pytest
 
 from mdlshapemodel.correspondence import hotloops
 from mdlshapemodel.correspondence.sampling import icosphere
-from mdlshapemodel.model import evaluation
-from mdlshapemodel.model.evaluation import MeshSearch, model_space, specificity
+from mdlshapemodel.model import surface_measures
+from mdlshapemodel.model.evaluation import specificity
+from mdlshapemodel.model.space import model_space
+from mdlshapemodel.model.surface_measures import MeshSearch
 from mdlshapemodel.model.evaluation_kernels import (closest_from, farthest_points,
                                                     sample_distances, triangle_boxes)
 from mdlshapemodel.prepare.nearest import TriangleGrid, closest_on_triangles
@@ -80,7 +82,7 @@ def test_mesh_search_follows_a_moving_mesh(rng, monkeypatch, tree_after):
     """A mesh moved a little at a time, each question starting from the last answers, some points
     without a guess (searched on the grid, or from the centroids' tree once enough were): always
     SurfaceDistance's distances, bit for bit."""
-    monkeypatch.setattr(evaluation, "CENTROID_TREE_POINTS", tree_after)
+    monkeypatch.setattr(surface_measures, "CENTROID_TREE_POINTS", tree_after)
     base, faces = icosphere(2)
     base = base * [20.0, 9.0, 6.0]
     points = base[rng.integers(0, len(base), 200)] + rng.normal(size=(200, 3)) * 0.5

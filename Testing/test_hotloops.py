@@ -5,7 +5,7 @@ import pytest
 
 from mdlshapemodel.correspondence import hotloops
 from mdlshapemodel.correspondence.fields import FieldBasis, wendland
-from mdlshapemodel.correspondence.pose import Pose, rotation_from_vector
+from mdlshapemodel.geometry import Pose, rotation_from_vector
 from mdlshapemodel.correspondence.sampling import SphereLocator, icosphere
 
 

@@ -12,7 +12,7 @@ from vtk.util.numpy_support import vtk_to_numpy
 
 from mdlshapemodel import BuildConfig
 from mdlshapemodel.config import PartSpec, parse_part
-from mdlshapemodel.correspondence.pose import align
+from mdlshapemodel.geometry import align
 from mdlshapemodel.correspondence.initial import initial_state
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.trace import Trace

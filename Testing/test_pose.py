@@ -5,7 +5,7 @@ import pytest
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from mdlshapemodel.correspondence.pose import (Pose, align, centroid_size, generalized_procrustes,
+from mdlshapemodel.geometry import (Pose, align, centroid_size, generalized_procrustes,
                                 pose_from_parameters, rotation_from_vector, weighted_centroid)
 
 

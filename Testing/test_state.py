@@ -5,7 +5,7 @@ import pytest
 
 from mdlshapemodel.correspondence.warps import SymmetricTheta
 from mdlshapemodel.correspondence.objective import Objective
-from mdlshapemodel.correspondence.pose import Pose, centroid_size, rotation_from_vector
+from mdlshapemodel.geometry import Pose, centroid_size, rotation_from_vector
 from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.prepare.sphere import orientation
 

@@ -178,7 +178,7 @@ def test_random_helpers(rng):
 # Appendix transformations (asymmetric theta, shear/twist), global rotation and the common interface
 
 from mdlshapemodel.correspondence.circle import CIRCLE_WARP_KINDS  # noqa: E402
-from mdlshapemodel.correspondence.pose import rotation_from_vector  # noqa: E402
+from mdlshapemodel.geometry import rotation_from_vector  # noqa: E402
 from mdlshapemodel.correspondence.sampling import sphere_grid  # noqa: E402
 from mdlshapemodel.prepare.sphere import orientation as sphere_orientation, solid_angles  # noqa: E402
 from mdlshapemodel.correspondence.warps import (WARP_KINDS, AsymmetricTheta, Rotation, ShearTwist,  # noqa: E402

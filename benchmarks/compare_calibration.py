@@ -19,7 +19,8 @@ import time
 import numpy as np
 
 from mdlshapemodel.model.evaluation import (JACKKNIFE_GROUPS, generalization_difference,
-                                           generalization_jackknife, model_space)
+                                           generalization_jackknife)
+from mdlshapemodel.model.space import model_space
 from mdlshapemodel.compare import load_population
 
 

@@ -108,7 +108,7 @@ def drawn_state(prepared: list, config, n_s: int, noise: float, seed: int = 0):
 
 def scaled_data(state) -> np.ndarray:
     """A with D' = A A^T: the shapes centred, times sqrt(w) and the rescaling to the target size."""
-    from mdlshapemodel.correspondence.pose import centroid_size
+    from mdlshapemodel.geometry import centroid_size
 
     mean = state.shapes.mean(axis=0)
     factor = state.target_size / centroid_size(mean, state.weights)

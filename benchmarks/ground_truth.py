@@ -88,7 +88,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def make(args):
     import SimpleITK as sitk
 
-    from mdlshapemodel.correspondence.pose import rotation_from_vector
+    from mdlshapemodel.geometry import rotation_from_vector
     from mdlshapemodel.prepare import io, surface
 
     output = Path(args.output)
@@ -329,7 +329,7 @@ def description_lengths(shapes: np.ndarray, triangles: np.ndarray, config, voxel
     with the library's alignment and weights: weighted Procrustes with area weights of the mean
     (three rounds), rescaled to the mean's centroid size."""
     from mdlshapemodel.correspondence.objective import objectives
-    from mdlshapemodel.correspondence.pose import generalized_procrustes
+    from mdlshapemodel.geometry import generalized_procrustes
     from mdlshapemodel.prepare.surface import triangle_vertex_areas
 
     weights = np.full(shapes.shape[1], 1.0 / shapes.shape[1])
@@ -385,7 +385,7 @@ def sliding(args):
     """How much of the truth slides along the surface: every true mesh rigidly aligned to the
     template (the vertices correspond), its displacements split along the template's normals, and
     each point's spread about the population mean printed for both parts (mm)."""
-    from mdlshapemodel.correspondence.pose import generalized_procrustes
+    from mdlshapemodel.geometry import generalized_procrustes
     from mdlshapemodel.prepare import io
 
     truth = Path(args.truth)
@@ -418,7 +418,7 @@ def from_truth(args):
     optimiser reaches from the sphere maps says that the optimiser stops in another basin."""
     from mdlshapemodel.config import BuildConfig
     from mdlshapemodel.correspondence.objective import objectives
-    from mdlshapemodel.correspondence.pose import generalized_procrustes
+    from mdlshapemodel.geometry import generalized_procrustes
     from mdlshapemodel.correspondence.sampling import sphere_grid
     from mdlshapemodel.correspondence.state import CorrespondenceState, Example, PartState
     from mdlshapemodel.correspondence.strategies import optimise

@@ -31,7 +31,8 @@ HANDS = Path(__file__).resolve().parents[2] / "shared" / "data" / "hands2d"
 
 
 def resample(args) -> int:
-    from mdlshapemodel.prepare.curve import read_curve, resample_curve
+    from mdlshapemodel.prepare.curve import resample_curve
+    from mdlshapemodel.prepare.curve_io import read_curve
 
     inputs = Path(args.output) / "inputs"
     inputs.mkdir(parents=True, exist_ok=True)

@@ -45,7 +45,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def draw_case(model, rng: np.random.Generator, noise: float, bumps: int, width: float,
               rotation_deg: float, translation: float) -> tuple[np.ndarray, dict]:
     """One shape (n_p, 3) in mm and what made it."""
-    from mdlshapemodel.correspondence.pose import rotation_from_vector
+    from mdlshapemodel.geometry import rotation_from_vector
 
     scores = np.clip(rng.standard_normal(model.n_modes), -3.0, 3.0) * np.sqrt(model.variances)
     shape = model.instance(scores)

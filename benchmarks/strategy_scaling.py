@@ -435,7 +435,7 @@ def main(argv=None) -> int:
         if not pool:
             print(f"no usable label maps in {args.data}", file=sys.stderr)
             return 2
-        from mdlshapemodel.prepare.curve import is_curve_file
+        from mdlshapemodel.prepare.curve_io import is_curve_file
 
         jobs = plan_jobs(pool, args.sizes, args.trials, args.strategies, args.seed)
         plan = {"args": {**vars(args), "curves": is_curve_file(pool[0])}, "pool": pool,

@@ -44,7 +44,8 @@ from .model.landmarks import LandmarkCheck, landmark_array, transfer_errors
 from .model.shape_model import ShapeModel
 from .folders import BuildFolder, Checkpoint, find_inputs
 from .outputs import BuildResult, against_baselines, write_outputs, write_shapes
-from .parallel import Task, dask_executor, helper_for
+from .cluster import dask_executor
+from .parallel import Task, helper_for
 from .prepare import io, preprocess
 from .prepare.case import Rejection
 from .prepare.duplicates import identical_files, refusal, same_shapes
@@ -84,8 +85,8 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         Runs the per-case work (preprocessing, CPD registrations, evaluations); default: a pool
         of ``config.workers`` processes per stage (none when 1) and one helper process for the
         evaluations that overlap the optimisation, or with ``config.scheduler`` the Dask cluster
-        there (:func:`.parallel.dask_executor`; not both). On a Dask client's executor
-        (``Client.get_executor()``) each call runs as :class:`.parallel.InTurn`. The caller's
+        there (:func:`.cluster.dask_executor`; not both). On a Dask client's executor
+        (``Client.get_executor()``) each call runs as :class:`.cluster.InTurn`. The caller's
         executor is not shut down.
     overwrite : bool
         Replace an earlier finished or resumable build in ``output`` (:func:`.outputs.earlier_build`;

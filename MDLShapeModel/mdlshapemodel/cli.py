@@ -16,23 +16,23 @@ from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Callable
 
-from .config import (ANALYSIS_SIZES, DISPLACEMENTS, FAMILY_WISE, OPTION_GROUPS,
-                     PART_ALIGNMENTS, STRATEGIES, SUPERIMPOSITIONS, TAILS, VARIANCES,
-                     AnalysisConfig, BuildConfig, parse_items)
+from .config import (ANALYSIS_SIZES, DISPLACEMENTS, FAMILY_WISE, PART_ALIGNMENTS, STRATEGIES,
+                     SUPERIMPOSITIONS, TAILS, VARIANCES, AnalysisConfig, BuildConfig, parse_items)
 from .correspondence.trace import stop_summary
 from .errors import Cancelled, ConfigError, InternalError, MDLShapeModelError
+from .options import BUILD_OPTIONS, OPTION_GROUPS
 from .progress import ctrl_c
 from .version import __version__
 
 log = logging.getLogger("mdlshapemodel")
 
 
-# The build options: made from the fields of BuildConfig that carry an option (config.option), so
-# that every default, type, choice and help text is defined once, there.
+# The build options: the fields of BuildConfig that options.BUILD_OPTIONS offers, each with the
+# field's type, default and choices (defined once, in config.py) and the option's flag and help.
 
 def _command_line_fields() -> list:
     """The fields of :class:`BuildConfig` that the ``build`` command offers, in field order."""
-    return [f for f in fields(BuildConfig) if "help" in f.metadata]
+    return [f for f in fields(BuildConfig) if f.name in BUILD_OPTIONS]
 
 
 def _default_of(f):
@@ -40,7 +40,7 @@ def _default_of(f):
 
 
 def _flag_of(f) -> str:
-    return f.metadata.get("flag") or "--" + f.name.replace("_", "-")
+    return BUILD_OPTIONS[f.name].flag_of(f.name)
 
 
 def _dest_of(flag: str) -> str:
@@ -64,11 +64,11 @@ def _items(kind: type, metadata) -> Callable[[str], list]:
 
 def _argument(f, annotation) -> dict:
     """argparse keywords of the option of field ``f`` (of type ``annotation``)."""
-    metadata = f.metadata
+    metadata, offered = f.metadata, BUILD_OPTIONS[f.name]
     default = _default_of(f)
-    keywords = {"dest": f.name, "default": default, "help": metadata["help"]}
-    if "metavar" in metadata:
-        keywords["metavar"] = metadata["metavar"]
+    keywords = {"dest": f.name, "default": default, "help": offered.help}
+    if offered.metavar is not None:
+        keywords["metavar"] = offered.metavar
     elif annotation is not bool and "choices" not in metadata:  # named after the flag
         keywords["metavar"] = _dest_of(_flag_of(f)).upper()
     origin, arguments = typing.get_origin(annotation), typing.get_args(annotation)
@@ -78,10 +78,10 @@ def _argument(f, annotation) -> dict:
         keywords["action"] = "store_false" if default else "store_true"
     elif origin is list:
         (kind,) = arguments
-        if metadata["split"]:
+        if offered.split:
             keywords.update(type=_items(kind, metadata),
-                            action="extend" if metadata["repeatable"] else "store")
-        elif metadata["repeatable"]:
+                            action="extend" if offered.repeatable else "store")
+        elif offered.repeatable:
             keywords.update(type=kind, action="append")
         else:
             raise TypeError(f"{f.name}: a list option must be split or repeatable")
@@ -102,11 +102,12 @@ def _add_build_options(parser: argparse.ArgumentParser):
     for name in OPTION_GROUPS:  # group by group, so that the usage line lists them so too
         group = parser.add_argument_group(name)
         for f in _command_line_fields():
-            if f.metadata["group"] == name:
+            offered = BUILD_OPTIONS[f.name]
+            if offered.group == name:
                 group.add_argument(_flag_of(f), **_argument(f, annotations[f.name]))
-                if "off_flag" in f.metadata:
-                    group.add_argument(f.metadata["off_flag"], action="store_true",
-                                       help=f.metadata["off_help"])
+                if offered.off_flag is not None:
+                    group.add_argument(offered.off_flag, action="store_true",
+                                       help=offered.off_help)
     group.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
 
 
@@ -117,8 +118,9 @@ def _config_from(args) -> BuildConfig:
     values = {}
     for f in _command_line_fields():
         value = getattr(args, f.name)
-        if "off_flag" in f.metadata and getattr(args, _dest_of(f.metadata["off_flag"])):
-            value = f.metadata["off_value"]
+        offered = BUILD_OPTIONS[f.name]
+        if offered.off_flag is not None and getattr(args, _dest_of(offered.off_flag)):
+            value = offered.off_value
         if typing.get_origin(annotations[f.name]) is tuple:
             value = tuple(value)
         values[f.name] = value

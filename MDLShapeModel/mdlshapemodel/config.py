@@ -47,21 +47,21 @@ class OptimisationSettings:
     # threads for the per-example loops of an evaluation (the fast strategy's field sampling and
     # its chain rule); the result does not depend on it (``BuildConfig.workers``)
     threads: int = 1
-    # the fast strategy: coarse-to-fine passes over its field levels; another pass only while the
-    # last one gained more than ``tolerance`` of the phase's gain (the second pass took the
-    # ground-truth error of a femur population with no sliding from 1.134 to 0.992 mm, with each
-    # example's size free in the pose)
+    # the fast strategy: coarse-to-fine passes over its field levels at most; another pass only
+    # while the last one gained more than ``tolerance`` of the phase's gain. A second pass lets
+    # the coarse levels move again after the fine ones have, which brings the correspondence
+    # closer to a population's known truth (docs/benchmarks.md)
     field_passes: int = 2
     # the fast strategy: quasi-Newton iterations per round at most. Each round ends with a rebuild
-    # (area weights of the new mean, the next fields centred where the points now are): shorter
-    # rounds gave lower G and S in fewer evaluations (benchmarks/fast_variants.py iterationsN)
+    # (area weights of the new mean, the next fields centred where the points are then): shorter
+    # rounds reach lower G and S in fewer evaluations (benchmarks/fast_variants.py, iterationsN)
     round_iterations: int = 15
     # the fast strategy's coarse grid (correspondence/coarse.py): both objectives on this many
     # sample points per part (an icosphere: 10 * 4**k + 2), and the maps then carried over to
     # the build's own points; 0, or a build with no more points than this, optimises on the
     # build's points. There the fixed-Delta phase makes ``coarse_passes`` passes over the field
-    # levels and the full objective's phase one (further passes lowered eq. 14, not G or S:
-    # fast_variants.py integrated1)
+    # levels and the full objective's phase one (further passes lower eq. 14 but not G or S:
+    # benchmarks/fast_variants.py, integrated1)
     coarse_points: int = 642
     coarse_passes: int = 3
     # the simplex strategies (III-D1, III-D2)
@@ -78,9 +78,6 @@ class OptimisationSettings:
     shear_sigma: float = 0.25      # shear/twist band widths c: positive half of N(0, this)
 
 
-# The command line's option groups, in the order its help lists them (see :func:`option`).
-OPTION_GROUPS = ("correspondence", "inputs and surfaces", "running and evaluation")
-_CORRESPONDENCE, _INPUTS, _RUNNING = OPTION_GROUPS
 # Unless set, the largest blur of a mask whose surface is not genus 0 is the larger of this and
 # the first blur: ``BuildConfig.max_smoothing_sigma``, voxels.
 MAX_SMOOTHING_SIGMA = 2.0
@@ -107,21 +104,20 @@ LANDMARK_CHECK_FOLDS = 6
 
 # ``--smoothness``: w of the prior on smooth correspondence of surfaces
 # (correspondence/smoothness.py); 0: none. The default is the weight that brings the benchmark
-# populations' correspondence closest to their known truth and expert landmarks while the 82
-# shared hippocampi keep generalization and specificity (modes 1-10) within 5 % of the model
+# populations' correspondence closest to their known truth and expert landmarks while the
+# hippocampi's generalization and specificity (modes 1-10) stay within 5 % of those of the model
 # without the prior (docs/benchmarks.md). 2-D curves have no prior.
 SMOOTHNESS = 0.01
 
 # ``--smoothness`` where landmarks guide the correspondence: the guides hold the correspondence
-# at the experts' places and the prior makes it a smooth deformation between them. The weight
-# past which doubling it brings the held-out half of the femurs' expert landmarks less than 5 %
-# closer; the known-truth femurs, deformed by smooth fields, gain at every weight and cannot
-# bound it (docs/benchmarks.md, "Landmarks as guides").
+# at the experts' places and the prior makes it a smooth deformation between them. The default
+# is the weight past which doubling it brings held-out expert landmarks less than 5 % closer
+# (docs/benchmarks.md, "Landmarks as guides").
 GUIDED_SMOOTHNESS = 0.04
 
 # Unless set, the surfaces mapped to the sphere have about this many vertices per sample point,
 # and at least MIN_SURFACE_VERTICES: ``BuildConfig.target_vertices``. A surface many times finer
-# than the sampling grid buys nothing and costs time (a 0.5 mm femur contour has 146,000).
+# than the sampling grid buys nothing and costs time.
 SURFACE_VERTICES_PER_POINT = 2
 MIN_SURFACE_VERTICES = 5000
 
@@ -262,59 +258,31 @@ def field_items(name: str, text: str) -> list:
         raise ConfigError(str(error), setting=name) from None
 
 
-def option(group: str, help: str, *, flag: str | None = None, metavar=None, choices=None,
-           item: str | None = None, repeatable: bool = False, split: bool = True,
-           nonempty: bool = False, off_flag: str | None = None, off_value=None,
-           off_help: str | None = None) -> dict:
-    """The metadata of a :class:`BuildConfig` field that users set: what a face (the command
-    line, a panel) needs to offer it. Its type and default are the field's own.
+def rule(choices: tuple | None = None, item: str | None = None, nonempty: bool = False) -> dict:
+    """The metadata of a :class:`BuildConfig` field whose values are checked by rule, read by
+    every face that parses the setting from text (:func:`field_items`, the command line).
 
     Parameters
     ----------
-    group : str
-        One of :data:`OPTION_GROUPS`.
-    help : str
-        What the setting does; ``%(default)s`` stands for the field's default (argparse fills it
-        in; elsewhere ``help % {"default": value}``).
-    flag : str, optional
-        The command-line flag when it is not ``--`` and the field's name with hyphens. The flag
-        of a bool field whose default is True switches it off (``--no-...``).
-    metavar : str or tuple, optional
-        The value's name in the command line's help.
     choices : tuple, optional
         The allowed values (of each item, for a list field).
     item : str, optional
         List fields: what one item is, for messages ("unknown warp kind ...").
-    repeatable : bool
-        List fields: the flag may be given again and adds items (else the last one counts).
-    split : bool
-        List fields: one argument holds several items, separated by commas or spaces.
     nonempty : bool
         List fields: at least one item.
-    off_flag, off_value, off_help : optional
-        A second flag that sets the field to ``off_value`` whatever the first says; its help.
     """
-    if group not in OPTION_GROUPS:
-        raise ValueError(f"unknown option group {group!r}")
-    metadata = {"group": group, "help": help, "flag": flag, "metavar": metavar,
-                "choices": choices, "item": item, "repeatable": repeatable, "split": split,
-                "nonempty": nonempty, "off_flag": off_flag, "off_value": off_value,
-                "off_help": off_help}
+    metadata = {"choices": choices, "item": item, "nonempty": nonempty or None}
     return {key: value for key, value in metadata.items() if value is not None}
-
-
-def internal(reason: str) -> dict:
-    """The metadata of a :class:`BuildConfig` field that the command line does not offer: why."""
-    return {"internal": reason}
 
 
 @dataclass
 class BuildConfig:
     """Settings of a model build. Lengths marked *voxels* are in voxels of the source images.
 
-    Every field users set carries its :func:`option` in ``field.metadata`` (help, flag, group):
-    the command line's ``build`` options are made from these fields, so each default and rule is
-    defined here once. The others carry :func:`internal`.
+    Each field's type, default and check (:meth:`validate`) are defined here once; a field whose
+    values are limited to choices or list items carries its :func:`rule` in ``field.metadata``.
+    The faces offer the fields under their own names (the command line's ``build`` options:
+    :mod:`mdlshapemodel.options`).
 
     One rule joins two fields: ``max_smoothing_sigma`` left None becomes
     max(:data:`MAX_SMOOTHING_SIGMA`, ``smoothing_sigma``) on construction (so
@@ -322,175 +290,62 @@ class BuildConfig:
     """
 
     # inputs
-    labels: list[int] = field(default_factory=list, metadata=option(
-        _INPUTS, "label value(s) whose union is the object, e.g. --label 1,2 "
-                 "(default: all non-zero)",
-        flag="--label", metavar="L", item="label", repeatable=True))
-    parts: list[str] = field(default_factory=list, metadata=option(
-        _INPUTS, "a part of a multi-part object: its name and the label value(s) whose union "
-                 "it is, e.g. --part head=1 --part tail=2 (repeatable; each part gets its own "
-                 "surface, sphere map and --points sample points, and one pose moves all parts)",
-        flag="--part", metavar="NAME=LABELS", item="part", repeatable=True, split=False))
-    voxel_size: float | None = field(default=None, metadata=option(
-        _INPUTS, "mm per voxel for mesh inputs (default: their mean edge length)"))
-    mirror: list[str] = field(default_factory=list, metadata=option(
-        _INPUTS, "reflect inputs whose file name matches PATTERN (x -> -x), e.g. "
-                 "--mirror '*_rfemur*' to model right and left sides together; repeatable",
-        metavar="PATTERN", item="pattern", repeatable=True, split=False))
-    allow_duplicates: bool = field(default=False, metadata=option(
-        _INPUTS, "model a case given twice (identical files, or shapes whose RMS distance is "
-                 f"below {100 * DUPLICATE_DISTANCE:g}%% of their size) as it is; by default the "
-                 "build names such cases and stops before the optimisation"))
+    labels: list[int] = field(default_factory=list, metadata=rule(item="label"))
+    parts: list[str] = field(default_factory=list, metadata=rule(item="part"))
+    voxel_size: float | None = None
+    mirror: list[str] = field(default_factory=list, metadata=rule(item="pattern"))
+    allow_duplicates: bool = False
     # surfaces and sphere maps
-    surface_method: str = field(default="gaussian", metadata=option(
-        _INPUTS, "label map -> surface: Gaussian blur + flying edges, or 3D Slicer's "
-                 "conversion (flying edges + windowed sinc); either blurs more when the surface "
-                 "is not genus 0 (default %(default)s)",
-        flag="--surface", choices=SURFACE_METHODS))
-    smoothing_factor: float = field(default=0.5, metadata=option(
-        _INPUTS, "slicer: smoothing factor 0..1 of the windowed-sinc filter (default %(default)s)"))
-    decimation: float = field(default=0.0, metadata=option(
-        _INPUTS, "slicer: fraction of triangles removed before smoothing (default %(default)s)"))
-    smoothing_sigma: float = field(default=1.0, metadata=option(
-        _INPUTS, "gaussian: blur of masks before contouring, voxels (default %(default)s)",
-        flag="--smoothing"))
+    surface_method: str = field(default="gaussian", metadata=rule(choices=SURFACE_METHODS))
+    smoothing_factor: float = 0.5
+    decimation: float = 0.0
+    smoothing_sigma: float = 1.0
     # None: MAX_SMOOTHING_SIGMA or smoothing_sigma, whichever is larger (set on construction)
-    max_smoothing_sigma: float | None = field(default=None, metadata=option(
-        _INPUTS, "largest blur of masks whose surface is not genus 0 (blurred more in steps of "
-                 f"0.5), voxels (default: max({MAX_SMOOTHING_SIGMA:g}, --smoothing))",
-        flag="--max-smoothing"))
-    edge_length: float = field(default=1.0, metadata=option(
-        _INPUTS, "edge length of the remeshed surfaces of label maps, voxels, unless that gives "
-                 "more than --target-vertices vertices (default %(default)s)"))
+    max_smoothing_sigma: float | None = None
+    edge_length: float = 1.0
     # None: target_vertices_for(points) (set on construction)
-    target_vertices: int | None = field(default=None, metadata=option(
-        _INPUTS, "about how many vertices the surfaces mapped to the sphere have at most: finer "
-                 "ones are remeshed with longer edges than --edge-length (default: "
-                 f"max({MIN_SURFACE_VERTICES}, {SURFACE_VERTICES_PER_POINT} x --points))"))
+    target_vertices: int | None = None
     # correspondence
-    correspondence: str = field(default="mdl", metadata=option(
-        _CORRESPONDENCE, "'mdl': optimised by minimum description length; 'cpd': a template "
-                         "case registered onto every case by coherent point drift, the common "
-                         "alternative, for comparison (default %(default)s)",
-        choices=CORRESPONDENCES))
-    baselines: list[str] = field(default_factory=lambda: ["none"], metadata=option(
-        _CORRESPONDENCE, "other correspondences evaluated on the same cases and shown in the "
-                         "report: comma-separated from none (the initial correspondence) and "
-                         "cpd; '' for no baseline (default none)",
-        metavar="LIST", choices=BASELINES, item="baseline"))
+    correspondence: str = field(default="mdl", metadata=rule(choices=CORRESPONDENCES))
+    baselines: list[str] = field(default_factory=lambda: ["none"],
+                                 metadata=rule(choices=BASELINES, item="baseline"))
     # None: SURFACE_POINTS on surfaces, CURVE_POINTS on 2-D curves (points_for)
-    points: int | None = field(default=None, metadata=option(  # n_p
-        _CORRESPONDENCE, "sample points per part: on the sphere (an icosphere when 10*4^k+2) "
-                         f"for surfaces, default {SURFACE_POINTS}; equally spaced on the circle for "
-                         f"2-D curves, default {CURVE_POINTS}"))
-    placement: str = field(default=PLACEMENT, metadata=option(
-        _CORRESPONDENCE, "where a surface's sample points lie: 'sphere', an even grid on the "
-                         "sphere (an icosphere when --points is 10*4^k+2); 'surface', spread "
-                         "evenly over the population's mean surface, so that thin processes and "
-                         "ridges, which the sphere maps squeeze, get their share "
-                         "(default %(default)s)",
-        choices=PLACEMENTS))
+    points: int | None = None  # n_p
+    placement: str = field(default=PLACEMENT, metadata=rule(choices=PLACEMENTS))
     # optimisation: our gradient strategy by default (the paper's four remain selectable); the
     # other defaults are those of OptimisationSettings (one source)
-    strategy: str = field(default="fast", metadata=option(
-        _CORRESPONDENCE, "optimisation strategy; 'none' keeps the initial (equal-spacing) "
-                         "correspondence (default %(default)s)",
-        choices=STRATEGIES))
+    strategy: str = field(default="fast", metadata=rule(choices=STRATEGIES))
     warps: list[str] = field(default_factory=lambda: list(OptimisationSettings.warps),
-                             metadata=option(
-        _CORRESPONDENCE, "one-at-a-time strategies: the warps each step draws from, uniformly, "
-                         "comma-separated from symmetric (the paper's theta kernel), asymmetric "
-                         "and shear (the Appendix's asymmetric theta and shear/twist maps) and "
-                         "rotation (a global rotation of the parameter sphere) "
-                         "(default symmetric)",
-        metavar="LIST", choices=WARPS, item="warp kind", nonempty=True))
-    scaling: bool = field(default=True, metadata=option(  # Procrustes removes scale
-        _CORRESPONDENCE, "keep size: Procrustes and pose use rotation and translation only",
-        flag="--no-scaling"))
+                             metadata=rule(choices=WARPS, item="warp kind", nonempty=True))
+    scaling: bool = True  # Procrustes removes scale
     # [Delta_min, Delta_max] of eq. 14 (Table I); fixed_delta: Delta of eq. 13; sigma_g (Table I)
-    delta_range: tuple[float, float] = field(default=(1e-4, 0.5), metadata=option(
-        _CORRESPONDENCE, "coding accuracy range of eq. 14 in voxels (default %(default)s)",
-        metavar=("MIN", "MAX")))
-    fixed_delta: float = field(default=0.1, metadata=option(
-        _CORRESPONDENCE, "coding accuracy of the first phase (eq. 13), voxels "
-                         "(default %(default)s)"))
-    sigma_g: float = field(default=OptimisationSettings.sigma_g, metadata=option(
-        _CORRESPONDENCE, "width distribution of random kernels (default 1/32)"))
-    max_amplitude: float = field(default=OptimisationSettings.max_amplitude, metadata=internal(
-        "the bound of a kernel amplitude A: the command line keeps the paper's (Table I)"))
-    max_time: float = field(default=OptimisationSettings.max_time, metadata=option(
-        _CORRESPONDENCE, "time budget of the optimisation (default %(default)s)",
-        metavar="SECONDS"))
-    fixed_fraction: float = field(default=OptimisationSettings.fixed_fraction, metadata=option(
-        _CORRESPONDENCE, "share of --max-time spent on the fixed-Delta phase before the full "
-                         "objective; 0 skips it (default %(default)s)"))
-    tolerance: float = field(default=OptimisationSettings.tolerance, metadata=option(
-        _CORRESPONDENCE, "convergence: stop when a sweep gains less than this fraction of the "
-                         "total gain, three times in a row (default %(default)s)"))
-    max_sweeps: int = field(default=OptimisationSettings.max_sweeps, metadata=option(
-        _CORRESPONDENCE, "at most N sweeps over the examples (fast: rounds) per phase; unlike "
-                         "--max-time, a budget that repeats exactly (default %(default)s)",
-        metavar="N"))
-    coarse_points: int = field(default=OptimisationSettings.coarse_points, metadata=option(
-        _CORRESPONDENCE, "fast strategy: optimise on this many sample points per part (the "
-                         "objective is measured there) and carry the maps over to --points; 0: "
-                         "optimise on --points (default %(default)s)",
-        metavar="N"))
-    landmarks: str | None = field(default=None, metadata=option(
-        _CORRESPONDENCE, "folder of landmark files that guide the correspondence, one per case "
-                         "named after it (3D Slicer .mrk.json or .fcsv, or CSV label,x,y,z; "
-                         "LPS unless the file says RAS): each label is kept at one place across "
-                         "the cases (surfaces; a case may lack labels or have no file)",
-        metavar="DIR"))
-    landmark_weight: float = field(default=LANDMARK_WEIGHT, metadata=option(
-        _CORRESPONDENCE, "--landmarks: the objective's cost of a landmark one voxel from its "
-                         "corresponded point is half this, in nats; 0: the landmarks do not "
-                         "guide the correspondence, they only measure it (the report shows how "
-                         "far it carries each one) (default %(default)s)"))
-    check_landmarks: bool = field(default=False, metadata=option(
-        _CORRESPONDENCE, "--landmarks: measure how far the correspondence carries each label "
-                         "where it does not guide it: the optimisation runs again with the "
-                         f"label left out of the guides (up to {LANDMARK_CHECK_FOLDS} labels one "
-                         f"at a time, more in {LANDMARK_CHECK_FOLDS} groups: one more "
-                         "optimisation each); the errors go to the build's metrics and report"))
+    delta_range: tuple[float, float] = (1e-4, 0.5)
+    fixed_delta: float = 0.1
+    sigma_g: float = OptimisationSettings.sigma_g
+    max_amplitude: float = OptimisationSettings.max_amplitude  # the bound of an amplitude A
+    max_time: float = OptimisationSettings.max_time
+    fixed_fraction: float = OptimisationSettings.fixed_fraction
+    tolerance: float = OptimisationSettings.tolerance
+    max_sweeps: int = OptimisationSettings.max_sweeps
+    coarse_points: int = OptimisationSettings.coarse_points
+    landmarks: str | None = None
+    landmark_weight: float = LANDMARK_WEIGHT
+    check_landmarks: bool = False
     # None: SMOOTHNESS on surfaces (GUIDED_SMOOTHNESS with guides), none on 2-D curves
     # (smoothness_for)
-    smoothness: float | None = field(default=None, metadata=option(
-        _CORRESPONDENCE, "surfaces: weight of a prior on smooth correspondence, the thin-plate "
-                         "bending energy of each case's displacement from the mean shape, per "
-                         f"squared voxel; 0: none (default {SMOOTHNESS:g}, "
-                         f"{GUIDED_SMOOTHNESS:g} where landmarks guide)", metavar="W"))
-    seed: int = field(default=0, metadata=option(
-        _CORRESPONDENCE, "random seed of the paper's strategies (fast draws no random "
-                         "numbers): the same seed and inputs give the same model bit for bit, "
-                         "unless --max-time cuts the runs at different points "
-                         "(default %(default)s)"))
+    smoothness: float | None = None
+    seed: int = 0
     # evaluation
-    evaluation_modes: int = field(default=10, metadata=option(
-        _RUNNING, "measures are reported for M = 1..this (default %(default)s)"))
-    specificity_samples: int = field(default=10_000, metadata=option(
-        _RUNNING, "model samples for specificity (default %(default)s)"))
-    surface_samples: int = field(default=200, metadata=option(
-        _RUNNING, "model samples for specificity measured surface to surface; 0 leaves out the "
-                  "surface-to-surface measures (default %(default)s)"))
+    evaluation_modes: int = 10
+    specificity_samples: int = 10_000
+    surface_samples: int = 200
     # running
-    workers: int = field(default_factory=lambda: os.cpu_count() or 1, metadata=option(
-        _RUNNING, "processes for per-case work (default: all cores, %(default)s)"))
+    workers: int = field(default_factory=lambda: os.cpu_count() or 1)
     # None: the per-case work runs here (``workers``)
-    scheduler: str | None = field(default=None, metadata=option(
-        _RUNNING, "run the per-case work (preparing, CPD baseline, evaluations) on the Dask "
-                  "cluster whose scheduler is at ADDRESS, e.g. tcp://10.0.0.5:8786, instead "
-                  "of --workers local processes; the same model bit for bit (needs pip install "
-                  "\"mdlshapemodel[dask]\" here and on the workers; see the README)",
-        metavar="ADDRESS"))
+    scheduler: str | None = None
     # per-case preprocessing cache; None: the default place, "": none
-    cache_dir: str | None = field(default=None, metadata=option(
-        _RUNNING, "where preprocessed cases are kept for rebuilds (default: "
-                  "$MDLSHAPEMODEL_CACHE or ~/.cache/mdlshapemodel)",
-        metavar="DIR", off_flag="--no-cache", off_value="",
-        off_help="preprocess every case again and store nothing"))
-    strict: bool = field(default=False, metadata=option(
-        _RUNNING, "fail (exit 2) if any input is rejected"))
+    cache_dir: str | None = None
+    strict: bool = False
 
     def __post_init__(self):
         # the rules between fields: unless set, the blur may rise to MAX_SMOOTHING_SIGMA,

@@ -37,6 +37,16 @@ class BuildError(MDLShapeModelError):
     """No model can be built (e.g. fewer than 3 usable cases)."""
 
 
+class ArgumentError(ValueError):
+    """A function of the library was called with arguments it cannot work with (arrays of the
+    wrong shape, counts or names out of range): the caller's mistake, named in the message, as
+    numpy's own ``ValueError`` names it.
+
+    Deliberately not an :class:`MDLShapeModelError`: the library's own calls are made with
+    arguments it checked, so inside a build such an error is a bug, never a rejected input.
+    """
+
+
 class InternalError(Exception):
     """A bug in this package met while working on an input: not a problem of the input.
 

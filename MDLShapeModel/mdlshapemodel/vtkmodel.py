@@ -206,7 +206,7 @@ def polydata_to_model(polydata) -> ShapeModel:
         raise InputError("the model is empty (did the filter before it fail?)")
     try:
         return _model_of(polydata)
-    except ValueError as error:      # arrays of other sizes than a model's, damaged metadata
+    except (ValueError, InputError) as error:   # a model's arrays of other sizes, bad metadata
         raise InputError(f"not a shape model: {error}") from None
 
 
@@ -214,7 +214,7 @@ def _segments(polydata) -> np.ndarray:
     """The two-point lines of a model of 2-D curves, (m, 2)."""
     lines = polydata.GetLines()
     if not np.all(np.diff(vtk_to_numpy(lines.GetOffsetsArray())) == 2):
-        raise ValueError("its lines are not segments of two points")
+        raise InputError("its lines are not segments of two points")
     return vtk_to_numpy(lines.GetConnectivityArray()).reshape(-1, 2).astype(np.int64)
 
 

@@ -57,7 +57,7 @@ import numpy as np
 from scipy import special
 
 from ..config import FAMILY_WISE, TAILS
-from ..errors import InputError
+from ..errors import ArgumentError, InputError
 from ..progress import report
 from . import welch
 from .tfce import Surface, enhance
@@ -545,15 +545,15 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     z, r = z_columns.shape[1], interest.shape[1]
     df = n - z - r
     if family_wise not in FAMILY_WISE:
-        raise ValueError(f"family_wise must be one of {FAMILY_WISE}, not {family_wise!r}")
+        raise ArgumentError(f"family_wise must be one of {FAMILY_WISE}, not {family_wise!r}")
     if tail not in TAILS:
-        raise ValueError(f"tail must be one of {TAILS}, not {tail!r}")
+        raise ArgumentError(f"tail must be one of {TAILS}, not {tail!r}")
     signed = r == 1 and q == 1
     if tail != "both" and not signed:
         raise InputError(f"a one-sided test (tail {tail!r}) needs one effect column and one "
                          f"number per point (here {r} column(s), {q} number(s) per point)")
     if surface is not None and surface.n_points != p:
-        raise ValueError(f"a surface of {surface.n_points} points for data of {p}")
+        raise ArgumentError(f"a surface of {surface.n_points} points for data of {p}")
     if df < q:
         raise InputError(f"too few cases: {n} cases for {z + r} model columns and {q} "
                          f"number(s) per point (need more than {z + r + q - 1})")
@@ -570,7 +570,7 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
                              f"{int(sizes.min())} case(s); with {q} number(s) per point each "
                              f"needs more than {q} to estimate its own variance")
         elif not intercept or whole_blocks:
-            raise ValueError("variance groups need the intercept in the nuisance and cases "
+            raise ArgumentError("variance groups need the intercept in the nuisance and cases "
                              "permuted one by one")
     if blocks is not None:
         blocks = np.unique(np.asarray(blocks), return_inverse=True)[1].reshape(-1)
@@ -594,7 +594,7 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     # it drops out of every permutation (not of sign flips); the other nuisance columns do not
     permuted_z = basis_z[:, 1:] if intercept and not flips else basis_z
     if whole_blocks and blocks is None:
-        raise ValueError("whole_blocks needs blocks")
+        raise ArgumentError("whole_blocks needs blocks")
     bases = np.hstack([permuted_z, basis_x])
     zp = permuted_z.shape[1]
     if codes is None:

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..config import ANALYSIS_SIZES as SIZES
 from ..config import SUPERIMPOSITIONS, AnalysisConfig
-from ..correspondence.pose import centroid_size, generalized_procrustes
+from ..geometry import centroid_size, generalized_procrustes
 from ..errors import InputError
 from ..folders import BuildFolder, BuildShapes
 from ..model.normals import outward_normals

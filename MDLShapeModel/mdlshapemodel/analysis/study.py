@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..config import AnalysisConfig, parse_contrast
-from ..correspondence.pose import centroid_size
+from ..geometry import centroid_size
 from ..model.outliers import Distances, modes_explaining, training_distances
 from ..model.shape_model import ShapeModel
 from ..progress import report

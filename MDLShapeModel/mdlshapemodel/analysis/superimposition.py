@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from ..correspondence.pose import align, centroid_size, weighted_centroid
 from ..errors import InputError
+from ..geometry import align, apply_poses, centroid_size, weighted_centroid
 
 # Tukey's biweight tuning constant, in robust standard deviations of a coordinate: 95 %
 # efficiency under normal errors
@@ -83,7 +83,7 @@ def resistant_procrustes(shapes: np.ndarray, weights: np.ndarray, tuning: float 
     (rotation and translation; eq. 18 with per-case weights).
 
     Each round: the mean is the robust-weighted mean of the aligned shapes, centred and scaled
-    to the inputs' mean centroid size (as :func:`~..correspondence.pose.generalized_procrustes`
+    to the inputs' mean centroid size (as :func:`~..geometry.generalized_procrustes`
     keeps it); each shape is aligned to it with the weights ``weights * biweight(residual)``
     (:func:`biweight`: a point far off the mean, relative to the case's median residual,
     counts less or not at all). With ``tuning=np.inf`` every robust weight is 1 and this is
@@ -132,7 +132,7 @@ def resistant_procrustes(shapes: np.ndarray, weights: np.ndarray, tuning: float 
     weights = weights / weights.sum()
     target_size = float(np.mean([centroid_size(x, weights) for x in shapes]))
     poses = [align(x, shapes[0], weights, scaling=False, planar=planar) for x in shapes]
-    aligned = _apply(poses, shapes)
+    aligned = apply_poses(poses, shapes)
     robust = np.ones(shapes.shape[:2])
     rounds = 0
     for rounds in range(1, iterations + 1):
@@ -141,7 +141,7 @@ def resistant_procrustes(shapes: np.ndarray, weights: np.ndarray, tuning: float 
         mean *= target_size / centroid_size(mean, weights)
         poses = [align(x, mean, _normalised(weights * r), scaling=False, planar=planar)
                  for x, r in zip(shapes, robust)]
-        previous, aligned = aligned, _apply(poses, shapes)
+        previous, aligned = aligned, apply_poses(poses, shapes)
         robust = biweight(np.linalg.norm(aligned - mean, axis=2), tuning, 2 if planar else 3)
         if np.abs(aligned - previous).max() <= tolerance * target_size:
             break

@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 
 from ..config import TFCE_EXTENT, TFCE_HEIGHT, TFCE_LEVELS, TFCE_STEP
-from ..errors import InputError
+from ..errors import ArgumentError, InputError
 from ..prepare.curve import segment_vertex_lengths
 from ..prepare.surface import triangle_vertex_areas
 
@@ -211,10 +211,10 @@ def enhance(heights: np.ndarray, surface: Surface, extent: float = TFCE_EXTENT,
     """
     heights = np.asarray(heights, dtype=np.float64)
     if heights.shape[-1] != surface.n_points:
-        raise ValueError(f"maps of {heights.shape[-1]} points for a surface of "
+        raise ArgumentError(f"maps of {heights.shape[-1]} points for a surface of "
                          f"{surface.n_points}")
     if not (step > 0 and extent >= 0 and height >= 0):
-        raise ValueError("TFCE needs step > 0, extent >= 0 and height >= 0")
+        raise ArgumentError("TFCE needs step > 0, extent >= 0 and height >= 0")
     rows = np.ascontiguousarray(heights.reshape(-1, surface.n_points))
     out = np.empty_like(rows)
     _enhance_rows(rows, surface.starts, surface.neighbours, surface.areas, float(extent),

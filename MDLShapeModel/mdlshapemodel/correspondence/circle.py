@@ -30,6 +30,7 @@ from typing import ClassVar, Sequence
 
 import numpy as np
 
+from ..errors import ArgumentError
 from ..prepare.curve import CurveMap, align_curve_origins, check_curve, curve_map
 from .fields import WENDLAND_SLOPE, wendland
 from .state import CorrespondenceState, Example, PartState
@@ -44,7 +45,7 @@ def circle_grid(n_points: int) -> tuple[np.ndarray, np.ndarray]:
     the cyclic segments (n_p, 2) joining consecutive ones (the 2-D counterpart of
     :func:`~.sampling.sphere_grid`'s triangles)."""
     if n_points < 8:
-        raise ValueError(f"at least 8 sample points are needed on a curve, got {n_points}")
+        raise ArgumentError(f"at least 8 sample points are needed on a curve, got {n_points}")
     k = np.arange(n_points)
     return TWO_PI * k / n_points, np.stack([k, (k + 1) % n_points], axis=1).astype(np.int64)
 
@@ -270,13 +271,13 @@ def curve_state(curves: Sequence, names: Sequence[str], n_points, scaling: bool 
     """
     per_example = [list(c) if isinstance(c, (list, tuple)) else [c] for c in curves]
     if len(per_example) != len(names):
-        raise ValueError(f"{len(per_example)} examples but {len(names)} names")
+        raise ArgumentError(f"{len(per_example)} examples but {len(names)} names")
     n_parts = len(per_example[0])
     if any(len(parts) != n_parts for parts in per_example):
-        raise ValueError("every example must have the same number of parts")
+        raise ArgumentError("every example must have the same number of parts")
     counts = [int(n_points)] * n_parts if np.isscalar(n_points) else [int(n) for n in n_points]
     if len(counts) != n_parts:
-        raise ValueError(f"{len(counts)} sample counts for {n_parts} parts")
+        raise ArgumentError(f"{len(counts)} sample counts for {n_parts} parts")
     maps = [[c if isinstance(c, CurveMap) else curve_map(check_curve(c)) for c in parts]
             for parts in per_example]
     if align_origins:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import ArgumentError
 from ..parallel import Threads
 from .sampling import sphere_grid
 from .state import CorrespondenceState, Example, FixedExample
@@ -51,7 +52,7 @@ def coarse_view(state: CorrespondenceState, n_points: int) -> CorrespondenceStat
         if isinstance(example, FixedExample):
             if not all(len(points) >= n_points and np.array_equal(points[:n_points], grid)
                        for points, _ in state.grids):
-                raise ValueError(f"the grid of {n_points} points is not the first points of "
+                raise ArgumentError(f"the grid of {n_points} points is not the first points of "
                                  "the state's grids: a given correspondence has no samples there")
             points = np.concatenate([example.points[part][:n_points]
                                      for part in state.part_slices])

@@ -55,7 +55,7 @@ from pycpd import DeformableRegistration, RigidRegistration
 from pycpd.emregistration import EMRegistration
 
 from ..config import BuildConfig
-from ..errors import InternalError
+from ..errors import ArgumentError, InternalError
 from ..parallel import executor_for, map_cases
 from ..prepare.case import one_blas_thread
 from ..prepare.surface import SurfaceDistance
@@ -197,7 +197,7 @@ class _LeanExpectation:
         self.PX = products[:, 1:]
         self.Np = float(self.P1.sum())
         if not self.Np > 0:
-            raise ValueError("CPD lost every correspondence: the point sets are too far apart")
+            raise ArgumentError("CPD lost every correspondence: the point sets are too far apart")
         if self.keep_P:
             K *= scale.astype(np.float32)[None, :]
             self.P = K
@@ -314,17 +314,17 @@ def _check_inputs(template_points, target_vertices, target_faces):
     vertices = np.asarray(target_vertices, dtype=np.float64)
     faces = np.asarray(target_faces)
     if template.ndim != 2 or template.shape[1] != 3 or len(template) < 4:
-        raise ValueError(f"template_points must be (n_p >= 4, 3), got shape {template.shape}")
+        raise ArgumentError(f"template_points must be (n_p >= 4, 3), got shape {template.shape}")
     if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 4:
-        raise ValueError(f"target_vertices must be (v >= 4, 3), got shape {vertices.shape}")
+        raise ArgumentError(f"target_vertices must be (v >= 4, 3), got shape {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
-        raise ValueError(f"target_faces must be (f >= 1, 3), got shape {faces.shape}")
+        raise ArgumentError(f"target_faces must be (f >= 1, 3), got shape {faces.shape}")
     if not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"target_faces must be integers, got {faces.dtype}")
+        raise ArgumentError(f"target_faces must be integers, got {faces.dtype}")
     if faces.min() < 0 or faces.max() >= len(vertices):
-        raise ValueError("target_faces index vertices that do not exist")
+        raise ArgumentError("target_faces index vertices that do not exist")
     if not (np.all(np.isfinite(template)) and np.all(np.isfinite(vertices))):
-        raise ValueError("the points must be finite (no NaN or infinity)")
+        raise ArgumentError("the points must be finite (no NaN or infinity)")
     return template, vertices, faces.astype(np.int64)
 
 
@@ -332,7 +332,7 @@ def _normalisation(points: np.ndarray) -> tuple[np.ndarray, float]:
     centre = points.mean(axis=0)
     radius = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
     if radius <= 0:
-        raise ValueError("the points all coincide")
+        raise ArgumentError("the points all coincide")
     return centre, radius
 
 
@@ -353,12 +353,12 @@ def cpd_registration(template_points: np.ndarray, target_vertices: np.ndarray,
     template, vertices, faces = _check_inputs(template_points, target_vertices, target_faces)
     if not (beta > 0 and alpha > 0 and tolerance > 0 and 0 <= w < 1 and max_iterations >= 1
             and (sigma2_factor is None or sigma2_factor > 0)):
-        raise ValueError("need beta > 0, alpha > 0, tolerance > 0, 0 <= w < 1, max_iterations >= 1"
+        raise ArgumentError("need beta > 0, alpha > 0, tolerance > 0, 0 <= w < 1, max_iterations >= 1"
                          f" and sigma2_factor > 0 or None (got beta={beta}, alpha={alpha}, "
                          f"tolerance={tolerance}, w={w}, max_iterations={max_iterations}, "
                          f"sigma2_factor={sigma2_factor})")
     if max_target_points is not None and max_target_points < 4:
-        raise ValueError(f"max_target_points must be at least 4, got {max_target_points}")
+        raise ArgumentError(f"max_target_points must be at least 4, got {max_target_points}")
     rng = np.random.default_rng(seed)
 
     # (1) centroids and unit RMS radius, then rigid CPD with scaling on a subset

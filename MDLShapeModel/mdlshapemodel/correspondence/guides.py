@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..errors import ArgumentError
 from ..prepare.landmarks import on_surface
 from ..prepare.sphere import shared_places
 
@@ -92,7 +93,7 @@ class Guides:
         where = {int(row): k for k, row in enumerate(rows)}
         missing = [label for label, row in zip(self.labels, self.indices) if int(row) not in where]
         if missing:
-            raise ValueError(f"landmarks {', '.join(missing)} are guided at sample points "
+            raise ArgumentError(f"landmarks {', '.join(missing)} are guided at sample points "
                              "that the other grid lacks")
         return replace(self, indices=np.array([where[int(row)] for row in self.indices],
                                               dtype=np.int64))

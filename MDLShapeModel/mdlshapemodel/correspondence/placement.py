@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import ArgumentError
 from .sampling import SphereLocator, farthest_points, icosphere, spherical_triangles
 from .state import CorrespondenceState
 
@@ -66,13 +67,13 @@ def surface_grids(state: CorrespondenceState, first: int) -> list:
     True
     """
     if first and icosphere_level(first) is None:
-        raise ValueError(f"the grid's first points are an icosphere's: 10 * 4**k + 2, not {first}")
+        raise ArgumentError(f"the grid's first points are an icosphere's: 10 * 4**k + 2, not {first}")
     mean = state.shapes.mean(axis=0)
     grids = []
     for rows, (points, triangles) in zip(state.part_slices, state.grids):
         n_points = len(points)
         if not 0 <= first < n_points:
-            raise ValueError(f"{first} first points of a grid of {n_points}")
+            raise ArgumentError(f"{first} first points of a grid of {n_points}")
         level = 0
         while 10 * 4 ** level + 2 < CANDIDATES_PER_POINT * n_points and level < MAX_LEVEL:
             level += 1

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
+from ..errors import ArgumentError
 from . import hotloops
 
 
@@ -70,7 +71,7 @@ def orient_triangles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 def sphere_grid(n_points: int) -> tuple[np.ndarray, np.ndarray]:
     """The sampling grid {u_k}: an icosphere when ``n_points`` is 10 * 4**k + 2, else Fibonacci."""
     if n_points < 12:
-        raise ValueError(f"at least 12 sample points are needed, got {n_points}")
+        raise ArgumentError(f"at least 12 sample points are needed, got {n_points}")
     k = np.log((n_points - 2) / 10.0) / np.log(4.0)
     if (n_points - 2) % 10 == 0 and abs(k - round(k)) < 1e-9:
         return icosphere(int(round(k)))
@@ -91,7 +92,7 @@ def farthest_points(points: np.ndarray, count: int, first: int = 0) -> np.ndarra
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     if not 0 <= first <= count <= n:
-        raise ValueError(f"cannot take {count} of {n} points starting with {first}")
+        raise ArgumentError(f"cannot take {count} of {n} points starting with {first}")
     chosen = np.empty(count, dtype=np.int64)
     chosen[:first] = np.arange(first)
     columns = [np.ascontiguousarray(points[:, j]) for j in range(points.shape[1])]
@@ -120,7 +121,7 @@ def spherical_triangles(points: np.ndarray) -> np.ndarray:
     outside; every point is a vertex of it."""
     triangles = ConvexHull(points).simplices.astype(np.int64)
     if len(np.unique(triangles)) != len(points):
-        raise ValueError("points on the sphere that are not vertices of their hull (repeated?)")
+        raise ArgumentError("points on the sphere that are not vertices of their hull (repeated?)")
     return orient_triangles(points, triangles)
 
 

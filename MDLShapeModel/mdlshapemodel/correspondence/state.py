@@ -25,13 +25,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..errors import ArgumentError
+from ..geometry import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from ..prepare.curve import segment_vertex_lengths
 from ..prepare.sphere import orientation
 from ..prepare.surface import face_areas, triangle_vertex_areas
 from .guides import Guides
 from .smoothness import Smoothness
 from .objective import Objective, covariance_route
-from .pose import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from .sampling import SphereLocator, grid_order, icosphere
 from .warps import WARP_KINDS, SymmetricTheta, Warp, apply_symmetric_theta, apply_warps
 
@@ -486,7 +487,7 @@ class CorrespondenceState:
         if i is None:
             return total
         if raw is None:
-            raise ValueError("a trial of a guided state needs its unposed samples (raw)")
+            raise ArgumentError("a trial of a guided state needs its unposed samples (raw)")
         return total - float(self.guide_costs[i]) + self.guides.cost(i, raw)
 
     def shape_gradient(self) -> tuple[float, np.ndarray]:
@@ -592,7 +593,7 @@ class CorrespondenceState:
         unposed samples by ``raw``, needed then): the Gram matrix (if kept) is rebuilt from
         scratch about the same reference, O(n_s^2 n_p). The state is restored afterwards."""
         if self.guides is not None and raw is None:
-            raise ValueError("a trial of a guided state needs its unposed samples (raw)")
+            raise ArgumentError("a trial of a guided state needs its unposed samples (raw)")
         saved = (self.shapes, self.sum_shapes, self.gram, self.guide_costs, self._smoothed)
         self.shapes, self.sum_shapes = shapes, shapes.sum(axis=0)
         self.gram = None if self.gram is None else self._gram(shapes)
@@ -714,7 +715,7 @@ def replay_record(state: CorrespondenceState, arrays) -> None:
     ValueError when the record is of other cases or other sample points."""
     names = [str(n) for n in arrays["names"]]
     if names != [e.name for e in state.examples]:
-        raise ValueError("the record is of other cases")
+        raise ArgumentError("the record is of other cases")
     for i, example in enumerate(state.examples):
         pose = np.asarray(arrays[f"pose_{i}"], dtype=np.float64)
         example.pose = Pose(float(pose[0]), pose[1:10].reshape(3, 3), pose[10:13])
@@ -725,13 +726,13 @@ def replay_record(state: CorrespondenceState, arrays) -> None:
             warps = [WARP_KINDS[kind].from_vector(values[end - size:end])
                      for kind, end, size in zip(kinds, ends, arrays[f"warp_sizes_{i}_{j}"])]
             if len(arrays[f"positions_{i}_{j}"]) != len(part.grid):
-                raise ValueError("the record has another number of sample points")
+                raise ArgumentError("the record has another number of sample points")
             part.replay(warps)
             if f"points_{i}_{j}" in arrays:
                 part.points = np.array(arrays[f"points_{i}_{j}"], dtype=np.float64)
                 part.hint = np.array(arrays[f"hint_{i}_{j}"])
     if len(arrays["weights"]) != state.n_points:
-        raise ValueError("the record has another number of sample points")
+        raise ArgumentError("the record has another number of sample points")
     state.weights = np.asarray(arrays["weights"], dtype=np.float64).copy()
     state.target_size = float(arrays["target_size"])
     state.refresh()

@@ -37,8 +37,9 @@ from typing import Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 
+from ..errors import ArgumentError
+from ..geometry import rotation_from_vector
 from .fields import FieldBasis
-from .pose import rotation_from_vector
 
 
 def minimum_amplitude(omega: float) -> float:
@@ -106,7 +107,7 @@ def _unit(vector, name: str) -> np.ndarray:
     v = np.asarray(vector, dtype=np.float64).reshape(3)
     norm = float(np.linalg.norm(v))
     if not np.isfinite(norm) or norm < 1e-12:
-        raise ValueError(f"{name} must be a finite, non-zero 3-vector, got {v}")
+        raise ArgumentError(f"{name} must be a finite, non-zero 3-vector, got {v}")
     if abs(norm - 1.0) <= 4.0 * np.finfo(np.float64).eps:
         return v.copy()
     return v / norm
@@ -135,7 +136,7 @@ def polar_frame(center: np.ndarray,
     e1 = r - (r @ p) * p
     e1_norm = float(np.linalg.norm(e1))
     if not np.isfinite(e1_norm) or e1_norm <= 1e-9 * max(r_norm, 1e-300):
-        raise ValueError("reference_direction must be a non-zero vector not parallel to center")
+        raise ArgumentError("reference_direction must be a non-zero vector not parallel to center")
     e1 = e1 / e1_norm
     return p, e1, np.cross(p, e1)
 
@@ -411,7 +412,7 @@ class Warp:
         if -1 in sizes:
             sizes[sizes.index(-1)] = len(vector) - (sum(sizes) + 1)
         if min(sizes) < 0 or sum(sizes) != len(vector):
-            raise ValueError(f"{cls.__name__}: a parameter vector of {len(vector)} values does "
+            raise ArgumentError(f"{cls.__name__}: a parameter vector of {len(vector)} values does "
                              f"not fit its fields {names}")
         values, start = {}, 0
         for name, size in zip(names, sizes):
@@ -601,7 +602,7 @@ WARP_KINDS: dict[str, type] = {cls.kind: cls for cls in
 def make_warp(kind: str, parameters: Mapping):
     """The warp of kind ``kind`` (a key of :data:`WARP_KINDS`) with these constructor parameters."""
     if kind not in WARP_KINDS:
-        raise ValueError(f"unknown warp kind {kind!r}; expected one of {sorted(WARP_KINDS)}")
+        raise ArgumentError(f"unknown warp kind {kind!r}; expected one of {sorted(WARP_KINDS)}")
     return WARP_KINDS[kind](**parameters)
 
 

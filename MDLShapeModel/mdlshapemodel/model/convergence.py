@@ -87,7 +87,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from ..correspondence.trace import Trace
-from ..errors import InputError
+from ..errors import ArgumentError, InputError
 from ..prepare import io
 
 TIME_COLUMNS = ("wall_seconds", "cpu_seconds", "evaluations")
@@ -105,18 +105,18 @@ def _as_curve(times, values, name="curve"):
     t = np.asarray(times, dtype=float).ravel()
     v = np.asarray(values, dtype=float).ravel()
     if t.shape != v.shape:
-        raise ValueError(f"{name}: {t.size} times but {v.size} values")
+        raise ArgumentError(f"{name}: {t.size} times but {v.size} values")
     keep = ~np.isnan(v)
     t, v = t[keep], v[keep]
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(v))):
-        raise ValueError(f"{name}: times and values must be finite")
+        raise ArgumentError(f"{name}: times and values must be finite")
     if np.any(np.diff(t) < 0):
-        raise ValueError(f"{name}: times must be non-decreasing")
+        raise ArgumentError(f"{name}: times must be non-decreasing")
     if t.size:
         last = np.append(t[1:] != t[:-1], True)  # the last sample at each distinct time
         t, v = t[last], v[last]
     if t.size < 2:
-        raise ValueError(f"{name}: needs at least two samples at distinct times")
+        raise ArgumentError(f"{name}: needs at least two samples at distinct times")
     return t, v
 
 
@@ -130,7 +130,7 @@ def _interpolate(times, values, at, kind):
     elif kind == "step":
         out[inside] = values[np.searchsorted(times, at[inside], side="right") - 1]
     else:
-        raise ValueError(f"kind must be one of {KINDS}, not {kind!r}")
+        raise ArgumentError(f"kind must be one of {KINDS}, not {kind!r}")
     return out
 
 
@@ -161,23 +161,23 @@ def common_grid(curves, n=200, hold_last=False, spacing="linear"):
         or with ``spacing="log"``: ``[max_k t_k,first, geomspace(max_k t_k,second, end, n - 1)]``.
     """
     if n < 2:
-        raise ValueError("the grid needs at least two points")
+        raise ArgumentError("the grid needs at least two points")
     if spacing not in SPACINGS:
-        raise ValueError(f"spacing must be one of {SPACINGS}, not {spacing!r}")
+        raise ArgumentError(f"spacing must be one of {SPACINGS}, not {spacing!r}")
     checked = [_as_curve(t, v, f"trial {k}") for k, (t, v) in enumerate(curves)]
     if not checked:
-        raise ValueError("no curves")
+        raise ArgumentError("no curves")
     start = max(t[0] for t, _ in checked)
     end = (max if hold_last else min)(t[-1] for t, _ in checked)
     if not end > start:
-        raise ValueError("the curves share no time range")
+        raise ArgumentError("the curves share no time range")
     if spacing == "linear":
         return np.linspace(start, end, int(n))
     if start < 0:
-        raise ValueError("a log-spaced grid needs non-negative times")
+        raise ArgumentError("a log-spaced grid needs non-negative times")
     low = max(start, max(t[1] for t, _ in checked))
     if not end > low or n < 3:
-        raise ValueError("a log-spaced grid needs at least three points and curves that share "
+        raise ArgumentError("a log-spaced grid needs at least three points and curves that share "
                          "more than their first step")
     return np.concatenate([[start], np.geomspace(low, end, int(n) - 1)])
 
@@ -210,7 +210,7 @@ def _trial_matrix(curves, grid, kind, hold_last):
     grid = np.asarray(grid, dtype=float)
     checked = [_as_curve(t, v, f"trial {k}") for k, (t, v) in enumerate(curves)]
     if not checked:
-        raise ValueError("no curves")
+        raise ArgumentError("no curves")
     return np.stack([_interpolate(t, v, np.minimum(grid, t[-1]) if hold_last else grid, kind)
                      for t, v in checked])
 
@@ -335,19 +335,19 @@ def fit_alpha(times_a, values_a, times_b, values_b, bounds=(1e-3, 1e3), *, kind=
     ta, fa = _as_curve(times_a, values_a, "curve A")
     tb, fb = _as_curve(times_b, values_b, "curve B")
     if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}, not {kind!r}")
+        raise ArgumentError(f"kind must be one of {KINDS}, not {kind!r}")
     if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
+        raise ArgumentError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
     low, high = (float(x) for x in bounds)
     if not 0 < low < high < math.inf:
-        raise ValueError(f"bounds must satisfy 0 < low < high, got {bounds}")
+        raise ArgumentError(f"bounds must satisfy 0 < low < high, got {bounds}")
     if min_points < 3:
-        raise ValueError("min_points must be at least 3 (a and b are fitted)")
+        raise ArgumentError("min_points must be at least 3 (a and b are fitted)")
     misfit = _Misfit(ta, fa, tb, fb, kind, int(min_points), criterion)
     grid = np.linspace(math.log(low), math.log(high), max(int(n_scan), 3))
     values = np.array([misfit(x) for x in grid])
     if not np.any(np.isfinite(values)):
-        raise ValueError(f"the curves overlap in fewer than {min_points} samples for every alpha "
+        raise ArgumentError(f"the curves overlap in fewer than {min_points} samples for every alpha "
                          f"in {bounds}")
     k = int(np.argmin(values))
     # refine in the admissible grid cells next to the best scan point
@@ -403,9 +403,9 @@ def compare_strategies(trials_a, trials_b, n_bootstrap=100, rng=None, *, paired=
     """
     trials_a, trials_b = list(trials_a), list(trials_b)
     if not trials_a or not trials_b:
-        raise ValueError("each strategy needs at least one trial")
+        raise ArgumentError("each strategy needs at least one trial")
     if paired and len(trials_a) != len(trials_b):
-        raise ValueError(f"paired trials need equal counts, got {len(trials_a)} and "
+        raise ArgumentError(f"paired trials need equal counts, got {len(trials_a)} and "
                          f"{len(trials_b)}")
     grid_a = common_grid(trials_a, n_grid, hold_last, spacing)
     grid_b = common_grid(trials_b, n_grid, hold_last, spacing)
@@ -461,20 +461,20 @@ def scaling_gradient(n_shapes, alphas, alpha_ses=None, *, absolute_sigma=True):
     x = np.asarray(n_shapes, dtype=float).ravel()
     y = np.asarray(alphas, dtype=float).ravel()
     if x.shape != y.shape:
-        raise ValueError(f"{x.size} n_s but {y.size} alphas")
+        raise ArgumentError(f"{x.size} n_s but {y.size} alphas")
     if np.unique(x).size < 2:
-        raise ValueError("the gradient needs at least two distinct n_s")
+        raise ArgumentError("the gradient needs at least two distinct n_s")
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
-        raise ValueError("n_s and alpha must be finite")
+        raise ArgumentError("n_s and alpha must be finite")
     if alpha_ses is None:
         w = np.ones_like(x)
         scaled = True
     else:
         se = np.asarray(alpha_ses, dtype=float).ravel()
         if se.shape != x.shape:
-            raise ValueError(f"{x.size} n_s but {se.size} standard errors")
+            raise ArgumentError(f"{x.size} n_s but {se.size} standard errors")
         if not np.all(se > 0) or not np.all(np.isfinite(se)):
-            raise ValueError("standard errors must be positive and finite")
+            raise ArgumentError("standard errors must be positive and finite")
         w = 1.0 / se ** 2
         scaled = not absolute_sigma
     design = np.column_stack([np.ones_like(x), x])
@@ -486,7 +486,7 @@ def scaling_gradient(n_shapes, alphas, alpha_ses=None, *, absolute_sigma=True):
     dof = x.size - 2
     if scaled:
         if dof < 1:
-            raise ValueError("standard errors from the scatter need at least three points")
+            raise ArgumentError("standard errors from the scatter need at least three points")
         cov = cov * chi2 / dof
     return {"gradient": float(gradient), "gradient_se": float(math.sqrt(cov[1, 1])),
             "intercept": float(intercept), "intercept_se": float(math.sqrt(cov[0, 0])),
@@ -563,7 +563,7 @@ def trace_curve(rows, time="cpu_seconds", phase=None):
         A column is missing or not numeric, no row is selected, or the times decrease.
     """
     if time not in TIME_COLUMNS:
-        raise ValueError(f"time must be one of {TIME_COLUMNS}, not {time!r}")
+        raise ArgumentError(f"time must be one of {TIME_COLUMNS}, not {time!r}")
     phases = None if phase is None else ({phase} if isinstance(phase, str) else set(phase))
     times, values = [], []
     for number, row in enumerate(rows, start=1):

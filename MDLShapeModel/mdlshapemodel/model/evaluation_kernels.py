@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..prepare.nearest import _cell_index, _closest_on_triangle
+from ..prepare.nearest import cell_index, closest_on_triangle
 
 
 @njit(cache=True, nogil=True)
@@ -66,9 +66,9 @@ def farthest_points(points, size):
 
 @njit(cache=True, nogil=True, inline="always")
 def _triangle_distance2(f, px, py, pz, vertices, faces, q):
-    """Squared distance from point p to triangle f (:func:`_closest_on_triangle`)."""
+    """Squared distance from point p to triangle f (:func:`closest_on_triangle`)."""
     a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-    return _closest_on_triangle(px, py, pz, vertices[a, 0], vertices[a, 1], vertices[a, 2],
+    return closest_on_triangle(px, py, pz, vertices[a, 0], vertices[a, 1], vertices[a, 2],
                                 vertices[b, 0], vertices[b, 1], vertices[b, 2],
                                 vertices[c, 0], vertices[c, 1], vertices[c, 2], q)
 
@@ -108,9 +108,9 @@ def closest_from(points, guess, vertices, faces, boxes, origin, cell, shape, sta
         tested[best_face] = p
         reach = np.sqrt(best) + tolerance
         limit = reach * reach
-        i0, i1 = _cell_index(px - reach, origin[0], cell, nx), _cell_index(px + reach, origin[0], cell, nx)
-        j0, j1 = _cell_index(py - reach, origin[1], cell, ny), _cell_index(py + reach, origin[1], cell, ny)
-        k0, k1 = _cell_index(pz - reach, origin[2], cell, nz), _cell_index(pz + reach, origin[2], cell, nz)
+        i0, i1 = cell_index(px - reach, origin[0], cell, nx), cell_index(px + reach, origin[0], cell, nx)
+        j0, j1 = cell_index(py - reach, origin[1], cell, ny), cell_index(py + reach, origin[1], cell, ny)
+        k0, k1 = cell_index(pz - reach, origin[2], cell, nz), cell_index(pz + reach, origin[2], cell, nz)
         for i in range(i0, i1 + 1):
             for j in range(j0, j1 + 1):
                 for kk in range(k0, k1 + 1):

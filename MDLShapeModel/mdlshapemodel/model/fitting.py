@@ -28,12 +28,12 @@ import numpy as np
 from ..config import BuildConfig
 from ..correspondence.circle import CurvePart
 from ..correspondence.objective import objectives
-from ..correspondence.pose import Pose, align
 from ..correspondence.smoothness import Smoothness
 from ..correspondence.state import CorrespondenceState, Example, FixedExample, PartState
 from ..correspondence.strategies import optimise
 from ..correspondence.trace import Trace
 from ..errors import InputError
+from ..geometry import Pose, align
 from ..prepare import PreparedCase
 from ..prepare.parts import CaseInput, case_inputs, prepare_object
 from ..prepare.curve import align_curve_origins, curve_map

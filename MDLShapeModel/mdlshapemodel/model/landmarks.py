@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ArgumentError
 from ..prepare.landmarks import barycentric
 from ..prepare.surface import SurfaceDistance
 
@@ -126,7 +127,7 @@ def transfer_errors(shapes: np.ndarray, triangles: np.ndarray, landmarks: np.nda
     landmarks = np.asarray(landmarks, dtype=np.float64)
     n, n_l = landmarks.shape[:2]
     if len(shapes) != n or len(surfaces) != n:
-        raise ValueError(f"{len(shapes)} shapes, {n} landmark sets and {len(surfaces)} surfaces")
+        raise ArgumentError(f"{len(shapes)} shapes, {n} landmark sets and {len(surfaces)} surfaces")
     present = np.isfinite(landmarks).all(axis=2)
     # where each template's landmarks lie on its corresponded mesh: a triangle and weights
     faces = np.zeros((n, n_l), dtype=np.int64)

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ArgumentError
+
 #: a point whose cases' normals lie on average more than this far from their mean direction is
 #: flagged (the report, metrics.json), as is a case's normal this far from it (cases.csv)
 SPREAD_DEGREES = 30.0
@@ -124,7 +126,7 @@ def normal_agreement(shapes: np.ndarray, cells: np.ndarray, part_of=None) -> Nor
     """
     shapes = np.asarray(shapes, dtype=np.float64)
     if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) < 2:
-        raise ValueError("shapes must be (n_s >= 2, n_p, 3)")
+        raise ArgumentError("shapes must be (n_s >= 2, n_p, 3)")
     normals = np.stack([outward_normals(shape, cells, part_of) for shape in shapes])
     total = normals.sum(axis=0)
     length = np.linalg.norm(total, axis=1)

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ArgumentError
+
 # the share of the variance whose modes the distance is taken over, and the level at which a
 # case is flagged (cases.csv's score_outlier, metrics.json, the report and the analysis)
 EXPLAINED = 0.95
@@ -71,7 +73,7 @@ def training_distances(scores: np.ndarray, variances: np.ndarray, modes: int,
     n = len(scores)
     k = int(modes)
     if not 1 <= k <= n - 2:
-        raise ValueError(f"{k} modes for {n} cases: need 1 <= modes <= n - 2")
+        raise ArgumentError(f"{k} modes for {n} cases: need 1 <= modes <= n - 2")
     squared = np.sum(np.asarray(scores)[:, :k] ** 2 / np.asarray(variances)[:k], axis=1)
     reference = beta(k / 2, (n - k - 1) / 2)
     p = reference.sf(np.clip(squared / (n - 1), 0.0, 1.0))
@@ -87,7 +89,7 @@ def new_case_distances(scores: np.ndarray, variances: np.ndarray, n_training: in
 
     n, k = int(n_training), int(modes)
     if not 1 <= k <= n - 2:
-        raise ValueError(f"{k} modes for {n} training cases: need 1 <= modes <= n - 2")
+        raise ArgumentError(f"{k} modes for {n} training cases: need 1 <= modes <= n - 2")
     squared = np.sum(np.atleast_2d(scores)[:, :k] ** 2 / np.asarray(variances)[:k], axis=1)
     scale = (n - k) / (k * (n + 1))
     p = f.sf(scale * squared, k, n - k)

@@ -64,7 +64,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import ArgumentError, InputError
 
 NATIVE_GROUP = "mdlshapemodel"
 FORMAT_VERSION = 2
@@ -189,33 +189,33 @@ class ShapeModel:
         """
         mean = np.asarray(self.mean)
         if mean.ndim != 2 or mean.shape[1] != 3 or len(mean) == 0:
-            raise ValueError(f"mean has shape {mean.shape}, not (points, 3)")
+            raise ArgumentError(f"mean has shape {mean.shape}, not (points, 3)")
         n_p, m = len(mean), len(np.ravel(self.variances))
         expected = {"modes": (m, n_p, 3), "variances": (m,), "weights": (n_p,),
                     "scores": (len(self.names), m) if self.names else (len(self.scores), m)}
         for name, shape in expected.items():
             if np.shape(getattr(self, name)) != shape:
-                raise ValueError(f"{name} has shape {np.shape(getattr(self, name))}, not {shape} "
+                raise ArgumentError(f"{name} has shape {np.shape(getattr(self, name))}, not {shape} "
                                  f"for {n_p} points and {m} modes")
         for name in ("mean", "modes", "variances", "weights", "scores"):
             if not np.all(np.isfinite(getattr(self, name))):
-                raise ValueError(f"{name} has values that are not finite")
+                raise ArgumentError(f"{name} has values that are not finite")
         if self.parameters is not None and np.shape(self.parameters) not in ((n_p, 3), (n_p,)):
-            raise ValueError(f"parameters have shape {np.shape(self.parameters)}, not ({n_p}, 3)")
+            raise ArgumentError(f"parameters have shape {np.shape(self.parameters)}, not ({n_p}, 3)")
         if self.triangles is not None and len(self.triangles):
             cells = np.asarray(self.triangles)
             if (cells.ndim != 2 or cells.shape[1] not in (2, 3)
                     or not np.issubdtype(cells.dtype, np.integer)):
-                raise ValueError(f"triangles have shape {cells.shape} of {cells.dtype}")
+                raise ArgumentError(f"triangles have shape {cells.shape} of {cells.dtype}")
             if cells.min() < 0 or cells.max() >= n_p:
-                raise ValueError(f"triangles index points outside 0..{n_p - 1}")
+                raise ArgumentError(f"triangles index points outside 0..{n_p - 1}")
         if self.part_sizes and (sum(self.part_sizes) != n_p or min(self.part_sizes) <= 0):
-            raise ValueError(f"part sizes {list(self.part_sizes)} do not add up to {n_p} points")
+            raise ArgumentError(f"part sizes {list(self.part_sizes)} do not add up to {n_p} points")
         if self.part_names and len(self.part_names) != len(self.part_sizes):
-            raise ValueError(f"{len(self.part_names)} part names for "
+            raise ArgumentError(f"{len(self.part_names)} part names for "
                              f"{len(self.part_sizes)} parts")
         if any(not 0 <= int(row) < n_p for row in self.landmarks.values()):
-            raise ValueError(f"landmark rows outside 0..{n_p - 1}")
+            raise ArgumentError(f"landmark rows outside 0..{n_p - 1}")
         return self
 
     def instance(self, scores: np.ndarray | None = None, *,
@@ -237,11 +237,11 @@ class ShapeModel:
         True
         """
         if (scores is None) == (standard_deviations is None):
-            raise ValueError("give either scores or standard_deviations")
+            raise ArgumentError("give either scores or standard_deviations")
         if standard_deviations is not None:
             weights = np.asarray(standard_deviations, dtype=np.float64)
             if weights.shape[-1] > self.n_modes:
-                raise ValueError(f"{weights.shape[-1]} standard deviations for a model of "
+                raise ArgumentError(f"{weights.shape[-1]} standard deviations for a model of "
                                  f"{self.n_modes} mode(s)")
             scores = weights * np.sqrt(np.maximum(self.variances[:weights.shape[-1]], 0.0))
         scores = np.asarray(scores, dtype=np.float64)
@@ -263,7 +263,7 @@ class ShapeModel:
 
         points = self.mean if points is None else np.asarray(points, dtype=np.float64)
         if points.shape != self.mean.shape:
-            raise ValueError(f"points of shape {points.shape}; the model's are {self.mean.shape}")
+            raise ArgumentError(f"points of shape {points.shape}; the model's are {self.mean.shape}")
         cells = None if self.triangles is None or len(self.triangles) == 0 else self.triangles
         io.write_polydata(path, points, cells)
 
@@ -482,7 +482,7 @@ class ShapeModel:
 def _checked_key(key) -> str:
     key = str(key)
     if not key or "/" in key or key == ".":
-        raise ValueError(f"metadata key {key!r} cannot be an HDF5 name")
+        raise ArgumentError(f"metadata key {key!r} cannot be an HDF5 name")
     return key
 
 

@@ -26,21 +26,13 @@ from .sphere import SphereMap
 
 log = logging.getLogger("mdlshapemodel")
 
-CACHE_FORMAT = 2   # 2: the preparation facts as named fields
-# Version of the preprocessing algorithm (surface extraction and sphere map): raise it whenever a
-# change alters the surfaces or maps, so that entries made by the old algorithm are not reused.
-# 2: compiled distortion minimisation and our own Moebius balancing (maps differ in rounding).
-# 3: a deterministic isotropic remesher (gpytoolbox's) and one BLAS thread while preparing.
-# 4: surfaces remeshed at a resolution tied to the sampling grid (BuildConfig.target_vertices),
-#    big ones decimated first; mesh inputs' voxel size is their own mean edge length; the
-#    multilevel initial map instead of the Tutte map where the conformal map folds.
-# 5: mesh files that say their points are RAS (SPACE=RAS, as 3D Slicer may write them) are read
-#    into LPS.
-# 6: files checked before they are read (docs/inputs.md, "Rejections"): valid inputs give the same results,
-#    but damaged ones that were prepared (a .nii.gz cut short) are rejected now, and a 4-D image
-#    of one volume is prepared: verdicts cached by 5 must not be reused.
-# 7: the compiled remesher of prepare/remesh.py, the harmonic conformal map of prepare/conformal.py
-#    and a Laplacian-preconditioned distortion minimisation (surfaces and maps differ).
+# The layout of an entry (the preparation facts as named fields): raise it when what an entry
+# stores changes, so that entries of another layout are not read.
+CACHE_FORMAT = 2
+# Version of the preprocessing algorithm (reading and checking files, surface extraction,
+# remeshing, the sphere map): raise it whenever a change alters the surfaces, the maps or the
+# verdict on an input, so that entries made by another algorithm are not reused. Both numbers are
+# part of every entry's key (:func:`cache_key`).
 PREPROCESSING_VERSION = 7
 PREPROCESSING_FIELDS = ("labels", "voxel_size", "surface_method", "smoothing_factor", "decimation",
                         "smoothing_sigma", "max_smoothing_sigma", "edge_length",
@@ -80,7 +72,7 @@ def _load_cached(file: Path, name: str, path: str):
         quality = json.loads(str(data["quality"]))
         facts = json.loads(str(data["facts"]))
         mapped = SphereMap(data["vertices"], data["faces"], data["sphere"], quality)
-        labels = facts.get("labels")          # entries written before labels were kept: unknown
+        labels = facts.get("labels")          # None: the entry does not say
         part = PreparedPart("", path, mapped, facts["repair"], facts["smoothing_sigma"],
                             None if labels is None else tuple(labels))
         return PreparedCase(name, [part], float(data["voxel_size"]), facts["mirrored"])

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from ..config import BuildConfig
-from ..errors import InputError, MDLShapeModelError
-from . import curve, io, surface
+from ..errors import ArgumentError, InputError, MDLShapeModelError
+from . import curve, curve_io, io, surface
 from .sphere import AREA_WEIGHT, MAX_ITERATIONS, SphereMap, sphere_map
 
 
@@ -75,7 +75,7 @@ class PreparedCase:
     def map(self) -> SphereMap:
         """The sphere map of a one-part case."""
         if len(self.parts) != 1:
-            raise ValueError(f"{self.name} has {len(self.parts)} parts: use parts[j].map")
+            raise ArgumentError(f"{self.name} has {len(self.parts)} parts: use parts[j].map")
         return self.parts[0].map
 
     @property
@@ -207,23 +207,23 @@ def _mapped_case(vertices: np.ndarray, faces: np.ndarray, name: str, path: str,
 
 
 def prepare_curve(path, config: BuildConfig) -> PreparedCase:
-    """A prepared case from a 2-D curve file: the clean closed curve (:func:`.curve.read_curve`),
+    """A prepared case from a 2-D curve file: the clean closed curve (:func:`.curve_io.read_curve`),
     reflected x -> -x if ``config.mirror`` says so, and its arc-length parameterization on the
     circle. Its voxel size (the unit of the coding accuracy) is ``config.voxel_size``, else a
     label image's pixel size, else the curve's mean segment length."""
     notes = []
-    points = curve.read_curve(path, config.labels, notes)
+    points = curve_io.read_curve(path, config.labels, notes)
     mirrored = is_mirrored(path, config)
     if mirrored:
         points = curve.check_curve(points * [-1.0, 1.0])      # counter-clockwise again
-    voxel = config.voxel_size or curve.pixel_size(path) or float(
+    voxel = config.voxel_size or curve_io.pixel_size(path) or float(
         np.mean(curve.segment_lengths(points)))
     part = PreparedPart("", str(path), curve.curve_map(points), "; ".join(notes))
     return PreparedCase(io.case_name(path), [part], float(voxel), mirrored)
 
 
 def _prepare(path, config: BuildConfig) -> PreparedCase:
-    if curve.is_curve_file(path):
+    if curve_io.is_curve_file(path):
         return prepare_curve(path, config)
     name = io.case_name(path)
     mirrored = is_mirrored(path, config)
@@ -247,7 +247,7 @@ def prepare_case(path, config: BuildConfig) -> PreparedCase | Rejection:
     ----------
     path : str or Path
         A label map (the union of ``config.labels``), a closed triangle mesh, or a 2-D curve
-        file (:func:`.curve.is_curve_file`: point lists, polylines, one-slice label images).
+        file (:func:`.curve_io.is_curve_file`: point lists, polylines, one-slice label images).
     config : BuildConfig
         The preprocessing settings (surface, remeshing, mirroring).
 

@@ -469,7 +469,7 @@ def _check_binary_arrays(path: Path, root: dict, arrays: list, appended: int | N
         name = attributes.get("Name", "an array")
         try:
             _check_binary_array(chunk, encoded, "compressor" in root, order + word, size, bound)
-        except (binascii.Error, ValueError, struct.error) as error:
+        except (binascii.Error, ValueError, struct.error, InputError) as error:
             raise InputError(f"not a readable VTK XML file (the data of {name[:40]!r}: "
                              f"{error})") from None
 
@@ -478,7 +478,7 @@ def _check_binary_array(chunk: bytes, encoded: bool, compressed: bool, word: str
                         bound: int):
     def words(data: bytes, n: int) -> tuple:
         if len(data) < n * size:
-            raise ValueError("its header is cut short")
+            raise InputError("its header is cut short")
         return struct.unpack(f"{word[0]}{n}{word[1]}", data[:n * size])
 
     def decoded(text: bytes) -> bytes:
@@ -488,7 +488,7 @@ def _check_binary_array(chunk: bytes, encoded: bool, compressed: bool, word: str
         data = decoded(chunk)
         (length,) = words(data, 1)
         if length > len(data) - size:
-            raise ValueError(f"its header says {length:,} bytes, it holds {len(data) - size:,}")
+            raise InputError(f"its header says {length:,} bytes, it holds {len(data) - size:,}")
         return
     def characters(n: int) -> int:
         """The length in the file of a header of ``n`` words (base64: encoded on its own)."""
@@ -496,14 +496,14 @@ def _check_binary_array(chunk: bytes, encoded: bool, compressed: bool, word: str
 
     blocks, block, last = words(decoded(chunk[:characters(3)]), 3)
     if blocks and (block == 0 or last > block):
-        raise ValueError(f"blocks of {block} bytes, the last of {last}")
+        raise InputError(f"blocks of {block} bytes, the last of {last}")
     if blocks * block > bound:
-        raise ValueError(f"{blocks:,} blocks of {block:,} bytes")
+        raise InputError(f"{blocks:,} blocks of {block:,} bytes")
     header = characters(3 + blocks)
     compressed_sizes = words(decoded(chunk[:header]), 3 + blocks)[3:]
     held = len(decoded(chunk[header:]))
     if sum(compressed_sizes) > held:
-        raise ValueError(f"its blocks take {sum(compressed_sizes):,} bytes, it holds {held:,}")
+        raise InputError(f"its blocks take {sum(compressed_sizes):,} bytes, it holds {held:,}")
 
 
 def _attribute_of(attributes: dict, name: str) -> int:

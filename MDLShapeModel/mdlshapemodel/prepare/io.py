@@ -28,7 +28,7 @@ log = logging.getLogger("mdlshapemodel")
 IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".hdr", ".img", ".img.gz")
 MESH_SUFFIXES = (".vtk", ".vtp", ".stl", ".ply", ".obj")
 # files that only hold 2-D curves (a .vtk/.vtp polyline or a one-slice image is one too: see
-# prepare.curve.is_curve_file)
+# prepare.curve_io.is_curve_file)
 CURVE_SUFFIXES = (".csv", ".txt", ".png")
 # left out of a folder's inputs (READMEs, licences): a .txt curve is given by its name
 FOLDER_SKIPS = (".txt",)
@@ -212,7 +212,7 @@ _NATIVE_STDERR = threading.Lock()
 def captured_native_stderr():
     """Collect what native code (ITK's MetaImage and NIfTI readers) prints on the process's
     standard error instead of printing it; yields a callable that returns the collected text,
-    which is the caller's to use (:func:`_itk_reading`: the reason of a rejection, or log lines).
+    which is the caller's to use (:func:`itk_reading`: the reason of a rejection, or log lines).
 
     File descriptor 2 belongs to the whole process: one block at a time (a lock).
     """
@@ -278,7 +278,7 @@ def _itk_reason(text: str, native: str, path) -> str:
 
 
 @contextmanager
-def _itk_reading(path):
+def itk_reading(path):
     """SimpleITK's errors while reading ``path``, and the errors its reader printed and went on
     from (MetaIO's 'Uncompress failed' returns an image), -> one InputError; the warnings ITK
     printed -> one log line each, naming the file."""
@@ -353,7 +353,7 @@ def read_label_map(path, labels=()) -> LabelMap:
     integrity.check_image_text_header(path)
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
-    with _itk_reading(path):        # what the reader prints about a file it rejects is dropped
+    with itk_reading(path):        # what the reader prints about a file it rejects is dropped
         try:
             reader.ReadImageInformation()
         except RuntimeError:

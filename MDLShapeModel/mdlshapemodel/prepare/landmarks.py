@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import ArgumentError, InputError
 
 #: the suffixes of landmark files, in the order a case's file is looked for
 SUFFIXES = (".mrk.json", ".fcsv", ".csv", ".json")
@@ -56,7 +56,7 @@ class Landmarks:
 
     def __post_init__(self):
         if len(self.labels) != len(self.points):
-            raise ValueError("one label per point")
+            raise ArgumentError("one label per point")
 
     def __len__(self) -> int:
         return len(self.labels)

@@ -85,7 +85,7 @@ def closest_point_and_region(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
+def closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
     """The point of triangle abc nearest to p, into ``out`` (3,); returns its squared distance
     (:func:`closest_point_and_region`)."""
     return closest_point_and_region(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out)[0]
@@ -95,7 +95,7 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, out):
 def _test_triangle(f, p, points, vertices, faces, q, found, squared, face):
     """Keep triangle f's nearest point to point p if it is nearer than the best so far."""
     a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-    d = _closest_on_triangle(points[p, 0], points[p, 1], points[p, 2],
+    d = closest_on_triangle(points[p, 0], points[p, 1], points[p, 2],
                              vertices[a, 0], vertices[a, 1], vertices[a, 2],
                              vertices[b, 0], vertices[b, 1], vertices[b, 2],
                              vertices[c, 0], vertices[c, 1], vertices[c, 2], q)
@@ -120,7 +120,7 @@ def closest_on_triangles(points, vertices, faces, candidates):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _cell_index(value, origin, cell, size):
+def cell_index(value, origin, cell, size):
     """The index along one axis of the cell holding ``value``, clamped to the grid."""
     return min(max(int(np.floor((value - origin) / cell)), 0), size - 1)
 
@@ -137,8 +137,8 @@ def build_grid(vertices, faces, origin, cell, shape):
         for d in range(3):
             lo = min(vertices[faces[f, 0], d], vertices[faces[f, 1], d], vertices[faces[f, 2], d])
             hi = max(vertices[faces[f, 0], d], vertices[faces[f, 1], d], vertices[faces[f, 2], d])
-            low[f, d] = _cell_index(lo, origin[d], cell, shape[d])
-            high[f, d] = _cell_index(hi, origin[d], cell, shape[d])
+            low[f, d] = cell_index(lo, origin[d], cell, shape[d])
+            high[f, d] = cell_index(hi, origin[d], cell, shape[d])
         for i in range(low[f, 0], high[f, 0] + 1):
             for j in range(low[f, 1], high[f, 1] + 1):
                 for k in range(low[f, 2], high[f, 2] + 1):
@@ -209,9 +209,9 @@ def query_grid(points, vertices, faces, origin, cell, shape, start, triangles):
     q = np.empty(3)
     for p in range(k):
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
-        ci = _cell_index(px, origin[0], cell, nx)
-        cj = _cell_index(py, origin[1], cell, ny)
-        ck = _cell_index(pz, origin[2], cell, nz)
+        ci = cell_index(px, origin[0], cell, nx)
+        cj = cell_index(py, origin[1], cell, ny)
+        ck = cell_index(pz, origin[2], cell, nz)
         ring = 0
         while True:
             i0, i1 = max(ci - ring, 0), min(ci + ring, nx - 1)

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import SphereMapError
+from ..geometry import best_rotation
 from .spherical import cross_rows, orientation, solid_angles  # noqa: F401 (re-exported)
 from .surface import face_areas
 
@@ -526,12 +527,3 @@ def shared_places(images: list, rotations: list) -> np.ndarray:
     norms = np.linalg.norm(total, axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where((norms > 0) & known.any(axis=0)[:, None], total / norms, np.nan)
-
-
-def best_rotation(cross: np.ndarray) -> tuple[np.ndarray, float]:
-    """The proper rotation P maximising <cross, P> (orthogonal Procrustes, a reflection never
-    allowed) and that maximum (3 x 3 ``cross``)."""
-    u, singular, vt = np.linalg.svd(cross)
-    d = np.ones(3)
-    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return (u * d) @ vt, float(np.sum(singular * d))

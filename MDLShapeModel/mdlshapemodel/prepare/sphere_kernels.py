@@ -9,6 +9,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..errors import ArgumentError
+
 
 def no_factor() -> tuple:
     """The ``factor`` argument of :func:`lbfgs` for no preconditioner."""
@@ -211,7 +213,7 @@ def solve_factor(lower_start, lower_row, lower_value, pivot, permutation, b, wor
     """
     n = b.shape[0]
     if b.shape[1] != 6 or work.shape[0] != n or work.shape[1] != 6:
-        raise ValueError("solve_factor solves (n, 6) arrays")
+        raise ArgumentError("solve_factor solves (n, 6) arrays")
     for i in range(n):
         p = permutation[i]
         for c in range(6):

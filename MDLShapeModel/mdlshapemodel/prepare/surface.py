@@ -15,7 +15,7 @@ from scipy.sparse import csgraph
 
 from ..config import (MAX_COORDINATE, SURFACE_METHODS, SURFACE_POINTS, BuildConfig,
                       max_smoothing_for, target_vertices_for)
-from ..errors import SurfaceError
+from ..errors import ArgumentError, SurfaceError
 from .nearest import TriangleGrid
 
 
@@ -585,7 +585,7 @@ class SurfaceDistance:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
-            raise ValueError(f"need at least one triangle, got faces of shape {faces.shape}")
+            raise ArgumentError(f"need at least one triangle, got faces of shape {faces.shape}")
         self._n_vertices = len(vertices)
         self._grid = TriangleGrid(vertices, faces)
 
@@ -593,7 +593,7 @@ class SurfaceDistance:
         """Give the mesh new vertex positions (same faces) and rebuild the grid."""
         vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         if vertices.shape != (self._n_vertices, 3):
-            raise ValueError(f"need {self._n_vertices} vertices, got an array of {vertices.shape}")
+            raise ArgumentError(f"need {self._n_vertices} vertices, got an array of {vertices.shape}")
         self._grid.move(vertices)
 
     def __call__(self, points: np.ndarray) -> np.ndarray:

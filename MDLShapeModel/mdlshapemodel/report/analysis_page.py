@@ -21,7 +21,7 @@ from ..errors import MDLShapeModelError
 from ..model.shape_model import ShapeModel
 from ..prepare import io
 from .figures import encoded_png, pyplot
-from .html import _image, html_page, table
+from .html import html_page, image_tag, table
 from .rendering import render_maps, render_modes
 from .viewer import EffectMap, effects_section
 
@@ -100,12 +100,12 @@ def _maps(analysis: Analysis, model: ShapeModel) -> list:
                 outlines.append(found.test.tfce_p_fwer <= alpha)
     parts = []
     if model.of_curves:
-        return [_image(_curve_maps(analysis, rows, significant), "effect maps")]
+        return [image_tag(_curve_maps(analysis, rows, significant), "effect maps")]
     for row, outlined in zip(rows, outlines):
         # the row's title beside the picture, broken into lines that fit its height
         wrapped = (textwrap.fill(row[0], LABEL_WIDTH), *row[1:])
         png = render_maps(analysis.mean, cells, [wrapped], outlined=outlined)
-        parts.append(_image(_b64(png), row[0]))
+        parts.append(image_tag(_b64(png), row[0]))
     parts += effects_section(analysis.mean, cells, [
         EffectMap(label, values, diverging=cmap == "coolwarm", limit=high,
                   marks=() if cmap == "coolwarm" else ((level, f"α = {alpha:g}"),))
@@ -292,7 +292,7 @@ def _discriminant_parts(analysis: Analysis, model: ShapeModel) -> list:
                                    scores=np.zeros((0, 1)), triangles=model.triangles)
         try:
             picture = render_modes(pattern_model, 1, row_labels=["discriminant\nscore"])
-            parts.append(_image(_b64(picture), "discriminant change"))
+            parts.append(image_tag(_b64(picture), "discriminant change"))
         except (MDLShapeModelError, RuntimeError) as error:
             parts.append(f"<p>Rendering left out: {html.escape(str(error))}</p>")
     held_out = analysis.classification.predicted
@@ -311,7 +311,7 @@ def _discriminant_parts(analysis: Analysis, model: ShapeModel) -> list:
     parts += ["<p>Each case's discriminant value from the fold that held it out (fitted "
               "without it): how well the groups separate on new cases. The values of the "
               "discriminant fitted on all cases separate them better than new cases would.</p>",
-              _image(encoded_png(figure), "held-out discriminant values by group")]
+              image_tag(encoded_png(figure), "held-out discriminant values by group")]
     return parts
 
 

@@ -27,8 +27,8 @@ import numpy as np
 from ..errors import InputError
 from ..folders import BuildFolder
 from ..model.evaluation import (COMPARED_MEASURES, SIGNIFICANT_SE, evaluate,
-                                generalization_jackknife, measure_differences, model_space,
-                                verdict)
+                                generalization_jackknife, measure_differences, verdict)
+from ..model.space import model_space
 from ..model.shape_model import ShapeModel
 
 MEASURES = COMPARED_MEASURES

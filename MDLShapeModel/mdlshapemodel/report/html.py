@@ -118,7 +118,8 @@ def html_page(title: str, body: list) -> str:
                       *body, "</body></html>"])
 
 
-def _image(encoded: str, alt: str) -> str:
+def image_tag(encoded: str, alt: str) -> str:
+    """An <img> of a base64-encoded PNG, with its alternative text."""
     return f"<img src='data:image/png;base64,{encoded}' alt='{html.escape(alt)}'>"
 
 
@@ -191,12 +192,12 @@ def _renderings(model, shapes, names) -> list:
     if model.of_curves:
         parts = ["<h2>Modes of variation</h2>",
                  "<p>The mean curve and the curves at ± 3 standard deviations along the first "
-                 "modes.</p>", _image(curves.mode_curves(model), "modes of variation")]
+                 "modes.</p>", image_tag(curves.mode_curves(model), "modes of variation")]
         if shapes is not None:
             parts += ["<h2>Correspondence</h2>",
                       "<p>The sample points coloured by their index: the same colour is the "
                       "same model point on every case.</p>",
-                      _image(curves.correspondence_points(shapes, model.triangles, names),
+                      image_tag(curves.correspondence_points(shapes, model.triangles, names),
                              "correspondence")]
         return parts
 
@@ -209,13 +210,13 @@ def _renderings(model, shapes, names) -> list:
                   "axis).</p>"]
         for view in rendering.MODE_VIEWS:
             modes = base64.b64encode(rendering.render_modes(model, view=view)).decode("ascii")
-            parts += [f"<h3>{view}</h3>", _image(modes, f"modes of variation, {view}")]
+            parts += [f"<h3>{view}</h3>", image_tag(modes, f"modes of variation, {view}")]
         if shapes is not None:
             colours = base64.b64encode(rendering.render_correspondence(
                 shapes, model.triangles, names=names)).decode("ascii")
             parts += ["<h2>Correspondence</h2>",
                       "<p>The same colour marks corresponding points on every case.</p>",
-                      _image(colours, "correspondence colour map")]
+                      image_tag(colours, "correspondence colour map")]
     except (MDLShapeModelError, RuntimeError) as error:
         log.warning("report: no renderings (%s)", error)
         parts.append(f"<p>Renderings left out: {html.escape(str(error))}</p>")
@@ -248,7 +249,7 @@ def _normals_section(model, normals, names) -> list:
             image = rendering.render_maps(model.mean, model.triangles, [
                 ("normal spread", spread, "viridis", 0.0, max(2 * SPREAD_DEGREES, 1e-9),
                  "mean angle to the mean normal [°]")], outlined=normals.flagged)
-            parts += [_image(base64.b64encode(image).decode("ascii"), "normal spread"),
+            parts += [image_tag(base64.b64encode(image).decode("ascii"), "normal spread"),
                       f"<p>Outlined: points spreading more than {SPREAD_DEGREES:.0f}°.</p>"]
         except (MDLShapeModelError, RuntimeError) as error:
             log.warning("report: no normal map (%s)", error)
@@ -440,16 +441,16 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
               f"Monte Carlo errors together. {folders.METRICS} has each difference and its "
               "standard "
               "error (<code>baselines</code>, <code>differences</code>).</p>",
-              _image(measure_plot(_series(metrics)), "quality measures"),
+              image_tag(measure_plot(_series(metrics)), "quality measures"),
               _measure_table(metrics), HOW_TO_READ]
     if "generalization_surface_mm" in metrics:
         parts += ["<h3>Measured surface to surface, against the true training surfaces</h3>",
-                  _image(measure_plot(_series(metrics), keys=("generalization_surface_mm",
+                  image_tag(measure_plot(_series(metrics), keys=("generalization_surface_mm",
                                                               "specificity_surface_mm")),
                          "surface-to-surface measures")]
     convergence = convergence_plot(folders.BuildFolder(output).convergence_file)
     if convergence:
-        parts += ["<h2>Convergence</h2>", _image(convergence, "convergence")]
+        parts += ["<h2>Convergence</h2>", image_tag(convergence, "convergence")]
     parts += _renderings(model, shapes, names)
     if metrics.get("landmarks"):
         parts += _landmarks_section(metrics["landmarks"])

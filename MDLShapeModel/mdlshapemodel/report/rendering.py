@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import MDLShapeModelError
+from ..errors import ArgumentError, MDLShapeModelError
 from ..prepare.io import captured_vtk_messages
 from ..prepare.surface import arrays_to_polydata, signed_volume
 
@@ -297,7 +297,7 @@ def grid_layout(kind: str, n_rows: int, n_cols: int, size=(300, 260)) -> GridLay
         return GridLayout(n_rows, n_cols, width, height, left=46, top=28, right=100, bottom=6)
     if kind == "correspondence":
         return GridLayout(n_rows, n_cols, width, height, left=6, top=28, right=6, bottom=24)
-    raise ValueError(f"unknown layout {kind!r}")
+    raise ArgumentError(f"unknown layout {kind!r}")
 
 
 def _compose(layout: GridLayout, panels, column_labels=(), row_labels=(), caption=None,
@@ -395,7 +395,7 @@ def _view_axes(axes: np.ndarray, view: str) -> np.ndarray:
         return np.array([axes[0], axes[2], -axes[1]])
     if view == "side":
         return np.array([axes[2], axes[1], -axes[0]])
-    raise ValueError(f"view must be one of {', '.join(MODE_VIEWS)}, not {view!r}")
+    raise ArgumentError(f"view must be one of {', '.join(MODE_VIEWS)}, not {view!r}")
 
 
 def mode_panels(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(300, 260),
@@ -408,7 +408,7 @@ def mode_panels(model, n_modes: int = 3, standard_deviations=(-2, 0, 2), size=(3
     rows = max(0, min(int(n_modes), int(model.n_modes)))
     sds = [float(s) for s in standard_deviations]
     if not sds:
-        raise ValueError("standard_deviations is empty")
+        raise ArgumentError("standard_deviations is empty")
     normals = vertex_normals(mean, triangles)
     if rows == 0:                       # no variation: show the mean alone
         shapes = [[mean]]
@@ -496,19 +496,19 @@ def correspondence_pattern(reference: np.ndarray, n_bands: int = 8, n_sectors: i
 
 def _checked_triangles(triangles, n_points: int) -> np.ndarray:
     if triangles is None:
-        raise ValueError("no triangles: the shapes cannot be rendered as surfaces")
+        raise ArgumentError("no triangles: the shapes cannot be rendered as surfaces")
     triangles = np.asarray(triangles, dtype=np.int64)
     if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) == 0:
-        raise ValueError(f"triangles must be an (m, 3) array, got shape {triangles.shape}")
+        raise ArgumentError(f"triangles must be an (m, 3) array, got shape {triangles.shape}")
     if triangles.min() < 0 or triangles.max() >= n_points:
-        raise ValueError(f"triangles index points outside 0..{n_points - 1}")
+        raise ArgumentError(f"triangles index points outside 0..{n_points - 1}")
     return triangles
 
 
 def _selected_cases(n: int, max_cases: int) -> np.ndarray:
     """At most ``max_cases`` indices spread evenly over 0..n-1 (first and last included)."""
     if max_cases < 1:
-        raise ValueError("max_cases must be at least 1")
+        raise ArgumentError("max_cases must be at least 1")
     if n <= max_cases:
         return np.arange(n)
     return np.unique(np.round(np.linspace(0, n - 1, max_cases)).astype(int))
@@ -519,11 +519,11 @@ def correspondence_panels(shapes, triangles, max_cases: int = 4, size=(300, 260)
     """The raw panels of :func:`render_correspondence`: (list of (h, w, 3) uint8, indices)."""
     shapes = np.asarray(shapes, dtype=np.float64)
     if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) == 0:
-        raise ValueError(f"shapes must be an (n, n_p, 3) array, got shape {shapes.shape}")
+        raise ArgumentError(f"shapes must be an (n, n_p, 3) array, got shape {shapes.shape}")
     triangles = _checked_triangles(triangles, shapes.shape[1])
     reference = shapes[0] if reference is None else np.asarray(reference, dtype=np.float64)
     if reference.shape != shapes.shape[1:]:
-        raise ValueError(f"reference must be ({shapes.shape[1]}, 3), got {reference.shape}")
+        raise ArgumentError(f"reference must be ({shapes.shape[1]}, 3), got {reference.shape}")
     colours = correspondence_pattern(reference)
     _, axes = principal_axes(reference)
     indices = _selected_cases(len(shapes), int(max_cases))
@@ -550,7 +550,7 @@ def render_correspondence(shapes, triangles, names=None, max_cases: int = 4, siz
     panels, indices = correspondence_panels(shapes, triangles, max_cases, size, reference)
     names = list(names) if names is not None else [f"case {i + 1}" for i in range(len(shapes))]
     if len(names) < len(shapes):
-        raise ValueError(f"{len(names)} names for {len(shapes)} shapes")
+        raise ArgumentError(f"{len(names)} names for {len(shapes)} shapes")
     layout = grid_layout("correspondence", 1, len(panels), size)
     return _compose(layout, [panels], [str(names[i]) for i in indices],
                     caption="same colour = corresponding points")

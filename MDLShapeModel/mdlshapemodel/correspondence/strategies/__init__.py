@@ -39,6 +39,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ...config import STRATEGIES, OptimisationSettings
+from ...errors import ArgumentError
 from ...parallel import Threads
 from ..objective import NoDescription
 from ..coarse import carry_over, coarse_grid_applies, coarse_view
@@ -115,7 +116,7 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         trace.record(state, value, "integrated", 0)
         return value
     if settings.strategy not in PHASES:
-        raise ValueError(f"unknown strategy {settings.strategy!r}; "
+        raise ArgumentError(f"unknown strategy {settings.strategy!r}; "
                          f"choose one of {', '.join(STRATEGIES)}")
     run = PHASES[settings.strategy]
 
@@ -133,7 +134,7 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         point = resume.point
         names = [phase.name for phase in phases]
         if point.phase not in names:
-            raise ValueError(f"the checkpoint is of a phase ({point.phase!r}) that these settings "
+            raise ArgumentError(f"the checkpoint is of a phase ({point.phase!r}) that these settings "
                              "do not run")
         phases = phases[names.index(point.phase):]
         resumed = coarse if staged else state

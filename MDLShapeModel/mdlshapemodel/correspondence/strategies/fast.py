@@ -23,13 +23,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...config import OptimisationSettings
+from ...geometry import Pose, weighted_centroid
 from ...parallel import Threads
 from ...progress import report
 from .. import hotloops
 from ..circle import CircleField, CircleFieldBasis
 from ..state import CorrespondenceState
 from ..fields import FieldBasis
-from ..pose import Pose, weighted_centroid
 from ..warps import FieldWarp
 from ..trace import Stop
 from .base import PhasePoint, budget_spent, stalled, start_phase

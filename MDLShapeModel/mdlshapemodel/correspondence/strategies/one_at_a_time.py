@@ -16,9 +16,10 @@ import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
 from ...config import WARPS, OptimisationSettings
+from ...errors import ArgumentError
+from ...geometry import Pose, pose_from_parameters, weighted_centroid
 from ...progress import report
 from ..objective import Objective
-from ..pose import Pose, pose_from_parameters, weighted_centroid
 from ..state import CorrespondenceState
 from ..trace import Stop, Trace
 from ..warps import (AsymmetricTheta, Rotation, ShearTwist, SymmetricTheta,
@@ -205,7 +206,7 @@ def optimise_warp(state: CorrespondenceState, i: int, j: int, kind: str, current
         _search_warp(state, i, j, lambda t: Rotation(axis * t), bounds, False,
                      1e-3 * (bounds[1] - bounds[0]), 25, found, seen)
     else:
-        raise ValueError(f"unknown warp kind {kind!r}; choose from {', '.join(WARPS)}")
+        raise ArgumentError(f"unknown warp kind {kind!r}; choose from {', '.join(WARPS)}")
     return _commit_best(state, i, j, found, current)
 
 
@@ -284,9 +285,9 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
     kinds = tuple(settings.warps)
     unknown = [kind for kind in kinds if kind not in WARPS]
     if not kinds or unknown:
-        raise ValueError(f"warps: {list(kinds)!r} must be one or more of {', '.join(WARPS)}")
+        raise ArgumentError(f"warps: {list(kinds)!r} must be one or more of {', '.join(WARPS)}")
     if state.planar and kinds != ("symmetric",):
-        raise ValueError(f"warps: {list(kinds)!r}: closed 2-D curves take the symmetric kernel "
+        raise ArgumentError(f"warps: {list(kinds)!r}: closed 2-D curves take the symmetric kernel "
                          "only (asymmetric, shear and rotation are warps of the sphere)")
     active = np.arange(state.n_shapes) if active is None else np.asarray(active)
     sweeps = begin_sweeps(state, objective, trace, phase, deadline, settings, resume)

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...errors import ArgumentError
+
 #: Armijo's sufficient-decrease constant (the usual 1e-4)
 ARMIJO = 1e-4
 #: the largest number of step reductions in one line search (each by a factor in [0.1, 0.5])
@@ -121,7 +123,7 @@ def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
     lower = np.asarray(lower, dtype=np.float64)
     upper = np.asarray(upper, dtype=np.float64)
     if np.any(lower > upper):
-        raise ValueError("minimize_box: a lower bound exceeds its upper bound")
+        raise ArgumentError("minimize_box: a lower bound exceeds its upper bound")
     x = np.clip(np.asarray(x0, dtype=np.float64), lower, upper)
     value, gradient = fun(x)
     pairs: list = []

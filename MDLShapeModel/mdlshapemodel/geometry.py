@@ -1,7 +1,11 @@
-"""Pose: similarity transforms and weighted generalized Procrustes alignment.
+"""Rigid and similarity alignment: poses, the orthogonal Procrustes rotation, weighted generalized
+Procrustes alignment (eq. 18).
 
-Shapes are arrays (n_p, 3); weights w (n_p,) sum to one (the area measure of eq. 15-17), so weighted
-sums of squares are mean squared distances in the shapes' units.
+The one place of these tools for every stage: preparation aligns sphere maps with
+:func:`best_rotation`, the correspondence and the fitting of a new case pose shapes with
+:func:`align` and :func:`generalized_procrustes`, the analysis superimposes a build's shapes with
+them. Shapes are arrays (n_p, 3); weights w (n_p,) sum to one (the area measure of eq. 15-17), so
+weighted sums of squares are mean squared distances in the shapes' units.
 """
 
 from __future__ import annotations
@@ -9,8 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from ..prepare.sphere import best_rotation
 
 
 @dataclass
@@ -89,6 +91,15 @@ def align(source: np.ndarray, target: np.ndarray, weights: np.ndarray,
     return Pose(scale, rotation, mu_t - scale * rotation @ mu_s)
 
 
+def best_rotation(cross: np.ndarray) -> tuple[np.ndarray, float]:
+    """The proper rotation P maximising <cross, P> (orthogonal Procrustes, a reflection never
+    allowed) and that maximum (3 x 3 ``cross``)."""
+    u, singular, vt = np.linalg.svd(cross)
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return (u * d) @ vt, float(np.sum(singular * d))
+
+
 def planar_rotation(covariance: np.ndarray) -> tuple[np.ndarray, float]:
     """The rotation about z maximising sum_k w_k t_k . R s_k, and that maximum, from the
     covariance C = sum_k w_k t_k s_k^T (3 x 3; only its x-y block is used): eq. 18 in the plane.
@@ -102,6 +113,11 @@ def planar_rotation(covariance: np.ndarray) -> tuple[np.ndarray, float]:
     rotation = np.eye(3)
     rotation[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
     return rotation, float(np.hypot(along, across))
+
+
+def apply_poses(poses: list, shapes: np.ndarray) -> np.ndarray:
+    """Each shape (n_s, n_p, 3) moved by its :class:`Pose`."""
+    return np.stack([p.apply(x) for p, x in zip(poses, shapes)])
 
 
 def generalized_procrustes(shapes: np.ndarray, weights: np.ndarray, scaling: bool = True,
@@ -123,12 +139,12 @@ def generalized_procrustes(shapes: np.ndarray, weights: np.ndarray, scaling: boo
     poses = [align(x, shapes[0], weights, scaling=False, planar=planar) for x in shapes]
     previous = np.inf
     for _ in range(iterations):
-        aligned = np.stack([p.apply(x) for p, x in zip(poses, shapes)])
+        aligned = apply_poses(poses, shapes)
         mean = aligned.mean(axis=0)
         mean = mean - weighted_centroid(mean, weights)
         mean *= target_size / centroid_size(mean, weights)
         poses = [align(x, mean, weights, scaling=scaling, planar=planar) for x in shapes]
-        aligned = np.stack([p.apply(x) for p, x in zip(poses, shapes)])
+        aligned = apply_poses(poses, shapes)
         residual = float(np.sum((aligned - mean) ** 2 * weights[None, :, None]))
         if previous - residual <= tolerance * max(residual, 1e-300):
             break

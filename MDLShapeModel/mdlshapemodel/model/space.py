@@ -1,0 +1,154 @@
+"""The training shapes in model space, and the leave-one-out models in it (IV-B).
+
+The n_s training shapes span an (n_s - 1)-dimensional affine space: a :class:`ModelSpace` holds
+their principal scores there and the map back to point displacements. Every measure of a model's
+quality (:mod:`.evaluation`, :mod:`.surface_measures`) is computed from one :func:`model_space`:
+the leave-one-out models (:func:`leave_one_out`, each a rank-one downdate solved by the secular
+equation) and the specificity samples live in it, so squared distances are computed from
+(n_s - 1)-vectors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+#: A direction of the shapes whose variance is below this share of the largest one's is no mode: it
+#: holds rounding (identical cases differ there in the last digits), so the model spaces here and
+#: the leave-one-out models leave it out, as :meth:`.shape_model.ShapeModel.from_shapes` leaves it
+#: out of a model (its ``relative_tolerance``). The measures of aligned shapes and of the model's
+#: own reconstruction of them (``mdlshapemodel compare`` reads those) are then the same.
+ROUNDING_VARIANCE = 1e-10
+
+
+def modes_kept(singular: np.ndarray) -> np.ndarray:
+    """Which singular values of centred shapes are modes (variance above
+    :data:`ROUNDING_VARIANCE` of the largest)."""
+    largest = max(float(singular.max(initial=0.0)), 1e-300)
+    return singular ** 2 > ROUNDING_VARIANCE * largest ** 2
+
+
+@dataclass(frozen=True)
+class ModelSpace:
+    """The training shapes in model space.
+
+    ``coordinates`` (n_s, r): the centred, area-weighted shapes in an orthonormal basis of their
+    span (principal component scores: orthogonal columns, sums of squares descending);
+    ``to_points`` (r, 3 n_p): the map from model-space differences back to point displacements.
+    Every measure of :func:`.evaluation.evaluate` works from one :func:`model_space` of the shapes.
+    """
+
+    coordinates: np.ndarray
+    to_points: np.ndarray
+
+
+def model_space(shapes: np.ndarray, weights: np.ndarray) -> ModelSpace:
+    """The :class:`ModelSpace` of aligned, corresponded shapes (n_s, n_p, 3) with area weights."""
+    n_s, n_p, _ = shapes.shape
+    root = np.sqrt(weights)
+    z = ((shapes - shapes.mean(axis=0)) * root[None, :, None]).reshape(n_s, -1)
+    u, singular, vt = np.linalg.svd(z, full_matrices=False)
+    keep = modes_kept(singular)
+    return ModelSpace(u[:, keep] * singular[keep], vt[keep] / np.repeat(root, 3))
+
+
+def space_of(shapes: np.ndarray, weights: np.ndarray, space: ModelSpace | None):
+    """(coordinates, to_points) of ``space``, or of the shapes' model space when it is None."""
+    space = model_space(shapes, weights) if space is None else space
+    return space.coordinates, space.to_points
+
+
+def displacements(difference: np.ndarray, to_points: np.ndarray) -> np.ndarray:
+    """Point displacements (k, n_p, 3) of model-space differences (k, r)."""
+    return (difference @ to_points).reshape(len(difference), -1, 3)
+
+
+def leave_one_out(coordinates: np.ndarray, max_modes: int):
+    """For each shape i: (i, residuals (max_modes, r), modes used (max_modes,)).
+
+    ``residuals[M - 1]`` is x_i - x_i'(M) in model space: x_i minus its reconstruction by the model
+    built without it, with M modes (at most the n_s - 2 that model has).
+
+    The coordinates are principal component scores (centred, orthogonal columns with sums of
+    squares d_j), so the scatter of the other shapes about their mean is a diagonal matrix less a
+    rank-one term, diag(d) - rho x_i x_i^T with rho = n_s / (n_s - 1). Its leading eigenpairs
+    come from the secular equation (:func:`_downdated_modes`), O(n_s max_modes) per shape instead
+    of an O(n_s^3) decomposition; where that is ill-conditioned (repeated d_j), the others'
+    decomposition is computed directly.
+    """
+    n_s, r = coordinates.shape
+    scatter = np.sum(coordinates ** 2, axis=0)
+    # the model without shape i has at most n_s - 2 modes: null directions would otherwise
+    # hold the part of shape i that the others do not span
+    wanted = min(max_modes, max(n_s - 2, 0), r)
+    rho = n_s / (n_s - 1.0)
+    for i in range(n_s):
+        offset = coordinates[i] * rho          # x_i minus the others' mean
+        directions = _downdated_modes(scatter, coordinates[i], rho, wanted)
+        if directions is None:
+            directions, rank = _modes_of_others(coordinates, i)
+        else:
+            rank = wanted
+        residuals = []
+        for m in range(1, max_modes + 1):
+            kept = directions[:min(m, rank)]
+            residuals.append(offset - (offset @ kept.T) @ kept)
+        used = np.minimum(np.arange(1, max_modes + 1), rank)
+        yield i, np.array(residuals), used
+
+
+def _modes_of_others(coordinates: np.ndarray, i: int) -> tuple[np.ndarray, int]:
+    """The principal directions (rows) of every shape but i, and their number (the rank)."""
+    others = np.delete(coordinates, i, axis=0)
+    _, singular, directions = np.linalg.svd(others - others.mean(axis=0), full_matrices=False)
+    rank = int(np.sum(modes_kept(singular)))
+    return directions, rank
+
+
+def _downdated_modes(d: np.ndarray, v: np.ndarray, rho: float, count: int):
+    """The ``count`` leading unit eigenvectors (rows) of diag(d) - rho v v^T, for d descending
+    and positive, or None when the secular equation is ill-conditioned here.
+
+    Each leading eigenvalue lies strictly between consecutive d (interlacing); it is the root of
+    1 - rho sum_j v_j^2 / (d_j - lambda) in (d_{k+1}, d_k), found by bisection to the last bit,
+    and its eigenvector is (diag(d) - lambda)^-1 v, normalised. Components of v that vanish, or
+    d that repeat, would need deflation: then None.
+    """
+    r = len(d)
+    if count == 0:
+        return np.zeros((0, r))
+    if count >= r or np.any(np.diff(d) >= 0.0):
+        return None
+    scale = float(np.sqrt(np.sum(v * v)))
+    gaps = d[:-1] - d[1:]
+    if scale == 0.0 or np.any(np.abs(v[:count + 1]) < 1e-8 * scale) or np.any(
+            gaps[:count] < 1e-8 * d[0]):
+        return None
+    low, high = d[1:count + 1].copy(), d[:count].copy()
+    for _ in range(200):
+        middle = 0.5 * (low + high)
+        if np.all((middle <= low) | (middle >= high)):
+            break
+        value = 1.0 - rho * np.sum(v * v / (d[None, :] - middle[:, None]), axis=1)
+        # the secular function falls from +inf to -inf across the interval
+        low = np.where(value > 0.0, middle, low)
+        high = np.where(value > 0.0, high, middle)
+    roots = 0.5 * (low + high)
+    vectors = v[None, :] / (d[None, :] - roots[:, None])
+    return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+
+
+def subspace(space: ModelSpace, keep) -> ModelSpace:
+    """The :class:`ModelSpace` of the shapes ``keep`` (indices) alone, from that of all of them.
+
+    Their coordinates are centred on their own mean and turned to their principal axes; the turn
+    is orthogonal, so every measure comes out as from :func:`model_space` of those shapes, in
+    O(n_s r^2) instead of a decomposition of the shapes.
+    """
+    coordinates = space.coordinates[np.asarray(keep)]
+    coordinates = coordinates - coordinates.mean(axis=0)
+    u, singular, vt = np.linalg.svd(coordinates, full_matrices=False)
+    nonzero = modes_kept(singular)
+    return ModelSpace(u[:, nonzero] * singular[nonzero], vt[nonzero] @ space.to_points)
