@@ -125,6 +125,31 @@ def test_more_than_two_groups_are_classified_with_the_macro_auc():
     assert abs(noise.auc - 0.5) < 0.15 and abs(noise.balanced_accuracy - 1 / 3) < 0.15
 
 
+def test_a_subjects_cases_are_held_out_and_permuted_together():
+    """16 subjects of two nearly identical cases each, the group a subject's (no effect): with
+    the subjects as blocks the AUC is at chance; taking the cases as independent, a held-out
+    case's twin in the training folds gives its group away."""
+    rng = np.random.default_rng(18)
+    blocked, independent = [], []
+    blocks = np.repeat(np.arange(16), 2)
+    for _ in range(8):
+        shapes = np.repeat(rng.normal(size=(16, 20, 3)), 2, axis=0)
+        shapes += 0.05 * rng.normal(size=shapes.shape)
+        groups = np.repeat(rng.permutation(16) < 8, 2)
+        found = classify(shapes, np.full(20, 0.05), groups, folds=4, repeats=3, permutations=0,
+                         blocks=blocks)
+        assert not found.exact
+        blocked.append(found.auc)
+        independent.append(classify(shapes, np.full(20, 0.05), groups, folds=4, repeats=3,
+                                    permutations=0).auc)
+    assert np.mean(independent) > 0.75, independent
+    assert abs(np.mean(blocked) - 0.5) < 0.15, blocked
+    mixed = groups.copy()
+    mixed[0] = not mixed[1]
+    with pytest.raises(ValueError, match="more than one group"):
+        classify(shapes, np.full(20, 0.05), mixed, blocks=blocks, permutations=0)
+
+
 def test_the_permutation_p_is_exact_when_every_labeling_is_counted():
     """4 against 4 cases: 70 labelings. With at least 69 permutations asked for, every other
     labeling is cross-validated once; the p-value is the share of all 70 whose AUC reaches the
@@ -273,3 +298,24 @@ def test_the_command_line_classification_is_recomputed_by_scikit_learn(build):
     assert c["auc"] > 0.9 and c["p"] <= 0.01 and abs(np.mean(null) - 0.5) < 0.1
     page = (output / "analysis.html").read_text()
     assert "corrected resampled t" in page and "age regressed out" in page
+
+
+@pytest.mark.slow
+def test_the_command_line_holds_out_whole_subjects(build):
+    """--subject alone: two cases per subject, the group a subject's; the classification holds
+    each subject out whole and says so."""
+    table = build.parent / "subjects-pairs.csv"
+    with open(table, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["case", "id", "arm"])
+        writer.writerows([f"case_{k:02d}", f"s{k // 2}", "a" if (k // 2) % 2 else "b"]
+                         for k in range(N))
+    output = build.parent / "findings-pairs"
+    result = run_cli("analyze", build, "--table", table, "--group", "arm", "--subject", "id",
+                     "--permutations", "99", "--folds", "4", "--repeats", "2",
+                     "--classification-permutations", "49", "-o", output, "-q")
+    assert result.returncode == 0, result.stderr
+    c = json.loads((output / "analysis.json").read_text())["classification"]
+    assert c["subject"] == "id" and c["folds"] == 4 and c["permutations"] == 50
+    assert not c["exact"] and len(c["fold_auc"]) == 8
+    assert "held out and permuted whole" in (output / "analysis.html").read_text()

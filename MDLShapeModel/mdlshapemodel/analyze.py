@@ -153,13 +153,15 @@ def classification_summary(analysis: Analysis) -> dict:
     """analysis.json's ``classification``: the repeated cross-validated shrinkage LDA of the
     groups (:mod:`~mdlshapemodel.analysis.classification`), its AUC and balanced accuracy with
     their corrected resampled intervals, the AUC's permutation p-value and null distribution,
-    and the per-fold values they are computed from."""
+    and the per-fold values they are computed from; ``subject``: the column whose subjects are
+    held out and permuted whole (None: the cases)."""
     c = analysis.classification
     design = analysis.subjects
     return {"levels": c.levels, "folds": c.folds, "repeats": c.repeats,
             "adjusted_for": [column for column in design.adjusted_for]
             + [column for column in dict.fromkeys(design.interest_columns)
                if design.group not in column.split(":")],
+            "subject": None if design.repeated is None else design.repeated.subject,
             "classifier": "shrinkage LDA (Ledoit-Wolf, equal priors) on the principal scores, "
                           "nuisance regressed out in each training fold",
             "auc": c.auc, "auc_interval": list(c.auc_interval),

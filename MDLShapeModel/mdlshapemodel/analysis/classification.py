@@ -169,8 +169,11 @@ def _ranks(values: np.ndarray) -> np.ndarray:
 def fold_measures(labels: np.ndarray, probabilities: np.ndarray) -> tuple[float, float]:
     """The AUC (two groups: of the second group's probability; more: the macro average over
     the groups of each against the rest) and the balanced accuracy (each case assigned to its
-    most probable group) of held-out posterior probabilities (m, groups)."""
+    most probable group) of held-out posterior probabilities (m, groups); NaN when a group
+    has no held-out case (possible only when whole subjects are held out)."""
     groups = probabilities.shape[1]
+    if np.any(np.bincount(labels, minlength=groups) == 0):
+        return np.nan, np.nan
     if groups == 2:
         auc = auc_of(labels == 1, probabilities[:, 1])
     else:
@@ -227,18 +230,43 @@ def _cross_validated(folds: _Folds, labels: np.ndarray, groups: int, splits: lis
     return aucs, accuracies, held
 
 
-def _splits(labels: np.ndarray, folds: int, repeats: int, seed: int) -> list:
-    from sklearn.model_selection import RepeatedStratifiedKFold
-    splitter = RepeatedStratifiedKFold(n_splits=folds, n_repeats=repeats, random_state=seed)
-    return list(splitter.split(np.zeros(len(labels)), labels))
+def _splits(labels: np.ndarray, folds: int, repeats: int, seed: int,
+            blocks: np.ndarray | None = None) -> list:
+    """The (train, test) index pairs of every fold and repeat: stratified by the labels, and
+    with ``blocks`` each block (a subject's cases) kept in one fold."""
+    from sklearn.model_selection import RepeatedStratifiedKFold, StratifiedGroupKFold
+
+    if blocks is None:
+        splitter = RepeatedStratifiedKFold(n_splits=folds, n_repeats=repeats, random_state=seed)
+        return list(splitter.split(np.zeros(len(labels)), labels))
+    return [split for r in range(repeats)
+            for split in StratifiedGroupKFold(n_splits=folds, shuffle=True,
+                                              random_state=seed + r).split(
+                np.zeros(len(labels)), labels, blocks)]
+
+
+def _block_permutation(labels: np.ndarray, blocks: np.ndarray, rng) -> np.ndarray:
+    """The labels of whole blocks permuted among the blocks of as many cases (each block's
+    cases keep one label)."""
+    permuted = labels.copy()
+    first = np.array([np.flatnonzero(blocks == b)[0] for b in range(int(blocks.max()) + 1)])
+    sizes = np.bincount(blocks)
+    for size in np.unique(sizes):
+        alike = np.flatnonzero(sizes == size)
+        moved = rng.permutation(labels[first[alike]])
+        for block, label in zip(alike, moved):
+            permuted[blocks == block] = label
+    return permuted
 
 
 def corrected_interval(values: np.ndarray, test_share: float, level: float = 0.95) -> tuple:
     """The corrected resampled t interval of a mean over J cross-validation folds (Nadeau and
     Bengio 2003): mean +- t(J - 1) sqrt((1/J + n_test/n_train) s^2), s^2 the folds' variance;
-    ``test_share`` is n_test / n_train. Clipped to [0, 1]."""
+    ``test_share`` is n_test / n_train; NaN values (a fold without a group) left out. Clipped
+    to [0, 1]."""
     from scipy.stats import t as student
 
+    values = np.asarray(values)[np.isfinite(values)]
     j = len(values)
     spread = np.sqrt((1 / j + test_share) * np.var(values, ddof=1)) if j > 1 else np.inf
     half = student.ppf(0.5 + level / 2, max(j - 1, 1)) * spread
@@ -280,8 +308,8 @@ def count_labelings(labels: np.ndarray, groups: int) -> int:
 
 def classify(shapes: np.ndarray, weights: np.ndarray, groups, nuisance: np.ndarray | None = None,
              folds: int = 10, repeats: int = 5, permutations: int = 200, seed: int = 0,
-             levels: list | None = None, explained: float = EXPLAINED,
-             progress=None) -> Classification:
+             levels: list | None = None, blocks: np.ndarray | None = None,
+             explained: float = EXPLAINED, progress=None) -> Classification:
     """Repeated cross-validated shrinkage LDA of the groups on aligned shapes, the nuisance
     regressed out inside each training fold, with a permutation p-value of the AUC.
 
@@ -309,6 +337,11 @@ def classify(shapes: np.ndarray, weights: np.ndarray, groups, nuisance: np.ndarr
     levels : list, optional
         The groups' order (the first is the reference; with two groups the second is
         positive); default: sorted (False before True).
+    blocks : ndarray (n,) of int, optional
+        Each case's subject (0 .. subjects - 1), when a subject has several cases, all of one
+        group: a subject's cases stay in one fold (scikit-learn's ``StratifiedGroupKFold``,
+        reshuffled per repeat) and the permutations move whole subjects' labels among subjects
+        of as many cases (exchangeability blocks); never exact.
     explained : float
         The share of the variance the principal scores keep in each fold.
     progress : callable, optional
@@ -340,45 +373,56 @@ def classify(shapes: np.ndarray, weights: np.ndarray, groups, nuisance: np.ndarr
         raise ValueError(f"classify needs two or more groups of at least 3 cases "
                          f"(sizes {sizes.tolist()})")
     nuisance = np.zeros((n, 0)) if nuisance is None else np.asarray(nuisance, dtype=np.float64)
+    if blocks is not None:
+        blocks = np.unique(np.asarray(blocks), return_inverse=True)[1].reshape(-1)
+        if any(len(set(labels[blocks == b])) > 1 for b in range(int(blocks.max()) + 1)):
+            raise ValueError("classify: a block (subject) has cases in more than one group")
+        first = np.unique(blocks, return_index=True)[1]
+        sizes = np.bincount(labels[first], minlength=count)     # subjects per group
     folds = int(max(2, min(folds, sizes.min())))
     features = (shapes * np.sqrt(weights)[None, :, None]).reshape(n, -1)
     with threadpool_limits(limits=1, user_api="blas"):
         # n x n problems: one thread each is faster than a team
         engine = _Folds(features, nuisance, explained)
         aucs, accuracies, held = _cross_validated(engine, labels, count,
-                                                  _splits(labels, folds, repeats, seed))
-        null = _null(engine, labels, count, folds, repeats, permutations, seed, progress)
-    auc = float(aucs.mean())
+                                                  _splits(labels, folds, repeats, seed, blocks))
+        null = _null(engine, labels, count, folds, repeats, permutations, seed, progress,
+                     blocks)
+    exact = (permutations > 0 and blocks is None
+             and count_labelings(labels, count) <= permutations + 1)
+    auc = float(np.nanmean(aucs))
     p = (None if permutations == 0 else
          float((1 + np.sum(null >= auc - 1e-12)) / (len(null) + 1)))
     test_share = 1 / (folds - 1)
     predicted = held[:, 1] - held[:, 0] if count == 2 else posteriors(held)
     return Classification([str(v) for v in names], folds, repeats, nuisance.shape[1], auc,
-                          corrected_interval(aucs, test_share), float(accuracies.mean()),
-                          corrected_interval(accuracies, test_share), p, len(null) + 1,
-                          permutations > 0 and count_labelings(labels, count) <= permutations + 1,
+                          corrected_interval(aucs, test_share), float(np.nanmean(accuracies)),
+                          corrected_interval(accuracies, test_share), p, len(null) + 1, exact,
                           null, aucs, accuracies, predicted)
 
 
 def _null(engine: _Folds, labels: np.ndarray, count: int, folds: int, repeats: int,
-          permutations: int, seed: int, progress) -> np.ndarray:
+          permutations: int, seed: int, progress, blocks: np.ndarray | None = None
+          ) -> np.ndarray:
     """The mean fold AUC of every permuted labeling, the cross-validation redone (folds
     included): all the other distinct labelings when there are at most ``permutations`` of
-    them, else ``permutations`` drawn at random."""
+    them, else ``permutations`` drawn at random (with ``blocks``, whole blocks' labels)."""
     from ..progress import report
 
     null = []
     if permutations > 0:
-        exact = count_labelings(labels, count) <= permutations + 1
+        exact = blocks is None and count_labelings(labels, count) <= permutations + 1
+        rng = np.random.default_rng(seed)
         if exact:
             drawn = itertools.islice(labelings(labels, count), 1, None)
+        elif blocks is not None:
+            drawn = (_block_permutation(labels, blocks, rng) for _ in range(permutations))
         else:
-            rng = np.random.default_rng(seed)
             drawn = (rng.permutation(labels) for _ in range(permutations))
         total = count_labelings(labels, count) - 1 if exact else permutations
         for b, permuted in enumerate(drawn):
-            null.append(_cross_validated(engine, permuted, count,
-                                         _splits(permuted, folds, repeats, seed))[0].mean())
+            null.append(np.nanmean(_cross_validated(
+                engine, permuted, count, _splits(permuted, folds, repeats, seed, blocks))[0]))
             if (b + 1) % 50 == 0:
                 report(progress, (b + 1) / total, "classification permutations")
     return np.array(null)

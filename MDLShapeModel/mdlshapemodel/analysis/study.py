@@ -209,9 +209,11 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
                              config.permutations)
     found_discriminant = found_classification = None
     # the discriminant and the classification describe a tested group, not one adjusted for,
-    # of independent cases
+    # of independent cases or of subjects each in one group (whole subjects held out and
+    # permuted)
+    repeated = subjects.repeated
     if (subjects.groups is not None and subjects.group in subjects.tested
-            and subjects.repeated is None):
+            and (repeated is None or repeated.design == "blocks")):
         if len(subjects.levels) == 2:
             second = np.array([g == subjects.levels[1] for g in subjects.groups])
             found_discriminant = discriminant(aligned, model.weights, second)
@@ -219,7 +221,8 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
         found_classification = classify(
             aligned, model.weights, subjects.groups, classification_nuisance(subjects),
             config.folds, config.repeats, config.classification_permutations, config.seed,
-            levels=subjects.levels, progress=progress)
+            levels=subjects.levels, blocks=None if repeated is None else repeated.blocks,
+            progress=progress)
     parts = np.concatenate([np.full(s.stop - s.start, j)
                             for j, s in enumerate(model.part_slices())])
     return Analysis(config, subjects, aligned, mean, normals, parts, points, difference,

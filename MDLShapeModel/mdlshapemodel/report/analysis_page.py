@@ -188,6 +188,9 @@ def _classification_parts(analysis: Analysis, summary: dict) -> list:
     adjusted = (f", with {', '.join(html.escape(a) for a in c['adjusted_for'])} regressed out "
                 "in each training fold (fitted on its cases only)" if c["adjusted_for"] else "")
     auc_kind = "AUC" if c["auc_kind"] == "binary" else "AUC (macro one-vs-rest)"
+    if c["subject"] is not None:
+        adjusted += (f"; each subject (<code>{html.escape(c['subject'])}</code>) held out and "
+                     "permuted whole")
     tested = ("all " if c["exact"] else "") + f"{c['permutations'] - 1:,} permuted labelings"
     parts = ["<h2>Classification</h2>",
              f"<p>{c['repeats']} &times; {c['folds']}-fold stratified cross-validation of a "
