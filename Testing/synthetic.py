@@ -38,6 +38,27 @@ def small_mask(position: float, scale: float = 1.0) -> np.ndarray:
                                bump_position=position, bump_radius=3.5, scale=scale)
 
 
+def thin_and_full_build(folder: Path, count: int) -> Path:
+    """A real build (``folder``/build, no optimisation, 162 points) of ``count`` small bumpy
+    ellipsoids ``folder``/labels/case_KK.nii.gz, their bumps spread along the long axis, the odd
+    ones 8% smaller (two groups that differ in size)."""
+    import SimpleITK as sitk
+
+    from mdlshapemodel import build_model
+
+    paths = []
+    for k, position in enumerate(np.linspace(-0.5, 0.5, count)):
+        mask = small_mask(float(position), 0.92 if k % 2 else 1.0).astype(np.uint8)
+        paths.append(folder / "labels" / f"case_{k:02d}.nii.gz")
+        paths[-1].parent.mkdir(exist_ok=True)
+        sitk.WriteImage(sitk.GetImageFromArray(mask), str(paths[-1]))
+    config = BuildConfig(points=162, strategy="none", baselines=[], workers=1,
+                         evaluation_modes=2, specificity_samples=100, surface_samples=0,
+                         cache_dir="")
+    build_model(paths, folder / "build", config)
+    return folder / "build"
+
+
 def small_bump_top(position: float) -> np.ndarray:
     """The top of :func:`small_mask`'s bump in voxel coordinates (x, y, z)."""
     cz, cy, cx = [(n - 1) / 2.0 for n in SMALL_SHAPE]

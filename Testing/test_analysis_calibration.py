@@ -6,13 +6,14 @@ training and new cases. Rates are checked two-sided, within a stated number of s
 of the level, with fixed seeds. The discriminant and the classification: Ledoit-Wolf's
 intensity from its formula written another way, the direction of the discriminant on a
 population whose second group is thinner, cross-validation that cannot see the held-out cases
-(chance accuracy on noise), the AUC and its standard error from the held-out values."""
+(chance accuracy on noise), each fold's AUC from its held-out values."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy import stats
+from sklearn.model_selection import RepeatedStratifiedKFold
 
 from mdlshapemodel.analysis import classify, permutation_test
 from mdlshapemodel.analysis.discriminant import discriminant, ledoit_wolf
@@ -135,40 +136,39 @@ def test_the_discriminant_points_from_the_first_group_to_the_second():
 
 
 def test_cross_validation_does_not_see_the_held_out_cases():
-    """Noise with two labels: held-out accuracy scatters around one half. Fitting the principal
-    components or the discriminant on the held-out cases too finds the labels in the noise."""
+    """Noise with two labels: held-out balanced accuracy scatters around one half. Fitting the
+    principal components or the discriminant on the held-out cases too finds the labels in the
+    noise."""
     rng = np.random.default_rng(5)
     accuracies = []
     for _ in range(12):
         shapes = rng.normal(size=(16, 20, 3))
         second = rng.permutation(16) < 8
-        accuracies.append(classify(shapes, np.full(20, 1 / 20), second, folds=4,
-                                   seed=int(rng.integers(1 << 30))).accuracy)
+        accuracies.append(classify(shapes, np.full(20, 1 / 20), second, folds=4, repeats=1,
+                                   permutations=0,
+                                   seed=int(rng.integers(1 << 30))).balanced_accuracy)
     # each accuracy has SE sqrt(0.25 / 16) = 0.125; their mean over 12 draws 0.036
     assert abs(np.mean(accuracies) - 0.5) <= SES * np.sqrt(0.25 / 16 / 12), accuracies
 
 
-def test_the_auc_and_its_standard_error_come_from_the_held_out_values():
-    """The AUC is the Mann-Whitney U of the held-out values over m n (ties count half: the
-    shapes come in identical pairs, so cases held out together tie), its SE Hanley and McNeil's
-    (1982), the accuracy's SE binomial."""
+def test_each_folds_auc_comes_from_its_held_out_values():
+    """A fold's AUC is the Mann-Whitney U of its held-out discriminant values over m n (ties
+    count half: the shapes come in identical pairs, so cases held out together tie)."""
     rng = np.random.default_rng(6)
     base = rng.normal(size=(10, 15, 3))
     base[:, :5, 0] += np.linspace(-1.0, 1.0, 10)[:, None]
     shapes = np.repeat(base, 2, axis=0)                 # each shape twice, once in each group
     second = np.tile([False, True], 10)
     second[:4] = [False, False, True, True]             # the first two pairs share a label
-    result = classify(shapes, np.full(15, 1 / 15), second, folds=4, seed=2)
+    result = classify(shapes, np.full(15, 1 / 15), second, folds=4, repeats=1, permutations=0,
+                      seed=3)
     held = result.predicted
-    positive, negative = held[second], held[~second]
-    assert np.any(positive[:, None] == negative[None, :]), "no tie: the test shows nothing"
-    u = stats.mannwhitneyu(positive, negative, alternative="two-sided").statistic
-    m, n = len(positive), len(negative)
-    assert result.auc == pytest.approx(u / (m * n), rel=1e-12)
-    a = result.auc
-    q1, q2 = a / (2 - a), 2 * a * a / (1 + a)
-    se = np.sqrt((a * (1 - a) + (m - 1) * (q1 - a * a) + (n - 1) * (q2 - a * a)) / (m * n))
-    assert result.auc_se == pytest.approx(se, rel=1e-12)
-    accuracy = np.mean((held > 0) == second)
-    assert result.accuracy == accuracy
-    assert result.accuracy_se == pytest.approx(np.sqrt(accuracy * (1 - accuracy) / 20))
+    splits = RepeatedStratifiedKFold(n_splits=4, n_repeats=1, random_state=3).split(
+        shapes[:, 0], second)
+    tied = False
+    for auc, (_, test) in zip(result.fold_auc, splits):
+        positive, negative = held[test][second[test]], held[test][~second[test]]
+        tied |= bool(np.any(positive[:, None] == negative[None, :]))
+        u = stats.mannwhitneyu(positive, negative, alternative="two-sided").statistic
+        assert auc == pytest.approx(u / (len(positive) * len(negative)), rel=1e-12)
+    assert tied, "no tie: the test shows nothing"

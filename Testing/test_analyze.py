@@ -10,12 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import SimpleITK as sitk
 import vtk
 from scipy import stats
 from vtk.util.numpy_support import vtk_to_numpy
 
-from mdlshapemodel import BuildConfig, build_model
 from mdlshapemodel.analyze import AnalysisFolder
 from mdlshapemodel.analysis import align, permutation_test
 from mdlshapemodel.analysis.glm import drawn_flips, drawn_permutations
@@ -23,7 +21,7 @@ from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import io
 
 from common import run_cli
-from synthetic import small_mask
+from synthetic import thin_and_full_build
 
 # every test here works on one real build (build_model) and the real command line
 pytestmark = pytest.mark.slow
@@ -34,18 +32,7 @@ N = 12
 @pytest.fixture(scope="module")
 def build(tmp_path_factory) -> Path:
     """Twelve small bumpy ellipsoids; the 'thin' half is 8% smaller, so groups differ in size."""
-    folder = tmp_path_factory.mktemp("analyze")
-    paths = []
-    for k, position in enumerate(np.linspace(-0.5, 0.5, N)):
-        mask = small_mask(float(position), 0.92 if k % 2 else 1.0).astype(np.uint8)
-        paths.append(folder / "labels" / f"case_{k:02d}.nii.gz")
-        paths[-1].parent.mkdir(exist_ok=True)
-        sitk.WriteImage(sitk.GetImageFromArray(mask), str(paths[-1]))
-    config = BuildConfig(points=162, strategy="none", baselines=[], workers=1,
-                         evaluation_modes=2, specificity_samples=100, surface_samples=0,
-                         cache_dir="")
-    build_model(paths, folder / "build", config)
-    return folder / "build"
+    return thin_and_full_build(tmp_path_factory.mktemp("analyze"), N)
 
 
 def write_table(path: Path, rows: list, header=("case", "group", "age", "sex")) -> Path:
@@ -176,9 +163,9 @@ def test_every_number_of_analysis_json_is_recomputed(build, table, analysed):
     assert unusual["flagged"] == [r["case"] for r in rows if r["flagged"] == "True"]
 
     classification = summary["classification"]
-    accuracy = classification["accuracy"]
-    assert classification["accuracy_se"] == pytest.approx(np.sqrt(accuracy * (1 - accuracy)
-                                                                  / 11))
+    assert classification["auc"] == pytest.approx(np.mean(classification["fold_auc"]))
+    assert classification["balanced_accuracy"] == pytest.approx(
+        np.mean(classification["fold_balanced_accuracy"]))
     assert classification["folds"] == 5             # the smaller group has 5 cases
 
 

@@ -10,7 +10,8 @@ The output folder::
                     out and why (with the columns and values missing), the per-point test
                     (statistic, variance groups, family-wise correction, smallest p), the global
                     test, the effect on centroid size, the number of significant points (FWER,
-                    FDR), the classification
+                    FDR), the classification (AUC and balanced accuracy with intervals, the
+                    AUC's permutation p and null values, the per-fold values)
     points.csv      one row per model point: point,part,x,y,z,statistic,p,p_fwer,q_fdr,
                     difference_x,difference_y,difference_z,normal_difference_mm,t
                     (p: the point's own permutation p-value; p_fwer: family-wise corrected;
@@ -289,6 +290,32 @@ def tfce_summary(test, alpha: float) -> dict | None:
             "significant_points": int(np.sum(test.tfce_p_fwer <= alpha))}
 
 
+def classification_summary(analysis: Analysis) -> dict:
+    """analysis.json's ``classification``: the repeated cross-validated shrinkage LDA of the
+    groups (:mod:`~mdlshapemodel.analysis.classification`), its AUC and balanced accuracy with
+    their corrected resampled intervals, the AUC's permutation p-value and null distribution,
+    and the per-fold values they are computed from; ``subject``: the column whose subjects are
+    held out and permuted whole (None: the cases)."""
+    c = analysis.classification
+    design = analysis.subjects
+    return {"levels": c.levels, "folds": c.folds, "repeats": c.repeats,
+            "adjusted_for": [column for column in design.adjusted_for]
+            + [column for column in dict.fromkeys(design.interest_columns)
+               if design.group not in column.split(":")],
+            "subject": None if design.repeated is None else design.repeated.subject,
+            "classifier": "shrinkage LDA (Ledoit-Wolf, equal priors) on the principal scores, "
+                          "nuisance regressed out in each training fold",
+            "auc": c.auc, "auc_interval": list(c.auc_interval),
+            "auc_kind": "binary" if len(c.levels) == 2 else "macro one-vs-rest",
+            "balanced_accuracy": c.balanced_accuracy,
+            "balanced_accuracy_interval": list(c.balanced_accuracy_interval),
+            "interval": "95% corrected resampled t (Nadeau and Bengio 2003) over the folds",
+            "p": c.p, "permutations": c.permutations, "exact": c.exact,
+            "null_auc": c.null_auc.tolist(),
+            "fold_auc": c.fold_auc.tolist(),
+            "fold_balanced_accuracy": c.fold_balanced_accuracy.tolist()}
+
+
 def summary_of(analysis: Analysis, build, table) -> dict:
     """The content of analysis.json."""
     config, design = analysis.config, analysis.subjects
@@ -346,10 +373,8 @@ def summary_of(analysis: Analysis, build, table) -> dict:
                                                   analysis.unusual.distances.outlier) if o]},
     }
     if analysis.classification is not None:
-        c = analysis.classification
-        summary["classification"] = {"folds": c.folds, "accuracy": c.accuracy,
-                                     "accuracy_se": c.accuracy_se, "auc": c.auc,
-                                     "auc_se": c.auc_se}
+        summary["classification"] = classification_summary(analysis)
+    if analysis.discriminant is not None:
         summary["discriminant"] = {"modes": analysis.discriminant.modes,
                                    "shrinkage": analysis.discriminant.shrinkage}
     return summary

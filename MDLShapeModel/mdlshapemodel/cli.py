@@ -366,6 +366,8 @@ def _run_analyze(args, live: bool) -> int:
                             superimposition=args.superimposition, parts=args.parts,
                             displacement=args.displacement, variance=args.variance,
                             family_wise=args.family_wise, tfce=args.tfce, alpha=args.alpha,
+                            folds=args.folds, repeats=args.repeats,
+                            classification_permutations=args.classification_permutations,
                             seed=args.seed).validate()
     with _ProgressDisplay(live) as progress:
         result = analyze_build(args.build, args.table, args.output, config, progress,
@@ -408,8 +410,12 @@ def _run_analyze(args, live: bool) -> int:
                             else ""))
     if summary["classification"]:
         c = summary["classification"]
-        lines.append(f"  classification ({c['folds']}-fold): accuracy {c['accuracy']:.3f} "
-                     f"± {c['accuracy_se']:.3f}, AUC {c['auc']:.3f} ± {c['auc_se']:.3f}")
+        lines.append(f"  classification ({c['repeats']} x {c['folds']}-fold): AUC {c['auc']:.3f} "
+                     f"[{c['auc_interval'][0]:.3f}, {c['auc_interval'][1]:.3f}]"
+                     + (f", p = {c['p']:.3g}" if c["p"] is not None else "")
+                     + f"; balanced accuracy {c['balanced_accuracy']:.3f} "
+                     f"[{c['balanced_accuracy_interval'][0]:.3f}, "
+                     f"{c['balanced_accuracy_interval'][1]:.3f}]")
     lines.append(f"  unusual cases (p < 0.01): {', '.join(summary['unusual']['flagged']) or 'none'}")
     lines.append(f"  page: {Path(args.output) / 'analysis.html'}")
     print("\n".join(lines))
@@ -649,6 +655,18 @@ def main(argv=None) -> int:
                               "spread over a region (columns tfce, tfce_p_fwer)")
     analyze.add_argument("--alpha", type=float, default=analysis_defaults.alpha,
                          help="significance level (default %(default)s)")
+    analyze.add_argument("--folds", type=int, default=analysis_defaults.folds,
+                         help="the classification of the groups: k of its stratified k-fold "
+                              "cross-validation (at most the smallest group's size) "
+                              "(default %(default)s)")
+    analyze.add_argument("--repeats", type=int, default=analysis_defaults.repeats,
+                         help="... repeated this many times with other folds "
+                              "(default %(default)s)")
+    analyze.add_argument("--classification-permutations", type=int, metavar="N",
+                         default=analysis_defaults.classification_permutations,
+                         help="labelings permuted, the cross-validation redone for each, for "
+                              "the p-value of the AUC; all of them when there are fewer "
+                              "(exact); 0: no p-value (default %(default)s)")
     analyze.add_argument("--seed", type=int, default=analysis_defaults.seed)
     analyze.add_argument("--long-table", action="store_true",
                          help="also write long.csv: one row per case and point (normal "

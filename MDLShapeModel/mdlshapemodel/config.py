@@ -702,7 +702,9 @@ class AnalysisConfig:
     tfce: bool = False                # also each map enhanced over the mean surface (TFCE)
     alpha: float = 0.05
     seed: int = 0
-    folds: int = 10                   # cross-validation of the two-group classification
+    folds: int = 10                   # k of the classification's stratified k-fold
+    repeats: int = 5                  # ... repeated with other folds
+    classification_permutations: int = 200   # labelings permuted for the p of its AUC (0: none)
     long_table: bool = False          # also long.csv: one row per case and point (R, pandas)
 
     def validate(self) -> "AnalysisConfig":
@@ -730,6 +732,9 @@ class AnalysisConfig:
         need(self.baseline is None or self.time is not None, "baseline",
              "is a level of the time column: give --time too")
         need(self.folds >= 2, "folds", "must be at least 2")
+        need(self.repeats >= 1, "repeats", "must be at least 1")
+        need(self.classification_permutations >= 0, "classification_permutations",
+             "must be 0 (no p-value) or more")
         if (self.group is not None or self.covariates or self.time is not None
                 or self.subject is not None):
             roles = self.roles()

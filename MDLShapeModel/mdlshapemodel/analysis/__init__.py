@@ -15,8 +15,10 @@ The stage after :mod:`mdlshapemodel.model`: functions over arrays and
 - :func:`~.effects.interval`, :func:`~.effects.cohens_d`,
   :func:`~.effects.partial_eta_squared`: how large and how certain an effect is at each point
   (:func:`~.study.effects_of`), and the shapes it describes (:func:`~.study.effect_shapes`);
-- :func:`~.discriminant.discriminant`, :func:`~.discriminant.classify`: the discriminant shape
-  change of two groups and its cross-validated accuracy and AUC;
+- :func:`~.discriminant.discriminant`: the discriminant shape change of two groups;
+- :func:`~.classification.classify`: how well the shapes tell two or more groups apart on
+  held-out cases (repeated cross-validation, the nuisance regressed out in each training fold,
+  AUC and balanced accuracy with corrected intervals, the AUC's permutation p-value);
 - :func:`~.study.point_test`, :func:`~.study.signed_maps`: the per-point test of a design
   (independent cases, each subject's change, time within subjects, whole subjects) and the
   signed map of each effect column and contrast;
@@ -24,7 +26,8 @@ The stage after :mod:`mdlshapemodel.model`: functions over arrays and
   :class:`~.study.Analysis`).
 """
 
-from .discriminant import classify, discriminant
+from .classification import classify
+from .discriminant import discriminant
 from .glm import benjamini_hochberg, permutation_test
 from .shapes import align, read_build, vertex_normals
 from .study import Analysis, analyze_shapes, point_test, signed_maps, unusual_cases

@@ -1,5 +1,5 @@
-"""Two groups told apart in the model space: the discriminant shape change and how well it
-classifies new cases.
+"""Two groups told apart in the model space: the discriminant shape change (how well it
+classifies new cases: :mod:`.classification`).
 
 The shapes are reduced to their first k principal scores (area-weighted PCA, eq. 1-3 with the
 inner product of eq. 15; k explaining 95% of the variance, at most n - 3). Linear discriminant
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.outliers import EXPLAINED, modes_explaining
+from .classification import ledoit_wolf_intensity
 
 
 @dataclass
@@ -27,18 +28,6 @@ class Discriminant:
     pattern: np.ndarray       # (p, 3) mm of shape change per SD of the discriminant score
     scores: np.ndarray        # (n,) each case's discriminant score, in SD units
     mean: np.ndarray          # (p, 3) the mean shape
-
-
-@dataclass
-class Classification:
-    """Cross-validated classification of two groups by the discriminant."""
-
-    folds: int
-    accuracy: float
-    accuracy_se: float
-    auc: float
-    auc_se: float
-    predicted: np.ndarray     # (n,) held-out discriminant values (positive: the second group)
 
 
 def principal_scores(shapes: np.ndarray, weights: np.ndarray, explained: float = EXPLAINED,
@@ -61,15 +50,12 @@ def principal_scores(shapes: np.ndarray, weights: np.ndarray, explained: float =
 
 
 def ledoit_wolf(centred: np.ndarray) -> tuple[np.ndarray, float]:
-    """The Ledoit-Wolf shrunk covariance of centred rows (n, k) and its intensity."""
+    """The Ledoit-Wolf shrunk covariance of centred rows (n, k) and its intensity
+    (:func:`~.classification.ledoit_wolf_intensity`)."""
     n, k = centred.shape
     sample = centred.T @ centred / n
-    mu = np.trace(sample) / k
-    target = mu * np.eye(k)
-    d2 = np.sum((sample - target) ** 2)
-    b2 = np.sum([np.sum((np.outer(x, x) - sample) ** 2) for x in centred]) / n ** 2
-    intensity = 0.0 if d2 <= 0 else float(min(b2, d2) / d2)
-    return (1 - intensity) * sample + intensity * target, intensity
+    intensity = ledoit_wolf_intensity(centred)
+    return (1 - intensity) * sample + intensity * (np.trace(sample) / k) * np.eye(k), intensity
 
 
 def _fit(scores: np.ndarray, second: np.ndarray):
@@ -93,53 +79,3 @@ def discriminant(shapes: np.ndarray, weights: np.ndarray, second: np.ndarray) ->
     value = (value - value.mean()) / value.std()
     pattern = np.einsum("n,npd->pd", value, shapes - mean) / n
     return Discriminant(len(w), intensity, pattern, value, mean)
-
-
-def _auc(values: np.ndarray, second: np.ndarray) -> tuple[float, float]:
-    """Area under the ROC curve (Mann-Whitney, ties count half) and its standard error
-    (Hanley and McNeil 1982)."""
-    positive, negative = values[second], values[~second]
-    greater = (positive[:, None] > negative[None, :]).sum()
-    ties = (positive[:, None] == negative[None, :]).sum()
-    m, n = len(positive), len(negative)
-    auc = float((greater + 0.5 * ties) / (m * n))
-    q1, q2 = auc / (2 - auc), 2 * auc ** 2 / (1 + auc)
-    variance = (auc * (1 - auc) + (m - 1) * (q1 - auc ** 2) + (n - 1) * (q2 - auc ** 2)) / (m * n)
-    return auc, float(np.sqrt(max(variance, 0.0)))
-
-
-def classify(shapes: np.ndarray, weights: np.ndarray, second: np.ndarray, folds: int = 10,
-             seed: int = 0) -> Classification:
-    """Stratified k-fold cross-validated LDA (the PCA and the discriminant fitted on each
-    training fold only): accuracy with its binomial SE, and the AUC with its SE.
-
-    Examples
-    --------
-    >>> rng = np.random.default_rng(0)
-    >>> second = np.arange(40) >= 20
-    >>> shapes = rng.normal(size=(40, 10, 3)); shapes[second, :3, 0] += 2.0
-    >>> result = classify(shapes, np.full(10, 0.1), second)
-    >>> result.accuracy > 0.8, result.auc > 0.9
-    (True, True)
-    """
-    second = np.asarray(second, dtype=bool)
-    n = len(shapes)
-    folds = int(max(2, min(folds, second.sum(), (~second).sum())))
-    rng = np.random.default_rng(seed)
-    fold_of = np.empty(n, dtype=np.int64)
-    for label in (False, True):
-        members = np.flatnonzero(second == label)
-        fold_of[rng.permutation(members)] = np.arange(len(members)) % folds
-    predicted = np.empty(n)
-    for fold in range(folds):
-        test, train = fold_of == fold, fold_of != fold
-        mean, basis, scores = principal_scores(shapes[train], weights,
-                                               max_modes=int(train.sum()) - 3)
-        w, threshold, _ = _fit(scores, second[train])
-        root = np.sqrt(weights)[None, :, None]
-        test_scores = ((shapes[test] - mean) * root).reshape(int(test.sum()), -1) @ basis.T
-        predicted[test] = test_scores @ w - threshold
-    accuracy = float(np.mean((predicted > 0) == second))
-    auc, auc_se = _auc(predicted, second)
-    return Classification(folds, accuracy, float(np.sqrt(accuracy * (1 - accuracy) / n)), auc,
-                          auc_se, predicted)

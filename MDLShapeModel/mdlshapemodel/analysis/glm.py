@@ -172,20 +172,20 @@ def benjamini_hochberg(p: np.ndarray) -> np.ndarray:
     """Benjamini-Hochberg q-values (adjusted p-values) of a vector of p-values.
 
     q_(i) = min over j >= i of p_(j) m / j, capped at 1 (Benjamini and Hochberg 1995); a point
-    is significant at false-discovery rate alpha when q <= alpha.
+    is significant at false-discovery rate alpha when q <= alpha. Computed by
+    ``scipy.stats.false_discovery_control(p, method="bh")``.
 
     Examples
     --------
     >>> benjamini_hochberg(np.array([0.01, 0.04, 0.03, 0.5])).round(3).tolist()
     [0.04, 0.053, 0.053, 0.5]
     """
+    from scipy.stats import false_discovery_control
+
     p = np.asarray(p, dtype=np.float64)
-    order = np.argsort(p, kind="stable")
-    ranked = p[order] * len(p) / np.arange(1, len(p) + 1)
-    ranked = np.minimum.accumulate(ranked[::-1])[::-1]
-    q = np.empty_like(p)
-    q[order] = np.minimum(ranked, 1.0)
-    return q
+    if p.size == 0:
+        return p.copy()
+    return np.asarray(false_discovery_control(p, method="bh"), dtype=np.float64)
 
 
 def _basis(columns: np.ndarray, what: str, scale: float | None = None) -> np.ndarray:

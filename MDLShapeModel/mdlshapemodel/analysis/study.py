@@ -18,7 +18,8 @@ from ..geometry import centroid_size
 from ..model.outliers import Distances, modes_explaining, training_distances
 from ..model.shape_model import ShapeModel
 from ..progress import report
-from .discriminant import Classification, Discriminant, classify, discriminant, principal_scores
+from .classification import Classification, classify
+from .discriminant import Discriminant, discriminant, principal_scores
 from .effects import (PREDICTED_AT, Interval, cohens_d, interval, partial_eta_squared,
                       predicted_offsets)
 from .glm import PointTest, permutation_test
@@ -284,20 +285,35 @@ def analyze_shapes(model: ShapeModel, shapes: np.ndarray, subjects: Subjects,
     global_test = GlobalTest(scores.shape[1], float(overall.statistic[0]), float(overall.p[0]),
                              config.permutations)
     found_discriminant = found_classification = None
-    # the discriminant and classification of two groups describe a tested group, not one
-    # adjusted for, of independent cases
-    if (subjects.groups is not None and len(subjects.levels) == 2
-            and subjects.group in subjects.tested and subjects.repeated is None):
-        second = np.array([g == subjects.levels[1] for g in subjects.groups])
-        found_discriminant = discriminant(aligned, model.weights, second)
-        found_classification = classify(aligned, model.weights, second, config.folds,
-                                        config.seed)
+    # the discriminant and the classification describe a tested group, not one adjusted for,
+    # of independent cases or of subjects each in one group (whole subjects held out and
+    # permuted)
+    repeated = subjects.repeated
+    if (subjects.groups is not None and subjects.group in subjects.tested
+            and (repeated is None or repeated.design == "blocks")):
+        if len(subjects.levels) == 2:
+            second = np.array([g == subjects.levels[1] for g in subjects.groups])
+            found_discriminant = discriminant(aligned, model.weights, second)
+        report(progress, None, "the classification")
+        found_classification = classify(
+            aligned, model.weights, subjects.groups, classification_nuisance(subjects),
+            config.folds, config.repeats, config.classification_permutations, config.seed,
+            levels=subjects.levels, blocks=None if repeated is None else repeated.blocks,
+            progress=progress)
     parts = np.concatenate([np.full(s.stop - s.start, j)
                             for j, s in enumerate(model.part_slices())])
     return Analysis(config, subjects, aligned, mean, normals, parts, points, difference,
                     normal_difference, global_test, signed, found_discriminant,
                     found_classification, unusual_cases(model), scores, size, effect_sizes,
                     effect_shapes(aligned, normals, difference, subjects), point_eta2)
+
+
+def classification_nuisance(subjects: Subjects) -> np.ndarray:
+    """The columns the classification regresses out in each training fold: the nuisance and
+    the other tested columns (not the group's own, nor an interaction with it)."""
+    other = [k for k, column in enumerate(subjects.interest_columns)
+             if subjects.group not in column.split(":")]
+    return np.hstack([subjects.nuisance, subjects.interest[:, other]])
 
 
 def design_rows(per_case: np.ndarray, subjects: Subjects) -> np.ndarray:

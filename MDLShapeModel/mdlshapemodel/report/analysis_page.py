@@ -225,11 +225,11 @@ def _curve_maps(analysis: Analysis, rows, significant) -> str:
     return encoded_png(figure)
 
 
-#: The accuracy and the AUC of a classification that does not separate the groups (the
-#: discriminant's threshold lies midway between the group means, whatever their sizes).
+#: The AUC of a classification that does not separate the groups (the balanced accuracy's is
+#: one over the number of groups, whatever their sizes).
 CHANCE = 0.5
 
-BELOW_CHANCE = ("<p class=chance>Below chance ({what} under {chance:g}) does not mean that the "
+BELOW_CHANCE = ("<p class=chance>Below chance ({what}) does not mean that the "
                 "shapes predict the other group: the groups do not separate. Cross-validated "
                 "estimates of an effect that is not there scatter around chance, below it about "
                 "as often as above (each case is classified by a discriminant fitted without it, "
@@ -262,16 +262,31 @@ def _classification_parts(analysis: Analysis, summary: dict) -> list:
     if analysis.classification is None:
         return []
     c = summary["classification"]
+    adjusted = (f", with {', '.join(html.escape(a) for a in c['adjusted_for'])} regressed out "
+                "in each training fold (fitted on its cases only)" if c["adjusted_for"] else "")
+    auc_kind = "AUC" if c["auc_kind"] == "binary" else "AUC (macro one-vs-rest)"
+    if c["subject"] is not None:
+        adjusted += (f"; each subject (<code>{html.escape(c['subject'])}</code>) held out and "
+                     "permuted whole")
+    tested = ("all " if c["exact"] else "") + f"{c['permutations'] - 1:,} permuted labelings"
     parts = ["<h2>Classification</h2>",
-             f"<p>{c['folds']}-fold cross-validated linear discriminant (principal "
-             "components and discriminant fitted on the training folds only).</p>",
-             table(("measure", "value", "SE"),
-                   [("accuracy", c["accuracy"], c["accuracy_se"]),
-                    ("AUC", c["auc"], c["auc_se"])])]
-    below = [name for name in ("accuracy", "auc") if c[name] < CHANCE]
+             f"<p>{c['repeats']} &times; {c['folds']}-fold stratified cross-validation of a "
+             "shrinkage linear discriminant on the principal scores (principal components and "
+             f"discriminant fitted on the training folds only){adjusted}. Intervals: 95% "
+             "corrected resampled t (Nadeau and Bengio 2003; the spread of the folds "
+             "inflated for their shared training cases). p: the AUC against "
+             f"{tested}, the cross-validation redone for each.</p>",
+             table(("measure", "value", "95% interval", "permutation p"),
+                   [(auc_kind, c["auc"], "{:.3f} - {:.3f}".format(*c["auc_interval"]),
+                     "-" if c["p"] is None else c["p"]),
+                    ("balanced accuracy", c["balanced_accuracy"],
+                     "{:.3f} - {:.3f}".format(*c["balanced_accuracy_interval"]), "")])]
+    chance = {"balanced accuracy": 1 / len(c["levels"]), "AUC": CHANCE}
+    below = [f"{name} under {chance[name]:.3g}" for name, key
+             in (("balanced accuracy", "balanced_accuracy"), ("AUC", "auc"))
+             if c[key] < chance[name]]
     if below:
-        parts.append(BELOW_CHANCE.format(what=" and ".join(n.replace("auc", "AUC")
-                                                           for n in below), chance=CHANCE))
+        parts.append(BELOW_CHANCE.format(what=" and ".join(below)))
     return parts
 
 
