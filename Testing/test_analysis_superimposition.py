@@ -13,7 +13,7 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 from mdlshapemodel.analysis import align
-from mdlshapemodel.analysis.superimposition import resistant_procrustes
+from mdlshapemodel.analysis.superimposition import BIWEIGHT, biweight, resistant_procrustes
 from mdlshapemodel.correspondence.pose import centroid_size
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.shape_model import ShapeModel
@@ -84,6 +84,55 @@ def test_a_local_change_moves_the_least_squares_superimposition_not_the_resistan
     robust = resistant_procrustes(changed, weights).robust
     assert robust[planted][:, tip].mean() < 0.3 < 0.7 < robust[:, ~tip].mean()
 
+
+
+@pytest.mark.parametrize("dimensions", [2, 3])
+def test_the_biweights_scale_is_the_standard_deviation_of_a_coordinate(dimensions):
+    """Residual norms of normal errors with a standard deviation s per coordinate, and a few
+    points at known multiples of s: the biweight's scale comes out as s (from the median norm),
+    so a point at r weighs (1 - (r / 4.685 s)^2)^2 and one beyond 4.685 s nothing."""
+    s = 0.7
+    rng = np.random.default_rng(5)
+    residuals = np.linalg.norm(rng.normal(scale=s, size=(2, 40001, dimensions)), axis=2)
+    at = np.array([0.5, 2.0, 3.5, 4.0, 5.0, 9.0]) * s
+    residuals[:, :len(at)] = at
+    weights = biweight(residuals, dimensions=dimensions)[:, :len(at)]
+    u = at / (BIWEIGHT * s)
+    expected = np.where(u < 1, (1 - u ** 2) ** 2, 0.0)
+    np.testing.assert_allclose(weights, np.broadcast_to(expected, weights.shape), atol=0.02)
+    assert np.all(weights[:, -2:] == 0)
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_each_cases_median_point_weighs_what_a_normal_residual_of_median_norm_does(planar):
+    """Noisy copies of one shape (no outlying points): in each case, the point of median
+    residual norm is at u = sqrt(median of chi^2 with d degrees of freedom) / 4.685, d = 2 in
+    the plane, so half its points weigh more than (1 - u^2)^2 and half less."""
+    shapes = ellipsoids(6, seed=7, points=601, planar=planar)
+    found = resistant_procrustes(shapes, np.ones(shapes.shape[1]), planar=planar)
+    u2 = stats.chi2.median(2 if planar else 3) / BIWEIGHT ** 2
+    np.testing.assert_allclose(np.median(found.robust, axis=1), (1 - u2) ** 2, atol=1e-6)
+
+
+def test_the_effect_on_size_is_of_the_cases_before_their_scaling(build, table,  # noqa: F811
+                                                                 tmp_path):
+    """With --size removed the shapes are tested at one size; analysis.json's centroid sizes are
+    still the cases' own (mm, from correspondence/), per group and the thin group's effect."""
+    output = tmp_path / "removed"
+    result = run_cli("analyze", build, "--table", table, "--group", "group", "-o", output,
+                     "--permutations", "19", "--size", "removed", "-q")
+    assert result.returncode == 0, result.stderr
+    size = json.loads((output / "analysis.json").read_text())["centroid_size"]
+    used = [f"case_{k:02d}" for k in range(12) if k != 5]           # case_05 has no group
+    model = ShapeModel.load(build / "model.h5")
+    unit = model.weights / model.weights.sum()
+    sizes = np.array([centroid_size(x, unit) for x in shapes_of(build, used)])
+    thin = np.array([int(n[-2:]) % 2 == 1 for n in used])
+    assert size["mean_mm"] == pytest.approx(sizes.mean(), rel=1e-6)
+    assert size["per_group_mm"] == pytest.approx({"full": sizes[~thin].mean(),
+                                                  "thin": sizes[thin].mean()}, rel=1e-6)
+    assert size["effects_mm"]["thin"] == pytest.approx(sizes[thin].mean() - sizes[~thin].mean(),
+                                                       rel=1e-6)
 
 def test_bad_input_to_the_resistant_superimposition_is_refused():
     shapes = ellipsoids(3, seed=4, points=20)

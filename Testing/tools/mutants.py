@@ -2,13 +2,13 @@
 that should catch each fail.
 
 Each mutant is a realistic one-line bug: a file of the package, the exact original text (which
-must occur exactly once in that file, so that the list cannot silently rot as the code changes),
-its replacement, the quick tests that must catch it and what it would break. The package is
-copied once into a temporary folder (with its ``__pycache__``, so that numba's compiled kernels
-stay cached); each mutant is written into the copy, its tests run there (``-m "not slow"``,
-``PYTHONPATH`` naming the copy, a time limit), and the original is put back. Before the
-mutants, each distinct selection of tests is run on the unchanged copy: a test that fails
-without a bug kills nothing.
+must occur exactly once in that file, so that the list cannot silently rot as the code changes;
+Testing/test_mutants_list.py checks it among the quick tests), its replacement, the quick tests
+that must catch it and what it would break. The package is copied once into a temporary folder
+(with its ``__pycache__``, so that numba's compiled kernels stay cached); each mutant is written
+into the copy, its tests run there (``-m "not slow"``, ``PYTHONPATH`` naming the copy, a time
+limit), and the original is put back. Before the mutants, each distinct selection of tests is run
+on the unchanged copy: a test that fails without a bug kills nothing.
 
 Usage (from the checkout, with the project's virtualenv active)::
 
@@ -259,6 +259,162 @@ MUTANTS = [
            ("test_sphere.py",),
            "each vertex's corner list starts at another vertex's corner",
            k="vertex_numbering"),
+    # --- the prior's weight where landmarks guide (config.py, initial.py, build.py) ---
+    Mutant("guided_smoothness_not_applied", "config.py",
+           "return GUIDED_SMOOTHNESS if guided else SMOOTHNESS", "return SMOOTHNESS",
+           ("test_guides.py",),
+           "the prior's default weight where landmarks guide never applied (the unguided one)",
+           k="default_weight"),
+    Mutant("guided_smoothness_for_every_surface", "correspondence/initial.py",
+           "weight = config.smoothness_for(curves=False, guided=guides is not None)",
+           "weight = config.smoothness_for(curves=False, guided=True)",
+           ("test_guides.py",),
+           "the guided default weight applied to unguided builds too", k="default_weight"),
+    Mutant("guided_smoothness_not_recorded", "build.py",
+           "guided=state.guides is not None))", "guided=False))",
+           ("test_guides.py",),
+           "the model records the unguided weight after a guided build: fit applies another "
+           "prior than the build did", k="default_weight"),
+    # --- the initial rigid alignment of the surfaces (prepare/sphere.py reference_frames) ---
+    Mutant("frame_twists_dropped", "prepare/sphere.py",
+           "candidates = [ref_axes @ twist @ flip @ axes.T for flip in flips for twist in twists]",
+           "candidates = [ref_axes @ flip @ axes.T for flip in flips]",
+           ("test_sphere.py",),
+           "no turns about the first axis: two near-equal axes of a cross-section leave a "
+           "long bone a quarter turn off", k="reference_frames"),
+    Mutant("frame_ranked_farthest_first", "prepare/sphere.py",
+           'for k in np.argsort(distances, kind="stable")[:FRAME_REFINED]]',
+           'for k in np.argsort(distances, kind="stable")[::-1][:FRAME_REFINED]]',
+           ("test_sphere.py",),
+           "the candidates at the largest chamfer distance refined (the frame turned over)",
+           k="reference_frames"),
+    Mutant("frame_not_refined", "prepare/sphere.py",
+           "refined = [chamfer.refine(candidates[k])", "refined = [(candidates[k])",
+           ("test_sphere.py",),
+           "the candidate frames taken without closest-point refinement (up to 15 degrees off)",
+           k="reference_frames"),
+    # --- designs: repeated measures, resampling, contrasts, tails, categories, interactions ---
+    Mutant("change_reversed", "analysis/study.py",
+           "return per_case[repeated.pairs[:, 1]] - per_case[repeated.pairs[:, 0]]",
+           "return per_case[repeated.pairs[:, 0]] - per_case[repeated.pairs[:, 1]]",
+           ("test_analysis_designs.py",),
+           "each subject's change taken baseline minus later: every effect on it reversed"),
+    Mutant("mean_change_not_sign_flipped", "analysis/study.py",
+           "flips=subjects.mean_change_tested,", "flips=False,",
+           ("test_analysis_designs.py",),
+           "the mean change resampled by permutations of a column of ones (p = 1 everywhere)"),
+    Mutant("blocks_ignored_in_the_permutations", "analysis/glm.py",
+           "for codes_of in (codes, blocks):", "for codes_of in (codes,):",
+           ("test_analysis_designs.py",),
+           "time within subjects permuted across subjects (the exchangeability blocks ignored)"),
+    Mutant("whole_subjects_permuted_within", "analysis/study.py",
+           'whole_blocks=repeated is not None and repeated.design == "blocks",',
+           "whole_blocks=False,",
+           ("test_analysis_designs.py",),
+           "a subjects' group permuted within subjects, where it never moves (p = 1)"),
+    Mutant("one_sided_tail_reversed", "analysis/glm.py",
+           'return (t if tail == "greater" else -t), t',
+           'return (-t if tail == "greater" else t), t',
+           ("test_analysis_designs.py",),
+           "--tail greater tests an effect below 0 and --tail less one above"),
+    Mutant("one_sided_tail_dropped", "analysis/study.py",
+           'tail=config.tail if single and not pooled else "both")', 'tail="both")',
+           ("test_analysis_designs.py",),
+           "--tail ignored: every signed map two-sided"),
+    Mutant("contrast_not_adjusted_for_the_other_columns", "analysis/study.py",
+           "nuisance=np.hstack([subjects.nuisance, interest @ complement]))",
+           "nuisance=subjects.nuisance)",
+           ("test_analysis_designs.py",),
+           "a contrast tested without the effect columns it leaves (not c'b of the full model)"),
+    Mutant("mean_change_at_nuisance_zero", "analysis/table.py",
+           "nuisance_columns = nuisance_columns - nuisance_columns.mean(axis=0)",
+           "nuisance_columns = nuisance_columns",
+           ("test_analysis_designs.py",),
+           "the mean change adjusted for a categorical subject column is the reference "
+           "level's change, not the change at the nuisance's mean"),
+    Mutant("subjects_not_adjusted_for_within", "analysis/table.py",
+           "nuisance_columns = np.hstack([own, nuisance_columns])",
+           "nuisance_columns = nuisance_columns",
+           ("test_analysis_designs.py",),
+           "time within subjects tested without each subject's own level (the subjects' "
+           "spread left in the errors)"),
+    Mutant("interaction_with_its_main_effect_tested", "config.py",
+           "tested = test or ([] if interactions else [group] if group else covariates)",
+           "tested = test or ([group] if group else covariates)",
+           ("test_analysis_designs.py",),
+           "an interaction tested together with the group instead of adjusted for it"),
+    Mutant("categorical_levels_in_text_order", "analysis/table.py",
+           "sorted(set(row[column] for row in design_rows), key=_level_order)",
+           "sorted(set(row[column] for row in design_rows))",
+           ("test_analysis_table.py",),
+           "numeric codes of a categorical column in text order (10 before 2: another "
+           "reference)"),
+    # --- the resistant superimposition and the effect on size (analysis/) ---
+    Mutant("robust_weights_ignored", "analysis/superimposition.py",
+           "_normalised(weights * r)", "_normalised(weights)",
+           ("test_analysis_superimposition.py",),
+           "each case aligned with the area weights alone: least squares under another name"),
+    Mutant("robust_mean_unweighted", "analysis/superimposition.py",
+           "mean = _robust_mean(aligned, robust)", "mean = aligned.mean(axis=0)",
+           ("test_analysis_superimposition.py",),
+           "the mean the cases are aligned to is the plain mean (the changed points pull it)"),
+    Mutant("biweight_scale_without_chi", "analysis/superimposition.py",
+           "sigma = np.median(residuals, axis=1, keepdims=True) / np.sqrt(chi2.median(dimensions))",
+           "sigma = np.median(residuals, axis=1, keepdims=True)",
+           ("test_analysis_superimposition.py",),
+           "the biweight scaled by the median residual norm (1.5 coordinate SDs in 3-D): "
+           "4.685 loses its meaning, far points kept"),
+    Mutant("biweight_without_cutoff", "analysis/superimposition.py",
+           "return np.where(u < 1, (1 - u ** 2) ** 2, 0.0)", "return (1 - u ** 2) ** 2",
+           ("test_analysis_superimposition.py",),
+           "points beyond the biweight's cut-off weigh more again instead of nothing"),
+    Mutant("biweight_planar_as_3d", "analysis/superimposition.py",
+           "robust = biweight(np.linalg.norm(aligned - mean, axis=2), tuning, 2 if planar else 3)",
+           "robust = biweight(np.linalg.norm(aligned - mean, axis=2), tuning, 3)",
+           ("test_analysis_superimposition.py",),
+           "2-D outlines' residuals scaled as 3-D ones (the scale 30 % too small)"),
+    Mutant("size_of_the_scaled_shapes", "analysis/study.py",
+           "sizes = np.array([centroid_size(x, unit) for x in used])",
+           "sizes = np.array([centroid_size(x, unit) for x in aligned])",
+           ("test_analysis_superimposition.py",),
+           "the effect on centroid size measured after --size removed scaled every case to one "
+           "size (no effect)", k="effect_on_size"),
+    # --- the long table (analyze --long-table) ---
+    Mutant("long_table_normal_reversed", "analyze.py",
+           'normal = np.einsum("npd,pd->np", analysis.aligned - analysis.mean, analysis.normals)',
+           'normal = np.einsum("npd,pd->np", analysis.mean - analysis.aligned, analysis.normals)',
+           ("test_analyze.py",),
+           "long.csv's normal displacement with its sign reversed (inward written as outward)",
+           k="long_csv"),
+    Mutant("long_table_rows_by_position", "analyze.py",
+           '+ [by_case[case].get(c, "") for c in columns])',
+           '+ [rows[i].get(c, "") for c in columns])',
+           ("test_analyze.py",),
+           "long.csv gives a case the table row at its position (off after a left-out case)",
+           k="long_csv"),
+    # --- the build folder (folders.py) ---
+    Mutant("scores_written_coarse", "folders.py",
+           '[[name] + [f"{v:.6g}" for v in row] for name, row in zip(names, scores)]',
+           '[[name] + [f"{v:.3g}" for v in row] for name, row in zip(names, scores)]',
+           ("test_folders.py",),
+           "scores.csv keeps three significant digits"),
+    Mutant("measures_se_of_the_value", "folders.py",
+           'metrics.get(f"{key}_se",', "metrics.get(key,",
+           ("test_folders.py",),
+           "a build's measures read with each value as its own standard error"),
+    Mutant("checkpoint_replaced_unasked", "folders.py",
+           "KEPT_BUILD_FILES = (MODEL, CHECKPOINT)", "KEPT_BUILD_FILES = (MODEL,)",
+           ("test_folders.py",),
+           "a new build clears a resumable build's checkpoint without --overwrite"),
+    Mutant("case_meshes_of_the_other_frame", "folders.py",
+           "(ALIGNED if aligned else CORRESPONDENCE)", "(CORRESPONDENCE if aligned else ALIGNED)",
+           ("test_folders.py",),
+           "a build's shapes read from aligned/ (the model's frame) as if from its inputs' space"),
+    Mutant("landmark_given_read_as_the_point", "folders.py",
+           'given = np.array([float(row[f"given_{c}"]) for c in "xyz"])',
+           'given = np.array([float(row[c]) for c in "xyz"])',
+           ("test_folders.py",),
+           "landmarks.csv's given landmark read from the corresponded point's columns"),
 ]
 
 
