@@ -12,13 +12,15 @@ import pytest
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from mdlshapemodel.analysis import align
+from mdlshapemodel.analysis import align, analyze_shapes, subjects
 from mdlshapemodel.analysis.superimposition import BIWEIGHT, biweight, resistant_procrustes
 from mdlshapemodel.correspondence.pose import centroid_size
+from mdlshapemodel.config import AnalysisConfig
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.shape_model import ShapeModel
 
 from common import run_cli
+from synthetic import two_sized_ellipsoids
 from test_analyze import build, read_points, shapes_of, table  # noqa: F401 (fixtures)
 
 
@@ -114,25 +116,20 @@ def test_each_cases_median_point_weighs_what_a_normal_residual_of_median_norm_do
     np.testing.assert_allclose(np.median(found.robust, axis=1), (1 - u2) ** 2, atol=1e-6)
 
 
-def test_the_effect_on_size_is_of_the_cases_before_their_scaling(build, table,  # noqa: F811
-                                                                 tmp_path):
-    """With --size removed the shapes are tested at one size; analysis.json's centroid sizes are
-    still the cases' own (mm, from correspondence/), per group and the thin group's effect."""
-    output = tmp_path / "removed"
-    result = run_cli("analyze", build, "--table", table, "--group", "group", "-o", output,
-                     "--permutations", "19", "--size", "removed", "-q")
-    assert result.returncode == 0, result.stderr
-    size = json.loads((output / "analysis.json").read_text())["centroid_size"]
-    used = [f"case_{k:02d}" for k in range(12) if k != 5]           # case_05 has no group
-    model = ShapeModel.load(build / "model.h5")
+def test_the_effect_on_size_is_of_the_cases_before_their_scaling(tmp_path):
+    """With size="removed" the shapes are tested at one size; the effect on centroid size is
+    still of the cases' own sizes (mm, of the shapes as given), the thin group's smaller."""
+    model, shapes, table = two_sized_ellipsoids(tmp_path)
+    design = subjects(table, model.names, group="group")
+    found = analyze_shapes(model, shapes, design,
+                           AnalysisConfig(group="group", size="removed", permutations=19))
     unit = model.weights / model.weights.sum()
-    sizes = np.array([centroid_size(x, unit) for x in shapes_of(build, used)])
-    thin = np.array([int(n[-2:]) % 2 == 1 for n in used])
-    assert size["mean_mm"] == pytest.approx(sizes.mean(), rel=1e-6)
-    assert size["per_group_mm"] == pytest.approx({"full": sizes[~thin].mean(),
-                                                  "thin": sizes[thin].mean()}, rel=1e-6)
-    assert size["effects_mm"]["thin"] == pytest.approx(sizes[thin].mean() - sizes[~thin].mean(),
-                                                       rel=1e-6)
+    sizes = np.array([centroid_size(x, unit) for x in shapes[design.indices]])
+    np.testing.assert_allclose(found.size.sizes, sizes, rtol=1e-12)
+    thin = np.array([group == "thin" for group in design.groups])
+    assert found.size.effects[0] == pytest.approx(sizes[thin].mean() - sizes[~thin].mean(),
+                                                  rel=1e-9)
+    assert found.size.effects[0] < 0
 
 def test_bad_input_to_the_resistant_superimposition_is_refused():
     shapes = ellipsoids(3, seed=4, points=20)
