@@ -156,3 +156,36 @@ def radial_population(rng, n_s, n_functions, coarse=162, fine=642, semi_axes=(12
     surfaces = [(sample(fine_directions, c), fine_faces) for c in coefficients]
     weights = vertex_areas(shapes.mean(axis=0), triangles)
     return shapes, triangles, weights / weights.sum(), surfaces
+
+
+def two_sized_ellipsoids(folder: Path, n: int = 12) -> tuple:
+    """n noisy ellipsoids on the triangles of an icosphere, each turned and moved, the odd ones
+    10 % smaller; (the model of their least-squares alignment, the unaligned shapes, a subjects
+    table: case, group full/thin, age; case_05 without a group).
+
+    For the analysis's quick tests: a model with triangles and shapes in millimetres without a
+    build."""
+    from scipy.spatial.transform import Rotation
+
+    from mdlshapemodel.analysis import align
+    from mdlshapemodel.correspondence.sampling import icosphere
+    from mdlshapemodel.model.shape_model import ShapeModel
+
+    sphere, triangles = icosphere(2)
+    rng = np.random.default_rng(9)
+    shapes = []
+    for k in range(n):
+        noisy = (sphere * [30.0, 12.0, 10.0] * (0.9 if k % 2 else 1.0)
+                 + rng.normal(scale=0.4, size=sphere.shape))
+        turn = Rotation.from_rotvec(rng.normal(scale=0.3, size=3))
+        shapes.append(turn.apply(noisy) + rng.normal(scale=5.0, size=3))
+    shapes = np.stack(shapes)
+    names = [f"case_{k:02d}" for k in range(n)]
+    weights = np.full(len(sphere), 1.0 / len(sphere))
+    model = ShapeModel.from_shapes(align(shapes, weights, superimposition="least-squares"),
+                                   weights, names=names, triangles=triangles)
+    table = Path(folder) / "subjects.csv"
+    groups = ["" if k == 5 else "thin" if k % 2 else "full" for k in range(n)]
+    rows = [f"{name},{group},{40 + 3 * k}" for k, (name, group) in enumerate(zip(names, groups))]
+    table.write_text("\n".join(["case,group,age", *rows]) + "\n")
+    return model, shapes, table

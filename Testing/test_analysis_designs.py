@@ -98,6 +98,25 @@ def test_the_mean_change_adjusted_for_a_subject_column_is_its_intercept_at_the_m
     assert found.df == 9
 
 
+
+def test_the_mean_change_adjusted_for_a_categorical_column_is_the_mean_of_the_changes(tmp_path):
+    """A subject's sex adjusted for (indicators, centred like a numeric column): the mean change
+    is the change at the nuisance's mean, which least squares with a centred column puts at the
+    mean of the subjects' changes; its t is that of the intercept beside the centred column."""
+    table, names, data = longitudinal(tmp_path, 11, 20, seed=3, change=1.0)
+    rows = [row for row in csv.reader(open(table))][1:]
+    sexes = write(tmp_path / "sexes.csv", ["case", "id", "visit", "sex"],
+                  [[c, i, v, "M" if int(i[1:]) % 3 == 0 else "F"] for c, i, v, _ in rows])
+    options = dict(subject="id", time="visit", nuisance=["sex"], categorical=["sex"])
+    design = subjects(sexes, names, baseline="pre", **options)
+    assert design.mean_change_tested and design.adjusted_for == ["sex"]
+    found = point_test(data, design, AnalysisConfig(permutations=99, **options))
+    change = data[1::2] - data[0::2]
+    male = np.array([s % 3 == 0 for s in range(11)], dtype=float)
+    np.testing.assert_allclose(found.effect[0, :, 0], change.mean(axis=0), rtol=1e-10)
+    centred = np.column_stack([male - male.mean(), np.ones(11)])
+    np.testing.assert_allclose(found.t, ols_t(change, centred), rtol=1e-10)
+
 def test_a_group_tested_on_the_change_is_welchs_v_of_the_subjects_changes(tmp_path):
     table, names, data = longitudinal(tmp_path, 12, 25, seed=4, change=1.0)
     rows = [row for row in csv.reader(open(table))][1:]

@@ -12,13 +12,15 @@ import pytest
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from mdlshapemodel.analysis import align
-from mdlshapemodel.analysis.superimposition import resistant_procrustes
+from mdlshapemodel.analysis import align, analyze_shapes, subjects
+from mdlshapemodel.analysis.superimposition import BIWEIGHT, biweight, resistant_procrustes
+from mdlshapemodel.config import AnalysisConfig
 from mdlshapemodel.geometry import centroid_size
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.shape_model import ShapeModel
 
 from common import run_cli
+from synthetic import two_sized_ellipsoids
 from test_analyze import build, read_points, shapes_of, table  # noqa: F401 (fixtures)
 
 
@@ -84,6 +86,50 @@ def test_a_local_change_moves_the_least_squares_superimposition_not_the_resistan
     robust = resistant_procrustes(changed, weights).robust
     assert robust[planted][:, tip].mean() < 0.3 < 0.7 < robust[:, ~tip].mean()
 
+
+
+@pytest.mark.parametrize("dimensions", [2, 3])
+def test_the_biweights_scale_is_the_standard_deviation_of_a_coordinate(dimensions):
+    """Residual norms of normal errors with a standard deviation s per coordinate, and a few
+    points at known multiples of s: the biweight's scale comes out as s (from the median norm),
+    so a point at r weighs (1 - (r / 4.685 s)^2)^2 and one beyond 4.685 s nothing."""
+    s = 0.7
+    rng = np.random.default_rng(5)
+    residuals = np.linalg.norm(rng.normal(scale=s, size=(2, 40001, dimensions)), axis=2)
+    at = np.array([0.5, 2.0, 3.5, 4.0, 5.0, 9.0]) * s
+    residuals[:, :len(at)] = at
+    weights = biweight(residuals, dimensions=dimensions)[:, :len(at)]
+    u = at / (BIWEIGHT * s)
+    expected = np.where(u < 1, (1 - u ** 2) ** 2, 0.0)
+    np.testing.assert_allclose(weights, np.broadcast_to(expected, weights.shape), atol=0.02)
+    assert np.all(weights[:, -2:] == 0)
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_each_cases_median_point_weighs_what_a_normal_residual_of_median_norm_does(planar):
+    """Noisy copies of one shape (no outlying points): in each case, the point of median
+    residual norm is at u = sqrt(median of chi^2 with d degrees of freedom) / 4.685, d = 2 in
+    the plane, so half its points weigh more than (1 - u^2)^2 and half less."""
+    shapes = ellipsoids(6, seed=7, points=601, planar=planar)
+    found = resistant_procrustes(shapes, np.ones(shapes.shape[1]), planar=planar)
+    u2 = stats.chi2.median(2 if planar else 3) / BIWEIGHT ** 2
+    np.testing.assert_allclose(np.median(found.robust, axis=1), (1 - u2) ** 2, atol=1e-6)
+
+
+def test_the_effect_on_size_is_of_the_cases_before_their_scaling(tmp_path):
+    """With size="removed" the shapes are tested at one size; the effect on centroid size is
+    still of the cases' own sizes (mm, of the shapes as given), the thin group's smaller."""
+    model, shapes, table = two_sized_ellipsoids(tmp_path)
+    design = subjects(table, model.names, group="group")
+    found = analyze_shapes(model, shapes, design,
+                           AnalysisConfig(group="group", size="removed", permutations=19))
+    unit = model.weights / model.weights.sum()
+    sizes = np.array([centroid_size(x, unit) for x in shapes[design.indices]])
+    np.testing.assert_allclose(found.size.sizes, sizes, rtol=1e-12)
+    thin = np.array([group == "thin" for group in design.groups])
+    assert found.size.effects[0] == pytest.approx(sizes[thin].mean() - sizes[~thin].mean(),
+                                                  rel=1e-9)
+    assert found.size.effects[0] < 0
 
 def test_bad_input_to_the_resistant_superimposition_is_refused():
     shapes = ellipsoids(3, seed=4, points=20)

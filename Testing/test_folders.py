@@ -138,6 +138,43 @@ def test_landmarks_are_read_back_as_written():
     np.testing.assert_array_equal(read[1].point, rows[1].point)
 
 
+
+def test_scores_and_measures_are_read_back_as_written(tmp_path):
+    """scores.csv keeps six significant digits of every score, whatever its magnitude;
+    metrics.json's measures per mode come back with their own standard errors."""
+    folder = BuildFolder(tmp_path)
+    scores = np.random.default_rng(4).normal(size=(3, 4)) * [2000.0, 30.0, 0.4, 5e-3]
+    folder.write_scores(["a", "b", "c"], scores)
+    names, read = folder.scores()
+    assert names == ["a", "b", "c"]
+    np.testing.assert_allclose(read, scores, rtol=5e-6)
+    folder.write_metrics({"modes": [1, 2], "compactness": [4.0, 6.5],
+                          "compactness_se": [0.25, 0.5], "generalization": [1.5, 1.0]})
+    measures = folder.measures()
+    assert measures["mode"] == [1.0, 2.0]
+    assert measures["C"] == [4.0, 6.5] and measures["C SE"] == [0.25, 0.5]
+    assert measures["G"] == [1.5, 1.0] and measures["G SE"] == [1.5, 1.0]   # none written
+
+
+def test_a_resumable_builds_checkpoint_is_not_replaced_unasked(tmp_path):
+    """A folder that holds only a checkpoint (a build stopped before its model) is an earlier
+    build: a new build into it is refused, naming the checkpoint, and leaves it; what a failed
+    start leaves (its log and settings) is no earlier build."""
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    for k, position in enumerate((-0.4, 0.0, 0.4)):
+        write_label_map(labels / f"s{k}.nii.gz", small_mask(position))
+    output = tmp_path / "out"
+    output.mkdir()
+    for name in (folders.LOG, folders.CONFIG):
+        (output / name).write_text("left by a failed start")
+    assert BuildFolder(output).earlier_build() == []
+    (output / folders.CHECKPOINT).write_bytes(b"a stopped build's")
+    result = run_cli("build", labels, "-o", output, "--workers", 1, "--no-cache")
+    assert result.returncode != 0
+    assert f"holds an earlier build ({folders.CHECKPOINT})" in result.stderr
+    assert (output / folders.CHECKPOINT).read_bytes() == b"a stopped build's"
+
 @pytest.mark.slow
 def test_build_and_fit_write_landmarks_csv_and_scores_csv_in_one_schema(tmp_path):
     data = write_guided_population(tmp_path)

@@ -4,6 +4,7 @@ alignment they steer, their term of the objective and its gradient, and builds g
 import csv
 import json
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,7 +18,10 @@ from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare.case import PreparedCase, PreparedPart
 from mdlshapemodel.prepare.landmarks import Landmarks, on_surface
 from mdlshapemodel.prepare.sphere import SphereMap, align_parameterizations
-from mdlshapemodel.config import GUIDED_SMOOTHNESS, SMOOTHNESS, OptimisationSettings
+from mdlshapemodel.build import shape_model_of
+from mdlshapemodel.config import (GUIDED_SMOOTHNESS, SMOOTHNESS, BuildConfig,
+                                  OptimisationSettings)
+from mdlshapemodel.correspondence.initial import initial_state
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.state import state_record
@@ -143,6 +147,28 @@ def guided_state(weight: float = 3.0, smoothness: float = 0.0):
     state.rebuild()
     return state
 
+
+
+def test_the_priors_default_weight_is_the_guided_one_where_landmarks_guide():
+    """Unless --smoothness is given, the initial correspondence of surfaces gets the prior at
+    GUIDED_SMOOTHNESS where landmarks guide and at SMOOTHNESS where none do; the model records
+    the weight as applied (``fit`` applies the same); a weight given is applied either way."""
+    cases = [ellipsoid_case(name, rotation_about([1, 1, 0], angle))
+             for name, angle in (("a", 0), ("b", 25), ("c", -30))]
+    marks = {case.name: Landmarks(("x", "y", "z"), np.diag(AXES) * 0.999) for case in cases}
+    config = BuildConfig(points=42, coarse_points=0, workers=1)
+    guided, *_ = initial_state(cases, config, marks)
+    plain, *_ = initial_state(cases, config)
+    assert guided.guides is not None and plain.guides is None
+    assert GUIDED_SMOOTHNESS != SMOOTHNESS
+    assert guided.smoothness.weight == GUIDED_SMOOTHNESS
+    assert plain.smoothness.weight == SMOOTHNESS
+    for state in (guided, plain):
+        model = shape_model_of(state, config, 0.0, 1.0, 1.0)
+        assert build_config_of(model).smoothness == state.smoothness.weight
+    given = replace(config, smoothness=0.3)
+    for landmarks in (marks, None):
+        assert initial_state(cases, given, landmarks)[0].smoothness.weight == 0.3
 
 def test_the_guides_term_is_the_direct_sum_and_part_of_every_value():
     state = guided_state()

@@ -388,6 +388,29 @@ def test_reference_frames_find_the_twist_that_near_equal_axes_leave_open():
     assert np.degrees(error) < 5.0
 
 
+
+def round_rod_with_two_knobs(seed: int) -> tuple:
+    """A rod (principal axis x) of round cross-section with knobs on its +y and -x,+z sides,
+    its vertices moved by noise of 0.1 mm: the spread across the rod is nearly the same in
+    every direction, so the noise, not the shape, sets its second and third principal axes."""
+    sphere, faces = icosphere(4)
+    vertices = sphere * [20.0, 4.0, 4.0]
+    for centre in ([0.6, 0.8, 0.0], [-0.3, 0.0, 0.95]):
+        knob = np.exp(-np.sum((sphere - centre) ** 2, axis=1) / 0.03)
+        vertices = vertices + 3.0 * knob[:, None] * sphere
+    return vertices + np.random.default_rng(seed).normal(scale=0.1, size=vertices.shape), faces
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_reference_frames_refine_the_nearest_candidate_by_closest_points(seed):
+    # the candidates are 30 degrees apart about the rod from axes that the noise set: the
+    # frame that undoes the turn lies between them, where the closest-point refinement ends
+    turn = Rotation.from_rotvec([0.3, -0.5, 1.1 + seed]).as_matrix()
+    reference = round_rod_with_two_knobs(100 + seed)
+    vertices, faces = round_rod_with_two_knobs(seed)
+    frame = reference_frames([reference, (vertices @ turn.T, faces)])[1]
+    assert np.degrees(Rotation.from_matrix(frame @ turn).magnitude()) < 1.0
+
 # --- alignment of parameterizations -----------------------------------------------------------------
 
 def test_align_parameterizations_undoes_a_parameter_rotation(bump_map, rng):
