@@ -329,7 +329,7 @@ MUTANTS = [
            ("test_analysis_designs.py",),
            "--tail greater tests an effect below 0 and --tail less one above"),
     Mutant("one_sided_tail_dropped", "analysis/study.py",
-           'tail=config.tail if single and not pooled else "both")', 'tail="both")',
+           'tail=config.tail if single and not pooled else "both",', 'tail="both",',
            ("test_analysis_designs.py",),
            "--tail ignored: every signed map two-sided"),
     Mutant("contrast_not_adjusted_for_the_other_columns", "analysis/study.py",
