@@ -140,6 +140,13 @@ class ProcessPool(Executor):
 
     def _fresh(self) -> ProcessPoolExecutor:
         if self._pool is not None:
+            if getattr(self._pool, "_broken", False):
+                # a broken executor's manager thread joins every worker process, also one that a
+                # submission started while the pool was breaking; nothing sends that one its
+                # stop, so the join (and this shutdown) would wait for ever: end them first
+                for process in list((getattr(self._pool, "_processes", None) or {}).values()):
+                    if process.exitcode is None:
+                        process.kill()
             self._pool.shutdown(wait=True)
         self._pool = ProcessPoolExecutor(max_workers=self.workers,
                                          mp_context=multiprocessing.get_context("spawn"),
