@@ -48,7 +48,7 @@ from mdlshapemodel.config import (CORRESPONDENCES, GUIDED_SMOOTHNESS, PLACEMENTS
                                   field_items)
 from MDLShapeModelLib.dependencies import ensureDependencies
 from MDLShapeModelLib.jobs import WorkerJob
-from MDLShapeModelLib.messages import panelLabels, panelMessage
+from MDLShapeModelLib.messages import ANALYSIS_PARAMETERS, panelLabels, panelMessage
 from MDLShapeModelLib.nodes import (INPUT_NODE_TYPES, addModel, addPointArray, caseName,
                                     checkData, colorLegend, colorNode, metricsTable,
                                     placeInFolder, readModel, scoresTable,
@@ -166,6 +166,12 @@ class MDLShapeModelParameterNode:
     analysisCovariates: str = ""
     analysisNuisance: str = ""
     analysisPermutations: Annotated[int, WithinRange(1, 10**7)] = _ANALYSIS_DEFAULTS.permutations
+    analysisTfce: bool = _ANALYSIS_DEFAULTS.tfce
+    # -- the analysis's group classifier (Classification, collapsed)
+    analysisFolds: Annotated[int, WithinRange(2, 1000)] = _ANALYSIS_DEFAULTS.folds
+    analysisRepeats: Annotated[int, WithinRange(1, 1000)] = _ANALYSIS_DEFAULTS.repeats
+    analysisClassificationPermutations: Annotated[int, WithinRange(0, 10**7)] = (
+        _ANALYSIS_DEFAULTS.classification_permutations)
     analysisColorBy: Annotated[str, Choice(list(EFFECT_SCALARS))] = EFFECT_SCALARS[0]
 
 
@@ -181,6 +187,16 @@ def buildConfigOf(parameters) -> BuildConfig:
     if parameters.defaultSmoothness:
         values["smoothness"] = None
     return BuildConfig(**values).validate()
+
+
+def analysisConfigOf(parameters) -> AnalysisConfig:
+    """The :class:`AnalysisConfig` that a parameter node's analysis settings amount to (its
+    fields named in :data:`ANALYSIS_PARAMETERS`; validated: a bad value raises ``ConfigError``
+    naming the field)."""
+    values = {key: getattr(parameters, name) for key, name in ANALYSIS_PARAMETERS.items()}
+    for key in ("covariates", "nuisance"):
+        values[key] = segmentNames(values[key])
+    return AnalysisConfig(**{**values, "group": values["group"] or None}).validate()
 
 
 def landmarkConfigOf(config: BuildConfig, parameters, landmarks: bool) -> BuildConfig:
@@ -881,10 +897,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             if table in ("", "."):
                 raise ValueError("choose a subjects table (a CSV file or a table node)")
             self._analysisJob = self.logic.startAnalysis(
-                str(parameters.outputDirectory), table, group=parameters.analysisGroup,
-                covariates=segmentNames(parameters.analysisCovariates),
-                nuisance=segmentNames(parameters.analysisNuisance),
-                permutations=parameters.analysisPermutations)
+                str(parameters.outputDirectory), table, **asdict(analysisConfigOf(parameters)))
             self.ui.analyzeButton.enabled = False
             self.ui.cancelAnalysisButton.enabled = True
             self._timer.start()

@@ -75,7 +75,8 @@ def test_every_parameter_the_ui_binds_is_declared_by_name_in_the_modules_source(
     source = pathlib.Path(module.__file__).read_text()
     declared = set(re.findall(r"^    (\w+): ", source, re.M))
     bound = set(panel.parameter_widgets(root))
-    assert {"labels", "strategy", "outputDirectory", "analysisColorBy"} <= bound
+    assert {"labels", "strategy", "outputDirectory", "analysisColorBy", "analysisTfce",
+            "analysisFolds", "analysisRepeats", "analysisClassificationPermutations"} <= bound
     assert bound - declared == set()
     assert set(module.CHECKED_NODE_PARAMETERS) <= declared
 
@@ -85,11 +86,17 @@ def test_the_sections_are_inputs_parameters_run_results_with_advanced_and_analys
     root, _ = loaded
     sections = {w.getText(): w.getCollapsed() for w in root.findChildren(panel.ctkCollapsibleButton)}
     assert sections == {"Inputs": False, "Parameters": False, "Run": False, "Results": False,
-                        "Advanced": True, "Analysis": True}
+                        "Advanced": True, "Analysis": True, "Classification": True}
     advanced = root.findChild(panel.ctkCollapsibleButton, "advancedCollapsibleButton")
     main = set(panel.parameter_widgets(advanced))
     # beside the smoothness weight, whether BuildConfig's rule chooses it
     assert main == set(module.ADVANCED_SETTINGS) | {"defaultSmoothness"}
+    # the analysis's classifier settings in a collapsed part of the Analysis section
+    analysis = root.findChild(panel.ctkCollapsibleButton, "analysisCollapsibleButton")
+    classification = analysis.findChild(panel.ctkCollapsibleButton,
+                                        "classificationCollapsibleButton")
+    assert set(panel.parameter_widgets(classification)) == {
+        "analysisFolds", "analysisRepeats", "analysisClassificationPermutations"}
 
 
 def test_the_panel_draws(loaded, tmp_path):
