@@ -15,6 +15,9 @@ from PySide6 import QtGui, QtWidgets  # noqa: E402
 import harness  # noqa: E402
 import MDLShapeModel as module  # noqa: E402
 import panel  # noqa: E402
+from MDLShapeModelLib.messages import panelLabels, panelMessage  # noqa: E402
+from mdlshapemodel.config import AnalysisConfig  # noqa: E402
+from mdlshapemodel.errors import ConfigError  # noqa: E402
 
 UI = module.resourcePath("UI/MDLShapeModel.ui")
 
@@ -130,3 +133,13 @@ def test_the_committed_pictures_show_the_current_panel(picture, sections, tmp_pa
     grid = [(x, y) for x in range(0, fresh.width(), 3) for y in range(0, fresh.height(), 3)]
     same = sum(committed.pixel(x, y) == fresh.pixel(x, y) for x, y in grid)
     assert same >= 0.95 * len(grid), (picture, same / len(grid))
+
+
+@pytest.mark.parametrize("settings, said", [
+    ({"folds": 1}, "Folds: must be at least 2 (got 1)"),
+    ({"classification_permutations": -1},
+     "Label permutations: must be 0 (no p-value) or more (got -1)")])
+def test_a_refused_classifier_setting_is_named_by_its_fields_label(settings, said):
+    with pytest.raises(ConfigError) as raised:
+        AnalysisConfig(**settings).validate()
+    assert panelMessage(raised.value, panelLabels(UI)) == said
