@@ -47,8 +47,9 @@ from mdlshapemodel.config import (CORRESPONDENCES, GUIDED_SMOOTHNESS, PLACEMENTS
                                   STRATEGIES, SURFACE_METHODS, AnalysisConfig, BuildConfig,
                                   field_items)
 from MDLShapeModelLib.dependencies import ensureDependencies
+from MDLShapeModelLib.findings import analysisText
 from MDLShapeModelLib.jobs import WorkerJob
-from MDLShapeModelLib.messages import panelLabels, panelMessage
+from MDLShapeModelLib.messages import ANALYSIS_PARAMETERS, panelLabels, panelMessage
 from MDLShapeModelLib.nodes import (INPUT_NODE_TYPES, addModel, addPointArray, caseName,
                                     checkData, colorLegend, colorNode, metricsTable,
                                     placeInFolder, readModel, scoresTable,
@@ -166,6 +167,12 @@ class MDLShapeModelParameterNode:
     analysisCovariates: str = ""
     analysisNuisance: str = ""
     analysisPermutations: Annotated[int, WithinRange(1, 10**7)] = _ANALYSIS_DEFAULTS.permutations
+    analysisTfce: bool = _ANALYSIS_DEFAULTS.tfce
+    # -- the analysis's group classifier (Classification, collapsed)
+    analysisFolds: Annotated[int, WithinRange(2, 1000)] = _ANALYSIS_DEFAULTS.folds
+    analysisRepeats: Annotated[int, WithinRange(1, 1000)] = _ANALYSIS_DEFAULTS.repeats
+    analysisClassificationPermutations: Annotated[int, WithinRange(0, 10**7)] = (
+        _ANALYSIS_DEFAULTS.classification_permutations)
     analysisColorBy: Annotated[str, Choice(list(EFFECT_SCALARS))] = EFFECT_SCALARS[0]
 
 
@@ -181,6 +188,16 @@ def buildConfigOf(parameters) -> BuildConfig:
     if parameters.defaultSmoothness:
         values["smoothness"] = None
     return BuildConfig(**values).validate()
+
+
+def analysisConfigOf(parameters) -> AnalysisConfig:
+    """The :class:`AnalysisConfig` that a parameter node's analysis settings amount to (its
+    fields named in :data:`ANALYSIS_PARAMETERS`; validated: a bad value raises ``ConfigError``
+    naming the field)."""
+    values = {key: getattr(parameters, name) for key, name in ANALYSIS_PARAMETERS.items()}
+    for key in ("covariates", "nuisance"):
+        values[key] = segmentNames(values[key])
+    return AnalysisConfig(**{**values, "group": values["group"] or None}).validate()
 
 
 def landmarkConfigOf(config: BuildConfig, parameters, landmarks: bool) -> BuildConfig:
@@ -495,7 +512,9 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
 
     def loadAnalysis(self, outputDirectory) -> AnalysisNodes:
         """The nodes of an analysis's output folder: the effect map of each part (one part: one
-        node) coloured by significance with a colour legend, and points.csv as a table."""
+        node, with every point array of the file) coloured by significance with a colour
+        legend, the effect's shapes (shapes/*.vtp: group means, predicted shapes; hidden),
+        points.csv as a table, and the findings as text (:func:`analysisText`)."""
         from mdlshapemodel.analyze import AnalysisFolder
 
         outputDirectory = pathlib.Path(outputDirectory)
@@ -507,10 +526,18 @@ class MDLShapeModelLogic(ScriptedLoadableModuleLogic):
         for node in nodes:
             self.colorEffectMap(node, EFFECT_SCALARS[0])
             placeInFolder(node, folder)
+        shapes = [readModel(path, f"{outputDirectory.name} shape {path.stem}")
+                  for path in analysis.shape_meshes()]
+        for node in shapes:
+            # beside the effect map, hidden until chosen in the folder
+            node.GetDisplayNode().SetVisibility(False)
+            placeInFolder(node, folder)
         points = tableNode(f"{outputDirectory.name} points", analysis.points())
         placeInFolder(points, folder)
-        return AnalysisNodes(outputDirectory, folder, nodes[0], points, analysis.summary(),
-                             analysis.page_file)
+        summary = analysis.summary()
+        return AnalysisNodes(outputDirectory, folder, nodes[0], points, summary,
+                             analysis.page_file, shapeModelNodes=shapes,
+                             text=analysisText(summary))
 
     def colorEffectMap(self, effectModelNode, scalars: str) -> None:
         """Colour an effect map by one of :data:`EFFECT_SCALARS`: significance (-log10 of the
@@ -810,6 +837,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 with self._errorsShown("The analysis did not finish."):
                     self._analysis = job.finish()
                     self.ui.analysisTableView.setMRMLTableNode(self._analysis.pointsTableNode)
+                    self.ui.analysisResultText.setPlainText(self._analysis.text)
                     self.ui.openAnalysisButton.enabled = True
                     self.onColorBy()
         if self._fitJob is not None and self._fitJob.done:
@@ -881,10 +909,7 @@ class MDLShapeModelWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             if table in ("", "."):
                 raise ValueError("choose a subjects table (a CSV file or a table node)")
             self._analysisJob = self.logic.startAnalysis(
-                str(parameters.outputDirectory), table, group=parameters.analysisGroup,
-                covariates=segmentNames(parameters.analysisCovariates),
-                nuisance=segmentNames(parameters.analysisNuisance),
-                permutations=parameters.analysisPermutations)
+                str(parameters.outputDirectory), table, **asdict(analysisConfigOf(parameters)))
             self.ui.analyzeButton.enabled = False
             self.ui.cancelAnalysisButton.enabled = True
             self._timer.start()

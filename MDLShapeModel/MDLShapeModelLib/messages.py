@@ -15,7 +15,10 @@ import xml.etree.ElementTree as ElementTree
 
 # The parameter-node names of the analysis's settings (AnalysisConfig field -> parameter).
 ANALYSIS_PARAMETERS = {"group": "analysisGroup", "covariates": "analysisCovariates",
-                       "nuisance": "analysisNuisance", "permutations": "analysisPermutations"}
+                       "nuisance": "analysisNuisance", "permutations": "analysisPermutations",
+                       "tfce": "analysisTfce", "folds": "analysisFolds",
+                       "repeats": "analysisRepeats",
+                       "classification_permutations": "analysisClassificationPermutations"}
 
 
 def panelLabels(uiFile) -> dict:

@@ -45,6 +45,8 @@ class AnalysisNodes:
     pointsTableNode: object           # vtkMRMLTableNode: points.csv
     summary: dict                     # analysis.json
     pageFile: pathlib.Path            # analysis.html
+    shapeModelNodes: list = field(default_factory=list)  # shapes/*.vtp, each named by its file
+    text: str = ""                    # the findings in a few lines (analysisText)
 
 
 @dataclass

@@ -93,6 +93,11 @@ class AnalysisFolder:
         single = self.path / EFFECTS
         return [single] if single.exists() else sorted((self.path / EFFECTS_PARTS).glob("*.vtp"))
 
+    def shape_meshes(self) -> list:
+        """The effect's shapes (group means, a covariate's predicted shapes): shapes/*.vtp, by
+        name (none where the analysis wrote none)."""
+        return sorted((self.path / SHAPES).glob("*.vtp"))
+
 
 @dataclass
 class AnalysisResult:

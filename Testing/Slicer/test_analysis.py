@@ -119,3 +119,40 @@ def test_a_bad_table_is_refused_with_the_librarys_one_line(scene, build, tmp_pat
             build, table_node({**{c: "large" for c in GROUPS}, "case_1": "small"}),
             group="group", outputDirectory=tmp_path / "bad", permutations=9)
     assert not (tmp_path / "bad").exists()
+
+
+def test_an_analysis_with_tfce_loads_its_shapes_its_arrays_and_the_findings_as_text(
+        scene, build, tmp_path):
+    nodes = module.MDLShapeModelLogic().analyzeModel(
+        build, table_node(GROUPS), group="group", outputDirectory=tmp_path / "tfce",
+        permutations=99, tfce=True, folds=4, repeats=2, classification_permutations=19)
+    summary = nodes.summary
+    # the effect map carries effects.vtp's point arrays: TFCE's, the effect sizes, the intervals
+    data = nodes.effectModelNode.GetPolyData().GetPointData()
+    names = {data.GetArrayName(k) for k in range(data.GetNumberOfArrays())}
+    assert {"tfce", "tfce_p_fwer", "cohens_d", "partial_eta2", "ci_lower_mm",
+            "ci_upper_mm"} <= names
+    rows = io.read_csv(tmp_path / "tfce" / "points.csv")
+    np.testing.assert_allclose(vtk_to_numpy(data.GetArray("tfce_p_fwer")),
+                               [float(r["tfce_p_fwer"]) for r in rows], rtol=1e-5)
+    # each shape of shapes/ (the two group means) a hidden model node in the analysis's folder
+    files = sorted((tmp_path / "tfce" / "shapes").glob("*.vtp"))
+    assert len(files) == 2
+    assert [n.GetName() for n in nodes.shapeModelNodes] == [f"tfce shape {f.stem}"
+                                                            for f in files]
+    hierarchy = slicer.mrmlScene.GetSubjectHierarchyNode()
+    for node, path in zip(nodes.shapeModelNodes, files):
+        vertices, _ = io.read_mesh(path)
+        np.testing.assert_allclose(vtk_to_numpy(node.GetPolyData().GetPoints().GetData()),
+                                   vertices * LPS_TO_RAS, atol=1e-4)
+        assert hierarchy.GetItemParent(hierarchy.GetItemByDataNode(node)) == nodes.folderItemID
+        assert not node.GetDisplayNode().GetVisibility()
+    # the findings: TFCE's significant points, the effect sizes, the classifier's AUC and p
+    found = summary["classification"]
+    low, high = found["auc_interval"]
+    assert summary["settings"]["classification_permutations"] == 19 and found["folds"] == 4
+    assert f"TFCE: {summary['point_test']['tfce']['significant_points']} significant" in nodes.text
+    assert f"AUC {found['auc']:.3g} (95% interval {low:.3g} to {high:.3g})" in nodes.text
+    assert f"p = {found['p']:.3g} ({found['permutations']} permutations)" in nodes.text
+    largest = summary["effect_sizes"]["maps"][0]["partial_eta2"]["largest"]
+    assert f"largest {largest:.3g}" in nodes.text

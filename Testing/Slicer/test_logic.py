@@ -15,7 +15,7 @@ import harness
 import MDLShapeModel as module
 from MDLShapeModelLib import dependencies
 from mdlshapemodel import BuildConfig, ShapeModel
-from mdlshapemodel.config import SMOOTHNESS, SURFACE_POINTS
+from mdlshapemodel.config import SMOOTHNESS, SURFACE_POINTS, AnalysisConfig
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.folders import FitFolder, mesh_points
 from mdlshapemodel.prepare import io, preprocess
@@ -146,6 +146,12 @@ def test_the_parameter_node_survives_saving_and_reloading_the_scene(scene, tmp_p
     parameters.inputNodes = inputs
     parameters.landmarkNodes = [marks]
     parameters.analysisPermutations = 999
+    parameters.analysisGroup = "diagnosis"
+    parameters.analysisCovariates = "age, volume"
+    parameters.analysisTfce = True
+    parameters.analysisFolds = 4
+    parameters.analysisRepeats = 3
+    parameters.analysisClassificationPermutations = 0
     scene.SetURL(str(tmp_path / "scene.mrml"))
     assert scene.Commit()
     reloaded = harness.new_scene()
@@ -167,6 +173,10 @@ def test_the_parameter_node_survives_saving_and_reloading_the_scene(scene, tmp_p
         smoothness=0.02)
     assert again.check_landmarks is True and again.analysisPermutations == 999
     assert again.analysisColorBy == module.EFFECT_SCALARS[0]
+    # the analysis's settings, the classifier's among them, are the AnalysisConfig run
+    assert module.analysisConfigOf(again) == AnalysisConfig(
+        group="diagnosis", covariates=["age", "volume"], permutations=999, tfce=True, folds=4,
+        repeats=3, classification_permutations=0)
     # fewer nodes written over more leave no stale entry behind
     again.inputNodes = [again.inputNodes[2]]
     assert [node.GetName() for node in again.inputNodes] == ["third"]

@@ -15,6 +15,9 @@ from PySide6 import QtGui, QtWidgets  # noqa: E402
 import harness  # noqa: E402
 import MDLShapeModel as module  # noqa: E402
 import panel  # noqa: E402
+from MDLShapeModelLib.messages import panelLabels, panelMessage  # noqa: E402
+from mdlshapemodel.config import AnalysisConfig  # noqa: E402
+from mdlshapemodel.errors import ConfigError  # noqa: E402
 
 UI = module.resourcePath("UI/MDLShapeModel.ui")
 
@@ -75,7 +78,8 @@ def test_every_parameter_the_ui_binds_is_declared_by_name_in_the_modules_source(
     source = pathlib.Path(module.__file__).read_text()
     declared = set(re.findall(r"^    (\w+): ", source, re.M))
     bound = set(panel.parameter_widgets(root))
-    assert {"labels", "strategy", "outputDirectory", "analysisColorBy"} <= bound
+    assert {"labels", "strategy", "outputDirectory", "analysisColorBy", "analysisTfce",
+            "analysisFolds", "analysisRepeats", "analysisClassificationPermutations"} <= bound
     assert bound - declared == set()
     assert set(module.CHECKED_NODE_PARAMETERS) <= declared
 
@@ -85,11 +89,17 @@ def test_the_sections_are_inputs_parameters_run_results_with_advanced_and_analys
     root, _ = loaded
     sections = {w.getText(): w.getCollapsed() for w in root.findChildren(panel.ctkCollapsibleButton)}
     assert sections == {"Inputs": False, "Parameters": False, "Run": False, "Results": False,
-                        "Advanced": True, "Analysis": True}
+                        "Advanced": True, "Analysis": True, "Classification": True}
     advanced = root.findChild(panel.ctkCollapsibleButton, "advancedCollapsibleButton")
     main = set(panel.parameter_widgets(advanced))
     # beside the smoothness weight, whether BuildConfig's rule chooses it
     assert main == set(module.ADVANCED_SETTINGS) | {"defaultSmoothness"}
+    # the analysis's classifier settings in a collapsed part of the Analysis section
+    analysis = root.findChild(panel.ctkCollapsibleButton, "analysisCollapsibleButton")
+    classification = analysis.findChild(panel.ctkCollapsibleButton,
+                                        "classificationCollapsibleButton")
+    assert set(panel.parameter_widgets(classification)) == {
+        "analysisFolds", "analysisRepeats", "analysisClassificationPermutations"}
 
 
 def test_the_panel_draws(loaded, tmp_path):
@@ -123,3 +133,13 @@ def test_the_committed_pictures_show_the_current_panel(picture, sections, tmp_pa
     grid = [(x, y) for x in range(0, fresh.width(), 3) for y in range(0, fresh.height(), 3)]
     same = sum(committed.pixel(x, y) == fresh.pixel(x, y) for x, y in grid)
     assert same >= 0.95 * len(grid), (picture, same / len(grid))
+
+
+@pytest.mark.parametrize("settings, said", [
+    ({"folds": 1}, "Folds: must be at least 2 (got 1)"),
+    ({"classification_permutations": -1},
+     "Label permutations: must be 0 (no p-value) or more (got -1)")])
+def test_a_refused_classifier_setting_is_named_by_its_fields_label(settings, said):
+    with pytest.raises(ConfigError) as raised:
+        AnalysisConfig(**settings).validate()
+    assert panelMessage(raised.value, panelLabels(UI)) == said

@@ -109,18 +109,50 @@ def test_cancel_twice_ends_the_process_group_and_the_build_resumes(
     assert BuildFolder(output).metrics()["n_shapes"] == 4
 
 
-def test_a_worker_killed_is_reported_and_the_module_goes_on(scene, hippocampus_files, tmp_path):
+# Run at the start of every Python process of the worker's environment (the worker and its
+# pools): the first one (the worker) starts a child that outlives its parent's death, as a
+# helper process of a native library may; only the kill of the whole process group ends it.
+SLEEPER = """
+import os, subprocess
+_pid_file = os.environ.pop("MDLSHAPEMODEL_TEST_SLEEPER", None)
+if _pid_file:
+    _child = subprocess.Popen(["sleep", "600"], stdin=subprocess.DEVNULL,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    with open(_pid_file, "w") as _stream:
+        _stream.write(str(_child.pid))
+"""
+
+
+def test_a_worker_killed_is_reported_and_the_module_goes_on(
+        scene, hippocampus_files, tmp_path, monkeypatch):
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(SLEEPER, encoding="utf-8")
+    sleeper = tmp_path / "sleeper.pid"
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(hook)] + [
+        p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    monkeypatch.setenv("MDLSHAPEMODEL_TEST_SLEEPER", str(sleeper))
     logic = module.MDLShapeModelLogic()
     # two worker processes of its own, preparing the cases again (no cache): a process group
     config = BuildConfig(**{**SMALL, "workers": 2, "cache_dir": ""})
     job = logic.startBuild(hippocampus_files, tmp_path / "killed", config)
+    monkeypatch.undo()                             # later workers start without the hook
     run_until(job, lambda reports: any(r.message.startswith("prepared") for r in reports))
     assert not job.done
-    os.kill(job.pid, signal.SIGKILL)               # a crash of native code, as Slicer sees it
-    assert job.wait(60)
-    with pytest.raises(WorkerEnded, match="ended unexpectedly .killed by signal SIGKILL"):
-        job.finish()
-    assert group_ends(job.pid)             # no process of its group is left
+    child = int(sleeper.read_text())
+    try:
+        assert os.getpgid(child) == job.pid           # the child is of the worker's group
+        os.kill(job.pid, signal.SIGKILL)          # a crash of native code, as Slicer sees it
+        assert job.wait(60)
+        with pytest.raises(WorkerEnded, match="ended unexpectedly .killed by signal SIGKILL"):
+            job.finish()
+        # no process of its group is left: the pools, and the child that outlives its parent
+        assert group_ends(job.pid)
+    finally:
+        try:
+            os.kill(child, signal.SIGKILL)        # the test's own child, if the check failed
+        except ProcessLookupError:
+            pass
     # the module is still usable: the next build in the same scene, with the same Logic
     result = logic.buildModel(hippocampus_files, tmp_path / "again",
                               BuildConfig(**{**SMALL, "strategy": "none"}))
