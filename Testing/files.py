@@ -30,8 +30,9 @@ def triangle_polydata(vertices, faces):
     points = vtk.vtkPoints()
     points.SetData(numpy_to_vtk(np.ascontiguousarray(vertices, dtype=np.float64)))
     cells = vtk.vtkCellArray()
-    cells.SetCells(len(faces), numpy_to_vtkIdTypeArray(
-        np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel(), deep=True))
+    faces = np.asarray(faces, dtype=np.int64)
+    cells.SetData(numpy_to_vtkIdTypeArray(np.arange(0, faces.size + 1, 3, dtype=np.int64), deep=True),
+                  numpy_to_vtkIdTypeArray(faces.ravel(), deep=True))
     polydata = vtk.vtkPolyData()
     polydata.SetPoints(points)
     polydata.SetPolys(cells)
