@@ -257,6 +257,7 @@ NON_DEFAULT_OPTIONS = {
     "evaluation_modes": (["--evaluation-modes", "3"], 3),
     "specificity_samples": (["--specificity-samples", "300"], 300),
     "surface_samples": (["--surface-samples", "0"], 0),
+    "generalization_cases": (["--generalization-cases", "50"], 50),
     "workers": (["--workers", str((os.cpu_count() or 1) + 1)], (os.cpu_count() or 1) + 1),
     "scheduler": (["--scheduler", "tcp://127.0.0.1:1"], "tcp://127.0.0.1:1"),
     "cache_dir": (["--cache-dir", "somewhere"], "somewhere"),
