@@ -122,3 +122,35 @@ def test_the_build_setting_is_checked_and_has_a_default():
     assert BuildConfig().generalization_cases >= 100
     with pytest.raises(ConfigError, match="generalization_cases"):
         BuildConfig(generalization_cases=1).validate()
+
+
+def test_the_true_surfaces_are_moved_to_the_model_frame_one_case_at_a_time(tmp_path):
+    import pickle
+
+    from mdlshapemodel.correspondence.initial import initial_state
+    from mdlshapemodel.model.evaluation import ModelFrameSurfaces, evaluate_state
+    from mdlshapemodel.parallel import process_pool
+    from mdlshapemodel.prepare.batch import preprocess
+
+    from files import write_label_map
+    from synthetic import small_mask
+
+    paths = [str(write_label_map(tmp_path / f"s{k}.nii.gz", small_mask(position)))
+             for k, position in enumerate((-0.6, -0.3, 0.0, 0.3, 0.6))]
+    config = BuildConfig(points=42, workers=1, cache_dir="", evaluation_modes=2,
+                         specificity_samples=100, surface_samples=10)
+    prepared, _ = preprocess(paths, config)
+    state = initial_state(prepared, config)[0]
+    eager = [(state.to_model_frame(i, case.surface()[0]), case.surface()[1])
+             for i, case in enumerate(prepared)]
+    lazy = ModelFrameSurfaces(state, prepared)
+    copied = pickle.loads(pickle.dumps(lazy))       # as a pool's process gets it: a list
+    assert isinstance(copied, list) and len(lazy) == len(copied) == len(eager)
+    for (v, f), (lv, lf), (cv, cf) in zip(eager, lazy, copied):
+        assert np.array_equal(v, lv) and np.array_equal(v, cv)
+        assert np.array_equal(f, lf) and np.array_equal(f, cf)
+    here = evaluate_state(state, config, prepared)
+    assert "generalization_surface_mm" in here
+    with process_pool(2) as pool:
+        assert evaluate_state(state, config, prepared, pool=pool, background=False) == here
+        assert evaluate_state(state, config, prepared, pool=pool).result() == here

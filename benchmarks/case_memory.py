@@ -69,9 +69,13 @@ def main() -> int:
     parser.add_argument("--cases", type=int, default=200)
     parser.add_argument("--cache-dir", required=True)
     parser.add_argument("--extrapolate", type=int, default=10000)
+    parser.add_argument("--specificity-samples", type=int, default=1000,
+                        help="for the evaluation (of M = 1, 2 modes and 50 samples surface to "
+                             "surface: its memory grows with the cases, not with these)")
     args = parser.parse_args()
     from mdlshapemodel.config import BuildConfig
     from mdlshapemodel.correspondence.initial import initial_state
+    from mdlshapemodel.model.evaluation import evaluate_state
     from mdlshapemodel.prepare.batch import preprocess
 
     inputs = sorted(Path(args.data).glob("*.nii.gz"))[:args.cases]
@@ -79,7 +83,9 @@ def main() -> int:
         print(f"only {len(inputs)} label maps in {args.data}", file=sys.stderr)
         return 2
     config = BuildConfig(labels=[int(v) for v in args.label.split(",")],
-                         cache_dir=args.cache_dir, workers=2)
+                         cache_dir=args.cache_dir, workers=2,
+                         specificity_samples=args.specificity_samples, evaluation_modes=2,
+                         surface_samples=50)
     prepared, rejected = preprocess([str(p) for p in inputs], config)   # fills the cache
     del prepared
     n = args.cases - len(rejected)
@@ -97,6 +103,14 @@ def main() -> int:
         for i, (vertices, faces) in enumerate(case.surface() for case in prepared)])
     rows.append(("evaluation's true surfaces (model frame)", array_bytes(surfaces),
                  surfaces_traced))
+    del surfaces
+    # the model's evaluation, here (no pool): the peak of the traced heap above what was held
+    gc.collect()
+    held = tracemalloc.get_traced_memory()[0]
+    tracemalloc.reset_peak()
+    evaluate_state(state, config, prepared, background=False)
+    rows.append(("evaluation, its peak above what was held", 0,
+                 tracemalloc.get_traced_memory()[1] - held))
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     print(f"{n} cases, {state.n_points} points each; ru_maxrss "

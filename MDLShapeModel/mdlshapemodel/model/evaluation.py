@@ -16,6 +16,7 @@ surface against the true training surfaces (:mod:`.surface_measures`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -435,6 +436,26 @@ def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, 
     return as_list
 
 
+class ModelFrameSurfaces(Sequence):
+    """The true surfaces of prepared cases in the model frame of a correspondence ``state``,
+    case i moved there when asked for: a list of them all would hold n_s more meshes through
+    the evaluation, which measures one case at a time (:mod:`.surface_measures`). Pickled (to a
+    pool's process) as that list, so that the copy does not follow the state as it changes."""
+
+    def __init__(self, state, prepared: list):
+        self.state, self.prepared = state, prepared
+
+    def __len__(self) -> int:
+        return len(self.prepared)
+
+    def __getitem__(self, i: int):
+        vertices, faces = self.prepared[i].surface()
+        return self.state.to_model_frame(i, vertices), faces
+
+    def __reduce__(self):
+        return list, (list(self),)
+
+
 def evaluate_state(state, config, prepared: list | None = None,
                    model: ShapeModel | None = None, pool=None, background: bool = True,
                    jackknife: bool = False):
@@ -455,8 +476,9 @@ def evaluate_state(state, config, prepared: list | None = None,
     surfaces = None
     # (curves: the measures between the sample points only)
     if prepared is not None and config.surface_samples > 0 and not prepared[0].is_curve:
-        surfaces = [(state.to_model_frame(i, vertices), faces)
-                    for i, (vertices, faces) in enumerate(case.surface() for case in prepared)]
+        surfaces = ModelFrameSurfaces(state, prepared)
+        if pool is not None and background:     # the state may change while it runs
+            surfaces = list(surfaces)
     arguments = (aligned, state.weights.copy(), model.variances, config.evaluation_modes,
                  config.specificity_samples, np.random.default_rng(config.seed),
                  state.triangles().copy(), surfaces, config.surface_samples)
