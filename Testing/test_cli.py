@@ -257,6 +257,7 @@ NON_DEFAULT_OPTIONS = {
     "evaluation_modes": (["--evaluation-modes", "3"], 3),
     "specificity_samples": (["--specificity-samples", "300"], 300),
     "surface_samples": (["--surface-samples", "0"], 0),
+    "generalization_cases": (["--generalization-cases", "50"], 50),
     "workers": (["--workers", str((os.cpu_count() or 1) + 1)], (os.cpu_count() or 1) + 1),
     "scheduler": (["--scheduler", "tcp://127.0.0.1:1"], "tcp://127.0.0.1:1"),
     "cache_dir": (["--cache-dir", "somewhere"], "somewhere"),
@@ -384,4 +385,5 @@ def test_ctrl_c_while_preparing_closes_the_bar(tmp_path):
     assert "prepared 4/4" not in terminal and "Traceback" not in terminal
     # the bar was closed (its line ended) before the message
     before, after = terminal.split("mdlshapemodel: interrupted")
-    assert re.search(r"\| prepared 1/4 \[[^\r\n]*\]\r?\n$", before), terminal
+    assert re.search(r"\| prepared 1/4( \(about [^)\r\n]* left\))? \[[^\r\n]*\]\r?\n$", before), \
+        terminal

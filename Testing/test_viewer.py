@@ -10,6 +10,7 @@ saying why.
 from __future__ import annotations
 
 import io
+import re
 import time
 from pathlib import Path
 
@@ -71,14 +72,20 @@ def curves(n_s=5, n_points=64, seed=1):
     return model, np.stack(shapes), names
 
 
-def test_a_large_population_shows_its_first_cases(monkeypatch):
+def test_a_large_population_shows_a_sample_spanning_its_first_mode(monkeypatch):
     from mdlshapemodel.report import viewer
 
-    model, shapes, names = population(n_s=6, n_points=42)
+    model, shapes, names = population(n_s=9, n_points=42)
     monkeypatch.setattr(viewer, "MAX_CASE_BYTES", 4 * 6 * 42)
     page = "".join(viewer.viewer_section(model, shapes, names))
-    assert "the first 4 of 6 cases" in page
-    assert "case_03" in page and "case_04" not in page
+    assert "a sample of 4 of the 9 cases" in page
+    options = re.findall(r"<option value=\d+>(case_\d+)</option>", page)
+    assert len(options) == 4 and options == sorted(options)      # in the cases' order
+    # the cases of the lowest and the highest score on mode 1 are among them
+    scores = [model.project(shape, 1)[0] for shape in shapes]
+    assert names[int(np.argmin(scores))] in options and names[int(np.argmax(scores))] in options
+    # the same sample at every writing
+    assert page == "".join(viewer.viewer_section(model, shapes, names))
 
 
 def test_notes_instead_of_a_viewer():

@@ -22,6 +22,7 @@ import csv
 import json
 import os
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -77,6 +78,23 @@ class MemoryWatch(threading.Thread):
                 self.peak_total, self.peak_time = sum(sizes), time.time()
             self.peak_single = max(self.peak_single, max(sizes, default=0.0))
             self.done.wait(self.interval)
+
+
+def watched(command: list) -> tuple:
+    """Run ``command``: (exit code, wall s, CPU s of it and every process it waited for, the
+    :class:`MemoryWatch` of its process tree)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    process = subprocess.Popen(command)
+    watch = MemoryWatch(process.pid)
+    watch.start()
+    code = process.wait()
+    wall = time.perf_counter() - start
+    watch.done.set()
+    watch.join()
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return code, wall, cpu, watch
 
 
 def _stamp(line: str) -> float:
@@ -137,14 +155,7 @@ def main() -> int:
             command = [sys.executable, "-m", "mdlshapemodel.cli", "build",
                        *map(str, inputs[:n]), "--label", args.label, "-o", str(output), "-q",
                        *([] if args.warm else ["--cache-dir", cache]), *extra]
-            start = time.perf_counter()
-            process = subprocess.Popen(command)
-            watch = MemoryWatch(process.pid)
-            watch.start()
-            code = process.wait()
-            wall = time.perf_counter() - start
-            watch.done.set()
-            watch.join()
+            code, wall, _, watch = watched(command)
         if code != 0:
             print(f"build of {n} cases failed (exit code {code})", file=sys.stderr)
             return 1

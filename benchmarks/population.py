@@ -18,13 +18,25 @@ voxelising again: every case is drawn from its own seeded generator.
 
 The label maps are ``labels/synth_0000.nii.gz`` ... (label 1), the shapes' scores and poses are in
 ``truth.json``.
+
+``--build`` then builds the population end to end with the real command line in a subprocess
+(an empty preprocessing cache; build options after ``--``) and prints one row: wall time, CPU
+time of the build and all its processes, the peak of their summed resident memory (sampled every
+0.1 s; the largest single process in brackets), the optimisation's evaluations and how it ended,
+G(1) and S(1) with their standard errors (and how many cases G left out):
+
+    nice -n 10 python benchmarks/population.py --model /tmp/h82/model.h5 --cases 1000 \
+        --output /tmp/pop1000 --build -- --max-time 1700
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
+import sys
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -91,6 +103,33 @@ def write_case(arguments) -> dict:
     return record
 
 
+def build_row(output: Path, cases: int, extra: list) -> str:
+    """Build the population's label maps with the command line (into ``output/build``) and
+    return the benchmark's table row."""
+    from end_to_end import watched
+
+    inputs = sorted((output / "labels").glob("*.nii.gz"))[:cases]
+    built = output / "build"
+    with tempfile.TemporaryDirectory() as cache:
+        # the cases drawn now: the folder may hold more from an earlier, larger draw
+        command = [sys.executable, "-m", "mdlshapemodel.cli", "build", *map(str, inputs),
+                   "--label", "1", "-o", str(built), "-q", "--cache-dir", cache, *extra]
+        code, wall, cpu, watch = watched(command)
+    if code != 0:
+        raise SystemExit(f"the build failed (exit code {code})")
+    metrics = json.loads((built / "metrics.json").read_text())
+    with open(built / "convergence.csv") as file:
+        trace = list(csv.DictReader(file))
+    evaluations = int(trace[-1]["evaluations"]) if trace else 0
+    ending = metrics["optimisation"]["stopped_by"]
+    left_out = metrics.get("generalization_cases", metrics["n_shapes"])
+    return (f"| {metrics['n_shapes']} | {wall:.0f} s | {cpu:.0f} s | {watch.peak_total:.0f} MB "
+            f"({watch.peak_single:.0f} MB) | {evaluations} | {ending} | "
+            f"{metrics['generalization'][0]:.4f} ± {metrics['generalization_se'][0]:.4f} "
+            f"({left_out} left out) | "
+            f"{metrics['specificity'][0]:.4f} ± {metrics['specificity_se'][0]:.4f} |")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", required=True, help="model.h5 of a build of the hippocampi")
@@ -103,6 +142,9 @@ def main():
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--meshes-only", action="store_true",
                         help="write the true meshes (and truth.json) only, not the label maps")
+    parser.add_argument("--build", action="store_true",
+                        help="then build it end to end and print the benchmark's row")
+    parser.add_argument("extra", nargs=argparse.REMAINDER, help="build options after --")
     args = parser.parse_args()
     from mdlshapemodel.model.shape_model import ShapeModel
     from mdlshapemodel.prepare.io import write_polydata
@@ -127,6 +169,10 @@ def main():
         "seed": args.seed, "cases": records}, indent=1))
     written = "true meshes" if args.meshes_only else "label maps and true meshes"
     print(f"{args.cases} cases' {written} in {time.perf_counter() - started:.0f} s -> {output}")
+    if args.build:
+        print("| cases | wall | CPU | peak memory, all processes (largest) | evaluations | "
+              "ended | G(1) mm² | S(1) mm² |\n|---|---|---|---|---|---|---|---|")
+        print(build_row(output, args.cases, [a for a in args.extra if a != "--"]), flush=True)
 
 
 if __name__ == "__main__":

@@ -51,7 +51,7 @@ from .prepare.case import Rejection
 from .prepare.duplicates import identical_files, refusal, same_shapes
 from .prepare.landmarks import read_landmark_folder
 from .prepare.parts import case_inputs, read_manifest
-from .progress import Interrupt, Progress, ctrl_c, report
+from .progress import Interrupt, Progress, TimeLeft, ctrl_c, report
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -280,7 +280,8 @@ def _guarded(source, line: int) -> bool:
 def _build(cases: list, output: Path, config: BuildConfig, progress, executor,
            resume: bool, landmarks: dict | None, interrupt: Interrupt) -> BuildResult:
     started = time.perf_counter()
-    progress = interrupt.watch(progress)
+    # every report says how long its stage has left
+    progress = interrupt.watch(None if progress is None else TimeLeft(progress, config.max_time))
     BuildFolder(output).write_settings(config)
     if config.scheduler is None:
         log.info("preprocessing %d cases with %d workers", len(cases), config.workers)

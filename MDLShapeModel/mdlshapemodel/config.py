@@ -339,6 +339,9 @@ class BuildConfig:
     evaluation_modes: int = 10
     specificity_samples: int = 10_000
     surface_samples: int = 200
+    # beyond this many cases, the generalization leaves out a random subset of this many
+    # (model.evaluation.leave_out_cases): its cost then stops growing as n_s^2
+    generalization_cases: int = 500
     # running
     workers: int = field(default_factory=lambda: os.cpu_count() or 1)
     # None: the per-case work runs here (``workers``)
@@ -416,6 +419,7 @@ class BuildConfig:
         need(self.specificity_samples >= 2, "specificity_samples", "must be at least 2")
         need(self.surface_samples == 0 or self.surface_samples >= 2, "surface_samples",
              "must be 0 (none) or at least 2")
+        need(self.generalization_cases >= 2, "generalization_cases", "must be at least 2")
         need(self.workers >= 1, "workers", "must be at least 1")
         need(self.scheduler is None or (isinstance(self.scheduler, str)
                                         and self.scheduler.strip() != ""),

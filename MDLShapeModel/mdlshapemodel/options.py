@@ -199,6 +199,10 @@ BUILD_OPTIONS = {
     "surface_samples": Option(
         RUNNING, "model samples for specificity measured surface to surface; 0 leaves out the "
                  "surface-to-surface measures (default %(default)s)"),
+    "generalization_cases": Option(
+        RUNNING, "the generalization leaves out every case up to this many cases, and beyond "
+                 "them a random subset of this many, with its standard error (default "
+                 "%(default)s)", metavar="N"),
     "workers": Option(
         RUNNING, "processes for per-case work (default: all cores, %(default)s)"),
     "scheduler": Option(

@@ -12,6 +12,10 @@ The command line shows these reports as a progress bar (or plain log lines when 
 a terminal), the VTK filters as ``vtkAlgorithm`` progress events, and the 3D Slicer module in its
 panel.
 
+A build's reports say how long is left (:class:`TimeLeft`): "(about 3 min left)" where a
+stage counts its steps (preparing the cases), "(at most about 9 min left, the time budget)"
+during the optimisation, whose end the convergence rule decides.
+
 Ctrl-C is a cancellation too: within :func:`ctrl_c` (a build, the command line) it only sets a
 flag, :class:`Interrupt`, that the work sees at its next report, where it stops as if the
 callback had cancelled; a second Ctrl-C aborts at once.
@@ -31,13 +35,15 @@ import contextlib
 import logging
 import signal
 import threading
+import time
 from typing import Callable, Optional
 
 from .errors import Cancelled
 
 Progress = Callable[[Optional[float], str], Optional[bool]]
 
-__all__ = ["Cancelled", "Interrupt", "Progress", "ctrl_c", "report"]
+__all__ = ["Cancelled", "Interrupt", "Progress", "TimeLeft", "ctrl_c", "report",
+           "time_left_text"]
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -46,6 +52,68 @@ def report(progress: Progress | None, fraction: float | None, message: str) -> N
     """Pass one report to ``progress`` (if any); raise :class:`Cancelled` if it returns False."""
     if progress is not None and progress(fraction, message) is False:
         raise Cancelled(message)
+
+
+def time_left_text(seconds: float) -> str:
+    """A duration, rounded as an estimate is: "40 s", "12 min", "2.5 h".
+
+    Examples
+    --------
+    >>> time_left_text(42.4), time_left_text(754), time_left_text(9000)
+    ('42 s', '13 min', '2.5 h')
+    """
+    if seconds < 90:
+        return f"{max(seconds, 0.0):.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+class TimeLeft:
+    """A progress callback that adds to each report an estimate of the time its stage has
+    left, and passes it on to ``progress``.
+
+    A stage begins where the reports switch between a fraction and none, or the fraction falls
+    back or starts again after 1 (as the command line's display counts them). Where the reports
+    carry a fraction (the cases prepared), the stage's rate so far gives the rest: "(about 40 s
+    left)". Where they do not (the optimisation: when it ends is for the convergence rule to
+    decide, and no rate foretells it), only the time budget ``budget`` bounds it, counted from
+    the stage's first report: "(at most about 9 min left, the time budget)", while some of it
+    is left.
+
+    Parameters
+    ----------
+    progress : callable(fraction or None, message)
+        Where the reports go on.
+    budget : float, optional
+        The optimisation's time limit, s (``BuildConfig.max_time``).
+    clock : callable, optional
+        Seconds (default :func:`time.monotonic`).
+    """
+
+    def __init__(self, progress: Progress, budget: float | None = None,
+                 clock: Callable[[], float] = time.monotonic):
+        self.progress, self.budget, self.clock = progress, budget, clock
+        self.fraction = None
+        self.started = False
+        self.stage_start = self.last = clock()    # the first stage: from the start of the work
+
+    def __call__(self, fraction, message):
+        now = self.clock()
+        previous = self.fraction
+        if self.started and ((fraction is None) != (previous is None)
+                             or (fraction is not None and (fraction < previous
+                                                           or previous >= 1.0))):
+            self.stage_start = now if fraction is None else self.last
+        self.started, self.fraction, self.last = True, fraction, now
+        elapsed = now - self.stage_start
+        if fraction is not None and 0.0 < fraction < 1.0 and elapsed > 0.0:
+            message = (f"{message} (about {time_left_text(elapsed * (1.0 - fraction) / fraction)}"
+                       f" left)")
+        elif fraction is None and self.budget and self.budget > elapsed:
+            message = (f"{message} (at most about {time_left_text(self.budget - elapsed)} left, "
+                       f"the time budget)")
+        return self.progress(fraction, message)
 
 
 class Interrupt:

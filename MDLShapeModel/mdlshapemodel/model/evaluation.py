@@ -16,6 +16,7 @@ surface against the true training surfaces (:mod:`.surface_measures`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,34 +49,72 @@ def compactness(variances: np.ndarray, n_shapes: int, max_modes: int):
 
 
 
+def leave_out_cases(n_shapes: int, limit: int | None, rng: np.random.Generator):
+    """The cases left out in turn to measure the generalization (eq. 20): None (every case) up
+    to ``limit`` cases (None: no limit), beyond it a uniform random subset of ``limit`` of them,
+    drawn from ``rng``, in increasing order.
+
+    Each left-out case costs O(r n_p) (its residuals mapped back to the points, r the rank of the
+    shapes, up to n_s - 1), so leaving out every case grows as n_s^2 n_p; a fixed number of them
+    bounds it, with the subset's mean an unbiased estimate of the mean over all the cases
+    (:func:`generalization` gives its standard errors).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> leave_out_cases(10, 10, rng) is None, len(leave_out_cases(11, 10, rng))
+    (True, 10)
+    """
+    if limit is None or n_shapes <= limit:
+        return None
+    if limit < 2:
+        raise ArgumentError(f"the generalization needs at least 2 left-out cases, not {limit}")
+    return np.sort(rng.choice(n_shapes, size=limit, replace=False))
+
+
 def generalization(shapes: np.ndarray, weights: np.ndarray, max_modes: int,
-                   space: ModelSpace | None = None):
+                   space: ModelSpace | None = None, cases: np.ndarray | None = None):
     """Leave-one-out reconstruction error G(M) for M = 1..max_modes (eq. 20-21).
 
     Returns a dict of arrays (max_modes,): ``squared`` and ``squared_se`` (mm^2), ``distance`` and
     ``distance_se`` (mean point-to-point, mm); and the errors of each left-out shape,
-    ``squared_per_case`` and ``distance_per_case`` (n_s, max_modes), whose means over the shapes
+    ``squared_per_case`` and ``distance_per_case`` (k, max_modes), whose means over the shapes
     are ``squared`` and ``distance``. ``space``: the shapes' :func:`model_space`, when known.
+
+    ``cases``: the k shapes left out in turn (indices, :func:`leave_out_cases`); default all of
+    them (k = n_s). Each is reconstructed by the model of all the other n_s - 1. The standard
+    errors are then eq. 21 over the k cases: the error of the mean as an estimate of the expected
+    error, which includes that of the subset. The subset's own part, its error as an estimate of
+    the mean over all n_s cases, is added as ``squared_subsample_se`` and
+    ``distance_subsample_se``: sd / sqrt(k) sqrt(1 - k / n_s) (sampling without replacement;
+    0 when every case is left out).
     """
     coordinates, to_points = space_of(shapes, weights, space)
     n_s = len(coordinates)
-    squared = np.zeros((n_s, max_modes))
-    distance = np.zeros((n_s, max_modes))
-    for i, residuals, _ in leave_one_out(coordinates, max_modes):
-        squared[i] = np.sum(residuals ** 2, axis=1)
-        distance[i] = _point_distances(residuals, to_points, weights)
-    result = _mean_and_error(squared, distance, n_s)
+    order = np.arange(n_s) if cases is None else np.asarray(cases, dtype=np.int64)
+    squared = np.zeros((len(order), max_modes))
+    distance = np.zeros((len(order), max_modes))
+    for row, (_, residuals, _) in enumerate(leave_one_out(coordinates, max_modes, order)):
+        squared[row] = np.sum(residuals ** 2, axis=1)
+        distance[row] = _point_distances(residuals, to_points, weights)
+    result = _mean_and_error(squared, distance, len(order))
     result["squared_per_case"] = squared
     result["distance_per_case"] = distance
+    if cases is not None:
+        remaining = np.sqrt(max(1.0 - len(order) / n_s, 0.0) / len(order))
+        result["squared_subsample_se"] = squared.std(axis=0, ddof=1) * remaining
+        result["distance_subsample_se"] = distance.std(axis=0, ddof=1) * remaining
     return result
 
 
 
-def _squared_per_case(coordinates: np.ndarray, max_modes: int) -> np.ndarray:
-    """The squared leave-one-out errors (n_s, max_modes) of eq. 20, in model space."""
-    squared = np.zeros((len(coordinates), max_modes))
-    for i, residuals, _ in leave_one_out(coordinates, max_modes):
-        squared[i] = np.sum(residuals ** 2, axis=1)
+def _squared_per_case(coordinates: np.ndarray, max_modes: int, cases=None) -> np.ndarray:
+    """The squared leave-one-out errors (k, max_modes) of eq. 20 of the ``cases`` (default all
+    n_s), in model space."""
+    order = np.arange(len(coordinates)) if cases is None else cases
+    squared = np.zeros((len(order), max_modes))
+    for row, (_, residuals, _) in enumerate(leave_one_out(coordinates, max_modes, order)):
+        squared[row] = np.sum(residuals ** 2, axis=1)
     return squared
 
 
@@ -97,16 +136,31 @@ class GeneralizationJackknife:
 
 
 def generalization_jackknife(space: ModelSpace, max_modes: int,
-                             groups: int = JACKKNIFE_GROUPS) -> GeneralizationJackknife:
+                             groups: int = JACKKNIFE_GROUPS,
+                             cases: np.ndarray | None = None) -> GeneralizationJackknife:
     """The leave-one-out errors (eq. 20) of the shapes of ``space``, and their mean with each
     group of cases left out of the population altogether (every other case's leave-one-out
     model then lacks that group too): one case per group up to ``groups`` cases, beyond them
-    ``groups`` groups (case k in group k mod groups)."""
+    ``groups`` groups (case k in group k mod groups).
+
+    ``cases``: a random subset of the shapes (:func:`leave_out_cases`) whose errors stand for
+    all of them; ``per_case`` are theirs, and the groups are of the subset's k cases (the k-th
+    of the subset in group k mod groups), whose errors are not recomputed without the group:
+    in the population of more than :attr:`~mdlshapemodel.config.BuildConfig.generalization_cases`
+    shapes that a subset is drawn from, a group moves the others' models by a share of the
+    order of its size / n_s, and recomputing would cost groups x n_s^3.
+    """
     n_s = len(space.coordinates)
     if n_s < 4:
         raise ArgumentError(f"the jackknife needs at least 4 cases, not {n_s}")
     if groups < 2:
         raise ArgumentError(f"the jackknife needs at least 2 groups, not {groups}")
+    if cases is not None:
+        per_case = _squared_per_case(space.coordinates, max_modes, cases)
+        count = min(len(per_case), groups)
+        group_of = np.arange(len(per_case)) % count
+        left_out = np.array([per_case[group_of != g].mean(axis=0) for g in range(count)])
+        return GeneralizationJackknife(per_case, left_out)
     count = min(n_s, groups)
     group_of = np.arange(n_s) % count
     left_out = np.array([
@@ -269,7 +323,8 @@ def _mean_and_error(squared: np.ndarray, distance: np.ndarray, n: int) -> dict:
 def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max_modes: int = 10,
              n_samples: int = 10_000, rng: np.random.Generator | None = None,
              triangles: np.ndarray | None = None, surfaces=None,
-             surface_samples: int = 1000, pool=None, jackknife: bool = False) -> dict:
+             surface_samples: int = 1000, pool=None, jackknife: bool = False,
+             generalization_cases: int | None = None) -> dict:
     """Compactness, generalization and specificity for M = 1..max_modes, as JSON-ready lists.
 
     Parameters
@@ -306,6 +361,12 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         Also the :func:`generalization_jackknife` of the shapes, under ``jackknife`` (not
         JSON: for :func:`measure_differences` against another correspondence of the same
         cases), when there are at least 4 shapes.
+    generalization_cases : int, optional
+        Beyond this many shapes, the generalization (point and surface) leaves out only this
+        many, a random subset (:func:`leave_out_cases`, drawn from a generator spawned from
+        ``rng``, so the specificity samples are those of an unlimited evaluation); the result
+        then says so: ``generalization_cases`` (how many), ``generalization_subsample_se`` and
+        ``generalization_mm_subsample_se`` (:func:`generalization`). Default: no limit.
 
     Returns
     -------
@@ -326,26 +387,29 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
     # worker computes, whatever the number of cores
     with threadpool_limits(limits=1, user_api="blas"):
         return _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles,
-                         surfaces, surface_samples, pool, jackknife)
+                         surfaces, surface_samples, pool, jackknife, generalization_cases)
 
 
 def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, surfaces,
-              surface_samples, pool, jackknife) -> dict:
+              surface_samples, pool, jackknife, generalization_cases) -> dict:
     import copy
 
     n_s = len(shapes)
     surface_rng = copy.deepcopy(rng)            # the surface samples repeat the first point samples
+    # a spawned generator leaves rng's own stream as it is
+    cases = (None if generalization_cases is None or n_s <= generalization_cases
+             else leave_out_cases(n_s, generalization_cases, rng.spawn(1)[0]))
     # one model space for every measure, wherever it runs
     space = model_space(shapes, weights)
     g_surface = None
     if surfaces is not None:
         # the longest part: started first, elsewhere when there is a pool
         arguments = (shapes, weights, triangles, surfaces, max_modes,
-                     SURFACE_GENERALIZATION_POINTS, None, space)
+                     SURFACE_GENERALIZATION_POINTS, None, space, cases)
         g_surface = Task(pool, surface_generalization, *arguments,
                          what="the surface generalization")
     c, c_se = compactness(variances, n_s, max_modes)
-    g = generalization(shapes, weights, max_modes, space)
+    g = generalization(shapes, weights, max_modes, space, cases)
     s = specificity(shapes, weights, max_modes, n_samples, rng, space=space)
     as_list = {"modes": list(range(1, max_modes + 1)),
                "compactness": c.tolist(), "compactness_se": c_se.tolist()}
@@ -355,6 +419,10 @@ def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, 
         as_list[name + "_mm"] = result["distance"].tolist()
         as_list[name + "_mm_se"] = result["distance_se"].tolist()
     as_list["specificity_samples"] = int(n_samples)
+    if cases is not None:
+        as_list["generalization_cases"] = len(cases)
+        as_list["generalization_subsample_se"] = g["squared_subsample_se"].tolist()
+        as_list["generalization_mm_subsample_se"] = g["distance_subsample_se"].tolist()
     if surfaces is not None:
         s_surface = surface_specificity(shapes, weights, triangles, surfaces, max_modes,
                                         surface_samples, surface_rng, space=space)
@@ -364,8 +432,28 @@ def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, 
             as_list[name + "_surface_mm_se"] = result["distance_se"].tolist()
         as_list["specificity_surface_samples"] = int(surface_samples)
     if jackknife and n_s >= 4:
-        as_list["jackknife"] = generalization_jackknife(space, max_modes)
+        as_list["jackknife"] = generalization_jackknife(space, max_modes, cases=cases)
     return as_list
+
+
+class ModelFrameSurfaces(Sequence):
+    """The true surfaces of prepared cases in the model frame of a correspondence ``state``,
+    case i moved there when asked for: a list of them all would hold n_s more meshes through
+    the evaluation, which measures one case at a time (:mod:`.surface_measures`). Pickled (to a
+    pool's process) as that list, so that the copy does not follow the state as it changes."""
+
+    def __init__(self, state, prepared: list):
+        self.state, self.prepared = state, prepared
+
+    def __len__(self) -> int:
+        return len(self.prepared)
+
+    def __getitem__(self, i: int):
+        vertices, faces = self.prepared[i].surface()
+        return self.state.to_model_frame(i, vertices), faces
+
+    def __reduce__(self):
+        return list, (list(self),)
 
 
 def evaluate_state(state, config, prepared: list | None = None,
@@ -388,11 +476,14 @@ def evaluate_state(state, config, prepared: list | None = None,
     surfaces = None
     # (curves: the measures between the sample points only)
     if prepared is not None and config.surface_samples > 0 and not prepared[0].is_curve:
-        surfaces = [(state.to_model_frame(i, vertices), faces)
-                    for i, (vertices, faces) in enumerate(case.surface() for case in prepared)]
+        surfaces = ModelFrameSurfaces(state, prepared)
+        if pool is not None and background:     # the state may change while it runs
+            surfaces = list(surfaces)
     arguments = (aligned, state.weights.copy(), model.variances, config.evaluation_modes,
                  config.specificity_samples, np.random.default_rng(config.seed),
                  state.triangles().copy(), surfaces, config.surface_samples)
     if pool is not None and background:
-        return Task(pool, evaluate, *arguments, None, jackknife, what="an evaluation")
-    return evaluate(*arguments, pool=pool, jackknife=jackknife)
+        return Task(pool, evaluate, *arguments, None, jackknife, config.generalization_cases,
+                    what="an evaluation")
+    return evaluate(*arguments, pool=pool, jackknife=jackknife,
+                    generalization_cases=config.generalization_cases)

@@ -65,8 +65,11 @@ def displacements(difference: np.ndarray, to_points: np.ndarray) -> np.ndarray:
     return (difference @ to_points).reshape(len(difference), -1, 3)
 
 
-def leave_one_out(coordinates: np.ndarray, max_modes: int):
+def leave_one_out(coordinates: np.ndarray, max_modes: int, cases=None):
     """For each shape i: (i, residuals (max_modes, r), modes used (max_modes,)).
+
+    ``cases``: the shapes i left out in turn (indices, in the order given); default all of them.
+    Each is still reconstructed by the model of all the others.
 
     ``residuals[M - 1]`` is x_i - x_i'(M) in model space: x_i minus its reconstruction by the model
     built without it, with M modes (at most the n_s - 2 that model has).
@@ -84,7 +87,7 @@ def leave_one_out(coordinates: np.ndarray, max_modes: int):
     # hold the part of shape i that the others do not span
     wanted = min(max_modes, max(n_s - 2, 0), r)
     rho = n_s / (n_s - 1.0)
-    for i in range(n_s):
+    for i in (range(n_s) if cases is None else cases):
         offset = coordinates[i] * rho          # x_i minus the others' mean
         directions = _downdated_modes(scatter, coordinates[i], rho, wanted)
         if directions is None:

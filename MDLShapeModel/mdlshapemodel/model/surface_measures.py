@@ -192,10 +192,24 @@ def _faces_near(shape: np.ndarray, triangles: np.ndarray, points: np.ndarray) ->
     return incident[cKDTree(shape).query(points)[1]]
 
 
-def _true_surfaces(surfaces, n_s: int) -> list:
-    if len(surfaces) != n_s:
-        raise ArgumentError(f"need one true surface per shape: {len(surfaces)} surfaces, {n_s} shapes")
-    return [_TrueSurface(vertices, faces) for vertices, faces in surfaces]
+class _TrueSurfaces:
+    """The true surfaces of the n_s shapes, each :class:`_TrueSurface` (with its search
+    structures) built when first asked for, and kept until released: a measure holds those of
+    the cases it compares, not of the whole population."""
+
+    def __init__(self, surfaces, n_s: int):
+        if len(surfaces) != n_s:
+            raise ArgumentError(f"need one true surface per shape: {len(surfaces)} surfaces, "
+                                f"{n_s} shapes")
+        self.surfaces, self.built = surfaces, {}
+
+    def __getitem__(self, i: int) -> _TrueSurface:
+        if i not in self.built:
+            self.built[i] = _TrueSurface(*self.surfaces[i])
+        return self.built[i]
+
+    def release(self, i: int):
+        self.built.pop(i, None)
 
 
 def _mean_se(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -207,7 +221,7 @@ def _mean_se(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: np.ndarray,
                            surfaces, max_modes: int, max_points: int | None = None,
                            rng: np.random.Generator | None = None,
-                           space: ModelSpace | None = None) -> dict:
+                           space: ModelSpace | None = None, cases=None) -> dict:
     """Leave-one-out generalization measured surface to surface against the true surfaces.
 
     For each training shape i and M = 1..max_modes, the reconstruction x_i'(M) of
@@ -238,6 +252,9 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
         Only used with ``max_points`` (default: ``numpy.random.default_rng(0)``).
     space : ModelSpace, optional
         The shapes' :func:`.space.model_space`, when known.
+    cases : ndarray of int, optional
+        The k shapes left out in turn (:func:`.evaluation.leave_out_cases`); default all
+        (k = n_s), and the per-case values below then have k rows, in this order.
 
     Returns
     -------
@@ -256,27 +273,29 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
     triangles = np.asarray(triangles, dtype=np.int64)
     coordinates, to_points = space_of(shapes, weights, space)
     n_s, n_p = len(coordinates), shapes.shape[1]
-    true = _true_surfaces(surfaces, n_s)
+    true = _TrueSurfaces(surfaces, n_s)
+    order = np.arange(n_s) if cases is None else np.asarray(cases, dtype=np.int64)
     points_sampler = _sampler(shapes[0], max_points, stratified=False)
-    true_samplers = [_sampler(t.vertices, max_points, stratified=False) for t in true]
-    values = np.zeros((4, n_s, max_modes))
+    values = np.zeros((4, len(order), max_modes))
     mesh = None
-    for i, residuals, used in leave_one_out(coordinates, max_modes):
+    for row, (i, residuals, used) in enumerate(leave_one_out(coordinates, max_modes, order)):
         rebuilt = shapes[i] - displacements(residuals, to_points)
         # the reconstructions with more modes move little: each search starts where the last
         # one for the same point or vertex ended, the first from shape i's mesh
         on_true = np.full(n_p, -1, dtype=np.int64)
         on_mesh = _faces_near(shapes[i], triangles, true[i].vertices)
+        true_sampler = _sampler(true[i].vertices, max_points, stratified=False)
         for m in range(max_modes):
             if m > 0 and used[m] == used[m - 1]:        # the same reconstruction as with m modes
-                values[:, i, m] = values[:, i, m - 1]
+                values[:, row, m] = values[:, row, m - 1]
                 continue
             if mesh is None:
                 mesh = MeshSearch(rebuilt[m], triangles)
             else:
                 mesh.move(rebuilt[m])
-            values[:, i, m] = _symmetric(rebuilt[m], weights, mesh, true[i], points_sampler,
-                                         true_samplers[i], rng, on_true, on_mesh)
+            values[:, row, m] = _symmetric(rebuilt[m], weights, mesh, true[i], points_sampler,
+                                           true_sampler, rng, on_true, on_mesh)
+        true.release(i)                 # one case's search structures at a time
     distance, distance_se = _mean_se(values[0])
     weighted, weighted_se = _mean_se(values[1])
     return {"distance": distance, "distance_se": distance_se,
@@ -353,18 +372,19 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
     # exactly as specificity(): axis m of the model-space coordinates has variance lambda_m
     sd = np.sqrt(np.sum(coordinates ** 2, axis=0) / n_s)
     normal = rng.standard_normal((n_samples, rank))
-    true = _true_surfaces(surfaces, n_s)
+    true = _TrueSurfaces(surfaces, n_s)
     candidates = int(min(max(candidates, 1), n_s))
     mean = shapes.mean(axis=0)
     points_sampler = _sampler(mean, max_points, stratified=True)
-    true_samplers = [_sampler(t.vertices, max_points, stratified=True) for t in true]
+    # built with the true surfaces, for the candidates only
+    true_samplers = {}
     train_sq = np.sum(coordinates ** 2, axis=1)
     distance = np.zeros((n_samples, max_modes))
     weighted = np.zeros((n_samples, max_modes))
     nearest = np.zeros((n_samples, max_modes), dtype=np.int64)
     # per true surface, the triangles last found nearest (see _symmetric); on the samples' mesh
     # first those of the training shape's own mesh, which the samples it is a candidate for are near
-    on_true = [np.full(len(mean), -1, dtype=np.int64) for _ in true]
+    on_true = [None] * n_s
     on_mesh = [None] * n_s
     mesh = None
     for m in range(1, max_modes + 1):
@@ -390,6 +410,9 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
                 if on_mesh[candidate] is None:
                     on_mesh[candidate] = _faces_near(shapes[candidate], triangles,
                                                      true[candidate].vertices)
+                    true_samplers[candidate] = _sampler(true[candidate].vertices, max_points,
+                                                        stratified=True)
+                    on_true[candidate] = np.full(len(mean), -1, dtype=np.int64)
                 values = _symmetric(points, weights, mesh, true[candidate], points_sampler,
                                     true_samplers[candidate], rng, on_true[candidate],
                                     on_mesh[candidate])

@@ -167,6 +167,20 @@ def _measure_table(metrics: dict) -> str:
     return table(header, rows, flags)
 
 
+def _subsample_note(metrics: dict) -> list:
+    """Where the generalization left out a random subset of the cases
+    (:func:`~mdlshapemodel.model.evaluation.leave_out_cases`), a sentence that says so."""
+    if "generalization_cases" not in metrics:
+        return []
+    part = metrics["generalization_subsample_se"][0]
+    return [f"<p id=generalization-cases>G(M) is estimated from a random sample of "
+            f"{metrics['generalization_cases']} of the {metrics['n_shapes']} cases, each left "
+            f"out in turn and reconstructed by the model of all the others (the build's "
+            f"<code>generalization_cases</code>); its ± is over those cases and includes the "
+            f"sample's own error as an estimate of the mean over all the cases (for G(1): "
+            f"{part:.2g}; <code>generalization_subsample_se</code> in {folders.METRICS}).</p>"]
+
+
 def _flagged_part(metrics: dict) -> list:
     """The cases the build's checks flag (metrics.json ``flagged_cases``), named with why: at
     the top of the report, so that they are seen before the model is used."""
@@ -442,7 +456,7 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
               "standard "
               "error (<code>baselines</code>, <code>differences</code>).</p>",
               image_tag(measure_plot(_series(metrics)), "quality measures"),
-              _measure_table(metrics), HOW_TO_READ]
+              _measure_table(metrics), *_subsample_note(metrics), HOW_TO_READ]
     if "generalization_surface_mm" in metrics:
         parts += ["<h3>Measured surface to surface, against the true training surfaces</h3>",
                   image_tag(measure_plot(_series(metrics), keys=("generalization_surface_mm",

@@ -5,7 +5,8 @@ base64 arrays: the mean (float32), the first modes already scaled by their stand
 sqrt(lambda_k) (float32), each scaled mode's component along the mean's outward normals (float32,
 the colour), the triangles of each part (int32) and the aligned training shapes (uint16, quantised
 on the bounding box of all cases: a step below 1/65535 of its size, to keep the page small; at most
-``MAX_CASE_BYTES`` of them). plotly.js is 4.8 MB of the page; 100 cases of 2562 points add 2.6 MB.
+``MAX_CASE_BYTES`` of them, beyond which a sample spread evenly over the first mode's scores,
+:func:`shown_cases`). plotly.js is 4.8 MB of the page; 100 cases of 2562 points add 2.6 MB.
 
 A few lines of JavaScript turn the sliders into ``mean + sum_k s_k sqrt(lambda_k) mode_k`` and the
 colour into the displacement from the mean along the mean's outward normal, and call
@@ -30,7 +31,7 @@ from ..model.normals import outward_normals
 
 MAX_MODES = 10
 # the case picker's share of the page (bytes before base64: 6 per point and case); a population
-# beyond it is shown by its first cases, said on the page (2562 points: 260 cases)
+# beyond it is shown by a sample of its cases (shown_cases), said on the page (2562 points: 260)
 MAX_CASE_BYTES = 4_000_000
 SD_RANGE = 3.0
 
@@ -50,6 +51,23 @@ def correspondence_values(reference: np.ndarray) -> np.ndarray:
     along = (local[:, 0] - local[:, 0].min()) / max(float(np.ptp(local[:, 0])), 1e-12)
     checker = np.cos(8 * np.pi * along) * np.cos(4 * np.arctan2(local[:, 2], local[:, 1]))
     return np.clip(0.9 * along + 0.05 + 0.05 * np.tanh(2.5 * checker), 0.0, 1.0)
+
+
+def shown_cases(model, shapes: np.ndarray, limit: int) -> np.ndarray:
+    """The cases (indices, in their order) the viewer holds: all of them up to ``limit``; beyond
+    it ``limit`` cases at evenly spaced ranks of their score on the model's first mode, from the
+    lowest to the highest (by their order where the model has no mode), so that the sample spans
+    the population's main variation and is the same at every writing."""
+    n_cases = len(shapes)
+    if n_cases <= limit:
+        return np.arange(n_cases)
+    order = np.arange(n_cases)
+    if model.n_modes > 0:
+        weighted = np.asarray(model.modes[0]) * np.asarray(model.weights)[:, None]
+        scores = np.einsum("pd,spd->s", weighted, np.asarray(shapes) - model.mean)
+        order = np.argsort(scores, kind="stable")
+    ranks = np.unique(np.rint(np.linspace(0, n_cases - 1, limit)).astype(np.int64))
+    return np.sort(order[ranks])
 
 
 def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES,
@@ -73,7 +91,9 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES,
     cases, n_cases = [], 0
     if shapes is not None and len(shapes):
         n_cases = len(shapes)
-        shapes = np.asarray(shapes, dtype=np.float64)[:max(1, MAX_CASE_BYTES // (6 * n_p))]
+        shown = shown_cases(model, np.asarray(shapes, dtype=np.float64),
+                            max(1, MAX_CASE_BYTES // (6 * n_p)))
+        shapes = np.asarray(shapes, dtype=np.float64)[shown]
         displacement = np.einsum("spd,pd->sp", shapes - mean, normals)
         half = max(half, float(np.percentile(np.abs(displacement), 99)))
         extremes.append(shapes.reshape(-1, 3))
@@ -81,7 +101,7 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES,
         step = np.where(high > low, (high - low) / 65535.0, 1.0)
         quantised = np.rint((shapes - low) / step).clip(0, 65535)
         names = list(names) if names is not None else []
-        cases = [str(names[i]) if i < len(names) else f"case {i + 1}" for i in range(len(shapes))]
+        cases = [str(names[i]) if i < len(names) else f"case {i + 1}" for i in shown]
     every = np.concatenate([np.reshape(e, (-1, 3)) for e in extremes])
     low_box, high_box = every.min(axis=0), every.max(axis=0)
     margin = 0.03 * float(np.max(high_box - low_box) or 1.0)
@@ -108,7 +128,7 @@ def viewer_data(model, shapes=None, names=None, n_modes: int = MAX_MODES,
         data.update(case_low=[float(v) for v in low], case_step=[float(v) for v in step],
                     case_points=_b64(quantised, np.uint16))
         if distances is not None and np.shape(distances) == (n_cases, n_p):
-            kept = np.asarray(distances, dtype=np.float64)[:len(cases)]
+            kept = np.asarray(distances, dtype=np.float64)[shown]
             top = float(np.percentile(kept, 99.5)) or 1.0
             data.update(distance_max=top,
                         case_distance=_b64(np.rint(np.clip(kept / top, 0, 1) * 255), np.uint8))
@@ -338,8 +358,9 @@ def viewer_section(model, shapes=None, names=None, n_modes: int = MAX_MODES,
         parts_note += (" The black points are the landmarks that guided the build, where they "
                        "lie on the shape shown; the legend hides them.")
     payload = json.dumps(data).replace("</", "<\\/")
-    shown = (f": the first {len(data['cases'])} of {data['n_cases']} cases, to keep the page small"
-             if len(data["cases"]) < data["n_cases"] else "")
+    shown = (f": a sample of {len(data['cases'])} of the {data['n_cases']} cases, at evenly "
+             f"spaced ranks of their score on mode 1 (from the lowest to the highest), to keep "
+             f"the page small" if len(data["cases"]) < data["n_cases"] else "")
     how = ("Drag a box to zoom, double-click to see all" if model.of_curves
            else "Drag to turn, scroll to zoom")
     fragments = [

@@ -1,0 +1,96 @@
+"""How long is left: the estimates in a build's progress reports (progress.TimeLeft), and a real
+build's lines that carry them; the same build leaves out a subset of its cases for G(M)
+(--generalization-cases) and says so in metrics.json and the report."""
+
+import json
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+from mdlshapemodel.progress import TimeLeft, time_left_text
+
+from files import write_label_map
+from synthetic import small_mask
+
+LEFT = re.compile(r"\((about|at most about) (\d+(?:\.\d+)?) (s|min|h) left(, the time budget)?\)")
+
+
+class Clock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+def seconds(text):
+    found = LEFT.search(text)
+    assert found, text
+    return float(found.group(2)) * {"s": 1, "min": 60, "h": 3600}[found.group(3)]
+
+
+def test_the_estimates_of_a_counted_stage_and_of_the_optimisation():
+    seen, clock = [], Clock()
+    progress = TimeLeft(lambda fraction, message: seen.append(message), budget=600.0,
+                        clock=clock)
+    clock.now += 10.0
+    progress(0.25, "prepared 1/4")            # 10 s for a quarter: 30 s to go
+    clock.now += 10.0
+    progress(0.5, "prepared 2/4")
+    clock.now += 20.0
+    progress(1.0, "prepared 4/4")             # done: no estimate
+    assert seconds(seen[0]) == 30 and seconds(seen[1]) == 20
+    assert LEFT.search(seen[2]) is None
+    clock.now += 5.0
+    progress(None, "fixed: level 0, round 1, F = 3.000")     # the budget from here on
+    clock.now += 240.0
+    progress(None, "fixed: level 0, round 2, F = 2.000")
+    assert seconds(seen[3]) == 600 and seconds(seen[4]) == 6 * 60
+    assert "at most about" in seen[4] and "time budget" in seen[4]
+    clock.now += 400.0                        # past the budget: no bound to give
+    progress(None, "integrated: level 1, round 9, F = 1.000")
+    assert LEFT.search(seen[5]) is None
+    progress(0.0, "evaluating")               # a new counted stage starts its own clock
+    clock.now += 3.0
+    progress(0.5, "evaluating the model")
+    assert seconds(seen[7]) == 3
+    assert time_left_text(3 * 3600) == "3.0 h"
+
+
+def test_a_cancelling_callback_still_cancels_through_it():
+    progress = TimeLeft(lambda fraction, message: False, budget=10.0)
+    assert progress(0.5, "prepared 1/2") is False
+
+
+@pytest.mark.slow
+def test_a_real_build_says_how_long_is_left_and_that_g_is_from_a_sample(tmp_path):
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    for k, position in enumerate((-0.6, -0.3, 0.0, 0.3, 0.6)):
+        write_label_map(inputs / f"s{k}.nii.gz", small_mask(position).astype("uint8"))
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "mdlshapemodel.cli", "build", str(inputs), "-o", str(out),
+               "--points", "42", "--max-time", "60", "--workers", "1", "--no-cache",
+               "--specificity-samples", "100", "--evaluation-modes", "2",
+               "--surface-samples", "0", "--generalization-cases", "4"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=900,
+                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    assert result.returncode == 0, result.stderr
+    log = (out / "build.log").read_text().splitlines()
+    # the first report of the preparation (its stage's first line) estimates the rest
+    preparing = [line for line in log if "prepared 1/5" in line]
+    assert preparing and LEFT.search(preparing[0]), preparing
+    assert seconds(preparing[0]) >= 0
+    # the optimisation's first line: bounded by the 60-s budget
+    optimising = [line for line in log if "F = " in line and "left" in line]
+    assert optimising, "\n".join(log)
+    found = LEFT.search(optimising[0])
+    assert found.group(1) == "at most about" and 0 < seconds(optimising[0]) <= 60
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["n_shapes"] == 5 and metrics["generalization_cases"] == 4
+    assert len(metrics["generalization_subsample_se"]) == 2
+    page = (out / "report.html").read_text()
+    assert "random sample of 4 of the 5 cases" in page
