@@ -1,0 +1,279 @@
+"""The fast strategy's per-example work on the workers of a Dask cluster (``--scheduler``).
+
+:class:`ExamplesOnCluster` splits a phase's active examples into one stretch of consecutive rows
+per worker. When the phase starts, each worker is sent its examples' parts (surfaces, point
+locators, sample positions, warps) once, and keeps them in its process under the phase's key
+(:func:`hold`). Each round it makes its :class:`~.blocks.BlockSet` of them; each evaluation it
+receives its stretch of the parameters x (and which earlier trials to keep) and sends back its
+examples' unposed samples (rows x n_p x 3); for the gradient it receives their rows of dF/dX with
+their poses' scale and rotation, and sends back the gradient of its stretch. A commit is applied
+by each worker to its own copies (:meth:`~.blocks.BlockSet.commit`) and, with what it returns, to
+the build's. Eq. 14, dF/dX, the poses and the quasi-Newton steps stay in the build's process.
+
+Why the parts are held per phase and not scattered per round: between the rounds of a phase
+they change only by the commits, which keep both copies equal; sending them each round would
+move every surface (about a megabyte per example) some fifty times per phase for nothing.
+
+The arithmetic is :class:`~.blocks.BlockSet`'s, as in the build's own process, one call at a time
+per worker with one BLAS thread (:class:`~mdlshapemodel.cluster.InTurn`): the optimisation gives
+the same correspondence as without a cluster, bit for bit.
+
+A worker that leaves the cluster (its process killed, its machine gone) while it holds a stretch
+is not waited for: the build asks the scheduler which workers it has every
+:data:`POLL_SECONDS` while it waits, and takes a lost stretch into its own process (a
+:class:`~.blocks.BlockSet` of the build's parts, as they were at the start of the round, with
+the round's kept trials sampled again), with a warning in the log. The rest of the phase runs that
+stretch here; the next phase spreads over the workers there are then.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import uuid
+from concurrent.futures import CancelledError
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...cluster import InTurn
+from ...errors import BuildError
+from ...parallel import Threads
+from ..state import CorrespondenceState
+from .blocks import BlockSet
+
+log = logging.getLogger("mdlshapemodel")
+
+#: how often (seconds) the build asks the scheduler whether the workers it waits for are there
+POLL_SECONDS = 1.0
+
+# What a worker process holds: phase key -> {"examples": each example's parts, "part_slices",
+# "set": the round's BlockSet}
+_HELD: dict = {}
+
+
+def hold(key: str, examples: list, part_slices: list) -> int:
+    """On a worker: keep ``examples`` (each one's parts) for the phase ``key``."""
+    _HELD[key] = {"examples": examples, "part_slices": part_slices, "set": None}
+    return len(examples)
+
+
+def on_held(key: str, method: str, *arguments):
+    """On a worker: ``open`` the round's block set of the examples held for ``key`` (returns
+    its :class:`~.blocks.Layout`), or call the set's ``method`` with ``arguments``."""
+    held = _HELD.get(key)
+    if held is None:
+        raise LookupError(f"the Dask worker process {os.getpid()} on {socket.gethostname()} "
+                          f"holds no examples of {key}")
+    if method == "open":
+        held["set"] = BlockSet(held["examples"], held["part_slices"], *arguments)
+        return held["set"].layout
+    return getattr(held["set"], method)(*arguments)
+
+
+def release(key: str) -> bool:
+    """On a worker: forget the examples held for ``key``."""
+    return _HELD.pop(key, None) is not None
+
+
+@dataclass
+class _Stretch:
+    """Consecutive active rows, the worker that holds their examples (``here``: the build's
+    process, in ``blocks``) and the round's trials it was asked to sample and still keeps."""
+
+    rows: slice
+    worker: str | None
+    blocks: BlockSet | None = None
+    trials: dict = field(default_factory=dict)     # number -> (x, keep) of kept trials
+
+    @property
+    def here(self) -> bool:
+        return self.worker is None
+
+
+class _Lost(Exception):
+    """A worker left (or forgot its examples) while it held a stretch."""
+
+
+class ExamplesOnCluster:
+    """A phase's per-example work on the workers of the Dask ``client``: the interface of
+    :class:`~.fast.ExamplesHere` (``open``, ``each``, ``commit``), and :meth:`close` (also as
+    a context manager), which releases what the workers hold.
+
+    Parameters
+    ----------
+    client : distributed.Client
+        A client of the scheduler whose workers (those connected now) do the work.
+    state : CorrespondenceState
+        The state the phase optimises (its parts are sent to the workers).
+    active : sequence of int
+        The examples the phase moves.
+    threads : Threads, optional
+        Threads for a stretch taken here from a lost worker.
+    """
+
+    def __init__(self, client, state: CorrespondenceState, active,
+                 threads: Threads | None = None):
+        self.client, self.state = client, state
+        self.threads = threads or Threads(1)
+        self.active = np.array(list(active), dtype=np.int64)
+        workers = sorted(client.nthreads())
+        if not workers:
+            raise BuildError("the Dask scheduler has no workers to optimise on")
+        count = min(len(workers), len(self.active))
+        edges = [len(self.active) * k // count for k in range(count + 1)]
+        self.stretches = [_Stretch(slice(a, b), worker)
+                          for a, b, worker in zip(edges, edges[1:], workers)]
+        self.key = f"mdlshapemodel-optimisation-{uuid.uuid4().hex}"
+        self.opened = None          # the round's arguments of BlockSet
+        self._each("hold", [(self._parts(s), state.part_slices) for s in self.stretches])
+        log.info("the optimisation's per-example work on %d Dask workers (%s examples each)",
+                 count, "-".join(sorted({str(s.rows.stop - s.rows.start)
+                                         for s in self.stretches})))
+
+    def _parts(self, stretch: _Stretch) -> list:
+        return [self.state.examples[i].parts for i in self.active[stretch.rows]]
+
+    def open(self, active: np.ndarray, level: int, support: float, pose_limits) -> list:
+        """Make the round's block sets; (rows, :class:`~.blocks.Layout`) of each stretch."""
+        if not np.array_equal(active, self.active):
+            raise BuildError("a round's active examples are not those of its phase")
+        self.opened = (level, support, list(pose_limits))
+        for stretch in self.stretches:
+            stretch.trials = {}
+        layouts = self._each("open", [self.opened] * len(self.stretches))
+        return [(s.rows, layout) for s, layout in zip(self.stretches, layouts)]
+
+    def each(self, method: str, arguments: list) -> list:
+        """Each stretch's block set's ``method`` called with its arguments, on its worker."""
+        results = self._each(method, arguments)
+        if method == "sample":      # what a stretch taken here would sample again
+            for stretch, (number, x, keep) in zip(self.stretches, arguments):
+                stretch.trials = {k: v for k, v in stretch.trials.items() if k in keep}
+                stretch.trials[number] = (np.array(x, copy=True), keep)
+        return results
+
+    def commit(self, trial: int, parameters: list):
+        """Commit ``trial`` on the workers' copies of the parts and on the state's."""
+        settled = self._each("commit", [(trial, x) for x in parameters])
+        for stretch, changes in zip(self.stretches, settled):
+            if stretch.here:      # its block set is of the state's own parts: committed
+                continue
+            for row, j, arguments in changes:
+                self.state.examples[self.active[stretch.rows][row]].parts[j].commit(*arguments)
+
+    def close(self):
+        """Release what the workers hold (without waiting: also on the way out of an
+        interrupted build)."""
+        from distributed import fire_and_forget
+
+        if self.client.status != "running":
+            return
+        for stretch in self.stretches:
+            if not stretch.here:
+                fire_and_forget(self.client.submit(InTurn(release), self.key, pure=False,
+                                                   workers=[stretch.worker],
+                                                   allow_other_workers=False))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def _each(self, method: str, arguments: list) -> list:
+        futures = {}
+        for k, (stretch, given) in enumerate(zip(self.stretches, arguments)):
+            if not stretch.here:
+                if method == "hold":    # straight to the worker, not through the scheduler
+                    (examples,) = self.client.scatter([given[0]], workers=[stretch.worker],
+                                                      hash=False, direct=True)
+                    call = (InTurn(hold), self.key, examples, *given[1:])
+                else:
+                    call = (InTurn(on_held), self.key, method, *given)
+                futures[k] = self.client.submit(*call, pure=False, workers=[stretch.worker],
+                                                allow_other_workers=False)
+        results = [None] * len(self.stretches)
+        for k, stretch in enumerate(self.stretches):       # meanwhile, the stretches here
+            if stretch.here:
+                results[k] = self._here(stretch, method, arguments[k])
+        for k, outcome in self._outcomes(futures).items():
+            if isinstance(outcome, _Lost):
+                self._take_here(self.stretches[k], outcome)
+                results[k] = self._here(self.stretches[k], method, arguments[k])
+            else:
+                results[k] = outcome
+        return results
+
+    def _here(self, stretch: _Stretch, method: str, given: tuple):
+        if method == "hold":
+            return len(self._parts(stretch))
+        if method == "open":
+            stretch.blocks = BlockSet(self._parts(stretch), self.state.part_slices, *given,
+                                      self.threads)
+            return stretch.blocks.layout
+        return getattr(stretch.blocks, method)(*given)
+
+    def _take_here(self, stretch: _Stretch, why: _Lost):
+        """The stretch of a lost worker, from now on in this process: its block set made of the
+        state's parts (as at the start of the round: a commit reaches them only once every
+        worker has committed), the round's kept trials sampled again."""
+        log.warning("%s while it held examples %d-%d of %d of the optimisation: they are "
+                    "optimised in this process from now on", why, stretch.rows.start + 1,
+                    stretch.rows.stop, len(self.active))
+        stretch.worker = None
+        if self.opened is not None:
+            stretch.blocks = BlockSet(self._parts(stretch), self.state.part_slices,
+                                      *self.opened, self.threads)
+        for number in sorted(stretch.trials):
+            x, keep = stretch.trials[number]
+            stretch.blocks.sample(number, x, keep)
+
+    def _outcomes(self, futures: dict) -> dict:
+        """Index -> result, or :class:`_Lost`, of each future; waits while the workers are
+        there, asking the scheduler every :data:`POLL_SECONDS`."""
+        outcomes = {}
+        pending = dict(futures)
+        while pending:
+            for k, future in list(pending.items()):
+                if future.done():
+                    outcomes[k] = self._outcome(pending.pop(k), self.stretches[k].worker)
+            if not pending:
+                break
+            waited = next(iter(pending.values()))
+            try:
+                waited.result(timeout=POLL_SECONDS)
+            except Exception:       # its error is taken above, at the next turn
+                pass
+            if waited.done():
+                continue
+            present = self._workers()
+            for k in [k for k in pending if self.stretches[k].worker not in present]:
+                pending.pop(k).cancel()
+                outcomes[k] = _Lost(f"the Dask worker {self.stretches[k].worker} left the "
+                                    "cluster")
+        return outcomes
+
+    def _workers(self) -> set:
+        if self.client.status != "running":
+            return set()
+        try:
+            return set(self.client.nthreads())
+        except OSError:         # the scheduler went away
+            return set()
+
+    @staticmethod
+    def _outcome(future, worker: str):
+        try:
+            return future.result()
+        except LookupError as error:         # a new process at the worker's address
+            return _Lost(str(error))
+        except CancelledError:
+            return _Lost(f"the Dask worker {worker}'s call was cancelled")
+        except Exception as error:
+            from ...cluster import killed_on_cluster
+
+            if killed_on_cluster(error):
+                return _Lost(f"the Dask worker {worker} died")
+            raise
