@@ -325,7 +325,10 @@ def test_a_worker_lost_in_a_round_leaves_its_examples_to_the_build(
     assert result.returncode == 0, result.stderr
     assert Path(f"{dying}.done").exists()      # a worker died
     log = (output / "build.log").read_text()
-    assert log.count(ON_THE_WORKERS) == 2
+    # the second phase spreads over the workers connected then: the one killed may be back
+    assert log.index(ON_THE_WORKERS) < log.index("while it held examples")
+    assert len(re.findall(r"the optimisation's per-example work on (2 Dask workers \(3|1 Dask "
+                          r"worker \(6) examples each\)", log)) == 2
     assert re.search(r"WARNING the Dask worker tcp://127\.0\.0\.1:\d+ (died|left the cluster) "
                      r"while it held examples [14]-[36] of 6 of the optimisation: they are "
                      r"optimised in this process from now on", log)
@@ -336,3 +339,48 @@ def test_a_worker_lost_in_a_round_leaves_its_examples_to_the_build(
         else:
             np.testing.assert_allclose(value, reference[name], rtol=1e-9, atol=1e-9,
                                        err_msg=name)
+
+
+# Python's own SIGINT handler in the command line even where this test runs with SIGINT
+# ignored (a background job of a non-interactive shell), as in a terminal
+COMMAND_LINE = ("import runpy, signal, sys; "
+                "signal.signal(signal.SIGINT, signal.default_int_handler); "
+                "sys.argv[0] = 'mdlshapemodel'; "
+                "runpy.run_module('mdlshapemodel.cli', run_name='__main__')")
+
+
+@needs_hippocampi
+def test_ctrl_c_stops_the_optimisation_on_the_workers_and_resume_ends_it_here(
+        scheduler, optimised_here, tmp_path):
+    """SIGINT to the command line's process group (as a terminal sends it; the workers are in a
+    session of their own) once the workers hold the examples: the build stops after the round,
+    writes the model of the state reached (exit code 0) and keeps the round's checkpoint, from
+    which --resume without the cluster ends with the uninterrupted build's model, bit for bit."""
+    output = tmp_path / "cluster"
+    arguments = [sys.executable, "-c", COMMAND_LINE, "build", *map(str, hippocampi(6)), "-o",
+                 str(output), *SMALL_BUILD, *OPTIMISED, "--scheduler", scheduler]
+    process = subprocess.Popen(arguments, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, start_new_session=True,
+                               env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    log = output / "build.log"
+    try:
+        deadline = time.monotonic() + 300
+        while (process.poll() is None and time.monotonic() < deadline
+               and ON_THE_WORKERS not in (log.read_text() if log.exists() else "")):
+            time.sleep(0.05)
+        assert process.poll() is None, "the build ended before its examples were on the workers"
+        os.killpg(process.pid, signal.SIGINT)
+        assert process.wait(timeout=300) == 0
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    text = log.read_text()
+    assert text.count(ON_THE_WORKERS) == 1          # the first phase, not the second
+    metrics = json.loads((output / "metrics.json").read_text())
+    assert metrics["optimisation"]["stopped_by"] == "interrupted"
+    result = build(hippocampi(6), output, *OPTIMISED, "--workers", "1", "--resume")
+    assert result.returncode == 0, result.stderr
+    reference = model_arrays(optimised_here)
+    for name, value in model_arrays(output).items():
+        assert np.array_equal(value, reference[name]), name

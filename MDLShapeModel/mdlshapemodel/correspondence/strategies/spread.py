@@ -48,6 +48,10 @@ log = logging.getLogger("mdlshapemodel")
 #: how often (seconds) the build asks the scheduler whether the workers it waits for are there
 POLL_SECONDS = 1.0
 
+#: arrays of at least this many bytes (a stretch of x, its rows of dF/dX) go to their worker
+#: straight from the build's process
+SENT_STRAIGHT_BYTES = 1 << 20
+
 # What a worker process holds: phase key -> {"examples": each example's parts, "part_slices",
 # "set": the round's BlockSet}
 _HELD: dict = {}
@@ -128,9 +132,9 @@ class ExamplesOnCluster:
         self.key = f"mdlshapemodel-optimisation-{uuid.uuid4().hex}"
         self.opened = None          # the round's arguments of BlockSet
         self._each("hold", [(self._parts(s), state.part_slices) for s in self.stretches])
-        log.info("the optimisation's per-example work on %d Dask workers (%s examples each)",
-                 count, "-".join(sorted({str(s.rows.stop - s.rows.start)
-                                         for s in self.stretches})))
+        log.info("the optimisation's per-example work on %d Dask worker%s (%s examples each)",
+                 count, "s" if count > 1 else "",
+                 "-".join(sorted({str(s.rows.stop - s.rows.start) for s in self.stretches})))
 
     def _parts(self, stretch: _Stretch) -> list:
         return [self.state.examples[i].parts for i in self.active[stretch.rows]]
@@ -191,7 +195,8 @@ class ExamplesOnCluster:
                                                       hash=False, direct=True)
                     call = (InTurn(hold), self.key, examples, *given[1:])
                 else:
-                    call = (InTurn(on_held), self.key, method, *given)
+                    call = (InTurn(on_held), self.key, method,
+                            *(self._sent(a, stretch.worker) for a in given))
                 futures[k] = self.client.submit(*call, pure=False, workers=[stretch.worker],
                                                 allow_other_workers=False)
         results = [None] * len(self.stretches)
@@ -205,6 +210,13 @@ class ExamplesOnCluster:
             else:
                 results[k] = outcome
         return results
+
+    def _sent(self, argument, worker: str):
+        """``argument``, or for a large array a future of it sent straight to ``worker`` (not
+        through the scheduler, as a call's arguments go)."""
+        if isinstance(argument, np.ndarray) and argument.nbytes >= SENT_STRAIGHT_BYTES:
+            return self.client.scatter(argument, workers=[worker], hash=False, direct=True)
+        return argument
 
     def _here(self, stretch: _Stretch, method: str, given: tuple):
         if method == "hold":
