@@ -25,7 +25,7 @@ from distributed import Client
 
 import mdlshapemodel
 from mdlshapemodel import BuildConfig, ShapeModel
-from mdlshapemodel.build import fingerprint
+from mdlshapemodel.build import correspond, fingerprint
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel import parallel
 from mdlshapemodel.cluster import on_cluster
@@ -199,6 +199,22 @@ def test_work_a_closed_dask_client_cannot_take_is_done_locally(scheduler, caplog
         assert Task(executor, square_or_die, 5).result() == 25
     assert "the executor broke with 2 of 2 cases unfinished" in caplog.text
     assert "did not finish (BrokenExecutor); doing it here" in caplog.text
+
+
+@needs_hippocampi
+def test_an_optimisation_given_a_closed_dask_client_runs_here(scheduler, caplog):
+    """A client whose scheduler went away: the optimisation's per-example work runs in this
+    process, with a warning, and gives the correspondence of a run without a cluster."""
+    config = BuildConfig(labels=[1], points=162, max_sweeps=2, workers=1, cache_dir="")
+    prepared, _ = preprocess(hippocampi(4), config)
+    with Client(scheduler, set_as_default=False) as client:
+        executor = client.get_executor(pure=False)
+    with caplog.at_level(logging.WARNING, "mdlshapemodel"):
+        there = correspond(prepared, config, executor=executor)
+    assert caplog.text.count("the Dask cluster has no workers (or no scheduler) now") == 2
+    here = correspond(prepared, config)
+    assert np.array_equal(there.state.shapes, here.state.shapes)
+    assert there.final_objective == here.final_objective
 
 
 def model_arrays(output: Path) -> dict:

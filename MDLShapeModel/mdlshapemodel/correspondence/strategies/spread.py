@@ -23,7 +23,8 @@ is not waited for: the build asks the scheduler which workers it has every
 :data:`POLL_SECONDS` while it waits, and takes a lost stretch into its own process (a
 :class:`~.blocks.BlockSet` of the build's parts, as they were at the start of the round, with
 the round's kept trials sampled again), with a warning in the log. The rest of the phase runs that
-stretch here; the next phase spreads over the workers there are then.
+stretch here; the next phase spreads over the workers there are then, and a phase that finds no
+worker (or no scheduler) runs them all here.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...cluster import InTurn
-from ...errors import BuildError
+from ...errors import ArgumentError
 from ...parallel import Threads
 from ..state import CorrespondenceState
 from .blocks import BlockSet
@@ -122,15 +123,17 @@ class ExamplesOnCluster:
         self.client, self.state = client, state
         self.threads = threads or Threads(1)
         self.active = np.array(list(active), dtype=np.int64)
-        workers = sorted(client.nthreads())
-        if not workers:
-            raise BuildError("the Dask scheduler has no workers to optimise on")
-        count = min(len(workers), len(self.active))
+        workers = sorted(self._workers())
+        count = max(min(len(workers), len(self.active)), 1)
         edges = [len(self.active) * k // count for k in range(count + 1)]
         self.stretches = [_Stretch(slice(a, b), worker)
-                          for a, b, worker in zip(edges, edges[1:], workers)]
+                          for a, b, worker in zip(edges, edges[1:], workers or [None])]
         self.key = f"mdlshapemodel-optimisation-{uuid.uuid4().hex}"
         self.opened = None          # the round's arguments of BlockSet
+        if not workers:
+            log.warning("the Dask cluster has no workers (or no scheduler) now: the "
+                        "optimisation's per-example work runs in this process")
+            return
         self._each("hold", [(self._parts(s), state.part_slices) for s in self.stretches])
         log.info("the optimisation's per-example work on %d Dask worker%s (%s examples each)",
                  count, "s" if count > 1 else "",
@@ -142,7 +145,7 @@ class ExamplesOnCluster:
     def open(self, active: np.ndarray, level: int, support: float, pose_limits) -> list:
         """Make the round's block sets; (rows, :class:`~.blocks.Layout`) of each stretch."""
         if not np.array_equal(active, self.active):
-            raise BuildError("a round's active examples are not those of its phase")
+            raise ArgumentError("a round's active examples are not those of its phase")
         self.opened = (level, support, list(pose_limits))
         for stretch in self.stretches:
             stretch.trials = {}
