@@ -1,7 +1,7 @@
 """Test-only: a Dask worker process that dies in the middle of a round of the fast strategy.
 
 Preloaded into Dask workers (``--preload dies_in_a_round``), it wraps
-:func:`mdlshapemodel.correspondence.strategies.spread.on_held`, the function a worker runs for
+:meth:`mdlshapemodel.correspondence.strategies.spread.Holder.call`, the method a worker runs for
 every call of the optimisation on the examples it holds. Once the file named by
 ``$MDLSHAPEMODEL_TEST_DIE_AFTER`` exists, the first worker process to reach its
 :data:`SAMPLINGS`-th sampling of trial parameters from then on kills itself with SIGKILL, as the
@@ -25,21 +25,21 @@ def arm():
         return
     from mdlshapemodel.correspondence.strategies import spread
 
-    original = spread.on_held
+    original = spread.Holder.call
     counted = []
 
-    def on_held(key, method, *arguments):
+    def call(holder, method, *arguments):
         if method == "sample" and os.path.exists(trigger):
-            counted.append(key)
+            counted.append(method)
             if len(counted) == SAMPLINGS:
                 try:
                     os.close(os.open(f"{trigger}.done", os.O_CREAT | os.O_EXCL))
                 except FileExistsError:       # another worker has died for it
-                    return original(key, method, *arguments)
+                    return original(holder, method, *arguments)
                 os.kill(os.getpid(), signal.SIGKILL)
-        return original(key, method, *arguments)
+        return original(holder, method, *arguments)
 
-    spread.on_held = on_held
+    spread.Holder.call = call
 
 
 def dask_setup(worker=None):

@@ -1,9 +1,11 @@
 """The fast strategy's per-example work on the workers of a Dask cluster (``--scheduler``).
 
 :class:`ExamplesOnCluster` splits a phase's active examples into one stretch of consecutive rows
-per worker. When the phase starts, each worker is sent its examples' parts (surfaces, point
-locators, sample positions, warps) once, and keeps them in its process under the phase's key
-(:func:`hold`). Each round it makes its :class:`~.blocks.BlockSet` of them; each evaluation it
+per worker. When the phase starts, a :class:`Holder` is made on each worker (a Dask actor: the
+build's calls go to it directly, not through the scheduler, which answers each call in tens of
+milliseconds on a busy machine where an actor answers in a few) and sent its examples' parts
+(surfaces, point locators, sample positions, warps) once, which it keeps for the phase. Each
+round it makes its :class:`~.blocks.BlockSet` of them; each evaluation it
 receives its stretch of the parameters x (and which earlier trials to keep) and sends back its
 examples' unposed samples (rows x n_p x 3); for the gradient it receives their rows of dF/dX with
 their poses' scale and rotation, and sends back the gradient of its stretch. A commit is applied
@@ -12,7 +14,8 @@ the build's. Eq. 14, dF/dX, the poses and the quasi-Newton steps stay in the bui
 
 Why the parts are held per phase and not scattered per round: between the rounds of a phase
 they change only by the commits, which keep both copies equal; sending them each round would
-move every surface (about a megabyte per example) some fifty times per phase for nothing.
+move every surface (about a megabyte per example) some fifty times per phase for nothing. The
+actors go with the build's client: a build that ends, or dies, leaves nothing on the workers.
 
 The arithmetic is :class:`~.blocks.BlockSet`'s, as in the build's own process, one call at a time
 per worker with one BLAS thread (:class:`~mdlshapemodel.cluster.InTurn`): the optimisation gives
@@ -30,9 +33,6 @@ worker (or no scheduler) runs them all here.
 from __future__ import annotations
 
 import logging
-import os
-import socket
-import uuid
 from concurrent.futures import CancelledError
 from dataclasses import dataclass, field
 
@@ -49,37 +49,32 @@ log = logging.getLogger("mdlshapemodel")
 #: how often (seconds) the build asks the scheduler whether the workers it waits for are there
 POLL_SECONDS = 1.0
 
-#: arrays of at least this many bytes (a stretch of x, its rows of dF/dX) go to their worker
-#: straight from the build's process
-SENT_STRAIGHT_BYTES = 1 << 20
+class Holder:
+    """On a worker: the examples of one stretch for a phase, and the round's block set of them.
 
-# What a worker process holds: phase key -> {"examples": each example's parts, "part_slices",
-# "set": the round's BlockSet}
-_HELD: dict = {}
+    A Dask actor (made by :class:`ExamplesOnCluster`): its calls go from the build's process
+    to the worker directly, not through the scheduler, and it lives as long as the build keeps
+    it (a build that ends, or dies, takes it with it). Each call runs as
+    :class:`~mdlshapemodel.cluster.InTurn` (one at a time per process, one BLAS thread)."""
 
+    def __init__(self):
+        self.examples = self.part_slices = self.blocks = None
 
-def hold(key: str, examples: list, part_slices: list) -> int:
-    """On a worker: keep ``examples`` (each one's parts) for the phase ``key``."""
-    _HELD[key] = {"examples": examples, "part_slices": part_slices, "set": None}
-    return len(examples)
+    def hold(self, examples: list, part_slices: list) -> int:
+        """Keep ``examples`` (each one's parts)."""
+        self.examples, self.part_slices, self.blocks = examples, part_slices, None
+        return len(examples)
 
+    def call(self, method: str, *arguments):
+        """``open`` the round's block set of the examples held (returns its
+        :class:`~.blocks.Layout`), or call the set's ``method`` with ``arguments``."""
+        return InTurn(self._call)(method, *arguments)
 
-def on_held(key: str, method: str, *arguments):
-    """On a worker: ``open`` the round's block set of the examples held for ``key`` (returns
-    its :class:`~.blocks.Layout`), or call the set's ``method`` with ``arguments``."""
-    held = _HELD.get(key)
-    if held is None:
-        raise LookupError(f"the Dask worker process {os.getpid()} on {socket.gethostname()} "
-                          f"holds no examples of {key}")
-    if method == "open":
-        held["set"] = BlockSet(held["examples"], held["part_slices"], *arguments)
-        return held["set"].layout
-    return getattr(held["set"], method)(*arguments)
-
-
-def release(key: str) -> bool:
-    """On a worker: forget the examples held for ``key``."""
-    return _HELD.pop(key, None) is not None
+    def _call(self, method: str, *arguments):
+        if method == "open":
+            self.blocks = BlockSet(self.examples, self.part_slices, *arguments)
+            return self.blocks.layout
+        return getattr(self.blocks, method)(*arguments)
 
 
 @dataclass
@@ -90,6 +85,8 @@ class _Stretch:
     rows: slice
     worker: str | None
     blocks: BlockSet | None = None
+    holder: object = None                          # the Dask actor on the worker, its future
+    actor: object = None                           # and the actor itself
     trials: dict = field(default_factory=dict)     # number -> (x, keep) of kept trials
 
     @property
@@ -128,12 +125,19 @@ class ExamplesOnCluster:
         edges = [len(self.active) * k // count for k in range(count + 1)]
         self.stretches = [_Stretch(slice(a, b), worker)
                           for a, b, worker in zip(edges, edges[1:], workers or [None])]
-        self.key = f"mdlshapemodel-optimisation-{uuid.uuid4().hex}"
         self.opened = None          # the round's arguments of BlockSet
         if not workers:
             log.warning("the Dask cluster has no workers (or no scheduler) now: the "
                         "optimisation's per-example work runs in this process")
             return
+        made = {k: client.submit(Holder, workers=[s.worker], allow_other_workers=False,
+                                 actor=True, pure=False)
+                for k, s in enumerate(self.stretches)}
+        for k, actor in self._outcomes(made).items():
+            if isinstance(actor, _Lost):
+                self._take_here(self.stretches[k], actor)
+            else:
+                self.stretches[k].holder, self.stretches[k].actor = made[k], actor
         self._each("hold", [(self._parts(s), state.part_slices) for s in self.stretches])
         log.info("the optimisation's per-example work on %d Dask worker%s (%s examples each)",
                  count, "s" if count > 1 else "",
@@ -171,17 +175,9 @@ class ExamplesOnCluster:
                 self.state.examples[self.active[stretch.rows][row]].parts[j].commit(*arguments)
 
     def close(self):
-        """Release what the workers hold (without waiting: also on the way out of an
-        interrupted build)."""
-        from distributed import fire_and_forget
-
-        if self.client.status != "running":
-            return
+        """Let the workers' actors go (the scheduler releases them, without waiting here)."""
         for stretch in self.stretches:
-            if not stretch.here:
-                fire_and_forget(self.client.submit(InTurn(release), self.key, pure=False,
-                                                   workers=[stretch.worker],
-                                                   allow_other_workers=False))
+            stretch.holder = stretch.actor = None
 
     def __enter__(self):
         return self
@@ -193,15 +189,11 @@ class ExamplesOnCluster:
         futures = {}
         for k, (stretch, given) in enumerate(zip(self.stretches, arguments)):
             if not stretch.here:
-                if method == "hold":    # straight to the worker, not through the scheduler
-                    (examples,) = self.client.scatter([given[0]], workers=[stretch.worker],
-                                                      hash=False, direct=True)
-                    call = (InTurn(hold), self.key, examples, *given[1:])
-                else:
-                    call = (InTurn(on_held), self.key, method,
-                            *(self._sent(a, stretch.worker) for a in given))
-                futures[k] = self.client.submit(*call, pure=False, workers=[stretch.worker],
-                                                allow_other_workers=False)
+                try:
+                    futures[k] = (stretch.actor.hold(*given) if method == "hold"
+                                  else stretch.actor.call(method, *given))
+                except OSError as error:       # its worker is gone
+                    futures[k] = error
         results = [None] * len(self.stretches)
         for k, stretch in enumerate(self.stretches):       # meanwhile, the stretches here
             if stretch.here:
@@ -213,13 +205,6 @@ class ExamplesOnCluster:
             else:
                 results[k] = outcome
         return results
-
-    def _sent(self, argument, worker: str):
-        """``argument``, or for a large array a future of it sent straight to ``worker`` (not
-        through the scheduler, as a call's arguments go)."""
-        if isinstance(argument, np.ndarray) and argument.nbytes >= SENT_STRAIGHT_BYTES:
-            return self.client.scatter(argument, workers=[worker], hash=False, direct=True)
-        return argument
 
     def _here(self, stretch: _Stretch, method: str, given: tuple):
         if method == "hold":
@@ -237,7 +222,7 @@ class ExamplesOnCluster:
         log.warning("%s while it held examples %d-%d of %d of the optimisation: they are "
                     "optimised in this process from now on", why, stretch.rows.start + 1,
                     stretch.rows.stop, len(self.active))
-        stretch.worker = None
+        stretch.worker = stretch.holder = stretch.actor = None
         if self.opened is not None:
             stretch.blocks = BlockSet(self._parts(stretch), self.state.part_slices,
                                       *self.opened, self.threads)
@@ -248,8 +233,10 @@ class ExamplesOnCluster:
     def _outcomes(self, futures: dict) -> dict:
         """Index -> result, or :class:`_Lost`, of each future; waits while the workers are
         there, asking the scheduler every :data:`POLL_SECONDS`."""
-        outcomes = {}
-        pending = dict(futures)
+        outcomes = {k: _Lost(f"the Dask worker {self.stretches[k].worker} cannot be reached "
+                             f"({future})") for k, future in futures.items()
+                    if isinstance(future, OSError)}
+        pending = {k: future for k, future in futures.items() if k not in outcomes}
         while pending:
             for k, future in list(pending.items()):
                 if future.done():
@@ -265,7 +252,7 @@ class ExamplesOnCluster:
                 continue
             present = self._workers()
             for k in [k for k in pending if self.stretches[k].worker not in present]:
-                pending.pop(k).cancel()
+                getattr(pending.pop(k), "cancel", lambda: None)()    # (an actor's call: none)
                 outcomes[k] = _Lost(f"the Dask worker {self.stretches[k].worker} left the "
                                     "cluster")
         return outcomes
@@ -278,14 +265,16 @@ class ExamplesOnCluster:
         except OSError:         # the scheduler went away
             return set()
 
-    @staticmethod
-    def _outcome(future, worker: str):
+    def _outcome(self, future, worker: str):
         try:
-            return future.result()
-        except LookupError as error:         # a new process at the worker's address
-            return _Lost(str(error))
+            with self.client.as_current():   # an actor's proxy binds to the current client
+                return future.result()
+        except LookupError:                  # a new process at the worker's address
+            return _Lost(f"the Dask worker {worker} lost its examples")
         except CancelledError:
             return _Lost(f"the Dask worker {worker}'s call was cancelled")
+        except OSError:                      # its connection broke
+            return _Lost(f"the Dask worker {worker} died")
         except Exception as error:
             from ...cluster import killed_on_cluster
 
