@@ -10,6 +10,7 @@ be made safe. They also carry the test-only crash hook for inputs named ``crashi
 import json
 import logging
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -24,7 +25,7 @@ from distributed import Client
 
 import mdlshapemodel
 from mdlshapemodel import BuildConfig, ShapeModel
-from mdlshapemodel.build import fingerprint
+from mdlshapemodel.build import correspond, fingerprint
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel import parallel
 from mdlshapemodel.cluster import on_cluster
@@ -33,9 +34,10 @@ from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.io import read_csv
 
 import crash_on_prepare
+import dies_in_a_round
 from dying import square_or_die
 from on_workers import blas_threads, held
-from common import run_cli, run_python
+from common import hippocampi, needs_hippocampi, run_cli, run_python
 from synthetic import write_population
 
 # real builds (the command line or build_model): deselected by -m "not slow"
@@ -68,7 +70,14 @@ def _stop(process: subprocess.Popen):
 
 
 @pytest.fixture(scope="module")
-def scheduler(tmp_path_factory) -> str:
+def dying(tmp_path_factory) -> Path:
+    """The file whose creation arms the workers to lose one of them in a round of the
+    optimisation (Testing/dies_in_a_round.py)."""
+    return tmp_path_factory.mktemp("dying") / "die-after"
+
+
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory, dying) -> str:
     """The address of a scheduler on 127.0.0.1 with two worker processes of two threads each;
     the scheduler gives a call up at its first dead worker (allowed-failures 0)."""
     folder = tmp_path_factory.mktemp("dask")
@@ -87,11 +96,13 @@ def scheduler(tmp_path_factory) -> str:
             time.sleep(0.1)
         address = json.loads(file.read_text())["address"]
         # the workers are armed to die on inputs named crashing* (Testing/crash_on_prepare.py)
+        # and, once ``dying`` exists, one of them in a round (Testing/dies_in_a_round.py)
         started.append(_start(["worker", address, "--nworkers", "2", "--nthreads", "2",
                                "--no-dashboard", "--local-directory", str(folder),
-                               "--preload", "crash_on_prepare"],
+                               "--preload", "crash_on_prepare", "--preload", "dies_in_a_round"],
                               {**environment, "OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2",
-                               crash_on_prepare.VARIABLE: CRASHING}, folder / "workers.log"))
+                               crash_on_prepare.VARIABLE: CRASHING,
+                               dies_in_a_round.VARIABLE: str(dying)}, folder / "workers.log"))
         with Client(address, set_as_default=False) as client:
             client.wait_for_workers(2, timeout=90)
         yield address
@@ -190,6 +201,22 @@ def test_work_a_closed_dask_client_cannot_take_is_done_locally(scheduler, caplog
     assert "did not finish (BrokenExecutor); doing it here" in caplog.text
 
 
+@needs_hippocampi
+def test_an_optimisation_given_a_closed_dask_client_runs_here(scheduler, caplog):
+    """A client whose scheduler went away: the optimisation's per-example work runs in this
+    process, with a warning, and gives the correspondence of a run without a cluster."""
+    config = BuildConfig(labels=[1], points=162, max_sweeps=2, workers=1, cache_dir="")
+    prepared, _ = preprocess(hippocampi(4), config)
+    with Client(scheduler, set_as_default=False) as client:
+        executor = client.get_executor(pure=False)
+    with caplog.at_level(logging.WARNING, "mdlshapemodel"):
+        there = correspond(prepared, config, executor=executor)
+    assert caplog.text.count("the Dask cluster has no workers (or no scheduler) now") == 2
+    here = correspond(prepared, config)
+    assert np.array_equal(there.state.shapes, here.state.shapes)
+    assert there.final_objective == here.final_objective
+
+
 def model_arrays(output: Path) -> dict:
     model = ShapeModel.load(output / "model.h5")
     arrays = {name: getattr(model, name) for name in ("mean", "modes", "variances", "weights",
@@ -260,3 +287,116 @@ def test_an_input_that_kills_its_dask_workers_is_rejected_and_the_others_are_pre
     assert [(r.name, r.path, r.reason) for r in rejected] == [
         (CRASHING, str(culprit), f"worker process died (signal 9) while preparing {culprit}")]
     assert "was given up by the Dask cluster" in caplog.text
+
+
+# six real hippocampi, optimised for three rounds per phase (the fast strategy on their own
+# 162 points: no coarse stage)
+OPTIMISED = ["--label", "1", "--points", "162", "--max-sweeps", "3", "--baselines", "none"]
+ON_THE_WORKERS = "the optimisation's per-example work on 2 Dask workers (3 examples each)"
+
+
+@pytest.fixture(scope="module")
+def optimised_here(tmp_path_factory) -> Path:
+    """The outputs of the six hippocampi built in one process."""
+    output = tmp_path_factory.mktemp("here") / "out"
+    result = build(hippocampi(6), output, *OPTIMISED, "--workers", "1")
+    assert result.returncode == 0, result.stderr
+    return output
+
+
+@needs_hippocampi
+def test_the_optimisation_on_the_workers_gives_the_local_correspondence(
+        scheduler, optimised_here, tmp_path):
+    """With --scheduler each of the two workers holds three of the six hippocampi for a phase
+    and samples them and chains their gradients at every evaluation: the same model, meshes and
+    measures as the build in one process, bit for bit."""
+    output = tmp_path / "cluster"
+    result = build(hippocampi(6), output, *OPTIMISED, "--scheduler", scheduler)
+    assert result.returncode == 0, result.stderr
+    log = (output / "build.log").read_text()
+    assert log.count(ON_THE_WORKERS) == 2      # the fixed-Delta phase and the full one
+    reference = model_arrays(optimised_here)
+    for name, value in model_arrays(output).items():
+        assert np.array_equal(value, reference[name]), name
+    metrics = json.loads((output / "metrics.json").read_text())
+    here = json.loads((optimised_here / "metrics.json").read_text())
+    assert metrics["objective"] == here["objective"]
+    for mesh in sorted(p.relative_to(output) for p in output.rglob("*.vtp")):
+        assert (output / mesh).read_bytes() == (optimised_here / mesh).read_bytes(), mesh
+
+
+@needs_hippocampi
+def test_a_worker_lost_in_a_round_leaves_its_examples_to_the_build(
+        scheduler, dying, optimised_here, tmp_path):
+    """One worker is killed at its fifth sampling of trial parameters, in the first round: the
+    build takes its three hippocampi over, samples the round's kept trials of them again, and
+    ends with the correspondence of the build in one process (to rounding: a point on a
+    triangle's edge may be located in the other triangle, walking from elsewhere)."""
+    output = tmp_path / "cluster"
+    dying.touch()
+    try:
+        result = build(hippocampi(6), output, *OPTIMISED, "--scheduler", scheduler)
+    finally:
+        dying.unlink()
+    assert result.returncode == 0, result.stderr
+    assert Path(f"{dying}.done").exists()      # a worker died
+    log = (output / "build.log").read_text()
+    # the second phase spreads over the workers connected then: the one killed may be back
+    assert log.index(ON_THE_WORKERS) < log.index("while it held examples")
+    assert len(re.findall(r"the optimisation's per-example work on (2 Dask workers \(3|1 Dask "
+                          r"worker \(6) examples each\)", log)) == 2
+    assert re.search(r"WARNING the Dask worker tcp://127\.0\.0\.1:\d+ (died|left the cluster) "
+                     r"while it held examples [14]-[36] of 6 of the optimisation: they are "
+                     r"optimised in this process from now on", log)
+    reference = model_arrays(optimised_here)
+    for name, value in model_arrays(output).items():
+        if name == "names":
+            assert value == reference[name]
+        else:
+            np.testing.assert_allclose(value, reference[name], rtol=1e-9, atol=1e-9,
+                                       err_msg=name)
+
+
+# Python's own SIGINT handler in the command line even where this test runs with SIGINT
+# ignored (a background job of a non-interactive shell), as in a terminal
+COMMAND_LINE = ("import runpy, signal, sys; "
+                "signal.signal(signal.SIGINT, signal.default_int_handler); "
+                "sys.argv[0] = 'mdlshapemodel'; "
+                "runpy.run_module('mdlshapemodel.cli', run_name='__main__')")
+
+
+@needs_hippocampi
+def test_ctrl_c_stops_the_optimisation_on_the_workers_and_resume_ends_it_here(
+        scheduler, optimised_here, tmp_path):
+    """SIGINT to the command line's process group (as a terminal sends it; the workers are in a
+    session of their own) once the workers hold the examples: the build stops after the round,
+    writes the model of the state reached (exit code 0) and keeps the round's checkpoint, from
+    which --resume without the cluster ends with the uninterrupted build's model, bit for bit."""
+    output = tmp_path / "cluster"
+    arguments = [sys.executable, "-c", COMMAND_LINE, "build", *map(str, hippocampi(6)), "-o",
+                 str(output), *SMALL_BUILD, *OPTIMISED, "--scheduler", scheduler]
+    process = subprocess.Popen(arguments, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, start_new_session=True,
+                               env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    log = output / "build.log"
+    try:
+        deadline = time.monotonic() + 300
+        while (process.poll() is None and time.monotonic() < deadline
+               and ON_THE_WORKERS not in (log.read_text() if log.exists() else "")):
+            time.sleep(0.05)
+        assert process.poll() is None, "the build ended before its examples were on the workers"
+        os.killpg(process.pid, signal.SIGINT)
+        assert process.wait(timeout=300) == 0
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    text = log.read_text()
+    assert text.count(ON_THE_WORKERS) == 1          # the first phase, not the second
+    metrics = json.loads((output / "metrics.json").read_text())
+    assert metrics["optimisation"]["stopped_by"] == "interrupted"
+    result = build(hippocampi(6), output, *OPTIMISED, "--workers", "1", "--resume")
+    assert result.returncode == 0, result.stderr
+    reference = model_arrays(optimised_here)
+    for name, value in model_arrays(output).items():
+        assert np.array_equal(value, reference[name]), name

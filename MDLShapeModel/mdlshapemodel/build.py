@@ -44,7 +44,7 @@ from .model.landmarks import LandmarkCheck, landmark_array, transfer_errors
 from .model.shape_model import ShapeModel
 from .folders import BuildFolder, Checkpoint, find_inputs
 from .outputs import BuildResult, against_baselines, write_outputs, write_shapes
-from .cluster import dask_executor
+from .cluster import client_of, dask_executor
 from .parallel import Task, helper_for
 from .prepare import io, preprocess
 from .prepare.case import Rejection
@@ -586,7 +586,9 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         See :mod:`mdlshapemodel.progress`. Cancelling during the optimisation stops it and keeps
         the state reached (``interrupted``); cancelling elsewhere raises :class:`Cancelled`.
     executor : concurrent.futures.Executor, optional
-        Runs the CPD registrations (default: a pool of ``config.workers`` processes).
+        Runs the CPD registrations (default: a pool of ``config.workers`` processes); a Dask
+        client's executor also the fast strategy's per-example work
+        (:mod:`.correspondence.strategies.spread`).
     checkpoint : callable(state, point, rng, trace), optional
         Called after every sweep or round of the optimisation with the
         :class:`~.correspondence.strategies.base.PhasePoint` reached, the random generator and
@@ -729,7 +731,7 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
 
         try:
             optimise(state, (fixed, integrated), settings, rng, trace, progress, save,
-                     resume=resumption)
+                     resume=resumption, cluster=client_of(executor))
         except (KeyboardInterrupt, Cancelled):
             trace.stopped_by = Stop.INTERRUPTED
         if resume is None or resume.point.phase != PhasePoint.DONE:

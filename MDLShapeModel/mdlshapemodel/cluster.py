@@ -78,6 +78,11 @@ class ClusterExecutor(Executor):
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False):
         self.executor.shutdown(wait=wait)
 
+    @property
+    def client(self):
+        """The ``distributed.Client`` whose executor this is."""
+        return self.executor._client
+
 
 def on_cluster(executor: Executor | None) -> Executor | None:
     """``executor`` as a :class:`ClusterExecutor` when it is a Dask client's executor, else
@@ -88,6 +93,12 @@ def on_cluster(executor: Executor | None) -> Executor | None:
     from distributed.cfexecutor import ClientExecutor
 
     return ClusterExecutor(executor) if isinstance(executor, ClientExecutor) else executor
+
+
+def client_of(executor: Executor | None):
+    """The ``distributed.Client`` of a Dask client's executor (:func:`on_cluster`), else None."""
+    executor = on_cluster(executor)
+    return executor.client if isinstance(executor, ClusterExecutor) else None
 
 
 def killed_on_cluster(error: BaseException) -> bool:

@@ -70,7 +70,7 @@ log = logging.getLogger("mdlshapemodel")
 
 def optimise(state: CorrespondenceState, objectives: tuple, settings: OptimisationSettings,
              rng: np.random.Generator, trace: Trace, progress=None, checkpoint=None,
-             active=None, resume: Resumption | None = None) -> float:
+             active=None, resume: Resumption | None = None, cluster=None) -> float:
     """Run ``settings.strategy``: the fixed-Delta phase, then the full objective.
 
     ``objectives`` is (fixed, integrated); ``active`` the indices of the examples to optimise
@@ -96,17 +96,20 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
     BLAS runs single-threaded meanwhile: the objective's linear algebra is on n_s x n_s matrices,
     where threaded BLAS costs more than it gains (measured: a 40 x 40 eigh takes 0.2 ms on one
     thread and 7 ms on two when another process is busy on the second core).
+
+    ``cluster``, a ``distributed.Client``: the fast strategy's per-example work runs on its
+    workers (:mod:`.spread`), with the same result; the other strategies ignore it.
     """
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1, user_api="blas"):
         return _optimise(state, objectives, settings, rng, trace, progress, checkpoint, active,
-                         resume)
+                         resume, cluster)
 
 
 def _optimise(state: CorrespondenceState, objectives: tuple, settings: OptimisationSettings,
               rng: np.random.Generator, trace: Trace, progress, checkpoint, active,
-              resume: Resumption | None) -> float:
+              resume: Resumption | None, cluster=None) -> float:
     fixed, integrated = objectives
     start = time.perf_counter() - (resume.elapsed if resume is not None else 0.0)
     trace.stopped_by = None
@@ -121,6 +124,9 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
     run = PHASES[settings.strategy]
 
     phases = _phases(state, objectives, settings, start, active)
+    if cluster is not None and settings.strategy == "fast":
+        phases = [replace(phase, options={**phase.options, "cluster": cluster})
+                  for phase in phases]
     staged = phases[0].coarse
     point, coarse = None, None
     if resume is not None and resume.point.phase == PhasePoint.DONE:   # it had converged

@@ -17,6 +17,8 @@ each example on one thread with the same arithmetic: the result is the same on a
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import time
 from dataclasses import dataclass, replace
 
@@ -27,12 +29,11 @@ from ...geometry import Pose, weighted_centroid
 from ...parallel import Threads
 from ...progress import report
 from .. import hotloops
-from ..circle import CircleField, CircleFieldBasis
 from ..state import CorrespondenceState
-from ..fields import FieldBasis
-from ..warps import FieldWarp
 from ..trace import Stop
 from .base import PhasePoint, budget_spent, stalled, start_phase
+from .blocks import BlockSet
+from .spread import ExamplesOnCluster
 from .quasi_newton import minimize_box
 
 
@@ -80,127 +81,13 @@ def rotations_and_jacobians(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return rotations, jacobians
 
 
-class SphereBlock:
-    """One sphere part of one active example in a round: its field basis (bumps at the vertices
-    of an icosphere of ``level``, 3 coefficients each) and where its coefficients (in x, set by
-    the round) and points (``row`` of the active examples, ``rows`` of the shape vector) are.
-
-    A block does a part's share of an evaluation: :meth:`sample` (field map, point location,
-    surface Jacobian), :meth:`gradient` (their chain rule), :meth:`folds` and :meth:`commit`.
-    The round picks the block class by the part's ``kind`` (:data:`FIELD_BLOCKS`)."""
-
-    def __init__(self, row: int, part, rows: slice, level: int, support: float):
-        self.row, self.part, self.rows = row, part, rows
-        self.level, self.support = level, support
-        self.basis = FieldBasis.icosphere_level(level, part.positions, support)
-        self.size = 3 * self.basis.n_centres
-        self.coefficients = slice(0, self.size)
-        self.hint = part.hint           # the faces last located: the next walk starts there
-
-    def limits(self) -> np.ndarray:
-        """The bound of each coefficient's absolute value (a homeomorphism within them)."""
-        return np.full(self.size, self.basis.max_coefficient() / np.sqrt(3.0))
-
-    def sample(self, x: np.ndarray, raw: np.ndarray) -> tuple:
-        """The field map at x, located on the surface: phi, |m|, faces, dS/du; the samples go
-        into ``raw``."""
-        part, basis = self.part, self.basis
-        n = len(basis.points)
-        phi, norms = np.empty((n, 3)), np.empty(n)
-        face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
-        found = np.empty(n, dtype=np.bool_)
-        sampled = raw[self.row, self.rows]
-        w = basis.weights
-        hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
-                              x[self.coefficients].reshape(-1, 3), part.locator.inverse,
-                              part.locator.neighbours, part.faces, part.vertices, self.hint,
-                              8, phi, norms, face, sampled, jac, found)
-        missed = np.flatnonzero(~found)
-        if len(missed):     # walked too far: locate these among the faces near them
-            face[missed], coords = part.locator.locate(phi[missed])
-            sampled[missed] = part.locator.interpolate(part.vertices, face[missed], coords)
-            jac[missed] = part.locator.jacobian(part.vertices, face[missed], phi[missed])
-        self.hint = face
-        return phi, norms, face, jac
-
-    def gradient(self, located: tuple, scale: float, rotation: np.ndarray,
-                 shape_gradient: np.ndarray) -> np.ndarray:
-        """dF/d(coefficients) from dF/dX of the block's points, posed by ``scale`` and
-        ``rotation``."""
-        phi, norms, _, jac = located
-        w = self.basis.weights
-        return hotloops.field_sample_gradient(
-            w.indptr, w.indices, w.data, self.basis.points, phi, norms, jac, scale, rotation,
-            shape_gradient, self.basis.n_centres).ravel()
-
-    def folds(self, located: tuple) -> bool:
-        return self.part.folds(located[0])
-
-    def commit(self, located: tuple, x: np.ndarray, raw: np.ndarray):
-        """Commit the block's map at x to its part, recorded as a :class:`FieldWarp`."""
-        phi, _, face, _ = located
-        warp = FieldWarp(self.level, self.support, x[self.coefficients].reshape(-1, 3).copy())
-        self.part.commit(warp, phi, raw[self.row, self.rows].copy(), face)
-
-
-class CurveBlock:
-    """One curve part (:class:`~..circle.CurvePart`) of one active example in a round: the map
-    t -> t + s + v(t) of :class:`~..circle.CircleFieldBasis` at ``level`` (8 * 2**level bumps,
-    one scalar coefficient each) and the shift s of the origin, last. The interface of
-    :class:`SphereBlock`.
-
-    Chain rule: X_k = scale R S(phi_k) + ..., dS/dphi = the polyline's tangent T_k (constant on
-    each segment), so dF/da_j = sum_k g_j(t_k) q_k and dF/ds = sum_k q_k with
-    q_k = scale (R^T dF/dX_k) . T_k.
-    """
-
-    def __init__(self, row: int, part, rows: slice, level: int, support: float):
-        self.row, self.part, self.rows = row, part, rows
-        self.level, self.support = level, support
-        self.basis = CircleFieldBasis(level, support, part.positions)
-        self.size = self.basis.n_centres + 1
-        self.coefficients = slice(0, self.size)
-
-    def limits(self) -> np.ndarray:
-        """|a_j| within :meth:`CircleFieldBasis.max_coefficient`; a shift of at most 1/8 turn
-        per round (any shift is a homeomorphism: this only keeps the steps local)."""
-        return np.append(np.full(self.basis.n_centres, self.basis.max_coefficient()),
-                         np.pi / 4.0)
-
-    def sample(self, x: np.ndarray, raw: np.ndarray) -> tuple:
-        """phi, the curve segments and dS/dphi at x; the samples go into ``raw``."""
-        values = x[self.coefficients]
-        phi = self.basis.apply(values[:-1], values[-1])
-        raw[self.row, self.rows], segments = self.part.sample(phi)
-        return phi, segments, self.part.tangent(segments)
-
-    def gradient(self, located: tuple, scale: float, rotation: np.ndarray,
-                 shape_gradient: np.ndarray) -> np.ndarray:
-        along = scale * np.einsum("kd,kd->k", shape_gradient @ rotation, located[2])
-        return np.append(self.basis.weights.T @ along, along.sum())
-
-    def folds(self, located: tuple) -> bool:
-        return self.part.folds(located[0])
-
-    def commit(self, located: tuple, x: np.ndarray, raw: np.ndarray):
-        """Commit the block's map at x to its part, recorded as a :class:`CircleField`."""
-        phi, segments, _ = located
-        values = x[self.coefficients]
-        warp = CircleField(self.level, self.support, float(values[-1]), values[:-1].copy())
-        self.part.commit(warp, phi, raw[self.row, self.rows].copy(), segments)
-
-
-#: the field block of each kind of part (``part.kind``)
-FIELD_BLOCKS = {"sphere": SphereBlock, "circle": CurveBlock}
-
-
 @dataclass
 class _Trial:
     """What the parameters x of a round give (see :meth:`FieldRound.trial`)."""
 
     x: np.ndarray             # the parameters
-    located: list             # per block: what its sample() gives (sphere: phi, |m|, faces,
-                              # dS/du)
+    number: int               # the trial's number, under which its sampling is kept where
+                              # the blocks are (:class:`~.blocks.BlockSet`)
     raw: np.ndarray           # (n_active, n_p, 3) the unposed samples
     about: np.ndarray         # the samples posed as at the start, centred on their centroid
     rotation: np.ndarray      # (n_active, 3, 3) R(w)
@@ -211,53 +98,77 @@ class _Trial:
     unposed: np.ndarray | None   # (n_s, n_p, 3) every example's unposed samples (guided states)
 
 
+@dataclass(frozen=True)
+class Stretch:
+    """One :class:`~.blocks.BlockSet` of a round: its active examples' ``rows`` and its
+    ``parameters`` in x."""
+
+    rows: slice
+    parameters: slice
+
+
+class ExamplesHere:
+    """Where a round's per-example work runs by default: one :class:`~.blocks.BlockSet` of
+    every active example, in this process on ``threads``, on the state's own parts.
+
+    The interface of :class:`~.spread.ExamplesOnCluster`: :meth:`open` a round, :meth:`each`
+    to call a method of every set with its arguments, :meth:`commit`.
+    """
+
+    def __init__(self, state: CorrespondenceState, threads: Threads | None = None):
+        self.state, self.threads = state, threads or Threads(1)
+        self.sets = []
+
+    def open(self, active: np.ndarray, level: int, support: float, pose_limits) -> list:
+        """The round's block sets made; returns (rows, :class:`~.blocks.Layout`) of each."""
+        parts = [self.state.examples[i].parts for i in active]
+        self.sets = [BlockSet(parts, self.state.part_slices, level, support, pose_limits,
+                              self.threads)]
+        return [(slice(0, len(active)), self.sets[0].layout)]
+
+    def each(self, method: str, arguments: list) -> list:
+        """``[set.method(*a) for set, a in zip(sets, arguments)]``."""
+        return [getattr(one, method)(*a) for one, a in zip(self.sets, arguments)]
+
+    def commit(self, trial: int, parameters: list):
+        """Commit ``trial`` (each set's stretch of x in ``parameters``) to the parts."""
+        self.each("commit", [(trial, x) for x in parameters])
+
+
 class FieldRound:
     """The parameters of one round and the map from them to F and dF/dparameters.
 
     x holds, per active example, the field coefficients of each part (3 per bump on a sphere;
-    1 per bump and a shift on a curve: the part's block, :data:`FIELD_BLOCKS`) and 7 pose
-    parameters: a rotation vector w and a log scale sigma about the example's centroid c at the
-    start of the round, and a translation t in units of the shape size L:
+    1 per bump and a shift on a curve: the part's block, :data:`~.blocks.FIELD_BLOCKS`) and 7
+    pose parameters: a rotation vector w and a log scale sigma about the example's centroid c at
+    the start of the round, and a translation t in units of the shape size L:
     X = e^sigma R(w) (P(y) - c) + c + L t, with P the example's pose and y its unposed samples.
     A planar state's bounds hold w_x, w_y and t_z at zero (rotation about z, in-plane moves).
+
+    The per-example work (sampling, chain rule, fold checks, commits) is done by ``examples``
+    (default :class:`ExamplesHere` on ``threads``; :class:`~.spread.ExamplesOnCluster` on Dask
+    workers); the poses, the shapes and their gradient are done here.
     """
 
     def __init__(self, state: CorrespondenceState, active, level: int, support: float,
-                 threads: Threads | None = None):
+                 threads: Threads | None = None, examples=None):
         self.state = state
-        self.threads = threads or Threads(1)
+        self.examples = examples if examples is not None else ExamplesHere(state, threads)
         self.level, self.support = level, support
         self.active = np.array(list(active), dtype=np.int64)
-        offset = 0
-        limits = []         # the bound of each parameter's absolute value
-        pose_slices = []
-        parts = [(row, j, part) for row, i in enumerate(self.active)
-                 for j, part in enumerate(state.examples[i].parts)]
-        self.blocks = [None] * len(parts)
-
-        def make(indices):
-            for b in indices:
-                row, j, part = parts[b]
-                self.blocks[b] = FIELD_BLOCKS[part.kind](row, part, state.part_slices[j],
-                                                         level, support)
-
-        self.threads.over(len(parts), make)
         # the log scale is held at 0: an example's size is not free to lower F
         # (POSE_SCALE_LIMIT); a planar state turns about z and moves in x and y only
         pose_limits = ([0.0, 0.0, 0.5, np.inf, np.inf, 0.0, POSE_SCALE_LIMIT] if state.planar
                        else [0.5, 0.5, 0.5, np.inf, np.inf, np.inf, POSE_SCALE_LIMIT])
-        for b, (block, (row, _, _)) in enumerate(zip(self.blocks, parts)):
-            block.coefficients = slice(offset, offset + block.size)
-            offset += block.size
-            limits.append(block.limits())
-            if b + 1 == len(parts) or parts[b + 1][0] != row:   # the example's last part
-                pose_slices.append(np.arange(offset, offset + 7))
-                offset += 7
-                limits.append(pose_limits)
+        self.stretches, limits, pose_index, offset = [], [], [], 0
+        for rows, layout in self.examples.open(self.active, level, support, pose_limits):
+            self.stretches.append(Stretch(rows, slice(offset, offset + layout.size)))
+            limits.append(layout.limit)
+            pose_index.append(layout.pose_index + offset)
+            offset += layout.size
         self.size = offset
-        limit = np.concatenate(limits)
-        self.limit = limit          # |x| <= limit, element by element
-        self.pose_index = np.array(pose_slices).reshape(-1, 7)
+        self.limit = np.concatenate(limits)     # |x| <= limit, element by element
+        self.pose_index = np.concatenate(pose_index)
         self.scale_of_length = state.target_size
         poses = [state.examples[i].pose for i in self.active]
         self.scale0 = np.array([p.scale for p in poses])
@@ -265,18 +176,17 @@ class FieldRound:
         self.translation0 = np.array([p.translation for p in poses]).reshape(-1, 3)
         self.centres = np.array([weighted_centroid(state.shapes[i], state.weights)
                                  for i in self.active]).reshape(-1, 3)
+        self._numbers = itertools.count()
 
-    def trial(self, x: np.ndarray) -> _Trial:
-        """Everything that parameters x give: see :meth:`gradient` and :meth:`commit`."""
-        n_p = self.state.n_points
-        raw = np.empty((len(self.active), n_p, 3))
-        located = [None] * len(self.blocks)
-
-        def sample(indices):
-            for b in indices:
-                located[b] = self.blocks[b].sample(x, raw)
-
-        self.threads.over(len(self.blocks), sample)
+    def trial(self, x: np.ndarray, keep=None) -> _Trial:
+        """Everything that parameters x give: see :meth:`gradient` and :meth:`commit`. The
+        sampling of the earlier trials in ``keep`` (their numbers) stays where the blocks are,
+        that of the others goes (None: every one stays)."""
+        number = next(self._numbers)
+        keep = range(number) if keep is None else keep
+        raws = self.examples.each("sample", [(number, x[s.parameters], keep)
+                                             for s in self.stretches])
+        raw = raws[0] if len(raws) == 1 else np.concatenate(raws)
         p = x[self.pose_index]
         rotation, jacobian = rotations_and_jacobians(p[:, :3])
         scale = np.exp(p[:, 6])
@@ -298,14 +208,13 @@ class FieldRound:
         elif self.state.guides is not None:
             unposed = self.state.raw_shapes()
             unposed[self.active] = raw
-        return _Trial(x=np.array(x, copy=True), located=located, raw=raw, about=about,
+        return _Trial(x=np.array(x, copy=True), number=number, raw=raw, about=about,
                       rotation=rotation, jacobian=jacobian, scale=scale, shapes=shapes, pose=p,
                       unposed=unposed)
 
     def gradient(self, trial: _Trial, shape_gradient: np.ndarray) -> np.ndarray:
         """dF/dx from dF/dX (n_s, n_p, 3) and, for a guided state, the landmark term's gradient
         with respect to the unposed samples (which moves the fields, not the poses)."""
-        result = np.zeros(self.size)
         g = shape_gradient[self.active]
         rotation, scale = trial.rotation, trial.scale
         # the samples y of example i are posed by scale e^sigma s0 and rotation R(w) R0
@@ -319,15 +228,10 @@ class FieldRound:
             g_fields = g.copy()
             g_fields[:, guides.indices] += (np.einsum("aij,alj->ali", total_rotation, pulled)
                                             / total_scale[:, None, None])
-
-        def chain(indices):
-            for b in indices:
-                block = self.blocks[b]
-                result[block.coefficients] = block.gradient(
-                    trial.located[b], total_scale[block.row], total_rotation[block.row],
-                    g_fields[block.row, block.rows])
-
-        self.threads.over(len(self.blocks), chain)
+        parts = self.examples.each("gradient", [
+            (trial.number, total_scale[s.rows], total_rotation[s.rows], g_fields[s.rows])
+            for s in self.stretches])
+        result = parts[0] if len(parts) == 1 else np.concatenate(parts)
         # the pose: with N = sum_k g_k v_k^T (3 x 3) every term is a contraction of N:
         # sum_k v_k x (R^T g_k) = axial part of R^T N, sum_k g_k . R v_k = <R, N>
         n = g.transpose(0, 2, 1) @ trial.about
@@ -342,14 +246,13 @@ class FieldRound:
         return result
 
     def folds(self, trial: _Trial) -> bool:
-        return any(block.folds(located) for block, located in zip(self.blocks, trial.located))
+        return any(self.examples.each("folds", [(trial.number,)] * len(self.stretches)))
 
     def commit(self, trial: _Trial):
         """Compose the round's maps into the sample positions (each recorded as a
-        :class:`FieldWarp` or :class:`CircleField`, which re-applied to the positions at the
+        :class:`~..warps.FieldWarp` or :class:`~..circle.CircleField`, which re-applied to the positions at the
         start of the round gives the same positions bit for bit) and the poses."""
-        for block, located in zip(self.blocks, trial.located):
-            block.commit(located, trial.x, trial.raw)
+        self.examples.commit(trial.number, [trial.x[s.parameters] for s in self.stretches])
         rotation, scale, p = trial.rotation, trial.scale, trial.pose
         for row, i in enumerate(self.active):
             centre = self.centres[row]
@@ -369,19 +272,25 @@ class _RoundOutOfTime(Exception):
 def optimise_round(state: CorrespondenceState, objective, active, level: int,
                    max_iterations: int = OptimisationSettings.round_iterations,
                    support: float = 2.0,
-                   deadline: float = float("inf"), threads: Threads | None = None) -> float:
+                   deadline: float = float("inf"), threads: Threads | None = None,
+                   examples=None) -> float:
     """One projected L-BFGS round at one field level; returns F after it.
 
-    At ``deadline`` the round stops and keeps the best point it has evaluated.
+    At ``deadline`` the round stops and keeps the best point it has evaluated. The per-example
+    work runs on ``threads`` here, or where ``examples`` has it (:class:`FieldRound`).
     """
     state.objective = objective
-    round_ = FieldRound(state, active, level, support, threads)
+    round_ = FieldRound(state, active, level, support, threads, examples)
     cache = {}
+
+    def best() -> tuple:
+        """The number of the best trial so far: the only earlier sampling kept."""
+        return (cache["best"][2].number,) if "best" in cache else ()
 
     def fun(x):
         if "best" in cache and time.perf_counter() > deadline:
             raise _RoundOutOfTime
-        trial = round_.trial(x)
+        trial = round_.trial(x, best())
         value, shape_gradient = gradient_at(state, trial.shapes, trial.unposed)
         state.evaluations += 1
         if "best" not in cache or value < cache["best"][0]:
@@ -402,7 +311,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
         if not folded:
             break
         x = 0.5 * x
-        trial = round_.trial(x)
+        trial = round_.trial(x, ())
         value = gradient_at(state, trial.shapes, trial.unposed)[0]
         state.evaluations += 1
         folded = value < start_value and round_.folds(trial)
@@ -416,7 +325,7 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
 def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
                   phase: str, deadline: float, progress=None, checkpoint=None, active=None,
                   resume: PhasePoint | None = None, levels=(0, 1, 2, 3),
-                  rounds_per_level: int = 3) -> float:
+                  rounds_per_level: int = 3, cluster=None) -> float:
     """Coarse-to-fine rounds until the gain stalls (``settings.tolerance``), ``deadline`` or
     ``settings.max_sweeps`` rounds. At each level, rounds go on until one gains less than the
     tolerance (then the next level starts), at most ``rounds_per_level``. The pass over the levels
@@ -429,6 +338,10 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
     ``resume``, with the state of that moment, the phase carries on exactly from there.
     ``trace.stopped_by`` says why the phase ended (a limit reached after the last round of the
     schedule counts as the limit: that round may have been cut short).
+
+    ``cluster``, a ``distributed.Client``: the rounds' per-example work runs on its workers,
+    which hold their examples for the phase (:class:`~.spread.ExamplesOnCluster`); the same
+    result.
     """
     active = range(state.n_shapes) if active is None else active
     if objective.kind == "fixed" and objective.free_below_delta:
@@ -464,13 +377,16 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
         at = following(resume.counters, values)
         if at is not None and at["pass"] != resume.counters["pass"]:
             values["pass_start"] = value
-    with Threads(settings.threads) as threads:
+    with contextlib.ExitStack() as stack:
+        threads = stack.enter_context(Threads(settings.threads))
+        examples = (None if cluster is None or at is None else
+                    stack.enter_context(ExamplesOnCluster(cluster, state, active, threads)))
         while at is not None:
             sweep += 1
             values["before"] = value
             value = optimise_round(state, objective, active, levels[at["level"]],
                                    max_iterations=settings.round_iterations,
-                                   deadline=deadline, threads=threads)
+                                   deadline=deadline, threads=threads, examples=examples)
             values["value"] = value
             trace.record(state, value, phase, sweep)
             report(progress, None, f"{phase}: level {levels[at['level']]}, round {sweep}, "
