@@ -6,8 +6,9 @@ from scipy.spatial.transform import Rotation
 
 from mdlshapemodel.errors import SphereMapError
 from mdlshapemodel.correspondence.sampling import SphereLocator, icosphere
-from mdlshapemodel.prepare.sphere import (SphereMap, align_parameterizations, check_bijective, distortion,
-                                         reference_frames,
+import mdlshapemodel.prepare.sphere as sphere_module
+from mdlshapemodel.prepare.sphere import (FRAME_TWISTS, SphereMap, align_parameterizations,
+                                         check_bijective, distortion, frame_turns, reference_frames,
                                   first_order_map, map_quality, minimise_distortion, orientation,
                                   principal_axes, solid_angles, sphere_map)
 from synthetic import torus
@@ -410,6 +411,58 @@ def test_reference_frames_refine_the_nearest_candidate_by_closest_points(seed):
     vertices, faces = round_rod_with_two_knobs(seed)
     frame = reference_frames([reference, (vertices @ turn.T, faces)])[1]
     assert np.degrees(Rotation.from_matrix(frame @ turn).magnitude()) < 1.0
+
+
+def test_frame_turns_are_every_proper_sign_choice_turned_each_rotation_once():
+    turns = np.array(frame_turns())
+    assert len(turns) == 2 * FRAME_TWISTS
+    np.testing.assert_allclose(turns @ turns.transpose(0, 2, 1), np.broadcast_to(np.eye(3), turns.shape),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(turns), 1.0)
+    # pairwise: no two the same rotation; the nearest pairs one twist step apart
+    angles = [np.degrees(Rotation.from_matrix(a.T @ b).magnitude())
+              for i, a in enumerate(turns) for b in turns[i + 1:]]
+    assert min(angles) == pytest.approx(360.0 / FRAME_TWISTS)
+    # each of the four proper sign choices of the axes is among them
+    for signs in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1)):
+        assert min(np.abs(turns - np.diag(signs)).max(axis=(1, 2))) < 1e-12
+
+
+def bumpy_ellipsoids(seed: int) -> tuple:
+    """A reference and a case (vertices, faces) that share an ellipsoid (10, 5, 4.5 mm) with four
+    random bumps and differ by three random bumps each, the case turned by a random rotation
+    (returned third)."""
+    sphere, faces = icosphere(4)
+    rng = np.random.default_rng(seed)
+
+    def bumps(count, size):
+        shift = np.zeros_like(sphere)
+        for _ in range(count):
+            centre = rng.normal(size=3)
+            knob = np.exp(-np.sum((sphere - centre / np.linalg.norm(centre)) ** 2, axis=1) / 0.05)
+            shift += rng.uniform(-size, size) * knob[:, None] * sphere
+        return shift
+
+    base = sphere * [10.0, 5.0, 4.5] + bumps(4, 3.0)
+    reference, case = base + bumps(3, 2.5), base + bumps(3, 2.5)
+    turn = Rotation.random(random_state=rng).as_matrix()
+    return (reference, faces), (case @ turn.T, faces), turn
+
+
+def test_reference_frames_refine_the_second_nearest_candidate_too(monkeypatch):
+    # a case whose nearest candidate on the coarse points lies in the basin of a wrong frame: the
+    # closest-point refinement of that one alone ends more than 10 degrees off, the second one's undoes
+    # the turn up to what the cases' own bumps leave
+    reference, case, turn = bumpy_ellipsoids(163)
+
+    def error(frame):
+        return np.degrees(Rotation.from_matrix(frame @ turn).magnitude())
+
+    assert sphere_module.FRAME_REFINED >= 2
+    assert error(reference_frames([reference, case])[1]) < 4.0
+    monkeypatch.setattr(sphere_module, "FRAME_REFINED", 1)
+    assert error(reference_frames([reference, case])[1]) > 10.0
+
 
 # --- alignment of parameterizations -----------------------------------------------------------------
 

@@ -288,8 +288,8 @@ MUTANTS = [
            "prior than the build did", k="default_weight"),
     # --- the initial rigid alignment of the surfaces (prepare/sphere.py reference_frames) ---
     Mutant("frame_twists_dropped", "prepare/sphere.py",
-           "candidates = [ref_axes @ twist @ flip @ axes.T for flip in flips for twist in twists]",
-           "candidates = [ref_axes @ flip @ axes.T for flip in flips]",
+           "return [twist @ flip for flip in flips for twist in twists]",
+           "return [flip for flip in flips]",
            ("test_sphere.py",),
            "no turns about the first axis: two near-equal axes of a cross-section leave a "
            "long bone a quarter turn off", k="reference_frames"),
@@ -299,6 +299,12 @@ MUTANTS = [
            ("test_sphere.py",),
            "the candidates at the largest chamfer distance refined (the frame turned over)",
            k="reference_frames"),
+    Mutant("frame_sign_choices_listed_twice", "prepare/sphere.py",
+           "flips = (np.eye(3), np.diag([-1.0, -1.0, 1.0]))",
+           "flips = [np.diag(d) for d in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1))]",
+           ("test_sphere.py",),
+           "all four sign choices turned: every candidate rotation listed twice, the two refined "
+           "the same one", k="frame"),
     Mutant("frame_not_refined", "prepare/sphere.py",
            "refined = [chamfer.refine(candidates[k])", "refined = [(candidates[k])",
            ("test_sphere.py",),

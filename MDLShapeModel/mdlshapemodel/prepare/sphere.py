@@ -391,7 +391,7 @@ def _subsample(points: np.ndarray, count: int = 600) -> np.ndarray:
     return points[::step]
 
 
-#: the candidate frames of a surface: the four proper sign choices of its principal axes, each
+#: the candidate frames of a surface: its principal axes with the first axis either way, each
 #: turned about the first axis in this many equal steps
 FRAME_TWISTS = 12
 #: the candidates at the smallest chamfer distances that iterative closest points refines
@@ -424,26 +424,41 @@ class _Chamfer:
         return rotation
 
 
-def reference_frames(surfaces: list, reference: int = 0) -> list:
-    """For each surface (vertices, faces), the rotation Q that brings it into the frame of the
-    reference's (sizes scaled to one RMS radius, so that size does not decide): among its
-    principal axes' four proper sign choices, each turned about the first axis in
-    :data:`FRAME_TWISTS` steps (two axes of nearly equal spread, as a long bone's cross-section
-    has, leave the turn open), the :data:`FRAME_REFINED` at the smallest chamfer distance are
-    refined by iterative closest points and the closest of them is taken."""
-    ref_vertices, ref_faces = surfaces[reference]
-    ref_centre, ref_axes = principal_axes(ref_vertices, ref_faces)
-    ref_points = _scaled(_subsample(ref_vertices - ref_centre))
-    flips = [np.diag(d) for d in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1))]
+def frame_turns() -> list:
+    """The rotations T, in principal-axes coordinates, of the candidate frames
+    ``ref_axes @ T @ axes.T`` of :func:`reference_frames`: the first axis kept or reversed
+    (diag(1, 1, 1), diag(-1, -1, 1)), each turned about the first axis in :data:`FRAME_TWISTS`
+    equal steps; 2 :data:`FRAME_TWISTS` distinct rotations.
+
+    These are all the proper sign choices of the axes, each once: the other two,
+    diag(1, -1, -1) and diag(-1, 1, -1), are the first two turned half a turn about the first
+    axis, so a list of all four sign choices, each turned in steps that include the half
+    turn, would hold every rotation twice.
+    """
+    flips = (np.eye(3), np.diag([-1.0, -1.0, 1.0]))
     angles = 2.0 * np.pi * np.arange(FRAME_TWISTS) / FRAME_TWISTS
     twists = [np.array([[1.0, 0.0, 0.0], [0.0, np.cos(t), -np.sin(t)], [0.0, np.sin(t), np.cos(t)]])
               for t in angles]
+    return [twist @ flip for flip in flips for twist in twists]
+
+
+def reference_frames(surfaces: list, reference: int = 0) -> list:
+    """For each surface (vertices, faces), the rotation Q that brings it into the frame of the
+    reference's (sizes scaled to one RMS radius, so that size does not decide): among its
+    principal axes with the first axis either way, each turned about the first axis in
+    :data:`FRAME_TWISTS` steps (:func:`frame_turns`; two axes of nearly equal spread, as a long
+    bone's cross-section has, leave the turn open), the :data:`FRAME_REFINED` at the smallest
+    chamfer distance are refined by iterative closest points and the closest of them is taken."""
+    ref_vertices, ref_faces = surfaces[reference]
+    ref_centre, ref_axes = principal_axes(ref_vertices, ref_faces)
+    ref_points = _scaled(_subsample(ref_vertices - ref_centre))
+    turns = frame_turns()
     frames = []
     for vertices, faces in surfaces:
         centre, axes = principal_axes(vertices, faces)
         points = _scaled(_subsample(vertices - centre))
         chamfer = _Chamfer(points, ref_points)
-        candidates = [ref_axes @ twist @ flip @ axes.T for flip in flips for twist in twists]
+        candidates = [ref_axes @ turn @ axes.T for turn in turns]
         # the candidates ranked on a quarter of the points
         coarse = _Chamfer(points[::4], ref_points[::4])
         distances = [coarse(q) for q in candidates]
