@@ -1,7 +1,8 @@
 """What many test files share: where the shared real data is (../shared/data beside the
 checkout, or the folder named by MDLSHAPEMODEL_DATA; tests that need it skip with a reason when
-it is absent), running the command line or a script in a subprocess, always with a timeout, and
-central differences for gradient checks."""
+it is absent), running the command line or a script in a subprocess, always with a timeout,
+central differences for gradient checks, and the unusual-case p-values written out from their
+formulas."""
 
 from __future__ import annotations
 
@@ -59,3 +60,24 @@ def central_difference(function, x, k: int, relative_step: float = 1e-4) -> floa
     plus[k] += step
     minus[k] -= step
     return (function(plus) - function(minus)) / (2 * step)
+
+
+def empirical_null_p(p_normal, training_p_normal=None):
+    """p-values against the empirical null, from the formulas of docs/analysis.md item 9: the
+    normal-theory p-values as z-values, each case's null from the *other* training cases' z
+    (``training_p_normal`` None: ``p_normal`` are the training cases'), else all of
+    ``training_p_normal``'s (new cases): centred on their median (at least 0), their upper spread
+    (90 % quantile - median) / z_0.9 (at least 1)."""
+    import numpy as np
+    from scipy import stats
+
+    def p_against(z, others):
+        centre = max(float(np.median(others)), 0.0)
+        spread = max((float(np.quantile(others, 0.9)) - float(np.median(others)))
+                     / stats.norm.isf(0.1), 1.0)
+        return stats.norm.sf((z - centre) / spread)
+
+    z = stats.norm.isf(np.atleast_1d(np.asarray(p_normal, dtype=float)))
+    if training_p_normal is None:
+        return np.array([p_against(z[i], np.delete(z, i)) for i in range(len(z))])
+    return p_against(z, stats.norm.isf(np.asarray(training_p_normal, dtype=float)))

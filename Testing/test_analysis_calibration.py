@@ -60,34 +60,68 @@ def principal(sample: np.ndarray):
 LEVELS = (0.01, 0.05)
 
 
+def at_most(rate: float, level: float, trials: int) -> bool:
+    return rate <= level + SES * np.sqrt(level * (1 - level) / trials)
+
+
 def test_training_cases_are_flagged_at_the_level_at_n_8():
     """A training case's distance over all k = 3 modes of 3-dimensional Gaussian data at n = 8:
-    its Beta reference is exact, so a case is flagged with probability alpha (one case per
-    sample, so that the trials are independent)."""
+    its Beta reference (p_normal) is exact, so it is below alpha with probability alpha, and the
+    p that flags, against the other cases' empirical null, is below alpha at most as often (one
+    case per sample, so that the trials are independent)."""
     rng = np.random.default_rng(8)
-    samples, flagged = 3000, np.zeros(len(LEVELS))
+    samples, normal, flagged = 3000, np.zeros(len(LEVELS)), np.zeros(len(LEVELS))
     for sample in gaussian_populations(rng, samples, 8, 3):
         _, _, scores, variances = principal(sample)
         found = training_distances(scores, variances, 3, alpha=LEVELS[0])
         assert found.outlier[0] == (found.p[0] < LEVELS[0])
+        normal += found.p_normal[0] < np.array(LEVELS)
         flagged += found.p[0] < np.array(LEVELS)
-    for alpha, count in zip(LEVELS, flagged):
-        assert within(count / samples, alpha, samples), (alpha, count / samples)
+    for alpha, count, count_normal in zip(LEVELS, flagged, normal):
+        assert within(count_normal / samples, alpha, samples), (alpha, count_normal / samples)
+        assert at_most(count / samples, alpha, samples), (alpha, count / samples)
 
 
 def test_new_cases_are_flagged_at_the_level_at_n_8():
     """A new case from the population of 8 training cases, projected on all k = 3 modes: its F
-    reference (Hotelling's T^2 of a prediction) is exact."""
+    reference (Hotelling's T^2 of a prediction, p_normal) is exact; the p that flags, against
+    the training cases' empirical null, is below alpha at most as often."""
     rng = np.random.default_rng(9)
-    samples, flagged = 3000, np.zeros(len(LEVELS))
+    samples, normal, flagged = 3000, np.zeros(len(LEVELS)), np.zeros(len(LEVELS))
     for sample in gaussian_populations(rng, samples, 9, 3):
-        mean, directions, _, variances = principal(sample[:8])
+        mean, directions, training, variances = principal(sample[:8])
         scores = (sample[8:] - mean) @ directions.T
-        found = new_case_distances(scores, variances, 8, 3, alpha=LEVELS[0])
+        found = new_case_distances(scores, variances, training, 3, alpha=LEVELS[0])
         assert found.outlier[0] == (found.p[0] < LEVELS[0])
+        normal += found.p_normal[0] < np.array(LEVELS)
         flagged += found.p[0] < np.array(LEVELS)
-    for alpha, count in zip(LEVELS, flagged):
-        assert within(count / samples, alpha, samples), (alpha, count / samples)
+    for alpha, count, count_normal in zip(LEVELS, flagged, normal):
+        assert within(count_normal / samples, alpha, samples), (alpha, count_normal / samples)
+        assert at_most(count / samples, alpha, samples), (alpha, count / samples)
+
+
+def scale_mixture(rng, n: int, dims: int = 60, nu: float = 5.0) -> np.ndarray:
+    """n cases of ``dims`` numbers with variances 0.85^m, each case scaled by sqrt(nu / chi^2_nu)
+    (multivariate t): some cases far out in every mode at once, as real shapes are."""
+    x = rng.normal(size=(n, dims)) * 0.85 ** (np.arange(dims) / 2)
+    return x / np.sqrt(rng.chisquare(nu, size=(n, 1)) / nu)
+
+
+def test_training_cases_of_a_scale_mixture_are_flagged_at_most_at_the_level():
+    """Training cases of a scale mixture (n = 40, t with 5 degrees of freedom, the modes
+    explaining 95%): the normal-theory p flags several times the level; the p against the other
+    cases' empirical null flags at most the level at 0.05 (one case per sample)."""
+    from mdlshapemodel.model.outliers import modes_explaining
+
+    rng = np.random.default_rng(40)
+    samples, normal, flagged = 1500, 0, 0
+    for _ in range(samples):
+        _, _, scores, variances = principal(scale_mixture(rng, 40))
+        found = training_distances(scores, variances, modes_explaining(variances, n_cases=40))
+        normal += found.p_normal[0] < LEVELS[1]
+        flagged += found.p[0] < LEVELS[1]
+    assert normal / samples > 2 * LEVELS[1], normal / samples          # overdispersed indeed
+    assert at_most(flagged / samples, LEVELS[1], samples), flagged / samples
 
 
 def test_ledoit_wolf_intensity_is_its_formula():

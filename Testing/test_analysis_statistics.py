@@ -14,6 +14,8 @@ from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.outliers import new_case_distances, training_distances
 from mdlshapemodel.model.shape_model import ShapeModel, score_outliers
 
+from common import empirical_null_p
+
 
 def hotelling(a: np.ndarray, b: np.ndarray) -> float:
     """Two-sample Hotelling's T^2 with the pooled covariance, straight from its definition."""
@@ -238,21 +240,23 @@ def test_training_distances_are_bounded_and_flag_a_planted_outlier_at_small_n(rn
 
 
 def test_outlier_false_positive_rates_are_alpha(rng):
-    flagged = total = new_flagged = new_total = 0
+    flagged = normal = total = new_flagged = new_total = 0
     for _ in range(300):
         shapes, _ = gaussian_model(rng, 25)
         model = ShapeModel.from_shapes(shapes[:20], np.full(20, 1 / 20))
         result = score_outliers(model)
         flagged += result["outlier"].sum()
+        normal += np.sum(result["p_normal"] < 0.01)
         total += 20
         scores = np.stack([model.project(s) for s in shapes[20:]])
-        new = new_case_distances(scores, model.variances, 20, result["modes"])
+        new = new_case_distances(scores, model.variances, model.scores, result["modes"])
         new_flagged += new.outlier.sum()
         new_total += 5
-    rate, se = flagged / total, np.sqrt(0.01 * 0.99 / total)
-    assert abs(rate - 0.01) < 3 * se, rate
+    rate, se = normal / total, np.sqrt(0.01 * 0.99 / total)
+    assert abs(rate - 0.01) < 3 * se, rate            # the scaled Beta: exact under normality
+    assert flagged / total <= 0.01 + 3 * se, flagged / total
     # a new case's reference is exact for a fixed subspace; the leading modes, chosen on the
-    # same data, make it conservative
+    # same data, make it conservative, and so does the empirical null
     assert new_flagged / new_total <= 0.01 + 3 * np.sqrt(0.01 * 0.99 / new_total)
 
 
@@ -261,7 +265,7 @@ def test_a_new_case_far_away_is_flagged(rng):
     model = ShapeModel.from_shapes(shapes, np.full(20, 1 / 20))
     far = model.mean + 6 * np.sqrt(model.variances[0]) * model.modes[0]
     k = score_outliers(model)["modes"]
-    result = new_case_distances(model.project(far)[None], model.variances, 20, k)
+    result = new_case_distances(model.project(far)[None], model.variances, model.scores, k)
     assert result.outlier[0] and result.distance[0] == pytest.approx(6.0, rel=1e-9)
 
 
@@ -281,8 +285,55 @@ def test_a_fitted_case_is_scored_against_the_new_case_reference(rng):
         result = FitResult("new", "new.vtp", shape, shape, Pose(), scores, np.zeros(1),
                            np.zeros(1))
         found.append(unusual_fit(model, result))
-    expected = new_case_distances(model.project(far)[None], model.variances, 30, k)
+    expected = new_case_distances(model.project(far)[None], model.variances, model.scores, k)
     assert found[1]["distance"] == pytest.approx(expected.distance[0])
     assert found[1]["p"] == pytest.approx(expected.p[0]) and found[1]["flagged"]
+    assert found[1]["p_normal"] == pytest.approx(expected.p_normal[0])
     assert not found[0]["flagged"] and found[0]["p"] > 0.5
     assert found[1]["at_point"] == 3
+
+
+def test_unusual_p_values_are_their_formulas_on_small_data():
+    """Seven training cases and two new ones: each p_normal from the scaled Beta (training) or
+    the F (new), each p from the empirical null written out (docs/analysis.md item 9: a
+    training case against the other six's z-values, a new case against all seven's), the
+    thresholds where p crosses alpha."""
+    rng = np.random.default_rng(7)
+    x = rng.standard_t(3, size=(9, 4)) * [3.0, 2.0, 1.0, 0.5]
+    mean = x[:7].mean(0)
+    u, s, vt = np.linalg.svd(x[:7] - mean, full_matrices=False)
+    scores, variances, k, n = u * s, s ** 2 / 7, 3, 7
+    found = training_distances(scores, variances, k, alpha=0.05)
+    squared = np.sum(scores[:, :k] ** 2 / variances[:k], axis=1)
+    p_normal = stats.beta(k / 2, (n - k - 1) / 2).sf(squared / (n - 1))
+    np.testing.assert_allclose(found.p_normal, p_normal, rtol=1e-12)
+    np.testing.assert_allclose(found.p, empirical_null_p(p_normal), rtol=1e-10)
+    for i in range(n):                                    # p is 0.05 exactly at the threshold
+        at = stats.beta(k / 2, (n - k - 1) / 2).sf(found.threshold[i] ** 2 / (n - 1))
+        assert empirical_null_p(at, np.delete(p_normal, i))[0] == pytest.approx(0.05, rel=1e-6)
+    new = new_case_distances((x[7:] - mean) @ vt.T, variances, scores, k, alpha=0.05)
+    new_squared = np.sum(((x[7:] - mean) @ vt[:k].T) ** 2 / variances[:k], axis=1)
+    new_normal = stats.f.sf((n - k) * new_squared / (k * (n + 1)), k, n - k)
+    np.testing.assert_allclose(new.p_normal, new_normal, rtol=1e-12)
+    np.testing.assert_allclose(new.p, empirical_null_p(new_normal, p_normal), rtol=1e-10)
+    np.testing.assert_array_equal(new.outlier, new.distance > new.threshold)
+
+
+def test_a_planted_unusual_case_among_heavy_tailed_ones_is_found_and_they_are_not(rng):
+    """Forty shapes whose cases each have their own spread (a scale mixture: t with 5 degrees of
+    freedom), the first deformed by a bump of 2 mm at 3 of its 20 points: it is flagged in
+    nearly every sample, while the other cases are flagged at about the level, not at the
+    several times the level of the normal-theory p."""
+    found, others, others_normal = [], [], []
+    for _ in range(60):
+        x = rng.normal(size=(40, 60)) * 0.6 * 0.8 ** np.arange(60)
+        shapes = (x / np.sqrt(rng.chisquare(5, size=(40, 1)) / 5)).reshape(40, 20, 3)
+        shapes[0, :3, 2] += 2.0
+        model = ShapeModel.from_shapes(shapes, np.full(20, 1 / 20))
+        result = score_outliers(model, alpha=0.05)
+        found.append(result["p"][0] < 0.01)
+        others.append(np.mean(result["p"][1:] < 0.05))
+        others_normal.append(np.mean(result["p_normal"][1:] < 0.05))
+    assert np.mean(found) >= 0.9, np.mean(found)
+    assert np.mean(others_normal) > 0.1, np.mean(others_normal)     # a heavy tail indeed
+    assert np.mean(others) <= 0.075, np.mean(others)

@@ -20,7 +20,7 @@ from mdlshapemodel.analysis.glm import drawn_flips, drawn_permutations
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import io
 
-from common import run_cli
+from common import empirical_null_p, run_cli
 from synthetic import thin_and_full_build
 
 # every test here works on one real build (build_model) and the real command line
@@ -152,14 +152,19 @@ def test_every_number_of_analysis_json_is_recomputed(build, table, analysed):
                              seed=0)
     assert summary["global_test"]["p"] == pytest.approx(float(again.p[0]), rel=1e-9)
 
-    # unusual cases: the threshold of the scaled Beta over the model's own modes
+    # unusual cases: the distance at which p, against the empirical null of the scaled Beta's
+    # p-values over the model's own modes, is 0.01
     unusual = summary["unusual"]
     n, m = len(model.names), unusual["modes"]
-    assert unusual["threshold"] == pytest.approx(
-        np.sqrt((n - 1) * stats.beta(m / 2, (n - m - 1) / 2).isf(0.01)))
     rows = io.read_csv(analysed / "unusual.csv")
     distance = np.sqrt(np.sum(model.scores[:, :m] ** 2 / model.variances[:m], axis=1))
     np.testing.assert_allclose([float(r["mahalanobis"]) for r in rows], distance, rtol=1e-5)
+    reference = stats.beta(m / 2, (n - m - 1) / 2)
+    p_normal = reference.sf(distance ** 2 / (n - 1))
+    at = np.sqrt((n - 1) * reference.isf(np.geomspace(1e-12, 0.5, 4001)))
+    for i, threshold in enumerate(unusual["thresholds"]):          # each case against the others
+        p = empirical_null_p(reference.sf(at ** 2 / (n - 1)), np.delete(p_normal, i))
+        assert threshold == pytest.approx(at[np.argmin(np.abs(p - 0.01))], rel=1e-2)
     assert unusual["flagged"] == [r["case"] for r in rows if r["flagged"] == "True"]
 
     classification = summary["classification"]

@@ -31,7 +31,7 @@ from mdlshapemodel.config import AnalysisConfig
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.prepare import io
 
-from common import run_cli
+from common import empirical_null_p, run_cli
 from synthetic import small_mask
 
 N = 10
@@ -123,14 +123,20 @@ def test_the_builds_tables_agree_with_its_model_and_with_each_other(build):
     distance = np.sqrt(np.sum(written[:, :k] ** 2 / variances[:k], axis=1))
     cases = {row["case"]: row for row in io.read_csv(build / "cases.csv")}
     assert metrics["voxel_size_mm"] == pytest.approx(VOXEL)
-    for name, d in zip(model.names, distance):
+    for name, d, threshold in zip(model.names, distance, outliers["thresholds"]):
         row = cases[name]
         assert float(row["mahalanobis"]) == pytest.approx(d, rel=1e-4)
-        assert (row["score_outlier"] == "True") == (d > outliers["threshold"])
+        assert (row["score_outlier"] == "True") == (d > threshold)
         assert float(row["mean_distance_voxels"]) == pytest.approx(
             float(row["mean_distance_mm"]) / VOXEL, rel=1e-6)     # the image's float spacing
         assert (row["mirrored"] == "True") == (name in MIRRORED)
     assert outliers["cases"] == [n for n in model.names if cases[n]["score_outlier"] == "True"]
+    n = len(model.names)
+    p_normal = stats.beta(k / 2, (n - k - 1) / 2).sf(distance ** 2 / (n - 1))
+    np.testing.assert_allclose([float(cases[n]["unusual_p_normal"]) for n in model.names],
+                               p_normal, rtol=1e-4, atol=1e-9)
+    np.testing.assert_allclose([float(cases[n]["unusual_p"]) for n in model.names],
+                               empirical_null_p(p_normal), rtol=1e-4, atol=1e-9)
     surface = metrics["surface_distance_mm"]
     assert surface["mean"] == pytest.approx(np.mean([float(c["mean_distance_mm"])
                                                       for c in cases.values()]), rel=1e-9)
@@ -300,12 +306,16 @@ def test_each_cases_departure_from_its_reconstruction(build, table, tmp_path):
     for name, largest in zip(model.names, departure.max(axis=1)):
         assert float(rows[name]["max_departure_mm"]) == pytest.approx(largest, rel=1e-4,
                                                                       abs=1e-6)
-    # the p-value of each distance: d^2 / (n - 1) ~ Beta(k / 2, (n - k - 1) / 2)
+    # the p-value of each distance assuming normality, d^2 / (n - 1) ~ Beta(k / 2, (n - k - 1) / 2),
+    # and against the cases' empirical null of those
     squared = np.sum((u[:, :k] * s[:k]) ** 2 / (s[:k] ** 2 / N), axis=1)
-    for name, d2 in zip(model.names, squared):
+    p_normal = stats.beta(k / 2, (N - k - 1) / 2).sf(squared / (N - 1))
+    p = empirical_null_p(p_normal)
+    for name, d2, expected_normal, expected in zip(model.names, squared, p_normal, p):
         assert float(rows[name]["mahalanobis"]) == pytest.approx(np.sqrt(d2), rel=1e-4)
-        assert float(rows[name]["p"]) == pytest.approx(
-            stats.beta(k / 2, (N - k - 1) / 2).sf(d2 / (N - 1)), rel=1e-4, abs=1e-9)
+        assert float(rows[name]["p_normal"]) == pytest.approx(expected_normal, rel=1e-4,
+                                                              abs=1e-9)
+        assert float(rows[name]["p"]) == pytest.approx(expected, rel=1e-4, abs=1e-9)
 
 
 def test_fit_json_of_a_new_case(build, tmp_path):
@@ -344,8 +354,11 @@ def test_fit_json_of_a_new_case(build, tmp_path):
     k = unusual["modes"]
     d2 = np.sum(scores[:k] ** 2 / model.variances[:k])
     assert unusual["distance"] == pytest.approx(np.sqrt(d2), rel=1e-6)
-    assert unusual["p"] == pytest.approx(stats.f.sf((n - k) * d2 / (k * (n + 1)), k, n - k),
-                                         rel=1e-5)
+    p_normal = stats.f.sf((n - k) * d2 / (k * (n + 1)), k, n - k)
+    assert unusual["p_normal"] == pytest.approx(p_normal, rel=1e-5)
+    training = np.sum(model.scores[:, :k] ** 2 / model.variances[:k], axis=1)
+    training_p = stats.beta(k / 2, (n - k - 1) / 2).sf(training / (n - 1))
+    assert unusual["p"] == pytest.approx(float(empirical_null_p(p_normal, training_p)[0]), rel=1e-5)
     reconstructed = model.mean + np.einsum("m,mpd->pd", scores[:k], model.modes[:k])
     departure = np.linalg.norm(aligned - reconstructed, axis=1)
     assert unusual["max_departure_mm"] == pytest.approx(departure.max(), rel=1e-5)

@@ -32,8 +32,8 @@ The output folder::
                     mean shape (<group>=<level>.vtp), a covariate's predicted shapes at its
                     10th and 90th percentile (<covariate>_p10.vtp, _p90.vtp), with the
                     displacement between them (vector and along the normal) as point data
-    unusual.csv     per case: Mahalanobis distance, p, flagged, largest departure from its
-                    reconstruction
+    unusual.csv     per case: Mahalanobis distance, p (empirical null), p_normal (assuming
+                    normality), flagged, largest departure from its reconstruction
     unusual/        per case, the mean surface with the case's departure (mm) as point data
     analysis.html   the page of findings
     long.csv        with ``long_table`` (``--long-table``): one row per used case and point,
@@ -373,7 +373,8 @@ def summary_of(analysis: Analysis, build, table) -> dict:
         "shapes": shapes_summary(analysis, table),
         "classification": None, "discriminant": None,
         "unusual": {"modes": analysis.unusual.distances.modes,
-                    "threshold": analysis.unusual.distances.threshold,
+                    "thresholds": analysis.unusual.distances.threshold.tolist(),
+                    "null": analysis.unusual.distances.null.to_json(),
                     "flagged": [n for n, o in zip(analysis.unusual.names,
                                                   analysis.unusual.distances.outlier) if o]},
     }
@@ -423,12 +424,13 @@ def _write(folder: Path, analysis: Analysis, summary: dict, model, table):
                                       "normal_displacement_mm": shape.normal_displacement})
     unusual = analysis.unusual
     io.write_csv(folder / "unusual.csv",
-                 ["case", "mahalanobis", "p", "flagged", "max_departure_mm", "at_point"],
-                 [[name, f"{d:.6g}", f"{p:.6g}", bool(o), f"{dep.max():.6g}",
+                 ["case", "mahalanobis", "p", "p_normal", "flagged", "max_departure_mm",
+                  "at_point"],
+                 [[name, f"{d:.6g}", f"{p:.6g}", f"{p_normal:.6g}", bool(o), f"{dep.max():.6g}",
                    int(dep.argmax())]
-                  for name, d, p, o, dep in zip(unusual.names, unusual.distances.distance,
-                                                unusual.distances.p, unusual.distances.outlier,
-                                                unusual.departure)])
+                  for name, d, p, p_normal, o, dep in zip(
+                      unusual.names, unusual.distances.distance, unusual.distances.p,
+                      unusual.distances.p_normal, unusual.distances.outlier, unusual.departure)])
     (folder / "unusual").mkdir()
     for name, departure in zip(unusual.names, unusual.departure):
         io.write_polydata(io.case_file(folder / "unusual", name), model.mean, model.triangles,

@@ -225,6 +225,8 @@ def write_shapes(output: Path, corresponded, prepared: list) -> WrittenShapes:
                       "warp_kinds": warp_summary(state.examples[i]),
                       "normals_off": "" if normals_off is None else int(normals_off[i]),
                       "mahalanobis": float(outlier["distance"][i]),
+                      "unusual_p": float(outlier["p"][i]),
+                      "unusual_p_normal": float(outlier["p_normal"][i]),
                       "score_outlier": bool(outlier["outlier"][i]),
                       "smoothing_sigma": ("" if case.smoothing_sigma is None
                                           else case.smoothing_sigma),
@@ -267,7 +269,10 @@ def write_outputs(output: Path, corresponded, rejected: list, written: WrittenSh
                "optimisation": corresponded.optimisation.to_json(),
                "evaluations": state.evaluations,
                "variances": model.variances.tolist(), **quality,
-               "score_outliers": {"modes": outlier["modes"], "threshold": outlier["threshold"],
+               "score_outliers": {"modes": outlier["modes"],
+                                  "thresholds": np.asarray(outlier["threshold"]).tolist(),
+                                  "null": (None if outlier["null"] is None
+                                           else outlier["null"].to_json()),
                                   "cases": [n for n, o in zip(names, outlier["outlier"]) if o]},
                "flagged_cases": written.flagged,
                "normals": None if normals is None else {

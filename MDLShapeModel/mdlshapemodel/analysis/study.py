@@ -198,8 +198,9 @@ class Analysis:
 
 
 def unusual_cases(model: ShapeModel) -> Unusual:
-    """Distances of the model's training cases (p-values from a training case's own reference
-    distribution) and each case's departure from its reconstruction by the same modes."""
+    """Distances of the model's training cases (p-values against their empirical null, and
+    against a training case's own reference distribution under normality) and each case's
+    departure from its reconstruction by the same modes."""
     n = len(model.scores)
     k = modes_explaining(model.variances, n_cases=n)
     distances = training_distances(model.scores, model.variances, k)

@@ -189,17 +189,19 @@ def reconstruction_errors(model: ShapeModel, aligned: np.ndarray, scores: np.nda
 
 def unusual_fit(model: ShapeModel, result: FitResult) -> dict | None:
     """How unusual a fitted case is against the model's training cases: its Mahalanobis
-    distance over the modes explaining 95% of the variance and its p-value against the F
-    distribution of a new case's distance (:func:`~.outliers.new_case_distances`), flagged
-    below p = 0.01; and where it departs most from its reconstruction by those modes (mm, the
-    point's index). None when the model keeps fewer than 3 training cases' scores."""
+    distance over the modes explaining 95% of the variance, its p-value against the training
+    cases' empirical null (flagged below p = 0.01) and against the F distribution of a new
+    case's distance under normality (:func:`~.outliers.new_case_distances`); and where it
+    departs most from its reconstruction by those modes (mm, the point's index). None when the
+    model keeps fewer than 3 training cases' scores."""
     n = len(model.scores)
     if n < 3 or model.n_modes == 0:
         return None
     k = modes_explaining(model.variances, n_cases=n)
-    found = new_case_distances(result.scores[None], model.variances, n, k)
+    found = new_case_distances(result.scores[None], model.variances, model.scores, k)
     departure = np.linalg.norm(result.aligned - model.instance(result.scores[:k]), axis=1)
     return {"modes": k, "distance": float(found.distance[0]), "p": float(found.p[0]),
-            "flagged": bool(found.outlier[0]), "threshold": found.threshold,
+            "p_normal": float(found.p_normal[0]), "flagged": bool(found.outlier[0]),
+            "threshold": float(found.threshold[0]), "null": found.null.to_json(),
             "max_departure_mm": float(departure.max()),
             "at_point": int(departure.argmax())}

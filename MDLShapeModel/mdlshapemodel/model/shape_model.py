@@ -563,19 +563,24 @@ def _statismo_names(info, n_s: int) -> list:
 def score_outliers(model: ShapeModel, explained: float | None = None,
                    alpha: float | None = None) -> dict:
     """Mahalanobis distance of each training case over the modes that explain ``explained`` of
-    the variance, its p-value against the distribution of a training case's own distance (a
-    scaled Beta, :func:`~.outliers.training_distances`), and whether it is below ``alpha``.
+    the variance, its p-value against the empirical null of the training cases
+    (:func:`~.outliers.training_distances`), and whether it is below ``alpha``.
 
-    Returns a dict with ``modes``, ``threshold`` (the distance at which p = alpha),
-    ``distance``, ``p`` and ``outlier`` (one per case)."""
+    Returns a dict with ``modes``, ``threshold`` (per case, the distance at which its p =
+    alpha), ``null``
+    (the :class:`~.outliers.EmpiricalNull`, None without a distance), ``distance``, ``p``,
+    ``p_normal`` (against the scaled Beta, which assumes normality) and ``outlier`` (one per
+    case)."""
     from .outliers import ALPHA, EXPLAINED, modes_explaining, training_distances
 
     n = len(model.scores)
     if n < 3 or model.n_modes == 0:
-        return {"modes": 0, "threshold": float("nan"), "distance": np.full(n, np.nan),
-                "p": np.full(n, np.nan), "outlier": np.zeros(n, dtype=bool)}
+        return {"modes": 0, "threshold": np.full(n, np.nan), "null": None,
+                "distance": np.full(n, np.nan), "p": np.full(n, np.nan),
+                "p_normal": np.full(n, np.nan), "outlier": np.zeros(n, dtype=bool)}
     k = modes_explaining(model.variances, EXPLAINED if explained is None else explained, n)
     result = training_distances(model.scores, model.variances, k,
                                 ALPHA if alpha is None else alpha)
-    return {"modes": result.modes, "threshold": result.threshold, "distance": result.distance,
-            "p": result.p, "outlier": result.outlier}
+    return {"modes": result.modes, "threshold": result.threshold, "null": result.null,
+            "distance": result.distance, "p": result.p, "p_normal": result.p_normal,
+            "outlier": result.outlier}

@@ -402,7 +402,9 @@ def write_analysis_page(path: Path, summary: dict, analysis: Analysis, model: Sh
                                                       unusual.distances.outlier) if o]
     body += ["<h2>Unusual cases</h2>",
              f"<p>Mahalanobis distance over the first {unusual.distances.modes} modes, against "
-             "the distribution of a training case's own distance (a scaled Beta); flagged below "
+             "the empirical null of the cases' own distances (their scaled-Beta p-values as "
+             "z-values, centred on their median and widened to their 90% quantile, so that a "
+             "heavy tail of the cases themselves is not flagged); flagged below "
              f"p = 0.01: {len(flagged)} case(s). Where each case departs from its reconstruction "
              "is in <code>unusual/</code>.</p>"]
     if flagged:

@@ -289,7 +289,8 @@ CASE_COLUMNS = {
     "sphere_p95_abs_log_area": "sphere map: 95th percentile |ln area ratio|",
     "sphere_seconds": "sphere map [s]", "warps": "warps", "warp_kinds": "warp kinds",
     "normals_off": "normals off (points)",
-    "mahalanobis": "Mahalanobis distance", "score_outlier": "outlier (p < 0.01)",
+    "mahalanobis": "Mahalanobis distance", "unusual_p": "p (empirical null)",
+    "unusual_p_normal": "p (assuming normality)", "score_outlier": "outlier (p < 0.01)",
     "smoothing_sigma": "blur [voxels]", "repair": "repaired", "mirrored": "mirrored"}
 
 # The files of a build's output folder that the report links to, and what each holds.
@@ -485,8 +486,10 @@ def write_report(output: Path, metrics: dict, cases: list, rejected: list, model
                   "<p>Fidelity: distance from the input surface to the corresponded mesh. Sphere "
                   "map: flipped triangles and |ln area ratio|. Score outlier: the Mahalanobis "
                   "distance of the case's scores (over the modes explaining 95% of the "
-                  "variance) has p < 0.01 against the distribution of a training case's own "
-                  "distance (a scaled Beta). The table scrolls sideways; the case and why it "
+                  "variance) has p < 0.01 against the empirical null of the cases' own "
+                  "distances (their scaled-Beta p-values as z-values, centred on their median "
+                  "and widened to their 90% quantile; the p assuming normality is beside it). "
+                  "The table scrolls sideways; the case and why it "
                   "is flagged stay in view.</p>",
                   "<div class=cases>",
                   table([CASE_COLUMNS.get(k, k) for k in keys], shown, flags), "</div>"]
