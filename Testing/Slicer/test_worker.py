@@ -76,8 +76,10 @@ def test_a_build_runs_in_its_own_process_with_progress_and_loads_its_nodes(
     assert job.wait(60)
     reports += job.poll()
     messages = [report.message for report in reports]
-    assert [m for m in messages if m.startswith("prepared")] == [
-        f"prepared {k}/4" for k in range(1, 5)]
+    prepared = [m for m in messages if m.startswith("prepared")]
+    # (each but the last with the estimate of the time left)
+    assert [m.split(" (about ")[0] for m in prepared] == [f"prepared {k}/4" for k in range(1, 5)]
+    assert all(m.endswith(" left)") for m in prepared[:-1])
     assert any("F =" in m for m in messages)
     assert all(0 <= r.fraction <= 1 for r in reports if r.fraction is not None)
     result = job.finish()
