@@ -175,7 +175,7 @@ def compile_beside() -> None:
 
 def _start_beside():
     """:func:`compile_beside` submitted to a pool of one worker process, or None where no
-    process can be started (the tiny build then compiles its kernels alone)."""
+    process can be started (:func:`compile_ahead` then runs it in its own process)."""
     from .parallel import ProcessPool
 
     pool = ProcessPool(1)
@@ -208,13 +208,15 @@ def _finish_beside(beside, interrupted: bool) -> None:
         pool.shutdown(wait=True)
 
 
-def compile_ahead(build: Callable) -> bool:
+def compile_ahead(build: Callable, second_process: bool = True) -> bool:
     """Compile the kernels into numba's cache unless it holds them: say so (:data:`COMPILING`,
     an info line), start :func:`compile_beside` in a second process, :func:`compile_sphere_map`
     here, run ``build(inputs, output, config)`` (:func:`~.build.build_model`) on
     :func:`tiny_population` into a temporary folder, silently, wait for the second process, then
     write the marker. Returns whether it compiled.
-    Inside that build, and when the cache is warm, it does nothing. An error of the tiny build
+    Inside that build, and when the cache is warm, it does nothing. Without ``second_process``
+    (a caller that must start no process: one worker, a script's unguarded top-level code),
+    :func:`compile_beside` runs here after the tiny build. An error of the tiny build
     or of the second process is logged as a warning and the caller's work goes on (their kernels
     then compile where they are first called); an interruption propagates, the marker unwritten.
     """
@@ -223,12 +225,14 @@ def compile_ahead(build: Callable) -> bool:
         return False
     log.info("%s", COMPILING)
     _compiling = True
-    beside, interrupted = _start_beside(), True
+    beside, interrupted = (_start_beside() if second_process else None), True
     try:
         with tempfile.TemporaryDirectory(prefix="mdlshapemodel-kernels-") as folder, _silent():
             compile_sphere_map()
             build(tiny_population(Path(folder) / "inputs"), Path(folder) / "model",
                   BuildConfig(**_TINY_BUILD))
+            if beside is None:
+                compile_beside()
         interrupted = False
     except Exception as error:  # noqa: BLE001 - the user's build goes on without it
         interrupted = False
