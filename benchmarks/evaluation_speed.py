@@ -19,15 +19,18 @@ the two versions in turn.
     python benchmarks/evaluation_speed.py HEAD --build /tmp/ev82 --repeat 3
     python benchmarks/evaluation_speed.py HEAD --build /tmp/ev82 --repeat 2 --parts
 
-``--build`` is a build of the first 82 shared hippocampi by default, e.g.
-``mdlshapemodel build $(ls -d ../shared/data/hippocampus/labels/* | head -82) -o /tmp/ev82
---label 1,2``; ``--cases`` and ``--label`` must be those of the build.
+``--build`` is a converged build (its checkpoint holds the correspondence of the build's
+points), of the first 82 shared hippocampi by default, e.g. ``mdlshapemodel build $(ls -d
+../shared/data/hippocampus/labels/* | head -82) -o /tmp/ev82 --label 1,2``; its inputs are the
+files its cases.csv names (``--cases``: the first N of them, all by default), ``--label`` must
+be the build's.
 """
 
 from __future__ import annotations
 
 import argparse
 import atexit
+import csv
 import importlib.util
 import os
 import re
@@ -42,7 +45,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "hippocampus" / "labels"
 FOLDER = "MDLShapeModel/mdlshapemodel/model"
 # the modules of the evaluation, those that others import first
 MODULES = ("evaluation_kernels", "space", "surface_measures", "evaluation")
@@ -94,7 +96,9 @@ def inputs(build: Path, cases: int, labels: tuple) -> tuple:
     from mdlshapemodel.prepare.batch import preprocess
 
     config = BuildConfig(labels=labels, workers=1)
-    prepared, _ = preprocess(sorted(DATA.glob("*.nii.gz"))[:cases], config)
+    # the build's own inputs, in its order (cases.csv names each case's file)
+    files = [row["file"] for row in csv.DictReader(open(build / "cases.csv"))][:cases]
+    prepared, _ = preprocess(files, config)
     state = initial_state(prepared, config)[0]
     replay_record(state, load_checkpoint(build / "checkpoint.npz"))
     surfaces = [(state.to_model_frame(i, vertices), faces)
@@ -142,7 +146,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("old", help="the older commit, e.g. HEAD")
     parser.add_argument("--build", type=Path, default=Path("/tmp/ev82"))
-    parser.add_argument("--cases", type=int, default=82)
+    parser.add_argument("--cases", type=int, default=None)
     parser.add_argument("--label", default="1,2")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--workers", type=int, default=2, help="2: a helper process, as a build")
