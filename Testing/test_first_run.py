@@ -142,6 +142,9 @@ def test_a_cold_kernel_cache_is_announced_and_compiled_once_before_the_workers(t
     assert cold.stderr.index(COMPILING) < cold.stderr.index("preprocessing 3 cases")
     compiled = numba_index_files(cache)
     assert compiled
+    # the second process of the compilation also compiled analyze --tfce's kernel, which no
+    # build calls
+    assert any(path.name.startswith("tfce._enhance_rows") for path in compiled)
     warm = run_cli("build", tmp_path / "in", "-o", tmp_path / "warm", *quick, env=environment)
     assert warm.returncode == 0, warm.stderr
     assert COMPILING not in warm.stderr

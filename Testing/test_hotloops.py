@@ -135,3 +135,30 @@ def test_field_sample_gradient_chains_pose_surface_and_field(locator, rng):
                                             basis.n_centres)
     du = np.einsum("kde,kd->ke", out["jac"], scale * g @ rotation)
     np.testing.assert_allclose(result, basis.coefficient_gradient(c, du), atol=1e-12)
+
+
+@pytest.mark.parametrize("level", [3, 4])
+def test_bump_matrix_of_many_centres_holds_the_pairs_that_pass_the_dot_product_test(rng, level):
+    """With many centres the kernel tests only those of nearby cells: its pairs are exactly
+    those whose dot product passes the test, in increasing order, also for points a little off
+    unit length and at the support's edge, with the Wendland values."""
+    centres, triangles = icosphere(level)
+    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]]])
+    radius = 2.0 * float(np.mean(np.linalg.norm(centres[edges[:, 0]] - centres[edges[:, 1]],
+                                                 axis=1)))
+    points = _unit(rng, 1500) * (1.0 + 1e-9 * rng.normal(size=(1500, 1)))
+    # points at the support's edge of centre 0, just inside and just outside
+    tangent = np.cross(centres[0], [0.0, 0.0, 1.0])
+    tangent /= np.linalg.norm(tangent)
+    angle = 2.0 * np.arcsin(radius / 2.0)
+    edge = [np.cos(a) * centres[0] + np.sin(a) * tangent for a in angle + np.array([-1e-12, 1e-12])]
+    points = np.vstack([points, edge])
+    indptr, indices, data = hotloops.bump_matrix(points, centres, radius)
+    passes = points @ centres.T > 1.0 - 0.5 * radius * radius
+    assert indptr[-1] == np.count_nonzero(passes)
+    for k in range(len(points)):
+        row = indices[indptr[k]:indptr[k + 1]]
+        np.testing.assert_array_equal(row, np.flatnonzero(passes[k]))
+        distance = np.linalg.norm(points[k] - centres[row], axis=1) / radius
+        np.testing.assert_allclose(data[indptr[k]:indptr[k + 1]], wendland(distance),
+                                   rtol=1e-12, atol=1e-15)

@@ -5,8 +5,10 @@ the same numbers.
 The inputs are a finished build's: its prepared cases (from the preprocessing cache, or prepared
 again) with the correspondence of its ``checkpoint.npz`` replayed, i.e. the aligned shapes, the
 area weights, the triangles and the true surfaces in the model frame that the build evaluated.
-The older ``model/evaluation.py`` (``git show OLD:...``) is loaded beside this tree's as
-``mdlshapemodel.model._evaluation_old``, so both run in the same process on the same library;
+The older commit's evaluation modules (``model/evaluation.py`` and, where it has them,
+``evaluation_kernels.py``, ``space.py`` and ``surface_measures.py``: ``git show OLD:...``) are
+loaded beside this tree's as ``mdlshapemodel.model._old_<name>``, their imports of each other
+pointed at the older copies, so both versions run in the same process on the same library;
 each run, as in a build, hands the surface generalization to a helper process (``--workers 2``)
 with the build's settings (10 modes, 10,000 specificity samples, 200 surface samples, seed 0).
 Printed per run: the seconds of each version, then their medians and ratio, then per measure
@@ -17,17 +19,22 @@ the two versions in turn.
     python benchmarks/evaluation_speed.py HEAD --build /tmp/ev82 --repeat 3
     python benchmarks/evaluation_speed.py HEAD --build /tmp/ev82 --repeat 2 --parts
 
-``--build`` is a build of the first 82 shared hippocampi by default, e.g.
-``mdlshapemodel build $(ls -d ../shared/data/hippocampus/labels/* | head -82) -o /tmp/ev82
---label 1,2``; ``--cases`` and ``--label`` must be those of the build.
+``--build`` is a converged build (its checkpoint holds the correspondence of the build's
+points), of the first 82 shared hippocampi by default, e.g. ``mdlshapemodel build $(ls -d
+../shared/data/hippocampus/labels/* | head -82) -o /tmp/ev82 --label 1,2``; its inputs are the
+files its cases.csv names (``--cases``: the first N of them, all by default), ``--label`` must
+be the build's.
 """
 
 from __future__ import annotations
 
 import argparse
 import atexit
+import csv
 import importlib.util
 import os
+import re
+import shutil
 import statistics
 import subprocess
 import sys
@@ -38,24 +45,43 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "hippocampus" / "labels"
-SOURCE = "MDLShapeModel/mdlshapemodel/model/evaluation.py"
-OLD_NAME = "mdlshapemodel.model._evaluation_old"
-# the file of the older evaluation.py; set before the helper process starts, which loads it too
-OLD_FILE = "EVALUATION_SPEED_OLD_FILE"
+FOLDER = "MDLShapeModel/mdlshapemodel/model"
+# the modules of the evaluation, those that others import first
+MODULES = ("evaluation_kernels", "space", "surface_measures", "evaluation")
+# the folder of the older modules; set before the helper process starts, which loads them too
+OLD_FOLDER = "EVALUATION_SPEED_OLD_FOLDER"
+
+
+def old_name(module: str) -> str:
+    return f"mdlshapemodel.model._old_{module}"
+
+
+def pointed_at_older(source: str, present: list) -> str:
+    """``source`` with its imports of the evaluation modules in ``present`` pointed at their
+    older copies."""
+    for module in present:
+        source = re.sub(rf"from \.{module} import", f"from ._old_{module} import", source)
+        source = re.sub(rf"from \. import {module}\b", f"from . import _old_{module} as {module}",
+                        source)
+    return source
 
 
 def load_old():
-    """The older evaluation module, registered under OLD_NAME (the helper process unpickles its
-    functions by that name)."""
-    if OLD_NAME not in sys.modules and os.environ.get(OLD_FILE):
+    """The older evaluation module, its older siblings registered before it (the helper process
+    unpickles their functions by those names)."""
+    folder = os.environ.get(OLD_FOLDER)
+    if old_name("evaluation") not in sys.modules and folder:
         import mdlshapemodel.model  # noqa: F401  (the package its relative imports resolve in)
 
-        spec = importlib.util.spec_from_file_location(OLD_NAME, os.environ[OLD_FILE])
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[OLD_NAME] = module
-        spec.loader.exec_module(module)
-    return sys.modules.get(OLD_NAME)
+        for module in MODULES:
+            path = Path(folder) / f"{module}.py"
+            if not path.is_file():
+                continue
+            spec = importlib.util.spec_from_file_location(old_name(module), path)
+            loaded = importlib.util.module_from_spec(spec)
+            sys.modules[old_name(module)] = loaded
+            spec.loader.exec_module(loaded)
+    return sys.modules.get(old_name("evaluation"))
 
 
 load_old()    # in the helper process too (spawn runs this file's top level)
@@ -70,7 +96,9 @@ def inputs(build: Path, cases: int, labels: tuple) -> tuple:
     from mdlshapemodel.prepare.batch import preprocess
 
     config = BuildConfig(labels=labels, workers=1)
-    prepared, _ = preprocess(sorted(DATA.glob("*.nii.gz"))[:cases], config)
+    # the build's own inputs, in its order (cases.csv names each case's file)
+    files = [row["file"] for row in csv.DictReader(open(build / "cases.csv"))][:cases]
+    prepared, _ = preprocess(files, config)
     state = initial_state(prepared, config)[0]
     replay_record(state, load_checkpoint(build / "checkpoint.npz"))
     surfaces = [(state.to_model_frame(i, vertices), faces)
@@ -118,19 +146,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("old", help="the older commit, e.g. HEAD")
     parser.add_argument("--build", type=Path, default=Path("/tmp/ev82"))
-    parser.add_argument("--cases", type=int, default=82)
+    parser.add_argument("--cases", type=int, default=None)
     parser.add_argument("--label", default="1,2")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--workers", type=int, default=2, help="2: a helper process, as a build")
     parser.add_argument("--parts", action="store_true", help="each measure alone")
     args = parser.parse_args()
 
-    source = subprocess.run(["git", "show", f"{args.old}:{SOURCE}"], cwd=ROOT, check=True,
-                            capture_output=True, text=True).stdout
-    path = Path(tempfile.gettempdir()) / f"evaluation_speed_{os.getpid()}.py"
-    path.write_text(source)
-    atexit.register(path.unlink, missing_ok=True)
-    os.environ[OLD_FILE] = str(path)
+    folder = Path(tempfile.mkdtemp(prefix="evaluation_speed_"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    sources = {}
+    for module in MODULES:
+        shown = subprocess.run(["git", "show", f"{args.old}:{FOLDER}/{module}.py"], cwd=ROOT,
+                               capture_output=True, text=True)
+        if shown.returncode == 0:
+            sources[module] = shown.stdout
+    for module, source in sources.items():
+        (folder / f"{module}.py").write_text(pointed_at_older(source, list(sources)))
+    os.environ[OLD_FOLDER] = str(folder)
     old = load_old()
     from mdlshapemodel.model import evaluation as new
     from mdlshapemodel.model.shape_model import ShapeModel

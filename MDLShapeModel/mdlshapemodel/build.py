@@ -144,7 +144,10 @@ def build_model(inputs, output, config: BuildConfig | None = None,
         if log.level == logging.NOTSET or log.level > logging.INFO:
             log.setLevel(logging.INFO)
         try:
-            compile_ahead(build_model)    # a cold cache: compiled here, before any worker starts
+            # a cold cache: compiled before any worker starts, in a second process too where
+            # the build starts worker processes itself (_refuse_unguarded_call's condition)
+            compile_ahead(build_model, second_process=executor is None and config.workers > 1
+                          and config.scheduler is None)
             return _build(cases, output, config, progress, executor, resume, landmarks, interrupt)
         except InternalError as error:
             # the user sees the one-line message; the traceback (a worker's too) goes to build.log

@@ -8,7 +8,10 @@ silently, in every worker process at once and then in the optimisation, whose ti
 would spend. :func:`compile_ahead` instead says so in one line and compiles them in the calling
 process, before a build starts its worker processes, by a build of three tiny generated label
 maps (the code paths of a real build), so that the workers, the optimisation and the evaluation
-load them from the cache.
+load them from the cache. Two cores share the compilation: this process compiles the sphere
+map's kernels first (:func:`compile_sphere_map`) while a second one compiles the remeshing's,
+the evaluation's and the one of ``analyze --tfce`` (:func:`compile_beside`); the tiny build then
+loads those and compiles the rest.
 
 Whether the cache is warm is read from a marker file written once that compilation has
 succeeded, beside numba's cache and named after what numba's cache depends on: the kernels'
@@ -38,7 +41,7 @@ log = logging.getLogger("mdlshapemodel")
 #: the modules of the package that hold numba functions cached on disk (``cache=True``)
 KERNEL_MODULES = ("prepare/nearest.py", "prepare/remesh.py", "prepare/sphere_kernels.py",
                   "prepare/multilevel.py", "correspondence/hotloops.py",
-                  "model/evaluation_kernels.py")
+                  "model/evaluation_kernels.py", "analysis/tfce.py")
 
 #: what a build with a cold cache says before it compiles
 COMPILING = "compiling numerical kernels (first run only, about a minute)"
@@ -123,12 +126,98 @@ def _silent():
         log.removeFilter(drop)
 
 
-def compile_ahead(build: Callable) -> bool:
+def ellipsoid(subdivisions: int, axes) -> tuple[np.ndarray, np.ndarray]:
+    """A closed triangle mesh of the ellipsoid of semi-axes ``axes`` (an icosphere scaled):
+    vertices (n, 3) float64 and counter-clockwise faces (m, 3) int64."""
+    from .correspondence.sampling import icosphere
+
+    vertices, faces = icosphere(subdivisions)
+    return (np.ascontiguousarray(vertices * np.asarray(axes, dtype=np.float64)),
+            np.ascontiguousarray(faces, dtype=np.int64))
+
+
+def compile_sphere_map() -> None:
+    """Compile the sphere map's kernels (:func:`~.prepare.sphere.sphere_map`: the distortion's
+    minimiser, the largest of all, and the area balance) into numba's cache by mapping a small
+    generated ellipsoid. :func:`compile_ahead` calls it before its tiny build, while
+    :func:`compile_beside` compiles the remeshing's in a second process."""
+    from .prepare.sphere import sphere_map
+
+    sphere_map(*ellipsoid(2, (12.0, 7.0, 5.0)))
+
+
+def compile_beside() -> None:
+    """Compile into numba's cache the kernels of the remeshing
+    (:func:`~.prepare.surface.remesh`), of the model's evaluation with its surface measures
+    (:func:`~.model.evaluation.evaluate`) and of TFCE (:func:`~.analysis.tfce.enhance`), by
+    calling them on small generated ellipsoids: arrays of the types a build and ``analyze`` pass.
+
+    :func:`compile_ahead` runs it in a second process while it compiles the sphere map's kernels
+    (:func:`compile_sphere_map`) and then the others by its tiny build: the tiny build reaches
+    the remeshing's after that, and the evaluation's last (TFCE's never), and loads them from the
+    cache when this process has compiled them by then."""
+    from .analysis.tfce import enhance, surface_of
+    from .model.evaluation import evaluate
+    from .prepare.surface import remesh
+
+    vertices, faces = ellipsoid(3, (12.0, 7.0, 5.0))
+    remesh(vertices, faces, 1.2)              # edges of 0.5-2 mm: splits, collapses, flips
+    surfaces = [ellipsoid(2, (12.0 + k, 7.0, 5.0 - 0.5 * k)) for k in range(4)]
+    shapes = np.stack([ellipsoid(1, (12.0 + k, 7.0, 5.0 - 0.5 * k))[0] for k in range(4)])
+    triangles = ellipsoid(1, (1.0, 1.0, 1.0))[1]
+    centred = shapes - shapes.mean(axis=0)
+    variances = np.linalg.svd(centred.reshape(len(shapes), -1), compute_uv=False) ** 2 / 4
+    evaluate(shapes, np.ones(shapes.shape[1]), variances, max_modes=2, n_samples=20,
+             triangles=triangles, surfaces=surfaces, surface_samples=10)
+    surface = surface_of(*surfaces[0])
+    enhance(np.linspace(0.0, 3.0, 2 * surface.n_points).reshape(2, -1), surface)
+
+
+def _start_beside():
+    """:func:`compile_beside` submitted to a pool of one worker process, or None where no
+    process can be started (:func:`compile_ahead` then runs it in its own process)."""
+    from .parallel import ProcessPool
+
+    pool = ProcessPool(1)
+    try:
+        return pool, pool.submit(compile_beside)
+    except Exception as error:  # noqa: BLE001 - the tiny build compiles them instead
+        pool.shutdown(wait=False)
+        log.info("could not start a second process to compile kernels (%s: %s)",
+                 type(error).__name__, error)
+        return None
+
+
+def _finish_beside(beside, interrupted: bool) -> None:
+    """Wait for :func:`_start_beside`'s process (not after an interruption: it then ends with
+    this process) and shut its pool down; its error is a warning (those kernels compile where
+    they are first used)."""
+    if beside is None:
+        return
+    pool, future = beside
+    if interrupted:
+        pool.shutdown(wait=False, cancel_futures=True)
+        return
+    try:
+        future.result()
+    except Exception as error:  # noqa: BLE001 - the user's build goes on without it
+        log.warning("compiling the remeshing's, evaluation's and TFCE's kernels ahead failed "
+                    "(%s: %s); they compile where they are first used",
+                    type(error).__name__, error)
+    finally:
+        pool.shutdown(wait=True)
+
+
+def compile_ahead(build: Callable, second_process: bool = True) -> bool:
     """Compile the kernels into numba's cache unless it holds them: say so (:data:`COMPILING`,
-    an info line), run ``build(inputs, output, config)`` (:func:`~.build.build_model`) on
-    :func:`tiny_population` into a temporary folder, silently, then write the marker. Returns
-    whether it compiled. Inside that build, and when the cache is warm, it does nothing. An
-    error of the tiny build is logged as a warning and the caller's work goes on (its kernels
+    an info line), start :func:`compile_beside` in a second process, :func:`compile_sphere_map`
+    here, run ``build(inputs, output, config)`` (:func:`~.build.build_model`) on
+    :func:`tiny_population` into a temporary folder, silently, wait for the second process, then
+    write the marker. Returns whether it compiled.
+    Inside that build, and when the cache is warm, it does nothing. Without ``second_process``
+    (a caller that must start no process: one worker, a script's unguarded top-level code),
+    :func:`compile_beside` runs here after the tiny build. An error of the tiny build
+    or of the second process is logged as a warning and the caller's work goes on (their kernels
     then compile where they are first called); an interruption propagates, the marker unwritten.
     """
     global _compiling
@@ -136,16 +225,23 @@ def compile_ahead(build: Callable) -> bool:
         return False
     log.info("%s", COMPILING)
     _compiling = True
+    beside, interrupted = (_start_beside() if second_process else None), True
     try:
         with tempfile.TemporaryDirectory(prefix="mdlshapemodel-kernels-") as folder, _silent():
+            compile_sphere_map()
             build(tiny_population(Path(folder) / "inputs"), Path(folder) / "model",
                   BuildConfig(**_TINY_BUILD))
+            if beside is None:
+                compile_beside()
+        interrupted = False
     except Exception as error:  # noqa: BLE001 - the user's build goes on without it
+        interrupted = False
         log.warning("compiling the numerical kernels ahead failed (%s: %s); they compile where "
                     "they are first used", type(error).__name__, error)
         return False
     finally:
         _compiling = False
+        _finish_beside(beside, interrupted)
     marker = marker_path()
     try:
         marker.parent.mkdir(parents=True, exist_ok=True)

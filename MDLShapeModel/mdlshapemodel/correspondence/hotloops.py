@@ -146,18 +146,92 @@ def weighted_point_norms(displacements, weights):
     return result
 
 
+#: :func:`bump_matrix` tests every centre up to this many, and those of nearby cells beyond
+BINNED_CENTRES = 200
+
+
+@njit(cache=True, nogil=True)
+def _length2_excess(vectors):
+    """max(0, the largest |v|^2 - 1) of the rows of ``vectors``."""
+    excess = 0.0
+    for k in range(vectors.shape[0]):
+        length2 = vectors[k, 0] ** 2 + vectors[k, 1] ** 2 + vectors[k, 2] ** 2
+        excess = max(excess, length2 - 1.0)
+    return excess
+
+
+@njit(cache=True, nogil=True)
+def _bump_candidates(px, py, pz, low, cell, shape, start, order, reach, bounds, found):
+    """The centres binned (``start``, ``order``) in the cells of a box of side ``reach`` around
+    (px, py, pz) into ``found`` (in the cells' order); returns how many. ``bounds`` (3, 2):
+    room for the box's cell range."""
+    count = 0
+    for axis, value in enumerate((px, py, pz)):
+        for side, shifted in enumerate((value - reach, value + reach)):
+            index = int(np.floor((shifted - low[axis]) / cell))
+            bounds[axis, side] = min(max(index, 0), shape[axis] - 1)
+    for i in range(bounds[0, 0], bounds[0, 1] + 1):
+        for j in range(bounds[1, 0], bounds[1, 1] + 1):
+            for k in range(bounds[2, 0], bounds[2, 1] + 1):
+                box = (i * shape[1] + j) * shape[2] + k
+                for t in range(start[box], start[box + 1]):
+                    found[count] = order[t]
+                    count += 1
+    return count
+
+
 @njit(cache=True, nogil=True)
 def bump_matrix(points, centres, radius):
     """The CSR arrays (indptr, indices, data) of the (n, n_c) matrix of Wendland bumps
     g(|u_k - P_j| / r) at unit vectors u_k, centres P_j (unit), support radius r (chord): every
-    pair within r, columns in increasing order. Brute force over the centres, with the test
-    |u - P|^2 = 2 - 2 u.P < r^2 on the dot product."""
+    pair within r, columns in increasing order, with the test |u - P|^2 = 2 - 2 u.P < r^2 on the
+    dot product.
+
+    Beyond :data:`BINNED_CENTRES` centres, they are binned in cubic cells of side ``reach`` and
+    each point tests those of the cells within ``reach`` along each axis, its row then put in
+    increasing order of column (fewer centres: every one, in order): the same pairs and
+    arithmetic as a test of every centre. A pair that passes has |u - P|^2 < |u|^2 + |P|^2 - 2 +
+    r^2 (up to the dot product's rounding), so ``reach`` is r widened by the vectors' largest
+    departure from unit length and a margin far above that rounding.
+    """
     n, m = points.shape[0], centres.shape[0]
     threshold = 1.0 - 0.5 * radius * radius
+    excess = max(_length2_excess(points), _length2_excess(centres))
+    reach = np.sqrt(radius * radius + 2.0 * excess + 1e-12) + 1e-9
+    low = np.empty(3)
+    shape = np.ones(3, dtype=np.int64)
+    for axis in range(3):
+        if m:
+            low[axis] = centres[:, axis].min()
+            shape[axis] = int((centres[:, axis].max() - low[axis]) / reach) + 1
+        else:
+            low[axis] = 0.0
+    cells = shape[0] * shape[1] * shape[2]
+    home = np.empty(m, dtype=np.int64)
+    start = np.zeros(cells + 1, dtype=np.int64)
+    for j in range(m):
+        index = np.empty(3, dtype=np.int64)
+        for axis in range(3):
+            cell_index = int(np.floor((centres[j, axis] - low[axis]) / reach))
+            index[axis] = min(max(cell_index, 0), shape[axis] - 1)
+        home[j] = (index[0] * shape[1] + index[1]) * shape[2] + index[2]
+        start[home[j] + 1] += 1
+    start = np.cumsum(start)
+    order = np.empty(m, dtype=np.int64)
+    filled = start[:-1].copy()
+    for j in range(m):
+        order[filled[home[j]]] = j
+        filled[home[j]] += 1
+    found = np.arange(m)
+    bounds = np.empty((3, 2), dtype=np.int64)
+    binned = m > BINNED_CENTRES and cells > 1
     counts = np.zeros(n + 1, dtype=np.int64)
     for k in range(n):
         x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        for j in range(m):
+        candidates = m if not binned else _bump_candidates(x, y, z, low, reach, shape, start,
+                                                           order, reach, bounds, found)
+        for c in range(candidates):
+            j = found[c]
             if x * centres[j, 0] + y * centres[j, 1] + z * centres[j, 2] > threshold:
                 counts[k + 1] += 1
     indptr = np.cumsum(counts)
@@ -166,12 +240,20 @@ def bump_matrix(points, centres, radius):
     for k in range(n):
         t = indptr[k]
         x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        for j in range(m):
+        candidates = m if not binned else _bump_candidates(x, y, z, low, reach, shape, start,
+                                                           order, reach, bounds, found)
+        for c in range(candidates):
+            j = found[c]
             if x * centres[j, 0] + y * centres[j, 1] + z * centres[j, 2] > threshold:
                 dx, dy, dz = x - centres[j, 0], y - centres[j, 1], z - centres[j, 2]
                 d = np.sqrt(dx * dx + dy * dy + dz * dz) / radius
-                indices[t] = j
-                data[t] = (1.0 - d) ** 4 * (4.0 * d + 1.0) if d < 1.0 else 0.0
+                value = (1.0 - d) ** 4 * (4.0 * d + 1.0) if d < 1.0 else 0.0
+                # into the row in increasing order of column (an insertion: a few dozen)
+                at = t
+                while at > indptr[k] and indices[at - 1] > j:
+                    indices[at], data[at] = indices[at - 1], data[at - 1]
+                    at -= 1
+                indices[at], data[at] = j, value
                 t += 1
     return indptr, indices, data
 
