@@ -249,7 +249,7 @@ def test_a_budget_too_short_to_help_keeps_the_initial_correspondence():
 # The simplex strategies: multiresolution (III-D1) and stochastic multiscale (III-D2)
 
 SIMPLEX = {"multiresolution": dict(max_sweeps=1, simplex_evaluations=400, simplex_step=0.3),
-           "multiscale": dict(max_sweeps=4)}
+           "multiscale": dict(max_sweeps=4, simplex_step=0.3)}
 
 
 def run_simplex(strategy, seed=0, state=None, fixed_fraction=0.5, active=None, **options):

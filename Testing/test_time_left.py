@@ -60,6 +60,24 @@ def test_the_estimates_of_a_counted_stage_and_of_the_optimisation():
     assert time_left_text(3 * 3600) == "3.0 h"
 
 
+def test_a_landmark_checks_folds_get_no_estimate_and_each_optimisation_its_own_budget():
+    seen, clock = [], Clock()
+    progress = TimeLeft(lambda fraction, message: seen.append(message), budget=600.0,
+                        clock=clock)
+    progress(None, "fixed: level 0, round 1, F = 3.000")
+    clock.now += 560.0
+    progress(None, "integrated: level 1, round 9, F = 1.000")
+    assert seconds(seen[1]) == 40
+    clock.now += 50.0
+    progress(None, "landmark check 1 of 4: tip left out of the guides")
+    assert seen[2] == "landmark check 1 of 4: tip left out of the guides"
+    clock.now += 1.0
+    progress(None, "fixed: level 0, round 1, F = 3.100")     # the fold's own budget
+    clock.now += 60.0
+    progress(None, "fixed: level 0, round 2, F = 3.000")
+    assert seconds(seen[3]) == 600 and seconds(seen[4]) == 9 * 60
+
+
 def test_a_cancelling_callback_still_cancels_through_it():
     progress = TimeLeft(lambda fraction, message: False, budget=10.0)
     assert progress(0.5, "prepared 1/2") is False

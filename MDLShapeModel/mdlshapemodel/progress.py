@@ -69,6 +69,11 @@ def time_left_text(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
+#: what every report of an optimisation's progress says (its objective, "F = 12.345"), and no
+#: other report: :class:`TimeLeft` bounds these by the time budget
+OPTIMISATION_REPORT = "F = "
+
+
 class TimeLeft:
     """A progress callback that adds to each report an estimate of the time its stage has
     left, and passes it on to ``progress``.
@@ -76,10 +81,12 @@ class TimeLeft:
     A stage begins where the reports switch between a fraction and none, or the fraction falls
     back or starts again after 1 (as the command line's display counts them). Where the reports
     carry a fraction (the cases prepared), the stage's rate so far gives the rest: "(about 40 s
-    left)". Where they do not (the optimisation: when it ends is for the convergence rule to
-    decide, and no rate foretells it), only the time budget ``budget`` bounds it, counted from
-    the stage's first report: "(at most about 9 min left, the time budget)", while some of it
-    is left.
+    left)". The optimisation's reports (no fraction; they give the objective, ``F = ...``, see
+    :data:`OPTIMISATION_REPORT`) have no rate that foretells their end, which is for the
+    convergence rule to decide: only the time budget ``budget`` bounds it, counted from the
+    first of a run of them: "(at most about 9 min left, the time budget)", while some of it is
+    left. Any other report ends such a run (a landmark check's fold starts an optimisation of
+    its own, with its own budget) and gets no estimate.
 
     Parameters
     ----------
@@ -95,22 +102,25 @@ class TimeLeft:
                  clock: Callable[[], float] = time.monotonic):
         self.progress, self.budget, self.clock = progress, budget, clock
         self.fraction = None
-        self.started = False
+        self.started = self.optimising = False
         self.stage_start = self.last = clock()    # the first stage: from the start of the work
 
     def __call__(self, fraction, message):
         now = self.clock()
         previous = self.fraction
+        optimising = fraction is None and OPTIMISATION_REPORT in message
         if self.started and ((fraction is None) != (previous is None)
                              or (fraction is not None and (fraction < previous
-                                                           or previous >= 1.0))):
+                                                           or previous >= 1.0))
+                             or (optimising and not self.optimising)):
             self.stage_start = now if fraction is None else self.last
         self.started, self.fraction, self.last = True, fraction, now
+        self.optimising = optimising
         elapsed = now - self.stage_start
         if fraction is not None and 0.0 < fraction < 1.0 and elapsed > 0.0:
             message = (f"{message} (about {time_left_text(elapsed * (1.0 - fraction) / fraction)}"
                        f" left)")
-        elif fraction is None and self.budget and self.budget > elapsed:
+        elif optimising and self.budget and self.budget > elapsed:
             message = (f"{message} (at most about {time_left_text(self.budget - elapsed)} left, "
                        f"the time budget)")
         return self.progress(fraction, message)
