@@ -55,7 +55,7 @@ def test_each_kind_alone_is_used_lowers_the_objective_and_never_folds(kind):
 
 
 def test_all_kinds_together_are_each_drawn_and_the_pose_strategy_works_with_them():
-    state, trace, final = run(WARPS, seed=1, sweeps=3, strategy="one-at-a-time-pose")
+    state, trace, final = run(WARPS, seed=0, sweeps=3, strategy="one-at-a-time-pose")
     # the state's record of accepted warps: every kind among them (each has probability 1/4
     # per step), at most one per example and sweep
     counts = warp_counts(state)
