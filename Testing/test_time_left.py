@@ -4,13 +4,14 @@ build's lines that carry them; the same build leaves out a subset of its cases f
 
 import json
 import os
+import pickle
 import re
 import subprocess
 import sys
 
 import pytest
 
-from mdlshapemodel.progress import TimeLeft, time_left_text
+from mdlshapemodel.progress import OBJECTIVE, Message, TimeLeft, kind_of, report, time_left_text
 
 from files import write_label_map
 from synthetic import small_mask
@@ -26,6 +27,13 @@ class Clock:
         return self.now
 
 
+def watched(budget=600.0):
+    """The messages seen, the clock and a TimeLeft of ``budget`` that passes them on."""
+    seen, clock = [], Clock()
+    return seen, clock, TimeLeft(lambda fraction, message: seen.append(message), budget=budget,
+                                 clock=clock)
+
+
 def seconds(text):
     found = LEFT.search(text)
     assert found, text
@@ -33,9 +41,7 @@ def seconds(text):
 
 
 def test_the_estimates_of_a_counted_stage_and_of_the_optimisation():
-    seen, clock = [], Clock()
-    progress = TimeLeft(lambda fraction, message: seen.append(message), budget=600.0,
-                        clock=clock)
+    seen, clock, progress = watched()
     clock.now += 10.0
     progress(0.25, "prepared 1/4")            # 10 s for a quarter: 30 s to go
     clock.now += 10.0
@@ -45,13 +51,13 @@ def test_the_estimates_of_a_counted_stage_and_of_the_optimisation():
     assert seconds(seen[0]) == 30 and seconds(seen[1]) == 20
     assert LEFT.search(seen[2]) is None
     clock.now += 5.0
-    progress(None, "fixed: level 0, round 1, F = 3.000")     # the budget from here on
+    report(progress, None, "fixed: level 0, round 1, F = 3.000", OBJECTIVE)   # the budget on
     clock.now += 240.0
-    progress(None, "fixed: level 0, round 2, F = 2.000")
+    report(progress, None, "fixed: level 0, round 2, F = 2.000", OBJECTIVE)
     assert seconds(seen[3]) == 600 and seconds(seen[4]) == 6 * 60
     assert "at most about" in seen[4] and "time budget" in seen[4]
     clock.now += 400.0                        # past the budget: no bound to give
-    progress(None, "integrated: level 1, round 9, F = 1.000")
+    report(progress, None, "integrated: level 1, round 9, F = 1.000", OBJECTIVE)
     assert LEFT.search(seen[5]) is None
     progress(0.0, "evaluating")               # a new counted stage starts its own clock
     clock.now += 3.0
@@ -61,21 +67,36 @@ def test_the_estimates_of_a_counted_stage_and_of_the_optimisation():
 
 
 def test_a_landmark_checks_folds_get_no_estimate_and_each_optimisation_its_own_budget():
-    seen, clock = [], Clock()
-    progress = TimeLeft(lambda fraction, message: seen.append(message), budget=600.0,
-                        clock=clock)
-    progress(None, "fixed: level 0, round 1, F = 3.000")
+    seen, clock, progress = watched()
+    report(progress, None, "fixed: level 0, round 1, F = 3.000", OBJECTIVE)
     clock.now += 560.0
-    progress(None, "integrated: level 1, round 9, F = 1.000")
+    report(progress, None, "integrated: level 1, round 9, F = 1.000", OBJECTIVE)
     assert seconds(seen[1]) == 40
     clock.now += 50.0
     progress(None, "landmark check 1 of 4: tip left out of the guides")
     assert seen[2] == "landmark check 1 of 4: tip left out of the guides"
     clock.now += 1.0
-    progress(None, "fixed: level 0, round 1, F = 3.100")     # the fold's own budget
+    report(progress, None, "fixed: level 0, round 1, F = 3.100", OBJECTIVE)   # its own budget
     clock.now += 60.0
-    progress(None, "fixed: level 0, round 2, F = 3.000")
+    report(progress, None, "fixed: level 0, round 2, F = 3.000", OBJECTIVE)
     assert seconds(seen[3]) == 600 and seconds(seen[4]) == 9 * 60
+
+
+def test_the_optimisation_is_known_by_the_reports_kind_not_by_its_text():
+    """A report of kind OBJECTIVE is bounded by the budget whatever it says; a report that says
+    "F = " without the kind is not; the kind goes on to the next callback with the estimate."""
+    seen, clock, progress = watched()
+    report(progress, None, "round 1: the objective is 3.0", OBJECTIVE)
+    clock.now += 120.0
+    report(progress, None, "round 2: the objective is 2.5", OBJECTIVE)
+    assert seconds(seen[0]) == 600 and seconds(seen[1]) == 8 * 60
+    assert [kind_of(m) for m in seen] == [OBJECTIVE, OBJECTIVE]
+    assert seen[1] == "round 2: the objective is 2.5 (at most about 8 min left, the time budget)"
+    report(progress, None, "a statistic, F = 4.2")     # no kind: no bound, whatever it says
+    assert seen[2] == "a statistic, F = 4.2" and kind_of(seen[2]) is None
+    # a message with a kind is its text to any callback, and keeps its kind when pickled
+    message = pickle.loads(pickle.dumps(Message("fixed: F = 1.000", OBJECTIVE)))
+    assert message == "fixed: F = 1.000" and kind_of(message) == OBJECTIVE
 
 
 def test_a_cancelling_callback_still_cancels_through_it():
@@ -102,7 +123,7 @@ def test_a_real_build_says_how_long_is_left_and_that_g_is_from_a_sample(tmp_path
     preparing = [line for line in log if "prepared 1/5" in line]
     assert preparing and LEFT.search(preparing[0]), preparing
     assert seconds(preparing[0]) >= 0
-    # the optimisation's first line: bounded by the 60-s budget
+    # the optimisation's first line: bounded by the 60-s budget (its text as it was)
     optimising = [line for line in log if "F = " in line and "left" in line]
     assert optimising, "\n".join(log)
     found = LEFT.search(optimising[0])

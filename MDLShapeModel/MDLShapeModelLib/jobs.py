@@ -35,12 +35,14 @@ class WorkerEnded(RuntimeError):
 
 @dataclass
 class Report:
-    """One record of the worker: a progress report (``fraction`` None where none is known) or a
+    """One record of the worker: a progress report (``fraction`` None where none is known;
+    ``kind`` what it reports, such as :data:`mdlshapemodel.progress.OBJECTIVE`, or None) or a
     warning of the library (``warning`` True, the text in ``message``)."""
 
     fraction: float | None
     message: str
     warning: bool = False
+    kind: str | None = None
 
 
 def pythonInterpreter() -> str:
@@ -135,19 +137,25 @@ class WorkerJob:
             elif "warning" in record:
                 reports.append(Report(None, record["warning"], warning=True))
             else:
-                reports.append(Report(record["fraction"], record["message"]))
+                reports.append(Report(record["fraction"], record["message"],
+                                      kind=record.get("kind")))
         return reports
 
     def wait(self, timeout: float | None = None, progress=None) -> bool:
         """Block until the worker ends (at most ``timeout`` seconds): the headless way. With
         ``progress``, each progress report is read (:meth:`poll`) and goes to
-        ``progress(fraction, message)`` (the library's protocol: returning False cancels);
-        without, the reports are left to :meth:`poll`. Returns :attr:`done`."""
+        ``progress(fraction, message)`` (the library's protocol: returning False cancels; the
+        message a :class:`mdlshapemodel.progress.Message` of the report's kind); without, the
+        reports are left to :meth:`poll`. Returns :attr:`done`."""
+        from mdlshapemodel.progress import Message
+
         stop = None if timeout is None else time.monotonic() + timeout
         while True:
             ended = self.done
             for report in self.poll() if progress is not None else ():
-                if not report.warning and progress(report.fraction, report.message) is False:
+                if report.warning:
+                    continue
+                if progress(report.fraction, Message(report.message, report.kind)) is False:
                     self.cancel()
             if ended or (stop is not None and time.monotonic() >= stop):
                 return ended

@@ -7,7 +7,8 @@ code ends this process, not Slicer. It talks through files in ``FOLDER`` only:
 - ``job.json`` (read): the command and its arguments, settings as the library's config records
   written as dicts;
 - ``reports.jsonl`` (appended, a line per record, flushed at once): the library's progress
-  reports ``{"fraction", "message"}``, its warnings ``{"warning"}``, and last the end
+  reports ``{"fraction", "message"}`` (and ``"kind"`` where the report has one, see
+  :class:`mdlshapemodel.progress.Message`), its warnings ``{"warning"}``, and last the end
   ``{"end": "done" | "cancelled" | "error" | "internal", ...}``;
 - ``stop`` (made by the module to cancel): at its next report the work stops as a Ctrl-C stops
   the command line (a build's optimisation ends with the model of the state reached written).
@@ -43,7 +44,13 @@ class Reports:
         self.stream.flush()
 
     def __call__(self, fraction, message):
-        self.write({"fraction": fraction, "message": message})
+        from mdlshapemodel.progress import kind_of    # (reports come once the job is read)
+
+        record = {"fraction": fraction, "message": str(message)}
+        kind = kind_of(message)
+        if kind is not None:
+            record["kind"] = kind
+        self.write(record)
         if self.stop.exists():
             # one stop per request: a build's optimisation ends there and the library goes on
             # to write the model of the state reached (elsewhere the work ends: Cancelled)

@@ -12,9 +12,12 @@ The command line shows these reports as a progress bar (or plain log lines when 
 a terminal), the VTK filters as ``vtkAlgorithm`` progress events, and the 3D Slicer module in its
 panel.
 
-A build's reports say how long is left (:class:`TimeLeft`): "(about 3 min left)" where a
-stage counts its steps (preparing the cases), "(at most about 9 min left, the time budget)"
-during the optimisation, whose end the convergence rule decides.
+A report may say what it is: its message is then a :class:`Message`, text with a ``kind``
+(:data:`OBJECTIVE`: an optimisation's objective), which every callback receives as a ``str``
+and which :func:`kind_of` reads. A build's reports say how long is left (:class:`TimeLeft`):
+"(about 3 min left)" where a stage counts its steps (preparing the cases), "(at most about
+9 min left, the time budget)" on the optimisation's reports (those of kind :data:`OBJECTIVE`),
+whose end the convergence rule decides.
 
 Ctrl-C is a cancellation too: within :func:`ctrl_c` (a build, the command line) it only sets a
 flag, :class:`Interrupt`, that the work sees at its next report, where it stops as if the
@@ -42,14 +45,52 @@ from .errors import Cancelled
 
 Progress = Callable[[Optional[float], str], Optional[bool]]
 
-__all__ = ["Cancelled", "Interrupt", "Progress", "TimeLeft", "ctrl_c", "report",
-           "time_left_text"]
+__all__ = ["OBJECTIVE", "Cancelled", "Interrupt", "Message", "Progress", "TimeLeft", "ctrl_c",
+           "kind_of", "report", "time_left_text"]
 
 log = logging.getLogger("mdlshapemodel")
 
 
-def report(progress: Progress | None, fraction: float | None, message: str) -> None:
-    """Pass one report to ``progress`` (if any); raise :class:`Cancelled` if it returns False."""
+#: the kind of an optimisation's report of its objective ("fixed: sweep 3, F = 12.345"): the
+#: reports that :class:`TimeLeft` bounds by the time budget
+OBJECTIVE = "objective"
+
+
+class Message(str):
+    """A report's message that says what it reports: the text itself, and ``kind`` (such as
+    :data:`OBJECTIVE`; None: a report of no particular kind).
+
+    It is a ``str`` to every callback (printed, compared and formatted as its text), so that a
+    callback that knows nothing of kinds takes it as any message; a callback that passes a
+    report on, changing its text, keeps the kind with ``Message(text, kind_of(message))``.
+
+    Examples
+    --------
+    >>> message = Message("fixed: sweep 3, F = 1.000", OBJECTIVE)
+    >>> message == "fixed: sweep 3, F = 1.000", kind_of(message), kind_of("prepared 1/4")
+    (True, 'objective', None)
+    """
+
+    def __new__(cls, text: str, kind: str | None = None):
+        message = super().__new__(cls, text)
+        message.kind = kind
+        return message
+
+    def __reduce__(self):
+        return Message, (str(self), self.kind)
+
+
+def kind_of(message: str) -> str | None:
+    """The kind of a report's ``message`` (:class:`Message`); None for a plain ``str``."""
+    return getattr(message, "kind", None)
+
+
+def report(progress: Progress | None, fraction: float | None, message: str,
+           kind: str | None = None) -> None:
+    """Pass one report to ``progress`` (if any), its message a :class:`Message` of ``kind``
+    when one is given; raise :class:`Cancelled` if it returns False."""
+    if kind is not None:
+        message = Message(message, kind)
     if progress is not None and progress(fraction, message) is False:
         raise Cancelled(message)
 
@@ -69,11 +110,6 @@ def time_left_text(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-#: what every report of an optimisation's progress says (its objective, "F = 12.345"), and no
-#: other report: :class:`TimeLeft` bounds these by the time budget
-OPTIMISATION_REPORT = "F = "
-
-
 class TimeLeft:
     """A progress callback that adds to each report an estimate of the time its stage has
     left, and passes it on to ``progress``.
@@ -81,12 +117,12 @@ class TimeLeft:
     A stage begins where the reports switch between a fraction and none, or the fraction falls
     back or starts again after 1 (as the command line's display counts them). Where the reports
     carry a fraction (the cases prepared), the stage's rate so far gives the rest: "(about 40 s
-    left)". The optimisation's reports (no fraction; they give the objective, ``F = ...``, see
-    :data:`OPTIMISATION_REPORT`) have no rate that foretells their end, which is for the
-    convergence rule to decide: only the time budget ``budget`` bounds it, counted from the
-    first of a run of them: "(at most about 9 min left, the time budget)", while some of it is
-    left. Any other report ends such a run (a landmark check's fold starts an optimisation of
-    its own, with its own budget) and gets no estimate.
+    left)". The optimisation's reports (no fraction; of kind :data:`OBJECTIVE`, whatever their
+    text says) have no rate that foretells their end, which is for the convergence rule to
+    decide: only the time budget ``budget`` bounds it, counted from the first of a run of them:
+    "(at most about 9 min left, the time budget)", while some of it is left. Any other report
+    ends such a run (a landmark check's fold starts an optimisation of its own, with its own
+    budget) and gets no estimate. Each report goes on with its kind.
 
     Parameters
     ----------
@@ -108,7 +144,8 @@ class TimeLeft:
     def __call__(self, fraction, message):
         now = self.clock()
         previous = self.fraction
-        optimising = fraction is None and OPTIMISATION_REPORT in message
+        kind = kind_of(message)
+        optimising = fraction is None and kind == OBJECTIVE
         if self.started and ((fraction is None) != (previous is None)
                              or (fraction is not None and (fraction < previous
                                                            or previous >= 1.0))
@@ -123,7 +160,7 @@ class TimeLeft:
         elif optimising and self.budget and self.budget > elapsed:
             message = (f"{message} (at most about {time_left_text(self.budget - elapsed)} left, "
                        f"the time budget)")
-        return self.progress(fraction, message)
+        return self.progress(fraction, message if kind is None else Message(message, kind))
 
 
 class Interrupt:

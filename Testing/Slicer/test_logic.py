@@ -18,6 +18,7 @@ from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.config import SMOOTHNESS, SURFACE_POINTS, AnalysisConfig
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.folders import FitFolder, mesh_points
+from mdlshapemodel.progress import OBJECTIVE
 from mdlshapemodel.prepare import io, preprocess
 from mdlshapemodel.prepare.surface import (arrays_to_polydata, mask_to_surface,
                                            point_surface_distances)
@@ -324,7 +325,7 @@ def test_a_background_build_reports_progress_and_cancel_keeps_the_state_reached(
     seen, started, cancelled = [], time.monotonic(), False
     while not job.done and time.monotonic() - started < 300:
         seen += job.poll()
-        if not cancelled and any("F =" in report.message for report in seen):
+        if not cancelled and any(report.kind == OBJECTIVE for report in seen):
             job.cancel()         # once the optimisation runs
             cancelled = True
         time.sleep(0.05)
@@ -337,7 +338,7 @@ def test_a_background_build_reports_progress_and_cancel_keeps_the_state_reached(
     assert [messages[k].split(" (about ")[0] for k in prepared] == [
         f"prepared {k}/5" for k in range(1, 6)]
     assert all(" left)" in messages[k] for k in prepared[:-1])
-    assert prepared[-1] < next(k for k, message in enumerate(messages) if "F =" in message)
+    assert prepared[-1] < next(k for k, report in enumerate(seen) if report.kind == OBJECTIVE)
     result = job.finish()
     assert result.interrupted
     assert json.loads((tmp_path / "metrics.json").read_text())["interrupted"] is True

@@ -17,6 +17,7 @@ from MDLShapeModelLib.messages import panelLabels, panelMessage
 from mdlshapemodel import BuildConfig
 from mdlshapemodel.errors import BuildError, ConfigError
 from mdlshapemodel.folders import BuildFolder
+from mdlshapemodel.progress import OBJECTIVE
 
 pytestmark = pytest.mark.skipif(os.name == "nt", reason="process groups and SIGKILL: POSIX")
 
@@ -80,7 +81,11 @@ def test_a_build_runs_in_its_own_process_with_progress_and_loads_its_nodes(
     # (each but the last with the estimate of the time left)
     assert [m.split(" (about ")[0] for m in prepared] == [f"prepared {k}/4" for k in range(1, 5)]
     assert all(m.endswith(" left)") for m in prepared[:-1])
-    assert any("F =" in m for m in messages)
+    # the optimisation's reports say what they are, with the time budget's bound
+    objective = [r.message for r in reports if r.kind == OBJECTIVE]
+    assert objective and all("F =" in m for m in objective)
+    assert "(at most about" in objective[0] and objective[0].endswith("the time budget)")
+    assert not any(r.kind for r in reports if r.message.startswith("prepared"))
     assert all(0 <= r.fraction <= 1 for r in reports if r.fraction is not None)
     result = job.finish()
     assert result.caseNames == [p.name.split(".")[0] for p in hippocampus_files]

@@ -9,7 +9,7 @@ import time
 from dataclasses import dataclass, field
 
 from ...config import OptimisationSettings
-from ...progress import report
+from ...progress import OBJECTIVE, report
 from ..objective import Objective
 from ..state import CorrespondenceState
 from ..trace import Stop, Trace
@@ -165,7 +165,7 @@ def end_of_iteration(state: CorrespondenceState, trace: Trace, phase: str, sweep
     """Record the step's F, report it, then :func:`rebuilt` (as between the sweeps of
     one_at_a_time); returns F after the rebuild."""
     trace.record(state, value, phase, sweep)
-    report(progress, None, f"{label}: F = {value:.3f}")
+    report(progress, None, f"{label}: F = {value:.3f}", OBJECTIVE)
     return rebuilt(state, trace, phase, sweep, checkpoint, point)
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from ...config import OptimisationSettings
 from ...geometry import Pose, weighted_centroid
 from ...parallel import Threads
-from ...progress import report
+from ...progress import OBJECTIVE, report
 from .. import hotloops
 from ..state import CorrespondenceState
 from ..trace import Stop
@@ -390,7 +390,7 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
             values["value"] = value
             trace.record(state, value, phase, sweep)
             report(progress, None, f"{phase}: level {levels[at['level']]}, round {sweep}, "
-                                   f"F = {value:.3f}")
+                                   f"F = {value:.3f}", OBJECTIVE)
             if checkpoint is not None:
                 checkpoint(PhasePoint(phase, sweep, dict(at), dict(values)))
             trace.stopped_by = budget_spent(deadline, sweep, settings)

@@ -18,7 +18,7 @@ from scipy.optimize import minimize, minimize_scalar
 from ...config import WARPS, OptimisationSettings
 from ...errors import ArgumentError
 from ...geometry import Pose, pose_from_parameters, weighted_centroid
-from ...progress import report
+from ...progress import OBJECTIVE, report
 from ..objective import Objective
 from ..state import CorrespondenceState
 from ..trace import Stop, Trace
@@ -309,7 +309,7 @@ def one_at_a_time(state: CorrespondenceState, objective: Objective, settings: Op
             if with_pose:
                 value = optimise_pose(state, i, value, settings.pose_evaluations, improved)
             trace.record(state, value, phase, sweep)
-            report(progress, None, f"{phase}: sweep {sweep}, F = {value:.3f}")
+            report(progress, None, f"{phase}: sweep {sweep}, F = {value:.3f}", OBJECTIVE)
             if time.perf_counter() > deadline:
                 break
         value = rebuilt(state, trace, phase, sweep, checkpoint,

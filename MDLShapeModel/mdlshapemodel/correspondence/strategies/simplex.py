@@ -18,7 +18,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ...config import OptimisationSettings
-from ...progress import report
+from ...progress import OBJECTIVE, report
 from ..objective import Objective
 from ..state import CorrespondenceState, PartState
 from ..trace import Stop, Trace
@@ -125,7 +125,8 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
                 improved(value)
         count[0] += 1
         if count[0] % 100 == 0:
-            report(progress, None, f"{label}, {count[0]} evaluations, F = {best['value']:.3f}")
+            report(progress, None, f"{label}, {count[0]} evaluations, F = {best['value']:.3f}",
+                       OBJECTIVE)
         if time.perf_counter() > deadline:
             raise _SimplexOutOfTime
         return value
