@@ -11,6 +11,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -28,7 +29,7 @@ from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.build import correspond, fingerprint
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel import parallel
-from mdlshapemodel.cluster import on_cluster
+from mdlshapemodel.cluster import dask_executor, on_cluster
 from mdlshapemodel.parallel import Task, map_cases
 from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.io import read_csv
@@ -151,6 +152,41 @@ def test_an_unreachable_scheduler_is_one_line_and_exit_code_2_before_any_work(tm
     assert result.stderr.splitlines() == [
         f"mdlshapemodel: error: no Dask scheduler reachable at {address} (Connection refused)"]
     assert not (tmp_path / "out" / "rejected.csv").exists()   # nothing was prepared
+
+
+def test_a_scheduler_of_another_mdlshapemodel_is_refused_naming_it_and_both_versions(tmp_path):
+    """A real scheduler whose Python imports another install of the package: a copy of this
+    one whose version says 0.0.0+other, first on its path."""
+    other = tmp_path / "other"
+    shutil.copytree(Path(mdlshapemodel.__file__).parent, other / "mdlshapemodel",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    (other / "mdlshapemodel" / "version.py").write_text('__version__ = "0.0.0+other"\n')
+    file = tmp_path / "scheduler.json"
+    scheduler = _start(["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                        "--scheduler-file", str(file)],
+                       dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=str(other)),
+                       tmp_path / "scheduler.log")
+    try:
+        deadline = time.monotonic() + 60
+        while not file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(file.read_text())["address"]
+        expected = (f"the Dask scheduler {address} runs mdlshapemodel 0.0.0+other, this build "
+                    f"{mdlshapemodel.__version__}; install the same version where the scheduler "
+                    "runs")
+        with pytest.raises(ConfigError) as raised:
+            with dask_executor(address):
+                pass
+        assert str(raised.value) == expected
+        paths = write_population(tmp_path / "inputs", 3)
+        result = build(paths, tmp_path / "out", "--scheduler", address)
+        assert result.returncode == 2, result.stderr
+        # one line (after the first run's note on compiling, where it comes)
+        assert result.stderr.splitlines()[-1] == f"mdlshapemodel: error: {expected}"
+        assert "Traceback" not in result.stderr
+        assert not (tmp_path / "out" / "rejected.csv").exists()   # nothing was prepared
+    finally:
+        _stop(scheduler)
 
 
 def test_without_distributed_the_error_says_what_to_install(tmp_path):

@@ -115,14 +115,17 @@ def dask_executor(address: str, timeout: float = CONNECT_SECONDS):
 
     Checked before it is used, each failure a :class:`~.errors.ConfigError` in one line naming
     the address: ``distributed`` is installed, the scheduler answers within ``timeout``
-    seconds, and the workers connected by then run this version of mdlshapemodel (other
-    versions of its dependencies are a warning: results may then differ in the last bits).
+    seconds and runs this version of mdlshapemodel (it unpickles the tasks, whose classes are
+    this package's: another version fails them all as undecodable task graphs), and so do the
+    workers connected by then (other versions of its dependencies are a warning: results may
+    then differ in the last bits).
     Logs the scheduler and how many workers and threads it has.
     """
     client = _client(address, timeout)
     import dask
 
     try:
+        _check_scheduler(client, address)
         _check_workers(client, address)
         # an evaluation sends the corresponded points and the surface of every case with its
         # call (about 20 MB for 100 hippocampi), by design: Dask's warning about task graphs
@@ -203,7 +206,7 @@ def _dependency_names() -> tuple:
 
 def installed_versions(names: tuple) -> dict:
     """mdlshapemodel's version and those of the distributions ``names`` (None: not installed)
-    in this process; run on each Dask worker before a build uses it."""
+    in this process; run on the Dask scheduler and each worker before a build uses them."""
     from importlib import metadata
 
     versions = {"mdlshapemodel": __version__}
@@ -213,6 +216,19 @@ def installed_versions(names: tuple) -> dict:
         except metadata.PackageNotFoundError:
             versions[name] = None
     return versions
+
+
+def _check_scheduler(client, address: str):
+    try:
+        theirs = client.run_on_scheduler(installed_versions, ())
+    except Exception as error:
+        raise ConfigError(f"the Dask scheduler {address} cannot run mdlshapemodel "
+                          f"({type(error).__name__}: {error}); install mdlshapemodel "
+                          f"{__version__} where the scheduler runs") from None
+    if theirs["mdlshapemodel"] != __version__:
+        raise ConfigError(f"the Dask scheduler {address} runs mdlshapemodel "
+                          f"{theirs['mdlshapemodel']}, this build {__version__}; install the "
+                          "same version where the scheduler runs")
 
 
 def _check_workers(client, address: str):
