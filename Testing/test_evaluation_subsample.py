@@ -12,7 +12,8 @@ import pytest
 from mdlshapemodel.config import BuildConfig
 from mdlshapemodel.errors import ConfigError
 from mdlshapemodel.model.evaluation import (SURFACE_GENERALIZATION_POINTS, evaluate,
-                                             generalization, leave_out_cases)
+                                             generalization, generalization_jackknife,
+                                             leave_out_cases)
 from mdlshapemodel.model.space import model_space
 from mdlshapemodel.model.surface_measures import surface_generalization
 
@@ -76,6 +77,38 @@ def test_a_subset_estimates_the_exact_generalization_within_its_standard_error()
     # and the subsets' mean is the exact mean (unbiased)
     assert np.all(np.abs(estimates.mean(axis=0) - exact["squared"])
                   < 4.0 * spread / np.sqrt(len(estimates)))
+
+
+def test_the_subsets_own_error_shrinks_to_0_as_it_takes_in_every_case():
+    """Drawn without replacement: a subset of half the cases has sqrt(1/2) of the error of k
+    cases drawn with replacement, sd / sqrt(k); a 'subset' of every case has none."""
+    rng = np.random.default_rng(11)
+    shapes, weights = random_population(rng, 24)
+    n_s, modes = len(shapes), 3
+    space = model_space(shapes, weights)
+    half = generalization(shapes, weights, modes, space, leave_out_cases(n_s, n_s // 2, rng))
+    for measure in ("squared", "distance"):
+        with_replacement = half[measure + "_per_case"].std(axis=0, ddof=1) / np.sqrt(n_s // 2)
+        np.testing.assert_allclose(half[measure + "_subsample_se"],
+                                   with_replacement * np.sqrt(0.5), rtol=1e-12)
+    every = generalization(shapes, weights, modes, space, np.arange(n_s))
+    assert np.all(every["squared_subsample_se"] == 0.0)
+    assert np.all(every["distance_subsample_se"] == 0.0)
+
+
+def test_a_subsets_jackknife_leaves_out_each_group_of_its_cases_in_turn():
+    """The k-th case of the subset in group k mod groups; each group's value is the mean of the
+    subset's errors without it."""
+    rng = np.random.default_rng(12)
+    shapes, weights = random_population(rng, 30)
+    space = model_space(shapes, weights)
+    cases = leave_out_cases(len(shapes), 10, rng)
+    judged = generalization_jackknife(space, 3, groups=4, cases=cases)
+    np.testing.assert_allclose(judged.per_case, generalization(
+        shapes, weights, 3, space, cases)["squared_per_case"], rtol=1e-10)
+    group = np.arange(10) % 4
+    expected = [judged.per_case[group != g].mean(axis=0) for g in range(4)]
+    np.testing.assert_allclose(judged.left_out, expected, rtol=1e-12)
 
 
 def test_evaluate_leaves_out_a_subset_only_beyond_generalization_cases():

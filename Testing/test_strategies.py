@@ -518,6 +518,33 @@ def test_fast_round_gradient_matches_finite_differences():
                                             abs=1e-6)
 
 
+def test_a_fast_round_trial_kept_through_later_ones_gives_its_gradient_and_commits_alike():
+    """A round's best trial is often not its last (a line search goes past it): kept by the
+    later trials' ``keep``, it still gives its gradient, and committing it gives the state that
+    committing it right away gives."""
+    from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
+
+    rng = np.random.default_rng(4)
+    committed = []
+    for later in (0, 2):
+        state = small_state()
+        state.objective = build_objectives(state)[1]
+        round_ = FieldRound(state, [0, 2], level=1, support=2.0)
+        upper = np.where(np.isfinite(round_.limit), round_.limit, 0.05)
+        steps = [rng.uniform(-0.2, 0.2, round_.size) * upper for _ in range(1 + later)]
+        first = round_.trial(steps[0])
+        gradient = round_.gradient(first, gradient_at(state, first.shapes)[1])
+        for x in steps[1:]:
+            round_.trial(x, keep=(first.number,))
+        if later:
+            np.testing.assert_array_equal(
+                round_.gradient(first, gradient_at(state, first.shapes)[1]), gradient)
+        round_.commit(first)
+        committed.append(state.shapes.copy())
+        rng = np.random.default_rng(4)           # the same first step in both
+    np.testing.assert_array_equal(committed[1], committed[0])
+
+
 @pytest.mark.parametrize("strategy", ["one-at-a-time", "one-at-a-time-pose", "multiscale",
                                       "multiresolution"])
 def test_trace_improvements_adds_rows_without_changing_the_optimisation(strategy):

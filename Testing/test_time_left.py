@@ -99,6 +99,30 @@ def test_the_optimisation_is_known_by_the_reports_kind_not_by_its_text():
     assert message == "fixed: F = 1.000" and kind_of(message) == OBJECTIVE
 
 
+def test_a_counted_stage_is_timed_from_the_report_before_its_first():
+    """A counted stage's first report comes with its first step done: the stage began at the
+    report before it (the last of the stage before), so the first report has an estimate."""
+    seen, clock, progress = watched()
+    report(progress, None, "integrated: level 1, round 9, F = 1.000", OBJECTIVE)
+    clock.now += 10.0
+    progress(0.25, "evaluating 1/4")          # 10 s for the first quarter: 30 s to go
+    clock.now += 10.0
+    progress(0.5, "evaluating 2/4")
+    assert seconds(seen[1]) == 30 and seconds(seen[2]) == 20
+
+
+def test_the_budget_is_counted_from_the_optimisations_first_report():
+    """What comes between the last counted report and the optimisation (the registrations, the
+    initial correspondence) is not the optimisation's time."""
+    seen, clock, progress = watched()
+    progress(1.0, "prepared 4/4")
+    clock.now += 120.0
+    report(progress, None, "fixed: level 0, round 1, F = 3.000", OBJECTIVE)
+    clock.now += 60.0
+    report(progress, None, "fixed: level 0, round 2, F = 2.000", OBJECTIVE)
+    assert seconds(seen[1]) == 600 and seconds(seen[2]) == 9 * 60
+
+
 def test_a_cancelling_callback_still_cancels_through_it():
     progress = TimeLeft(lambda fraction, message: False, budget=10.0)
     assert progress(0.5, "prepared 1/2") is False

@@ -9,6 +9,7 @@ saying why.
 
 from __future__ import annotations
 
+import base64
 import io
 import re
 import time
@@ -86,6 +87,38 @@ def test_a_large_population_shows_a_sample_spanning_its_first_mode(monkeypatch):
     assert names[int(np.argmin(scores))] in options and names[int(np.argmax(scores))] in options
     # the same sample at every writing
     assert page == "".join(viewer.viewer_section(model, shapes, names))
+
+
+def test_the_sample_is_at_evenly_spaced_ranks_of_the_first_modes_weighted_scores(monkeypatch):
+    """Half the points weigh 50 times less: the cases' scores on mode 1 (ShapeModel.project,
+    which weighs the points) rank them otherwise than the points' plain sum would."""
+    from mdlshapemodel.report import viewer
+
+    first, shapes, names = population(n_s=9, n_points=42, seed=3)
+    weights = np.where(np.arange(42) < 21, 1.0, 0.02)
+    model = ShapeModel.from_shapes(shapes, weights / weights.sum(), names=names,
+                                   triangles=first.triangles)
+    monkeypatch.setattr(viewer, "MAX_CASE_BYTES", 4 * 6 * 42)
+    scores = [model.project(shape, 1)[0] for shape in shapes]
+    ranked = np.argsort(scores)[[0, 3, 5, 8]]         # np.rint(np.linspace(0, 8, 4))
+    data = viewer.viewer_data(model, shapes, names)
+    assert data["cases"] == [names[i] for i in sorted(ranked)]
+
+
+def test_a_sampled_case_is_coloured_by_its_own_distances(monkeypatch):
+    from mdlshapemodel.report import viewer
+
+    model, shapes, names = population(n_s=9, n_points=42)
+    monkeypatch.setattr(viewer, "MAX_CASE_BYTES", 4 * 6 * 42)
+    # case i lies i + 1 mm from its input at every point
+    distances = np.repeat(np.arange(1.0, 10.0)[:, None], 42, axis=1)
+    data = viewer.viewer_data(model, shapes, names, distances=distances)
+    shown = np.array([names.index(name) for name in data["cases"]])
+    assert len(shown) == 4 and shown.max() == 8
+    colours = np.frombuffer(base64.b64decode(data["case_distance"]), dtype=np.uint8)
+    # each shown case's colour: its own distance over the largest shown, in 255 steps
+    expected = np.rint(255 * (shown + 1) / 9.0)
+    np.testing.assert_array_equal(colours.reshape(4, 42), np.repeat(expected[:, None], 42, 1))
 
 
 def test_notes_instead_of_a_viewer():

@@ -6,8 +6,9 @@ must occur exactly once in that file, so that the list cannot silently rot as th
 Testing/test_mutants_list.py checks it among the quick tests), its replacement, the quick tests
 that must catch it and what it would break. The package is copied once into a temporary folder
 (with its ``__pycache__``, so that numba's compiled kernels stay cached); each mutant is written
-into the copy, its tests run there (``-m "not slow"``, ``PYTHONPATH`` naming the copy, a time
-limit), and the original is put back. Before the mutants, each distinct selection of tests is run
+into the copy, its tests run there (``-m "not slow"``, except for a mutant marked ``slow``,
+whose only tests start a Dask cluster; ``PYTHONPATH`` naming the copy, a time limit), and the
+original is put back. Before the mutants, each distinct selection of tests is run
 on the unchanged copy: a test that fails without a bug kills nothing.
 
 Usage (from the checkout, with the project's virtualenv active)::
@@ -43,7 +44,7 @@ TIMEOUT = 1200          # seconds for one mutant's tests
 class Mutant:
     """One planted bug: in ``file`` (relative to the package), ``original`` becomes
     ``replacement``; ``tests`` (pytest arguments relative to Testing/: files or node ids) with
-    the optional ``-k`` expression ``k`` must fail."""
+    the optional ``-k`` expression ``k`` must fail (the quick ones only, unless ``slow``)."""
 
     name: str
     file: str
@@ -52,6 +53,7 @@ class Mutant:
     tests: tuple
     description: str
     k: str = ""
+    slow: bool = False      # its tests include slow ones (a Dask cluster's)
 
 
 MUTANTS = [
@@ -440,6 +442,126 @@ MUTANTS = [
            'given = np.array([float(row[c]) for c in "xyz"])',
            ("test_folders.py",),
            "landmarks.csv's given landmark read from the corresponded point's columns"),
+    # --- the empirical null of the unusual cases (model/outliers.py) ---
+    Mutant("empirical_null_centre_unfloored", "model/outliers.py",
+           "return EmpiricalNull(max(centre, 0.0), max(spread, 1.0))",
+           "return EmpiricalNull(centre, max(spread, 1.0))",
+           ("test_analysis_statistics.py",),
+           "the null's centre allowed below 0: cases whose z-values sit low flag more than the "
+           "normal theory would"),
+    Mutant("empirical_null_spread_from_the_lower_quantile", "model/outliers.py",
+           "/ float(norm.isf(1 - NULL_QUANTILE))", "/ float(norm.isf(NULL_QUANTILE))",
+           ("test_analysis_statistics.py",),
+           "the upper spread divided by Phi^-1(0.1) < 0: always floored to 1, the null's spread "
+           "ignored"),
+    Mutant("empirical_null_threshold_without_the_centre", "model/outliers.py",
+           "return float(norm.sf(self.centre + self.spread * norm.isf(alpha)))",
+           "return float(norm.sf(self.spread * norm.isf(alpha)))",
+           ("test_analysis_statistics.py",),
+           "the distance threshold drawn as if the null were centred at 0 (its flags and its "
+           "threshold disagree)"),
+    # --- G(M) from a subset of the cases (model/evaluation.py) ---
+    Mutant("subsample_se_without_finite_population", "model/evaluation.py",
+           "remaining = np.sqrt(max(1.0 - len(order) / n_s, 0.0) / len(order))",
+           "remaining = np.sqrt(1.0 / len(order))",
+           ("test_evaluation_subsample.py",),
+           "the subset's standard error as if drawn with replacement (too large, not 0 when "
+           "nearly every case is left out)"),
+    Mutant("subset_drawn_from_the_evaluations_generator", "model/evaluation.py",
+           "else leave_out_cases(n_s, generalization_cases, rng.spawn(1)[0]))",
+           "else leave_out_cases(n_s, generalization_cases, rng))",
+           ("test_evaluation_subsample.py",),
+           "the subset drawn from the specificity's generator: a limit moves its samples"),
+    Mutant("subset_drawn_with_replacement", "model/evaluation.py",
+           "return np.sort(rng.choice(n_shapes, size=limit, replace=False))",
+           "return np.sort(rng.choice(n_shapes, size=limit, replace=True))",
+           ("test_evaluation_subsample.py",),
+           "a case left out twice in the subset (its error counted twice, another case's none)"),
+    Mutant("subset_jackknife_keeps_only_the_group", "model/evaluation.py",
+           "left_out = np.array([per_case[group_of != g].mean(axis=0) for g in range(count)])",
+           "left_out = np.array([per_case[group_of == g].mean(axis=0) for g in range(count)])",
+           ("test_evaluation_subsample.py",),
+           "a subset's jackknife means of the group itself, not of the cases without it"),
+    # --- the viewer's sample of a large population (report/viewer.py) ---
+    Mutant("viewer_sample_named_by_position", "report/viewer.py",
+           'cases = [str(names[i]) if i < len(names) else f"case {i + 1}" for i in shown]',
+           'cases = [str(names[i]) if i < len(names) else f"case {i + 1}" '
+           'for i in range(len(shown))]',
+           ("test_viewer.py",),
+           "the sampled cases under the names of the first cases"),
+    Mutant("viewer_sample_distances_of_the_first_cases", "report/viewer.py",
+           "kept = np.asarray(distances, dtype=np.float64)[shown]",
+           "kept = np.asarray(distances, dtype=np.float64)[:len(shown)]",
+           ("test_viewer.py",),
+           "a sampled case coloured by the distances to its input of another case"),
+    Mutant("viewer_sample_scores_unweighted", "report/viewer.py",
+           "weighted = np.asarray(model.modes[0]) * np.asarray(model.weights)[:, None]",
+           "weighted = np.asarray(model.modes[0])",
+           ("test_viewer.py",),
+           "the first mode's scores without the points' weights: the sample ranked on another "
+           "score where the weights differ"),
+    # --- the candidate frames (prepare/sphere.py frame_turns) ---
+    Mutant("frame_twists_to_the_full_turn", "prepare/sphere.py",
+           "angles = 2.0 * np.pi * np.arange(FRAME_TWISTS) / FRAME_TWISTS",
+           "angles = 2.0 * np.pi * np.arange(FRAME_TWISTS) / (FRAME_TWISTS - 1)",
+           ("test_sphere.py",),
+           "the twists spread up to the full turn: the first and last the same rotation",
+           k="frame"),
+    # --- the time left in a build's reports (progress.TimeLeft) ---
+    Mutant("time_left_rate_inverted", "progress.py",
+           "elapsed * (1.0 - fraction) / fraction", "elapsed * fraction / (1.0 - fraction)",
+           ("test_time_left.py",),
+           "a counted stage's time left from the rate of what is left, not of what is done"),
+    Mutant("time_left_budget_not_counted_down", "progress.py",
+           "time_left_text(self.budget - elapsed)", "time_left_text(self.budget)",
+           ("test_time_left.py",),
+           "the optimisation's bound the whole budget at every report"),
+    Mutant("time_left_counted_stage_from_its_first_report", "progress.py",
+           "self.stage_start = now if fraction is None else self.last",
+           "self.stage_start = now",
+           ("test_time_left.py",),
+           "a counted stage timed from its first report, whose step is already done: no "
+           "estimate there, and too little time left after it"),
+    Mutant("time_left_budget_from_the_stage_before", "progress.py",
+           "self.stage_start = now if fraction is None else self.last",
+           "self.stage_start = self.last",
+           ("test_time_left.py",),
+           "the budget counted from the last report of the stage before (the gap before the "
+           "optimisation's first report taken off the budget)"),
+    Mutant("time_left_one_budget_for_every_optimisation", "progress.py",
+           "or (optimising and not self.optimising)", "or False",
+           ("test_time_left.py",),
+           "a landmark check's fold bounded by what the build's optimisation left of the budget"),
+    Mutant("time_left_kind_lost_on_the_way", "progress.py",
+           "return self.progress(fraction, message if kind is None else Message(message, kind))",
+           "return self.progress(fraction, message)",
+           ("test_time_left.py",),
+           "the reports' kind lost after the estimate: the command line, the worker and the "
+           "module no longer know the optimisation's reports"),
+    # --- the optimisation's blocks, here and on Dask (correspondence/strategies/) ---
+    Mutant("curve_shift_gradient_reversed", "correspondence/strategies/blocks.py",
+           "return np.append(self.basis.weights.T @ along, along.sum())",
+           "return np.append(self.basis.weights.T @ along, -along.sum())",
+           ("test_circle.py",),
+           "a curve's origin shift moved up its objective's slope", k="fast"),
+    Mutant("block_trials_all_dropped", "correspondence/strategies/blocks.py",
+           "self.trials = {k: v for k, v in self.trials.items() if k in keep}",
+           "self.trials = {}",
+           ("test_strategies.py",),
+           "a trial kept for its gradient or commit dropped at the next sample",
+           k="fast"),
+    Mutant("cluster_last_stretch_dropped", "correspondence/strategies/spread.py",
+           "edges = [len(self.active) * k // count for k in range(count + 1)]",
+           "edges = [len(self.active) * k // count for k in range(count)]",
+           ("test_dask.py",),
+           "the last worker's stretch of examples never made", k="gives_the_local_correspondence",
+           slow=True),
+    Mutant("cluster_lost_stretch_keeps_one_trial", "correspondence/strategies/spread.py",
+           "stretch.blocks.sample(number, x, keep)",
+           "stretch.blocks.sample(number, x, ())",
+           ("test_dask.py",),
+           "a lost worker's stretch taken here keeps only the last trial sampled again",
+           k="worker_lost_in_a_round", slow=True),
 ]
 
 
@@ -467,11 +589,12 @@ def check(mutants: list, chosen: list) -> list:
     return problems
 
 
-def run_tests(copy: Path, tests: tuple, k: str) -> tuple[int, str, float]:
-    """(exit code, output, seconds) of the quick tests ``tests`` with the package at ``copy``."""
+def run_tests(copy: Path, tests: tuple, k: str, slow: bool = False) -> tuple[int, str, float]:
+    """(exit code, output, seconds) of the quick tests ``tests`` (``slow``: the slow ones too)
+    with the package at ``copy``."""
     environment = dict(os.environ, PYTHONPATH=str(copy), PYTHONDONTWRITEBYTECODE="1")
-    command = [sys.executable, "-m", "pytest", *tests, "-m", "not slow", "-q", "-x",
-               "-p", "no:cacheprovider", "-W", "ignore"]
+    command = [sys.executable, "-m", "pytest", *tests, "-q", "-x",
+               "-p", "no:cacheprovider", "-W", "ignore"] + ([] if slow else ["-m", "not slow"])
     if k:
         command += ["-k", k]
     started = time.perf_counter()
@@ -512,7 +635,8 @@ def main(argv=None) -> int:
     if arguments.list:
         for mutant in chosen:
             print(f"{mutant.name:40s} {mutant.file:28s} {' '.join(mutant.tests)}"
-                  f"{' -k ' + mutant.k if mutant.k else ''}\n    {mutant.description}")
+                  f"{' -k ' + mutant.k if mutant.k else ''}"
+                  f"{' (slow tests too)' if mutant.slow else ''}\n    {mutant.description}")
         print(f"{len(chosen)} mutants; each original occurs once in its file")
         return 0
 
@@ -521,7 +645,7 @@ def main(argv=None) -> int:
         # copy2 keeps the modification times, which numba's cache and the .pyc files check
         shutil.copytree(PACKAGE, copy / "mdlshapemodel", copy_function=shutil.copy2)
         if not arguments.no_baseline:
-            for selection in sorted({(m.tests, m.k) for m in chosen}):
+            for selection in sorted({(m.tests, m.k, m.slow) for m in chosen}):
                 code, output, seconds = run_tests(copy, *selection)
                 if code != 0:
                     print(f"the tests {' '.join(selection[0])} fail without a mutant "
@@ -539,7 +663,7 @@ def main(argv=None) -> int:
                                 encoding="utf-8")
                 # another modification time, so that no cached .pyc of the original is used
                 os.utime(path, (stat.st_atime, stat.st_mtime + 7))
-                code, output, seconds = run_tests(copy, mutant.tests, mutant.k)
+                code, output, seconds = run_tests(copy, mutant.tests, mutant.k, mutant.slow)
             finally:
                 path.write_bytes(original)
                 os.utime(path, (stat.st_atime, stat.st_mtime))
