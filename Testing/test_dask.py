@@ -39,7 +39,7 @@ import dies_in_a_round
 from dying import square_or_die
 from on_workers import blas_threads, held
 from common import hippocampi, needs_hippocampi, run_cli, run_python
-from synthetic import write_population
+from synthetic import build_objectives, small_state, write_population
 
 # real builds (the command line or build_model): deselected by -m "not slow"
 pytestmark = pytest.mark.slow
@@ -391,6 +391,53 @@ def test_a_worker_lost_in_a_round_leaves_its_examples_to_the_build(
         else:
             np.testing.assert_allclose(value, reference[name], rtol=1e-9, atol=1e-9,
                                        err_msg=name)
+
+
+def test_a_stretch_taken_from_a_lost_worker_keeps_the_trials_the_round_kept(scheduler, dying,
+                                                                            caplog):
+    """A round of five examples on the two workers; its first trial is kept through five later
+    ones, at the last of which a worker dies (Testing/dies_in_a_round.py): the build takes the
+    worker's stretch over and samples the kept trials again, so the first trial still gives its
+    gradient and commits the state that committing it at once in one process gives (to
+    rounding: a point may be located in a neighbouring triangle, walking from elsewhere)."""
+    from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
+    from mdlshapemodel.correspondence.strategies.spread import ExamplesOnCluster
+
+    done = Path(f"{dying}.done")
+    done.unlink(missing_ok=True)          # (left by a test before: no worker would die)
+
+    def a_round(client=None):
+        state = small_state()
+        state.objective = build_objectives(state)[1]
+        examples = (None if client is None
+                    else ExamplesOnCluster(client, state, range(state.n_shapes)))
+        round_ = FieldRound(state, range(state.n_shapes), 1, 2.0, examples=examples)
+        upper = np.where(np.isfinite(round_.limit), round_.limit, 0.05)
+        steps = np.random.default_rng(5).uniform(-0.2, 0.2, (6, round_.size)) * upper
+        return state, round_, steps, examples
+
+    here, round_, steps, _ = a_round()
+    round_.commit(round_.trial(steps[0]))
+    with Client(scheduler, set_as_default=False) as client:
+        client.wait_for_workers(2, timeout=90)
+        state, round_, steps, examples = a_round(client)
+        try:
+            first = round_.trial(steps[0])
+            gradient = round_.gradient(first, gradient_at(state, first.shapes)[1])
+            dying.touch()
+            for x in steps[1:]:
+                round_.trial(x, keep=(first.number,))
+            assert done.exists()                                    # a worker died
+            assert "they are optimised in this process from now on" in caplog.text
+            np.testing.assert_allclose(
+                round_.gradient(first, gradient_at(state, first.shapes)[1]), gradient,
+                rtol=1e-9, atol=1e-12)
+            round_.commit(first)
+        finally:
+            dying.unlink(missing_ok=True)
+            done.unlink(missing_ok=True)
+            examples.close()
+    np.testing.assert_allclose(state.shapes, here.shapes, rtol=1e-9, atol=1e-9)
 
 
 # Python's own SIGINT handler in the command line even where this test runs with SIGINT

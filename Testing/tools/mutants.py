@@ -561,7 +561,7 @@ MUTANTS = [
            "stretch.blocks.sample(number, x, ())",
            ("test_dask.py",),
            "a lost worker's stretch taken here keeps only the last trial sampled again",
-           k="worker_lost_in_a_round", slow=True),
+           k="worker_lost_in_a_round or keeps_the_trials_the_round_kept", slow=True),
 ]
 
 
