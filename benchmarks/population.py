@@ -29,10 +29,11 @@ G(1) and S(1) with their standard errors (and how many cases G left out):
         --output /tmp/pop1000 --build -- --max-time 1700
 
 ``--sizes`` builds the first N cases for each N given, one after the other, each into
-``BUILDS/nN`` (``--builds``, default ``OUTPUT/builds``), and appends each size's row, and a
-row of its stages (wall and CPU seconds, peak memory: from its build.log and the samples), to
-``BUILDS/table.md`` as soon as it is done, so that a night's run keeps every finished size; a
-failed build gets a row saying so and the next size runs. ``--drawn`` builds label maps drawn
+``BUILDS/nN`` (``--builds``, default ``OUTPUT/builds``), and appends each size's row to
+``BUILDS/table.md`` and a row of its stages (wall and CPU seconds, peak memory: from its
+build.log and the samples) to ``BUILDS/stages.md`` as soon as it is done, so that a night's run
+keeps every finished size (``stage_fit.py`` fits the stages); a failed build gets a row saying
+so and the next size runs. ``--drawn`` builds label maps drawn
 before (``OUTPUT/labels``) without drawing; the builds may go elsewhere
 (``--builds``), so that a shared population stays untouched:
 
@@ -159,23 +160,25 @@ def build_row(output: Path, cases: int, extra: list, built: Path | None = None) 
 
 def build_sizes(output: Path, sizes: list, extra: list, builds: Path) -> None:
     """Build the first N label maps for each N of ``sizes`` into ``builds/nN``, appending each
-    size's rows to ``builds/table.md`` when it is done."""
+    size's row to ``builds/table.md`` and the row of its stages to ``builds/stages.md`` as soon
+    as it is done."""
     builds.mkdir(parents=True, exist_ok=True)
-    table = builds / "table.md"
+    table, stages = builds / "table.md", builds / "stages.md"
+    heading = (f"\n{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, build options: "
+               f"{' '.join(extra) or '(defaults)'}\n\n")
     with open(table, "a") as file:
-        file.write(f"\n{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, build options: "
-                   f"{' '.join(extra) or '(defaults)'}\n\n{HEADER}\n")
-    stage_rows = []
+        file.write(heading + HEADER + "\n")
+    with open(stages, "a") as file:
+        file.write(heading + "| cases | each stage: wall s (CPU s of all processes), peak memory "
+                   "of all processes |\n|---|---|\n")
     for cases in sizes:
         row, staged = build_row(output, cases, extra, builds / f"n{cases}")
-        stage_rows.append(staged)
-        print(row, flush=True)
+        print(row, staged, sep="\n", flush=True)
         with open(table, "a") as file:
             file.write(row + "\n")
-    with open(table, "a") as file:
-        file.write("\nstages: wall s (CPU s of all processes), peak memory of all processes\n\n"
-                   + "\n".join(stage_rows) + "\n")
-    print("\n".join(stage_rows), f"\n-> {table}", flush=True)
+        with open(stages, "a") as file:
+            file.write(staged + "\n")
+    print(f"-> {table}, {stages}", flush=True)
 
 
 def main():
@@ -193,7 +196,8 @@ def main():
     parser.add_argument("--build", action="store_true",
                         help="then build it end to end and print the benchmark's row")
     parser.add_argument("--sizes", type=int, nargs="+",
-                        help="build the first N cases for each N, one table (BUILDS/table.md)")
+                        help="build the first N cases for each N, one table (BUILDS/table.md, "
+                             "BUILDS/stages.md)")
     parser.add_argument("--builds", help="where --sizes builds (default OUTPUT/builds)")
     parser.add_argument("--drawn", action="store_true",
                         help="do not draw: build the label maps already in OUTPUT/labels")

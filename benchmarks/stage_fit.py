@@ -1,5 +1,5 @@
 """The stages of a build fitted against the number of shapes, and the whole build predicted at
-larger sizes, from the stage rows that ``population.py --sizes`` writes to its table.
+larger sizes, from the stage rows that ``population.py --sizes`` writes (stages.md).
 
 Each stage's CPU seconds (of the build and all its processes) are fitted by least squares as
 a + b n_s (and the growth between the two largest sizes given as an exponent, n_s^k, so that
@@ -17,7 +17,7 @@ the helper process during the optimisation: counted in the CPU, not in the wall 
 time of a quiet 2-core machine is taken as the CPU time, halved for the preparation (two
 workers).
 
-    python benchmarks/stage_fit.py /tmp/stages/table.md --predict 2500 5000 10000
+    python benchmarks/stage_fit.py /tmp/stages/stages.md --predict 2500 5000 10000
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def linear(sizes: np.ndarray, values: np.ndarray) -> tuple:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("tables", nargs="+", help="table.md files of population.py --sizes")
+    parser.add_argument("tables", nargs="+", help="stages.md files of population.py --sizes")
     parser.add_argument("--predict", type=int, nargs="+", default=[2500, 5000, 10000])
     parser.add_argument("--skip", nargs="*", default=["optimisation",
                                                       "the baselines' evaluation awaited"])
