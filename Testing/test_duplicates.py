@@ -87,3 +87,42 @@ def test_allowed_duplicates_leave_no_mode_of_no_variance_and_fit_distances_ordin
     assert summary["mahalanobis"] == pytest.approx(
         np.sqrt(np.sum(scores ** 2 / model.variances)), rel=1e-4)
     assert summary["mahalanobis"] < 3 * summary["unusual"]["distance"]
+
+
+def test_close_shapes_are_found_without_the_pairwise_distances_of_all_cases():
+    """same_shapes finds planted copies (a moved one and one a hair away, and a group of three)
+    among 3000 cases, and none of two shapes just beyond the limit, holding nothing n_s x n_s:
+    its traced memory stays within a few copies of the shapes (the 3000 x 3000 distances
+    alone are 72 MB)."""
+    import tracemalloc
+
+    from mdlshapemodel.prepare.duplicates import same_shapes
+
+    rng = np.random.default_rng(3)
+    n, points = 3000, 100
+    shapes = rng.normal(size=(n, points, 3)) + rng.normal(size=(n, 1, 3)) * 10.0
+    weights = np.full(points, 1.0 / points)
+    shapes[2500] = shapes[10] + [5.0, -2.0, 1.0]                 # moved
+    shapes[700] = shapes[20] + rng.normal(size=(points, 3)) * 1e-5
+    shapes[701] = shapes[20] + rng.normal(size=(points, 3)) * 1e-5
+    shapes[1800] = shapes[1200] + rng.normal(size=(points, 3)) * 0.1   # far beyond 0.1 %
+    tracemalloc.start()
+    found = same_shapes(shapes, weights, [f"case{i}" for i in range(n)])
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert [d.files for d in found] == [("case10", "case2500"), ("case20", "case700", "case701")]
+    assert peak < 4 * shapes.nbytes                               # 7.2 MB of shapes
+
+
+def test_close_pairs_are_those_of_all_pairwise_distances(rng):
+    from mdlshapemodel.prepare.duplicates import close_pairs
+
+    rows = rng.normal(size=(400, 30))
+    rows[5] = rows[300] + 0.01
+    rows[6] = rows[5] + 0.02
+    brute = np.sum((rows[:, None] - rows[None]) ** 2, axis=2)
+    fourth, fifth = np.sort(brute[np.triu_indices(400, 1)])[3:5]
+    for radius, pairs in ((0.06, 1), (0.12, 2), (0.2, 3), (np.sqrt((fourth + fifth) / 2), 4)):
+        expected = np.argwhere(np.triu(brute < radius ** 2, k=1))
+        assert len(expected) == pairs
+        np.testing.assert_array_equal(close_pairs(rows, radius), expected)

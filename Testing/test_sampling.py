@@ -275,3 +275,31 @@ def test_grid_order_renumbers_the_same_triangulation_in_grid_order(rng):
     assert np.all(np.diff(nearest) >= 0)
     # vertices are numbered by first use: the first face uses 0, 1, 2
     assert sorted(renumbered[0]) == [0, 1, 2]
+
+
+def test_locator_index_tables_are_int32_and_walk_as_int64_ones_do(rng):
+    """The locator a build keeps per case holds its index tables in 4 bytes an entry, and a walk
+    over them reaches the same faces and coordinates as over the same tables in int64."""
+    from mdlshapemodel.correspondence import hotloops
+    from mdlshapemodel.correspondence.sampling import face_neighbours
+
+    sphere, faces = icosphere(3)
+    locator = SphereLocator(sphere, faces)
+    assert locator.neighbours.itemsize == 4 and locator.vertex_faces.itemsize == 4
+    assert locator.neighbours.nbytes == 4 * 3 * len(faces)
+    points = rng.normal(size=(500, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    hint = rng.integers(0, len(faces), len(points))
+    results = []
+    for neighbours in (locator.neighbours, face_neighbours(locator.faces)):
+        face, coords = np.full(len(points), -1), np.zeros((len(points), 3))
+        found = np.zeros(len(points), dtype=bool)
+        hotloops.walk(locator.inverse, neighbours, points, hint, 6, -1e-12, face, coords, found)
+        results.append((face, coords, found))
+    (face32, coords32, found32), (face64, coords64, found64) = results
+    assert found32.any() and not found32.all()
+    np.testing.assert_array_equal(found32, found64)
+    np.testing.assert_array_equal(face32, face64)
+    np.testing.assert_array_equal(coords32, coords64)
+    face, coords = locator.locate(points, hint)
+    np.testing.assert_array_equal(face[found32], face32[found32])

@@ -56,17 +56,34 @@ def _rss_mb(pid: int) -> float:
     return 0.0
 
 
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU seconds of a process and of the children it has waited for (``/proc/PID/stat``)."""
+    try:
+        with open(f"/proc/{pid}/stat") as file:
+            fields = file.read().rpartition(")")[2].split()
+    except OSError:
+        return 0.0
+    return sum(int(f) for f in fields[11:15]) / TICK    # utime, stime, cutime, cstime
+
+
 class MemoryWatch(threading.Thread):
     """Peak summed RSS of a process tree, and of its largest process (sampled), and when the
-    summed peak was reached (``time.time()``)."""
+    summed peak was reached (``time.time()``); ``samples`` keeps every sample as (``time.time()``,
+    summed RSS MB, CPU seconds of the tree so far) for :func:`stage_table`."""
 
     def __init__(self, pid: int, interval: float = 0.1):
         super().__init__(daemon=True)
         self.pid, self.interval = pid, interval
         self.peak_total = self.peak_single = self.peak_time = 0.0
+        self.samples = []
+        self.started = time.time()
         self.done = threading.Event()
 
     def run(self):
+        cpu = 0.0
         while not self.done.is_set():
             pids, queue = [], [self.pid]
             while queue:
@@ -74,6 +91,9 @@ class MemoryWatch(threading.Thread):
                 pids.append(pid)
                 queue += _children(pid)
             sizes = [_rss_mb(p) for p in pids]
+            # a worker's CPU moves to its parent's cutime when it is reaped: never count less
+            cpu = max(cpu, sum(_cpu_s(p) for p in pids))
+            self.samples.append((time.time(), sum(sizes), cpu))
             if sum(sizes) > self.peak_total:
                 self.peak_total, self.peak_time = sum(sizes), time.time()
             self.peak_single = max(self.peak_single, max(sizes, default=0.0))
@@ -106,6 +126,46 @@ def stage_at(log: Path, moment: float) -> str:
     lines = [line for line in log.read_text().splitlines() if line[:4].isdigit()]
     before = [line for line in lines if _stamp(line) <= moment]
     return before[-1][24:] if before else "(before the first line)"
+
+
+# the stages of a build, each ended by the first build.log line that matches its pattern
+STAGE_ENDS = (("start-up", r"preprocessing \d+ cases"),
+              ("preparing", r"prepared \d+ cases in"),
+              ("initial correspondence", r"initial objective"),
+              ("optimisation", r"final objective"),
+              ("model", r"\] evaluating"),
+              ("the baselines' evaluation awaited", r"waited [\d.]+ s for the baselines"),
+              ("writing", r"wrote the model, meshes and tables"),
+              ("evaluation", r"evaluated the model in"),
+              ("report", r"wrote the report in"),
+              ("exit", None))
+
+
+def stage_table(log: Path, watch: MemoryWatch) -> list:
+    """Per stage of a build (:data:`STAGE_ENDS`): (name, wall s, CPU s of the whole process tree,
+    peak summed RSS MB), from the build.log's time stamps and the watch's samples (the first
+    stage begins when the watch does). A stage whose line is missing is left out."""
+    lines = [line for line in log.read_text().splitlines() if line[:4].isdigit()]
+    ends, begin = [], watch.started
+    for name, pattern in STAGE_ENDS:
+        if pattern is None:
+            end = watch.samples[-1][0] if watch.samples else begin
+        else:
+            end = next((_stamp(line) for line in lines
+                        if re.search(pattern, line) and _stamp(line) >= begin), None)
+        if end is not None:
+            ends.append((name, begin, end))
+            begin = end
+
+    def cpu_at(moment):
+        before = [cpu for stamp, _, cpu in watch.samples if stamp <= moment]
+        return before[-1] if before else 0.0
+
+    rows = []
+    for name, begin, end in ends:
+        inside = [rss for stamp, rss, _ in watch.samples if begin <= stamp <= end]
+        rows.append((name, end - begin, cpu_at(end) - cpu_at(begin), max(inside, default=0.0)))
+    return rows
 
 
 def preprocessing_seconds(log: Path) -> float:

@@ -27,6 +27,20 @@ G(1) and S(1) with their standard errors (and how many cases G left out):
 
     nice -n 10 python benchmarks/population.py --model /tmp/h82/model.h5 --cases 1000 \
         --output /tmp/pop1000 --build -- --max-time 1700
+
+``--sizes`` builds the first N cases for each N given, one after the other, each into
+``BUILDS/nN`` (``--builds``, default ``OUTPUT/builds``), and appends each size's row to
+``BUILDS/table.md`` and a row of its stages (wall and CPU seconds, peak memory: from its
+build.log and the samples) to ``BUILDS/stages.md`` as soon as it is done, so that a night's run
+keeps every finished size (``stage_fit.py`` fits the stages); a failed build gets a row saying
+so and the next size runs. ``--drawn`` builds label maps drawn
+before (``OUTPUT/labels``) without drawing; the builds may go elsewhere
+(``--builds``), so that a shared population stays untouched:
+
+    nice -n 10 python benchmarks/population.py --model /tmp/h82/model.h5 --cases 10000 \
+        --output /tmp/pop10000 --sizes 2500 5000 10000 -- --max-time 7000
+    python benchmarks/population.py --model /tmp/h82/model.h5 --output /tmp/pop1000 --drawn \
+        --sizes 125 250 --builds /tmp/stages -- --max-sweeps 1
 """
 
 from __future__ import annotations
@@ -103,20 +117,34 @@ def write_case(arguments) -> dict:
     return record
 
 
-def build_row(output: Path, cases: int, extra: list) -> str:
-    """Build the population's label maps with the command line (into ``output/build``) and
-    return the benchmark's table row."""
-    from end_to_end import watched
+HEADER = ("| cases | wall | CPU | peak memory, all processes (largest) | evaluations | ended | "
+          "G(1) mm² | S(1) mm² |\n|---|---|---|---|---|---|---|---|")
+
+
+def build_row(output: Path, cases: int, extra: list, built: Path | None = None) -> tuple:
+    """Build the first ``cases`` label maps of ``output/labels`` with the command line (into
+    ``built``, default ``output/build``): the benchmark's table row and the row of its stages
+    (:func:`end_to_end.stage_table`), or a row saying how the build failed."""
+    from end_to_end import stage_table, watched
 
     inputs = sorted((output / "labels").glob("*.nii.gz"))[:cases]
-    built = output / "build"
+    if len(inputs) < cases:
+        raise SystemExit(f"only {len(inputs)} label maps in {output / 'labels'}, {cases} wanted")
+    built = output / "build" if built is None else built
     with tempfile.TemporaryDirectory() as cache:
         # the cases drawn now: the folder may hold more from an earlier, larger draw
         command = [sys.executable, "-m", "mdlshapemodel.cli", "build", *map(str, inputs),
-                   "--label", "1", "-o", str(built), "-q", "--cache-dir", cache, *extra]
+                   "--label", "1", "-o", str(built), "-q", "--cache-dir", cache, *extra,
+                   *(["--overwrite"] if (built / "build.log").exists() else [])]
         code, wall, cpu, watch = watched(command)
+    stages = stage_table(built / "build.log", watch) if (built / "build.log").exists() else []
+    staged = (f"| {cases} | " + " | ".join(f"{name}: {seconds:.0f} s ({used:.0f} CPU-s), "
+                                           f"{peak / 1024:.2f} GB"
+                                           for name, seconds, used, peak in stages) + " |")
     if code != 0:
-        raise SystemExit(f"the build failed (exit code {code})")
+        return (f"| {cases} | {wall:.0f} s | {cpu:.0f} s | {watch.peak_total:.0f} MB "
+                f"({watch.peak_single:.0f} MB) | the build failed (exit code {code}) "
+                f"| | | |"), staged
     metrics = json.loads((built / "metrics.json").read_text())
     with open(built / "convergence.csv") as file:
         trace = list(csv.DictReader(file))
@@ -127,12 +155,35 @@ def build_row(output: Path, cases: int, extra: list) -> str:
             f"({watch.peak_single:.0f} MB) | {evaluations} | {ending} | "
             f"{metrics['generalization'][0]:.4f} ± {metrics['generalization_se'][0]:.4f} "
             f"({left_out} left out) | "
-            f"{metrics['specificity'][0]:.4f} ± {metrics['specificity_se'][0]:.4f} |")
+            f"{metrics['specificity'][0]:.4f} ± {metrics['specificity_se'][0]:.4f} |"), staged
+
+
+def build_sizes(output: Path, sizes: list, extra: list, builds: Path) -> None:
+    """Build the first N label maps for each N of ``sizes`` into ``builds/nN``, appending each
+    size's row to ``builds/table.md`` and the row of its stages to ``builds/stages.md`` as soon
+    as it is done."""
+    builds.mkdir(parents=True, exist_ok=True)
+    table, stages = builds / "table.md", builds / "stages.md"
+    heading = (f"\n{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, build options: "
+               f"{' '.join(extra) or '(defaults)'}\n\n")
+    with open(table, "a") as file:
+        file.write(heading + HEADER + "\n")
+    with open(stages, "a") as file:
+        file.write(heading + "| cases | each stage: wall s (CPU s of all processes), peak memory "
+                   "of all processes |\n|---|---|\n")
+    for cases in sizes:
+        row, staged = build_row(output, cases, extra, builds / f"n{cases}")
+        print(row, staged, sep="\n", flush=True)
+        with open(table, "a") as file:
+            file.write(row + "\n")
+        with open(stages, "a") as file:
+            file.write(staged + "\n")
+    print(f"-> {table}, {stages}", flush=True)
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--model", required=True, help="model.h5 of a build of the hippocampi")
+    parser.add_argument("--model", help="model.h5 of a build of the hippocampi (to draw)")
     parser.add_argument("--cases", type=int, default=1000)
     parser.add_argument("--output", required=True)
     parser.add_argument("--spacing", type=float, default=1.0, help="voxel size, mm")
@@ -144,12 +195,33 @@ def main():
                         help="write the true meshes (and truth.json) only, not the label maps")
     parser.add_argument("--build", action="store_true",
                         help="then build it end to end and print the benchmark's row")
+    parser.add_argument("--sizes", type=int, nargs="+",
+                        help="build the first N cases for each N, one table (BUILDS/table.md, "
+                             "BUILDS/stages.md)")
+    parser.add_argument("--builds", help="where --sizes builds (default OUTPUT/builds)")
+    parser.add_argument("--drawn", action="store_true",
+                        help="do not draw: build the label maps already in OUTPUT/labels")
     parser.add_argument("extra", nargs=argparse.REMAINDER, help="build options after --")
     args = parser.parse_args()
+    output = Path(args.output)
+    extra = [a for a in args.extra if a != "--"]
+    if not args.drawn:
+        if args.model is None:
+            parser.error("--model is needed to draw the population (or --drawn)")
+        draw(args, output)
+    if args.sizes:
+        build_sizes(output, args.sizes, extra,
+                    Path(args.builds) if args.builds else output / "builds")
+    elif args.build:
+        print(HEADER)
+        print(build_row(output, args.cases, extra)[0], flush=True)
+
+
+def draw(args, output: Path) -> None:
+    """Draw ``args.cases`` cases into ``output`` (label maps, true meshes, truth.json)."""
     from mdlshapemodel.model.shape_model import ShapeModel
     from mdlshapemodel.prepare.io import write_polydata
 
-    output = Path(args.output)
     for folder in ("labels", "meshes"):
         (output / folder).mkdir(parents=True, exist_ok=True)
     model = ShapeModel.load(args.model)
@@ -169,10 +241,6 @@ def main():
         "seed": args.seed, "cases": records}, indent=1))
     written = "true meshes" if args.meshes_only else "label maps and true meshes"
     print(f"{args.cases} cases' {written} in {time.perf_counter() - started:.0f} s -> {output}")
-    if args.build:
-        print("| cases | wall | CPU | peak memory, all processes (largest) | evaluations | "
-              "ended | G(1) mm² | S(1) mm² |\n|---|---|---|---|---|---|---|---|")
-        print(build_row(output, args.cases, [a for a in args.extra if a != "--"]), flush=True)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ import logging
 import math
 import time
 import traceback
+from collections import Counter
 from concurrent.futures import CancelledError, Executor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -628,7 +629,8 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         result.final_objective, result.model.variances
     """
     files = [io.case_file("", case.name).name for case in prepared]   # names as file names
-    duplicates = {case.name for case, file in zip(prepared, files) if files.count(file) > 1}
+    counts = Counter(files)
+    duplicates = {case.name for case, file in zip(prepared, files) if counts[file] > 1}
     if duplicates:
         raise BuildError("several inputs have the same case name: "
                          f"{', '.join(sorted(map(io.printable, duplicates)))}")

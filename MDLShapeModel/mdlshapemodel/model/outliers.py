@@ -170,11 +170,71 @@ def training_distances(scores: np.ndarray, variances: np.ndarray, modes: int,
     n = len(scores)
     k = _checked_modes(int(modes), n)
     squared, p_normal, reference = _training_p_normal(scores, variances, k)
-    own = [empirical_null(np.delete(p_normal, i)) for i in range(n)]   # each without itself
-    p = np.array([null.p(p_normal[i]) for i, null in enumerate(own)], dtype=np.float64)
-    threshold = np.sqrt((n - 1) * reference.isf([null.p_normal_at(alpha) for null in own]))
+    nulls, which = leave_one_out_nulls(p_normal)     # each case's null without itself
+    centre = np.array([null.centre for null in nulls])[which]
+    spread = np.array([null.spread for null in nulls])[which]
+    p = _against(p_normal, centre, spread)
+    at_alpha = np.array([null.p_normal_at(alpha) for null in nulls])[which]
+    threshold = np.sqrt((n - 1) * reference.isf(at_alpha))
     return Distances(k, np.sqrt(squared), p, p_normal, threshold, p < alpha,
                      empirical_null(p_normal))
+
+
+def leave_one_out_nulls(p_normal: np.ndarray) -> tuple[list, np.ndarray]:
+    """Every case's :func:`empirical_null` of the *other* cases' p-values, exactly
+    ``empirical_null(np.delete(p_normal, i))``, in time n log n rather than n^2.
+
+    The null reads the others' z-values only at a few sorted positions (those of the median and
+    of the :data:`NULL_QUANTILE` quantile). Leaving out the case of rank r shifts the sorted
+    values at position j down by one where j >= r, so the cases split into a few groups (by which
+    of those positions their rank lies before) whose left-out sets have the same values there:
+    one null is computed per group, leaving out one member.
+
+    Returns
+    -------
+    nulls : list of EmpiricalNull
+        One per group.
+    which : ndarray of int (n,)
+        Each case's group: its null is ``nulls[which[i]]``.
+
+    Examples
+    --------
+    >>> p_normal = np.random.default_rng(1).uniform(size=200)
+    >>> nulls, which = leave_one_out_nulls(p_normal)
+    >>> len(nulls) < 10
+    True
+    >>> all(nulls[which[i]] == empirical_null(np.delete(p_normal, i)) for i in range(200))
+    True
+    """
+    from scipy.stats import norm
+
+    p_normal = np.asarray(p_normal, dtype=np.float64)
+    n = len(p_normal)
+    if n < 3:
+        raise ArgumentError(f"leave-one-out nulls need 3 or more p-values, not {n}")
+    kept = n - 1
+    middle = kept // 2
+    quantile = int(np.floor((kept - 1) * NULL_QUANTILE))
+    # the positions the median and the quantile read, and their neighbours
+    read = np.unique(np.clip([middle - 2, middle - 1, middle, middle + 1,
+                              quantile - 1, quantile, quantile + 1, quantile + 2], 0, kept - 1))
+    z = norm.isf(np.clip(p_normal, SMALLEST_P, 1.0))
+    rank = np.empty(n, dtype=np.int64)
+    rank[np.argsort(z, kind="stable")] = np.arange(n)
+    # a case's group: how many of the positions read lie before its rank
+    group = np.searchsorted(read, rank, side="left")
+    keys, which = np.unique(group, return_inverse=True)
+    nulls = [empirical_null(np.delete(p_normal, int(np.flatnonzero(group == key)[0])))
+             for key in keys]
+    return nulls, which.ravel()
+
+
+def _against(p_normal: np.ndarray, centre: np.ndarray, spread: np.ndarray) -> np.ndarray:
+    """:meth:`EmpiricalNull.p` case by case, against each case's own centre and spread."""
+    from scipy.stats import norm
+
+    z = norm.isf(np.clip(np.asarray(p_normal, dtype=np.float64), SMALLEST_P, 1.0))
+    return norm.sf((z - centre) / spread)
 
 
 def new_case_distances(scores: np.ndarray, variances: np.ndarray, training: np.ndarray,

@@ -134,21 +134,65 @@ def same_shapes(shapes: np.ndarray, weights: np.ndarray, files,
     """
     weights = np.asarray(weights, dtype=np.float64)
     shapes = np.asarray(shapes, dtype=np.float64)
-    centred = shapes - np.einsum("k,ikd->id", weights, shapes)[:, None, :]
-    size = float(np.sqrt(np.mean(np.einsum("k,ikd->i", weights, centred ** 2))))
+    centroids = np.einsum("k,ikd->id", weights, shapes)
+    root = np.sqrt(weights)[:, None]
+    # the weighted shapes about their centroids, one row each (sum of squares: the RMS distance)
+    z = np.empty((len(shapes), shapes.shape[1] * 3))
+    for i, shape in enumerate(shapes):
+        z[i] = ((shape - centroids[i]) * root).ravel()
+    size = float(np.sqrt(np.mean(np.einsum("ij,ij->i", z, z))))
     if len(shapes) < 2 or not size > 0:
         return []
-    # squared distances of every pair from the Gram matrix of the weighted shapes
-    z = (centred * np.sqrt(weights)[None, :, None]).reshape(len(shapes), -1)
-    gram = z @ z.T
-    norms = np.diag(gram)
-    squared = norms[:, None] + norms[None, :] - 2.0 * gram
-    close = np.argwhere(np.triu(squared < (within * size) ** 2, k=1))
+    close = close_pairs(z, within * size)
     found = []
     for group in _groups(close, len(shapes)):
+        centred = {i: shapes[i] - centroids[i] for i in group}
         farthest = max(float(np.sqrt(weights @ np.sum((centred[i] - centred[j]) ** 2, axis=1)))
                        for a, i in enumerate(group) for j in group[a + 1:])
         found.append(Duplicates(tuple(str(files[i]) for i in group),
                                 f"the same shape (RMS distance {farthest:.2g} mm, "
                                 f"{100 * farthest / size:.2g} % of its size)"))
     return found
+
+
+# the directions :func:`close_pairs` projects the rows on, at most, and the rows they are taken from
+PROJECTED_DIRECTIONS = 16
+DIRECTION_ROWS = 256
+
+
+def close_pairs(rows: np.ndarray, radius: float) -> np.ndarray:
+    """The pairs (i, j), i < j, of ``rows`` (n, d) whose Euclidean distance is below ``radius``,
+    as an (m, 2) array in lexicographic order, without the n x n distances.
+
+    The rows are projected on a few orthonormal directions (the leading principal directions of
+    the first :data:`DIRECTION_ROWS` rows): a projection never lengthens a difference, so every
+    close pair is among the pairs whose projections lie within ``radius`` (found with a k-d
+    tree), and only those are measured in full. The cost grows as n log n with few such pairs
+    (n^2 when most rows are close to each other).
+
+    Examples
+    --------
+    >>> rows = np.random.default_rng(0).normal(size=(500, 40))
+    >>> rows[7] = rows[300] + 1e-3
+    >>> close_pairs(rows, 0.1).tolist()
+    [[7, 300]]
+    """
+    from scipy.spatial import cKDTree
+
+    rows = np.asarray(rows, dtype=np.float64)
+    sample = rows[:DIRECTION_ROWS] - rows[:DIRECTION_ROWS].mean(axis=0)
+    # the sample's leading principal directions, from the eigenvectors of its small Gram
+    # matrix, made exactly orthonormal (a projection on them cannot lengthen a difference)
+    vectors = np.linalg.eigh(sample @ sample.T)[1][:, ::-1][:, :PROJECTED_DIRECTIONS]
+    directions = np.linalg.qr(sample.T @ vectors)[0].T
+    # the bound with room for the projection's rounding, so that no close pair is missed
+    reach = radius * (1.0 + 1e-9) + 1e-9 * float(np.sqrt(np.max(np.einsum("ij,ij->i", rows,
+                                                                         rows), initial=0.0)))
+    candidates = cKDTree(rows @ directions.T).query_pairs(reach, output_type="ndarray")
+    candidates = candidates[np.lexsort((candidates[:, 1], candidates[:, 0]))]
+    keep = np.zeros(len(candidates), dtype=bool)
+    for start in range(0, len(candidates), 4096):     # the differences a block at a time
+        pairs = candidates[start:start + 4096]
+        difference = rows[pairs[:, 0]] - rows[pairs[:, 1]]
+        keep[start:start + 4096] = np.einsum("ij,ij->i", difference, difference) < radius ** 2
+    return candidates[keep].reshape(-1, 2)
