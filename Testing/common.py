@@ -66,8 +66,11 @@ def empirical_null_p(p_normal, training_p_normal=None):
     """p-values against the empirical null, from the formulas of docs/analysis.md item 9: the
     normal-theory p-values as z-values, each case's null from the *other* training cases' z
     (``training_p_normal`` None: ``p_normal`` are the training cases'), else all of
-    ``training_p_normal``'s (new cases): centred on their median (at least 0), their upper spread
-    (90 % quantile - median) / z_0.9 (at least 1)."""
+    ``training_p_normal``'s (new cases). p is the larger of the body's (a normal centred on the
+    N z's median, at least 0, with their upper spread (90 % quantile - median) / z_0.9, at least
+    1) and, from N = 15 on, the tail's: with the N z's sorted in decreasing order,
+    r = N / 10 rounded half up, u the (r + 1)-th and S the sum of the first r's excesses over
+    u, (r + 1) / (N + 1) exp(-r max(z - u, 0) / S)."""
     import numpy as np
     from scipy import stats
 
@@ -75,7 +78,14 @@ def empirical_null_p(p_normal, training_p_normal=None):
         centre = max(float(np.median(others)), 0.0)
         spread = max((float(np.quantile(others, 0.9)) - float(np.median(others)))
                      / stats.norm.isf(0.1), 1.0)
-        return stats.norm.sf((z - centre) / spread)
+        body = stats.norm.sf((z - centre) / spread)
+        if len(others) < 15:
+            return body
+        ranked = sorted(others, reverse=True)
+        r = int(np.floor(len(ranked) / 10 + 0.5))
+        u, excess = ranked[r], sum(value - ranked[r] for value in ranked[:r])
+        tail = (r + 1) / (len(ranked) + 1) * np.exp(-r * np.maximum(z - u, 0) / excess)
+        return np.maximum(body, tail)
 
     z = stats.norm.isf(np.atleast_1d(np.asarray(p_normal, dtype=float)))
     if training_p_normal is None:

@@ -124,6 +124,28 @@ def test_training_cases_of_a_scale_mixture_are_flagged_at_most_at_the_level():
     assert at_most(flagged / samples, LEVELS[1], samples), flagged / samples
 
 
+def test_training_cases_of_a_heavier_tailed_mixture_are_flagged_at_about_the_level():
+    """Training cases of a scale mixture with a heavier tail (n = 82, t with 3 degrees of
+    freedom, 81 numbers, the modes explaining 95%): their z-values beyond the 90 % quantile
+    fall off more slowly than a normal's, so a normal null fitted there alone flags about twice
+    the level at 0.01. With the exponential tail, the cases of 200 samples are flagged at about
+    the level: the rates' standard error over the samples (whose cases are not independent) is
+    about 0.0015 at 0.01, and the tolerance is 0.005 above each level."""
+    from mdlshapemodel.model.outliers import modes_explaining
+
+    rng = np.random.default_rng(82)
+    rates = []
+    for _ in range(200):
+        _, _, scores, variances = principal(scale_mixture(rng, 82, dims=81, nu=3.0))
+        found = training_distances(scores, variances, modes_explaining(variances, n_cases=82))
+        rates.append([np.mean(found.p_normal < LEVELS[0])]
+                     + [np.mean(found.p < alpha) for alpha in LEVELS])
+    normal, at_001, at_005 = np.mean(rates, axis=0)
+    assert normal > 10 * LEVELS[0], normal                              # heavy-tailed indeed
+    assert at_001 <= LEVELS[0] + 0.005, at_001
+    assert at_005 <= LEVELS[1] + 0.005, at_005
+
+
 def test_ledoit_wolf_intensity_is_its_formula():
     """Ledoit and Wolf (2004): intensity min(b^2, d^2) / d^2 with d^2 = |S - mu I|^2 and
     b^2 = (1/n^2) sum_i |x_i x_i' - S|^2, here as (sum_i |x_i|^4) / n^2 - |S|^2 / n."""

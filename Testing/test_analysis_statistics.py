@@ -11,7 +11,8 @@ from scipy import stats
 
 from mdlshapemodel.analysis import benjamini_hochberg, classify, permutation_test
 from mdlshapemodel.errors import InputError
-from mdlshapemodel.model.outliers import new_case_distances, training_distances
+from mdlshapemodel.model.outliers import (empirical_null, new_case_distances,
+                                            training_distances)
 from mdlshapemodel.model.shape_model import ShapeModel, score_outliers
 
 from common import empirical_null_p
@@ -317,6 +318,29 @@ def test_unusual_p_values_are_their_formulas_on_small_data():
     np.testing.assert_allclose(new.p_normal, new_normal, rtol=1e-12)
     np.testing.assert_allclose(new.p, empirical_null_p(new_normal, p_normal), rtol=1e-10)
     np.testing.assert_array_equal(new.outlier, new.distance > new.threshold)
+
+
+def test_the_empirical_null_tail_by_hand():
+    """Fifteen z-values: r = 15 / 10 rounded half up = 2, u = 6 (the third largest), S =
+    (10 - 6) + (8 - 6) = 6, the tail's p at u 3 / 16; a case at z = 12 has the tail's p
+    (3 / 16) exp(-2 (12 - 6) / 6), above the body's 1 - Phi((12 - 1) / ((7.2 - 1) / z_0.9))
+    (median 1, 90 % quantile 7.2). Without the smallest z-value (14 left) there is no tail."""
+    z = np.array([-1.0, -0.5, 0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 2.0, 3.0, 6.0, 8.0, 10.0])
+    null = empirical_null(stats.norm.sf(z))
+    assert (null.tail_cases, null.tail_share) == (2, pytest.approx(3 / 16))
+    assert null.tail_from == pytest.approx(6.0) and null.tail_excess == pytest.approx(6.0)
+    body = stats.norm.sf((12.0 - 1.0) / ((7.2 - 1.0) / stats.norm.isf(0.1)))
+    assert body == pytest.approx(0.0115, abs=1e-4)
+    tail = 3 / 16 * np.exp(-2.0)
+    assert null.p(stats.norm.sf(np.array([12.0])))[0] == pytest.approx(tail, rel=1e-8)
+    # the normal-theory p at which p is 0.05: z = 6 + (6 / 2) log((3 / 16) / 0.05)
+    at = 6.0 + 3.0 * np.log((3 / 16) / 0.05)
+    assert null.p_normal_at(0.05) == pytest.approx(stats.norm.sf(at), rel=1e-8)
+    fewer = empirical_null(stats.norm.sf(z[1:]))
+    assert fewer.tail_cases == 0
+    assert fewer.p(stats.norm.sf(np.array([12.0])))[0] == pytest.approx(
+        stats.norm.sf((12.0 - 1.1) / ((float(np.quantile(z[1:], 0.9)) - 1.1)
+                                      / stats.norm.isf(0.1))), rel=1e-8)
 
 
 def test_a_planted_unusual_case_among_heavy_tailed_ones_is_found_and_they_are_not(rng):

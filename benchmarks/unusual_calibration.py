@@ -9,7 +9,8 @@ independent, so the SE is that of the replicates' own rates).
 
 (a) Gaussian shapes: n cases of ``--dims`` numbers with variances 0.85^m (a spread like the
 hippocampi's, 95 % in about 17 modes), and with k = n - 2 modes; (b) the same scaled per case
-by sqrt(nu / chi^2_nu) (a scale mixture: multivariate t with nu degrees of freedom).
+by sqrt(nu / chi^2_nu) (a scale mixture: multivariate t with nu degrees of freedom), or a
+tenth of the cases (at random) scaled by 2 (two spreads).
 
 ``--build DIR`` (a build's folder with model.h5): (c) real shapes: ``--draws`` samples of n of
 its cases (``--sizes``; no case known to be unusual: the share shows how many a user would be
@@ -21,7 +22,7 @@ and as a new case against the draw's other cases: the share of draws in which it
 
 Examples (the tables in docs/analysis.md; seeds fixed)::
 
-    python benchmarks/unusual_calibration.py --replicates 400
+    python benchmarks/unusual_calibration.py --replicates 100
     python benchmarks/unusual_calibration.py --replicates 0 --build /tmp/s39/h82-icp4 --draws 100
 """
 
@@ -72,16 +73,19 @@ def synthetic(args, rng):
     explained = lambda variances, n: modes_explaining(variances, n_cases=n)  # noqa: E731
     near_n = lambda variances, n: n - 2                                       # noqa: E731
     print(HEADER)
-    for nu in (np.inf, 10.0, 5.0, 3.0):
-        for n in (10, 20, 82):
+    for nu in (np.inf, 10.0, 5.0, 3.0, 0.0):
+        for n in (10, 20, 40, 82):
             for name, modes_of in (("95 %", explained), ("k = n - 2", near_n)):
                 def samples():
                     for _ in range(args.replicates):
                         x = rng.normal(size=(n, args.dims)) * np.sqrt(spectrum)
-                        if np.isfinite(nu):
+                        if nu == 0:
+                            x *= np.where(rng.random((n, 1)) < 0.1, 2.0, 1.0)
+                        elif np.isfinite(nu):
                             x /= np.sqrt(rng.chisquare(nu, size=(n, 1)) / nu)
                         yield x
-                kind = "Gaussian" if not np.isfinite(nu) else f"t, nu = {nu:g}"
+                kind = ("Gaussian" if not np.isfinite(nu) else
+                        "two spreads (a tenth x 2)" if nu == 0 else f"t, nu = {nu:g}")
                 print(row(f"{kind}, n = {n}, {name}", *rates(samples(), modes_of)), flush=True)
 
 

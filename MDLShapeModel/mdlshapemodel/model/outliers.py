@@ -17,20 +17,38 @@ D^2 = d^2 (n - 1) / n), and gives the **normal-theory p** (``p_normal``):
 Real shapes are not normal in this way: some cases lie far out in many small modes at once (a
 scale mixture, each case with its own spread), so the distances are overdispersed against these
 references and they flag many times the level (on 82 hippocampi, 12 cases at p < 0.01 instead of
-about 1). The **p that flags** (``p``) is therefore taken against an empirical null (Efron 2004):
-each training case's normal-theory p becomes a z-value, z = Phi^-1(1 - p_normal), N(0, 1) under
-normality; the z-values of the *other* training cases give the null's centre (their median) and
-upper spread ((their 90 % quantile - their median) / 1.2816), and the case's p is
+about 1). The **p that flags** (``p``) is therefore taken against an empirical null (Efron 2004)
+of the *other* training cases. Each case's normal-theory p becomes a z-value,
+z = Phi^-1(1 - p_normal), N(0, 1) under normality, and the other N = n - 1 cases' z-values give
+the null in two parts, of which the case's p is the larger:
 
-    p = 1 - Phi((z - centre) / spread),
+- the body: a normal with their median as centre and (their 90 % quantile - their median) /
+  1.2816 as spread, with centre >= 0 and spread >= 1, so that p >= p_normal wherever
+  p_normal <= 1/2:
 
-with centre >= 0 and spread >= 1, so that p >= p_normal wherever p_normal <= 1/2: under
-normality the rule flags at most alpha of the cases (somewhat fewer: the null's estimate is
-widened by chance), and a heavier tail of the cases' own distances widens the null. A new case
-is taken against the null of all the training cases. A case never enters its own null, so one
-far case is found at any n; the rule assumes that at most about a tenth of the other cases are
-unusual and that the tail beyond their 90 % quantile continues as a normal's (a scale mixture's
-z-values are close to that).
+      p_body = 1 - Phi((z - centre) / spread);
+
+- the tail, from N = 15 on: the r = round(N / 10) largest of the N z-values (rounded half
+  up), measured from the next one, u (the (r + 1)-th largest), as an exponential tail whose
+  mean excess is theirs, S / r (S the sum of their excesses over u: the maximum-likelihood
+  scale of an exponential), entered with (r + 1) / (N + 1), the chance of a case being among
+  the r + 1 largest of N + 1:
+
+      p_tail = (r + 1) / (N + 1) exp(-r max(z - u, 0) / S).
+
+The body alone assumes that the z-values beyond the 90 % quantile go on as a normal's. Those
+of heavy-tailed cases fall off more slowly (cases scaled as a t with 3 to 10 degrees of freedom:
+at n = 82 the 99 % quantile is 2.0-2.3 times as far from the median as the 90 %, against 1.8
+for a normal), and the body flags about twice the level at 0.01. The tail takes the fall-off
+beyond the 90 % quantile from the cases themselves; an exponential falls off more slowly than a
+normal and more quickly than a power. With it such cases and real shapes are flagged at about
+the level at 0.01 (at most about 1.2 times it), and fewer than the level under normality
+(benchmarks/unusual_calibration.py, docs/analysis.md). Below 15 other cases the tail's scale
+would rest on one excess, and the body alone is used. A new case is taken against the null of
+all the training cases. A case never enters its own null, so one far case is found at any n.
+The rule assumes that at most about a tenth of the other cases are unusual: a far case among
+the largest tenth lengthens the tail for the others, and a tenth of the cases with twice the
+spread of the rest (two groups) is flagged above the level at 0.05.
 
 A chi-square reference, right only as n grows, under-flags training cases at every n (with
 n = 5 no case can ever pass its 99% quantile).
@@ -54,35 +72,75 @@ from ..errors import ArgumentError
 EXPLAINED = 0.95
 ALPHA = 0.01
 # the quantile of the training cases' z-values that, with their median, gives the empirical
-# null's upper spread
+# null's body (its upper spread)
 NULL_QUANTILE = 0.9
-# the smallest normal-theory p taken into a z-value (a p of 0 would give an infinite z)
+# one in TAIL_EVERY of the training cases' z-values (the largest, rounded half up) give the
+# null's tail by their excesses, from TAIL_FEWEST z-values on (2 excesses: from 1 its scale is
+# a guess)
+TAIL_EVERY = 10
+TAIL_FEWEST = 15
+# the smallest normal-theory p taken into a z-value (a p of 0 would give an infinite z), and the
+# smallest z (a p of 1 would give -infinity: the tail's excesses would be infinite)
 SMALLEST_P = 1e-300
+SMALLEST_Z = -10.0
+
+
+def z_values(p_normal) -> np.ndarray:
+    """The z-values Phi^-1(1 - p_normal) of normal-theory p-values, held within
+    [``SMALLEST_Z``, Phi^-1(1 - ``SMALLEST_P``)]."""
+    from scipy.stats import norm
+
+    p_normal = np.clip(np.asarray(p_normal, dtype=np.float64), SMALLEST_P, 1.0)
+    return np.maximum(norm.isf(p_normal), SMALLEST_Z)
 
 
 @dataclass
 class EmpiricalNull:
-    """The null of the training cases' z-values, z = Phi^-1(1 - p_normal): N(centre, spread^2)."""
+    """The null of the training cases' z-values, z = Phi^-1(1 - p_normal) (module docstring):
+    a normal body N(centre, spread^2) and an exponential tail from ``tail_from``; a case's p is
+    the larger of the two."""
 
     centre: float              # the median of the z-values, at least 0
     spread: float              # (their NULL_QUANTILE quantile - the median) / Phi^-1(NULL_QUANTILE),
     #                            at least 1
+    tail_from: float = np.inf  # u: the (r + 1)-th largest z-value (no tail: infinite)
+    tail_cases: int = 0        # r = round(N / TAIL_EVERY) of the N z-values, the largest
+    tail_excess: float = 0.0   # S: the sum of their excesses over u (S / r: the mean excess)
+    tail_share: float = 0.0    # (r + 1) / (N + 1): the tail's p at u (no tail: 0)
 
     def p(self, p_normal: np.ndarray) -> np.ndarray:
-        """The p-values against this null of cases with normal-theory p-values ``p_normal``."""
+        """The p-values against this null of cases with normal-theory p-values ``p_normal``:
+        max(p_body, p_tail) of the module docstring."""
         from scipy.stats import norm
 
-        z = norm.isf(np.clip(np.asarray(p_normal, dtype=np.float64), SMALLEST_P, 1.0))
-        return norm.sf((z - self.centre) / self.spread)
+        z = z_values(p_normal)
+        body = norm.sf((z - self.centre) / self.spread)
+        over = np.maximum(z - self.tail_from, 0.0)
+        if self.tail_cases == 0:
+            return body
+        if self.tail_excess > 0:
+            tail = self.tail_share * np.exp(-over * self.tail_cases / self.tail_excess)
+        else:                      # tied z-values: no tail beyond them
+            tail = np.where(over > 0, 0.0, self.tail_share)
+        return np.maximum(body, tail)
 
     def p_normal_at(self, alpha: float) -> float:
-        """The normal-theory p at which a case's p (against this null) is ``alpha``."""
+        """The normal-theory p at which a case's p (against this null) is ``alpha``: the larger
+        of the z-values at which the body's and the tail's p are ``alpha``."""
         from scipy.stats import norm
 
-        return float(norm.sf(self.centre + self.spread * norm.isf(alpha)))
+        z = self.centre + self.spread * norm.isf(alpha)
+        if alpha < self.tail_share:
+            z = max(z, self.tail_from + self.tail_excess / self.tail_cases
+                    * np.log(self.tail_share / alpha))
+        return float(norm.sf(z))
 
     def to_json(self) -> dict:
-        return {"centre": self.centre, "spread": self.spread, "quantile": NULL_QUANTILE}
+        tail = None if self.tail_cases == 0 else {
+            "from": self.tail_from, "cases": self.tail_cases, "excess": self.tail_excess,
+            "share": self.tail_share}
+        return {"centre": self.centre, "spread": self.spread, "quantile": NULL_QUANTILE,
+                "tail": tail}
 
 
 @dataclass
@@ -112,25 +170,37 @@ def modes_explaining(variances: np.ndarray, explained: float = EXPLAINED,
 
 
 def empirical_null(p_normal: np.ndarray) -> EmpiricalNull:
-    """The empirical null of the training cases' normal-theory p-values ``p_normal``: the median
-    of their z-values and their upper spread, held at 0 and 1 at least (module docstring).
+    """The empirical null of the training cases' normal-theory p-values ``p_normal``: the body
+    (the median of their z-values and their upper spread, held at 0 and 1 at least) and the tail
+    (the excesses of the largest tenth over the next z-value, from ``TAIL_FEWEST`` z-values on)
+    of the module docstring.
 
     Examples
     --------
     >>> from scipy.stats import norm
     >>> null = empirical_null(norm.sf(np.array([-1.0, 0.0, 0.5, 2.0, 6.0])))
-    >>> round(null.centre, 6), round(null.spread, 4)
-    (0.5, 3.0432)
+    >>> round(null.centre, 6), round(null.spread, 4), null.tail_cases
+    (0.5, 3.0432, 0)
+    >>> null = empirical_null(norm.sf(np.arange(16.0)))
+    >>> null.tail_cases, round(null.tail_from, 6), round(null.tail_excess, 6), null.tail_share
+    (2, 13.0, 3.0, 0.17647058823529413)
     """
     from scipy.stats import norm
 
     p_normal = np.asarray(p_normal, dtype=np.float64)
     if p_normal.ndim != 1 or len(p_normal) < 2 or not np.all(np.isfinite(p_normal)):
         raise ArgumentError(f"an empirical null needs 2 or more finite p-values, not {p_normal!r}")
-    z = norm.isf(np.clip(p_normal, SMALLEST_P, 1.0))
+    z = np.sort(z_values(p_normal))
     centre = float(np.median(z))
     spread = (float(np.quantile(z, NULL_QUANTILE)) - centre) / float(norm.isf(1 - NULL_QUANTILE))
-    return EmpiricalNull(max(centre, 0.0), max(spread, 1.0))
+    body = EmpiricalNull(max(centre, 0.0), max(spread, 1.0))
+    count = len(z)
+    if count < TAIL_FEWEST:
+        return body
+    r = (count + TAIL_EVERY // 2) // TAIL_EVERY
+    tail_from = float(z[count - r - 1])
+    return EmpiricalNull(body.centre, body.spread, tail_from, r,
+                         float(np.sum(z[count - r:] - tail_from)), (r + 1) / (count + 1))
 
 
 def _checked_modes(k: int, n: int) -> int:
