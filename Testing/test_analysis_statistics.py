@@ -294,6 +294,23 @@ def test_a_fitted_case_is_scored_against_the_new_case_reference(rng):
     assert found[1]["at_point"] == 3
 
 
+def test_training_cases_p_values_with_a_tail_are_those_of_each_cases_own_null():
+    """Forty heavy-tailed training cases, enough for the null's tail: every case's p is that of
+    the empirical null of the other 39 written out (body and tail, docs/analysis.md item 9), the
+    largest-tenth cases' (each reading a different tail) as the others', and p is alpha at each
+    case's threshold."""
+    rng = np.random.default_rng(11)
+    x = rng.standard_t(3, size=(40, 6)) * [3.0, 2.0, 1.5, 1.0, 0.7, 0.5]
+    u, s, _ = np.linalg.svd(x - x.mean(0), full_matrices=False)
+    scores, variances, k, n = u * s, s ** 2 / 40, 4, 40
+    found = training_distances(scores, variances, k, alpha=0.05)
+    p_normal = found.p_normal
+    np.testing.assert_allclose(found.p, empirical_null_p(p_normal), rtol=1e-10)
+    for i in np.argsort(p_normal)[:6]:                    # the cases in and near the tail
+        at = stats.beta(k / 2, (n - k - 1) / 2).sf(found.threshold[i] ** 2 / (n - 1))
+        assert empirical_null_p(at, np.delete(p_normal, i))[0] == pytest.approx(0.05, rel=1e-6)
+
+
 def test_unusual_p_values_are_their_formulas_on_small_data():
     """Seven training cases and two new ones: each p_normal from the scaled Beta (training) or
     the F (new), each p from the empirical null written out (docs/analysis.md item 9: a

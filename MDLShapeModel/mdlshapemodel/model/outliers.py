@@ -169,6 +169,12 @@ def modes_explaining(variances: np.ndarray, explained: float = EXPLAINED,
     return max(k, 1)
 
 
+def tail_cases(count: int) -> int:
+    """r: how many of ``count`` z-values (the largest) make the null's tail, one in
+    :data:`TAIL_EVERY` rounded half up (none below :data:`TAIL_FEWEST` values)."""
+    return 0 if count < TAIL_FEWEST else (count + TAIL_EVERY // 2) // TAIL_EVERY
+
+
 def empirical_null(p_normal: np.ndarray) -> EmpiricalNull:
     """The empirical null of the training cases' normal-theory p-values ``p_normal``: the body
     (the median of their z-values and their upper spread, held at 0 and 1 at least) and the tail
@@ -197,7 +203,7 @@ def empirical_null(p_normal: np.ndarray) -> EmpiricalNull:
     count = len(z)
     if count < TAIL_FEWEST:
         return body
-    r = (count + TAIL_EVERY // 2) // TAIL_EVERY
+    r = tail_cases(count)
     tail_from = float(z[count - r - 1])
     return EmpiricalNull(body.centre, body.spread, tail_from, r,
                          float(np.sum(z[count - r:] - tail_from)), (r + 1) / (count + 1))
@@ -241,9 +247,10 @@ def training_distances(scores: np.ndarray, variances: np.ndarray, modes: int,
     k = _checked_modes(int(modes), n)
     squared, p_normal, reference = _training_p_normal(scores, variances, k)
     nulls, which = leave_one_out_nulls(p_normal)     # each case's null without itself
-    centre = np.array([null.centre for null in nulls])[which]
-    spread = np.array([null.spread for null in nulls])[which]
-    p = _against(p_normal, centre, spread)
+    p = np.empty(n)
+    for group, null in enumerate(nulls):
+        members = which == group
+        p[members] = null.p(p_normal[members])
     at_alpha = np.array([null.p_normal_at(alpha) for null in nulls])[which]
     threshold = np.sqrt((n - 1) * reference.isf(at_alpha))
     return Distances(k, np.sqrt(squared), p, p_normal, threshold, p < alpha,
@@ -254,11 +261,12 @@ def leave_one_out_nulls(p_normal: np.ndarray) -> tuple[list, np.ndarray]:
     """Every case's :func:`empirical_null` of the *other* cases' p-values, exactly
     ``empirical_null(np.delete(p_normal, i))``, in time n log n rather than n^2.
 
-    The null reads the others' z-values only at a few sorted positions (those of the median and
-    of the :data:`NULL_QUANTILE` quantile). Leaving out the case of rank r shifts the sorted
-    values at position j down by one where j >= r, so the cases split into a few groups (by which
-    of those positions their rank lies before) whose left-out sets have the same values there:
-    one null is computed per group, leaving out one member.
+    The null reads the others' z-values only at some sorted positions (those of the median, of
+    the :data:`NULL_QUANTILE` quantile and of the tail, the largest tenth and the one below it).
+    Leaving out the case of rank r shifts the sorted values at position j down by one where
+    j >= r, so the cases split into groups (by which of those positions their rank lies before)
+    whose left-out sets have the same values there: one null is computed per group, leaving out
+    one member. The groups are a few below the tail and one per case in it, about n / 10 in all.
 
     Returns
     -------
@@ -271,7 +279,7 @@ def leave_one_out_nulls(p_normal: np.ndarray) -> tuple[list, np.ndarray]:
     --------
     >>> p_normal = np.random.default_rng(1).uniform(size=200)
     >>> nulls, which = leave_one_out_nulls(p_normal)
-    >>> len(nulls) < 10
+    >>> len(nulls) < 40
     True
     >>> all(nulls[which[i]] == empirical_null(np.delete(p_normal, i)) for i in range(200))
     True
@@ -286,8 +294,12 @@ def leave_one_out_nulls(p_normal: np.ndarray) -> tuple[list, np.ndarray]:
     middle = kept // 2
     quantile = int(np.floor((kept - 1) * NULL_QUANTILE))
     # the positions the median and the quantile read, and their neighbours
-    read = np.unique(np.clip([middle - 2, middle - 1, middle, middle + 1,
-                              quantile - 1, quantile, quantile + 1, quantile + 2], 0, kept - 1))
+    read = [middle - 2, middle - 1, middle, middle + 1,
+            quantile - 1, quantile, quantile + 1, quantile + 2]
+    if kept >= TAIL_FEWEST:     # the tail's from and its largest r values
+        r = tail_cases(kept)
+        read.extend(range(kept - r - 1, kept))
+    read = np.unique(np.clip(read, 0, kept - 1))
     z = norm.isf(np.clip(p_normal, SMALLEST_P, 1.0))
     rank = np.empty(n, dtype=np.int64)
     rank[np.argsort(z, kind="stable")] = np.arange(n)
@@ -297,14 +309,6 @@ def leave_one_out_nulls(p_normal: np.ndarray) -> tuple[list, np.ndarray]:
     nulls = [empirical_null(np.delete(p_normal, int(np.flatnonzero(group == key)[0])))
              for key in keys]
     return nulls, which.ravel()
-
-
-def _against(p_normal: np.ndarray, centre: np.ndarray, spread: np.ndarray) -> np.ndarray:
-    """:meth:`EmpiricalNull.p` case by case, against each case's own centre and spread."""
-    from scipy.stats import norm
-
-    z = norm.isf(np.clip(np.asarray(p_normal, dtype=np.float64), SMALLEST_P, 1.0))
-    return norm.sf((z - centre) / spread)
 
 
 def new_case_distances(scores: np.ndarray, variances: np.ndarray, training: np.ndarray,
