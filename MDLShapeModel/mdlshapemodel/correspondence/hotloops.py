@@ -12,8 +12,9 @@ the walk against the barycentric coordinates it reports, ``interpolate`` against
 differences, ``bump_matrix`` against the Wendland function of all distances, ``field_sample``
 against ``field_apply`` + ``SphereLocator.locate`` / ``interpolate`` / ``jacobian``,
 ``field_sample_gradient`` against ``FieldBasis.coefficient_gradient`` of the chained gradient,
-``apply_poses`` against ``Pose.apply`` and ``weighted_point_norms`` through the generalization
-distances.
+``field_map`` against ``field_apply`` of ``bump_matrix`` (bit for bit), ``apply_poses`` against
+``Pose.apply``, ``negated_distances`` through ``bending_matrix`` (bit for bit) and
+``weighted_point_norms`` through the generalization distances.
 
 The fast strategy's evaluation is ``field_sample`` per part, ``apply_poses``, the objective, then
 ``field_sample_gradient`` per part: every per-point step of the chain rule in two passes.
@@ -149,6 +150,19 @@ def weighted_point_norms(displacements, weights):
             total += weights[p] * np.sqrt(x * x + y * y + z * z)
         result[i] = total
     return result
+
+
+@njit(cache=True, nogil=True)
+def negated_distances(points, out):
+    """out[j, k] = -|p_j - p_k| for points (n, 3) into ``out`` (n, n), the squares summed x, y,
+    then z: the bits of ``-np.linalg.norm(points[:, None] - points[None], axis=2)`` without its
+    (n, n, 3) temporaries."""
+    n = points.shape[0]
+    for j in range(n):
+        x, y, z = points[j, 0], points[j, 1], points[j, 2]
+        for k in range(n):
+            dx, dy, dz = x - points[k, 0], y - points[k, 1], z - points[k, 2]
+            out[j, k] = -np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 #: :func:`bump_matrix` tests every centre up to this many, and those of nearby cells beyond
