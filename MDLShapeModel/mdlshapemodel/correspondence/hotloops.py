@@ -22,6 +22,8 @@ The fast strategy's evaluation is ``field_sample`` per part, ``apply_poses``, th
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit
 
@@ -199,13 +201,18 @@ def _bump_candidates(px, py, pz, low, cell, shape, start, order, reach, bounds, 
     return count
 
 
+#: What :func:`_row_bumps` needs to find the bumps at a point (:func:`_bump_search`): the
+#: dot-product threshold, the cells' side ``reach``, their ``low`` corner and ``shape``, the
+#: centres binned (``start``, ``order``), ``binned`` (whether to search the cells; else every
+#: centre is tested, in order) and work arrays ``bounds``, ``found``, ``columns`` and ``values``
+#: (room for a row of every centre)
+BumpSearch = namedtuple("BumpSearch", ["threshold", "reach", "low", "shape", "start", "order",
+                                       "binned", "bounds", "found", "columns", "values"])
+
+
 @njit(cache=True, nogil=True)
 def _bump_search(points, centres, radius):
-    """What :func:`_row_bumps` needs to find the bumps of ``centres`` (support radius ``radius``)
-    at ``points``: the dot-product threshold, the cells' side ``reach``, their ``low`` corner
-    and ``shape``, the centres binned (``start``, ``order``), ``binned`` (whether to search the
-    cells; else every centre is tested, in order) and work arrays ``bounds``, ``found``,
-    ``columns`` and ``values`` (room for a row of every centre)."""
+    """The :data:`BumpSearch` of ``centres`` (support radius ``radius``) for ``points``."""
     m = centres.shape[0]
     threshold = 1.0 - 0.5 * radius * radius
     excess = max(_length2_excess(points), _length2_excess(centres))
@@ -235,19 +242,22 @@ def _bump_search(points, centres, radius):
         order[filled[home[j]]] = j
         filled[home[j]] += 1
     binned = m > BINNED_CENTRES and cells > 1
-    return (threshold, reach, low, shape, start, order, binned, np.empty((3, 2), dtype=np.int64),
-            np.arange(m), np.empty(m, dtype=np.int64), np.empty(m))
+    return BumpSearch(threshold, reach, low, shape, start, order, binned,
+                      np.empty((3, 2), dtype=np.int64), np.arange(m),
+                      np.empty(m, dtype=np.int64), np.empty(m))
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _row_bumps(x, y, z, centres, radius, search):
-    """The bumps at the point (x, y, z): their centres' indices into ``columns`` and values
-    g(|u - P_j| / r) into ``values`` (the work arrays of ``search``, :func:`_bump_search`), in
-    increasing order of index; returns how many. A centre counts where u.P passes the threshold
+    """The bumps at the point (x, y, z): their centres' indices into ``search.columns`` and
+    values g(|u - P_j| / r) into ``search.values`` (a :data:`BumpSearch`), in increasing order
+    of index; returns how many. A centre counts where u.P passes the threshold
     (|u - P|^2 = 2 - 2 u.P < r^2)."""
-    threshold, reach, low, shape, start, order, binned, bounds, found, columns, values = search
-    candidates = centres.shape[0] if not binned else _bump_candidates(
-        x, y, z, low, reach, shape, start, order, reach, bounds, found)
+    threshold, found = search.threshold, search.found
+    columns, values = search.columns, search.values
+    candidates = centres.shape[0] if not search.binned else _bump_candidates(
+        x, y, z, search.low, search.reach, search.shape, search.start, search.order, search.reach,
+        search.bounds, found)
     count = 0
     for c in range(candidates):
         j = found[c]
@@ -283,7 +293,7 @@ def bump_matrix(points, centres, radius):
     """
     n = points.shape[0]
     search = _bump_search(points, centres, radius)
-    columns, values = search[9], search[10]
+    columns, values = search.columns, search.values
     indptr = np.zeros(n + 1, dtype=np.int64)
     indices = np.empty(max(16 * n, 16), dtype=np.int64)
     data = np.empty(indices.shape[0])
@@ -312,7 +322,7 @@ def field_map(points, centres, radius, coefficients):
     phi = np.empty((n, 3))
     norms = np.empty(n)
     search = _bump_search(points, centres, radius)
-    columns, values = search[9], search[10]
+    columns, values = search.columns, search.values
     for k in range(n):
         x, y, z = points[k, 0], points[k, 1], points[k, 2]
         count = _row_bumps(x, y, z, centres, radius, search)

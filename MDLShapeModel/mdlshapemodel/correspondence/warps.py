@@ -581,8 +581,8 @@ class FieldWarp(DisplacementField):
     """A smooth tangent displacement field (:mod:`.fields`): bumps at the vertices of the
     ``level``-times subdivided icosahedron, each reaching ``support`` mean edge lengths, with
     vector coefficients (n_c, 3); u -> (u + v(u)) / |u + v(u)|. A homeomorphism while the
-    coefficients stay within :meth:`.fields.FieldBasis.max_coefficient` (the fast strategy's bounds). Its
-    inverse has no closed form: ``inverse`` is not available."""
+    coefficients stay within :meth:`.fields.FieldBasis.max_coefficient` (the fast strategy's
+    bounds). Its inverse has no closed form: ``inverse`` is not available."""
 
     level: int
     support: float
