@@ -289,7 +289,7 @@ def bump_matrix(points, centres, radius):
     arithmetic as a test of every centre. A pair that passes has |u - P|^2 < |u|^2 + |P|^2 - 2 +
     r^2 (up to the dot product's rounding), so ``reach`` is r widened by the vectors' largest
     departure from unit length and a margin far above that rounding. One pass over the points:
-    the arrays grow as the rows come.
+    the arrays grow as the rows come, and the filled part of them is returned (no copy).
     """
     n = points.shape[0]
     search = _bump_search(points, centres, radius)
@@ -309,7 +309,7 @@ def bump_matrix(points, centres, radius):
             indices[t], data[t] = columns[c], values[c]
             t += 1
         indptr[k + 1] = t
-    return indptr, indices[:t].copy(), data[:t].copy()
+    return indptr, indices[:t], data[:t]
 
 
 @njit(cache=True, nogil=True)
