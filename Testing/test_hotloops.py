@@ -162,3 +162,15 @@ def test_bump_matrix_of_many_centres_holds_the_pairs_that_pass_the_dot_product_t
         distance = np.linalg.norm(points[k] - centres[row], axis=1) / radius
         np.testing.assert_allclose(data[indptr[k]:indptr[k + 1]], wendland(distance),
                                    rtol=1e-12, atol=1e-15)
+
+
+def test_bump_matrix_rows_longer_than_its_first_guess(rng):
+    """Rows of more bumps than the room first set aside (every centre reaches every point):
+    the arrays grow and keep every row whole and in order."""
+    points, centres = _unit(rng, 200), _unit(rng, 60)
+    indptr, indices, data = hotloops.bump_matrix(points, centres, 2.5)
+    assert indptr[-1] == 200 * 60
+    for k in range(200):
+        np.testing.assert_array_equal(indices[indptr[k]:indptr[k + 1]], np.arange(60))
+    distance = np.linalg.norm(points[:, None] - centres[None], axis=2) / 2.5
+    np.testing.assert_allclose(data.reshape(200, 60), wendland(distance), atol=1e-12)

@@ -33,6 +33,22 @@ def test_the_bending_energy_is_zero_for_affine_maps_and_positive_otherwise():
     np.testing.assert_allclose(bending_matrix(2.0 * points), b, rtol=1e-8, atol=1e-12)
 
 
+
+def test_the_bending_matrix_is_the_block_of_the_inverse_bit_for_bit(rng):
+    """B~ is s times the upper-left block of [[K, P], [P^T, 0]]^-1 (symmetrised), K_jk = -|m_j -
+    m_k|, P = [1, m], to the last bit of the statement in numpy (the prior, and so F, of a
+    build does not depend on how K is filled)."""
+    points = icosphere(3)[0] * [30.0, 12.0, 10.0] + rng.normal(size=(642, 3))
+    n = len(points)
+    system = np.zeros((n + 4, n + 4))
+    system[:n, :n] = -np.linalg.norm(points[:, None] - points[None], axis=2)
+    system[:n, n] = system[n, :n] = 1.0
+    system[:n, n + 1:] = points
+    system[n + 1:, :n] = points.T
+    radius = np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
+    block = np.linalg.inv(system)[:n, :n] * radius
+    np.testing.assert_array_equal(bending_matrix(points), 0.5 * (block + block.T))
+
 def test_the_energy_is_the_direct_sum_and_trials_and_commits_agree_with_it():
     state = smooth_state()
     terms = state.smoothness_terms

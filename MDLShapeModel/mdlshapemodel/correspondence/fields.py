@@ -51,6 +51,16 @@ def _icosphere_centres(level: int) -> tuple[np.ndarray, float]:
     return centres, edge
 
 
+def apply_field(level: int, points: np.ndarray, coefficients: np.ndarray,
+                support: float = 2.0) -> np.ndarray:
+    """phi(u_k) of :meth:`FieldBasis.icosphere_level` ``(level, points, support)`` and
+    ``coefficients`` (n_c, 3), bit for bit, without making the basis: for a map applied once
+    (a field replayed on a grid), each point's bumps are found and summed in one pass."""
+    centres, edge = _icosphere_centres(level)
+    return hotloops.field_map(np.asarray(points, dtype=np.float64), centres, support * edge,
+                              np.ascontiguousarray(coefficients, dtype=np.float64))[0]
+
+
 @dataclass
 class FieldBasis:
     """The bumps of one resolution level, evaluated at a fixed set of sphere points.

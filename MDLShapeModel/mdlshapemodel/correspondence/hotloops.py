@@ -12,14 +12,17 @@ the walk against the barycentric coordinates it reports, ``interpolate`` against
 differences, ``bump_matrix`` against the Wendland function of all distances, ``field_sample``
 against ``field_apply`` + ``SphereLocator.locate`` / ``interpolate`` / ``jacobian``,
 ``field_sample_gradient`` against ``FieldBasis.coefficient_gradient`` of the chained gradient,
-``apply_poses`` against ``Pose.apply`` and ``weighted_point_norms`` through the generalization
-distances.
+``field_map`` against ``field_apply`` of ``bump_matrix`` (bit for bit), ``apply_poses`` against
+``Pose.apply``, ``negated_distances`` through ``bending_matrix`` (bit for bit) and
+``weighted_point_norms`` through the generalization distances.
 
 The fast strategy's evaluation is ``field_sample`` per part, ``apply_poses``, the objective, then
 ``field_sample_gradient`` per part: every per-point step of the chain rule in two passes.
 """
 
 from __future__ import annotations
+
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
@@ -87,7 +90,12 @@ def _field_point(indptr, indices, data, points, coefficients, k, phi, norms):
         r0 += w * coefficients[j, 0]
         r1 += w * coefficients[j, 1]
         r2 += w * coefficients[j, 2]
-    ux, uy, uz = points[k, 0], points[k, 1], points[k, 2]
+    _project_point(points[k, 0], points[k, 1], points[k, 2], r0, r1, r2, k, phi, norms)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _project_point(ux, uy, uz, r0, r1, r2, k, phi, norms):
+    """phi[k] = m / |m| and norms[k] = |m| for m = u + (I - u u^T) r, r = (W c)_k."""
     normal = r0 * ux + r1 * uy + r2 * uz
     mx = ux + r0 - normal * ux
     my = uy + r1 - normal * uy
@@ -146,6 +154,19 @@ def weighted_point_norms(displacements, weights):
     return result
 
 
+@njit(cache=True, nogil=True)
+def negated_distances(points, out):
+    """out[j, k] = -|p_j - p_k| for points (n, 3) into ``out`` (n, n), the squares summed x, y,
+    then z: the bits of ``-np.linalg.norm(points[:, None] - points[None], axis=2)`` without its
+    (n, n, 3) temporaries."""
+    n = points.shape[0]
+    for j in range(n):
+        x, y, z = points[j, 0], points[j, 1], points[j, 2]
+        for k in range(n):
+            dx, dy, dz = x - points[k, 0], y - points[k, 1], z - points[k, 2]
+            out[j, k] = -np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
 #: :func:`bump_matrix` tests every centre up to this many, and those of nearby cells beyond
 BINNED_CENTRES = 200
 
@@ -180,21 +201,19 @@ def _bump_candidates(px, py, pz, low, cell, shape, start, order, reach, bounds, 
     return count
 
 
-@njit(cache=True, nogil=True)
-def bump_matrix(points, centres, radius):
-    """The CSR arrays (indptr, indices, data) of the (n, n_c) matrix of Wendland bumps
-    g(|u_k - P_j| / r) at unit vectors u_k, centres P_j (unit), support radius r (chord): every
-    pair within r, columns in increasing order, with the test |u - P|^2 = 2 - 2 u.P < r^2 on the
-    dot product.
+#: What :func:`_row_bumps` needs to find the bumps at a point (:func:`_bump_search`): the
+#: dot-product threshold, the cells' side ``reach``, their ``low`` corner and ``shape``, the
+#: centres binned (``start``, ``order``), ``binned`` (whether to search the cells; else every
+#: centre is tested, in order) and work arrays ``bounds``, ``found``, ``columns`` and ``values``
+#: (room for a row of every centre)
+BumpSearch = namedtuple("BumpSearch", ["threshold", "reach", "low", "shape", "start", "order",
+                                       "binned", "bounds", "found", "columns", "values"])
 
-    Beyond :data:`BINNED_CENTRES` centres, they are binned in cubic cells of side ``reach`` and
-    each point tests those of the cells within ``reach`` along each axis, its row then put in
-    increasing order of column (fewer centres: every one, in order): the same pairs and
-    arithmetic as a test of every centre. A pair that passes has |u - P|^2 < |u|^2 + |P|^2 - 2 +
-    r^2 (up to the dot product's rounding), so ``reach`` is r widened by the vectors' largest
-    departure from unit length and a margin far above that rounding.
-    """
-    n, m = points.shape[0], centres.shape[0]
+
+@njit(cache=True, nogil=True)
+def _bump_search(points, centres, radius):
+    """The :data:`BumpSearch` of ``centres`` (support radius ``radius``) for ``points``."""
+    m = centres.shape[0]
     threshold = 1.0 - 0.5 * radius * radius
     excess = max(_length2_excess(points), _length2_excess(centres))
     reach = np.sqrt(radius * radius + 2.0 * excess + 1e-12) + 1e-9
@@ -209,8 +228,8 @@ def bump_matrix(points, centres, radius):
     cells = shape[0] * shape[1] * shape[2]
     home = np.empty(m, dtype=np.int64)
     start = np.zeros(cells + 1, dtype=np.int64)
+    index = np.empty(3, dtype=np.int64)
     for j in range(m):
-        index = np.empty(3, dtype=np.int64)
         for axis in range(3):
             cell_index = int(np.floor((centres[j, axis] - low[axis]) / reach))
             index[axis] = min(max(cell_index, 0), shape[axis] - 1)
@@ -222,40 +241,99 @@ def bump_matrix(points, centres, radius):
     for j in range(m):
         order[filled[home[j]]] = j
         filled[home[j]] += 1
-    found = np.arange(m)
-    bounds = np.empty((3, 2), dtype=np.int64)
     binned = m > BINNED_CENTRES and cells > 1
-    counts = np.zeros(n + 1, dtype=np.int64)
+    return BumpSearch(threshold, reach, low, shape, start, order, binned,
+                      np.empty((3, 2), dtype=np.int64), np.arange(m),
+                      np.empty(m, dtype=np.int64), np.empty(m))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_bumps(x, y, z, centres, radius, search):
+    """The bumps at the point (x, y, z): their centres' indices into ``search.columns`` and
+    values g(|u - P_j| / r) into ``search.values`` (a :data:`BumpSearch`), in increasing order
+    of index; returns how many. A centre counts where u.P passes the threshold
+    (|u - P|^2 = 2 - 2 u.P < r^2)."""
+    threshold, found = search.threshold, search.found
+    columns, values = search.columns, search.values
+    candidates = centres.shape[0] if not search.binned else _bump_candidates(
+        x, y, z, search.low, search.reach, search.shape, search.start, search.order, search.reach,
+        search.bounds, found)
+    count = 0
+    for c in range(candidates):
+        j = found[c]
+        if x * centres[j, 0] + y * centres[j, 1] + z * centres[j, 2] > threshold:
+            dx, dy, dz = x - centres[j, 0], y - centres[j, 1], z - centres[j, 2]
+            d = np.sqrt(dx * dx + dy * dy + dz * dz) / radius
+            value = (1.0 - d) ** 4 * (4.0 * d + 1.0) if d < 1.0 else 0.0
+            # into the row in increasing order of column (an insertion: a few dozen; the cells
+            # give them out of order, every centre in turn gives them in order)
+            at = count
+            while at > 0 and columns[at - 1] > j:
+                columns[at], values[at] = columns[at - 1], values[at - 1]
+                at -= 1
+            columns[at], values[at] = j, value
+            count += 1
+    return count
+
+
+@njit(cache=True, nogil=True)
+def bump_matrix(points, centres, radius):
+    """The CSR arrays (indptr, indices, data) of the (n, n_c) matrix of Wendland bumps
+    g(|u_k - P_j| / r) at unit vectors u_k, centres P_j (unit), support radius r (chord): every
+    pair within r, columns in increasing order, with the test |u - P|^2 = 2 - 2 u.P < r^2 on the
+    dot product.
+
+    Beyond :data:`BINNED_CENTRES` centres, they are binned in cubic cells of side ``reach`` and
+    each point tests those of the cells within ``reach`` along each axis, its row then put in
+    increasing order of column (fewer centres: every one, in order): the same pairs and
+    arithmetic as a test of every centre. A pair that passes has |u - P|^2 < |u|^2 + |P|^2 - 2 +
+    r^2 (up to the dot product's rounding), so ``reach`` is r widened by the vectors' largest
+    departure from unit length and a margin far above that rounding. One pass over the points:
+    the arrays grow as the rows come, and the filled part of them is returned (no copy).
+    """
+    n = points.shape[0]
+    search = _bump_search(points, centres, radius)
+    columns, values = search.columns, search.values
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    indices = np.empty(max(16 * n, 16), dtype=np.int64)
+    data = np.empty(indices.shape[0])
+    t = 0
+    for k in range(n):
+        count = _row_bumps(points[k, 0], points[k, 1], points[k, 2], centres, radius, search)
+        if t + count > indices.shape[0]:
+            room = max(2 * indices.shape[0], t + count)
+            more, wider = np.empty(room, dtype=np.int64), np.empty(room)
+            more[:t], wider[:t] = indices[:t], data[:t]
+            indices, data = more, wider
+        for c in range(count):
+            indices[t], data[t] = columns[c], values[c]
+            t += 1
+        indptr[k + 1] = t
+    return indptr, indices[:t], data[:t]
+
+
+@njit(cache=True, nogil=True)
+def field_map(points, centres, radius, coefficients):
+    """``field_apply`` of the bumps of ``bump_matrix(points, centres, radius)`` without the
+    matrix: each point's bumps are found (:func:`_row_bumps`) and summed in the same order, so
+    phi (n, 3) and |m| (n,) are those of ``field_apply`` bit for bit. For a map applied once
+    (a round's field replayed on another grid), where the matrix would be made for one use."""
+    n = points.shape[0]
+    phi = np.empty((n, 3))
+    norms = np.empty(n)
+    search = _bump_search(points, centres, radius)
+    columns, values = search.columns, search.values
     for k in range(n):
         x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        candidates = m if not binned else _bump_candidates(x, y, z, low, reach, shape, start,
-                                                           order, reach, bounds, found)
-        for c in range(candidates):
-            j = found[c]
-            if x * centres[j, 0] + y * centres[j, 1] + z * centres[j, 2] > threshold:
-                counts[k + 1] += 1
-    indptr = np.cumsum(counts)
-    indices = np.empty(indptr[n], dtype=np.int64)
-    data = np.empty(indptr[n])
-    for k in range(n):
-        t = indptr[k]
-        x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        candidates = m if not binned else _bump_candidates(x, y, z, low, reach, shape, start,
-                                                           order, reach, bounds, found)
-        for c in range(candidates):
-            j = found[c]
-            if x * centres[j, 0] + y * centres[j, 1] + z * centres[j, 2] > threshold:
-                dx, dy, dz = x - centres[j, 0], y - centres[j, 1], z - centres[j, 2]
-                d = np.sqrt(dx * dx + dy * dy + dz * dz) / radius
-                value = (1.0 - d) ** 4 * (4.0 * d + 1.0) if d < 1.0 else 0.0
-                # into the row in increasing order of column (an insertion: a few dozen)
-                at = t
-                while at > indptr[k] and indices[at - 1] > j:
-                    indices[at], data[at] = indices[at - 1], data[at - 1]
-                    at -= 1
-                indices[at], data[at] = j, value
-                t += 1
-    return indptr, indices, data
+        count = _row_bumps(x, y, z, centres, radius, search)
+        r0 = r1 = r2 = 0.0
+        for t in range(count):
+            j, w = columns[t], values[t]
+            r0 += w * coefficients[j, 0]
+            r1 += w * coefficients[j, 1]
+            r2 += w * coefficients[j, 2]
+        _project_point(x, y, z, r0, r1, r2, k, phi, norms)
+    return phi, norms
 
 
 @njit(cache=True, nogil=True)

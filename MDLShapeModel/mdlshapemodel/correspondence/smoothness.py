@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import hotloops
+
 
 def bending_matrix(points: np.ndarray) -> np.ndarray:
     """B~ (n, n): the thin-plate bending-energy matrix of points (n, 3), times their RMS radius.
@@ -40,7 +42,7 @@ def bending_matrix(points: np.ndarray) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     system = np.zeros((n + 4, n + 4))
-    system[:n, :n] = -np.linalg.norm(points[:, None] - points[None], axis=2)
+    hotloops.negated_distances(points, system[:n, :n])    # K_jk = U(|m_j - m_k|) = -r
     system[:n, n] = system[n, :n] = 1.0
     system[:n, n + 1:] = points
     system[n + 1:, :n] = points.T

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import ArgumentError
 from ..geometry import rotation_from_vector
-from .fields import FieldBasis
+from .fields import apply_field
 
 
 def minimum_amplitude(omega: float) -> float:
@@ -581,8 +581,8 @@ class FieldWarp(DisplacementField):
     """A smooth tangent displacement field (:mod:`.fields`): bumps at the vertices of the
     ``level``-times subdivided icosahedron, each reaching ``support`` mean edge lengths, with
     vector coefficients (n_c, 3); u -> (u + v(u)) / |u + v(u)|. A homeomorphism while the
-    coefficients stay within :meth:`FieldBasis.max_coefficient` (the fast strategy's bounds). Its
-    inverse has no closed form: ``inverse`` is not available."""
+    coefficients stay within :meth:`.fields.FieldBasis.max_coefficient` (the fast strategy's
+    bounds). Its inverse has no closed form: ``inverse`` is not available."""
 
     level: int
     support: float
@@ -591,8 +591,7 @@ class FieldWarp(DisplacementField):
     _coefficient_shape: ClassVar[tuple] = (-1, 3)
 
     def apply(self, points):
-        basis = FieldBasis.icosphere_level(self.level, points, self.support)
-        return basis.apply(self.coefficients)
+        return apply_field(self.level, points, self.coefficients, self.support)
 
 
 WARP_KINDS: dict[str, type] = {cls.kind: cls for cls in
