@@ -625,6 +625,27 @@ def test_evaluate_with_surfaces(rng):
     assert pooled == report
 
 
+def test_evaluate_calls_meanwhile_once_with_the_callers_blas_threads(rng):
+    """meanwhile (a build writes its files there) runs once, with BLAS on the caller's threads
+    (its numbers must not depend on the evaluation's one thread), and changes no measure."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas():
+        return sorted(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
+
+    shapes, triangles, weights, surfaces = radial_population(rng, 6, 8)
+    arguments = (shapes, weights, np.ones(5), 3, 100, None, triangles, surfaces, 10)
+    with threadpool_limits(limits=2, user_api="blas"):
+        caller = blas()
+        if not caller or max(caller) < 2:
+            pytest.skip("BLAS runs on one thread here")
+        seen = []
+        with process_pool(2) as pool:
+            measured = evaluate(*arguments, pool=pool, meanwhile=lambda: seen.append(blas()))
+        assert seen == [caller] and blas() == caller
+    assert measured == evaluate(*arguments)
+
+
 def test_surface_generalization_measured_in_runs_and_joined_is_one_run(rng):
     """joined_generalization of runs over consecutive cases: the one run's result, bit for bit
     (each case's distances are exact wherever its searches start)."""

@@ -380,7 +380,8 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         ``generalization_mm_subsample_se`` (:func:`generalization`). Default: no limit.
     meanwhile : callable, optional
         Called without arguments once the surface measures are on the ``pool``, before the
-        measures of this process (e.g. writing files while the pool measures).
+        measures of this process (e.g. writing files while the pool measures), with BLAS on
+        the caller's threads (the measures here use one).
 
     Returns
     -------
@@ -399,10 +400,18 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
     # BLAS on one thread, as in a pool's worker: the surface generalization may have the other
     # core, where threaded BLAS costs many times what it gains, and the numbers are then those a
     # worker computes, whatever the number of cores
-    with threadpool_limits(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas") as limiter:
+        def with_callers_threads():
+            # the caller's work, with the caller's BLAS threads: its numbers are its own
+            limiter.restore_original_limits()
+            try:
+                meanwhile()
+            finally:
+                threadpool_limits(limits=1, user_api="blas")
+
         return _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles,
                          surfaces, surface_samples, pool, jackknife, generalization_cases,
-                         meanwhile)
+                         None if meanwhile is None else with_callers_threads)
 
 
 def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, surfaces,
