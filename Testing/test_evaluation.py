@@ -11,7 +11,8 @@ import pytest
 
 from mdlshapemodel.model.evaluation import (SURFACE_GENERALIZATION_POINTS, compactness, evaluate,
                                       generalization, specificity)
-from mdlshapemodel.model.surface_measures import surface_generalization, surface_specificity
+from mdlshapemodel.model.surface_measures import (joined_generalization, surface_generalization,
+                                                   surface_specificity)
 from mdlshapemodel.parallel import process_pool
 from mdlshapemodel.prepare.surface import SurfaceDistance, point_surface_distances
 
@@ -622,6 +623,42 @@ def test_evaluate_with_surfaces(rng):
         pooled = evaluate(shapes, weights, variances, 3, 300, np.random.default_rng(5),
                           triangles=triangles, surfaces=surfaces, surface_samples=20, pool=pool)
     assert pooled == report
+
+
+def test_evaluate_calls_meanwhile_once_with_the_callers_blas_threads(rng):
+    """meanwhile (a build writes its files there) runs once, with BLAS on the caller's threads
+    (its numbers must not depend on the evaluation's one thread), and changes no measure."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas():
+        return sorted(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
+
+    shapes, triangles, weights, surfaces = radial_population(rng, 6, 8)
+    arguments = (shapes, weights, np.ones(5), 3, 100, None, triangles, surfaces, 10)
+    with threadpool_limits(limits=2, user_api="blas"):
+        caller = blas()
+        if not caller or max(caller) < 2:
+            pytest.skip("BLAS runs on one thread here")
+        seen = []
+        with process_pool(2) as pool:
+            measured = evaluate(*arguments, pool=pool, meanwhile=lambda: seen.append(blas()))
+        assert seen == [caller] and blas() == caller
+    assert measured == evaluate(*arguments)
+
+
+def test_surface_generalization_measured_in_runs_and_joined_is_one_run(rng):
+    """joined_generalization of runs over consecutive cases: the one run's result, bit for bit
+    (each case's distances are exact wherever its searches start)."""
+    shapes, triangles, weights, surfaces = radial_population(rng, 7, 8)
+    whole = surface_generalization(shapes, weights, triangles, surfaces, 3)
+    runs = [np.array([0, 1]), np.array([2, 3, 4]), np.array([5, 6])]
+    joined = joined_generalization([surface_generalization(shapes, weights, triangles, surfaces,
+                                                           3, cases=run) for run in runs])
+    assert joined.keys() == whole.keys()
+    for key, value in whole.items():
+        np.testing.assert_array_equal(joined[key], value)
+    with pytest.raises(ValueError):
+        joined_generalization([])
 
 
 def test_surface_closest_points_lie_on_their_faces(rng):

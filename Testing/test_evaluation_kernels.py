@@ -2,7 +2,8 @@
 (surface_measures.MeshSearch), against direct formulas written here: closest points searched from any
 guessed triangle equal testing every triangle, bit for bit; the specificity samples' point
 distances equal building each sample and measuring it; farthest-point samples and triangle boxes
-equal numpy's."""
+equal numpy's; the secular equation's roots and the sums in them equal numpy's bisection and
+sums, bit for bit."""
 
 import numpy as np
 import pytest
@@ -13,8 +14,9 @@ from mdlshapemodel.model import surface_measures
 from mdlshapemodel.model.evaluation import specificity
 from mdlshapemodel.model.space import model_space
 from mdlshapemodel.model.surface_measures import MeshSearch
-from mdlshapemodel.model.evaluation_kernels import (closest_from, farthest_points,
-                                                    sample_distances, triangle_boxes)
+from mdlshapemodel.model.evaluation_kernels import (closest_from, farthest_points, pairwise_sum,
+                                                    sample_distances, secular_roots,
+                                                    triangle_boxes)
 from mdlshapemodel.prepare.nearest import TriangleGrid, closest_on_triangles
 from mdlshapemodel.prepare.surface import SurfaceDistance
 
@@ -176,3 +178,38 @@ def test_triangle_boxes(rng):
     np.testing.assert_array_equal(boxes[:, :3], corners.min(axis=1))
     np.testing.assert_array_equal(boxes[:, 3:], corners.max(axis=1))
     assert extent == np.abs(corners).max()
+
+
+@pytest.mark.parametrize("n", [1, 7, 8, 9, 81, 128, 129, 300, 1000, 4097])
+def test_pairwise_sum_equals_numpy_sum_bit_for_bit(rng, n):
+    values = rng.standard_normal(n) * 10.0 ** rng.uniform(-8, 8, n)
+    assert pairwise_sum(values) == np.sum(values)
+
+
+def numpy_bisection(d, v, rho, count):
+    """The roots of 1 - rho sum_j v_j^2 / (d_j - x) in (d[k+1], d[k]), all bisected at once with
+    numpy until every midpoint is an end of its bracket."""
+    low, high = d[1:count + 1].copy(), d[:count].copy()
+    for _ in range(200):
+        middle = 0.5 * (low + high)
+        if np.all((middle <= low) | (middle >= high)):
+            break
+        value = 1.0 - rho * np.sum(v * v / (d[None, :] - middle[:, None]), axis=1)
+        low = np.where(value > 0.0, middle, low)
+        high = np.where(value > 0.0, high, middle)
+    return 0.5 * (low + high)
+
+
+@pytest.mark.parametrize("n_s", [6, 40, 82, 200])
+def test_secular_roots_equal_numpys_bisection(rng, n_s):
+    """The leave-one-out models' eigenvalues (space.leave_one_out): diag(d) - rho x_i x_i^T for
+    principal scores x, each case in turn."""
+    shapes = rng.standard_normal((n_s, 30, 3)) * rng.uniform(0.1, 3.0, (1, 30, 3))
+    coordinates = model_space(shapes, np.full(30, 1.0 / 30)).coordinates
+    d = np.sum(coordinates ** 2, axis=0)
+    rho = n_s / (n_s - 1.0)
+    count = min(10, len(d) - 1)
+    for v in coordinates:
+        roots = secular_roots(d, v, rho, count)
+        np.testing.assert_array_equal(roots, numpy_bisection(d, v, rho, count))
+        assert np.all((d[1:count + 1] < roots) & (roots < d[:count]))

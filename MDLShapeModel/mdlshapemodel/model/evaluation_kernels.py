@@ -1,6 +1,6 @@
 """Compiled (numba) loops of the model's evaluation (see :mod:`.evaluation`).
 
-Two kinds of work dominate an evaluation, both repeated for many slightly different inputs:
+Three kinds of work dominate an evaluation, each repeated for many slightly different inputs:
 
 - exact closest points on a triangle mesh, asked again and again for points or meshes that move
   a little between two questions (a reconstruction with one more mode, the next sample).
@@ -13,7 +13,11 @@ Two kinds of work dominate an evaluation, both repeated for many slightly differ
 - the area-weighted point-to-point distance of each specificity sample to its nearest training
   shape, for every number of modes: :func:`sample_distances` builds each sample's points mode by
   mode and measures them against the training shape chosen for that number of modes, in one pass
-  over the points, without the arrays of every sample's points.
+  over the points, without the arrays of every sample's points;
+- the leading roots of the secular equation of each leave-one-out model
+  (:func:`~.space.leave_one_out`), for every case and, in the generalization's jackknife, every
+  group left out: :func:`secular_roots` bisects them as numpy would, with numpy's order of
+  summation (:func:`pairwise_sum`), so the roots are the same bit for bit.
 """
 
 from __future__ import annotations
@@ -165,3 +169,110 @@ def sample_distances(scores, to_points, train_points, nearest, kept, weights, ou
                 z = points[3 * p + 2] - train[3 * p + 2]
                 total += weights[p] * np.sqrt(x * x + y * y + z * z)
             out[s, c] = total
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _block_sum(values, start, n):
+    """The sum of ``values[start:start + n]`` (n at most 128) as numpy sums a block: fewer than
+    eight values in order, else on eight accumulators and the rest in order."""
+    if n < 8:
+        total = -0.0
+        for i in range(start, start + n):
+            total += values[i]
+        return total
+    r0, r1, r2, r3 = values[start], values[start + 1], values[start + 2], values[start + 3]
+    r4, r5, r6, r7 = values[start + 4], values[start + 5], values[start + 6], values[start + 7]
+    i = 8
+    while i < n - n % 8:
+        r0 += values[start + i]
+        r1 += values[start + i + 1]
+        r2 += values[start + i + 2]
+        r3 += values[start + i + 3]
+        r4 += values[start + i + 4]
+        r5 += values[start + i + 5]
+        r6 += values[start + i + 6]
+        r7 += values[start + i + 7]
+        i += 8
+    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        total += values[start + i]
+        i += 1
+    return total
+
+
+@njit(cache=True, nogil=True)
+def pairwise_sum(values):
+    """The sum of a contiguous 1-D array in the order of numpy's pairwise summation: runs of at
+    most 128 values summed as :func:`_block_sum`, a longer run as the sum of its two halves (the
+    first a multiple of eight long), so that it equals ``numpy.sum(values)`` bit for bit. The
+    halving is walked with an explicit stack (depth at most 64)."""
+    n = values.shape[0]
+    if n <= 128:
+        return _block_sum(values, 0, n)
+    starts = np.empty(64, dtype=np.int64)
+    sizes = np.empty(64, dtype=np.int64)
+    stage = np.zeros(64, dtype=np.int64)     # 0: not split, 1: left half pending, 2: right
+    left = np.empty(64)
+    top = 0
+    starts[0], sizes[0], stage[0] = 0, n, 0
+    value = 0.0
+    done = False                             # value holds the sum of the run above top
+    while True:
+        if done:
+            if top < 0:
+                return value
+            if stage[top] == 1:
+                left[top] = value
+                stage[top] = 2
+                half = sizes[top] // 2
+                half -= half % 8
+                top += 1
+                starts[top], sizes[top], stage[top] = starts[top - 1] + half, sizes[top - 1] - half, 0
+                done = False
+            else:
+                value = left[top] + value
+                top -= 1
+            continue
+        size = sizes[top]
+        if size <= 128:
+            value = _block_sum(values, starts[top], size)
+            top -= 1
+            done = True
+        else:
+            half = size // 2
+            half -= half % 8
+            stage[top] = 1
+            top += 1
+            starts[top], sizes[top], stage[top] = starts[top - 1], half, 0
+
+
+@njit(cache=True, nogil=True)
+def secular_roots(d, v, rho, count):
+    """The ``count`` largest roots of the secular equation 1 - rho sum_j v_j^2 / (d_j - x) = 0
+    for d descending: root k in (d[k+1], d[k]), found by bisection until the midpoint of its
+    bracket is one of its ends (at most 200 halvings).
+
+    Each step evaluates the secular function as
+    ``1.0 - rho * numpy.sum(v * v / (d - x))`` does (:func:`pairwise_sum`), so the roots are
+    those of the same bisection written with numpy, bit for bit; a root's bracket no longer
+    changes once its midpoint is one of its ends, so each root stops on its own.
+    """
+    r = d.shape[0]
+    squares = v * v
+    terms = np.empty(r)
+    roots = np.empty(count)
+    for k in range(count):
+        low, high = d[k + 1], d[k]
+        for _ in range(200):
+            middle = 0.5 * (low + high)
+            if middle <= low or middle >= high:
+                break
+            for j in range(r):
+                terms[j] = squares[j] / (d[j] - middle)
+            # the secular function falls from +inf to -inf across the bracket
+            if 1.0 - rho * pairwise_sum(terms) > 0.0:
+                low = middle
+            else:
+                high = middle
+        roots[k] = 0.5 * (low + high)
+    return roots

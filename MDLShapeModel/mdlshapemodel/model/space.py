@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import evaluation_kernels
+
 
 #: A direction of the shapes whose variance is below this share of the largest one's is no mode: it
 #: holds rounding (identical cases differ there in the last digits), so the model spaces here and
@@ -116,7 +118,9 @@ def _downdated_modes(d: np.ndarray, v: np.ndarray, rho: float, count: int):
 
     Each leading eigenvalue lies strictly between consecutive d (interlacing); it is the root of
     1 - rho sum_j v_j^2 / (d_j - lambda) in (d_{k+1}, d_k), found by bisection to the last bit,
-    and its eigenvector is (diag(d) - lambda)^-1 v, normalised. Components of v that vanish, or
+    and its eigenvector is (diag(d) - lambda)^-1 v, normalised. The bisection is compiled
+    (:func:`~.evaluation_kernels.secular_roots`): the generalization's jackknife solves it for
+    every case of every group. Components of v that vanish, or
     d that repeat, would need deflation: then None.
     """
     r = len(d)
@@ -129,16 +133,7 @@ def _downdated_modes(d: np.ndarray, v: np.ndarray, rho: float, count: int):
     if scale == 0.0 or np.any(np.abs(v[:count + 1]) < 1e-8 * scale) or np.any(
             gaps[:count] < 1e-8 * d[0]):
         return None
-    low, high = d[1:count + 1].copy(), d[:count].copy()
-    for _ in range(200):
-        middle = 0.5 * (low + high)
-        if np.all((middle <= low) | (middle >= high)):
-            break
-        value = 1.0 - rho * np.sum(v * v / (d[None, :] - middle[:, None]), axis=1)
-        # the secular function falls from +inf to -inf across the interval
-        low = np.where(value > 0.0, middle, low)
-        high = np.where(value > 0.0, high, middle)
-    roots = 0.5 * (low + high)
+    roots = evaluation_kernels.secular_roots(d, v, rho, count)
     vectors = v[None, :] / (d[None, :] - roots[:, None])
     return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
 

@@ -296,12 +296,36 @@ def surface_generalization(shapes: np.ndarray, weights: np.ndarray, triangles: n
             values[:, row, m] = _symmetric(rebuilt[m], weights, mesh, true[i], points_sampler,
                                            true_sampler, rng, on_true, on_mesh)
         true.release(i)                 # one case's search structures at a time
+    return _generalization_of(values)
+
+
+#: The per-case values of :func:`surface_generalization`, in the order of its ``values`` rows.
+_PER_CASE = ("distance_per_case", "weighted_per_case", "to_surface_per_case",
+             "from_surface_per_case")
+
+
+def _generalization_of(values: np.ndarray) -> dict:
+    """:func:`surface_generalization`'s result from its per-case values (4, k, max_modes)."""
     distance, distance_se = _mean_se(values[0])
     weighted, weighted_se = _mean_se(values[1])
     return {"distance": distance, "distance_se": distance_se,
             "weighted": weighted, "weighted_se": weighted_se,
-            "distance_per_case": values[0], "weighted_per_case": values[1],
-            "to_surface_per_case": values[2], "from_surface_per_case": values[3]}
+            **{name: values[row] for row, name in enumerate(_PER_CASE)}}
+
+
+def joined_generalization(parts: list) -> dict:
+    """The :func:`surface_generalization` of the cases of ``parts`` together: each part that
+    function's result for some of the cases (its ``cases``), the parts in the order of the cases.
+
+    Each case's values depend on that case alone (the distances are exact whatever the searches
+    start from; sampled points, with ``max_points``, are drawn in the order of the cases, so
+    only without sampling), so the cases may be measured in separate runs, e.g. in two
+    processes, and joined: the result is that of one run over them all, bit for bit.
+    """
+    if not parts:
+        raise ArgumentError("no surface generalization to join")
+    return _generalization_of(np.concatenate(
+        [np.stack([part[name] for name in _PER_CASE]) for part in parts], axis=1))
 
 
 def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.ndarray, surfaces,
