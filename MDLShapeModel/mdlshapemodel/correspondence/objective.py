@@ -43,8 +43,9 @@ from ..parallel import Threads
 
 #: Rows of A (and of the coded values) per block of the products A W and Y M past the switch.
 ROW_BLOCK = 256
-#: Columns of A^T A per block past the switch.
-COLUMN_BLOCK = 128
+#: Blocks of columns of A^T A past the switch (each the same work: with fewer, one BLAS call
+#: packs fewer copies of A; with more, more threads share the work evenly).
+COLUMN_BLOCKS = 4
 
 
 def mode_statistics(coded: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -275,7 +276,7 @@ class _BlockProducts:
     """The products of the covariance route in fixed blocks on ``threads`` (past the switch).
 
     Every block is one BLAS call on one BLAS thread and writes its own part of the output, so
-    which thread runs it changes nothing; the blocks (:data:`ROW_BLOCK`, :data:`COLUMN_BLOCK`) do
+    which thread runs it changes nothing; the blocks (:data:`ROW_BLOCK`, :data:`COLUMN_BLOCKS`) do
     not depend on the number of threads. The sums within a block differ from those of one call
     on the whole matrices by rounding only.
     """
@@ -284,21 +285,19 @@ class _BlockProducts:
         self.threads = threads
 
     def covariance(self, data: np.ndarray) -> np.ndarray:
-        """A^T A, its upper triangle and diagonal (the lower triangle is left 0): column block
-        [b, e) of it is A[:, :e]^T A[:, b:e]."""
+        """A^T A, its upper triangle and diagonal (the lower triangle is left 0), in
+        :data:`COLUMN_BLOCKS` blocks of columns of about equal work: block [b, e) is
+        A[:, :e]^T A[:, b:e], with e = d sqrt(k / COLUMN_BLOCKS)."""
         d = data.shape[1]
         out = np.zeros((d, d))
-        edges = list(range(0, d, COLUMN_BLOCK)) + [d]
-        # a block's work grows with its end e: pairing the first with the last, the second with
-        # the last but one, ..., makes contiguous runs of blocks about equal work
-        count = len(edges) - 1
-        order = [k for pair in zip(range(count), range(count - 1, -1, -1)) for k in pair][:count]
+        edges = sorted({int(round(d * np.sqrt(k / COLUMN_BLOCKS)))
+                        for k in range(COLUMN_BLOCKS + 1)})
 
         def blocks(indices):
             for k in indices:
-                begin, end = edges[order[k]], edges[order[k] + 1]
+                begin, end = edges[k], edges[k + 1]
                 out[:end, begin:end] = data[:, :end].T @ data[:, begin:end]
-        self.threads.over(count, blocks)
+        self.threads.over(len(edges) - 1, blocks)
         return out
 
     def times(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
