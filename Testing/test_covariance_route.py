@@ -3,6 +3,7 @@ the same objective as through the n_s x n_s Gram matrix, to rounding."""
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 from mdlshapemodel.correspondence.objective import Objective, covariance_route
 from mdlshapemodel.geometry import centroid_size
@@ -55,6 +56,49 @@ def test_data_gradient_matches_finite_differences(rng, objective):
         numeric = (objective.from_data(data + step * direction)
                    - objective.from_data(data - step * direction)) / (2 * step)
         assert np.sum(grad * direction) == pytest.approx(numeric, rel=1e-5, abs=1e-6)
+
+
+def whole_products_value(objective, data):
+    """F from A^T A and A W each made by one numpy call on one BLAS thread (the integrated kind:
+    D''s zero eigenvalues beyond A^T A's cost nothing)."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        raw, vectors = np.linalg.eigh(data.T @ data)
+        coded = data @ vectors[:, ::-1]
+    coded[:, raw[::-1] <= 0] = 0.0
+    return objective.from_coded(coded)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_up_to_the_switch_the_products_are_whole_numpy_calls(rng, threads):
+    """With as many shapes as coordinates, F is that of the whole products, to the bit."""
+    data = spread_data(rng, 520, 520)
+    objective = Objective("integrated", 10.0, threads=threads)
+    with threadpool_limits(limits=1, user_api="blas"):
+        value, _ = objective.data_gradient(data)
+        assert objective.from_data(data) == value
+    assert value == whole_products_value(objective, data)
+
+
+def test_past_the_switch_the_result_is_the_same_on_any_number_of_threads(rng):
+    """Past the switch (several blocks of rows and of columns) F and dF/dA are the same bits on
+    1, 2 and 3 threads, whatever the caller's BLAS threads, and agree with the whole products and
+    with the Gram route to rounding."""
+    data = spread_data(rng, 521, 520)
+    results = []
+    for threads, blas in [(1, 1), (2, 1), (3, 1), (1, 2), (2, 2)]:
+        objective = Objective("integrated", 10.0, threads=threads)
+        with threadpool_limits(limits=blas, user_api="blas"):
+            results.append(objective.data_gradient(data) + (objective.from_data(data),))
+    value, grad, value_only = results[0]
+    assert value_only == value
+    for other in results[1:]:
+        assert other[0] == value and other[2] == value
+        assert np.array_equal(other[1], grad)
+    assert value == pytest.approx(whole_products_value(objective, data), rel=1e-12)
+    gram_value, grad_cov = objective.gradient(data @ data.T)
+    assert value == pytest.approx(gram_value, rel=1e-12)
+    expected = 2.0 * grad_cov @ data
+    np.testing.assert_allclose(grad, expected, atol=1e-9 * np.abs(expected).max())
 
 
 def test_the_switch_is_where_shapes_outnumber_coordinates():

@@ -530,16 +530,18 @@ def test_objective_gradient_of_repeated_eigenvalues_is_basis_independent(rng):
 def test_a_builds_objectives_take_fixed_delta_and_delta_range_in_voxels(rng):
     """``objectives(config, voxel, R)`` makes the build's two objectives: eq. 13 at
     ``--fixed-delta`` and eq. 14 over ``--delta-range``, both given in voxels and so scaled by the
-    mean voxel size, over the data range R of the aligned shapes."""
+    mean voxel size, over the data range R of the aligned shapes; their products with the data
+    past the switch run on the build's ``--workers`` threads."""
     from mdlshapemodel.config import BuildConfig
     from mdlshapemodel.correspondence.objective import objectives
 
     coded = rng.normal(size=(12, 5)) * np.array([4.0, 1.5, 0.6, 0.2, 0.03])
     coded -= coded.mean(axis=0)
-    config = BuildConfig(fixed_delta=0.3, delta_range=(0.002, 0.4))
+    config = BuildConfig(fixed_delta=0.3, delta_range=(0.002, 0.4), workers=3)
     for voxel in (1.0, 0.5, 2.5):
         fixed, integrated = objectives(config, voxel, 20.0)
         assert (fixed.kind, integrated.kind) == ("fixed", "integrated")
+        assert fixed.threads == integrated.threads == 3
         assert fixed.data_range == integrated.data_range == 20.0
         assert fixed.delta == pytest.approx(0.3 * voxel, rel=1e-15)
         assert (integrated.delta_min, integrated.delta_max) == pytest.approx(

@@ -23,15 +23,29 @@ The paper's objective (eq. 14) is the mean of F_MDL(Delta) over Delta uniform in
 ln(sigma_max - 2 Delta), ln Delta, 1 / Delta^2 and constants, so the average is computed exactly,
 piece by piece (breaks at Delta = sigma_m / 2, Delta = range_m and Delta = 1 / (2 sqrt(12 / n_s))).
 Logarithms are natural (nats).
+
+Past the switch to the covariance route (:func:`covariance_route`), the three products with the
+n_s x d data A (A^T A, the coded values A W and the gradient Y M) run in fixed blocks on
+``Objective.threads`` threads, each block on one BLAS thread: the blocks do not depend on the
+number of threads, so neither do the results (threaded BLAS itself gives other bits on 2 threads
+than on 1). The d x d eigendecomposition stays on one thread.
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import ConfigError
+from ..parallel import Threads
+
+#: Rows of A (and of the coded values) per block of the products A W and Y M past the switch.
+ROW_BLOCK = 256
+#: Blocks of columns of A^T A past the switch (each the same work: with fewer, one BLAS call
+#: packs fewer copies of A; with more, more threads share the work evenly).
+COLUMN_BLOCKS = 4
 
 
 def mode_statistics(coded: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -238,10 +252,83 @@ def coded_values_from_gram(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return eigenvalues / gram.shape[0], vectors * np.sqrt(eigenvalues)
 
 
-def _eigen(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvalues (descending, unclipped) and unit eigenvectors (columns) of a symmetric matrix."""
-    eigenvalues, vectors = np.linalg.eigh(gram)
+def _eigen(gram: np.ndarray, triangle: str = "L") -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (descending, unclipped) and unit eigenvectors (columns) of a symmetric matrix
+    given by its lower (``triangle`` "L") or upper ("U") triangle."""
+    eigenvalues, vectors = np.linalg.eigh(gram, UPLO=triangle)
     return eigenvalues[::-1], vectors[:, ::-1]
+
+
+class _WholeProducts:
+    """The products of the covariance route as single numpy calls (up to the switch)."""
+
+    def covariance(self, data: np.ndarray) -> np.ndarray:
+        return data.T @ data
+
+    def times(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        return left @ right
+
+    def eigen(self, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return _eigen(covariance)
+
+
+class _BlockProducts:
+    """The products of the covariance route in fixed blocks on ``threads`` (past the switch).
+
+    Every block is one BLAS call on one BLAS thread and writes its own part of the output, so
+    which thread runs it changes nothing; the blocks (:data:`ROW_BLOCK`, :data:`COLUMN_BLOCKS`) do
+    not depend on the number of threads. The sums within a block differ from those of one call
+    on the whole matrices by rounding only.
+    """
+
+    def __init__(self, threads: Threads):
+        self.threads = threads
+
+    def covariance(self, data: np.ndarray) -> np.ndarray:
+        """A^T A, its upper triangle and diagonal (the lower triangle is left 0), in
+        :data:`COLUMN_BLOCKS` blocks of columns of about equal work: block [b, e) is
+        A[:, :e]^T A[:, b:e], with e = d sqrt(k / COLUMN_BLOCKS)."""
+        d = data.shape[1]
+        out = np.zeros((d, d))
+        edges = sorted({int(round(d * np.sqrt(k / COLUMN_BLOCKS)))
+                        for k in range(COLUMN_BLOCKS + 1)})
+
+        def blocks(indices):
+            for k in indices:
+                begin, end = edges[k], edges[k + 1]
+                out[:end, begin:end] = data[:, :end].T @ data[:, begin:end]
+        self.threads.over(len(edges) - 1, blocks)
+        return out
+
+    def times(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """left @ right, by blocks of :data:`ROW_BLOCK` rows of ``left``."""
+        n = left.shape[0]
+        out = np.empty((n, right.shape[1]))
+        right = np.ascontiguousarray(right)
+
+        def blocks(indices):
+            for k in indices:
+                rows = slice(k * ROW_BLOCK, min((k + 1) * ROW_BLOCK, n))
+                np.matmul(left[rows], right, out=out[rows])
+        self.threads.over(-(-n // ROW_BLOCK), blocks)
+        return out
+
+    def eigen(self, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return _eigen(covariance, triangle="U")
+
+
+@contextlib.contextmanager
+def _products(data: np.ndarray, threads: int):
+    """The products for :meth:`Objective.from_data` and :meth:`Objective.data_gradient` on
+    ``data`` (n_s, d): whole up to the switch (the caller's BLAS threads), in blocks on
+    ``threads`` threads past it (one BLAS thread each, and for the eigendecomposition)."""
+    if not covariance_route(*data.shape):
+        yield _WholeProducts()
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"), Threads(threads) as pool:
+        yield _BlockProducts(pool)
 
 
 def covariance_route(n_shapes: int, dimension: int) -> bool:
@@ -257,7 +344,9 @@ class Objective:
     """F as a function of the centred covariance D' of the training set.
 
     ``kind`` "integrated" is eq. 14 (Delta averaged over [delta_min, delta_max]); "fixed" is eq. 13 at
-    ``delta``. Every length is in the units of the aligned shapes.
+    ``delta``. Every length is in the units of the aligned shapes. ``threads``: the threads of the
+    products with the data past the switch (:func:`covariance_route`); the results do not depend
+    on it.
     """
 
     kind: str
@@ -267,6 +356,7 @@ class Objective:
     delta_max: float = 0.5
     variant: str = "continuous"
     free_below_delta: bool = True
+    threads: int = 1
 
     def __call__(self, gram: np.ndarray) -> float:
         _, coded = coded_values_from_gram(gram)
@@ -338,8 +428,9 @@ class Objective:
         eigenvalues are D''s): O(n_s d^2 + d^3) work and O(n_s d) memory, where the n_s x n_s
         route costs O(n_s^3) and O(n_s^2). The same value as ``self(data @ data.T)`` to rounding."""
         data = np.asarray(data, dtype=np.float64)
-        raw, axes = _eigen(data.T @ data)
-        coded = data @ axes
+        with _products(data, self.threads) as products:
+            raw, axes = products.eigen(products.covariance(data))
+            coded = products.times(data, axes)
         coded[:, raw <= 0] = 0.0
         return self._value_of_modes(coded, data.shape[0])
 
@@ -370,11 +461,15 @@ class Objective:
         - delta_mn / mu_m (delta_m = U_r[a] - U_r[b], the first term 0 for n = m).
         """
         data = np.asarray(data, dtype=np.float64)
+        with _products(data, self.threads) as products:
+            return self._data_gradient(data, products)
+
+    def _data_gradient(self, data, products):
         n_s = data.shape[0]
-        raw, axes = _eigen(data.T @ data)
+        raw, axes = products.eigen(products.covariance(data))
         mu = np.clip(raw, 0.0, None)
         root = np.sqrt(mu)
-        coded = data @ axes
+        coded = products.times(data, axes)
         coded[:, raw <= 0] = 0.0
         value = self._value_of_modes(coded, n_s)
         slope, d_range, positive = self._mode_slopes(coded, raw, root, n_s)
@@ -387,7 +482,7 @@ class Objective:
         resolved = int(np.count_nonzero(raw > 1e-12 * max(raw[0], 0.0)))
         active = np.flatnonzero(positive[:resolved] & (d_range[:resolved] != 0))
         if not active.size:
-            return value, coded @ mixing
+            return value, products.times(coded, mixing)
         top, bottom = np.argmax(coded, axis=0)[active], np.argmin(coded, axis=0)[active]
         difference = (coded[top, :resolved] - coded[bottom, :resolved]) / root[:resolved]
         gaps = raw[active][:, None] - raw[None, :resolved]                # delta_m: (n_active, r)
@@ -404,7 +499,7 @@ class Objective:
         projected = ((data[top] - data[bottom]) / raw[active][:, None]
                      + (beta * root[:resolved]) @ axes[:, :resolved].T)
         mixing[active] += along[:, None] * projected
-        grad = coded @ mixing
+        grad = products.times(coded, mixing)
         np.add.at(grad, top, rows)
         np.subtract.at(grad, bottom, rows)
         return value, grad
@@ -421,9 +516,10 @@ class Objective:
 
 def objectives(config, voxel: float, data_range: float) -> tuple:
     """(fixed-Delta objective eq. 13, full objective eq. 14) with Delta in units of ``voxel``."""
-    return (Objective("fixed", data_range, delta=config.fixed_delta * voxel),
+    return (Objective("fixed", data_range, delta=config.fixed_delta * voxel,
+                      threads=config.workers),
             Objective("integrated", data_range, delta_min=config.delta_range[0] * voxel,
-                      delta_max=config.delta_range[1] * voxel))
+                      delta_max=config.delta_range[1] * voxel, threads=config.workers))
 
 
 @dataclass(frozen=True)
