@@ -37,10 +37,10 @@ SURFACE_GENERALIZATION_POINTS = 5000
 
 #: With a pool, :func:`evaluate` measures the surface generalization of this share of the
 #: left-out cases (the last) in its own process, after the point measures, and the rest on the
-#: pool after the surface specificity (when no surface is sampled). In a build of the 82
-#: hippocampi the evaluating process also writes the model's files meanwhile (about 1.9 s of
-#: CPU, against 1.9 s for the point measures and the jackknife, 3.1 s for the surface
-#: specificity and 3.2 s for the surface generalization): both then finish together.
+#: pool after the surface specificity (when no surface is sampled). The share balances the two
+#: processes: the pool's surface specificity and most of the surface generalization against
+#: this process's files written meanwhile (in a build), point measures, jackknife and the rest
+#: of the surface generalization, so that both finish at about the same time.
 SURFACE_GENERALIZATION_HERE = 0.4
 
 
