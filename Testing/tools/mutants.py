@@ -261,7 +261,7 @@ MUTANTS = [
            ("test_compare_csv.py",),
            "compare.csv's SE column holds the value"),
     Mutant("compare_cases_matched_by_position", "report/compare.py",
-           "index = [population.names.index(n) for n in shared]",
+           "index = [position[n] for n in shared]",
            "index = list(range(len(shared)))",
            ("test_compare_csv.py",),
            "models compared case by position, not by name"),

@@ -61,14 +61,21 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
     """
     if not populations:
         raise InputError("nothing to compare")
-    shared = [n for n in populations[0].names if all(n in p.names for p in populations[1:])]
+    # each population's row of a case name (its first, as with list.index): one look-up per
+    # shared case, not a scan of the names
+    positions = [{} for _ in populations]
+    for population, position in zip(populations, positions):
+        for i, name in enumerate(population.names):
+            position.setdefault(name, i)
+    shared = [n for n in populations[0].names if all(n in p for p in positions[1:])]
     if len(shared) < MIN_SHARED_CASES:
         raise InputError(f"the models share only {len(shared)} case(s); at least "
                          f"{MIN_SHARED_CASES} are needed")
+    shared_set = set(shared)
     models = {}
     jackknifes = {}         # each population's leave-one-out errors, for paired differences
-    for population in populations:
-        index = [population.names.index(n) for n in shared]
+    for population, position in zip(populations, positions):
+        index = [position[n] for n in shared]
         shapes = population.shapes[index]
         variances = ShapeModel.from_shapes(shapes, population.weights).variances
         models[population.label] = evaluate(shapes, population.weights, variances, max_modes,
@@ -80,7 +87,7 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
                                               jackknifes[label])
                    for label, values in models.items() if label != reference}
     return {"reference": reference, "cases": shared, "n_cases": len(shared),
-            "excluded_cases": {p.label: [n for n in p.names if n not in shared]
+            "excluded_cases": {p.label: [n for n in p.names if n not in shared_set]
                                for p in populations},
             "models": models, "differences": differences,
             "folders": {p.label: p.folder for p in populations}}
