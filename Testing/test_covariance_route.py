@@ -1,16 +1,22 @@
 """Eq. 14 and its gradient through the 3 n_p x 3 n_p covariance (more shapes than coordinates):
 the same objective as through the n_s x n_s Gram matrix, to rounding."""
 
+import sys
+import threading
+
 import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
+from mdlshapemodel.config import BuildConfig, OptimisationSettings
 from mdlshapemodel.correspondence.objective import Objective, covariance_route
 from mdlshapemodel.geometry import centroid_size
 from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.correspondence.state import CorrespondenceState, FixedExample
+from mdlshapemodel.correspondence.strategies import optimise
+from mdlshapemodel.correspondence.trace import Trace
 
-from synthetic import build_objectives
+from synthetic import build_objectives, small_state
 
 OBJECTIVES = [
     Objective("fixed", 10.0, delta=0.05),
@@ -99,6 +105,43 @@ def test_past_the_switch_the_result_is_the_same_on_any_number_of_threads(rng):
     assert value == pytest.approx(gram_value, rel=1e-12)
     expected = 2.0 * grad_cov @ data
     np.testing.assert_allclose(grad, expected, atol=1e-9 * np.abs(expected).max())
+
+
+def optimised_past_the_switch(workers: int) -> tuple:
+    """A short fast-strategy optimisation of 40 surfaces on 12 points (36 coordinates: past the
+    switch) with objectives of ``workers`` threads: (final F, evaluations, names of the threads
+    it started, the threads running before it, those running after it)."""
+    state = small_state(n=40, points=12)
+    assert state.by_covariance
+    objectives = build_objectives(state, BuildConfig(workers=workers))
+    started = []
+    previous = threading.gettrace()
+
+    def seen(frame, event, arg):
+        """Called at the start of every thread started through ``threading``."""
+        started.append(threading.current_thread().name)
+        sys.settrace(previous)
+
+    settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=2)
+    before = set(threading.enumerate())
+    threading.settrace(seen)
+    try:
+        final = optimise(state, objectives, settings, np.random.default_rng(0), Trace())
+    finally:
+        threading.settrace(previous)
+    return final, state.evaluations, started, before, set(threading.enumerate())
+
+
+def test_an_optimisation_keeps_one_pool_of_threads_per_objective_and_ends_them():
+    """Past the switch, each objective's threads are one pool for the whole optimisation (the
+    fixed-Delta phase's objective, the full one; the fast strategy's phase coding every mode has
+    one of its own), not a pool per evaluation; no thread outlives the optimisation, and the
+    result is the same bits as on one thread."""
+    final, evaluations, started, before, after = optimised_past_the_switch(workers=2)
+    assert evaluations > 20
+    assert len(started) <= 3 * 2, started
+    assert after == before
+    assert final == optimised_past_the_switch(workers=1)[0]
 
 
 def test_the_switch_is_where_shapes_outnumber_coordinates():

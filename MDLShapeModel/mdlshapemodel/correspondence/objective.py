@@ -28,13 +28,15 @@ Past the switch to the covariance route (:func:`covariance_route`), the three pr
 n_s x d data A (A^T A, the coded values A W and the gradient Y M) run in fixed blocks on
 ``Objective.threads`` threads, each block on one BLAS thread: the blocks do not depend on the
 number of threads, so neither do the results (threaded BLAS itself gives other bits on 2 threads
-than on 1). The d x d eigendecomposition stays on one thread.
+than on 1). The d x d eigendecomposition stays on one thread. Within :meth:`Objective.pooled`
+(the whole of :func:`~.strategies.optimise`) every evaluation uses one pool of threads;
+outside it, each evaluation past the switch starts and ends its own.
 """
 
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -318,16 +320,19 @@ class _BlockProducts:
 
 
 @contextlib.contextmanager
-def _products(data: np.ndarray, threads: int):
+def _products(data: np.ndarray, threads: int, pool: Threads | None = None):
     """The products for :meth:`Objective.from_data` and :meth:`Objective.data_gradient` on
-    ``data`` (n_s, d): whole up to the switch (the caller's BLAS threads), in blocks on
-    ``threads`` threads past it (one BLAS thread each, and for the eigendecomposition)."""
+    ``data`` (n_s, d): whole up to the switch (the caller's BLAS threads), in blocks past it on
+    ``pool``, or without one on a pool of ``threads`` threads for this call alone (one BLAS
+    thread each, and for the eigendecomposition)."""
     if not covariance_route(*data.shape):
         yield _WholeProducts()
         return
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"), Threads(threads) as pool:
+    with threadpool_limits(limits=1, user_api="blas"), contextlib.ExitStack() as stack:
+        if pool is None:
+            pool = stack.enter_context(Threads(threads))
         yield _BlockProducts(pool)
 
 
@@ -346,7 +351,7 @@ class Objective:
     ``kind`` "integrated" is eq. 14 (Delta averaged over [delta_min, delta_max]); "fixed" is eq. 13 at
     ``delta``. Every length is in the units of the aligned shapes. ``threads``: the threads of the
     products with the data past the switch (:func:`covariance_route`); the results do not depend
-    on it.
+    on it. They are one pool within :meth:`pooled`, else one per evaluation.
     """
 
     kind: str
@@ -357,6 +362,25 @@ class Objective:
     variant: str = "continuous"
     free_below_delta: bool = True
     threads: int = 1
+    _pool: Threads | None = field(default=None, init=False, repr=False, compare=False)
+
+    @contextlib.contextmanager
+    def pooled(self):
+        """Within, the evaluations past the switch share one pool of ``threads`` threads (an
+        optimisation's thousands of them would otherwise each start and end their own); the
+        threads end with it. Nested uses share the outermost's pool."""
+        if self._pool is not None:
+            yield self
+            return
+        with Threads(self.threads) as self._pool:
+            try:
+                yield self
+            finally:
+                self._pool = None
+
+    def __getstate__(self):
+        """A copy (pickled) holds no pool: its evaluations start their own."""
+        return {**self.__dict__, "_pool": None}
 
     def __call__(self, gram: np.ndarray) -> float:
         _, coded = coded_values_from_gram(gram)
@@ -428,7 +452,7 @@ class Objective:
         eigenvalues are D''s): O(n_s d^2 + d^3) work and O(n_s d) memory, where the n_s x n_s
         route costs O(n_s^3) and O(n_s^2). The same value as ``self(data @ data.T)`` to rounding."""
         data = np.asarray(data, dtype=np.float64)
-        with _products(data, self.threads) as products:
+        with _products(data, self.threads, self._pool) as products:
             raw, axes = products.eigen(products.covariance(data))
             coded = products.times(data, axes)
         coded[:, raw <= 0] = 0.0
@@ -461,7 +485,7 @@ class Objective:
         - delta_mn / mu_m (delta_m = U_r[a] - U_r[b], the first term 0 for n = m).
         """
         data = np.asarray(data, dtype=np.float64)
-        with _products(data, self.threads) as products:
+        with _products(data, self.threads, self._pool) as products:
             return self._data_gradient(data, products)
 
     def _data_gradient(self, data, products):
@@ -512,6 +536,17 @@ class Objective:
             return integrated_description_length(coded, self.delta_min, self.delta_max,
                                                  self.data_range)
         raise ConfigError(f"objective: unknown kind {self.kind!r}")
+
+
+@contextlib.contextmanager
+def pooled(objectives):
+    """Each :class:`Objective` of ``objectives`` :meth:`~Objective.pooled` while within (the
+    others, such as :class:`NoDescription`, have no threads)."""
+    with contextlib.ExitStack() as stack:
+        for objective in objectives:
+            if isinstance(objective, Objective):
+                stack.enter_context(objective.pooled())
+        yield
 
 
 def objectives(config, voxel: float, data_range: float) -> tuple:

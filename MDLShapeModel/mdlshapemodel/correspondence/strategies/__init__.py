@@ -41,7 +41,7 @@ import numpy as np
 from ...config import STRATEGIES, OptimisationSettings
 from ...errors import ArgumentError
 from ...parallel import Threads
-from ..objective import NoDescription
+from ..objective import NoDescription, pooled
 from ..coarse import carry_over, coarse_grid_applies, coarse_view
 from ..state import CorrespondenceState, replay_record
 from ..trace import Stop, Trace
@@ -95,14 +95,16 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
 
     BLAS runs single-threaded meanwhile: the objective's linear algebra is on n_s x n_s matrices,
     where threaded BLAS costs more than it gains (measured: a 40 x 40 eigh takes 0.2 ms on one
-    thread and 7 ms on two when another process is busy on the second core).
+    thread and 7 ms on two when another process is busy on the second core). Each objective's
+    threads past the covariance route are one pool for the whole optimisation
+    (:meth:`~..objective.Objective.pooled`), ended with it.
 
     ``cluster``, a ``distributed.Client``: the fast strategy's per-example work runs on its
     workers (:mod:`.spread`), with the same result; the other strategies ignore it.
     """
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas"), pooled(objectives):
         return _optimise(state, objectives, settings, rng, trace, progress, checkpoint, active,
                          resume, cluster)
 

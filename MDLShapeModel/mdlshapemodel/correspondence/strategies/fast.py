@@ -348,8 +348,11 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
         # Case 3 of the fixed-Delta cost (a mode spanning less than Delta is free) is a step of
         # about n_s ln(8 pi) / 2 nats in the mode's range: a quasi-Newton line search that crosses
         # it fails (seen with 82 hippocampi, where the smallest modes reach Delta). The paper's
-        # eq. 13 codes every mode, continuously: this phase minimises that.
-        objective = replace(objective, free_below_delta=False)
+        # eq. 13 codes every mode, continuously: this phase minimises that (its own objective,
+        # which holds its own pool of threads for the phase)
+        with replace(objective, free_below_delta=False).pooled() as coded:
+            return optimise_fast(state, coded, settings, rng, trace, phase, deadline, progress,
+                                 checkpoint, active, resume, levels, rounds_per_level, cluster)
 
     def following(at: dict, values: dict) -> dict | None:
         """The loop position after the round at ``at`` (None: the phase is over)."""
