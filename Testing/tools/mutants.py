@@ -468,8 +468,8 @@ MUTANTS = [
            "the subset's standard error as if drawn with replacement (too large, not 0 when "
            "nearly every case is left out)"),
     Mutant("subset_drawn_from_the_evaluations_generator", "model/evaluation.py",
-           "else leave_out_cases(n_s, generalization_cases, rng.spawn(1)[0]))",
-           "else leave_out_cases(n_s, generalization_cases, rng))",
+           "cases = leave_out_cases(n_s, generalization_cases, rng.spawn(1)[0])",
+           "cases = leave_out_cases(n_s, generalization_cases, rng)",
            ("test_evaluation_subsample.py",),
            "the subset drawn from the specificity's generator: a limit moves its samples"),
     Mutant("subset_drawn_with_replacement", "model/evaluation.py",

@@ -421,8 +421,7 @@ def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, 
     n_s = len(shapes)
     surface_rng = copy.deepcopy(rng)            # the surface samples repeat the first point samples
     # a spawned generator leaves rng's own stream as it is
-    cases = (None if generalization_cases is None or n_s <= generalization_cases
-             else leave_out_cases(n_s, generalization_cases, rng.spawn(1)[0]))
+    cases = leave_out_cases(n_s, generalization_cases, rng.spawn(1)[0])
     # one model space for every measure, wherever it runs
     space = model_space(shapes, weights)
     pool_part, here = None, None
