@@ -1,14 +1,19 @@
 """A dying worker process is one rejected case, not a dead build (real processes throughout).
 
 Workers are killed by Testing/crash_on_prepare.py (armed in a pool's workers through
-``parallel.WORKER_STARTUP``: a worker dies as it opens a matching input) or by the functions of
-Testing/dying.py that end their own process, as a segfault in a native library would.
+``parallel.WORKER_STARTUP``: a worker dies as it opens a matching input), by the functions of
+Testing/dying.py that end their own process, as a segfault in a native library would, or from
+outside, stalled in an evaluation by Testing/stalls_evaluation.py.
 """
 
 import json
 import logging
 import multiprocessing
 import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from concurrent.futures import Executor, ProcessPoolExecutor
 
@@ -22,8 +27,9 @@ from mdlshapemodel.prepare import preprocess
 from mdlshapemodel.prepare.io import read_csv
 
 import crash_on_prepare
+import stalls_evaluation
 from dying import die, square_or_die
-from common import run_python
+from common import TIMEOUT, run_python
 from synthetic import write_population
 
 
@@ -139,6 +145,52 @@ def test_a_build_rejects_the_case_that_kills_its_worker_and_models_the_others(tm
     assert survived.names == reference.names == ["case_0", "case_1", "case_3", "case_4"]
     for name in ("mean", "modes", "variances", "weights", "scores", "triangles", "parameters"):
         assert np.array_equal(getattr(survived, name), getattr(reference, name)), name
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(3 * TIMEOUT)
+def test_a_build_whose_helper_is_killed_with_a_baseline_queued_evaluates_them_here(tmp_path):
+    """``--workers 2`` with two baselines: the helper process holds the first one's evaluation
+    (stalled in it: Testing/stalls_evaluation.py) while the second one's waits behind it, and is
+    killed (SIGKILL, as by the out-of-memory killer) once the optimisation has begun. The build
+    does not hang: it evaluates both baselines here, the model on a fresh helper, and succeeds."""
+    paths = write_population(tmp_path / "inputs")
+    output, stalled = tmp_path / "out", tmp_path / "helper.pid"
+    environment = dict(os.environ, PYTHONWARNINGS="ignore",
+                       PYTHONPATH=os.pathsep.join(filter(None, [str(TESTING),
+                                                                os.environ.get("PYTHONPATH")])))
+    environment[stalls_evaluation.VARIABLE] = str(stalled)
+    command = [sys.executable, "-c", stalls_evaluation.CLI, "build", str(tmp_path / "inputs"),
+               "-o", str(output), "--points", "162", "--baselines", "none,cpd", "--max-sweeps",
+               "1", "--evaluation-modes", "2", "--specificity-samples", "50",
+               "--surface-samples", "5", "--workers", "2"]
+    build = subprocess.Popen(command, cwd=TESTING, env=environment, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        # the first baseline is on the helper; the CPD baseline's evaluation was submitted
+        # before the optimisation's first checkpoint (a hang fails at TIMEOUT)
+        waited = time.monotonic()
+        while build.poll() is None and not (stalled.exists()
+                                            and (output / "checkpoint.npz").exists()):
+            assert time.monotonic() - waited < TIMEOUT, "the build never reached its optimisation"
+            time.sleep(0.1)
+        assert build.poll() is None, build.communicate()[1]
+        os.kill(int(stalled.read_text()), signal.SIGKILL)
+        _, stderr = build.communicate(timeout=TIMEOUT)
+    finally:
+        if build.poll() is None:
+            build.kill()
+            build.communicate()
+    assert build.returncode == 0, stderr
+    assert "Traceback" not in stderr
+    log = (output / "build.log").read_text()
+    assert log.count("an evaluation on the executor did not finish (BrokenProcessPool); "
+                     "doing it here") == 2
+    metrics = json.loads((output / "metrics.json").read_text())
+    assert sorted(metrics["baselines"]) == ["cpd", "none"]
+    for values in metrics["baselines"].values():
+        assert len(values["generalization"]) == 2
+    assert len(metrics["generalization"]) == 2
 
 
 def test_worker_startup_functions_run_in_every_pool_worker_and_never_here(tmp_path, monkeypatch):
