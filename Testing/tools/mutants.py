@@ -332,7 +332,7 @@ MUTANTS = [
            "flips=subjects.mean_change_tested,", "flips=False,",
            ("test_analysis_designs.py",),
            "the mean change resampled by permutations of a column of ones (p = 1 everywhere)"),
-    Mutant("blocks_ignored_in_the_permutations", "analysis/glm.py",
+    Mutant("blocks_ignored_in_the_permutations", "analysis/resampling.py",
            "for codes_of in (codes, blocks):", "for codes_of in (codes,):",
            ("test_analysis_designs.py",),
            "time within subjects permuted across subjects (the exchangeability blocks ignored)"),

@@ -46,6 +46,12 @@ same at every point: the signed t (Welch's: the normal quantile of v's p, with v
 sign on its own, for one effect column and one number per point; else the square root of the
 pooled statistic (its F, the same degrees of freedom at every point), the normal quantile of
 Welch's G's p, or the square root of James' J.
+
+This module fits the models and counts the resamples' statistics (:func:`permutation_test`); its
+parts are rooms of their own: the resamples in :mod:`.resampling`, the pooled statistic in
+:mod:`.pillai`, the corrections over the points (FDR, min-p) in :mod:`.correction`, the
+statistics with a variance per group in :mod:`.welch` and the enhancement in :mod:`.tfce`. The
+names its users import from it stay importable here (:data:`__all__`).
 """
 
 from __future__ import annotations
@@ -60,17 +66,20 @@ from ..config import FAMILY_WISE, TAILS
 from ..errors import ArgumentError, InputError
 from ..progress import report
 from . import welch
+from .correction import benjamini_hochberg, smallest_p
+from .pillai import orthonormal_basis, pillai_trace, statistic_of, whitening
+from .resampling import (CHUNK, drawn_flips, drawn_permutations, drawn_resamples, drawn_signs,
+                         drawn_whole_blocks, resampling_name)
 from .tfce import Surface, enhance
 
-# permutations handled at once: bounds the memory to CHUNK x (z + r) x p x q floats; fixed so
-# that the drawn permutations (and so the p-values) do not depend on it changing
-CHUNK = 250
+# the names this module's users import from it, wherever they live
+__all__ = ["CHUNK", "PointTest", "benjamini_hochberg", "drawn_flips", "drawn_permutations",
+           "drawn_signs", "drawn_whole_blocks", "permutation_test", "smallest_p",
+           "statistic_of"]
+
 # a permuted statistic counts as reaching the observed one within this relative rounding, so that
 # the identity permutation, recomputed along another path, always counts
 TIES = 1e-10
-# per-point p-values of the permuted statistics are ranked this many points at a time (bounds the
-# memory of the sort to BLOCK x (B + 1) indices)
-BLOCK = 256
 # permutations of the general Welch statistic computed at once (bounds its memory to
 # WELCH_CHUNK x n x p floats)
 WELCH_CHUNK = 25
@@ -168,177 +177,6 @@ class PointTest:
                 "F = t^2 (one pooled variance)")
 
 
-def benjamini_hochberg(p: np.ndarray) -> np.ndarray:
-    """Benjamini-Hochberg q-values (adjusted p-values) of a vector of p-values.
-
-    q_(i) = min over j >= i of p_(j) m / j, capped at 1 (Benjamini and Hochberg 1995); a point
-    is significant at false-discovery rate alpha when q <= alpha. Computed by
-    ``scipy.stats.false_discovery_control(p, method="bh")``.
-
-    Examples
-    --------
-    >>> benjamini_hochberg(np.array([0.01, 0.04, 0.03, 0.5])).round(3).tolist()
-    [0.04, 0.053, 0.053, 0.5]
-    """
-    from scipy.stats import false_discovery_control
-
-    p = np.asarray(p, dtype=np.float64)
-    if p.size == 0:
-        return p.copy()
-    return np.asarray(false_discovery_control(p, method="bh"), dtype=np.float64)
-
-
-def _basis(columns: np.ndarray, what: str, scale: float | None = None) -> np.ndarray:
-    """An orthonormal basis (n, k) of the span of ``columns``; InputError when they are
-    collinear (rank below k). ``scale``: the size of the columns before they were made
-    orthogonal to others (a column that vanished then was a combination of those)."""
-    q, r = np.linalg.qr(columns)
-    diagonal = np.abs(np.diag(r))
-    reference = max(diagonal.max(initial=0.0), scale or 0.0, 1e-300)
-    if diagonal.size and diagonal.min() <= 1e-10 * reference:
-        raise InputError(f"{what} are collinear (a column is a combination of the others)")
-    return q
-
-
-def _whitening(total: np.ndarray) -> np.ndarray:
-    """Per point the inverse Cholesky factor L^-1 of the residual scatter (p, q, q), so that the
-    whitened residuals R L^-T have scatter I at every point."""
-    q = total.shape[-1]
-    scale = np.trace(total, axis1=1, axis2=2) / q
-    if np.any(scale <= 0):
-        raise InputError("some points do not vary at all across the cases")
-    jitter = 1e-12 * scale[:, None, None] * np.eye(q)
-    factor = np.linalg.cholesky(total + jitter)
-    return np.linalg.inv(factor)
-
-
-def _pillai(coefficients: np.ndarray, z: int) -> np.ndarray:
-    """Pillai's trace per permutation and point from the products of the permuted bases with the
-    whitened residuals: ``coefficients`` (B, z + r, p, q), the first z rows of the nuisance basis
-    (K), the rest of the effect's (G); V = tr(G A^-1 G') with A = I - K'K."""
-    effect = coefficients[:, z:]
-    if z == 0:
-        return np.einsum("brpq,brpq->bp", effect, effect)
-    nuisance = coefficients[:, :z]
-    q = coefficients.shape[-1]
-    if q == 1:
-        return (np.sum(effect[..., 0] ** 2, axis=1)
-                / (1.0 - np.sum(nuisance[..., 0] ** 2, axis=1)))
-    a = np.eye(q) - np.einsum("bzpi,bzpj->bpij", nuisance, nuisance)
-    g = np.moveaxis(effect, 1, 2)                                  # (B, p, r, q)
-    solved = np.linalg.solve(a, np.swapaxes(g, -1, -2))            # A^-1 G'  (B, p, q, r)
-    return np.einsum("bprq,bpqr->bp", g, solved)
-
-
-def statistic_of(pillai: np.ndarray, q: int, r: int, df: int) -> np.ndarray:
-    """The reported statistic of Pillai's trace: T^2 (F when q = 1) for r = 1, else the F
-    approximation of Pillai's trace (exact for q = 1)."""
-    pillai = np.asarray(pillai, dtype=np.float64)
-    if r == 1:
-        return df * pillai / np.maximum(1.0 - pillai, 1e-300)
-    s = min(q, r)
-    m = (abs(q - r) - 1) / 2
-    nn = (df - q - 1) / 2
-    return (2 * nn + s + 1) / (2 * m + s + 1) * pillai / np.maximum(s - pillai, 1e-300)
-
-
-def smallest_p(table: np.ndarray) -> np.ndarray:
-    """Each row's smallest per-point p-value, every column's values ranked against that column.
-
-    Parameters
-    ----------
-    table : ndarray (m, p)
-        m values of a statistic at each of p points (larger: more extreme).
-
-    Returns
-    -------
-    ndarray (m,) int
-        For each row, the smallest over the points of #{rows whose value at the point is at
-        least the row's}: the row's smallest p-value times m.
-
-    Examples
-    --------
-    >>> smallest_p(np.array([[3.0, 0.0], [1.0, 5.0], [2.0, 5.0]])).tolist()
-    [1, 2, 2]
-    """
-    m, p = table.shape
-    index = np.arange(m)[:, None]
-    smallest = np.full(m, m, dtype=np.int64)
-    for start in range(0, p, BLOCK):
-        block = table[:, start:start + BLOCK]
-        order = np.argsort(block, axis=0)
-        ordered = np.take_along_axis(block, order, axis=0)
-        starts = np.ones(ordered.shape, dtype=bool)
-        starts[1:] = ordered[1:] != ordered[:-1]
-        # values below a row's: the position where its run of equal values starts
-        below = np.maximum.accumulate(np.where(starts, index, 0), axis=0)
-        counts = np.empty_like(below)
-        np.put_along_axis(counts, order, m - below, axis=0)
-        smallest = np.minimum(smallest, counts.min(axis=1))
-    return smallest
-
-
-def drawn_permutations(n: int, permutations: int, seed: int):
-    """The permutations :func:`permutation_test` draws, chunk by chunk.
-
-    Yields arrays (count, n) of :data:`CHUNK` rows (fewer in the last): in permutation b, case
-    i is given the design row (and variance group) of case ``rows[b, i]``, against the fixed
-    residuals of the reduced model; a plain loop over them recomputes every permuted statistic.
-
-    Examples
-    --------
-    >>> rows = np.vstack(list(drawn_permutations(5, 300, seed=0)))
-    >>> rows.shape, sorted(rows[0].tolist())
-    ((300, 5), [0, 1, 2, 3, 4])
-    """
-    rng = np.random.default_rng(seed)
-    done = 0
-    while done < permutations:
-        count = min(CHUNK, permutations - done)
-        yield np.argsort(rng.random((CHUNK, n)), axis=1)[:count]
-        done += count
-
-
-def drawn_flips(groups: np.ndarray, count: int, seed: int):
-    """The resamples of a test with variance groups, chunk by chunk: each a permutation within
-    the groups and a sign per case.
-
-    Parameters
-    ----------
-    groups : ndarray (n,) int
-        Each case's variance group.
-    count : int
-        Resamples drawn (B).
-    seed : int
-
-    Yields
-    ------
-    rows : ndarray (b, n)
-        Case i is given the design row of case ``rows[j, i]``, a case of its own group.
-    signs : ndarray (b, n)
-        +1 or -1 per case: the flipped data are ``signs * residuals``.
-
-    Examples
-    --------
-    >>> groups = np.array([0, 0, 1, 1, 1])
-    >>> rows, signs = next(drawn_flips(groups, 100, seed=0))
-    >>> bool(np.all(groups[rows] == groups)), sorted(np.unique(signs).tolist())
-    (True, [-1.0, 1.0])
-    """
-    rng = np.random.default_rng(seed)
-    n = len(groups)
-    order = np.argsort(groups, kind="stable")
-    done = 0
-    while done < count:
-        size = min(CHUNK, count - done)
-        keys = rng.random((CHUNK, n)) + 2.0 * groups[order]
-        rows = np.empty((CHUNK, n), dtype=np.int64)
-        rows[:, order] = order[np.argsort(keys, axis=1)]
-        signs = rng.integers(0, 2, (CHUNK, n)) * 2.0 - 1.0
-        yield rows[:size], signs[:size]
-        done += size
-
-
 def _one_way(interest: np.ndarray, codes: np.ndarray, count: int) -> bool:
     """Whether [1, interest] spans exactly the indicators of the variance groups (a one-way
     layout of the groups compared)."""
@@ -347,109 +185,6 @@ def _one_way(interest: np.ndarray, codes: np.ndarray, count: int) -> bool:
     scale = max(float(np.abs(interest).max(initial=0.0)), 1e-300)
     return bool(np.linalg.matrix_rank(np.hstack([np.ones((len(codes), 1)), interest])) == count
                 and np.allclose(indicators @ means, interest, atol=1e-12 * scale))
-
-
-def drawn_signs(n: int, count: int, seed: int):
-    """Sign flips alone, chunk by chunk: each case's residual kept or negated at random, no
-    case moved (the one-sample test; independent and symmetric errors).
-
-    Yields
-    ------
-    rows : ndarray (b, n)
-        The identity (every case keeps its own design row).
-    signs : ndarray (b, n)
-        +1 or -1 per case.
-
-    Examples
-    --------
-    >>> rows, signs = next(drawn_signs(4, 300, seed=0))
-    >>> rows.shape, bool(np.all(rows == np.arange(4))), sorted(np.unique(signs).tolist())
-    ((250, 4), True, [-1.0, 1.0])
-    """
-    rng = np.random.default_rng(seed)
-    done = 0
-    while done < count:
-        size = min(CHUNK, count - done)
-        signs = rng.integers(0, 2, (CHUNK, n)) * 2.0 - 1.0
-        yield np.broadcast_to(np.arange(n), (size, n)), signs[:size]
-        done += size
-
-
-def drawn_whole_blocks(blocks: np.ndarray, count: int, seed: int):
-    """Permutations of whole blocks, chunk by chunk: each block's cases take the design rows of
-    another block of the same size, case by case in their order (Winkler et al. 2014, whole-block
-    exchangeability: a subject's cases stay together).
-
-    Yields
-    ------
-    rows : ndarray (b, n)
-        Case i is given the design row of case ``rows[j, i]``.
-    signs : None
-
-    Examples
-    --------
-    >>> blocks = np.array([0, 0, 1, 1, 2, 2, 2])
-    >>> rows, _ = next(drawn_whole_blocks(blocks, 100, seed=0))
-    >>> moved = blocks[rows]
-    >>> bool(np.all(moved[:, 4:] == 2)), bool(np.all(moved[:, 0] == moved[:, 1]))
-    (True, True)
-    """
-    blocks = np.asarray(blocks)
-    members = [np.flatnonzero(blocks == b) for b in range(int(blocks.max()) + 1)]
-    sizes = {len(m) for m in members}
-    rng = np.random.default_rng(seed)
-    done = 0
-    while done < count:
-        size = min(CHUNK, count - done)
-        rows = np.empty((CHUNK, len(blocks)), dtype=np.int64)
-        for length in sorted(sizes):
-            alike = [m for m in members if len(m) == length]
-            cases = np.array(alike)                                   # (blocks, length)
-            order = np.argsort(rng.random((CHUNK, len(alike))), axis=1)
-            rows[:, cases.reshape(-1)] = cases[order].reshape(CHUNK, -1)
-        yield rows[:size], None
-        done += size
-
-
-def _resamples(n: int, count: int, seed: int, codes, blocks, flips: bool,
-               whole_blocks: bool = False):
-    """The resamples of one test: (rows, signs) chunks, ``signs`` None when nothing is flipped.
-
-    Variance groups: permutations within the groups with sign flips (:func:`drawn_flips`).
-    Exchangeability blocks: permutations within the blocks (and within the groups, when both),
-    with sign flips if ``flips``. Flips alone: :func:`drawn_signs`. Whole blocks:
-    :func:`drawn_whole_blocks`. Else all permutations.
-    """
-    if whole_blocks:
-        return drawn_whole_blocks(blocks, count, seed)
-    if codes is None and blocks is None:
-        if flips:
-            return drawn_signs(n, count, seed)
-        return ((rows, None) for rows in drawn_permutations(n, count, seed))
-    cells = np.zeros(n, dtype=np.int64)
-    for codes_of in (codes, blocks):
-        if codes_of is not None:
-            cells = cells * (int(codes_of.max()) + 1) + codes_of
-    cells = np.unique(cells, return_inverse=True)[1]
-    draws = drawn_flips(cells, count, seed)
-    if codes is not None or flips:
-        return draws
-    return ((rows, None) for rows, _ in draws)
-
-
-def _resampling_name(codes, blocks, flips: bool, whole_blocks: bool = False) -> str:
-    """How the residuals are resampled, in words (for analysis.json and the page)."""
-    if whole_blocks:
-        return "permuted in whole blocks"
-    flipped = codes is not None or flips
-    moved = ("" if codes is None and blocks is None and flips else
-             "permuted within the variance groups and blocks" if codes is not None
-             and blocks is not None else
-             "permuted within the variance groups" if codes is not None else
-             "permuted within the blocks" if blocks is not None else "permuted")
-    if flipped and moved:
-        return f"sign-flipped and {moved}"
-    return "sign-flipped" if flipped else moved
 
 
 def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarray | None = None,
@@ -576,10 +311,10 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
         blocks = np.unique(np.asarray(blocks), return_inverse=True)[1].reshape(-1)
         if len(blocks) != n:
             raise InputError(f"{len(blocks)} exchangeability blocks for {n} cases")
-    basis_z = _basis(z_columns, "the nuisance columns")
+    basis_z = orthonormal_basis(z_columns, "the nuisance columns")
     interest_after_z = interest - basis_z @ (basis_z.T @ interest)
-    basis_x = _basis(interest_after_z, "the variables of interest and the nuisance",
-                     scale=float(np.abs(interest).max(initial=0.0)) * np.sqrt(n))
+    basis_x = orthonormal_basis(interest_after_z, "the variables of interest and the nuisance",
+                                scale=float(np.abs(interest).max(initial=0.0)) * np.sqrt(n))
     if signed and basis_x[:, 0] @ interest_after_z[:, 0] < 0:
         basis_x = -basis_x                     # its coefficient has the effect's sign
     flat = data.reshape(n, p * q)
@@ -599,14 +334,14 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
     zp = permuted_z.shape[1]
     if codes is None:
         total = np.einsum("npi,npj->pij", stacked, stacked)
-        whitened = np.einsum("npj,pij->npi", stacked, _whitening(total)).reshape(n, p * q)
+        whitened = np.einsum("npj,pij->npi", stacked, whitening(total)).reshape(n, p * q)
 
         def measured(rows: np.ndarray, signs) -> tuple:
             """Pillai's V and, for one effect column, the signed t of each resample."""
             permuted = bases[rows] if signs is None else bases[rows] * signs[..., None]
             permuted = np.ascontiguousarray(np.swapaxes(permuted, 1, 2))       # (B, k, n)
             products = (permuted.reshape(-1, n) @ whitened).reshape(len(rows), zp + r, p, q)
-            pillai = _pillai(products, zp)
+            pillai = pillai_trace(products, zp)
             if not signed:
                 return pillai, None
             return pillai, np.sign(products[:, zp, :, 0]) * np.sqrt(
@@ -670,7 +405,7 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
             return enhance(np.sqrt(statistic_of(values, q, r, df)), surface)
         return enhance(-special.ndtri(p_values) if q == 1 else np.sqrt(values), surface)
 
-    resamples = _resamples(n, permutations, seed, codes, blocks, flips, whole_blocks)
+    resamples = drawn_resamples(n, permutations, seed, codes, blocks, flips, whole_blocks)
     identity = np.arange(n)[None], np.ones((1, n))
     observed, observed_t = values_of(*identity)
     tfce = None if surface is None else enhanced_of(observed, observed_t)[0]
@@ -723,6 +458,6 @@ def permutation_test(data: np.ndarray, interest: np.ndarray, nuisance: np.ndarra
                      variance="pooled" if codes is None else "groups",
                      family_wise=family_wise,
                      t=None if observed_t is None else observed_t[0], tail=tail,
-                     resampling=_resampling_name(codes, blocks, flips, whole_blocks),
+                     resampling=resampling_name(codes, blocks, flips, whole_blocks),
                      tfce=tfce, tfce_p_fwer=tfce_p_fwer,
                      tfce_null=None if surface is None else enhanced_maxima)

@@ -31,7 +31,7 @@ Resampling (Winkler et al. 2014, independent and symmetric errors): under the nu
 the cases within a variance group are exchangeable, cases of different groups are not, and each
 case's error is as likely as its negative. So the residuals of the reduced model are
 sign-flipped case by case and permuted only within the variance groups
-(:func:`~.glm.drawn_flips`);
+(:func:`~.resampling.drawn_flips`);
 no case changes group, and each keeps its variance. The reduced model is fitted by weighted least
 squares with the variance groups' weights (:func:`reduced_residuals`), so that a small, highly
 variable group does not move the others' residuals. The statistic is flipped as ``-log`` of its
@@ -304,8 +304,8 @@ def general(residuals: np.ndarray, basis: np.ndarray, r: int, groups: np.ndarray
     groups, sizes
         As in :func:`one_way`.
     rows, signs : ndarray (B, n)
-        The resamples (:func:`~.glm.drawn_flips`): case i, its residual flipped by ``signs[b, i]``,
-        is given the design row of case ``rows[b, i]`` of its own group.
+        The resamples (:func:`~.resampling.drawn_flips`): case i, its residual flipped by
+        ``signs[b, i]``, is given the design row of case ``rows[b, i]`` of its own group.
 
     Returns
     -------
