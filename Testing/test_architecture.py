@@ -1,6 +1,6 @@
 """The house: data flows one way between the rooms, no import circles, light leaves.
 
-Stages, upstream first: the leaves (config, errors, progress, cluster, parallel, version),
+Stages, upstream first: the leaves (config, errors, progress, cluster, parallel, memory, version),
 geometry (rigid alignment, for every stage below it), prepare, correspondence, model, the build
 folder (folders: its files read and written), analysis, report, the commands (build, outputs,
 analyze, fit, compare), the faces (cli and its options, vtkfilters, vtkmodel, demo, and the
@@ -19,7 +19,7 @@ import mdlshapemodel
 
 PACKAGE = Path(mdlshapemodel.__file__).parent
 STAGES = [
-    {"config", "errors", "progress", "cluster", "parallel", "version"},
+    {"config", "errors", "progress", "cluster", "parallel", "memory", "version"},
     {"geometry"},
     {"prepare"},
     {"correspondence"},

@@ -157,12 +157,10 @@ def test_the_build_setting_is_checked_and_has_a_default():
         BuildConfig(generalization_cases=1).validate()
 
 
-def test_the_true_surfaces_are_moved_to_the_model_frame_one_case_at_a_time(tmp_path):
-    import pickle
-
+def surfaces_case(tmp_path):
+    """Five small prepared label maps, their initial correspondence and a configuration that
+    measures surface to surface."""
     from mdlshapemodel.correspondence.initial import initial_state
-    from mdlshapemodel.model.evaluation import ModelFrameSurfaces, evaluate_state
-    from mdlshapemodel.parallel import process_pool
     from mdlshapemodel.prepare.batch import preprocess
 
     from files import write_label_map
@@ -173,12 +171,22 @@ def test_the_true_surfaces_are_moved_to_the_model_frame_one_case_at_a_time(tmp_p
     config = BuildConfig(points=42, workers=1, cache_dir="", evaluation_modes=2,
                          specificity_samples=100, surface_samples=10)
     prepared, _ = preprocess(paths, config)
-    state = initial_state(prepared, config)[0]
+    return prepared, initial_state(prepared, config)[0], config
+
+
+def test_the_true_surfaces_are_moved_to_the_model_frame_one_case_at_a_time(tmp_path):
+    import pickle
+
+    from mdlshapemodel.geometry import Pose
+    from mdlshapemodel.model.evaluation import ModelFrameSurfaces, evaluate_state
+    from mdlshapemodel.parallel import process_pool
+
+    prepared, state, config = surfaces_case(tmp_path)
     eager = [(state.to_model_frame(i, case.surface()[0]), case.surface()[1])
              for i, case in enumerate(prepared)]
     lazy = ModelFrameSurfaces(state, prepared)
-    copied = pickle.loads(pickle.dumps(lazy))       # as a pool's process gets it: a list
-    assert isinstance(copied, list) and len(lazy) == len(copied) == len(eager)
+    copied = pickle.loads(pickle.dumps(lazy))       # as a pool's process gets it
+    assert len(lazy) == len(copied) == len(eager)
     for (v, f), (lv, lf), (cv, cf) in zip(eager, lazy, copied):
         assert np.array_equal(v, lv) and np.array_equal(v, cv)
         assert np.array_equal(f, lf) and np.array_equal(f, cf)
@@ -187,3 +195,37 @@ def test_the_true_surfaces_are_moved_to_the_model_frame_one_case_at_a_time(tmp_p
     with process_pool(2) as pool:
         assert evaluate_state(state, config, prepared, pool=pool, background=False) == here
         assert evaluate_state(state, config, prepared, pool=pool).result() == here
+    # the surfaces and their copy stay in the frame they were made in as the state moves on
+    pose = state.examples[0].pose
+    state.examples[0].pose = Pose(pose.scale, pose.rotation, pose.translation + 5.0)
+    assert not np.array_equal(state.to_model_frame(0, prepared[0].surface()[0]), eager[0][0])
+    assert np.array_equal(lazy[0][0], eager[0][0]) and np.array_equal(copied[0][0], eager[0][0])
+
+
+def test_an_evaluation_in_the_background_holds_no_copy_of_the_true_surfaces(tmp_path):
+    """While a baseline's evaluation waits on the pool (the whole optimisation), the build keeps
+    its arguments: the surfaces among them are the prepared cases' own meshes and the poses, not
+    the meshes moved to the model frame."""
+    import threading
+    import tracemalloc
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mdlshapemodel.model.evaluation import evaluate_state
+
+    prepared, state, config = surfaces_case(tmp_path)
+    meshes_bytes = sum(v.nbytes + f.nbytes for v, f in (case.surface() for case in prepared))
+    go = threading.Event()
+    with ThreadPoolExecutor(1) as pool:
+        pool.submit(go.wait)                        # the evaluation waits behind this
+        tracemalloc.start()
+        try:
+            before = tracemalloc.get_traced_memory()[0]
+            task = evaluate_state(state, config, prepared, pool=pool)
+            held = tracemalloc.get_traced_memory()[0] - before
+        finally:
+            tracemalloc.stop()
+            go.set()
+        assert "generalization_surface_mm" in task.result()
+    # the aligned shapes (5 x 42 points) and the poses are far smaller than the meshes
+    shapes_bytes = state.aligned_shapes().nbytes
+    assert held < shapes_bytes + 0.5 * meshes_bytes, (held, shapes_bytes, meshes_bytes)

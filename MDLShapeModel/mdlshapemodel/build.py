@@ -40,6 +40,7 @@ from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import Stop, Trace, stop_summary
 from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
 from .kernels import compile_ahead
+from .memory import release_freed_memory
 from .model.evaluation import evaluate_state
 from .model.landmarks import LandmarkCheck, landmark_array, transfer_errors
 from .model.shape_model import ShapeModel
@@ -327,6 +328,7 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
         def checkpoint(state, point, rng, trace):
             folder.save_checkpoint(state, point, rng, trace, print_of)
+            release_freed_memory()      # what the step and the checkpoint's arrays freed
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
                                   evaluate_baseline, resumed, landmarks)
@@ -358,6 +360,7 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
         report(progress, 0.5, "evaluating the model, writing outputs")
         corresponded.state.release_sampling()   # final: its point locators' memory goes
+        release_freed_memory()
         waited = time.perf_counter()
         written = []                            # the files are written while the helper measures
         quality = evaluate_state(
@@ -365,6 +368,7 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
             background=False, jackknife=bool(baselines),
             meanwhile=lambda: written.append(write_shapes(output, corresponded, prepared)))
         written = written[0]
+        release_freed_memory()                  # the evaluation's arrays
         baselines = against_baselines(quality, baselines)
         log.info("evaluated the model in %.1f s (its files written meanwhile)",
                  time.perf_counter() - waited)
@@ -665,6 +669,7 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                        [case.path or case.name for case in prepared])
     if same and not config.allow_duplicates:
         raise BuildError(refusal(same))
+    release_freed_memory()     # the temporaries of the initial correspondence (sphere maps aligned)
     for duplicates in same:
         log.warning("%s: modelled as they are (--allow-duplicates)", duplicates.line())
     if state.guides is not None:

@@ -32,6 +32,7 @@ from concurrent.futures import (FIRST_COMPLETED, BrokenExecutor, CancelledError,
 
 from .cluster import killed_on_cluster, on_cluster
 from .errors import InternalError
+from .memory import release_freed_memory
 from .progress import Progress, report
 
 log = logging.getLogger("mdlshapemodel")
@@ -430,6 +431,16 @@ class _CaseMap:
         return self.died(index, how)
 
 
+def _then_release(function, *arguments):
+    """``function(*arguments)`` where a :class:`Task` runs it (a worker process), then the memory
+    it freed handed back to the operating system (:func:`.memory.release_freed_memory`): an
+    evaluation's arrays, freed in the worker, would otherwise stay resident there."""
+    try:
+        return function(*arguments)
+    finally:
+        release_freed_memory()
+
+
 class Task:
     """``function(*arguments)`` on ``executor`` (None: run here, now); :meth:`result` gives its
     value. Work the executor lost (its worker process died, the executor was broken when the
@@ -448,7 +459,7 @@ class Task:
             self.value, self.arguments = function(*arguments), ()
             return
         try:
-            self.future = executor.submit(function, *arguments)
+            self.future = executor.submit(_then_release, function, *arguments)
         except BrokenExecutor as error:
             self.error = error
 

@@ -638,7 +638,13 @@ class CorrespondenceState:
     def to_model_frame(self, i: int, points: np.ndarray) -> np.ndarray:
         """Points in example i's own coordinates (e.g. its input surface) -> the model frame."""
         centre, factor = self._model_frame()
-        return (self.examples[i].pose.apply(points) - centre) * factor
+        return ModelFrame.moved(self.examples[i].pose, centre, factor, points)
+
+    def model_frame(self) -> "ModelFrame":
+        """The model frame as it is now, with a copy of every example's pose: it moves points
+        as :meth:`to_model_frame` does now, whatever the state does afterwards."""
+        centre, factor = self._model_frame()
+        return ModelFrame(tuple(e.pose.copy() for e in self.examples), centre, factor)
 
     def triangles(self) -> np.ndarray:
         """Connectivity of the concatenated sampling grids of all parts."""
@@ -674,6 +680,26 @@ class CorrespondenceState:
                 part.positions, part.points, part.hint = positions.copy(), points.copy(), hint.copy()
                 part.warps = list(warps)
         self.rebuild()
+
+
+@dataclass(frozen=True)
+class ModelFrame:
+    """Every example's pose and the model frame's centre and scale factor at one moment
+    (:meth:`CorrespondenceState.model_frame`): a few numbers per example, which move a case's
+    own coordinates (its input surface) into the frame of the aligned shapes."""
+
+    poses: tuple          # of Pose, one per example
+    centre: np.ndarray    # (3,) the weighted centroid of the mean shape, after the poses
+    factor: float         # the rescaling to the state's target size
+
+    @staticmethod
+    def moved(pose: Pose, centre: np.ndarray, factor: float, points: np.ndarray) -> np.ndarray:
+        """``points`` moved by ``pose``, then centred on ``centre`` and scaled by ``factor``."""
+        return (pose.apply(points) - centre) * factor
+
+    def to_model_frame(self, i: int, points: np.ndarray) -> np.ndarray:
+        """Points in example i's own coordinates -> the model frame."""
+        return self.moved(self.poses[i], self.centre, self.factor, points)
 
 
 def vertex_measures(points: np.ndarray, cells: np.ndarray) -> np.ndarray:

@@ -24,6 +24,7 @@ import numpy as np
 from ..correspondence import hotloops
 from ..errors import ArgumentError
 from ..parallel import Task
+from ..prepare.case import joined_mesh
 from . import evaluation_kernels
 from .shape_model import ShapeModel
 from .space import ModelSpace, leave_one_out, model_space, space_of, subspace
@@ -490,23 +491,25 @@ def _generalization_shares(shapes: np.ndarray, surfaces, cases, pool) -> tuple:
 
 
 class ModelFrameSurfaces(Sequence):
-    """The true surfaces of prepared cases in the model frame of a correspondence ``state``,
+    """The true surfaces of prepared cases in the model frame of a correspondence ``state`` as
+    it is when this is made
+    (:meth:`~mdlshapemodel.correspondence.state.CorrespondenceState.model_frame`),
     case i moved there when asked for: a list of them all would hold n_s more meshes through
-    the evaluation, which measures one case at a time (:mod:`.surface_measures`). Pickled (to a
-    pool's process) as that list, so that the copy does not follow the state as it changes."""
+    the evaluation, which measures one case at a time (:mod:`.surface_measures`). It holds the
+    prepared cases' own meshes and the poses, not copies of the meshes; so does its pickle (for
+    a pool's process), and neither follows the state as it changes afterwards."""
 
     def __init__(self, state, prepared: list):
-        self.state, self.prepared = state, prepared
+        self.frame = state.model_frame()
+        self.meshes = [case.meshes() for case in prepared]
 
     def __len__(self) -> int:
-        return len(self.prepared)
+        return len(self.meshes)
 
     def __getitem__(self, i: int):
-        vertices, faces = self.prepared[i].surface()
-        return self.state.to_model_frame(i, vertices), faces
-
-    def __reduce__(self):
-        return list, (list(self),)
+        meshes = self.meshes[i]       # one part: its own triangles, not a copy
+        vertices, faces = meshes[0] if len(meshes) == 1 else joined_mesh(meshes)
+        return self.frame.to_model_frame(i, vertices), faces
 
 
 def evaluate_state(state, config, prepared: list | None = None,
@@ -530,9 +533,7 @@ def evaluate_state(state, config, prepared: list | None = None,
     surfaces = None
     # (curves: the measures between the sample points only)
     if prepared is not None and config.surface_samples > 0 and not prepared[0].is_curve:
-        surfaces = ModelFrameSurfaces(state, prepared)
-        if pool is not None and background:     # the state may change while it runs
-            surfaces = list(surfaces)
+        surfaces = ModelFrameSurfaces(state, prepared)   # (the state may change meanwhile)
     arguments = (aligned, state.weights.copy(), model.variances, config.evaluation_modes,
                  config.specificity_samples, np.random.default_rng(config.seed),
                  state.triangles().copy(), surfaces, config.surface_samples)

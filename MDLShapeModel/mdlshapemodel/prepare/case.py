@@ -42,6 +42,14 @@ class PreparedPart:
                 "labels": None if self.labels is None else list(self.labels)}
 
 
+def joined_mesh(meshes: list) -> tuple[np.ndarray, np.ndarray]:
+    """One mesh of several, (vertices, triangles) each: their vertices in order, each one's
+    triangles renumbered after the vertices before it."""
+    offsets = np.cumsum([0] + [len(vertices) for vertices, _ in meshes[:-1]])
+    return (np.concatenate([vertices for vertices, _ in meshes]),
+            np.concatenate([faces + offset for (_, faces), offset in zip(meshes, offsets)]))
+
+
 @dataclass
 class PreparedCase:
     """One case after preprocessing: the surface and sphere map of each of its parts (one for a
@@ -96,10 +104,13 @@ class PreparedCase:
         return isinstance(self.parts[0].map, curve.CurveMap)
 
     def surface(self) -> tuple[np.ndarray, np.ndarray]:
-        """The vertices and triangles of every part's surface, as one mesh."""
-        offsets = np.cumsum([0] + [len(p.map.vertices) for p in self.parts[:-1]])
-        return (np.concatenate([p.map.vertices for p in self.parts]),
-                np.concatenate([p.map.faces + offset for p, offset in zip(self.parts, offsets)]))
+        """The vertices and triangles of every part's surface, as one mesh (new arrays)."""
+        return joined_mesh(self.meshes())
+
+    def meshes(self) -> list:
+        """Each part's surface, (vertices, triangles): the sphere maps' own arrays, not copies
+        (read-only by convention); :func:`joined_mesh` of them is :meth:`surface`."""
+        return [(p.map.vertices, p.map.faces) for p in self.parts]
 
     @property
     def labels(self) -> tuple | None:
