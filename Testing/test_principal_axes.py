@@ -1,5 +1,6 @@
 """One decomposition of the aligned shapes for a model and its evaluation
-(model.space.principal_axes, ShapeModel.from_axes, evaluate's ``axes``)."""
+(model.space.principal_axes, ShapeModel.from_axes, evaluate's ``axes``), and the jackknife's
+subspaces (model.space.subspace_coordinates)."""
 
 import numpy as np
 import pytest
@@ -7,7 +8,8 @@ import pytest
 from mdlshapemodel.errors import ArgumentError
 from mdlshapemodel.model.evaluation import evaluate
 from mdlshapemodel.model.shape_model import NEGLIGIBLE_VARIANCE, ShapeModel
-from mdlshapemodel.model.space import ROUNDING_VARIANCE, model_space, principal_axes
+from mdlshapemodel.model.space import (ROUNDING_VARIANCE, model_space, principal_axes,
+                                       subspace_coordinates)
 
 
 def population(rng, n_s=12, n_p=20, duplicate=True):
@@ -86,3 +88,12 @@ def test_the_decomposition_of_other_shapes_or_a_share_below_rounding_is_refused(
     with pytest.raises(ArgumentError, match="below the rounding share"):
         ShapeModel.from_axes(axes, weights, negligible=ROUNDING_VARIANCE / 10)
 
+
+def test_a_subspace_has_the_coordinates_of_the_model_space_of_its_shapes():
+    shapes, weights = population(np.random.default_rng(7), n_s=15, duplicate=False)
+    keep = np.delete(np.arange(15), [2, 9])
+    turned = subspace_coordinates(model_space(shapes, weights), keep)
+    direct = model_space(shapes[keep], weights).coordinates
+    assert turned.shape == direct.shape
+    # the same up to the sign of each axis
+    np.testing.assert_allclose(np.abs(turned), np.abs(direct), atol=1e-10)

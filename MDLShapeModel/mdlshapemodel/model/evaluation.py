@@ -27,7 +27,7 @@ from ..parallel import Task
 from . import evaluation_kernels
 from .shape_model import ShapeModel, kept_variances
 from .space import (ModelSpace, PrincipalAxes, leave_one_out, model_space, principal_axes,
-                    space_of, subspace)
+                    space_of, subspace_coordinates)
 from .surface_measures import (joined_generalization, surface_generalization,
                                surface_specificity)
 
@@ -174,7 +174,7 @@ def generalization_jackknife(space: ModelSpace, max_modes: int,
     count = min(n_s, groups)
     group_of = np.arange(n_s) % count
     left_out = np.array([
-        _squared_per_case(subspace(space, np.flatnonzero(group_of != g)).coordinates,
+        _squared_per_case(subspace_coordinates(space, np.flatnonzero(group_of != g)),
                           max_modes).mean(axis=0) for g in range(count)])
     return GeneralizationJackknife(_squared_per_case(space.coordinates, max_modes), left_out)
 

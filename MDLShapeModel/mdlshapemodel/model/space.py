@@ -168,15 +168,16 @@ def _downdated_modes(d: np.ndarray, v: np.ndarray, rho: float, count: int):
     return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
 
 
-def subspace(space: ModelSpace, keep) -> ModelSpace:
-    """The :class:`ModelSpace` of the shapes ``keep`` (indices) alone, from that of all of them.
+def subspace_coordinates(space: ModelSpace, keep) -> np.ndarray:
+    """The coordinates of the :class:`ModelSpace` of the shapes ``keep`` (indices) alone, from
+    that of all of them (the leave-one-out errors of :func:`leave_one_out` need no more).
 
     Their coordinates are centred on their own mean and turned to their principal axes; the turn
-    is orthogonal, so every measure comes out as from :func:`model_space` of those shapes, in
-    O(n_s r^2) instead of a decomposition of the shapes.
+    is orthogonal, so every measure in model space comes out as from :func:`model_space` of
+    those shapes, in O(n_s r^2) instead of a decomposition of the shapes.
     """
     coordinates = space.coordinates[np.asarray(keep)]
     coordinates = coordinates - coordinates.mean(axis=0)
-    u, singular, vt = np.linalg.svd(coordinates, full_matrices=False)
+    u, singular, _ = np.linalg.svd(coordinates, full_matrices=False)
     nonzero = modes_kept(singular)
-    return ModelSpace(u[:, nonzero] * singular[nonzero], vt[nonzero] @ space.to_points)
+    return u[:, nonzero] * singular[nonzero]
