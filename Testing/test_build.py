@@ -9,6 +9,7 @@ import SimpleITK as sitk
 from mdlshapemodel import BuildConfig, ShapeModel, build_model
 from mdlshapemodel.correspondence.strategies.base import PhasePoint
 from mdlshapemodel.folders import read_checkpoint
+from mdlshapemodel.kernels import compile_ahead
 from mdlshapemodel.prepare.io import read_csv
 from mdlshapemodel.errors import BuildError
 
@@ -283,3 +284,27 @@ def test_mirrored_inputs_are_modelled_with_their_other_side(tmp_path):
     aligned = {n: polydata_triangles(output / "aligned" / f"{n}.vtp")[0] for n in ("left_0", "right_0")}
     assert np.mean(np.linalg.norm(aligned["left_0"] - aligned["right_0"], axis=1)) < 0.5
     assert result.metrics["n_shapes"] == 4
+
+
+def test_one_decomposition_of_the_shapes_per_correspondence(population, tmp_path, monkeypatch):
+    """The model and its evaluation share one SVD of the n_s x 3 n_p aligned shapes, and the
+    baseline's evaluation (the initial correspondence), which needs no model, makes one more:
+    two in a build with one baseline, where each model and model space made its own."""
+    _, paths = population
+    points = 42
+    decomposed = []
+    svd = np.linalg.svd
+
+    def counted(a, *args, **kwargs):
+        if np.ndim(a) == 2 and np.shape(a) == (len(paths), 3 * points):
+            decomposed.append(np.shape(a))
+        return svd(a, *args, **kwargs)
+
+    compile_ahead(build_model, second_process=False)     # its own tiny build: not counted
+    monkeypatch.setattr(np.linalg, "svd", counted)
+    result = build_model(paths, tmp_path / "out",
+                         BuildConfig(points=points, max_time=0, workers=1, baselines=["none"],
+                                     specificity_samples=100, evaluation_modes=2))
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert "none" in metrics["baselines"] and result.model.n_modes == len(paths) - 1
+    assert len(decomposed) == 2

@@ -44,6 +44,7 @@ from .memory import release_freed_memory
 from .model.evaluation import evaluate_state
 from .model.landmarks import LandmarkCheck, landmark_array, transfer_errors
 from .model.shape_model import ShapeModel
+from .model.space import PrincipalAxes, principal_axes
 from .folders import BuildFolder, Checkpoint, find_inputs
 from .outputs import BuildResult, against_baselines, write_outputs, write_shapes
 from .cluster import client_of, dask_executor
@@ -365,7 +366,7 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         written = []                            # the files are written while the helper measures
         quality = evaluate_state(
             corresponded.state, config, prepared, corresponded.model, pool=pool,
-            background=False, jackknife=bool(baselines),
+            background=False, jackknife=bool(baselines), axes=corresponded.axes,
             meanwhile=lambda: written.append(write_shapes(output, corresponded, prepared)))
         written = written[0]
         release_freed_memory()                  # the evaluation's arrays
@@ -557,6 +558,8 @@ class Correspondence:
     optimisation: OptimisationEnd   # converged or what stopped it
     objective_points: int        # the sample points (all parts) the objectives are measured on
     landmarks: dict | None = None   # case name -> the Landmarks that guided it (None: unguided)
+    axes: PrincipalAxes | None = None   # the decomposition ``model`` was made from, which its
+    #                                     evaluation's measures share (None: not known)
 
     @property
     def initial_objective(self) -> float:
@@ -766,10 +769,12 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
     named = parts if len(parts) > 1 else ()
     ending = OptimisationEnd(trace.stopped_by, config.max_time, config.max_sweeps,
                              trace.last.wall_seconds if trace.rows else 0.0)
-    return Correspondence(state, shape_model_of(state, config, final, voxel, data_range, named),
+    axes = principal_axes(state.aligned_shapes(), state.weights)   # one SVD: model, evaluation
+    return Correspondence(state, shape_model_of(state, config, final, voxel, data_range, named,
+                                                axes),
                           initial_parts, final_parts, voxel, data_range, trace, ending,
                           state.n_points if coarse is None else coarse * len(state.grids),
-                          landmarks if state.guides is not None else None)
+                          landmarks if state.guides is not None else None, axes)
 
 
 def described(parts: ObjectiveParts) -> str:
@@ -779,8 +784,10 @@ def described(parts: ObjectiveParts) -> str:
 
 
 def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: float,
-                   voxel_size: float, data_range: float, part_names=()) -> ShapeModel:
-    """The shape model of a correspondence: the area-weighted PCA of its aligned shapes, with the
+                   voxel_size: float, data_range: float, part_names=(),
+                   axes: PrincipalAxes | None = None) -> ShapeModel:
+    """The shape model of a correspondence: the area-weighted PCA of its aligned shapes (from
+    their :func:`~.model.space.principal_axes` ``axes``, when known), with the
     sampling grid's triangles and sphere positions, the case names, the part names of a
     multi-part object, the guided landmarks' rows, and as metadata the
     objective, the method (the strategy, or "cpd"), the voxel size, the data range and the
@@ -789,14 +796,16 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
     # the prior's weight as applied, so that ``fit`` applies the same whatever the default
     config = replace(config, smoothness=config.smoothness_for(curves=state.planar,
                                                               guided=state.guides is not None))
-    model = ShapeModel.from_shapes(state.aligned_shapes(), state.weights,
-                                   names=[e.name for e in state.examples],
-                                   triangles=state.triangles(),
-                                   part_sizes=[len(p) for p, _ in state.grids],
-                                   part_names=part_names,
-                                   objective=objective, strategy=method, voxel_size_mm=voxel_size,
-                                   data_range_mm=data_range,
-                                   config=json.dumps(config.to_dict()))
+    if axes is None:
+        axes = principal_axes(state.aligned_shapes(), state.weights)
+    model = ShapeModel.from_axes(axes, state.weights,
+                                 names=[e.name for e in state.examples],
+                                 triangles=state.triangles(),
+                                 part_sizes=[len(p) for p, _ in state.grids],
+                                 part_names=part_names,
+                                 objective=objective, strategy=method, voxel_size_mm=voxel_size,
+                                 data_range_mm=data_range,
+                                 config=json.dumps(config.to_dict()))
     model.parameters = np.concatenate([points for points, _ in state.grids])
     if state.guides is not None:
         model.landmarks = {label: int(row) for label, row in zip(state.guides.labels,

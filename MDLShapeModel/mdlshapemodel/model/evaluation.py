@@ -8,7 +8,7 @@ Everything is computed in model space: the n_s training shapes span an (n_s - 1)
 affine space, and the leave-one-out models and the specificity samples all live in it, so squared
 distances are computed from (n_s - 1)-vectors. Only the mm point-to-point distances need the points.
 :func:`evaluate` computes the :class:`ModelSpace` once for all its measures, with BLAS on one
-thread.
+thread, or takes it from the decomposition that made the model (:class:`PrincipalAxes`).
 
 Beyond the paper, :func:`evaluate` also measures the same reconstructions and samples surface to
 surface against the true training surfaces (:mod:`.surface_measures`).
@@ -26,8 +26,9 @@ from ..errors import ArgumentError
 from ..parallel import Task
 from ..prepare.case import joined_mesh
 from . import evaluation_kernels
-from .shape_model import ShapeModel
-from .space import ModelSpace, leave_one_out, model_space, space_of, subspace
+from .shape_model import ShapeModel, kept_variances
+from .space import (ModelSpace, PrincipalAxes, leave_one_out, model_space, principal_axes,
+                    space_of, subspace_coordinates)
 from .surface_measures import (joined_generalization, surface_generalization,
                                surface_specificity)
 
@@ -174,7 +175,7 @@ def generalization_jackknife(space: ModelSpace, max_modes: int,
     count = min(n_s, groups)
     group_of = np.arange(n_s) % count
     left_out = np.array([
-        _squared_per_case(subspace(space, np.flatnonzero(group_of != g)).coordinates,
+        _squared_per_case(subspace_coordinates(space, np.flatnonzero(group_of != g)),
                           max_modes).mean(axis=0) for g in range(count)])
     return GeneralizationJackknife(_squared_per_case(space.coordinates, max_modes), left_out)
 
@@ -330,11 +331,12 @@ def _mean_and_error(squared: np.ndarray, distance: np.ndarray, n: int) -> dict:
             "distance": distance.mean(axis=0), "distance_se": distance.std(axis=0, ddof=1) * scale}
 
 
-def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max_modes: int = 10,
-             n_samples: int = 10_000, rng: np.random.Generator | None = None,
+def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray | None,
+             max_modes: int = 10, n_samples: int = 10_000, rng: np.random.Generator | None = None,
              triangles: np.ndarray | None = None, surfaces=None,
              surface_samples: int = 1000, pool=None, jackknife: bool = False,
-             generalization_cases: int | None = None, meanwhile=None) -> dict:
+             generalization_cases: int | None = None, meanwhile=None,
+             axes: PrincipalAxes | None = None) -> dict:
     """Compactness, generalization and specificity for M = 1..max_modes, as JSON-ready lists.
 
     Parameters
@@ -343,8 +345,10 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         Aligned, corresponded training shapes.
     weights : ndarray (n_p,)
         Area measure of the points.
-    variances : ndarray
-        Model variances lambda_m (for compactness).
+    variances : ndarray or None
+        Model variances lambda_m (for compactness); None: those of the model of the shapes
+        (:func:`~.shape_model.kept_variances` of their decomposition, which the measures use
+        anyway: no model needs to be built to be evaluated).
     max_modes : int
         Largest M (at most n_s - 1).
     n_samples : int
@@ -383,6 +387,10 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
         Called without arguments once the surface measures are on the ``pool``, before the
         measures of this process (e.g. writing files while the pool measures), with BLAS on
         the caller's threads (the measures here use one).
+    axes : PrincipalAxes, optional
+        The shapes' :func:`~.space.principal_axes` (e.g. those their model was made from,
+        :meth:`~.shape_model.ShapeModel.from_shapes`): their model space is then not computed
+        again.
 
     Returns
     -------
@@ -397,6 +405,12 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
     max_modes = max(1, min(max_modes, n_s - 1))
     if surfaces is not None and triangles is None:
         raise ArgumentError("surface measures need the triangles of the corresponded points")
+    if axes is not None and (axes.mean.shape != np.shape(shapes)[1:]
+                             or len(axes.space.coordinates) != n_s
+                             or not np.array_equal(axes.mean, np.mean(shapes, axis=0))):
+        raise ArgumentError("the principal axes given are not those of the shapes evaluated "
+                            f"({len(axes.space.coordinates)} shapes of {len(axes.mean)} points "
+                            f"for {n_s} of {len(shapes[0])}, or another mean)")
     rng = np.random.default_rng(0) if rng is None else rng
     # BLAS on one thread, as in a pool's worker: the surface generalization may have the other
     # core, where threaded BLAS costs many times what it gains, and the numbers are then those a
@@ -412,19 +426,22 @@ def evaluate(shapes: np.ndarray, weights: np.ndarray, variances: np.ndarray, max
 
         return _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles,
                          surfaces, surface_samples, pool, jackknife, generalization_cases,
-                         None if meanwhile is None else with_callers_threads)
+                         None if meanwhile is None else with_callers_threads, axes)
 
 
 def _evaluate(shapes, weights, variances, max_modes, n_samples, rng, triangles, surfaces,
-              surface_samples, pool, jackknife, generalization_cases, meanwhile) -> dict:
+              surface_samples, pool, jackknife, generalization_cases, meanwhile, axes) -> dict:
     import copy
 
     n_s = len(shapes)
     surface_rng = copy.deepcopy(rng)            # the surface samples repeat the first point samples
     # a spawned generator leaves rng's own stream as it is
     cases = leave_out_cases(n_s, generalization_cases, rng.spawn(1)[0])
-    # one model space for every measure, wherever it runs
-    space = model_space(shapes, weights)
+    # one model space for every measure, wherever it runs (and the model's variances with it)
+    axes = principal_axes(shapes, weights) if axes is None else axes
+    space = axes.space
+    if variances is None:
+        variances = kept_variances(axes.singular, n_s)
     pool_part, here = None, None
     if surfaces is not None:
         # the longest measures, started first: on the pool when there is one, in one piece of
@@ -514,9 +531,11 @@ class ModelFrameSurfaces(Sequence):
 
 def evaluate_state(state, config, prepared: list | None = None,
                    model: ShapeModel | None = None, pool=None, background: bool = True,
-                   jackknife: bool = False, meanwhile=None):
+                   jackknife: bool = False, meanwhile=None, axes: PrincipalAxes | None = None):
     """Compactness, generalization and specificity of the state's aligned shapes (``model``: the
-    model of those shapes, when already built). With ``prepared`` (the cases, in the state's
+    model of those shapes, when already built, for its variances; none is built otherwise;
+    ``axes``: the :func:`~.space.principal_axes` it was made from, which the measures then
+    share instead of decomposing the shapes again). With ``prepared`` (the cases, in the state's
     order) and ``config.surface_samples`` > 0, also measured surface to surface; with
     ``jackknife``, also the generalization's jackknife (:func:`evaluate`), to tell another
     correspondence of the same cases apart from this one (:func:`measure_differences`).
@@ -528,17 +547,17 @@ def evaluate_state(state, config, prepared: list | None = None,
     called while the pool measures (:func:`evaluate`).
     """
     aligned = state.aligned_shapes()
-    if model is None:
-        model = ShapeModel.from_shapes(aligned, state.weights)
     surfaces = None
     # (curves: the measures between the sample points only)
     if prepared is not None and config.surface_samples > 0 and not prepared[0].is_curve:
         surfaces = ModelFrameSurfaces(state, prepared)   # (the state may change meanwhile)
-    arguments = (aligned, state.weights.copy(), model.variances, config.evaluation_modes,
+    arguments = (aligned, state.weights.copy(), None if model is None else model.variances,
+                 config.evaluation_modes,
                  config.specificity_samples, np.random.default_rng(config.seed),
                  state.triangles().copy(), surfaces, config.surface_samples)
     if pool is not None and background:
         return Task(pool, evaluate, *arguments, None, jackknife, config.generalization_cases,
-                    what="an evaluation")
+                    None, axes, what="an evaluation")
     return evaluate(*arguments, pool=pool, jackknife=jackknife,
-                    generalization_cases=config.generalization_cases, meanwhile=meanwhile)
+                    generalization_cases=config.generalization_cases, meanwhile=meanwhile,
+                    axes=axes)

@@ -64,7 +64,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ArgumentError, InputError
+from ..errors import ArgumentError, InputError, InternalError
+from .space import ROUNDING_VARIANCE, PrincipalAxes, principal_axes
 
 NATIVE_GROUP = "mdlshapemodel"
 FORMAT_VERSION = 2
@@ -79,6 +80,22 @@ REPRESENTER_VERSION = "0.1"
 # divides by its variance, would be decided by it alone. The smallest modes of distinct cases
 # are orders of magnitude above it (docs/method.md).
 NEGLIGIBLE_VARIANCE = 1e-6
+
+
+def kept_variances(singular: np.ndarray, n_shapes: int,
+                   negligible: float = NEGLIGIBLE_VARIANCE) -> np.ndarray:
+    """The variances lambda_m = s_m^2 / n_s of a model of n_s shapes whose centred, area-weighted
+    coordinates have the singular values s (descending), those above ``negligible`` of the
+    total: the model's modes (:meth:`ShapeModel.from_shapes`), and all its evaluation's
+    compactness needs (:func:`~.evaluation.evaluate`).
+
+    Examples
+    --------
+    >>> kept_variances(np.array([2.0, 1.0, 1e-4]), 4).tolist()
+    [1.0, 0.25]
+    """
+    variances = np.asarray(singular, dtype=np.float64) ** 2 / n_shapes
+    return variances[variances > negligible * variances.sum()]
 
 
 @dataclass
@@ -160,19 +177,38 @@ class ShapeModel:
                     part_names=None, **metadata):
         """Area-weighted PCA of aligned shapes (n_s, n_p, 3) (eq. 1-3 with the inner product of
         eq. 15), keeping the modes whose variance is above ``negligible`` of the total
-        (:data:`NEGLIGIBLE_VARIANCE`): at most n_s - 1, fewer when shapes nearly coincide."""
-        shapes = np.asarray(shapes, dtype=np.float64)
-        n_s, n_p, _ = shapes.shape
-        mean = shapes.mean(axis=0)
-        root = np.sqrt(weights)[None, :, None]
-        z = ((shapes - mean) * root).reshape(n_s, -1)
-        u, singular, vt = np.linalg.svd(z, full_matrices=False)
-        variances = singular ** 2 / n_s
-        keep = variances > negligible * variances.sum()
-        modes = vt[keep].reshape(-1, n_p, 3) / root
-        scores = u[:, keep] * singular[keep]
-        return cls(mean=mean, modes=modes, variances=variances[keep], weights=np.asarray(weights),
-                   scores=scores, names=list(names or [f"case_{i}" for i in range(n_s)]),
+        (:func:`kept_variances`): at most n_s - 1, fewer when shapes nearly coincide. The model
+        :meth:`from_axes` of their :func:`~.space.principal_axes`."""
+        return cls.from_axes(principal_axes(shapes, weights), weights, names, triangles,
+                             part_sizes, negligible, parameters, part_names, **metadata)
+
+    @classmethod
+    def from_axes(cls, axes: PrincipalAxes, weights: np.ndarray, names=None, triangles=None,
+                  part_sizes=None, negligible: float = NEGLIGIBLE_VARIANCE, parameters=None,
+                  part_names=None, **metadata):
+        """The model of :meth:`from_shapes` from the shapes' :func:`~.space.principal_axes`
+        (computed once for the model and its evaluation, :func:`~.evaluation.evaluate`).
+
+        Its modes and scores are views of the leading rows of ``axes.space.to_points`` and
+        columns of ``axes.space.coordinates`` (in the SVD's column-major order, as
+        :meth:`from_shapes` always made them); ``negligible`` must be at least
+        :data:`~.space.ROUNDING_VARIANCE`, below which the model space holds no direction."""
+        if not negligible >= ROUNDING_VARIANCE:
+            raise ArgumentError(f"negligible variance share {negligible} below the rounding "
+                                f"share {ROUNDING_VARIANCE}: the model space holds no such mode")
+        space = axes.space
+        n_s, n_p = len(space.coordinates), len(axes.mean)
+        if np.shape(weights) != (n_p,):
+            raise ArgumentError(f"weights of shape {np.shape(weights)} for {n_p} points")
+        variances = kept_variances(axes.singular, n_s, negligible)
+        m = len(variances)
+        if m > space.coordinates.shape[1]:     # negligible >= ROUNDING_VARIANCE rules it out
+            raise InternalError(f"the model keeps {m} modes, its model space only "
+                                f"{space.coordinates.shape[1]}")
+        return cls(mean=axes.mean, modes=space.to_points[:m].reshape(m, n_p, 3),
+                   variances=variances, weights=np.asarray(weights),
+                   scores=space.coordinates[:, :m],
+                   names=list(names or [f"case_{i}" for i in range(n_s)]),
                    triangles=triangles, part_sizes=list(part_sizes or [n_p]), metadata=metadata,
                    parameters=parameters, part_names=list(part_names or []))
 

@@ -46,14 +46,44 @@ class ModelSpace:
     to_points: np.ndarray
 
 
-def model_space(shapes: np.ndarray, weights: np.ndarray) -> ModelSpace:
-    """The :class:`ModelSpace` of aligned, corresponded shapes (n_s, n_p, 3) with area weights."""
+@dataclass(frozen=True)
+class PrincipalAxes:
+    """One singular value decomposition of aligned shapes, for both their model and their
+    model space.
+
+    ``mean`` (n_p, 3): the mean shape; ``singular``: every singular value of the centred,
+    area-weighted shapes (n_s x 3 n_p), descending (the model's variances are their squares over
+    n_s, :meth:`.shape_model.ShapeModel.from_shapes`); ``space``: the :class:`ModelSpace` of the
+    directions above :data:`ROUNDING_VARIANCE`. A model keeps a leading part of those directions
+    (:data:`.shape_model.NEGLIGIBLE_VARIANCE` is above :data:`ROUNDING_VARIANCE`), so its modes
+    and scores are ``space.to_points`` and ``space.coordinates`` cut to its modes, and its
+    evaluation (:func:`.evaluation.evaluate`) needs no decomposition of its own.
+    """
+
+    mean: np.ndarray
+    singular: np.ndarray
+    space: ModelSpace
+
+
+def principal_axes(shapes: np.ndarray, weights: np.ndarray) -> PrincipalAxes:
+    """The :class:`PrincipalAxes` of aligned, corresponded shapes (n_s, n_p, 3) with area
+    weights (n_p,): one SVD of the n_s x 3 n_p centred shapes, each coordinate scaled by the
+    square root of its point's weight (the inner product of eq. 15)."""
+    shapes = np.asarray(shapes, dtype=np.float64)
     n_s, n_p, _ = shapes.shape
+    mean = shapes.mean(axis=0)
     root = np.sqrt(weights)
-    z = ((shapes - shapes.mean(axis=0)) * root[None, :, None]).reshape(n_s, -1)
+    z = ((shapes - mean) * root[None, :, None]).reshape(n_s, -1)
     u, singular, vt = np.linalg.svd(z, full_matrices=False)
     keep = modes_kept(singular)
-    return ModelSpace(u[:, keep] * singular[keep], vt[keep] / np.repeat(root, 3))
+    return PrincipalAxes(mean, singular,
+                         ModelSpace(u[:, keep] * singular[keep], vt[keep] / np.repeat(root, 3)))
+
+
+def model_space(shapes: np.ndarray, weights: np.ndarray) -> ModelSpace:
+    """The :class:`ModelSpace` of aligned, corresponded shapes (n_s, n_p, 3) with area weights
+    (that of their :func:`principal_axes`)."""
+    return principal_axes(shapes, weights).space
 
 
 def space_of(shapes: np.ndarray, weights: np.ndarray, space: ModelSpace | None):
@@ -138,15 +168,16 @@ def _downdated_modes(d: np.ndarray, v: np.ndarray, rho: float, count: int):
     return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
 
 
-def subspace(space: ModelSpace, keep) -> ModelSpace:
-    """The :class:`ModelSpace` of the shapes ``keep`` (indices) alone, from that of all of them.
+def subspace_coordinates(space: ModelSpace, keep) -> np.ndarray:
+    """The coordinates of the :class:`ModelSpace` of the shapes ``keep`` (indices) alone, from
+    that of all of them (the leave-one-out errors of :func:`leave_one_out` need no more).
 
     Their coordinates are centred on their own mean and turned to their principal axes; the turn
-    is orthogonal, so every measure comes out as from :func:`model_space` of those shapes, in
-    O(n_s r^2) instead of a decomposition of the shapes.
+    is orthogonal, so every measure in model space comes out as from :func:`model_space` of
+    those shapes, in O(n_s r^2) instead of a decomposition of the shapes.
     """
     coordinates = space.coordinates[np.asarray(keep)]
     coordinates = coordinates - coordinates.mean(axis=0)
-    u, singular, vt = np.linalg.svd(coordinates, full_matrices=False)
+    u, singular, _ = np.linalg.svd(coordinates, full_matrices=False)
     nonzero = modes_kept(singular)
-    return ModelSpace(u[:, nonzero] * singular[nonzero], vt[nonzero] @ space.to_points)
+    return u[:, nonzero] * singular[nonzero]
