@@ -4,7 +4,9 @@ first 82 shared hippocampi (or ``--cases`` label maps of ``--data``).
 
 Variants: ``default``; ``rounds2`` (at most two rounds per level instead of three); ``fixedN`` and
 ``integratedN`` (N passes over the levels in the fixed-Delta or the full objective's phase);
-``iterationsN`` (at most N quasi-Newton iterations per round). Variants joined by "+"
+``iterationsN`` (at most N quasi-Newton iterations per round); ``toleranceX`` (a level's rounds,
+and the passes, end once one gains less than X of the phase's gain; the default 0.001). Variants
+joined by "+"
 apply together (``fixed1+integrated2``). Each variant runs in a fresh process; the preprocessing
 cache is reused between runs.
 
@@ -37,6 +39,7 @@ def _use(name: str) -> None:
 
     original = strategies.PHASES["fast"]
     numbered = re.fullmatch(r"(fixed|integrated|iterations)(\d+)", name)
+    tolerance = re.fullmatch(r"tolerance(\d*\.\d+)", name)
     if name == "rounds2":
         strategies.PHASES["fast"] = lambda *a, **k: original(*a, rounds_per_level=2, **k)
     elif numbered:
@@ -49,6 +52,10 @@ def _use(name: str) -> None:
                 settings = replace(settings, field_passes=number)
             return original(state, objective, settings, *a, **k)
         strategies.PHASES["fast"] = phase
+    elif tolerance:
+        value = float(tolerance.group(1))
+        strategies.PHASES["fast"] = lambda state, objective, settings, *a, **k: original(
+            state, objective, replace(settings, tolerance=value), *a, **k)
     elif name != "default":
         raise SystemExit(f"unknown variant {name!r}")
 
