@@ -4,12 +4,20 @@ first 82 shared hippocampi (or ``--cases`` label maps of ``--data``).
 
 Variants: ``default``; ``rounds2`` (at most two rounds per level instead of three); ``fixedN`` and
 ``integratedN`` (N passes over the levels in the fixed-Delta or the full objective's phase);
-``iterationsN`` (at most N quasi-Newton iterations per round). Variants joined by "+"
-apply together (``fixed1+integrated2``). Each variant runs in a fresh process; the preprocessing
-cache is reused between runs.
+``iterationsN`` (at most N quasi-Newton iterations per round); ``toleranceX`` (a level's rounds,
+and the passes, end once one gains less than X of the phase's gain; the default 0.001). Variants
+joined by "+" apply together (``fixed1+integrated2``). Each variant runs in a fresh process; the
+preprocessing cache is reused between runs.
 
     python benchmarks/fast_variants.py default rounds2 fixed1 iterations30+integrated3
     python benchmarks/fast_variants.py default --data /tmp/pop1000/labels --cases 250 --label 1
+
+``cli VARIANT -- ARGUMENTS`` runs the command line in this process with the variant applied, so
+that a whole build (its model, metrics.json and correspondence meshes) can be judged by
+``ground_truth.py evaluate`` and ``landmarks.py evaluate``:
+
+    python benchmarks/fast_variants.py cli iterations10 -- build /tmp/gt-femur/labels \
+        -o /tmp/schedule/gt-iterations10 --baselines ""
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ def _use(name: str) -> None:
 
     original = strategies.PHASES["fast"]
     numbered = re.fullmatch(r"(fixed|integrated|iterations)(\d+)", name)
+    tolerance = re.fullmatch(r"tolerance(\d*\.\d+)", name)
     if name == "rounds2":
         strategies.PHASES["fast"] = lambda *a, **k: original(*a, rounds_per_level=2, **k)
     elif numbered:
@@ -49,6 +58,10 @@ def _use(name: str) -> None:
                 settings = replace(settings, field_passes=number)
             return original(state, objective, settings, *a, **k)
         strategies.PHASES["fast"] = phase
+    elif tolerance:
+        value = float(tolerance.group(1))
+        strategies.PHASES["fast"] = lambda state, objective, settings, *a, **k: original(
+            state, objective, replace(settings, tolerance=value), *a, **k)
     elif name != "default":
         raise SystemExit(f"unknown variant {name!r}")
 
@@ -85,6 +98,13 @@ def run(name: str, data: Path = DATA, cases: int = 82, labels=(1, 2), max_time: 
 
 if __name__ == "__main__":
     import argparse
+
+    if sys.argv[1:2] == ["cli"]:
+        if len(sys.argv) < 4 or sys.argv[3] != "--":
+            raise SystemExit("usage: fast_variants.py cli VARIANT -- ARGUMENTS OF mdlshapemodel")
+        from mdlshapemodel.cli import main
+        use_variant(sys.argv[2])
+        sys.exit(main(sys.argv[4:]))
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("variants", nargs="*", default=["default", "rounds2", "fixed1"])
