@@ -145,6 +145,9 @@ def test_a_cold_kernel_cache_is_announced_and_compiled_once_before_the_workers(t
     # the second process of the compilation also compiled analyze --tfce's kernel, which no
     # build calls
     assert any(path.name.startswith("tfce._enhance_rows") for path in compiled)
+    # and the kernel that replays field warps on another sampling, which the tiny build of the
+    # compilation does not reach and a larger build does (the model's points when written)
+    assert any(path.name.startswith("hotloops.field_map") for path in compiled)
     warm = run_cli("build", tmp_path / "in", "-o", tmp_path / "warm", *quick, env=environment)
     assert warm.returncode == 0, warm.stderr
     assert COMPILING not in warm.stderr

@@ -9,9 +9,11 @@ would spend. :func:`compile_ahead` instead says so in one line and compiles them
 process, before a build starts its worker processes, by a build of three tiny generated label
 maps (the code paths of a real build), so that the workers, the optimisation and the evaluation
 load them from the cache. Two cores share the compilation: this process compiles the sphere
-map's kernels first (:func:`compile_sphere_map`) while a second one compiles the remeshing's,
-the evaluation's and the one of ``analyze --tfce`` (:func:`compile_beside`); the tiny build then
-loads those and compiles the rest.
+map's kernels first (:func:`compile_sphere_map`) while a second one compiles the remeshing's
+(:func:`compile_remeshing`); the tiny build starts once those are in the cache (the remeshing
+is its first step) and compiles the optimisation's, while the second process compiles the
+evaluation's, the field replay's and the one of ``analyze --tfce`` (:func:`compile_beside`),
+which the tiny build then loads.
 
 Whether the cache is warm is read from a marker file written once that compilation has
 succeeded, beside numba's cache and named after what numba's cache depends on: the kernels'
@@ -140,28 +142,37 @@ def compile_sphere_map() -> None:
     """Compile the sphere map's kernels (:func:`~.prepare.sphere.sphere_map`: the distortion's
     minimiser, the largest of all, and the area balance) into numba's cache by mapping a small
     generated ellipsoid. :func:`compile_ahead` calls it before its tiny build, while
-    :func:`compile_beside` compiles the remeshing's in a second process."""
+    :func:`compile_remeshing` runs in a second process."""
     from .prepare.sphere import sphere_map
 
     sphere_map(*ellipsoid(2, (12.0, 7.0, 5.0)))
 
 
-def compile_beside() -> None:
-    """Compile into numba's cache the kernels of the remeshing
-    (:func:`~.prepare.surface.remesh`), of the model's evaluation with its surface measures
-    (:func:`~.model.evaluation.evaluate`) and of TFCE (:func:`~.analysis.tfce.enhance`), by
-    calling them on small generated ellipsoids: arrays of the types a build and ``analyze`` pass.
-
-    :func:`compile_ahead` runs it in a second process while it compiles the sphere map's kernels
-    (:func:`compile_sphere_map`) and then the others by its tiny build: the tiny build reaches
-    the remeshing's after that, and the evaluation's last (TFCE's never), and loads them from the
-    cache when this process has compiled them by then."""
-    from .analysis.tfce import enhance, surface_of
-    from .model.evaluation import evaluate
+def compile_remeshing() -> None:
+    """Compile the remeshing's kernels (:func:`~.prepare.surface.remesh`) into numba's cache by
+    remeshing a small generated ellipsoid (edges of 0.5-2 mm: splits, collapses, flips).
+    :func:`compile_ahead` runs it in a second process while it compiles the sphere map's
+    kernels, and starts its tiny build, whose first step is the remeshing, once it is done."""
     from .prepare.surface import remesh
 
-    vertices, faces = ellipsoid(3, (12.0, 7.0, 5.0))
-    remesh(vertices, faces, 1.2)              # edges of 0.5-2 mm: splits, collapses, flips
+    remesh(*ellipsoid(3, (12.0, 7.0, 5.0)), 1.2)
+
+
+def compile_beside() -> None:
+    """Compile into numba's cache the kernels of the model's evaluation with its surface
+    measures (:func:`~.model.evaluation.evaluate`), of a field warp's replay
+    (:func:`~.correspondence.fields.apply_field`) and of TFCE (:func:`~.analysis.tfce.enhance`),
+    by calling them on small generated ellipsoids: arrays of the types a build and ``analyze``
+    pass.
+
+    :func:`compile_ahead` runs it in a second process after :func:`compile_remeshing`, while its
+    tiny build compiles the optimisation's kernels: the tiny build reaches the evaluation's
+    last (the replay's and TFCE's never), and loads them from the cache when this process has
+    compiled them by then."""
+    from .analysis.tfce import enhance, surface_of
+    from .correspondence.fields import apply_field
+    from .model.evaluation import evaluate
+
     surfaces = [ellipsoid(2, (12.0 + k, 7.0, 5.0 - 0.5 * k)) for k in range(4)]
     shapes = np.stack([ellipsoid(1, (12.0 + k, 7.0, 5.0 - 0.5 * k))[0] for k in range(4)])
     triangles = ellipsoid(1, (1.0, 1.0, 1.0))[1]
@@ -169,18 +180,20 @@ def compile_beside() -> None:
     variances = np.linalg.svd(centred.reshape(len(shapes), -1), compute_uv=False) ** 2 / 4
     evaluate(shapes, np.ones(shapes.shape[1]), variances, max_modes=2, n_samples=20,
              triangles=triangles, surfaces=surfaces, surface_samples=10)
+    apply_field(1, surfaces[0][0] / 12.0, np.full((42, 3), 1e-3))
     surface = surface_of(*surfaces[0])
     enhance(np.linspace(0.0, 3.0, 2 * surface.n_points).reshape(2, -1), surface)
 
 
 def _start_beside():
-    """:func:`compile_beside` submitted to a pool of one worker process, or None where no
-    process can be started (:func:`compile_ahead` then runs it in its own process)."""
+    """:func:`compile_remeshing` then :func:`compile_beside` submitted to a pool of one worker
+    process (the pool, their two futures), or None where no process can be started
+    (:func:`compile_ahead` then runs them in its own process)."""
     from .parallel import ProcessPool
 
     pool = ProcessPool(1)
     try:
-        return pool, pool.submit(compile_beside)
+        return pool, pool.submit(compile_remeshing), pool.submit(compile_beside)
     except Exception as error:  # noqa: BLE001 - the tiny build compiles them instead
         pool.shutdown(wait=False)
         log.info("could not start a second process to compile kernels (%s: %s)",
@@ -188,32 +201,38 @@ def _start_beside():
         return None
 
 
+def _wait_for(future, what: str) -> None:
+    """Wait for one compilation of :func:`_start_beside`'s process; its error is a warning
+    (those kernels compile where they are first used)."""
+    try:
+        future.result()
+    except Exception as error:  # noqa: BLE001 - the user's build goes on without it
+        log.warning("compiling %s kernels ahead failed (%s: %s); they compile where they are "
+                    "first used", what, type(error).__name__, error)
+
+
 def _finish_beside(beside, interrupted: bool) -> None:
     """Wait for :func:`_start_beside`'s process (not after an interruption: it then ends with
-    this process) and shut its pool down; its error is a warning (those kernels compile where
-    they are first used)."""
+    this process) and shut its pool down."""
     if beside is None:
         return
-    pool, future = beside
+    pool, _, rest = beside
     if interrupted:
         pool.shutdown(wait=False, cancel_futures=True)
         return
     try:
-        future.result()
-    except Exception as error:  # noqa: BLE001 - the user's build goes on without it
-        log.warning("compiling the remeshing's, evaluation's and TFCE's kernels ahead failed "
-                    "(%s: %s); they compile where they are first used",
-                    type(error).__name__, error)
+        _wait_for(rest, "the evaluation's, field replay's and TFCE's")
     finally:
         pool.shutdown(wait=True)
 
 
 def compile_ahead(build: Callable, second_process: bool = True) -> bool:
     """Compile the kernels into numba's cache unless it holds them: say so (:data:`COMPILING`,
-    an info line), start :func:`compile_beside` in a second process, :func:`compile_sphere_map`
-    here, run ``build(inputs, output, config)`` (:func:`~.build.build_model`) on
-    :func:`tiny_population` into a temporary folder, silently, wait for the second process, then
-    write the marker. Returns whether it compiled.
+    an info line), start :func:`compile_remeshing` and then :func:`compile_beside` in a second
+    process, :func:`compile_sphere_map` here, wait for the remeshing's, run
+    ``build(inputs, output, config)`` (:func:`~.build.build_model`) on :func:`tiny_population`
+    into a temporary folder, silently, wait for the second process, then write the marker.
+    Returns whether it compiled.
     Inside that build, and when the cache is warm, it does nothing. Without ``second_process``
     (a caller that must start no process: one worker, a script's unguarded top-level code),
     :func:`compile_beside` runs here after the tiny build. An error of the tiny build
@@ -227,12 +246,16 @@ def compile_ahead(build: Callable, second_process: bool = True) -> bool:
     _compiling = True
     beside, interrupted = (_start_beside() if second_process else None), True
     try:
-        with tempfile.TemporaryDirectory(prefix="mdlshapemodel-kernels-") as folder, _silent():
-            compile_sphere_map()
-            build(tiny_population(Path(folder) / "inputs"), Path(folder) / "model",
-                  BuildConfig(**_TINY_BUILD))
-            if beside is None:
-                compile_beside()
+        with tempfile.TemporaryDirectory(prefix="mdlshapemodel-kernels-") as folder:
+            with _silent():
+                compile_sphere_map()
+            if beside is not None:   # the tiny build's first step: loaded, not compiled again
+                _wait_for(beside[1], "the remeshing's")
+            with _silent():
+                build(tiny_population(Path(folder) / "inputs"), Path(folder) / "model",
+                      BuildConfig(**_TINY_BUILD))
+                if beside is None:
+                    compile_beside()
         interrupted = False
     except Exception as error:  # noqa: BLE001 - the user's build goes on without it
         interrupted = False

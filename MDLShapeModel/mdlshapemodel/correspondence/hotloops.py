@@ -303,7 +303,8 @@ def bump_matrix(points, centres, radius):
         if t + count > indices.shape[0]:
             room = max(2 * indices.shape[0], t + count)
             more, wider = np.empty(room, dtype=np.int64), np.empty(room)
-            more[:t], wider[:t] = indices[:t], data[:t]
+            for c in range(t):   # a loop: a slice assignment compiles far more
+                more[c], wider[c] = indices[c], data[c]
             indices, data = more, wider
         for c in range(count):
             indices[t], data[t] = columns[c], values[c]

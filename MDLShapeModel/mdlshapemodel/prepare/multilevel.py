@@ -212,7 +212,8 @@ def simplify(vertices, faces, f_alive, v_alive, head, after, before, valence, re
                 s, t = b, a
             if pool_used + valence[t] > pool.shape[0]:
                 larger = np.empty(2 * pool.shape[0] + valence[t], dtype=np.int64)
-                larger[:pool_used] = pool[:pool_used]
+                for i in range(pool_used):   # a loop: a slice assignment compiles far more
+                    larger[i] = pool[i]
                 pool = larger
             stamp += 2
             used = _collapse(s, t, faces, f_alive, v_alive, head, after, before, valence, mark,

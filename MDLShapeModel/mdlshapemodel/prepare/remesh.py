@@ -371,7 +371,9 @@ def relax_tangentially(position, v_out, to, nxt, v_alive, counts, moved):
             continue
         count = _ring(v, v_out, to, nxt, ring)
         if count < 0:
-            moved[v] = position[v]
+            moved[v, 0] = position[v, 0]   # element by element: a row assignment would
+            moved[v, 1] = position[v, 1]   # compile numba's shape-mismatch message too
+            moved[v, 2] = position[v, 2]
             continue
         cx = cy = cz = 0.0
         nx = ny = nz = 0.0

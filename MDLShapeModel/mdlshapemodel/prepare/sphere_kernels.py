@@ -159,6 +159,17 @@ def balance_objective(v, points, faces, target_log_share, smoothing, gradient):
 
 
 @numba.njit(cache=True)
+def _copy3(out, out_column, v, v_column):
+    """out[:, out_column:out_column + 3] = v[:, v_column:v_column + 3], element by element: a
+    slice assignment between arrays would make numba compile its shape-mismatch message (string
+    formatting), more code than the kernels that copy."""
+    for i in range(out.shape[0]):
+        out[i, out_column] = v[i, v_column]
+        out[i, out_column + 1] = v[i, v_column + 1]
+        out[i, out_column + 2] = v[i, v_column + 2]
+
+
+@numba.njit(cache=True)
 def _tangent(x, v, out):
     """out = v minus its component along x, row by row (out may be v)."""
     for i in range(x.shape[0]):
@@ -289,12 +300,13 @@ def _steepest(x, grad, factor, direction, joint, joint_work):
     """A small first step: minus the (preconditioned, when ``factor`` has pivots) gradient,
     scaled so that no coordinate moves by more than 1e-3; returns its slope. ``joint`` and
     ``joint_work`` are (n, 6) scratch arrays."""
-    direction[:] = grad
+    _copy3(direction, 0, grad, 0)
     if factor[3].shape[0] > 0:
-        joint[:, :3] = grad
+        _copy3(joint, 0, grad, 0)
         joint[:, 3:] = 0.0
         solve_factor(factor[0], factor[1], factor[2], factor[3], factor[4], joint, joint_work)
-        _tangent(x, joint[:, :3], direction)
+        _copy3(direction, 0, joint, 0)
+        _tangent(x, direction, direction)
     direction *= -1e-3 / max(_largest_magnitude(direction), 1e-300)
     return _dot(direction, grad)
 
@@ -334,6 +346,7 @@ def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory, f
     direction = np.empty((n, 3))
     joint = np.empty((n, 6))             # [q, newest y], solved together
     joint_work = np.empty((n, 6))
+    solved_y = np.empty((n, 3))          # A^-1 y of the newest pair, from the joint solve
     trial = np.empty((n, 3))
     trial_grad = np.empty((n, 3))
     history = np.empty(max_iterations + 1)
@@ -342,19 +355,20 @@ def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory, f
     while iterations < max_iterations:
         if stored:
             # two-loop recursion: q = H grad
-            q[:] = grad
+            _copy3(q, 0, grad, 0)
             for k in range(stored):
                 slot = (newest - k) % memory
                 alpha[slot] = rho[slot] * _dot(pairs_s[slot], q)
                 _add_scaled(q, -alpha[slot], pairs_y[slot])
             if preconditioned:
-                joint[:, :3] = q
-                joint[:, 3:] = pairs_y[newest]
+                _copy3(joint, 0, q, 0)
+                _copy3(joint, 3, pairs_y[newest], 0)
                 solve_factor(factor[0], factor[1], factor[2], factor[3], factor[4], joint,
                              joint_work)
-                q[:] = joint[:, :3]
+                _copy3(q, 0, joint, 0)
                 _tangent(x, q, q)
-                gamma = 1.0 / (rho[newest] * _dot(pairs_y[newest], joint[:, 3:]))
+                _copy3(solved_y, 0, joint, 3)
+                gamma = 1.0 / (rho[newest] * _dot(pairs_y[newest], solved_y))
             q *= gamma
             for k in range(stored - 1, -1, -1):
                 slot = (newest - k) % memory
@@ -388,7 +402,7 @@ def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory, f
         _tangent(trial, grad, y)
         y *= -1.0
         _add_scaled(y, 1.0, trial_grad)
-        pairs_s[slot] = trial
+        _copy3(pairs_s[slot], 0, trial, 0)
         _add_scaled(pairs_s[slot], -1.0, x)
         curvature = _dot(pairs_s[slot], y)
         if curvature > 1e-12:
@@ -396,8 +410,8 @@ def lbfgs(x, faces, cot, area, area_weight, max_iterations, tolerance, memory, f
             gamma = curvature / _dot(y, y)   # the preconditioned scale is found with the solve
             newest = slot
             stored = min(stored + 1, memory)
-        x[:] = trial
-        grad[:] = trial_grad
+        _copy3(x, 0, trial, 0)
+        _copy3(grad, 0, trial_grad, 0)
         energy = trial_energy
         iterations += 1
         history[iterations] = energy
