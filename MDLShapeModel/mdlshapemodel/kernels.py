@@ -46,7 +46,7 @@ KERNEL_MODULES = ("prepare/nearest.py", "prepare/remesh.py", "prepare/sphere_ker
                   "model/evaluation_kernels.py", "analysis/tfce.py")
 
 #: what a build with a cold cache says before it compiles
-COMPILING = "compiling numerical kernels (first run only, about a minute)"
+COMPILING = "compiling numerical kernels (first run only, about half a minute of CPU)"
 
 # the tiny build that compiles the kernels: one process, nothing cached but numba's, and the
 # smallest settings that still run every stage (a sweep of the optimisation, the evaluation of
