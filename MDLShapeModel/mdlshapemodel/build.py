@@ -328,8 +328,9 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         resumed = _resumption(folder, print_of) if resume else None
 
         def checkpoint(state, point, rng, trace):
+            # no release here: the next round reuses what this one freed (released, the next
+            # round would only fault it in again)
             folder.save_checkpoint(state, point, rng, trace, print_of)
-            release_freed_memory()      # what the step and the checkpoint's arrays freed
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
                                   evaluate_baseline, resumed, landmarks)

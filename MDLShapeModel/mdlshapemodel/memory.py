@@ -10,6 +10,10 @@ CorrespondenceState.release_sampling`), the evaluations' arrays. Without help, t
 resident memory grows with those frees as if they were still held. :func:`release_freed_memory`
 asks glibc to return the free pages (``malloc_trim``) where the process has glibc; elsewhere
 (macOS, Windows, musl) it does nothing. It moves no data: what a build computes is the same.
+
+It is called where a stage ends and what it freed is not needed again, never inside a loop whose
+next pass reuses the memory (the optimisation's rounds): pages handed back there are only faulted
+in again, and zeroed, by the next round, which costs CPU time and lowers no peak.
 """
 
 from __future__ import annotations
