@@ -48,3 +48,44 @@ def test_memory_freed_between_blocks_in_use_leaves_the_process():
     # 200 MB freed between the blocks kept: most of it leaves the resident set
     assert float(freed) - float(after) > 150.0, run.stdout
 
+
+
+# As FRAGMENTED, twice: after a release, a second fragmenting; a release asked for inside a loop
+# within LOOP_RELEASE_SECONDS of the first does nothing, one without the limit hands it back.
+IN_A_LOOP = textwrap.dedent("""
+    import numpy as np
+    from mdlshapemodel.memory import LOOP_RELEASE_SECONDS, release_freed_memory
+
+    def resident_mb():
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmRSS"):
+                    return int(line.split()[1]) / 1024
+
+    def fragment():
+        blocks = [np.ones(32_768) for _ in range(1600)]
+        del blocks[::2]
+        return blocks
+
+    big = np.ones(2_000_000)
+    del big
+    kept = fragment()
+    first = release_freed_memory(at_most_every=LOOP_RELEASE_SECONDS)
+    kept += fragment()
+    freed = resident_mb()
+    skipped = release_freed_memory(at_most_every=LOOP_RELEASE_SECONDS)
+    after_skip = resident_mb()
+    released = release_freed_memory()
+    print(first, skipped, freed, after_skip, resident_mb(), released)
+""")
+
+
+@pytest.mark.skipif(not has_glibc(), reason="malloc_trim is glibc's")
+def test_a_release_in_a_loop_waits_for_its_interval_and_a_stage_end_does_not():
+    run = subprocess.run([sys.executable, "-c", IN_A_LOOP], capture_output=True, text=True,
+                         timeout=120, check=True)
+    first, skipped, freed, after_skip, after, released = run.stdout.split()
+    # the first release in a loop is made; the next, within the interval, is not
+    assert (first, skipped, released) == ("True", "False", "True"), run.stdout
+    assert float(freed) - float(after_skip) < 20.0, run.stdout
+    assert float(after_skip) - float(after) > 150.0, run.stdout

@@ -40,7 +40,7 @@ from .correspondence.strategies.base import PhasePoint, Resumption
 from .correspondence.trace import Stop, Trace, stop_summary
 from .errors import BuildError, Cancelled, ConfigError, InputError, InternalError
 from .kernels import compile_ahead
-from .memory import release_freed_memory
+from .memory import LOOP_RELEASE_SECONDS, release_freed_memory
 from .model.evaluation import evaluate_state
 from .model.landmarks import LandmarkCheck, landmark_array, transfer_errors
 from .model.shape_model import ShapeModel
@@ -328,9 +328,9 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         resumed = _resumption(folder, print_of) if resume else None
 
         def checkpoint(state, point, rng, trace):
-            # no release here: the next round reuses what this one freed (released, the next
-            # round would only fault it in again)
             folder.save_checkpoint(state, point, rng, trace, print_of)
+            # what the round and the checkpoint freed, most of it reused by the next round
+            release_freed_memory(at_most_every=LOOP_RELEASE_SECONDS)
 
         corresponded = correspond(prepared, config, progress, executor, checkpoint,
                                   evaluate_baseline, resumed, landmarks)

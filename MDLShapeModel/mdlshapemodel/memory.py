@@ -11,17 +11,26 @@ resident memory grows with those frees as if they were still held. :func:`releas
 asks glibc to return the free pages (``malloc_trim``) where the process has glibc; elsewhere
 (macOS, Windows, musl) it does nothing. It moves no data: what a build computes is the same.
 
-It is called where a stage ends and what it freed is not needed again, never inside a loop whose
-next pass reuses the memory (the optimisation's rounds): pages handed back there are only faulted
-in again, and zeroed, by the next round, which costs CPU time and lowers no peak.
+Where a stage ends, what it freed is not needed again and is handed back at once. Inside a loop
+whose next pass reuses what this one freed (the optimisation's rounds, after each checkpoint),
+the pages handed back are faulted in again, and zeroed, by the next pass: there a release is
+asked for with ``at_most_every`` (:data:`LOOP_RELEASE_SECONDS`), so that short passes, whose
+refaulting would be a large share of their time, release rarely, and long ones (a large
+population's rounds) still bound what the allocator keeps.
 """
 
 from __future__ import annotations
 
 import ctypes
 import sys
+import time
 
-__all__ = ["release_freed_memory"]
+__all__ = ["LOOP_RELEASE_SECONDS", "release_freed_memory"]
+
+#: the least time between two releases asked for inside a loop (``at_most_every``): a release
+#: there costs about as much as faulting in again the pages it hands back, so at most one a
+#: minute keeps that a small share of any loop whose passes reuse their memory
+LOOP_RELEASE_SECONDS = 60.0
 
 
 def _malloc_trim():
@@ -37,10 +46,34 @@ def _malloc_trim():
 
 
 _TRIM = _malloc_trim()
+_LAST = None         # time.monotonic() of this process's last release
 
 
-def release_freed_memory() -> bool:
+def release_freed_memory(at_most_every: float | None = None) -> bool:
     """Return the C library's free memory to the operating system (glibc's ``malloc_trim(0)``:
-    the free pages of every heap, not only the top); whether any was returned (False where the
-    C library has no such call)."""
-    return bool(_TRIM(0)) if _TRIM is not None else False
+    the free pages of every heap, not only the top).
+
+    Parameters
+    ----------
+    at_most_every : float, optional
+        Seconds: do nothing if the last release of this process was more recent (for calls
+        inside a loop, :data:`LOOP_RELEASE_SECONDS`). None: release now.
+
+    Returns
+    -------
+    bool
+        Whether any memory was returned (False where the C library has no such call, or the
+        release was skipped).
+
+    Examples
+    --------
+    >>> from mdlshapemodel.memory import release_freed_memory
+    >>> released = release_freed_memory()     # after a stage's large frees
+    """
+    global _LAST
+    now = time.monotonic()
+    if _TRIM is None or (at_most_every is not None and _LAST is not None
+                         and now - _LAST < at_most_every):
+        return False
+    _LAST = now
+    return bool(_TRIM(0))
