@@ -15,20 +15,22 @@ def has_glibc() -> bool:
     return sys.platform.startswith("linux")
 
 
-# In a fresh process: many arrays of 256 KB from glibc's heap (a 16 MB array freed first lifts
-# its threshold for mapping blocks on their own), every other one freed, so the free memory lies
-# between blocks still in use, as after a build's stage. Prints the resident MB after the frees
-# and after release_freed_memory.
-FRAGMENTED = textwrap.dedent("""
+# what both scripts below start with: the process's resident MB
+RESIDENT = textwrap.dedent("""
     import numpy as np
-    from mdlshapemodel.memory import release_freed_memory
+    from mdlshapemodel.memory import LOOP_RELEASE_SECONDS, release_freed_memory
 
     def resident_mb():
         with open("/proc/self/status") as status:
             for line in status:
                 if line.startswith("VmRSS"):
                     return int(line.split()[1]) / 1024
-
+""")
+# In a fresh process: many arrays of 256 KB from glibc's heap (a 16 MB array freed first lifts
+# its threshold for mapping blocks on their own), every other one freed, so the free memory lies
+# between blocks still in use, as after a build's stage. Prints the resident MB after the frees
+# and after release_freed_memory.
+FRAGMENTED = RESIDENT + textwrap.dedent("""
     big = np.ones(2_000_000)
     del big
     blocks = [np.ones(32_768) for _ in range(1600)]          # 400 MB of 256 KB each
@@ -52,16 +54,7 @@ def test_memory_freed_between_blocks_in_use_leaves_the_process():
 
 # As FRAGMENTED, twice: after a release, a second fragmenting; a release asked for inside a loop
 # within LOOP_RELEASE_SECONDS of the first does nothing, one without the limit hands it back.
-IN_A_LOOP = textwrap.dedent("""
-    import numpy as np
-    from mdlshapemodel.memory import LOOP_RELEASE_SECONDS, release_freed_memory
-
-    def resident_mb():
-        with open("/proc/self/status") as status:
-            for line in status:
-                if line.startswith("VmRSS"):
-                    return int(line.split()[1]) / 1024
-
+IN_A_LOOP = RESIDENT + textwrap.dedent("""
     def fragment():
         blocks = [np.ones(32_768) for _ in range(1600)]
         del blocks[::2]
