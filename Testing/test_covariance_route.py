@@ -110,13 +110,8 @@ def test_past_the_switch_the_result_is_the_same_on_any_number_of_threads(rng):
     np.testing.assert_allclose(grad, expected, atol=1e-9 * np.abs(expected).max())
 
 
-def optimised_past_the_switch(workers: int) -> tuple:
-    """A short fast-strategy optimisation of 40 surfaces on 12 points (36 coordinates: past the
-    switch) with objectives of ``workers`` threads: (final F, evaluations, names of the threads
-    it started, the threads running before it, those running after it)."""
-    state = small_state(n=40, points=12)
-    assert state.by_covariance
-    objectives = build_objectives(state, BuildConfig(workers=workers))
+def threads_started(run) -> tuple:
+    """(the result of ``run()``, the names of the threads it started)."""
     started = []
     previous = threading.gettrace()
 
@@ -125,13 +120,24 @@ def optimised_past_the_switch(workers: int) -> tuple:
         started.append(threading.current_thread().name)
         sys.settrace(previous)
 
-    settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=2)
-    before = set(threading.enumerate())
     threading.settrace(seen)
     try:
-        final = optimise(state, objectives, settings, np.random.default_rng(0), Trace())
+        return run(), started
     finally:
         threading.settrace(previous)
+
+
+def optimised_past_the_switch(workers: int) -> tuple:
+    """A short fast-strategy optimisation of 40 surfaces on 12 points (36 coordinates: past the
+    switch) with objectives of ``workers`` threads: (final F, evaluations, names of the threads
+    it started, the threads running before it, those running after it)."""
+    state = small_state(n=40, points=12)
+    assert state.by_covariance
+    objectives = build_objectives(state, BuildConfig(workers=workers))
+    settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=2)
+    before = set(threading.enumerate())
+    final, started = threads_started(
+        lambda: optimise(state, objectives, settings, np.random.default_rng(0), Trace()))
     return final, state.evaluations, started, before, set(threading.enumerate())
 
 
@@ -149,19 +155,7 @@ def test_an_optimisation_keeps_one_pool_of_threads_per_objective_and_ends_them()
 
 def pools_started(run) -> tuple:
     """(the result of ``run()``, how many pools of threads it started threads of)."""
-    started = []
-    previous = threading.gettrace()
-
-    def seen(frame, event, arg):
-        """Called at the start of every thread started through ``threading``."""
-        started.append(threading.current_thread().name)
-        sys.settrace(previous)
-
-    threading.settrace(seen)
-    try:
-        result = run()
-    finally:
-        threading.settrace(previous)
+    result, started = threads_started(run)
     # a ThreadPoolExecutor's threads are named after it: "ThreadPoolExecutor-<pool>_<thread>"
     return result, len({name.rsplit("_", 1)[0] for name in started})
 
