@@ -5,11 +5,13 @@ import json
 import numpy as np
 import pytest
 
-from mdlshapemodel.compare import load_population, write_comparison
+from threadpoolctl import threadpool_limits
+
+from mdlshapemodel.compare import compare_builds, load_population, write_comparison
 from mdlshapemodel.report.compare import Population, compare_populations, comparison_rows
 from mdlshapemodel.errors import InputError
 from mdlshapemodel.model.evaluation import (evaluate, generalization, generalization_difference,
-                                           generalization_jackknife)
+                                           generalization_jackknife, measure_differences)
 from mdlshapemodel.model.space import model_space
 from mdlshapemodel.model.shape_model import ShapeModel
 from mdlshapemodel.correspondence.sampling import sphere_grid
@@ -197,3 +199,47 @@ def test_write_comparison_and_load_population(tmp_path):
     assert (tmp_path / "cmp" / "compare.csv").read_text().startswith("measure,M,model")
     with pytest.raises(InputError, match="no model.h5"):
         load_population(tmp_path / "cmp")
+
+
+def test_one_decomposition_per_population_gives_the_numbers_of_a_model_and_its_own_measures(
+        tmp_path, monkeypatch):
+    """compare decomposes each population's n_s x 3 n_p shapes once, for the model's variances,
+    the measures and the generalization's jackknife, where a model of the shapes, its
+    evaluation and the jackknife's model space made one each; the numbers are theirs (computed
+    here on one BLAS thread, as evaluate computes its measures: threaded BLAS may change the
+    last bits of a decomposition beyond about 200 shapes)."""
+    a, b = noisy_pair(np.random.default_rng(8), 9, 1.5)
+    for population in (a, b):
+        folder = tmp_path / population.label
+        folder.mkdir()
+        ShapeModel.from_shapes(population.shapes, population.weights, names=population.names,
+                               strategy="none").save(folder / "model.h5")
+    populations = [load_population(tmp_path / p.label) for p in (a, b)]
+    modes, samples = 4, 300
+    decomposed = []
+    svd = np.linalg.svd
+
+    def counted(matrix, *args, **kwargs):
+        if np.shape(matrix) == (len(a.names), a.shapes[0].size):
+            decomposed.append(np.shape(matrix))
+        return svd(matrix, *args, **kwargs)
+
+    monkeypatch.setattr(np.linalg, "svd", counted)
+    result, _ = compare_builds([tmp_path / "a", tmp_path / "b"], tmp_path / "cmp", modes, samples)
+    assert len(decomposed) == 2
+    monkeypatch.undo()
+
+    expected, jackknifes = {}, {}
+    with threadpool_limits(limits=1, user_api="blas"):
+        for population in populations:
+            shapes, weights = population.shapes, population.weights
+            expected[population.label] = evaluate(
+                shapes, weights, ShapeModel.from_shapes(shapes, weights).variances, modes,
+                samples, np.random.default_rng(0))
+            jackknifes[population.label] = generalization_jackknife(
+                model_space(shapes, weights), modes)
+    assert result["models"] == expected
+    first, second = (p.label for p in populations)
+    assert result["differences"] == {second: measure_differences(
+        expected[first], expected[second], jackknifes[first], jackknifes[second])}
+    assert any(result["differences"][second]["generalization"]["significant"])

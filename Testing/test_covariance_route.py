@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
+from mdlshapemodel.build import correspond
 from mdlshapemodel.config import BuildConfig, OptimisationSettings
 from mdlshapemodel.correspondence.objective import Objective, covariance_route
 from mdlshapemodel.geometry import centroid_size
@@ -15,8 +16,10 @@ from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.correspondence.state import CorrespondenceState, FixedExample
 from mdlshapemodel.correspondence.strategies import optimise
 from mdlshapemodel.correspondence.trace import Trace
+from mdlshapemodel.correspondence.initial import initial_state
+from mdlshapemodel.prepare.case import PreparedCase, PreparedPart
 
-from synthetic import build_objectives, small_state
+from synthetic import build_objectives, small_maps, small_state
 
 OBJECTIVES = [
     Objective("fixed", 10.0, delta=0.05),
@@ -107,13 +110,8 @@ def test_past_the_switch_the_result_is_the_same_on_any_number_of_threads(rng):
     np.testing.assert_allclose(grad, expected, atol=1e-9 * np.abs(expected).max())
 
 
-def optimised_past_the_switch(workers: int) -> tuple:
-    """A short fast-strategy optimisation of 40 surfaces on 12 points (36 coordinates: past the
-    switch) with objectives of ``workers`` threads: (final F, evaluations, names of the threads
-    it started, the threads running before it, those running after it)."""
-    state = small_state(n=40, points=12)
-    assert state.by_covariance
-    objectives = build_objectives(state, BuildConfig(workers=workers))
+def threads_started(run) -> tuple:
+    """(the result of ``run()``, the names of the threads it started)."""
     started = []
     previous = threading.gettrace()
 
@@ -122,13 +120,24 @@ def optimised_past_the_switch(workers: int) -> tuple:
         started.append(threading.current_thread().name)
         sys.settrace(previous)
 
-    settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=2)
-    before = set(threading.enumerate())
     threading.settrace(seen)
     try:
-        final = optimise(state, objectives, settings, np.random.default_rng(0), Trace())
+        return run(), started
     finally:
         threading.settrace(previous)
+
+
+def optimised_past_the_switch(workers: int) -> tuple:
+    """A short fast-strategy optimisation of 40 surfaces on 12 points (36 coordinates: past the
+    switch) with objectives of ``workers`` threads: (final F, evaluations, names of the threads
+    it started, the threads running before it, those running after it)."""
+    state = small_state(n=40, points=12)
+    assert state.by_covariance
+    objectives = build_objectives(state, BuildConfig(workers=workers))
+    settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=2)
+    before = set(threading.enumerate())
+    final, started = threads_started(
+        lambda: optimise(state, objectives, settings, np.random.default_rng(0), Trace()))
     return final, state.evaluations, started, before, set(threading.enumerate())
 
 
@@ -142,6 +151,37 @@ def test_an_optimisation_keeps_one_pool_of_threads_per_objective_and_ends_them()
     assert len(started) <= 3 * 2, started
     assert after == before
     assert final == optimised_past_the_switch(workers=1)[0]
+
+
+def pools_started(run) -> tuple:
+    """(the result of ``run()``, how many pools of threads it started threads of)."""
+    result, started = threads_started(run)
+    # a ThreadPoolExecutor's threads are named after it: "ThreadPoolExecutor-<pool>_<thread>"
+    return result, len({name.rsplit("_", 1)[0] for name in started})
+
+
+def test_a_build_measures_eq14_before_and_after_on_its_optimisations_pool():
+    """Past the switch, correspond measures eq. 14 before and after the optimisation on the
+    threads of the optimisation's own objective (no pool of their own), with the bits of a
+    measure on a pool of its own."""
+    config = BuildConfig(points=12, workers=2, max_sweeps=1, baselines=[])
+    prepared = [PreparedCase(f"case_{k}", [PreparedPart("", f"case_{k}", sphere_map)], 1.0)
+                for k, sphere_map in enumerate(small_maps(40))]
+    state, objectives = initial_state(prepared, config)[:2]
+    assert state.by_covariance
+    initial = state.objective_parts(objectives[1]).total    # a pool of its own
+    settings = config.optimisation_settings()
+    _, optimisation_pools = pools_started(lambda: optimise(
+        state, objectives, settings, np.random.default_rng(config.seed), Trace()))
+    state.rebuild()                  # as correspond does once the optimisation has ended
+    final = state.objective_parts(objectives[1]).total
+
+    result, pools = pools_started(lambda: correspond(prepared, config))
+    assert state.evaluations > 20 and optimisation_pools >= 2
+    assert pools == optimisation_pools
+    assert result.initial_objective == initial
+    assert result.final_objective == final
+    np.testing.assert_array_equal(result.state.aligned_shapes(), state.aligned_shapes())
 
 
 def test_the_switch_is_where_shapes_outnumber_coordinates():

@@ -695,78 +695,81 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         return (current if coarse is None
                 else coarse_view(current, coarse)).objective_parts(integrated)
 
-    initial_parts = measured(state)
-    initial = initial_parts.total
-    log.info("initial objective %.4f (%s; n_s=%d, n_p=%d%s, voxel %.3f mm, range %.2f mm)",
-             initial, described(initial_parts), state.n_shapes, state.n_points,
-             "" if coarse is None else f", measured on {coarse} points per part", voxel,
-             data_range)
-    wanted = config.baselines if baselines is not None else []
-    if "none" in wanted and (config.strategy != "none" or config.correspondence == "cpd"):
-        log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
-        baselines("none", state, {"objective": initial})
-    cpd = None
-    if "cpd" in wanted and curves:
-        log.warning("no CPD baseline for 2-D curves (it registers surfaces)")
-        wanted = [name for name in wanted if name != "cpd"]
-    if config.correspondence == "cpd" or "cpd" in wanted:
-        cpd, template = cpd_state(state, prepared, config, executor, progress)
-        if config.correspondence != "cpd":
-            log.info("evaluating the CPD template correspondence as a baseline")
+    # one pool of threads for every measure of F past the covariance route: before, of the
+    # CPD baseline, throughout the optimisation (whose pooled objective nests in it) and after
+    with integrated.pooled():
+        initial_parts = measured(state)
+        initial = initial_parts.total
+        log.info("initial objective %.4f (%s; n_s=%d, n_p=%d%s, voxel %.3f mm, range %.2f mm)",
+                 initial, described(initial_parts), state.n_shapes, state.n_points,
+                 "" if coarse is None else f", measured on {coarse} points per part", voxel,
+                 data_range)
+        wanted = config.baselines if baselines is not None else []
+        if "none" in wanted and (config.strategy != "none" or config.correspondence == "cpd"):
+            log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
+            baselines("none", state, {"objective": initial})
+        cpd = None
+        if "cpd" in wanted and curves:
+            log.warning("no CPD baseline for 2-D curves (it registers surfaces)")
+            wanted = [name for name in wanted if name != "cpd"]
+        if config.correspondence == "cpd" or "cpd" in wanted:
+            cpd, template = cpd_state(state, prepared, config, executor, progress)
+            if config.correspondence != "cpd":
+                log.info("evaluating the CPD template correspondence as a baseline")
+                try:
+                    objective = measured(cpd).total
+                except ValueError:      # the coarse grid is not within the build's (not icospheres)
+                    objective = cpd.objective_parts(integrated).total
+                    log.info("the CPD baseline's objective is measured on its %d points per part",
+                             len(cpd.grids[0][0]))
+                baselines("cpd", cpd, {"objective": objective,
+                                       "template": template})
+
+        trace = Trace()
+        if config.correspondence == "cpd":
+            state = cpd
+            state.objective = integrated
+            initial_parts = final_parts = state.objective_parts()
+            initial = final = final_parts.total
+            trace.record(state, final, "integrated", 0)
+            log.info("CPD correspondence (template %s): objective %.4f", template, final)
+        else:
+            rng = np.random.default_rng(config.seed)
+            resumption = None
+            if resume is not None:
+                rng.bit_generator.state = resume.rng_state
+                trace.rows = list(resume.trace_rows)
+                elapsed = trace.rows[-1].wall_seconds if trace.rows else 0.0
+                trace.start_wall -= elapsed
+                trace.start_cpu -= trace.rows[-1].cpu_seconds if trace.rows else 0.0
+                resumption = Resumption(resume.point, resume.record, resume.evaluations, elapsed)
+
+            def save(point, current=None):
+                """Checkpoint ``point``, reached in ``current`` (the optimisation's coarse stage's
+                own state; by default ``state``)."""
+                if checkpoint is not None:
+                    checkpoint(state if current is None else current, point, rng, trace)
+
             try:
-                objective = measured(cpd).total
-            except ValueError:      # the coarse grid is not within the build's (not icospheres)
-                objective = cpd.objective_parts(integrated).total
-                log.info("the CPD baseline's objective is measured on its %d points per part",
-                         len(cpd.grids[0][0]))
-            baselines("cpd", cpd, {"objective": objective,
-                                   "template": template})
-
-    trace = Trace()
-    if config.correspondence == "cpd":
-        state = cpd
-        state.objective = integrated
-        initial_parts = final_parts = state.objective_parts()
-        initial = final = final_parts.total
-        trace.record(state, final, "integrated", 0)
-        log.info("CPD correspondence (template %s): objective %.4f", template, final)
-    else:
-        rng = np.random.default_rng(config.seed)
-        resumption = None
-        if resume is not None:
-            rng.bit_generator.state = resume.rng_state
-            trace.rows = list(resume.trace_rows)
-            elapsed = trace.rows[-1].wall_seconds if trace.rows else 0.0
-            trace.start_wall -= elapsed
-            trace.start_cpu -= trace.rows[-1].cpu_seconds if trace.rows else 0.0
-            resumption = Resumption(resume.point, resume.record, resume.evaluations, elapsed)
-
-        def save(point, current=None):
-            """Checkpoint ``point``, reached in ``current`` (the optimisation's coarse stage's
-            own state; by default ``state``)."""
-            if checkpoint is not None:
-                checkpoint(state if current is None else current, point, rng, trace)
-
-        try:
-            optimise(state, (fixed, integrated), settings, rng, trace, progress, save,
-                     resume=resumption, cluster=client_of(executor))
-        except (KeyboardInterrupt, Cancelled):
-            trace.stopped_by = Stop.INTERRUPTED
-        if resume is None or resume.point.phase != PhasePoint.DONE:
-            state.rebuild()  # also makes the state consistent after an interruption mid-step
-        final_parts = measured(state)
-        final = final_parts.total
-        log.info("final objective %.4f (%s) after %.1f s, %d evaluations; optimisation %s", final,
-                 described(final_parts),
-                 trace.last.wall_seconds if trace.rows else 0.0, state.evaluations,
-                 stop_summary(trace.stopped_by))
-        if final > initial and not math.isclose(final, initial, rel_tol=OBJECTIVE_RTOL):
-            log.info("F ended above the initial correspondence's (%.4f): the fixed-Delta "
-                     "phase trades the smallest modes' description length for a more compact "
-                     "model; generalization and specificity against the initial correspondence's "
-                     "(the report) say which model is better", initial)
-        if trace.stopped_by in (None, Stop.CONVERGED):   # else its last step's checkpoint stays
-            save(PhasePoint(PhasePoint.DONE, trace.last.sweep if trace.rows else 0))
+                optimise(state, (fixed, integrated), settings, rng, trace, progress, save,
+                         resume=resumption, cluster=client_of(executor))
+            except (KeyboardInterrupt, Cancelled):
+                trace.stopped_by = Stop.INTERRUPTED
+            if resume is None or resume.point.phase != PhasePoint.DONE:
+                state.rebuild()  # also makes the state consistent after an interruption mid-step
+            final_parts = measured(state)
+            final = final_parts.total
+            log.info("final objective %.4f (%s) after %.1f s, %d evaluations; optimisation %s",
+                     final, described(final_parts),
+                     trace.last.wall_seconds if trace.rows else 0.0, state.evaluations,
+                     stop_summary(trace.stopped_by))
+            if final > initial and not math.isclose(final, initial, rel_tol=OBJECTIVE_RTOL):
+                log.info("F ended above the initial correspondence's (%.4f): the fixed-Delta "
+                         "phase trades the smallest modes' description length for a more "
+                         "compact model; generalization and specificity against the initial "
+                         "correspondence's (the report) say which model is better", initial)
+            if trace.stopped_by in (None, Stop.CONVERGED):   # else the last step's checkpoint stays
+                save(PhasePoint(PhasePoint.DONE, trace.last.sweep if trace.rows else 0))
     named = parts if len(parts) > 1 else ()
     ending = OptimisationEnd(trace.stopped_by, config.max_time, config.max_sweeps,
                              trace.last.wall_seconds if trace.rows else 0.0)

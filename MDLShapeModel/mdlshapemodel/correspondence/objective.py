@@ -29,8 +29,9 @@ n_s x d data A (A^T A, the coded values A W and the gradient Y M) run in fixed b
 ``Objective.threads`` threads, each block on one BLAS thread: the blocks do not depend on the
 number of threads, so neither do the results (threaded BLAS itself gives other bits on 2 threads
 than on 1). The d x d eigendecomposition stays on one thread. Within :meth:`Objective.pooled`
-(the whole of :func:`~.strategies.optimise`) every evaluation uses one pool of threads;
-outside it, each evaluation past the switch starts and ends its own.
+(the whole of :func:`~.strategies.optimise`; for eq. 14, the whole of a build's
+:func:`~mdlshapemodel.build.correspond`, which measures it before and after) every evaluation
+uses one pool of threads; outside it, each evaluation past the switch starts and ends its own.
 """
 
 from __future__ import annotations

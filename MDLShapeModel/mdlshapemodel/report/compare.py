@@ -26,10 +26,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..folders import BuildFolder
-from ..model.evaluation import (COMPARED_MEASURES, SIGNIFICANT_SE, evaluate,
-                                generalization_jackknife, measure_differences, verdict)
-from ..model.space import model_space
-from ..model.shape_model import ShapeModel
+from ..model.evaluation import (COMPARED_MEASURES, SIGNIFICANT_SE, evaluate, measure_differences,
+                                verdict)
 
 MEASURES = COMPARED_MEASURES
 # the jackknife of the generalization difference leaves each case out and then each other case:
@@ -77,11 +75,12 @@ def compare_populations(populations: list, max_modes: int = 10, n_samples: int =
     for population, position in zip(populations, positions):
         index = [position[n] for n in shared]
         shapes = population.shapes[index]
-        variances = ShapeModel.from_shapes(shapes, population.weights).variances
-        models[population.label] = evaluate(shapes, population.weights, variances, max_modes,
-                                            n_samples, np.random.default_rng(seed))
-        jackknifes[population.label] = generalization_jackknife(
-            model_space(shapes, population.weights), len(models[population.label]["modes"]))
+        # one decomposition of the shapes serves the model's variances (variances=None: the
+        # rule of ShapeModel.from_shapes), every measure and the generalization's jackknife
+        measures = evaluate(shapes, population.weights, None, max_modes, n_samples,
+                            np.random.default_rng(seed), jackknife=True)
+        jackknifes[population.label] = measures.pop("jackknife")     # not JSON
+        models[population.label] = measures
     reference = populations[0].label
     differences = {label: measure_differences(models[reference], values, jackknifes[reference],
                                               jackknifes[label])

@@ -97,7 +97,8 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
     where threaded BLAS costs more than it gains (measured: a 40 x 40 eigh takes 0.2 ms on one
     thread and 7 ms on two when another process is busy on the second core). Each objective's
     threads past the covariance route are one pool for the whole optimisation
-    (:meth:`~..objective.Objective.pooled`), ended with it.
+    (:meth:`~..objective.Objective.pooled`), ended with it; or the caller's pool, when it holds
+    one (a build keeps eq. 14's for its measures before and after).
 
     ``cluster``, a ``distributed.Client``: the fast strategy's per-example work runs on its
     workers (:mod:`.spread`), with the same result; the other strategies ignore it.
