@@ -127,7 +127,9 @@ def normal_agreement(shapes: np.ndarray, cells: np.ndarray, part_of=None) -> Nor
     shapes = np.asarray(shapes, dtype=np.float64)
     if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) < 2:
         raise ArgumentError("shapes must be (n_s >= 2, n_p, 3)")
-    normals = np.stack([outward_normals(shape, cells, part_of) for shape in shapes])
+    normals = np.empty_like(shapes)        # filled case by case: no list of them to stack
+    for normal, shape in zip(normals, shapes):
+        normal[...] = outward_normals(shape, cells, part_of)
     total = normals.sum(axis=0)
     length = np.linalg.norm(total, axis=1)
     direction = total / np.where(length > 0, length, 1.0)[:, None]
