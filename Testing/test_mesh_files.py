@@ -77,6 +77,26 @@ def test_list_settings_parse_from_text_with_the_fields_rules():
         field_items("warps", " ")
 
 
+@pytest.mark.parametrize("suffix", [".vtp", ".vtk", ".stl", ".ply"])
+def test_writing_a_mesh_loads_vtks_io_modules_not_the_whole_of_vtk(tmp_path, suffix):
+    """A process that writes meshes (a build's, with its files) keeps only the IO modules of VTK
+    resident, not its rendering and the rest (``import vtk``)."""
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "import numpy as np\n"
+              "from mdlshapemodel.prepare import io\n"
+              f"io.write_polydata({str(tmp_path / ('mesh' + suffix))!r}, np.array({VERTICES.tolist()}),"
+              f" np.array({FACES.tolist()}))\n"
+              "print(sorted(m for m in ('vtk', 'vtkmodules.vtkRenderingCore') if m in sys.modules))\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "[]"
+    assert (tmp_path / f"mesh{suffix}").stat().st_size > 0
+
+
 def test_a_written_vtp_is_compressed_at_zlibs_fastest_level_and_reads_back_bit_for_bit(tmp_path):
     """A build writes two .vtp files per case: each array's zlib blocks say the fastest level
     (FLEVEL 0 in the stream header, RFC 1950) and decompress to the values written."""

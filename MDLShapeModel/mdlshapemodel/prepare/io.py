@@ -737,8 +737,14 @@ def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
     arrays stay integer) to .vtp/.vtk/.stl/.ply, saying that the points are LPS
     (:data:`COORDINATE_SYSTEM`) where 3D Slicer looks for it; whole or not at all
     (:func:`written_whole`)."""
-    import vtk
-    from vtk.util.numpy_support import numpy_to_vtk
+    # VTK's IO modules alone, not the whole of ``vtk`` (rendering and the rest: about 90 MB
+    # more resident in a process that only writes meshes, as a build's does with its files)
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonCore import vtkStringArray
+    from vtkmodules.vtkIOGeometry import vtkSTLWriter
+    from vtkmodules.vtkIOLegacy import vtkPolyDataWriter
+    from vtkmodules.vtkIOPLY import vtkPLYWriter
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
 
     from .surface import arrays_to_polydata
 
@@ -754,8 +760,8 @@ def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
         array.SetName(name)
         polydata.GetCellData().AddArray(array)
     suffix = suffix_of(path)
-    writers = {".vtp": vtk.vtkXMLPolyDataWriter, ".vtk": vtk.vtkPolyDataWriter,
-               ".stl": vtk.vtkSTLWriter, ".ply": vtk.vtkPLYWriter}
+    writers = {".vtp": vtkXMLPolyDataWriter, ".vtk": vtkPolyDataWriter,
+               ".stl": vtkSTLWriter, ".ply": vtkPLYWriter}
     if suffix not in writers:
         raise InputError(f"{path}: cannot write meshes of type {suffix!r}")
     writer = writers[suffix]()
@@ -764,7 +770,7 @@ def write_polydata(path, vertices: np.ndarray, faces: np.ndarray | None = None,
         # zlib's fastest level: a build writes two meshes per case, and at VTK's default level
         # (5) compressing them costs about three times as long for files a few percent smaller
         writer.GetCompressor().SetCompressionLevel(1)
-        space = vtk.vtkStringArray()
+        space = vtkStringArray()
         space.SetName(SPACE)
         space.InsertNextValue(COORDINATE_SYSTEM)
         polydata.GetFieldData().AddArray(space)
