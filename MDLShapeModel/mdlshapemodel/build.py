@@ -351,6 +351,10 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
             log.warning("%s", unfinished)
             warnings = [*warnings, unfinished]
         folder.write_convergence(corresponded.trace)
+        # the correspondence is final (the landmark check above was its last use of the point
+        # locators): their memory goes before the wait for the baselines, not after it
+        corresponded.state.release_sampling()
+        release_freed_memory()
         # the evaluation in two steps (the fraction counts them): the baselines' (begun meanwhile),
         # then the model's, with the outputs
         report(progress, 0.0, "evaluating the baselines" if pending else "evaluating")
@@ -361,22 +365,26 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
             log.info("waited %.1f s for the baselines' evaluation", time.perf_counter() - waited)
 
         report(progress, 0.5, "evaluating the model, writing outputs")
-        corresponded.state.release_sampling()   # final: its point locators' memory goes
-        release_freed_memory()
+        release_freed_memory()   # the baselines' arguments, kept here until their results came
         waited = time.perf_counter()
         written = []                            # the files are written while the helper measures
+
+        def files():
+            written.append(write_shapes(output, corresponded, prepared))
+            release_freed_memory()              # their temporaries, before this process measures
+
         quality = evaluate_state(
             corresponded.state, config, prepared, corresponded.model, pool=pool,
-            background=False, jackknife=bool(baselines), axes=corresponded.axes,
-            meanwhile=lambda: written.append(write_shapes(output, corresponded, prepared)))
+            background=False, jackknife=bool(baselines), axes=corresponded.axes, meanwhile=files)
         written = written[0]
         release_freed_memory()                  # the evaluation's arrays
         baselines = against_baselines(quality, baselines)
         log.info("evaluated the model in %.1f s (its files written meanwhile)",
                  time.perf_counter() - waited)
-        result = write_outputs(output, corresponded, rejected, written, quality, baselines,
-                               warnings, checked)
-        report(progress, 1.0, "evaluated, outputs written")
+    # the helper process has ended (its memory with it) before the report is made
+    result = write_outputs(output, corresponded, rejected, written, quality, baselines,
+                           warnings, checked)
+    report(progress, 1.0, "evaluated, outputs written")
     log.info("outputs written to %s in %.1f s total", output, time.perf_counter() - started)
     return result
 
