@@ -105,6 +105,21 @@ def test_the_sample_is_at_evenly_spaced_ranks_of_the_first_modes_weighted_scores
     assert data["cases"] == [names[i] for i in sorted(ranked)]
 
 
+def test_the_sample_scored_a_few_cases_at_a_time_is_that_of_all_at_once(monkeypatch):
+    """shown_cases scores SCORED_AT_ONCE cases at a time (its memory bounded at any population):
+    the scores, and so the sample, are those of the whole population's differences at once."""
+    from mdlshapemodel.report import viewer
+
+    model, shapes, _ = population(n_s=23, n_points=42, seed=5)
+    weighted = np.asarray(model.modes[0]) * np.asarray(model.weights)[:, None]
+    scores = np.einsum("pd,spd->s", weighted, shapes - model.mean)
+    ranks = np.unique(np.rint(np.linspace(0, 22, 6)).astype(np.int64))
+    expected = np.sort(np.argsort(scores, kind="stable")[ranks])
+    for at_once in (1, 4, 23, 100):
+        monkeypatch.setattr(viewer, "SCORED_AT_ONCE", at_once)
+        np.testing.assert_array_equal(viewer.shown_cases(model, shapes, 6), expected)
+
+
 def test_a_sampled_case_is_coloured_by_its_own_distances(monkeypatch):
     from mdlshapemodel.report import viewer
 

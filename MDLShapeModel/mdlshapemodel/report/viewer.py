@@ -34,6 +34,9 @@ MAX_MODES = 10
 # beyond it is shown by a sample of its cases (shown_cases), said on the page (2562 points: 260)
 MAX_CASE_BYTES = 4_000_000
 SD_RANGE = 3.0
+# shown_cases scores this many cases at a time: their differences from the mean, not all the
+# population's at once (n_s x n_p x 3 doubles), are what it holds
+SCORED_AT_ONCE = 256
 
 
 def _b64(array: np.ndarray, dtype) -> str:
@@ -64,7 +67,9 @@ def shown_cases(model, shapes: np.ndarray, limit: int) -> np.ndarray:
     order = np.arange(n_cases)
     if model.n_modes > 0:
         weighted = np.asarray(model.modes[0]) * np.asarray(model.weights)[:, None]
-        scores = np.einsum("pd,spd->s", weighted, np.asarray(shapes) - model.mean)
+        scores = np.concatenate([
+            np.einsum("pd,spd->s", weighted, np.asarray(shapes[start:start + SCORED_AT_ONCE])
+                      - model.mean) for start in range(0, n_cases, SCORED_AT_ONCE)])
         order = np.argsort(scores, kind="stable")
     ranks = np.unique(np.rint(np.linspace(0, n_cases - 1, limit)).astype(np.int64))
     return np.sort(order[ranks])
