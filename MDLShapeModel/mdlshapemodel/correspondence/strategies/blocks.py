@@ -59,7 +59,7 @@ class SphereBlock:
         sampled = raw[self.row, self.rows]
         w = basis.weights
         hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
-                              x[self.coefficients].reshape(-1, 3), part.locator.inverse,
+                              x[self.coefficients].reshape(-1, 3), part.locator.sphere,
                               part.locator.neighbours, part.faces, part.vertices, self.hint,
                               8, phi, norms, face, sampled, jac, found)
         missed = np.flatnonzero(~found)
