@@ -49,39 +49,35 @@ class SphereBlock:
         return np.full(self.size, self.basis.max_coefficient() / np.sqrt(3.0))
 
     def sample(self, x: np.ndarray, raw: np.ndarray) -> tuple:
-        """The field map at x, located on the surface: phi, |m|, faces and the points located
-        otherwise than by the walk with their dS/du (indices, (m, 3, 3)); the samples go into
-        ``raw``. The other points' dS/du is computed by :meth:`gradient` from phi and the face:
-        a trial kept for its gradient holds no (n, 3, 3) array."""
+        """The field map at x, located on the surface: phi, |m|, faces, dS/du; the samples go
+        into ``raw``."""
         part, basis = self.part, self.basis
         n = len(basis.points)
         phi, norms = np.empty((n, 3)), np.empty(n)
-        face = np.empty(n, dtype=np.int64)
+        face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
         found = np.empty(n, dtype=np.bool_)
         sampled = raw[self.row, self.rows]
         w = basis.weights
         hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
                               x[self.coefficients].reshape(-1, 3), part.locator.sphere,
                               part.locator.neighbours, part.faces, part.vertices, self.hint,
-                              8, phi, norms, face, sampled, found)
+                              8, phi, norms, face, sampled, jac, found)
         missed = np.flatnonzero(~found)
-        missed_jac = np.empty((0, 3, 3))
         if len(missed):     # walked too far: locate these among the faces near them
             face[missed], coords = part.locator.locate(phi[missed])
             sampled[missed] = part.locator.interpolate(part.vertices, face[missed], coords)
-            missed_jac = part.locator.jacobian(part.vertices, face[missed], phi[missed])
+            jac[missed] = part.locator.jacobian(part.vertices, face[missed], phi[missed])
         self.hint = face
-        return phi, norms, face, (missed, np.ascontiguousarray(missed_jac))
+        return phi, norms, face, jac
 
     def gradient(self, located: tuple, scale: float, rotation: np.ndarray,
                  shape_gradient: np.ndarray) -> np.ndarray:
         """dF/d(coefficients) from dF/dX of the block's points, posed by ``scale`` and
         ``rotation``."""
-        phi, norms, face, (missed, missed_jac) = located
-        w, part = self.basis.weights, self.part
+        phi, norms, _, jac = located
+        w = self.basis.weights
         return hotloops.field_sample_gradient(
-            w.indptr, w.indices, w.data, self.basis.points, phi, norms, part.locator.sphere,
-            part.faces, part.vertices, face, missed, missed_jac, scale, rotation,
+            w.indptr, w.indices, w.data, self.basis.points, phi, norms, jac, scale, rotation,
             shape_gradient, self.basis.n_centres).ravel()
 
     def folds(self, located: tuple) -> bool:
