@@ -26,17 +26,19 @@ def test_walk_finds_the_containing_face_or_reports_a_miss(locator, rng):
     face = np.full(len(points), -1)
     coords = np.zeros((len(points), 3))
     found = np.zeros(len(points), dtype=bool)
-    hotloops.walk(locator.inverse, locator.neighbours, points, hint, 6, -1e-12, face, coords, found)
+    hotloops.walk(locator.sphere, locator.faces, locator.neighbours, points, hint, 6, -1e-12,
+                  face, coords, found)
     # some random starts are too far for 6 steps, some are close enough
     assert 0 < found.sum() < len(points)
-    lam = np.einsum("nij,nj->ni", locator.inverse[face[found]], points[found])
+    lam = np.einsum("nij,nj->ni", locator.inverses(face[found]), points[found])
     assert np.all(lam >= -1e-12)
     np.testing.assert_allclose(coords[found], lam / lam.sum(axis=1, keepdims=True), atol=1e-12)
     np.testing.assert_allclose(coords[found].sum(axis=1), 1.0)
     # a missed point is not inside the face the walk stopped at within its budget: with more
     # steps the walk reaches every point
     more = found.copy()
-    hotloops.walk(locator.inverse, locator.neighbours, points, hint, 100, -1e-12, face, coords, more)
+    hotloops.walk(locator.sphere, locator.faces, locator.neighbours, points, hint, 100, -1e-12,
+                  face, coords, more)
     assert more.all()
 
 
@@ -90,7 +92,7 @@ def _field_sample(locator, values, basis, c, hint, steps=8):
     out = dict(phi=np.empty((n, 3)), norms=np.empty(n), face=np.full(n, -1),
                sampled=np.empty((n, 3)), jac=np.empty((n, 3, 3)), found=np.empty(n, dtype=bool))
     w = basis.weights
-    hotloops.field_sample(w.indptr, w.indices, w.data, basis.points, c, locator.inverse,
+    hotloops.field_sample(w.indptr, w.indices, w.data, basis.points, c, locator.sphere,
                           locator.neighbours, locator.faces, values, hint, steps, out["phi"],
                           out["norms"], out["face"], out["sampled"], out["jac"], out["found"])
     return out

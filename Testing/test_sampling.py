@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from mdlshapemodel.correspondence.sampling import (SphereLocator, fibonacci_sphere, grid_order, icosphere,
-                                    orient_triangles, sphere_grid)
+                                    orient_triangles, sphere_grid, spherical_triangles)
 from mdlshapemodel.prepare.surface import triangle_vertex_areas
 
 
@@ -294,7 +294,8 @@ def test_locator_index_tables_are_int32_and_walk_as_int64_ones_do(rng):
     for neighbours in (locator.neighbours, face_neighbours(locator.faces)):
         face, coords = np.full(len(points), -1), np.zeros((len(points), 3))
         found = np.zeros(len(points), dtype=bool)
-        hotloops.walk(locator.inverse, neighbours, points, hint, 6, -1e-12, face, coords, found)
+        hotloops.walk(locator.sphere, locator.faces, neighbours, points, hint, 6, -1e-12, face,
+                      coords, found)
         results.append((face, coords, found))
     (face32, coords32, found32), (face64, coords64, found64) = results
     assert found32.any() and not found32.all()
@@ -303,3 +304,33 @@ def test_locator_index_tables_are_int32_and_walk_as_int64_ones_do(rng):
     np.testing.assert_array_equal(coords32, coords64)
     face, coords = locator.locate(points, hint)
     np.testing.assert_array_equal(face[found32], face32[found32])
+
+
+def _inverses_by_numpy(sphere, faces):
+    """[a b c]^-1 of every face as numpy forms it: the rows b x c, c x a, a x b over a . (b x c)."""
+    a, b, c = (sphere[faces[:, k]] for k in range(3))
+    rows = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1)
+    det = np.einsum("ij,ij->i", a, rows[:, 0])
+    return rows / det[:, None, None]
+
+
+def test_locator_computes_each_faces_inverse_as_numpy_does_bit_for_bit(rng):
+    """The locator keeps no 3 x 3 matrix per face: the ones it computes where it locates a point
+    are numpy's bit for bit, so the faces, coordinates and samples are too."""
+    meshes = [icosphere(3), fibonacci_sphere(1500)]
+    for n in (300, 4000):
+        points = rng.normal(size=(n, 3))
+        points /= np.linalg.norm(points, axis=1, keepdims=True)
+        meshes.append((points, spherical_triangles(points)))
+    for sphere, faces in meshes:
+        locator = SphereLocator(sphere, faces)
+        assert locator.faces.dtype == np.int32
+        assert not any(isinstance(v, np.ndarray) and v.dtype == np.float64 and len(v) == len(faces)
+                       for v in vars(locator).values())      # no table of floats per face
+        expected = _inverses_by_numpy(np.asarray(sphere, dtype=np.float64), faces)
+        np.testing.assert_array_equal(locator.inverses(np.arange(len(faces))), expected)
+        chosen = rng.integers(0, len(faces), (50, 4))
+        np.testing.assert_array_equal(locator.inverses(chosen), expected[chosen])
+        u = rng.normal(size=(50, 1, 3))
+        np.testing.assert_array_equal(locator.coordinates(chosen, u),
+                                      np.einsum("...ij,...j->...i", expected[chosen], u))

@@ -83,8 +83,10 @@ class FieldBasis:
         self.centres = np.asarray(self.centres, dtype=np.float64)
         self.points = np.asarray(self.points, dtype=np.float64)
         indptr, indices, data = hotloops.bump_matrix(self.points, self.centres, self.radius)
-        #: sparse (n, n_c) matrix of bump values g_j(u_k), columns sorted in each row
-        self.weights = sparse.csr_matrix((data, indices, indptr),
+        #: sparse (n, n_c) matrix of bump values g_j(u_k), columns sorted in each row; its values
+        #: copied out of the buffer that bump_matrix grew (a round holds a basis per case and
+        #: part, and that buffer's room beyond the filled part with it)
+        self.weights = sparse.csr_matrix((data.copy(), indices, indptr),
                                          shape=(len(self.points), len(self.centres)))
         rows = np.diff(indptr)
         self.overlap = int(rows.max(initial=0))

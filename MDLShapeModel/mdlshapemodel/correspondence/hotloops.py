@@ -29,14 +29,46 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _walk_point(inverse, neighbours, x, y, z, start, steps, tolerance, lam):
+def _face_inverse(sphere, faces, f, m):
+    """M^-1 = [a b c]^-1 of face ``f`` (corners a, b, c on the sphere) into ``m`` (3, 3): the rows
+    b x c, c x a, a x b over det = a . (b x c).
+
+    Operation by operation the arithmetic of these matrices in numpy, so they are the same bit
+    for bit: each component of a cross product as ``np.cross`` forms it, and the determinant's
+    three products summed in the order ``np.einsum("ij,ij->i", a, b x c)`` sums them (first and
+    last, then the middle one), which the tests check against numpy."""
+    a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+    ax, ay, az = sphere[a, 0], sphere[a, 1], sphere[a, 2]
+    bx, by, bz = sphere[b, 0], sphere[b, 1], sphere[b, 2]
+    cx, cy, cz = sphere[c, 0], sphere[c, 1], sphere[c, 2]
+    m[0, 0], m[0, 1], m[0, 2] = by * cz - bz * cy, bz * cx - bx * cz, bx * cy - by * cx
+    m[1, 0], m[1, 1], m[1, 2] = cy * az - cz * ay, cz * ax - cx * az, cx * ay - cy * ax
+    m[2, 0], m[2, 1], m[2, 2] = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    det = (ax * m[0, 0] + az * m[0, 2]) + ay * m[0, 1]
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = m[i, j] / det
+
+
+@njit(cache=True, nogil=True)
+def face_inverses(sphere, faces, face):
+    """M^-1 of each face in ``face`` (n,): (n, 3, 3), as ``_face_inverse``."""
+    result = np.empty((face.shape[0], 3, 3))
+    for k in range(face.shape[0]):
+        _face_inverse(sphere, faces, face[k], result[k])
+    return result
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _walk_point(sphere, faces, neighbours, x, y, z, start, steps, tolerance, lam, m):
     """From face ``start`` walk towards the point (x, y, z) across the edge opposite the most
     negative central-projection coordinate (M^-1 u), at most ``steps`` faces. Returns the face
     reached and whether the point lies in it (all coordinates >= ``tolerance``); ``lam`` holds
-    that face's coordinates M^-1 u."""
+    that face's coordinates M^-1 u and ``m`` its M^-1 (``_face_inverse``: computed per step
+    rather than stored per face, 72 bytes a face less for every part a build holds)."""
     current = start
     for _ in range(steps):
-        m = inverse[current]
+        _face_inverse(sphere, faces, current, m)
         for i in range(3):
             lam[i] = m[i, 0] * x + m[i, 1] * y + m[i, 2] * z
         worst = 0
@@ -54,13 +86,14 @@ def _walk_point(inverse, neighbours, x, y, z, start, steps, tolerance, lam):
 
 
 @njit(cache=True, nogil=True)
-def walk(inverse, neighbours, points, hint, steps, tolerance, face, coords, found):
+def walk(sphere, faces, neighbours, points, hint, steps, tolerance, face, coords, found):
     """``_walk_point`` from face ``hint[k]`` to each ``points[k]``; for the points reached, fills
     ``face``, ``coords`` (barycentric: clamped at 0 and normalised to sum 1) and ``found``."""
     lam = np.empty(3)
+    m = np.empty((3, 3))
     for k in range(points.shape[0]):
-        current, found[k] = _walk_point(inverse, neighbours, points[k, 0], points[k, 1],
-                                        points[k, 2], hint[k], steps, tolerance, lam)
+        current, found[k] = _walk_point(sphere, faces, neighbours, points[k, 0], points[k, 1],
+                                        points[k, 2], hint[k], steps, tolerance, lam, m)
         if found[k]:
             l0, l1, l2 = max(lam[0], 0.0), max(lam[1], 0.0), max(lam[2], 0.0)
             total = l0 + l1 + l2
@@ -338,7 +371,7 @@ def field_map(points, centres, radius, coefficients):
 
 
 @njit(cache=True, nogil=True)
-def field_sample(indptr, indices, data, points, coefficients, inverse, neighbours, faces,
+def field_sample(indptr, indices, data, points, coefficients, sphere, neighbours, faces,
                  values, hint, steps, phi, norms, face, sampled, jac, found):
     """One pass per point of what a gradient step needs: the field map phi(u_k) and |m| (as
     ``field_apply``), the face containing phi(u_k) by a walk from ``hint[k]`` (as ``walk``), the
@@ -346,15 +379,15 @@ def field_sample(indptr, indices, data, points, coefficients, inverse, neighbour
     (as ``SphereLocator.jacobian``), into the given arrays. ``found[k]`` is False where the walk
     did not reach the point within ``steps`` faces (then only phi and norms are set)."""
     lam = np.empty(3)
+    m = np.empty((3, 3))
     for k in range(points.shape[0]):
         _field_point(indptr, indices, data, points, coefficients, k, phi, norms)
-        current, reached = _walk_point(inverse, neighbours, phi[k, 0], phi[k, 1], phi[k, 2],
-                                       hint[k], steps, -1e-12, lam)
+        current, reached = _walk_point(sphere, faces, neighbours, phi[k, 0], phi[k, 1],
+                                       phi[k, 2], hint[k], steps, -1e-12, lam, m)
         found[k] = reached
         if not reached:
             continue
         face[k] = current
-        m = inverse[current]
         total = lam[0] + lam[1] + lam[2]
         clamped = max(lam[0], 0.0) + max(lam[1], 0.0) + max(lam[2], 0.0)
         for d in range(3):

@@ -137,24 +137,31 @@ class SphereLocator:
 
     Notes
     -----
-    A build keeps one locator per case and part through the optimisation; its two index tables
-    (the faces around each vertex, the face across each edge) are ``int32``, half the bytes of
-    ``int64`` for the same values, so the faces and samples located are the same.
+    A build keeps one locator per case and part through the optimisation, so it holds no table
+    per face beyond the triangles: M^-1 = [a b c]^-1 of a face, which gives the central-projection
+    coordinates M^-1 u, is computed where a point is located (``hotloops.face_inverses``, the
+    same arithmetic as numpy's for the same matrices bit for bit) rather than stored (72 bytes a
+    face). The triangles and the two index tables (the faces around each vertex, the face across
+    each edge) are ``int32``, half the bytes of ``int64`` for the same values, so the faces and
+    samples located are the same.
     """
 
     def __init__(self, sphere: np.ndarray, faces: np.ndarray):
         self.sphere = np.asarray(sphere, dtype=np.float64)
-        self.faces = np.asarray(faces, dtype=np.int64)
-        a, b, c = (self.sphere[self.faces[:, k]] for k in range(3))
-        rows = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1)
-        det = np.einsum("ij,ij->i", a, rows[:, 0])
-        self.inverse = rows / det[:, None, None]          # [a b c]^-1, one 3x3 per face
+        self.faces = np.asarray(faces, dtype=np.int32)
         self.tree = cKDTree(self.sphere)
         self.vertex_faces = vertex_face_table(self.faces, len(self.sphere)).astype(np.int32)
         self.neighbours = face_neighbours(self.faces).astype(np.int32)
 
+    def inverses(self, faces: np.ndarray) -> np.ndarray:
+        """M^-1 = [a b c]^-1 of each face in ``faces`` (any shape): (..., 3, 3)."""
+        faces = np.asarray(faces)
+        flat = np.ascontiguousarray(faces.ravel(), dtype=np.int64)
+        return hotloops.face_inverses(self.sphere, self.faces, flat).reshape(faces.shape + (3, 3))
+
     def coordinates(self, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-        return np.einsum("...ij,...j->...i", self.inverse[faces], points)
+        """The central-projection coordinates M^-1 u of ``points`` in ``faces`` (broadcast)."""
+        return np.einsum("...ij,...j->...i", self.inverses(faces), points)
 
     def locate(self, points: np.ndarray, hint: np.ndarray | None = None,
                neighbours: int = 4, walk_steps: int = 6) -> tuple[np.ndarray, np.ndarray]:
@@ -173,8 +180,9 @@ class SphereLocator:
             # walk from the hint towards the point: cross the edge opposite the most negative
             # barycentric coordinate, a few steps at most
             found = np.zeros(n, dtype=np.bool_)
-            hotloops.walk(self.inverse, self.neighbours, points, np.asarray(hint, dtype=np.int64),
-                          walk_steps, -1e-12, face, coords, found)
+            hotloops.walk(self.sphere, self.faces, self.neighbours, points,
+                          np.asarray(hint, dtype=np.int64), walk_steps, -1e-12, face, coords,
+                          found)
             todo = np.flatnonzero(~found)
         if len(todo):
             k = min(neighbours, len(self.sphere))
@@ -211,7 +219,7 @@ class SphereLocator:
         dS/du = V^T (I - b 1^T) M^-1 / s (V the corner values, 3 x d). Radial motions of u do not
         change b, so only the tangential part of a displacement of u matters.
         """
-        inverse = self.inverse[face]                                  # (n, 3, 3)
+        inverse = self.inverses(face)                                 # (n, 3, 3)
         raw = np.einsum("nij,nj->ni", inverse, points)
         total = raw.sum(axis=1)
         coords = raw / total[:, None]

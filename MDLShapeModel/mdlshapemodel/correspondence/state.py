@@ -47,9 +47,11 @@ class PartState:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
                  grid: np.ndarray, grid_triangles: np.ndarray):
-        # the mesh renumbered in the order the grid visits it (same surface, faster sampling)
-        order, self.faces = grid_order(np.asarray(sphere, dtype=np.float64),
-                                       np.asarray(faces, dtype=np.int64), grid)
+        # the mesh renumbered in the order the grid visits it (same surface, faster sampling);
+        # its triangles in int32, which the locator shares (SphereLocator)
+        order, faces = grid_order(np.asarray(sphere, dtype=np.float64),
+                                  np.asarray(faces, dtype=np.int64), grid)
+        self.faces = faces.astype(np.int32)
         self.vertices = np.asarray(vertices, dtype=np.float64)[order]
         self.sphere = np.asarray(sphere, dtype=np.float64)[order]
         self.locator = SphereLocator(self.sphere, self.faces)

@@ -59,7 +59,7 @@ class SphereBlock:
         sampled = raw[self.row, self.rows]
         w = basis.weights
         hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
-                              x[self.coefficients].reshape(-1, 3), part.locator.inverse,
+                              x[self.coefficients].reshape(-1, 3), part.locator.sphere,
                               part.locator.neighbours, part.faces, part.vertices, self.hint,
                               8, phi, norms, face, sampled, jac, found)
         missed = np.flatnonzero(~found)
@@ -79,6 +79,13 @@ class SphereBlock:
         return hotloops.field_sample_gradient(
             w.indptr, w.indices, w.data, self.basis.points, phi, norms, jac, scale, rotation,
             shape_gradient, self.basis.n_centres).ravel()
+
+    @staticmethod
+    def earlier(located: tuple) -> tuple:
+        """What a trial keeps once a later one is sampled: its fold check and commit need phi
+        and the faces, not dS/du (72 bytes a point), which only its gradient, asked for right
+        after its sampling, needs."""
+        return located[:3] + (None,)
 
     def folds(self, located: tuple) -> bool:
         return self.part.folds(located[0])
@@ -128,6 +135,12 @@ class CurveBlock:
         along = scale * np.einsum("kd,kd->k", shape_gradient @ rotation, located[2])
         return np.append(self.basis.weights.T @ along, along.sum())
 
+    @staticmethod
+    def earlier(located: tuple) -> tuple:
+        """What a trial keeps once a later one is sampled: phi and the segments, not the
+        tangents, which only its gradient needs."""
+        return located[:2] + (None,)
+
     def folds(self, located: tuple) -> bool:
         return self.part.folds(located[0])
 
@@ -161,8 +174,9 @@ class BlockSet:
 
     Its stretch of the round's x holds, per example, each part's coefficients
     (:data:`FIELD_BLOCKS`) and then :data:`POSE_SIZE` pose parameters, bounded by ``pose_limits``.
-    Each trial's sampling is kept under its number, for its gradient, fold check or commit,
-    until a later :meth:`sample` is told not to keep it.
+    Each trial's sampling is kept under its number, for its fold check or commit, until a later
+    :meth:`sample` is told not to keep it; the gradient is of the trial sampled last (the blocks'
+    ``earlier``: what the others keep).
 
     Parameters
     ----------
@@ -207,10 +221,15 @@ class BlockSet:
         self.layout = Layout(offset, np.concatenate(limits),
                              np.array(pose_index, dtype=np.int64).reshape(-1, POSE_SIZE))
         self.trials = {}        # trial number -> (per block: what its sample() gave, raw)
+        self.newest = None      # the trial sampled last
 
     def sample(self, trial: int, x: np.ndarray, keep=()) -> np.ndarray:
         """The unposed samples (rows, n_p, 3) of the set's stretch ``x`` of a round's
         parameters, kept as ``trial``; the trials other than those in ``keep`` are dropped."""
+        # the trials not kept dropped, and the kept ones' gradient data, before this one is
+        # sampled: they are never held beside it
+        self.trials = {k: ([block.earlier(one) for block, one in zip(self.blocks, kept)], samples)
+                       for k, (kept, samples) in self.trials.items() if k in keep}
         raw = np.empty((self.n_rows, self.n_points, 3))
         located = [None] * len(self.blocks)
 
@@ -219,8 +238,8 @@ class BlockSet:
                 located[b] = self.blocks[b].sample(x, raw)
 
         self.threads.over(len(self.blocks), sample)
-        self.trials = {k: v for k, v in self.trials.items() if k in keep}
         self.trials[trial] = (located, raw)
+        self.newest = trial
         return raw
 
     def gradient(self, trial: int, scale: np.ndarray, rotation: np.ndarray,
@@ -228,6 +247,9 @@ class BlockSet:
         """dF/d(coefficients) of the set's stretch (zero at the pose parameters) from dF/dX
         (rows, n_p, 3) of its examples at ``trial``, whose samples are posed by ``scale`` (rows,)
         and ``rotation`` (rows, 3, 3)."""
+        if trial != self.newest:
+            raise ValueError(f"the gradient is of the trial sampled last ({self.newest}), "
+                             f"not of trial {trial}")
         located = self.trials[trial][0]
         result = np.zeros(self.layout.size)
 

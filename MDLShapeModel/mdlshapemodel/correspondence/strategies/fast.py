@@ -89,11 +89,11 @@ class _Trial:
     number: int               # the trial's number, under which its sampling is kept where
                               # the blocks are (:class:`~.blocks.BlockSet`)
     raw: np.ndarray           # (n_active, n_p, 3) the unposed samples
-    about: np.ndarray         # the samples posed as at the start, centred on their centroid
+    about: np.ndarray | None  # the samples posed as at the start, centred on their centroid
     rotation: np.ndarray      # (n_active, 3, 3) R(w)
     jacobian: np.ndarray      # (n_active, 3, 3) J_r(w)
     scale: np.ndarray         # (n_active,) e^sigma
-    shapes: np.ndarray        # (n_s, n_p, 3) every example's shape, the active ones moved
+    shapes: np.ndarray | None  # (n_s, n_p, 3) every example's shape, the active ones moved
     pose: np.ndarray          # (n_active, 7) the pose parameters of x
     unposed: np.ndarray | None   # (n_s, n_p, 3) every example's unposed samples (guided states)
 
@@ -294,7 +294,10 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
         value, shape_gradient = gradient_at(state, trial.shapes, trial.unposed)
         state.evaluations += 1
         if "best" not in cache or value < cache["best"][0]:
-            cache["best"] = (value, x.copy(), trial)
+            # kept for the fold check and the commit, which need its number, x and pose: not
+            # its posed shapes, which the evaluations after it would hold beside their own
+            cache["best"] = (value, trial.x, replace(trial, about=None, shapes=None,
+                                                     unposed=None))
         return value, round_.gradient(trial, shape_gradient)
 
     start_value = fun(np.zeros(round_.size))[0]
