@@ -538,6 +538,18 @@ MUTANTS = [
            ("test_time_left.py",),
            "the reports' kind lost after the estimate: the command line, the worker and the "
            "module no longer know the optimisation's reports"),
+    # --- the memory handed back, the locators' matrices computed where used ---
+    Mutant("memory_release_in_a_loop_every_time", "memory.py",
+           "and now - _LAST < at_most_every):",
+           "and now - _LAST > at_most_every):",
+           ("test_memory.py",),
+           "a release inside a loop made every pass: the next pass faults the pages in again"),
+    Mutant("face_inverse_determinant_summed_in_order", "correspondence/hotloops.py",
+           "det = (ax * m[0, 0] + az * m[0, 2]) + ay * m[0, 1]",
+           "det = ax * m[0, 0] + ay * m[0, 1] + az * m[0, 2]",
+           ("test_sampling.py",),
+           "a face's inverse no longer numpy's bit for bit: the samples, and so every build, "
+           "differ in their last digits from a stored matrix's", k="inverse"),
     # --- the optimisation's blocks, here and on Dask (correspondence/strategies/) ---
     Mutant("curve_shift_gradient_reversed", "correspondence/strategies/blocks.py",
            "return np.append(self.basis.weights.T @ along, along.sum())",
@@ -545,8 +557,8 @@ MUTANTS = [
            ("test_circle.py",),
            "a curve's origin shift moved up its objective's slope", k="fast"),
     Mutant("block_trials_all_dropped", "correspondence/strategies/blocks.py",
-           "self.trials = {k: v for k, v in self.trials.items() if k in keep}",
-           "self.trials = {}",
+           "for k, (kept, samples) in self.trials.items() if k in keep}",
+           "for k, (kept, samples) in self.trials.items() if False}",
            ("test_strategies.py",),
            "a trial kept for its gradient or commit dropped at the next sample",
            k="fast"),
