@@ -4,8 +4,9 @@ Preloaded into Dask workers (``--preload dies_in_a_round``), it wraps
 :meth:`mdlshapemodel.correspondence.strategies.spread.Holder.call`, the method a worker runs for
 every call of the optimisation on the examples it holds. Once the file named by
 ``$MDLSHAPEMODEL_TEST_DIE_AFTER`` exists, the first worker process to reach its
-:data:`SAMPLINGS`-th sampling of trial parameters from then on kills itself with SIGKILL, as the
-out-of-memory killer would, and leaves the file's name with ``.done`` appended (only one dies).
+:data:`SAMPLINGS`-th sampling of trial parameters since the file appeared kills itself with
+SIGKILL, as the out-of-memory killer would, and leaves the file's name with ``.done`` appended
+(only one dies).
 Nothing in the library knows of it.
 """
 
@@ -26,12 +27,19 @@ def arm():
     from mdlshapemodel.correspondence.strategies import spread
 
     original = spread.Holder.call
-    counted = []
+    counted = {}        # samplings since each appearance of the file (its inode and time)
 
     def call(holder, method, *arguments):
-        if method == "sample" and os.path.exists(trigger):
-            counted.append(method)
-            if len(counted) == SAMPLINGS:
+        try:
+            made = os.stat(trigger)
+        except FileNotFoundError:
+            made = None
+        if method == "sample" and made is not None:
+            # a file made anew (by a later test) counts from zero in every worker, whatever
+            # the worker counted while an earlier one existed
+            appearance = (made.st_ino, made.st_mtime_ns)
+            counted[appearance] = counted.get(appearance, 0) + 1
+            if counted[appearance] == SAMPLINGS:
                 try:
                     os.close(os.open(f"{trigger}.done", os.O_CREAT | os.O_EXCL))
                 except FileExistsError:       # another worker has died for it
