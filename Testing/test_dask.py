@@ -27,7 +27,7 @@ from distributed import Client
 import mdlshapemodel
 from mdlshapemodel import BuildConfig, ShapeModel
 from mdlshapemodel.build import correspond, fingerprint
-from mdlshapemodel.errors import ConfigError
+from mdlshapemodel.errors import ArgumentError, ConfigError
 from mdlshapemodel import parallel
 from mdlshapemodel.cluster import dask_executor, on_cluster
 from mdlshapemodel.parallel import Task, map_cases
@@ -432,7 +432,7 @@ def test_a_stretch_taken_from_a_lost_worker_keeps_the_trials_the_round_kept(sche
             assert "they are optimised in this process from now on" in caplog.text
             assert np.all(np.isfinite(gradient))
             assert not round_.folds(first)
-            with pytest.raises(ValueError, match="sampled last"):
+            with pytest.raises(ArgumentError, match="sampled last"):
                 round_.gradient(first, gradient_at(state, first.shapes)[1])
             round_.commit(first)
         finally:

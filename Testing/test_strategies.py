@@ -16,7 +16,7 @@ from mdlshapemodel.correspondence.strategies.one_at_a_time import (optimise_ampl
 from mdlshapemodel.correspondence.strategies.simplex import (population_value,
                                                              multiresolution_levels)
 from mdlshapemodel.correspondence.trace import Stop, Trace
-from mdlshapemodel.errors import Cancelled
+from mdlshapemodel.errors import ArgumentError, Cancelled
 
 from common import central_difference
 from synthetic import build_objectives, small_maps, small_state
@@ -539,7 +539,7 @@ def test_a_fast_round_trial_kept_through_later_ones_commits_alike_and_drops_its_
             last = round_.trial(x, keep=(first.number,))
         if later:
             assert not round_.folds(first)
-            with pytest.raises(ValueError, match="sampled last"):
+            with pytest.raises(ArgumentError, match="sampled last"):
                 round_.gradient(first, gradient_at(state, first.shapes)[1])
             round_.gradient(last, gradient_at(state, last.shapes)[1])
         round_.commit(first)

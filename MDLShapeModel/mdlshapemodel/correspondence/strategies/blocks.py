@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...errors import ArgumentError
 from ...parallel import Threads
 from .. import hotloops
 from ..circle import CircleField, CircleFieldBasis
@@ -248,7 +249,7 @@ class BlockSet:
         (rows, n_p, 3) of its examples at ``trial``, whose samples are posed by ``scale`` (rows,)
         and ``rotation`` (rows, 3, 3)."""
         if trial != self.newest:
-            raise ValueError(f"the gradient is of the trial sampled last ({self.newest}), "
+            raise ArgumentError(f"the gradient is of the trial sampled last ({self.newest}), "
                              f"not of trial {trial}")
         located = self.trials[trial][0]
         result = np.zeros(self.layout.size)
