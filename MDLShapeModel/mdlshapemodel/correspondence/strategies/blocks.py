@@ -250,7 +250,7 @@ class BlockSet:
         and ``rotation`` (rows, 3, 3)."""
         if trial != self.newest:
             raise ArgumentError(f"the gradient is of the trial sampled last ({self.newest}), "
-                             f"not of trial {trial}")
+                                f"not of trial {trial}")
         located = self.trials[trial][0]
         result = np.zeros(self.layout.size)
 
