@@ -4,6 +4,7 @@ Building the surface and its map takes a second or two, so both are computed onc
 """
 
 import os
+import shutil
 import signal
 import tempfile
 
@@ -16,11 +17,19 @@ signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # Every test session gets its own, empty preprocessing cache (also inherited by CLI subprocesses):
 # results never leak in from a user's cache or from an earlier run.
-os.environ["MDLSHAPEMODEL_CACHE"] = tempfile.mkdtemp(prefix="mdlshapemodel-test-cache-")
+_MADE_HERE = [tempfile.mkdtemp(prefix="mdlshapemodel-test-cache-")]
+os.environ["MDLSHAPEMODEL_CACHE"] = _MADE_HERE[0]
 # hypothesis (Testing/test_fuzz_readers.py) keeps what it learns in a folder of its own, not in
 # the checkout (.hypothesis/)
-os.environ.setdefault("HYPOTHESIS_STORAGE_DIRECTORY",
-                      tempfile.mkdtemp(prefix="mdlshapemodel-test-hypothesis-"))
+if "HYPOTHESIS_STORAGE_DIRECTORY" not in os.environ:
+    _MADE_HERE.append(tempfile.mkdtemp(prefix="mdlshapemodel-test-hypothesis-"))
+    os.environ["HYPOTHESIS_STORAGE_DIRECTORY"] = _MADE_HERE[-1]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """The session's own folders go with it (each run made new ones in the system's temp)."""
+    for folder in _MADE_HERE:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture
