@@ -60,11 +60,12 @@ def initial_state(prepared: list, config: BuildConfig, landmarks: dict | None = 
                                     for j in range(n_parts)])
                 for i, case in enumerate(prepared)]
     if config.placement == "surface":
-        aligned = CorrespondenceState(examples, grids, scaling=config.scaling)
-        grids = surface_grids(aligned, nested if icosphere_level(nested) else 0)
-        examples = [Example(example.name, [part.on_grid(*grid, near=True)
-                                           for part, grid in zip(example.parts, grids)])
-                    for example in examples]
+        grids = surface_grids(CorrespondenceState(examples, grids, scaling=config.scaling),
+                              nested if icosphere_level(nested) else 0)
+        # one example at a time, in place: its samples on the first grid go as it moves
+        for i, example in enumerate(examples):
+            examples[i] = Example(example.name, [part.on_grid(*grid, near=True)
+                                                 for part, grid in zip(example.parts, grids)])
     guides = None
     if placed is not None:
         guides = guides_on_grid(placed, maps, [grid for grid, _ in grids], nested or n_points,
