@@ -6,6 +6,9 @@ The surface-to-surface measures are recomputed with a brute-force point-to-trian
 point against every triangle) written here; the library uses a VTK cell locator.
 """
 
+import gc
+import weakref
+
 import numpy as np
 import pytest
 
@@ -678,3 +681,48 @@ def test_surface_closest_points_lie_on_their_faces(rng):
     np.testing.assert_allclose(np.einsum("ij,ij->i", found - a, normal), 0.0, atol=1e-8)
     for p, q, r in ((a, b, c), (b, c, a), (c, a, b)):
         assert np.all(np.einsum("ij,ij->i", np.cross(q - p, found - p), normal) >= -1e-8)
+
+
+def test_surface_specificity_keeps_a_bounded_number_of_surfaces_with_the_same_result(
+        rng, monkeypatch):
+    """Past SPECIFICITY_SURFACES_KEPT built surfaces the least recently used one goes (and is
+    built again when a later sample's candidates meet it): at most that many searches live at
+    once beside the samples' own and the one being built, more surfaces fetched, and the same
+    numbers as keeping all."""
+    from mdlshapemodel.model import surface_measures
+
+    shapes, triangles, weights, surfaces = radial_population(rng, 12, 3, coarse=42, fine=162)
+
+    class Fetched(list):
+        def __init__(self, items):
+            super().__init__(items)
+            self.count = 0
+
+        def __getitem__(self, i):
+            self.count += 1
+            return super().__getitem__(i)
+
+    live, most = weakref.WeakSet(), [0]
+
+    class CountedSearch(surface_measures.MeshSearch):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            gc.collect()
+            live.add(self)
+            most[0] = max(most[0], len(live))
+
+    monkeypatch.setattr(surface_measures, "MeshSearch", CountedSearch)
+    results, fetched = [], []
+    for kept in (None, 2):
+        monkeypatch.setattr(surface_measures, "SPECIFICITY_SURFACES_KEPT", kept)
+        live.clear()
+        most[0] = 0
+        wrapped = Fetched(surfaces)
+        results.append(surface_specificity(shapes, weights, triangles, wrapped, 3, 30,
+                                           np.random.default_rng(7), candidates=3))
+        fetched.append((wrapped.count, most[0]))
+    (all_kept, most_unbounded), (bounded, most_bounded) = fetched
+    assert most_bounded <= 2 + 2 < most_unbounded
+    assert bounded > all_kept
+    for key in ("distance", "distance_se", "weighted", "weighted_se", "nearest"):
+        np.testing.assert_array_equal(results[1][key], results[0][key])

@@ -14,6 +14,8 @@ found nearest to the same point the last time); large surfaces may be sampled
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import numpy as np
 
 from ..errors import ArgumentError
@@ -27,6 +29,10 @@ from .space import ModelSpace, displacements, leave_one_out, space_of
 #: nearest (a k-d tree of the centroids, which costs about as much to build as this many grid
 #: searches).
 CENTROID_TREE_POINTS = 500
+#: True surfaces the surface specificity keeps built (about 0.3 MB each with their search
+#: structures): the nearest cases of its samples recur, and one built again costs about a
+#: millisecond, so the bound holds the memory to about 80 MB at any n_s for a little time.
+SPECIFICITY_SURFACES_KEPT = 256
 
 
 class MeshSearch:
@@ -194,18 +200,24 @@ def _faces_near(shape: np.ndarray, triangles: np.ndarray, points: np.ndarray) ->
 
 class _TrueSurfaces:
     """The true surfaces of the n_s shapes, each :class:`_TrueSurface` (with its search
-    structures) built when first asked for, and kept until released: a measure holds those of
-    the cases it compares, not of the whole population."""
+    structures) built when first asked for, and kept until released, or, past ``kept`` of them,
+    until it is the one least recently asked for: a measure holds those of the cases it
+    compares, not of the whole population. A surface built again is the same, so is what is
+    measured on it."""
 
-    def __init__(self, surfaces, n_s: int):
+    def __init__(self, surfaces, n_s: int, kept: int | None = None):
         if len(surfaces) != n_s:
             raise ArgumentError(f"need one true surface per shape: {len(surfaces)} surfaces, "
                                 f"{n_s} shapes")
-        self.surfaces, self.built = surfaces, {}
+        self.surfaces, self.built, self.kept = surfaces, OrderedDict(), kept
 
     def __getitem__(self, i: int) -> _TrueSurface:
-        if i not in self.built:
+        if i in self.built:
+            self.built.move_to_end(i)
+        else:
             self.built[i] = _TrueSurface(*self.surfaces[i])
+            if self.kept is not None and len(self.built) > self.kept:
+                self.built.popitem(last=False)
         return self.built[i]
 
     def release(self, i: int):
@@ -396,7 +408,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
     # exactly as specificity(): axis m of the model-space coordinates has variance lambda_m
     sd = np.sqrt(np.sum(coordinates ** 2, axis=0) / n_s)
     normal = rng.standard_normal((n_samples, rank))
-    true = _TrueSurfaces(surfaces, n_s)
+    true = _TrueSurfaces(surfaces, n_s, SPECIFICITY_SURFACES_KEPT)
     candidates = int(min(max(candidates, 1), n_s))
     mean = shapes.mean(axis=0)
     points_sampler = _sampler(mean, max_points, stratified=True)
