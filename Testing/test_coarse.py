@@ -65,6 +65,36 @@ def test_carrying_over_gives_the_fine_grid_the_coarse_maps_and_poses():
     assert np.allclose(ratio, ratio[0])
 
 
+def test_a_state_set_aside_during_the_coarse_stage_is_carried_over_the_same_bit_for_bit():
+    """set_aside drops the samples and X that carry_over makes again: the state carried over
+    after it equals, array for array, one that kept them."""
+    kept, aside = small_state(points=162), small_state(points=162)
+    views = []
+    for state in (kept, aside):
+        coarse = coarse_view(state, 42)
+        moves = np.random.default_rng(3)
+        for example in coarse.examples:
+            part = example.parts[0]
+            basis = FieldBasis.icosphere_level(1, part.positions, 2.0)
+            warp = FieldWarp(1, 2.0, moves.uniform(-0.3, 0.3, (basis.n_centres, 3))
+                             * basis.max_coefficient())
+            moved = warp.apply(part.positions)
+            part.commit(warp, moved, *part.sample(moved))
+        views.append(coarse)
+    aside.set_aside()
+    assert aside.shapes is None
+    assert all(e.parts[0].points is None for e in aside.examples)
+    assert all(e.parts[0].locator is not None for e in aside.examples)   # the surfaces stay
+    for coarse, state in zip(views, (kept, aside)):
+        carry_over(coarse, state)
+    assert_same_record(state_record(aside), state_record(kept))
+    np.testing.assert_array_equal(aside.shapes, kept.shapes)
+    np.testing.assert_array_equal(aside.weights, kept.weights)
+    for mine, theirs in zip(aside.examples, kept.examples):
+        np.testing.assert_array_equal(mine.parts[0].hint, theirs.parts[0].hint)
+        np.testing.assert_array_equal(mine.parts[0].points, theirs.parts[0].points)
+
+
 def test_a_warp_that_turns_a_fine_grid_triangle_over_is_left_out_with_the_ones_after_it():
     state = small_state(points=162)
     part = state.examples[0].parts[0]

@@ -671,6 +671,19 @@ class CorrespondenceState:
                     part.locator = part.vertices = part.faces = part.sphere = None
                     part.cumulative_area = None
 
+    def set_aside(self):
+        """While a :func:`~.coarse.coarse_view` of this state is optimised in its place, drop
+        what :func:`~.coarse.carry_over` makes again from the warps and poses: each sphere
+        part's samples, X, its reference and sums, K and the prior's terms. The located faces
+        stay: the points are located again from them, as they would have been. Until then the
+        state has no shapes (``shapes`` is None)."""
+        for example in self.examples:
+            for part in getattr(example, "parts", ()):
+                if isinstance(part, PartState) and part.kind == "sphere":
+                    part.points = None
+        self.shapes = self.reference = self.sum_shapes = self.gram = None
+        self.guide_costs = self._terms = self._smoothed = None
+
     def snapshot(self) -> list:
         """Everything the optimisation changes: per example its pose and per part its positions,
         located faces and warps."""

@@ -139,6 +139,7 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         return measured_state(state, settings, active, integrated).value()
     if staged:
         coarse = coarse_view(state, settings.coarse_points)
+        state.set_aside()         # carried over from the coarse view when the stage ends
     if resume is not None:
         point = resume.point
         names = [phase.name for phase in phases]
