@@ -113,6 +113,24 @@ def test_locate_agrees_with_brute_force(rng, grid):
     np.testing.assert_allclose(direction, queries, atol=1e-12)
 
 
+def test_locate_a_block_at_a_time_gives_what_all_at_once_gives(rng, monkeypatch):
+    """Points not found by walking are located LOCATE_BLOCK at a time: blocks of 7 (the last one
+    short), with and without hints, give the faces and coordinates of one block, bit for bit."""
+    from mdlshapemodel.correspondence import sampling
+
+    points, faces = icosphere(2)
+    locator = SphereLocator(points, faces)
+    queries = random_unit_vectors(rng, 400)
+    hint = rng.integers(0, len(faces), len(queries))
+    whole = [locator.locate(queries), locator.locate(queries, hint, walk_steps=1)]
+    monkeypatch.setattr(sampling, "LOCATE_BLOCK", 7)
+    blocks = [locator.locate(queries), locator.locate(queries, hint, walk_steps=1)]
+    for (face, coords), (block_face, block_coords) in zip(whole, blocks):
+        assert np.all(block_face >= 0)
+        np.testing.assert_array_equal(block_face, face)
+        np.testing.assert_array_equal(block_coords, coords)
+
+
 def test_locate_on_a_warped_triangulation(rng):
     """Point location on a strongly non-uniform (but fold-free) triangulation, as after warping."""
     from mdlshapemodel.correspondence.warps import apply_symmetric_theta
