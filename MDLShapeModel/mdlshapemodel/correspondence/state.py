@@ -55,8 +55,9 @@ class PartState:
         self.vertices = np.asarray(vertices, dtype=np.float64)[order]
         self.sphere = np.asarray(sphere, dtype=np.float64)[order]
         self.locator = SphereLocator(self.sphere, self.faces)
-        areas = face_areas(self.vertices, self.faces)
-        self.cumulative_area = np.cumsum(areas) / areas.sum()
+        # the surface's area shares, made when a random surface point is first asked for (the
+        # fast strategy never asks)
+        self.cumulative_area = None
         self.start_at(grid, grid_triangles)
 
     def on_grid(self, grid: np.ndarray, grid_cells: np.ndarray, near: bool = False
@@ -122,6 +123,9 @@ class PartState:
 
     def random_surface_parameter(self, rng: np.random.Generator) -> np.ndarray:
         """Sphere coordinate of a point drawn uniformly over the *surface* (by area)."""
+        if self.cumulative_area is None:
+            areas = face_areas(self.vertices, self.faces)
+            self.cumulative_area = np.cumsum(areas) / areas.sum()
         face = int(np.searchsorted(self.cumulative_area, rng.random(), side="right"))
         face = min(face, len(self.faces) - 1)
         r1, r2 = rng.random(2)
