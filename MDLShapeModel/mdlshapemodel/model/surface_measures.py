@@ -31,7 +31,8 @@ from .space import ModelSpace, displacements, leave_one_out, space_of
 CENTROID_TREE_POINTS = 500
 #: True surfaces the surface specificity keeps built (about 0.3 MB each with their search
 #: structures): the nearest cases of its samples recur, and one built again costs about a
-#: millisecond, so the bound holds the memory to about 80 MB at any n_s for a little time.
+#: millisecond, so the bound holds the memory to about 80 MB at any n_s at the cost of a
+#: little time.
 SPECIFICITY_SURFACES_KEPT = 256
 
 
