@@ -105,8 +105,8 @@ class PartState:
         #: every accepted warp, in order: ``apply_warps(grid, warps)`` gives ``positions``
         self.warps: list[Warp] = []
         self.grid = np.asarray(grid, dtype=np.float64)
-        # the grid itself, read-only (every population's parts share one grid): a warp makes
-        # new positions, never writes these
+        # the grid itself, read-only (all parts sampled on it share it): a warp makes new
+        # positions, never writes these
         self.positions = self.grid.view()
         self.positions.flags.writeable = False
         self.grid_triangles = np.asarray(grid_cells, dtype=np.int64)

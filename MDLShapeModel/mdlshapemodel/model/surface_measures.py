@@ -29,10 +29,9 @@ from .space import ModelSpace, displacements, leave_one_out, space_of
 #: nearest (a k-d tree of the centroids, which costs about as much to build as this many grid
 #: searches).
 CENTROID_TREE_POINTS = 500
-#: True surfaces the surface specificity keeps built (about 0.3 MB each with their search
-#: structures): the nearest cases of its samples recur, and one built again costs about a
-#: millisecond, so the bound holds the memory to about 80 MB at any n_s at the cost of a
-#: little time.
+#: True surfaces the surface specificity keeps built, each with its search structures: the
+#: nearest cases of its samples recur, and building one again costs little beside measuring
+#: on it, so the bound keeps the memory from growing with n_s.
 SPECIFICITY_SURFACES_KEPT = 256
 
 
