@@ -53,6 +53,7 @@ def test_a_second_build_into_the_same_folder_is_refused_unless_overwrite(labels,
     # every file of a build but landmarks.csv, which a build guided by landmarks writes
     assert {p.name for p in BuildFolder(output).previous_build()} == set(BUILD_FILES) - {"landmarks.csv"}
     assert not [p for p in output.rglob("*") if ".partial" in p.name]
+    assert not BuildFolder(output).surfaces_file.exists()     # the build's own, removed at its end
     model = (output / "model.h5").read_bytes()
     stamp = os.stat(output / "model.h5").st_mtime_ns
 

@@ -52,6 +52,7 @@ CONVERGENCE = "convergence.csv"
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.npz"
 LOG = "build.log"
+SURFACES = "prepared-surfaces.tmp"   # the prepared cases' surfaces while a build runs (removed)
 
 # What a build writes into its output folder. Other entries are not a build's: the inputs/ that the
 # demo and the Slicer module write there first, or anything else a user keeps there.
@@ -262,6 +263,7 @@ class BuildFolder:
         self.rejected_file = self.path / REJECTED
         self.checkpoint_file = self.path / CHECKPOINT
         self.convergence_file = self.path / CONVERGENCE
+        self.surfaces_file = self.path / SURFACES
 
     def __repr__(self) -> str:
         return f"BuildFolder({str(self.path)!r})"

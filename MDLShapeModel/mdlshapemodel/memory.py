@@ -17,15 +17,22 @@ the pages handed back are faulted in again, and zeroed, by the next pass: there 
 asked for with ``at_most_every`` (:data:`LOOP_RELEASE_SECONDS`), so that short passes, whose
 refaulting would be a large share of their time, release rarely, and long ones (a large
 population's rounds) still bound what the allocator keeps.
+
+Files mapped into memory read-only (:func:`watch_mapping`: a build's prepared surfaces, see
+:mod:`~mdlshapemodel.prepare.mapped`) hold as resident the pages that were read. A release hands
+those back too (``madvise(MADV_DONTNEED)``); a later read maps them again from the file, or from
+the kernel's cache of it, with the same bytes.
 """
 
 from __future__ import annotations
 
 import ctypes
+import mmap
 import sys
 import time
+import weakref
 
-__all__ = ["LOOP_RELEASE_SECONDS", "release_freed_memory"]
+__all__ = ["LOOP_RELEASE_SECONDS", "release_freed_memory", "watch_mapping"]
 
 #: the least time between two releases asked for inside a loop (``at_most_every``): a release
 #: there costs about as much as faulting in again the pages it hands back, so at most one a
@@ -47,11 +54,46 @@ def _malloc_trim():
 
 _TRIM = _malloc_trim()
 _LAST = None         # time.monotonic() of this process's last release
+_MAPPINGS = []       # weak references to the read-only file mappings whose pages a release drops
+
+
+def watch_mapping(mapping: mmap.mmap) -> None:
+    """Have every later :func:`release_freed_memory` of this process hand back the pages of
+    ``mapping`` (a read-only mapping of a file) that were read, for as long as it is open.
+
+    Examples
+    --------
+    >>> import mmap, tempfile
+    >>> from mdlshapemodel.memory import release_freed_memory, watch_mapping
+    >>> with tempfile.TemporaryFile() as file:
+    ...     _ = file.write(bytes(8192)); file.flush()
+    ...     mapping = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)
+    ...     watch_mapping(mapping)
+    ...     first = mapping[0]             # its first page is now resident
+    ...     released = release_freed_memory()
+    ...     mapping.close()
+    """
+    _MAPPINGS[:] = [ref for ref in _MAPPINGS if ref() is not None]
+    _MAPPINGS.append(weakref.ref(mapping))
+
+
+def _drop_mapped_pages() -> bool:
+    """Hand back the read pages of the watched mappings; whether there were any to drop."""
+    dropped = False
+    if not hasattr(mmap, "MADV_DONTNEED"):       # not Linux, BSD or macOS
+        return False
+    for ref in _MAPPINGS:
+        mapping = ref()
+        if mapping is not None and not mapping.closed:
+            mapping.madvise(mmap.MADV_DONTNEED)
+            dropped = True
+    return dropped
 
 
 def release_freed_memory(at_most_every: float | None = None) -> bool:
     """Return the C library's free memory to the operating system (glibc's ``malloc_trim(0)``:
-    the free pages of every heap, not only the top).
+    the free pages of every heap, not only the top), and the read pages of the watched file
+    mappings (:func:`watch_mapping`).
 
     Parameters
     ----------
@@ -62,8 +104,8 @@ def release_freed_memory(at_most_every: float | None = None) -> bool:
     Returns
     -------
     bool
-        Whether any memory was returned (False where the C library has no such call, or the
-        release was skipped).
+        Whether any memory was returned (False where the C library has no such call and no
+        mapping is watched, or the release was skipped).
 
     Examples
     --------
@@ -72,8 +114,9 @@ def release_freed_memory(at_most_every: float | None = None) -> bool:
     """
     global _LAST
     now = time.monotonic()
-    if _TRIM is None or (at_most_every is not None and _LAST is not None
-                         and now - _LAST < at_most_every):
+    if at_most_every is not None and _LAST is not None and now - _LAST < at_most_every:
         return False
     _LAST = now
-    return bool(_TRIM(0))
+    dropped = _drop_mapped_pages()
+    trimmed = _TRIM is not None and bool(_TRIM(0))
+    return trimmed or dropped

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..correspondence import hotloops
 from ..errors import ArgumentError
-from ..parallel import Task
+from ..parallel import ProcessPool, Task
 from ..prepare.case import joined_mesh
 from . import evaluation_kernels
 from .shape_model import ShapeModel, kept_variances
@@ -514,17 +514,24 @@ class ModelFrameSurfaces(Sequence):
     case i moved there when asked for: a list of them all would hold n_s more meshes through
     the evaluation, which measures one case at a time (:mod:`.surface_measures`). It holds the
     prepared cases' own meshes and the poses, not copies of the meshes; so does its pickle (for
-    a pool's process), and neither follows the state as it changes afterwards."""
+    a pool's process), and neither follows the state as it changes afterwards.
 
-    def __init__(self, state, prepared: list):
+    With ``from_file`` and cases whose maps lie in a file (:func:`~.prepare.mapped.mapped_cases`),
+    it holds where they lie instead, and reads case i's meshes from the file when asked: so does
+    its pickle, for a process of the same machine (a :class:`~.parallel.ProcessPool`'s), which
+    then receives no copy of every mesh."""
+
+    def __init__(self, state, prepared: list, from_file: bool = False):
         self.frame = state.model_frame()
-        self.meshes = [case.meshes() for case in prepared]
+        self.file = getattr(prepared, "file", None) if from_file else None
+        self.meshes = None if self.file is not None else [case.meshes() for case in prepared]
 
     def __len__(self) -> int:
-        return len(self.meshes)
+        return len(self.file if self.meshes is None else self.meshes)
 
     def __getitem__(self, i: int):
-        meshes = self.meshes[i]       # one part: its own triangles, not a copy
+        # one part: its own triangles, not a copy
+        meshes = self.file.meshes(i) if self.meshes is None else self.meshes[i]
         vertices, faces = meshes[0] if len(meshes) == 1 else joined_mesh(meshes)
         return self.frame.to_model_frame(i, vertices), faces
 
@@ -550,7 +557,8 @@ def evaluate_state(state, config, prepared: list | None = None,
     surfaces = None
     # (curves: the measures between the sample points only)
     if prepared is not None and config.surface_samples > 0 and not prepared[0].is_curve:
-        surfaces = ModelFrameSurfaces(state, prepared)   # (the state may change meanwhile)
+        # (the state may change meanwhile); a process of this machine reads the meshes' file
+        surfaces = ModelFrameSurfaces(state, prepared, from_file=isinstance(pool, ProcessPool))
     arguments = (aligned, state.weights.copy(), None if model is None else model.variances,
                  config.evaluation_modes,
                  config.specificity_samples, np.random.default_rng(config.seed),
