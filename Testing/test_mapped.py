@@ -2,16 +2,18 @@
 the same arrays, the pages read go back at a release, and a pool's process reads them from the
 file instead of receiving them."""
 
+import gc
 import logging
 import pickle
 import sys
+import weakref
 
 import numpy as np
 import pytest
 
 from mdlshapemodel.memory import release_freed_memory
 from mdlshapemodel.prepare.case import PreparedCase, PreparedPart
-from mdlshapemodel.prepare.mapped import MappedCases, cases_in_file, mapped_cases
+from mdlshapemodel.prepare.mapped import MappedCases, CasesInFile, mapped_cases
 from mdlshapemodel.prepare.sphere import SphereMap
 
 
@@ -83,15 +85,24 @@ def test_curves_and_no_cases_are_not_mapped(tmp_path):
 
 def test_the_file_goes_at_the_end_of_the_block_also_after_an_error(tmp_path):
     path = tmp_path / "surfaces.tmp"
-    with cases_in_file(made_cases([5, 6, 7]), path) as mapped:
+    with CasesInFile(made_cases([5, 6, 7]), path) as mapped:
         assert path.is_file()
         kept = mapped[0].map.vertices.copy()
     assert not path.exists()
     assert np.array_equal(mapped[0].map.vertices, kept)     # the mapping outlives the file
     with pytest.raises(KeyError):
-        with cases_in_file(made_cases([5, 6, 7]), path):
+        with CasesInFile(made_cases([5, 6, 7]), path):
             raise KeyError("stop")
     assert not path.exists()
+
+
+def test_the_list_given_for_the_block_is_not_kept(tmp_path):
+    cases = made_cases([5, 6, 7])
+    given = weakref.ref(cases[0].parts[0].map.vertices)
+    with CasesInFile(cases, tmp_path / "surfaces.tmp") as cases:     # the name now the mapped
+        gc.collect()
+        assert given() is None
+        assert cases[0].map.vertices.shape == (5, 3)
 
 
 def mapped_resident_mb() -> float:

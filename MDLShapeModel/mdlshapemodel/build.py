@@ -53,7 +53,7 @@ from .prepare import io, preprocess
 from .prepare.case import Rejection
 from .prepare.duplicates import identical_files, refusal, same_shapes
 from .prepare.landmarks import read_landmark_folder
-from .prepare.mapped import cases_in_file
+from .prepare.mapped import CasesInFile
 from .prepare.parts import case_inputs, read_manifest
 from .progress import Interrupt, Progress, TimeLeft, ctrl_c, report
 
@@ -319,7 +319,7 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
     # the surfaces and sphere maps lie in a file, mapped: the optimisation does not read them,
     # and it runs without them in memory; the baselines are evaluated on the helper meanwhile
-    with (cases_in_file(prepared, folder.surfaces_file) as prepared,
+    with (CasesInFile(prepared, folder.surfaces_file) as prepared,
           helper_for(config.workers, executor) as pool):
         release_freed_memory()      # the arrays now in the file
         pending = {}   # baseline -> (objective and notes, its evaluation: running or done)

@@ -19,7 +19,6 @@ from __future__ import annotations
 import logging
 import mmap
 import os
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -29,7 +28,7 @@ from ..errors import InternalError
 from ..memory import watch_mapping
 from .sphere import SphereMap
 
-__all__ = ["MappedCases", "MeshFile", "StoredArray", "cases_in_file", "mapped_cases"]
+__all__ = ["CasesInFile", "MappedCases", "MeshFile", "StoredArray", "mapped_cases"]
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -161,19 +160,25 @@ def mapped_cases(prepared: list, path) -> list:
     return MappedCases(cases, MeshFile(str(path), tuple(where)), mapping)
 
 
-@contextmanager
-def cases_in_file(prepared: list, path):
+class CasesInFile:
     """:func:`mapped_cases` for the length of a ``with`` block, whose end removes the file (the
-    mapping stays readable while its arrays are referenced).
+    mapping stays readable while its arrays are referenced). The list given is not kept: its
+    arrays go once the caller's name for it does (a ``with ... as`` of the same name).
 
     Examples
     --------
     ::
 
-        with cases_in_file(prepared, output / "prepared-surfaces.tmp") as prepared:
+        with CasesInFile(prepared, output / "prepared-surfaces.tmp") as prepared:
             ...                          # the optimisation, the outputs
     """
-    try:
-        yield mapped_cases(prepared, path)
-    finally:
-        Path(path).unlink(missing_ok=True)
+
+    def __init__(self, prepared: list, path):
+        self.path = Path(path)
+        self.cases = mapped_cases(prepared, self.path)
+
+    def __enter__(self) -> list:
+        return self.cases
+
+    def __exit__(self, *raised) -> None:
+        self.path.unlink(missing_ok=True)
