@@ -80,6 +80,7 @@ def run(samples: str, arguments: list) -> int:
     threading.Thread(target=ticking, daemon=True).start()
     from mdlshapemodel.cli import main
 
+    sys.argv = ["mdlshapemodel", *arguments]      # the report's command: the build's own
     code = main(arguments)
     sample("end")
     return code
