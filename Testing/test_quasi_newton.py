@@ -125,3 +125,31 @@ def test_exceptions_of_the_function_pass_through_and_bad_bounds_are_refused():
         minimize_box(stops_on_the_third_call, np.ones(4), np.full(4, -5.0), np.full(4, 5.0))
     with pytest.raises(ValueError, match="lower bound exceeds"):
         minimize_box(stops_on_the_third_call, np.ones(2), np.array([0.0, 2.0]), np.ones(2))
+
+
+def test_while_the_function_runs_it_holds_the_pairs_and_six_vectors_more():
+    """What the rounds' memory rests on: during an evaluation minimize_box holds its ``memory``
+    curvature pairs and at most six vectors of length n more (x, its gradient, the direction, the
+    trial point, and what the last step left: a rejected trial's gradient, or a pair not kept);
+    the projected gradient goes before the line search."""
+    import tracemalloc
+
+    n, memory = 200_000, 3
+    fun, lower, upper, _ = bounded_problem(n, 5)
+    held = []
+
+    def measured(x):
+        held.append(tracemalloc.get_traced_memory()[0])
+        return fun(x)
+
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        result = minimize_box(measured, np.zeros(n), lower, upper, max_iterations=12,
+                              memory=memory, ftol=0.0, gtol=0.0)
+    finally:
+        tracemalloc.stop()
+    assert result.iterations == 12
+    vectors = (max(held) - before) / (8 * n)
+    # (the bounds are the test's own arrays, made before the count starts)
+    assert 2 * memory + 3 < vectors < 2 * memory + 6.5

@@ -578,6 +578,12 @@ MUTANTS = [
            ("test_coarse.py",),
            "the full grid's located faces set aside too (its points then located afresh)",
            k="set_aside"),
+    Mutant("projected_gradient_kept_through_the_line_search",
+           "correspondence/strategies/quasi_newton.py",
+           "        del projected ", "        projected = projected ",
+           ("test_quasi_newton.py",),
+           "the projected gradient held through every evaluation of the line search",
+           k="six_vectors"),
     # --- the prepared surfaces in a mapped file (prepare/mapped.py, memory.py) ---
     Mutant("mapped_padding_not_counted", "prepare/mapped.py",
            "    offset += padding\n", "",

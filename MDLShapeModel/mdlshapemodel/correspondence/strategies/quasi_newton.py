@@ -141,6 +141,7 @@ def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
             step = 1.0 / max(np.linalg.norm(direction), 1e-300)
         else:
             step = 1.0
+        del projected       # not needed by the line search, whose evaluations hold their own
         for _ in range(MAX_BACKTRACKS):
             trial = np.clip(x + step * direction, lower, upper)
             trial_value, trial_gradient = fun(trial)
