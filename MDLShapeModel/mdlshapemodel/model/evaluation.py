@@ -530,8 +530,8 @@ class ModelFrameSurfaces(Sequence):
         return len(self.file if self.meshes is None else self.meshes)
 
     def __getitem__(self, i: int):
-        # one part: its own triangles, not a copy
         meshes = self.file.meshes(i) if self.meshes is None else self.meshes[i]
+        # (one part: its triangles as they are, not joined into a new array)
         vertices, faces = meshes[0] if len(meshes) == 1 else joined_mesh(meshes)
         return self.frame.to_model_frame(i, vertices), faces
 
