@@ -32,11 +32,13 @@ import time
 
 from end_to_end import _children, _rss_mb      # (this folder's /proc readers)
 
-# each stage from the log line that starts it to the one that ends it
-STAGES = (("initial correspondence", "cases in", "evaluating the initial"),
-          ("optimisation", "evaluating the initial", "the optimisation stopped"),
-          ("the baselines awaited", "evaluating the baselines", "evaluating the model"),
-          ("evaluation and files", "evaluating the model", "evaluated, outputs written"))
+# each stage from the first log line with one of its openings to the next with one of its
+# endings (an optimisation that converged logs no "stopped", a short evaluation no 50 % line)
+STAGES = (("initial correspondence", ("cases in",), ("initial objective",)),
+          ("optimisation", ("initial objective",), ("final objective",)),
+          ("the baselines awaited", ("evaluating the baselines",),
+           ("evaluating the model", "evaluated, outputs written")),
+          ("evaluation and files", ("evaluating the model",), ("evaluated, outputs written",)))
 
 
 class MallInfo2(ctypes.Structure):
@@ -98,11 +100,18 @@ def table(paths: list) -> None:
                 except ValueError:
                     pass
         logged = [row for row in rows if row["kind"] == "log"]
-        for name, first, last in STAGES:
-            begin = next((row["t"] for row in logged if first in row["msg"]), None)
-            end = next((row["t"] for row in logged if last in row["msg"]), None)
-            if begin is None or end is None:
-                continue
+        stages = []
+        for name, openings, endings in STAGES:
+            begin = next((row["t"] for row in logged
+                          if any(word in row["msg"] for word in openings)), None)
+            end = None if begin is None else next(
+                (row["t"] for row in logged
+                 if row["t"] > begin and any(word in row["msg"] for word in endings)), None)
+            if end is not None:
+                stages.append((name, begin, end))
+        if rows:
+            stages.append(("the whole build", rows[0]["t"], rows[-1]["t"]))
+        for name, begin, end in stages:
             inside = [row for row in rows if begin <= row["t"] <= end]
             print(f"| {path} | {name} | {end - begin:.0f} | {max(r['rss'] for r in inside):.0f} "
                   f"| {max(r['rss'] + sum(r['kids'].values()) for r in inside):.0f} "
