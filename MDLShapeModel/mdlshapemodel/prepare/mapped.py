@@ -28,7 +28,8 @@ from ..errors import InternalError
 from ..memory import watch_mapping
 from .sphere import SphereMap
 
-__all__ = ["CasesInFile", "MappedCases", "MeshFile", "StoredArray", "mapped_cases"]
+__all__ = ["CasesInFile", "MappedCases", "MeshFile", "StoredArray", "StoredPart",
+           "mapped_cases"]
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -50,9 +51,18 @@ class StoredArray:
 
 
 @dataclass(frozen=True)
+class StoredPart:
+    """Where one part's sphere map lies in a :class:`MeshFile`."""
+
+    vertices: StoredArray
+    faces: StoredArray
+    sphere: StoredArray
+
+
+@dataclass(frozen=True)
 class MeshFile:
-    """A file of prepared cases' sphere maps: ``parts[i][j]`` is the (vertices, faces, sphere)
-    :class:`StoredArray` triple of case i's part j."""
+    """A file of prepared cases' sphere maps: ``parts[i][j]`` is the :class:`StoredPart` of case
+    i's part j."""
 
     path: str
     parts: tuple
@@ -65,8 +75,8 @@ class MeshFile:
         mapping kept (what :meth:`~mdlshapemodel.prepare.case.PreparedCase.meshes` gives of the
         mapped case)."""
         with open(self.path, "rb") as file:
-            return [(self._read(file, vertices), self._read(file, faces))
-                    for vertices, faces, _ in self.parts[i]]
+            return [(self._read(file, part.vertices), self._read(file, part.faces))
+                    for part in self.parts[i]]
 
     def _read(self, file, stored: StoredArray) -> np.ndarray:
         file.seek(stored.offset)
@@ -132,11 +142,10 @@ def mapped_cases(prepared: list, path) -> list:
             for case in prepared:
                 parts = []
                 for part in case.parts:
-                    stored = []
-                    for array in (part.map.vertices, part.map.faces, part.map.sphere):
-                        placed, offset = _write(file, array, offset)
-                        stored.append(placed)
-                    parts.append(tuple(stored))
+                    vertices, offset = _write(file, part.map.vertices, offset)
+                    faces, offset = _write(file, part.map.faces, offset)
+                    sphere, offset = _write(file, part.map.sphere, offset)
+                    parts.append(StoredPart(vertices, faces, sphere))
                 where.append(tuple(parts))
         temporary.replace(path)
         with open(path, "rb") as file:
@@ -153,9 +162,9 @@ def mapped_cases(prepared: list, path) -> list:
 
     cases = []
     for case, parts in zip(prepared, where):
-        mapped = [replace(part, map=SphereMap(view(vertices), view(faces), view(sphere),
-                                              part.map.quality))
-                  for part, (vertices, faces, sphere) in zip(case.parts, parts)]
+        mapped = [replace(part, map=SphereMap(view(stored.vertices), view(stored.faces),
+                                              view(stored.sphere), part.map.quality))
+                  for part, stored in zip(case.parts, parts)]
         cases.append(replace(case, parts=mapped))
     return MappedCases(cases, MeshFile(str(path), tuple(where)), mapping)
 
