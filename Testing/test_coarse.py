@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import replace
 
 import numpy as np
@@ -11,11 +12,12 @@ from mdlshapemodel.config import BuildConfig, OptimisationSettings
 from mdlshapemodel.correspondence.coarse import carry_over, coarse_grid_applies, coarse_view
 from mdlshapemodel.correspondence.fields import FieldBasis
 from mdlshapemodel.correspondence.sampling import sphere_grid
-from mdlshapemodel.correspondence.state import CorrespondenceState, FixedExample, state_record
+from mdlshapemodel.correspondence.state import (CorrespondenceState, FixedExample, replay_record,
+                                                state_record)
 from mdlshapemodel.correspondence.strategies import measured_state, optimise
 from mdlshapemodel.correspondence.trace import Trace
 from mdlshapemodel.correspondence.warps import FieldWarp, apply_warps
-from mdlshapemodel.errors import ConfigError
+from mdlshapemodel.errors import ConfigError, InternalError
 from mdlshapemodel.parallel import Threads
 
 from resuming import assert_same_record, optimised_with_checkpoints, resumed_from
@@ -95,6 +97,79 @@ def test_a_state_set_aside_during_the_coarse_stage_is_carried_over_the_same_bit_
         np.testing.assert_array_equal(mine.parts[0].points, theirs.parts[0].points)
 
 
+def _field_warps(part, rng, levels=(0, 1, 2)) -> list:
+    """Field warps within their bounds on ``part``'s grid, one per level."""
+    warps = []
+    for level in levels:
+        basis = FieldBasis.icosphere_level(level, part.grid, 2.0)
+        warps.append(FieldWarp(level, 2.0, rng.uniform(-0.3, 0.3, (basis.n_centres, 3))
+                               * basis.max_coefficient()))
+    return warps
+
+
+def test_a_carried_grid_gives_the_fine_parts_what_replaying_the_warps_gives_bit_for_bit():
+    replayed, carried = small_state(points=162), small_state(points=162)
+    views = {"replayed": coarse_view(replayed, 42), "carried": coarse_view(carried, 42, carry=True)}
+    for view in views.values():
+        rng = np.random.default_rng(5)
+        for example in view.examples:
+            part = example.parts[0]
+            for warp in _field_warps(part, rng):
+                moved = warp.apply(part.positions)
+                part.commit(warp, moved, *part.sample(moved))
+    assert all(e.parts[0].warps is None and e.parts[0].carried is not None
+               for e in views["carried"].examples)
+    assert all(len(e.parts[0].warps) == 3 and e.parts[0].carried is None
+               for e in views["replayed"].examples)
+    # a copy sent to another process (pickled) leaves the carrying to the state's own part
+    copied = pickle.loads(pickle.dumps(views["carried"].examples[0].parts[0]))
+    assert copied.carried is None and copied.warp_counts()["field"] == 3
+    # the checkpoint of the stage holds positions, not field coefficients
+    record = state_record(views["carried"])
+    assert not any(key.startswith("warp_values") for key in record)
+    resumed = coarse_view(small_state(points=162), 42, carry=True)
+    replay_record(resumed, record)
+    for mine, theirs in zip(resumed.examples, views["carried"].examples):
+        np.testing.assert_array_equal(mine.parts[0].carried.positions,
+                                      theirs.parts[0].carried.positions)
+        assert mine.parts[0].carried.counts == {"field": 3}
+    assert carry_over(views["replayed"], replayed) == 0
+    assert carry_over(views["carried"], carried) == 0
+    for mine, theirs in zip(carried.examples, replayed.examples):
+        part, expected = mine.parts[0], theirs.parts[0]
+        assert part.warps is None and part.warp_counts() == expected.warp_counts()
+        np.testing.assert_array_equal(part.positions, expected.positions)
+        np.testing.assert_array_equal(part.points, expected.points)
+        np.testing.assert_array_equal(part.hint, expected.hint)
+    # its coarse view (where a build measures F) takes the first positions: the same bits as
+    # the warps replayed on the coarse grid
+    for mine, theirs in zip(coarse_view(carried, 42).examples,
+                            coarse_view(replayed, 42).examples):
+        np.testing.assert_array_equal(mine.parts[0].positions, theirs.parts[0].positions)
+        np.testing.assert_array_equal(mine.parts[0].points, theirs.parts[0].points)
+    # a record of the carried-over state replays its positions
+    fresh = small_state(points=162)
+    replay_record(fresh, state_record(carried))
+    assert_same_record(state_record(fresh), state_record(carried))
+    with pytest.raises(InternalError, match="first points"):
+        carried.examples[0].parts[0].on_grid(*sphere_grid(100))
+
+
+def test_a_carried_grid_leaves_out_a_warp_that_turns_its_triangle_over_and_those_after_it():
+    state = small_state(points=162)
+    view = coarse_view(state, 42, carry=True)
+    part, fine = view.examples[0].parts[0], state.examples[0].parts[0]
+    basis = FieldBasis.icosphere_level(2, fine.grid, 2.0)
+    gentle = FieldWarp(2, 2.0, np.full((basis.n_centres, 3), 0.2 * basis.max_coefficient()))
+    violent = FieldWarp(2, 2.0, np.random.default_rng(0).normal(0, 2.0, (basis.n_centres, 3)))
+    for warp in (gentle, violent, gentle):
+        moved = warp.apply(part.positions)
+        part.commit(warp, moved, *part.sample(moved))
+    assert fine.take_carried(part.carried) == 2
+    np.testing.assert_array_equal(fine.positions, gentle.apply(fine.grid))
+    assert fine.warp_counts()["field"] == 1 and not fine.folds(fine.positions)
+
+
 def test_a_warp_that_turns_a_fine_grid_triangle_over_is_left_out_with_the_ones_after_it():
     state = small_state(points=162)
     part = state.examples[0].parts[0]
@@ -118,11 +193,12 @@ def test_the_staged_optimisation_runs_both_objectives_on_the_coarse_grid_and_car
     # the value returned is eq. 14 of the carried-over state, measured on the coarse grid
     assert final == pytest.approx(measured_state(state, STAGED, objective=objectives[1]).value(),
                                   rel=1e-9)
-    # every part's map is a recorded composition of warps, as a state record needs
+    # every part's map is the positions its coarse part carried, counted by kind, no warps
     for example in state.examples:
         part = example.parts[0]
-        assert len(part.warps) > 0
-        assert np.array_equal(part.positions, apply_warps(part.grid, part.warps))
+        assert part.warps is None and part.warp_counts()["field"] > 0
+        assert not np.array_equal(part.positions, part.grid)
+        assert np.allclose(part.points, part.sample(part.positions)[0])
     assert [row.evaluations for row in trace.rows] == sorted(row.evaluations for row in trace.rows)
 
 

@@ -220,8 +220,8 @@ def write_shapes(output: Path, corresponded, prepared: list) -> WrittenShapes:
                       "max_distance_mm": float(distances.max()),
                       "mean_distance_voxels": float(distances.mean() / case.voxel_size),
                       **sphere_quality(case),
-                      "warps": int(sum(len(p.warps) for p in getattr(state.examples[i], "parts",
-                                                                      []))),
+                      "warps": int(sum(sum(p.warp_counts().values())
+                                       for p in getattr(state.examples[i], "parts", []))),
                       "warp_kinds": warp_summary(state.examples[i]),
                       "normals_off": "" if normals_off is None else int(normals_off[i]),
                       "mahalanobis": float(outlier["distance"][i]),

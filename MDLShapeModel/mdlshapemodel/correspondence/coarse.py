@@ -36,17 +36,26 @@ def coarse_grid_applies(state: CorrespondenceState, n_points: int) -> bool:
             and all(len(points) > n_points for points, _ in state.grids))
 
 
-def coarse_view(state: CorrespondenceState, n_points: int) -> CorrespondenceState:
+def coarse_view(state: CorrespondenceState, n_points: int,
+                carry: bool = False) -> CorrespondenceState:
     """The same correspondence sampled at ``n_points`` per part (:func:`.sampling.sphere_grid`),
     with the same poses, rebuilt (area weights of the coarse grid, rescaled to ``state``'s target
     size): eq. 14 of the view is eq. 14 of ``state`` on the coarse grid.
 
     Sphere parts are resampled with their warps (they share the surfaces, sphere maps and
-    locators of ``state``'s). An example whose correspondence is given (:class:`FixedExample`,
-    e.g. the CPD baseline's) keeps the points of each part where its grid starts with the coarse
-    grid (nested icospheres: 642 in 2562); raises ValueError where it does not. The landmark
-    guides carry over where their sample points are among the coarse grid's (ValueError else)."""
+    locators of ``state``'s); a part that keeps no warps, only its positions, is sampled at the
+    first of them (:meth:`~.state.PartState.take_first_positions`). An example whose
+    correspondence is given (:class:`FixedExample`, e.g. the CPD baseline's) keeps the points of
+    each part where its grid starts with the coarse grid (nested icospheres: 642 in 2562);
+    raises ValueError where it does not. The landmark guides carry over where their sample
+    points are among the coarse grid's (ValueError else).
+
+    ``carry``: the view is to be optimised and carried over (:func:`carry_over`); where every
+    grid of ``state`` starts with the coarse grid, each view part moves its part's grid along
+    (:meth:`~.state.PartState.carry`) and keeps no warps."""
     grid, cells = sphere_grid(n_points)
+    carry = carry and all(len(points) > n_points and np.array_equal(points[:n_points], grid)
+                          for points, _ in state.grids)
     examples = []
     for example in state.examples:
         if isinstance(example, FixedExample):
@@ -58,8 +67,11 @@ def coarse_view(state: CorrespondenceState, n_points: int) -> CorrespondenceStat
                                      for part in state.part_slices])
             examples.append(FixedExample(example.name, points))
         else:
-            examples.append(Example(example.name,
-                                    [part.on_grid(grid, cells) for part in example.parts]))
+            parts = [part.on_grid(grid, cells) for part in example.parts]
+            if carry:
+                for view, part in zip(parts, example.parts):
+                    view.carry(part)
+            examples.append(Example(example.name, parts))
     guides = None
     if state.guides is not None:     # the guided points are among the coarse grid's
         guides = state.guides.on_rows(np.concatenate([np.arange(part.start, part.start + n_points)
@@ -78,17 +90,22 @@ def coarse_view(state: CorrespondenceState, n_points: int) -> CorrespondenceStat
 def carry_over(coarse: CorrespondenceState, state: CorrespondenceState,
                threads: Threads | None = None) -> int:
     """Give ``state`` the correspondence of its :func:`coarse_view`: every example's pose and
-    every part's warps (re-applied to ``state``'s grid, :meth:`~.state.PartState.replay_unfolded`),
-    then rebuild it. Returns how many warps were left out because they turned a triangle of the
-    finer grid over (none, in practice: a finer grid resolves a map better)."""
+    every part's map on ``state``'s grid (the positions the view's part carried along,
+    :meth:`~.state.PartState.take_carried`, or its warps re-applied,
+    :meth:`~.state.PartState.replay_unfolded`), then rebuild it. Returns how many warps were
+    left out because they turned a triangle of the finer grid over (none, in practice: a finer
+    grid resolves a map better)."""
     jobs = [(i, j) for i, example in enumerate(state.examples) for j in range(len(example.parts))]
     dropped = [0] * len(jobs)
 
     def replay(indices):
         for k in indices:
             i, j = jobs[k]
-            warps = coarse.examples[i].parts[j].warps
-            dropped[k] = len(warps) - state.examples[i].parts[j].replay_unfolded(warps)
+            source, part = coarse.examples[i].parts[j], state.examples[i].parts[j]
+            if source.carried is not None:
+                dropped[k] = part.take_carried(source.carried)
+            else:
+                dropped[k] = len(source.warps) - part.replay_unfolded(source.warps)
 
     (threads or Threads(1)).over(len(jobs), replay)
     for example, source in zip(state.examples, coarse.examples):

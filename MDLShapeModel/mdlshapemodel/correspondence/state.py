@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import ArgumentError
+from ..errors import ArgumentError, InternalError
 from ..geometry import Pose, centroid_size, generalized_procrustes, weighted_centroid
 from ..prepare.curve import segment_vertex_lengths
 from ..prepare.sphere import orientation
@@ -72,9 +72,24 @@ class PartState:
         if near and self.hint is not None:
             hint = self.hint[cKDTree(self.positions).query(np.asarray(grid))[1]]
         view.start_at(grid, grid_cells, hint)
-        if self.warps:
+        if self.warps is None:        # the map is known where this part samples it
+            view.take_first_positions(self)
+        elif self.warps:
             view.replay(self.warps)
         return view
+
+    def take_first_positions(self, finer: "PartState"):
+        """The map of ``finer``, a part that keeps no warps (:meth:`carry`), sampled on this
+        part's grid, which must be the first points of ``finer``'s (nested icospheres): its
+        positions there. A warp moves each point on its own, so these are the positions the
+        warps would give on this grid, bit for bit."""
+        n = len(self.grid)
+        if not np.array_equal(finer.grid[:n], self.grid):
+            raise InternalError("a part that keeps no warps has its map on its own grid only: "
+                                "the grid asked for is not its first points")
+        self.warps, self.counts = None, dict(finer.counts)
+        self.positions = finer.positions[:n].copy()
+        self.points, self.hint = self.sample(self.positions)
 
     def replay_unfolded(self, warps: list) -> int:
         """Set the reparameterization to the longest first part of ``warps`` that, applied to
@@ -95,15 +110,45 @@ class PartState:
                 positions = moved
                 kept.append(warp)
         self.warps = kept
+        self.counts = kind_counts(kept)
         self.positions = np.array(positions, dtype=np.float64)
         self.points, self.hint = self.sample(self.positions)
         return len(kept)
 
+    def carry(self, finer: "PartState"):
+        """From now on, move ``finer``'s grid with every warp this part accepts
+        (:class:`CarriedGrid`), and keep no warps: the coarse stage's parts (:mod:`.coarse`)
+        carry their model-grid positions along instead of their warps, whose field coefficients
+        outgrow those positions within a few rounds. :meth:`take_carried` gives ``finer`` the
+        result."""
+        if finer.warps is None:
+            self.carried = CarriedGrid(finer.positions, finer.grid_triangles, finer.counts)
+        else:
+            self.carried = CarriedGrid(finer.grid, finer.grid_triangles)
+            for warp in finer.warps:
+                self.carried.move(warp)
+        self.warps = None
+
+    def take_carried(self, carried: "CarriedGrid") -> int:
+        """Set the reparameterization to the positions a coarser part carried for this one
+        (:meth:`carry`), by :meth:`replay_unfolded`'s rule; this part then keeps no warps.
+        Returns how many warps were left out."""
+        positions, counts = carried.settled()
+        self.warps, self.counts = None, dict(counts)
+        self.positions = np.asarray(positions, dtype=np.float64)
+        self.points, self.hint = self.sample(self.positions)
+        return sum(carried.counts.values()) - sum(counts.values())
+
     def start_at(self, grid: np.ndarray, grid_cells: np.ndarray, hint: np.ndarray | None = None):
         """No warp yet: the sample positions are the grid's (its triangles, or segments on a
         circle), and the samples are taken there (located from ``hint``'s faces if given)."""
-        #: every accepted warp, in order: ``apply_warps(grid, warps)`` gives ``positions``
-        self.warps: list[Warp] = []
+        #: every accepted warp, in order: ``apply_warps(grid, warps)`` gives ``positions``;
+        #: None in a part that keeps only the positions (:meth:`carry`, :meth:`take_carried`)
+        self.warps: list[Warp] | None = []
+        #: how many warps of each kind (a key of ``warps.WARP_KINDS``) were accepted
+        self.counts: dict[str, int] = {}
+        #: the finer grid this part moves along (:meth:`carry`), or None
+        self.carried: CarriedGrid | None = None
         self.grid = np.asarray(grid, dtype=np.float64)
         # the grid itself, read-only (all parts sampled on it share it): a warp makes new
         # positions, never writes these
@@ -153,7 +198,7 @@ class PartState:
         spacing can still turn a grid triangle over (its straight edges are not mapped exactly);
         amplitudes that would do so are never used.
         """
-        return bool(np.any(orientation(positions, self.grid_triangles) <= 0))
+        return folds(positions, self.grid_triangles)
 
     def feasible_amplitude(self, center: np.ndarray, omega: float, upper: float,
                            steps: int = 12) -> float:
@@ -189,22 +234,100 @@ class PartState:
         return positions, points, hint
 
     def commit(self, warp: Warp, positions, points, hint):
-        """Accept a warp (recorded in ``warps``) and the positions, points and hint it gave."""
-        self.warps.append(warp)
+        """Accept a warp (:meth:`accept`) and the positions, points and hint it gave."""
+        self.accept(warp)
         self.positions, self.points, self.hint = positions, points, hint
 
+    def accept(self, warp: Warp):
+        """Record an accepted warp whose move the positions have (or are given next): in
+        ``warps`` where they are kept, in ``counts``, and on the carried grid."""
+        if self.warps is not None:
+            self.warps.append(warp)
+        self.counts[warp.kind] = self.counts.get(warp.kind, 0) + 1
+        if self.carried is not None:
+            self.carried.move(warp)
+
     def replay(self, warps: list):
-        """Set the reparameterization to ``warps`` applied to the grid (a recorded state)."""
-        self.warps = list(warps)
-        self.positions = apply_warps(self.grid, self.warps)
+        """Set the reparameterization to ``warps`` applied to the grid (a recorded state); a
+        part that carries a finer grid moves it by them from that grid's start."""
+        if self.warps is not None:
+            self.warps = list(warps)
+        self.counts = kind_counts(warps)
+        if self.carried is not None:
+            self.carried.restart()
+            for warp in warps:
+                self.carried.move(warp)
+        self.positions = apply_warps(self.grid, warps)
         self.points, self.hint = self.sample(self.positions)
 
     def warp_counts(self) -> dict:
         """How many accepted warps of each kind (a key of ``warps.WARP_KINDS``) make its map."""
-        counts = dict.fromkeys(WARP_KINDS, 0)
-        for warp in self.warps:
-            counts[warp.kind] += 1
-        return counts
+        return {kind: self.counts.get(kind, 0) for kind in WARP_KINDS}
+
+    def __getstate__(self):
+        # a copy in another process (a Dask worker's) does not move the carried grid: the
+        # state's own part does, as it commits what the worker found
+        return {**self.__dict__, "carried": None}
+
+
+def folds(positions: np.ndarray, triangles: np.ndarray) -> bool:
+    """Whether any of ``triangles`` (indices into ``positions``, points on the sphere) is
+    flipped."""
+    return bool(np.any(orientation(positions, triangles) <= 0))
+
+
+def kind_counts(warps) -> dict:
+    """How many of ``warps`` are of each kind (only the kinds there are)."""
+    counts = {}
+    for warp in warps:
+        counts[warp.kind] = counts.get(warp.kind, 0) + 1
+    return counts
+
+
+class CarriedGrid:
+    """A finer grid's sample positions, moved by every warp a coarser part accepts
+    (:meth:`PartState.carry`): the map of the coarse stage on the model's grid, without the
+    warps.
+
+    Like :meth:`PartState.replay_unfolded`, it keeps the positions every warp gives unless
+    their composition turns a triangle of this grid over; then those before the first warp
+    that did. So it holds, beside the positions and the counts of warps by kind, the positions
+    and counts before that first warp (``unfolded``) once there is one.
+    """
+
+    def __init__(self, positions: np.ndarray, triangles: np.ndarray,
+                 counts: dict | None = None):
+        self.start = (positions, dict(counts or {}))
+        self.triangles = triangles
+        self.restart()
+
+    def restart(self):
+        """Back to the positions it started from."""
+        self.positions, counts = self.start
+        self.counts = dict(counts)
+        self.unfolded = None        # (positions, counts) before the first warp that folded
+
+    def move(self, warp: Warp):
+        """Apply one more warp."""
+        moved = warp.apply(self.positions)
+        if self.unfolded is None and folds(moved, self.triangles):
+            self.unfolded = (self.positions, dict(self.counts))
+        self.positions = moved
+        self.counts[warp.kind] = self.counts.get(warp.kind, 0) + 1
+
+    def copy(self) -> "CarriedGrid":
+        """An independent copy (the positions are never written in place: shared)."""
+        twin = object.__new__(CarriedGrid)
+        twin.__dict__.update(self.__dict__)
+        twin.counts = dict(self.counts)
+        return twin
+
+    def settled(self) -> tuple:
+        """(positions, counts by kind) the finer part takes: those of every warp, or where
+        they turn a triangle over, those before the first warp that did."""
+        if self.unfolded is not None and folds(self.positions, self.triangles):
+            return self.unfolded
+        return self.positions, self.counts
 
 
 @dataclass
@@ -690,17 +813,22 @@ class CorrespondenceState:
 
     def snapshot(self) -> list:
         """Everything the optimisation changes: per example its pose and per part its positions,
-        located faces and warps."""
+        located faces, warps (their counts) and carried grid."""
         return [(e.pose.copy(), [(p.positions.copy(), p.points.copy(), p.hint.copy(),
-                                  list(p.warps)) for p in e.parts]) for e in self.examples]
+                                  None if p.warps is None else list(p.warps), dict(p.counts),
+                                  None if p.carried is None else p.carried.copy())
+                                 for p in e.parts]) for e in self.examples]
 
     def restore(self, snapshot: list):
         """Return to a :meth:`snapshot`."""
         for example, (pose, parts) in zip(self.examples, snapshot):
             example.pose = pose.copy()
-            for part, (positions, points, hint, warps) in zip(example.parts, parts):
+            for part, (positions, points, hint, warps, counts, carried) in zip(example.parts,
+                                                                                 parts):
                 part.positions, part.points, part.hint = positions.copy(), points.copy(), hint.copy()
-                part.warps = list(warps)
+                part.warps = None if warps is None else list(warps)
+                part.counts = dict(counts)
+                part.carried = None if carried is None else carried.copy()
         self.rebuild()
 
 
@@ -733,10 +861,11 @@ def vertex_measures(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
 
 
 def state_record(state: CorrespondenceState) -> dict:
-    """The state's correspondence as named arrays: per example its pose, per part its accepted
-    warps (kinds, parameter vectors), the sample positions they give, the sampled points and
-    the faces they lie in. With the same prepared cases and settings, :func:`replay_record`
-    rebuilds the state from it bit for bit."""
+    """The state's correspondence as named arrays: per example its pose, per part the sample
+    positions, the sampled points and the faces they lie in, and its accepted warps (kinds,
+    parameter vectors; where the part keeps none, :meth:`PartState.carry`, how many of each
+    kind, and the finer grid's positions it carries). With the same prepared cases and
+    settings, :func:`replay_record` rebuilds the state from it bit for bit."""
     arrays = {"names": np.array([e.name for e in state.examples]), "weights": state.weights,
               "target_size": np.array(state.target_size)}
     for i, example in enumerate(state.examples):
@@ -744,23 +873,45 @@ def state_record(state: CorrespondenceState) -> dict:
                                               example.pose.rotation.ravel(),
                                               example.pose.translation])
         for j, part in enumerate(getattr(example, "parts", [])):
-            vectors = [warp.to_vector() for warp in part.warps]
             arrays[f"positions_{i}_{j}"] = part.positions
             # the samples and the faces they were located in (where a walk starts next): a
             # resumed optimisation must see exactly these, not a fresh location's rounding
             arrays[f"points_{i}_{j}"] = part.points
             arrays[f"hint_{i}_{j}"] = np.asarray(part.hint)
-            arrays[f"warp_kinds_{i}_{j}"] = np.array([w.kind for w in part.warps], dtype=str)
-            arrays[f"warp_sizes_{i}_{j}"] = np.array([len(v) for v in vectors], dtype=np.int64)
-            arrays[f"warp_values_{i}_{j}"] = (np.concatenate(vectors) if vectors
-                                              else np.zeros(0))
+            if part.warps is not None:
+                vectors = [warp.to_vector() for warp in part.warps]
+                arrays[f"warp_kinds_{i}_{j}"] = np.array([w.kind for w in part.warps], dtype=str)
+                arrays[f"warp_sizes_{i}_{j}"] = np.array([len(v) for v in vectors],
+                                                         dtype=np.int64)
+                arrays[f"warp_values_{i}_{j}"] = (np.concatenate(vectors) if vectors
+                                                  else np.zeros(0))
+            else:
+                arrays.update(_counts_record(f"counts_{i}_{j}", part.counts))
+            carried = part.carried
+            if carried is not None:
+                arrays[f"carried_{i}_{j}"] = carried.positions
+                arrays.update(_counts_record(f"carried_counts_{i}_{j}", carried.counts))
+                if carried.unfolded is not None:
+                    arrays[f"unfolded_{i}_{j}"] = carried.unfolded[0]
+                    arrays.update(_counts_record(f"unfolded_counts_{i}_{j}",
+                                                 carried.unfolded[1]))
     return arrays
+
+
+def _counts_record(name: str, counts: dict) -> dict:
+    return {f"{name}_kinds": np.array(list(counts), dtype=str),
+            name: np.array(list(counts.values()), dtype=np.int64)}
+
+
+def _recorded_counts(arrays, name: str) -> dict:
+    return {str(kind): int(count) for kind, count in zip(arrays[f"{name}_kinds"], arrays[name])}
 
 
 def replay_record(state: CorrespondenceState, arrays) -> None:
     """Give ``state`` (the initial state of the same cases and settings) the correspondence of a
-    :func:`state_record`: every part's warps re-applied to the grid, every pose set. Raises
-    ValueError when the record is of other cases or other sample points."""
+    :func:`state_record`: every part's warps re-applied to the grid (or its recorded positions,
+    where the part kept no warps), every pose set. Raises ValueError when the record is of
+    other cases or other sample points."""
     names = [str(n) for n in arrays["names"]]
     if names != [e.name for e in state.examples]:
         raise ArgumentError("the record is of other cases")
@@ -768,17 +919,32 @@ def replay_record(state: CorrespondenceState, arrays) -> None:
         pose = np.asarray(arrays[f"pose_{i}"], dtype=np.float64)
         example.pose = Pose(float(pose[0]), pose[1:10].reshape(3, 3), pose[10:13])
         for j, part in enumerate(getattr(example, "parts", [])):
-            kinds = [str(k) for k in arrays[f"warp_kinds_{i}_{j}"]]
-            ends = np.cumsum(arrays[f"warp_sizes_{i}_{j}"])
-            values = np.asarray(arrays[f"warp_values_{i}_{j}"], dtype=np.float64)
-            warps = [WARP_KINDS[kind].from_vector(values[end - size:end])
-                     for kind, end, size in zip(kinds, ends, arrays[f"warp_sizes_{i}_{j}"])]
             if len(arrays[f"positions_{i}_{j}"]) != len(part.grid):
                 raise ArgumentError("the record has another number of sample points")
-            part.replay(warps)
+            if f"warp_kinds_{i}_{j}" in arrays:
+                kinds = [str(k) for k in arrays[f"warp_kinds_{i}_{j}"]]
+                ends = np.cumsum(arrays[f"warp_sizes_{i}_{j}"])
+                values = np.asarray(arrays[f"warp_values_{i}_{j}"], dtype=np.float64)
+                part.replay([WARP_KINDS[kind].from_vector(values[end - size:end])
+                             for kind, end, size in zip(kinds, ends,
+                                                        arrays[f"warp_sizes_{i}_{j}"])])
+            else:
+                part.warps = None
+                part.counts = _recorded_counts(arrays, f"counts_{i}_{j}")
+                part.positions = np.array(arrays[f"positions_{i}_{j}"], dtype=np.float64)
+            if f"carried_{i}_{j}" in arrays and part.carried is not None:
+                carried = part.carried
+                carried.positions = np.array(arrays[f"carried_{i}_{j}"], dtype=np.float64)
+                carried.counts = _recorded_counts(arrays, f"carried_counts_{i}_{j}")
+                carried.unfolded = None
+                if f"unfolded_{i}_{j}" in arrays:
+                    carried.unfolded = (np.array(arrays[f"unfolded_{i}_{j}"], dtype=np.float64),
+                                        _recorded_counts(arrays, f"unfolded_counts_{i}_{j}"))
             if f"points_{i}_{j}" in arrays:
                 part.points = np.array(arrays[f"points_{i}_{j}"], dtype=np.float64)
                 part.hint = np.array(arrays[f"hint_{i}_{j}"])
+            elif part.warps is None:
+                part.points, part.hint = part.sample(part.positions)
     if len(arrays["weights"]) != state.n_points:
         raise ArgumentError("the record has another number of sample points")
     state.weights = np.asarray(arrays["weights"], dtype=np.float64).copy()

@@ -138,7 +138,7 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         trace.stopped_by = Stop.CONVERGED
         return measured_state(state, settings, active, integrated).value()
     if staged:
-        coarse = coarse_view(state, settings.coarse_points)
+        coarse = coarse_view(state, settings.coarse_points, carry=True)
         state.set_aside()         # carried over from the coarse view when the stage ends
     if resume is not None:
         point = resume.point

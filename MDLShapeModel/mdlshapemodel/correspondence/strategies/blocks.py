@@ -273,9 +273,14 @@ class BlockSet:
         """Commit ``trial`` (sampled at ``x``) to the set's parts; returns, per part, (row, part
         index, what its ``commit`` was given), for other copies of the parts."""
         located, raw = self.trials[trial]
-        settled = []
-        for block, one, (row, j) in zip(self.blocks, located, self.parts):
-            arguments = block.settled(one, x, raw)
-            block.part.commit(*arguments)
-            settled.append((row, j, arguments))
+        settled = [None] * len(self.blocks)
+
+        def commit(indices):
+            # on the threads: a part that carries a finer grid moves it as it commits
+            for b in indices:
+                arguments = self.blocks[b].settled(located[b], x, raw)
+                self.blocks[b].part.commit(*arguments)
+                settled[b] = (*self.parts[b], arguments)
+
+        self.threads.over(len(self.blocks), commit)
         return settled

@@ -144,7 +144,8 @@ def _optimise_amplitudes(state: CorrespondenceState, blocks: list, current: floa
         return current
     touched = set()
     for i, part, kernels, positions, points, hint in best["trial"]:
-        part.warps.extend(kernels[:-1])
+        for kernel in kernels[:-1]:
+            part.accept(kernel)
         part.commit(kernels[-1], positions, points, hint)
         touched.add(i)
     for i in sorted(touched):

@@ -168,11 +168,17 @@ class ExamplesOnCluster:
     def commit(self, trial: int, parameters: list):
         """Commit ``trial`` on the workers' copies of the parts and on the state's."""
         settled = self._each("commit", [(trial, x) for x in parameters])
-        for stretch, changes in zip(self.stretches, settled):
-            if stretch.here:      # its block set is of the state's own parts: committed
-                continue
-            for row, j, arguments in changes:
-                self.state.examples[self.active[stretch.rows][row]].parts[j].commit(*arguments)
+        # a stretch here has committed its block set, of the state's own parts
+        changes = [(self.active[stretch.rows][row], j, arguments)
+                   for stretch, changed in zip(self.stretches, settled) if not stretch.here
+                   for row, j, arguments in changed]
+
+        def commit(indices):     # on the threads: a part carrying a finer grid moves it
+            for k in indices:
+                i, j, arguments = changes[k]
+                self.state.examples[i].parts[j].commit(*arguments)
+
+        self.threads.over(len(changes), commit)
 
     def close(self):
         """Let the workers' actors go (the scheduler releases them, without waiting here)."""
