@@ -133,6 +133,13 @@ def test_a_carried_grid_gives_the_fine_parts_what_replaying_the_warps_gives_bit_
         np.testing.assert_array_equal(mine.parts[0].carried.positions,
                                       theirs.parts[0].carried.positions)
         assert mine.parts[0].carried.counts == {"field": 3}
+    # a checkpoint that lists the warps (a view that kept them) moves the carried grid by them
+    listed = coarse_view(small_state(points=162), 42, carry=True)
+    replay_record(listed, state_record(views["replayed"]))
+    for mine, theirs in zip(listed.examples, views["carried"].examples):
+        np.testing.assert_array_equal(mine.parts[0].carried.positions,
+                                      theirs.parts[0].carried.positions)
+        np.testing.assert_array_equal(mine.parts[0].positions, theirs.parts[0].positions)
     assert carry_over(views["replayed"], replayed) == 0
     assert carry_over(views["carried"], carried) == 0
     for mine, theirs in zip(carried.examples, replayed.examples):
