@@ -633,6 +633,12 @@ MUTANTS = [
            "self.positions = finer.positions[-n:].copy()",
            ("test_coarse.py",),
            "F after a coarse stage is measured at the wrong points of the model's grid"),
+    Mutant("given_jacobians_not_advanced", "correspondence/hotloops.py",
+           "            next_given += 1",
+           "            next_given += 0",
+           ("test_hotloops.py",),
+           "the points located apart all take the first one's surface Jacobian",
+           k="field_sample_gradient"),
 ]
 
 
