@@ -48,7 +48,7 @@ from .model.space import PrincipalAxes, principal_axes
 from .folders import BuildFolder, Checkpoint, find_inputs
 from .outputs import BuildResult, against_baselines, write_outputs, write_shapes
 from .cluster import client_of, dask_executor
-from .parallel import Task, helper_for
+from .parallel import ProcessPool, Task, helper_for
 from .prepare import io, preprocess
 from .prepare.case import Rejection
 from .prepare.duplicates import identical_files, refusal, same_shapes
@@ -333,6 +333,11 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
         def checkpoint(state, point, rng, trace):
             folder.save_checkpoint(state, point, rng, trace, print_of)
+            # the baselines' evaluation over: its arguments go, and the helper process with
+            # its memory (a fresh one starts for the model's evaluation)
+            if (pending and all(_settled(evaluation) for _, evaluation in pending.values())
+                    and isinstance(pool, ProcessPool) and pool.stop_idle()):
+                log.info("the baselines are evaluated: their helper process has ended")
             # what the round and the checkpoint freed, most of it reused by the next round
             release_freed_memory(at_most_every=LOOP_RELEASE_SECONDS)
 
@@ -827,6 +832,12 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
         model.landmarks = {label: int(row) for label, row in zip(state.guides.labels,
                                                                  state.guides.indices)}
     return model
+
+
+def _settled(evaluation) -> bool:
+    """Whether an evaluation that may run on the executor (:class:`~.parallel.Task`) has its
+    value here (:meth:`~.parallel.Task.settle`)."""
+    return not isinstance(evaluation, Task) or evaluation.settle()
 
 
 def _outcome(evaluation):

@@ -639,6 +639,18 @@ MUTANTS = [
            ("test_hotloops.py",),
            "the points located apart all take the first one's surface Jacobian",
            k="field_sample_gradient"),
+    Mutant("idle_pool_stopped_while_busy", "parallel.py",
+           "if self._pool is None or not all(future.done() for future in self._futures):",
+           "if self._pool is None:",
+           ("test_workers.py",),
+           "the helper process is ended with a baseline's evaluation still on it",
+           k="idle_pool"),
+    Mutant("failed_task_settled", "parallel.py",
+           "                or self.future.exception() is not None):",
+           "                or False):",
+           ("test_workers.py",),
+           "a run that failed on the executor is taken as done and its arguments dropped",
+           k="idle_pool"),
 ]
 
 
