@@ -122,6 +122,31 @@ def test_an_idle_pool_ends_its_workers_and_a_settled_task_lets_its_arguments_go(
         assert fresh != worker and pool.submit(square_or_die, 3).result() == 9
 
 
+ENDED_AT_ONCE = """
+import os, sys
+from mdlshapemodel.parallel import ProcessPool, quiet_resource_tracker
+if __name__ == "__main__":
+    if sys.argv[1] == "quiet":
+        quiet_resource_tracker()
+    pool = ProcessPool(1)
+    assert pool.submit(abs, -3).result() == 3
+    os._exit(130)               # as a build's second Ctrl-C ends it, its pool still open
+"""
+
+
+@pytest.mark.parametrize("quiet", [True, False])
+def test_a_process_ended_at_once_leaves_no_warning_of_leaked_semaphores(tmp_path, quiet):
+    """multiprocessing's resource tracker removes the semaphores of a pool whose process ended at
+    once, and warns of them unless told not to (the build tells it)."""
+    script = tmp_path / "ended.py"
+    script.write_text(ENDED_AT_ONCE)
+    environment = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    run = subprocess.run([sys.executable, str(script), "quiet" if quiet else "loud"],
+                         capture_output=True, text=True, env=environment, timeout=TIMEOUT)
+    assert run.returncode == 130
+    assert ("leaked semaphore" in run.stderr) is not quiet, run.stderr
+
+
 TESTING = Path(__file__).resolve().parent
 
 

@@ -316,6 +316,9 @@ def _run_build(inputs, output, config, live: bool, overwrite: bool = False,
     # aborts at once
     with ctrl_c(abort=lambda: _abort(live)), _ProgressDisplay(live) as progress:
         from .build import build_model
+        from .parallel import quiet_resource_tracker
+
+        quiet_resource_tracker()       # _abort ends the process with its pools' semaphores
 
         result = build_model(inputs, output, config, progress=progress, overwrite=overwrite,
                              resume=resume, manifest=manifest)

@@ -24,6 +24,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -71,6 +72,21 @@ def _end_with_parent(parent: int, interval: float = 0.5) -> None:
 #: functions or ``functools.partial`` objects of them). Empty in the library; a program (a test,
 #: say, that makes a worker die) may add to it before a pool starts its workers.
 WORKER_STARTUP: list = []
+
+
+#: the warnings option that keeps multiprocessing's resource tracker from reporting the worker
+#: pools' semaphores as leaked (:func:`quiet_resource_tracker`)
+RESOURCE_TRACKER_QUIET = "ignore::UserWarning:multiprocessing.resource_tracker"
+
+
+def quiet_resource_tracker() -> None:
+    """A process ended at once (a build's second Ctrl-C, ``os._exit``) leaves its worker pools'
+    semaphores to multiprocessing's resource tracker, which removes them and warns of "leaked
+    semaphore objects": a message about a clean-up that worked, which a user would take for a
+    fault. The tracker, started later with this process's warnings options, is given one that
+    ignores its own warnings (this process's filters are unchanged)."""
+    if RESOURCE_TRACKER_QUIET not in sys.warnoptions:
+        sys.warnoptions.append(RESOURCE_TRACKER_QUIET)
 
 
 @contextlib.contextmanager

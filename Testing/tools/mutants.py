@@ -651,6 +651,12 @@ MUTANTS = [
            ("test_workers.py",),
            "a run that failed on the executor is taken as done and its arguments dropped",
            k="idle_pool"),
+    Mutant("resource_tracker_left_loud", "parallel.py",
+           "        sys.warnoptions.append(RESOURCE_TRACKER_QUIET)",
+           "        pass",
+           ("test_workers.py",),
+           "a second Ctrl-C ends the build with a warning of leaked semaphores",
+           k="ended_at_once"),
 ]
 
 
