@@ -10,9 +10,8 @@ Each function here computes a documented formula that the tests check against pl
 the walk against the barycentric coordinates it reports, ``interpolate`` against an einsum,
 ``field_apply`` against ``FieldBasis.displacement``, ``field_gradient`` against finite
 differences, ``bump_matrix`` against the Wendland function of all distances, ``field_sample``
-against ``field_apply`` + ``SphereLocator.locate`` / ``interpolate``, ``surface_jacobians``
-against ``SphereLocator.jacobian``, ``field_sample_gradient`` against
-``FieldBasis.coefficient_gradient`` of the chained gradient,
+against ``field_apply`` + ``SphereLocator.locate`` / ``interpolate`` / ``jacobian``,
+``field_sample_gradient`` against ``FieldBasis.coefficient_gradient`` of the chained gradient,
 ``field_map`` against ``field_apply`` of ``bump_matrix`` (bit for bit), ``apply_poses`` against
 ``Pose.apply``, ``negated_distances`` through ``bending_matrix`` (bit for bit) and
 ``weighted_point_norms`` through the generalization distances.
@@ -373,12 +372,12 @@ def field_map(points, centres, radius, coefficients):
 
 @njit(cache=True, nogil=True)
 def field_sample(indptr, indices, data, points, coefficients, sphere, neighbours, faces,
-                 values, hint, steps, phi, norms, face, sampled, found):
-    """One pass per point of what an evaluation needs: the field map phi(u_k) and |m| (as
-    ``field_apply``), the face containing phi(u_k) by a walk from ``hint[k]`` (as ``walk``) and
-    the surface point S(phi(u_k)) (as ``interpolate``), into the given arrays. ``found[k]`` is
-    False where the walk did not reach the point within ``steps`` faces (then only phi and norms
-    are set). dS/du is left to ``field_sample_gradient``, which makes it again from the face."""
+                 values, hint, steps, phi, norms, face, sampled, jac, found):
+    """One pass per point of what a gradient step needs: the field map phi(u_k) and |m| (as
+    ``field_apply``), the face containing phi(u_k) by a walk from ``hint[k]`` (as ``walk``), the
+    surface point S(phi(u_k)) (as ``interpolate``) and dS/du there, jac[k, d, e] = dS_d/du_e
+    (as ``SphereLocator.jacobian``), into the given arrays. ``found[k]`` is False where the walk
+    did not reach the point within ``steps`` faces (then only phi and norms are set)."""
     lam = np.empty(3)
     m = np.empty((3, 3))
     for k in range(points.shape[0]):
@@ -389,76 +388,39 @@ def field_sample(indptr, indices, data, points, coefficients, sphere, neighbours
         if not reached:
             continue
         face[k] = current
+        total = lam[0] + lam[1] + lam[2]
         clamped = max(lam[0], 0.0) + max(lam[1], 0.0) + max(lam[2], 0.0)
         for d in range(3):
             sampled[k, d] = 0.0
+            for e in range(3):
+                jac[k, d, e] = 0.0
         for i in range(3):
             v = faces[current, i]
             weight = max(lam[i], 0.0) / clamped
+            b = lam[i] / total
             for d in range(3):
                 sampled[k, d] += weight * values[v, d]
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _surface_jacobian(sphere, faces, values, f, x, y, z, lam, m, jac):
-    """dS/du at the point (x, y, z) of face ``f`` into ``jac`` (3, 3), jac[d, e] = dS_d/du_e
-    (as ``SphereLocator.jacobian``): from the face's M^-1 and coordinates, as the walk that
-    located the point left them."""
-    _face_inverse(sphere, faces, f, m)
-    for i in range(3):
-        lam[i] = m[i, 0] * x + m[i, 1] * y + m[i, 2] * z
-    total = lam[0] + lam[1] + lam[2]
-    for d in range(3):
-        for e in range(3):
-            jac[d, e] = 0.0
-    for i in range(3):
-        v = faces[f, i]
-        b = lam[i] / total
-        # dS/du = V^T (I - b 1^T) M^-1 / s: corner i contributes V_i (M^-1[i] - b_i colsum)
-        for e in range(3):
-            row = (m[i, e] - b * (m[0, e] + m[1, e] + m[2, e])) / total
-            for d in range(3):
-                jac[d, e] += values[v, d] * row
+            # dS/du = V^T (I - b 1^T) M^-1 / s: corner i contributes V_i (M^-1[i] - b_i colsum)
+            for e in range(3):
+                row = (m[i, e] - b * (m[0, e] + m[1, e] + m[2, e])) / total
+                for d in range(3):
+                    jac[k, d, e] += values[v, d] * row
 
 
 @njit(cache=True, nogil=True)
-def surface_jacobians(sphere, faces, values, face, points):
-    """dS/du (n, 3, 3) at ``points`` located in ``face`` (as ``_surface_jacobian``)."""
-    lam = np.empty(3)
-    m = np.empty((3, 3))
-    jac = np.empty((points.shape[0], 3, 3))
-    for k in range(points.shape[0]):
-        _surface_jacobian(sphere, faces, values, face[k], points[k, 0], points[k, 1],
-                          points[k, 2], lam, m, jac[k])
-    return jac
-
-
-@njit(cache=True, nogil=True)
-def field_sample_gradient(indptr, indices, data, points, phi, norms, sphere, faces, values,
-                          face, given, given_jac, scale, rotation, shape_gradient, n_centres):
+def field_sample_gradient(indptr, indices, data, points, phi, norms, jac, scale, rotation,
+                          shape_gradient, n_centres):
     """dF/dc (n_c, 3) of one part's field from dF/dX of its posed points X = scale R S(phi) + t:
-    per point dF/dS = scale R^T g, dF/dphi = (dS/du)^T dF/dS, then the chain rule of
-    ``field_gradient``. dS/du is made at each point from its face (``_surface_jacobian``), except
-    at the points ``given`` (increasing indices), which take ``given_jac`` (those that
-    ``field_sample``'s walk did not reach, located otherwise)."""
+    per point dF/dS = scale R^T g, dF/dphi = (dS/du)^T dF/dS (``jac`` of ``field_sample``),
+    then the chain rule of ``field_gradient``."""
     du = np.empty((points.shape[0], 3))
-    lam = np.empty(3)
-    m = np.empty((3, 3))
-    jac = np.empty((3, 3))
-    next_given = 0
     for k in range(points.shape[0]):
-        if next_given < given.shape[0] and given[next_given] == k:
-            jac[:, :] = given_jac[next_given]
-            next_given += 1
-        else:
-            _surface_jacobian(sphere, faces, values, face[k], phi[k, 0], phi[k, 1], phi[k, 2],
-                              lam, m, jac)
         g0, g1, g2 = shape_gradient[k, 0], shape_gradient[k, 1], shape_gradient[k, 2]
         s0 = scale * (rotation[0, 0] * g0 + rotation[1, 0] * g1 + rotation[2, 0] * g2)
         s1 = scale * (rotation[0, 1] * g0 + rotation[1, 1] * g1 + rotation[2, 1] * g2)
         s2 = scale * (rotation[0, 2] * g0 + rotation[1, 2] * g1 + rotation[2, 2] * g2)
         for e in range(3):
-            du[k, e] = jac[0, e] * s0 + jac[1, e] * s1 + jac[2, e] * s2
+            du[k, e] = jac[k, 0, e] * s0 + jac[k, 1, e] * s1 + jac[k, 2, e] * s2
     return field_gradient(indptr, indices, data, points, phi, norms, du, n_centres)
 
 

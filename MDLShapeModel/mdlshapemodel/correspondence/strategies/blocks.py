@@ -50,45 +50,42 @@ class SphereBlock:
         return np.full(self.size, self.basis.max_coefficient() / np.sqrt(3.0))
 
     def sample(self, x: np.ndarray, raw: np.ndarray) -> tuple:
-        """The field map at x, located on the surface: phi, |m|, faces, and dS/du at the points
-        the walk did not reach (their indices and Jacobians; the gradient makes the others
-        again from the faces); the samples go into ``raw``."""
+        """The field map at x, located on the surface: phi, |m|, faces, dS/du; the samples go
+        into ``raw``."""
         part, basis = self.part, self.basis
         n = len(basis.points)
         phi, norms = np.empty((n, 3)), np.empty(n)
-        face = np.empty(n, dtype=np.int64)
+        face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
         found = np.empty(n, dtype=np.bool_)
         sampled = raw[self.row, self.rows]
         w = basis.weights
         hotloops.field_sample(w.indptr, w.indices, w.data, basis.points,
                               x[self.coefficients].reshape(-1, 3), part.locator.sphere,
                               part.locator.neighbours, part.faces, part.vertices, self.hint,
-                              8, phi, norms, face, sampled, found)
+                              8, phi, norms, face, sampled, jac, found)
         missed = np.flatnonzero(~found)
-        jac = np.empty((0, 3, 3))
         if len(missed):     # walked too far: locate these among the faces near them
             face[missed], coords = part.locator.locate(phi[missed])
             sampled[missed] = part.locator.interpolate(part.vertices, face[missed], coords)
-            jac = part.locator.jacobian(part.vertices, face[missed], phi[missed])
+            jac[missed] = part.locator.jacobian(part.vertices, face[missed], phi[missed])
         self.hint = face
-        return phi, norms, face, (missed, jac)
+        return phi, norms, face, jac
 
     def gradient(self, located: tuple, scale: float, rotation: np.ndarray,
                  shape_gradient: np.ndarray) -> np.ndarray:
         """dF/d(coefficients) from dF/dX of the block's points, posed by ``scale`` and
         ``rotation``."""
-        phi, norms, face, (missed, jac) = located
-        w, part = self.basis.weights, self.part
+        phi, norms, _, jac = located
+        w = self.basis.weights
         return hotloops.field_sample_gradient(
-            w.indptr, w.indices, w.data, self.basis.points, phi, norms, part.locator.sphere,
-            part.faces, part.vertices, face, missed, jac, scale, rotation, shape_gradient,
-            self.basis.n_centres).ravel()
+            w.indptr, w.indices, w.data, self.basis.points, phi, norms, jac, scale, rotation,
+            shape_gradient, self.basis.n_centres).ravel()
 
     @staticmethod
     def earlier(located: tuple) -> tuple:
         """What a trial keeps once a later one is sampled: its fold check and commit need phi
-        and the faces, not the Jacobians of the points located apart, which only its gradient,
-        asked for right after its sampling, needs."""
+        and the faces, not dS/du (72 bytes a point), which only its gradient, asked for right
+        after its sampling, needs."""
         return located[:3] + (None,)
 
     def folds(self, located: tuple) -> bool:
