@@ -48,7 +48,7 @@ from .model.space import PrincipalAxes, principal_axes
 from .folders import BuildFolder, Checkpoint, find_inputs
 from .outputs import BuildResult, against_baselines, write_outputs, write_shapes
 from .cluster import client_of, dask_executor
-from .parallel import ProcessPool, Task, helper_for
+from .parallel import Task, helper_for
 from .prepare import io, preprocess
 from .prepare.case import Rejection
 from .prepare.duplicates import identical_files, refusal, same_shapes
@@ -333,11 +333,10 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
 
         def checkpoint(state, point, rng, trace):
             folder.save_checkpoint(state, point, rng, trace, print_of)
-            # the baselines' evaluation over: its arguments go, and the helper process with
-            # its memory (a fresh one starts for the model's evaluation)
-            if (pending and all(_settled(evaluation) for _, evaluation in pending.values())
-                    and isinstance(pool, ProcessPool) and pool.stop_idle()):
-                log.info("the baselines are evaluated: their helper process has ended")
+            # the baselines' evaluation over: its arguments go (the helper stays for the
+            # model's evaluation)
+            for _, evaluation in pending.values():
+                _settled(evaluation)
             # what the round and the checkpoint freed, most of it reused by the next round
             release_freed_memory(at_most_every=LOOP_RELEASE_SECONDS)
 
