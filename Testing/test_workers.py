@@ -102,24 +102,17 @@ def test_an_evaluation_whose_worker_dies_is_done_here_with_the_same_numbers(rng)
     broken.shutdown()
 
 
-def test_an_idle_pool_ends_its_workers_and_a_settled_task_lets_its_arguments_go():
+def test_a_settled_task_lets_its_arguments_go():
     """A task whose run ended well gives its value at ``settle`` and drops its arguments; one
-    whose run failed keeps them (to be done again). ``stop_idle`` ends the pool's worker only
-    when no call is running or queued, and the next call starts a fresh one."""
+    whose run failed keeps them (to be done again); one still running is not settled."""
     with ProcessPool(1) as pool:
-        assert not pool.stop_idle()                          # no worker started yet
+        held = Task(pool, time.sleep, 0.5)
         task, failing = Task(pool, square_or_die, 5), Task(pool, int, "five")
-        held = pool.submit(time.sleep, 0.5)
-        assert not pool.stop_idle()                          # a call running or queued
+        assert not held.settle() and held.arguments == (0.5,)          # still running
         held.result()
-        worker = pool.submit(os.getpid).result()
+        assert pool.submit(abs, -1).result() == 1                       # the others are done
         assert task.settle() and task.arguments == () and task.result() == 25
         assert not failing.settle() and failing.arguments == ("five",)
-        assert pool.stop_idle()
-        with pytest.raises(ProcessLookupError):              # ended, and reaped
-            os.kill(worker, 0)
-        fresh = pool.submit(os.getpid).result()
-        assert fresh != worker and pool.submit(square_or_die, 3).result() == 9
 
 
 ENDED_AT_ONCE = """

@@ -336,7 +336,8 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
             # the baselines' evaluation over: its arguments go (the helper stays for the
             # model's evaluation)
             for _, evaluation in pending.values():
-                _settled(evaluation)
+                if isinstance(evaluation, Task):
+                    evaluation.settle()
             # what the round and the checkpoint freed, most of it reused by the next round
             release_freed_memory(at_most_every=LOOP_RELEASE_SECONDS)
 
@@ -831,12 +832,6 @@ def shape_model_of(state: CorrespondenceState, config: BuildConfig, objective: f
         model.landmarks = {label: int(row) for label, row in zip(state.guides.labels,
                                                                  state.guides.indices)}
     return model
-
-
-def _settled(evaluation) -> bool:
-    """Whether an evaluation that may run on the executor (:class:`~.parallel.Task`) has its
-    value here (:meth:`~.parallel.Task.settle`)."""
-    return not isinstance(evaluation, Task) or evaluation.settle()
 
 
 def _outcome(evaluation):

@@ -178,9 +178,8 @@ def save_checkpoint(path: Path, state: CorrespondenceState, point: PhasePoint | 
                     rng=None, trace=None, fingerprint: dict | None = None):
     """The state's correspondence (:func:`~.correspondence.state.state_record`: every part's
     positions and accepted warps, or carried positions, every pose, the area weights) and, for
-    resuming, the point reached, the generator's
-    state, the trace and the fingerprint: data only (numbers, strings, JSON; no pickle), written
-    whole or not at all."""
+    resuming, the point reached, the generator's state, the trace and the fingerprint: data only
+    (numbers, strings, JSON; no pickle), written whole or not at all."""
     arrays = dict(state_record(state))
     arrays["evaluations"] = np.array(state.evaluations)
     if point is not None:

@@ -153,7 +153,6 @@ class ProcessPool(Executor):
         self.workers = workers
         self._pool = None
         self._processes = {}   # the worker processes of the current pool, by pid
-        self._futures = set()  # the calls submitted to the current pool, not yet known done
         self._closed = False
 
     def _fresh(self) -> ProcessPoolExecutor:
@@ -183,17 +182,7 @@ class ProcessPool(Executor):
                 future = self._fresh().submit(fn, *args, **kwargs)
         # kept to read their exit codes after a death (the executor forgets them at shutdown)
         self._processes.update(getattr(self._pool, "_processes", None) or {})
-        self._futures = {f for f in self._futures if not f.done()} | {future}
         return future
-
-    def stop_idle(self) -> bool:
-        """End the worker processes, their memory with them, if none is running or holding a
-        call; the next :meth:`submit` starts fresh ones. Returns whether they were ended."""
-        if self._pool is None or not all(future.done() for future in self._futures):
-            return False
-        self._pool.shutdown(wait=True)
-        self._pool, self._futures = None, set()
-        return True
 
     def death(self, wait_seconds: float = 5.0) -> str:
         """How a worker of the current pool died: 'signal N', 'exit code N' (0 too: a worker
