@@ -53,6 +53,9 @@ def test_every_strategy_records_the_warps_that_make_its_positions(strategy):
         for part in example.parts:
             # the recorded warps, applied to the grid, are the sample positions bit for bit
             assert np.array_equal(apply_warps(part.grid, part.warps), part.positions)
+            # the counts cases.csv reports are those of the recorded warps
+            listed = {kind: [w.kind for w in part.warps].count(kind) for kind in WARP_KINDS}
+            assert part.warp_counts() == listed
         summary = warp_summary(example)
         assert summary == " ".join(f"{k}:{n}" for k, n in example.parts[0].warp_counts().items()
                                    if n)

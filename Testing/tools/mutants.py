@@ -645,6 +645,12 @@ MUTANTS = [
            ("test_workers.py",),
            "a second Ctrl-C ends the build with a warning of leaked semaphores",
            k="ended_at_once"),
+    Mutant("accepted_warp_counted_twice", "correspondence/state.py",
+           "            self.warps.append(warp)\n        self.counts[warp.kind] = self.counts.get(warp.kind, 0) + 1",
+           "            self.warps.append(warp)\n        self.counts[warp.kind] = self.counts.get(warp.kind, 0) + 2",
+           ("test_correspondence_record.py",),
+           "cases.csv's warps and warp_kinds count every accepted warp twice",
+           k="records_the_warps"),
 ]
 
 
