@@ -248,6 +248,7 @@ NON_DEFAULT_OPTIONS = {
     "tolerance": (["--tolerance", "0.01"], 0.01),
     "max_sweeps": (["--max-sweeps", "7"], 7),
     "coarse_points": (["--coarse-points", "162"], 162),
+    "curvature_pairs": (["--curvature-pairs", "single"], "single"),
     "landmarks": (["--landmarks", "marks"], "marks"),      # made by config_of_command_line
     "landmark_weight": (["--landmark-weight", "3"], 3.0),
     "check_landmarks": (["--check-landmarks", "--landmarks", "marks"], True),

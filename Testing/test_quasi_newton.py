@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from mdlshapemodel.correspondence.strategies.quasi_newton import (minimize_box,
+from mdlshapemodel.config import CURVATURE_PAIRS, SINGLE_PRECISION_PAIRS_FROM
+from mdlshapemodel.correspondence.strategies.quasi_newton import (minimize_box, pair_dtype,
                                                                    projected_gradient)
+from mdlshapemodel.errors import ArgumentError
 
 
 def bounded_problem(n: int, seed: int):
@@ -153,3 +155,42 @@ def test_while_the_function_runs_it_holds_the_pairs_and_six_vectors_more():
     vectors = (max(held) - before) / (8 * n)
     # (the bounds are the test's own arrays, made before the count starts)
     assert 2 * memory + 3 < vectors < 2 * memory + 6.5
+
+
+def test_the_pairs_precision_rule():
+    """auto keeps double precision below SINGLE_PRECISION_PAIRS_FROM variables and single from
+    there; single and double are what they say at any size; anything else is refused."""
+    below, at = SINGLE_PRECISION_PAIRS_FROM - 1, SINGLE_PRECISION_PAIRS_FROM
+    assert pair_dtype("auto", below) is np.float64
+    assert pair_dtype("auto", at) is np.float32
+    assert pair_dtype("single", 10) is np.float32
+    assert pair_dtype("double", 10 * at) is np.float64
+    assert set(CURVATURE_PAIRS) == {"auto", "single", "double"}
+    with pytest.raises(ArgumentError, match="half"):
+        pair_dtype("half", 10)
+
+
+def test_single_precision_pairs_change_the_path_by_rounding_only():
+    """Pairs kept in float32 give a direction that differs from double precision's by their
+    rounding: the iterates part at about float32's precision, and both reach the box minimum."""
+    fun, lower, upper, centre = bounded_problem(400, 4)
+    short = {name: minimize_box(fun, np.zeros(400), lower, upper, max_iterations=4, ftol=0.0,
+                                gtol=0.0, pairs_dtype=dtype)
+             for name, dtype in (("double", np.float64), ("single", np.float32))}
+    gap = np.max(np.abs(short["single"].x - short["double"].x))
+    assert 0.0 < gap < 1e-5 * np.max(np.abs(short["double"].x))
+    assert short["single"].x.dtype == np.float64 and short["single"].gradient.dtype == np.float64
+    ends = [minimize_box(fun, np.zeros(400), lower, upper, max_iterations=300, ftol=1e-15,
+                         gtol=1e-10, pairs_dtype=dtype) for dtype in (np.float64, np.float32)]
+    for end in ends:
+        assert np.allclose(end.x, np.clip(centre, lower, upper), atol=1e-6)
+    assert abs(ends[0].value - ends[1].value) < 1e-9 * max(abs(ends[0].value), 1.0)
+
+
+def test_double_precision_pairs_are_the_default():
+    """Without pairs_dtype the pairs stay double: the same iterates bit for bit as asking for it."""
+    fun, lower, upper, _ = bounded_problem(200, 5)
+    default = minimize_box(fun, np.zeros(200), lower, upper, max_iterations=6, ftol=0.0, gtol=0.0)
+    double = minimize_box(fun, np.zeros(200), lower, upper, max_iterations=6, ftol=0.0,
+                          gtol=0.0, pairs_dtype=np.float64)
+    np.testing.assert_array_equal(default.x, double.x)

@@ -496,6 +496,25 @@ def test_fast_strategy_gives_the_same_result_on_any_number_of_threads(make_state
         np.testing.assert_array_equal(np.array(first[3]), np.array(other[3]))
 
 
+def test_fast_strategy_keeps_its_curvature_pairs_in_the_precision_asked_for():
+    """"single" reaches the same kind of optimum by a path that differs by rounding (a small
+    state's rounds are far below the size where "auto" takes single precision: there it is
+    "double", bit for bit)."""
+    ends = {}
+    for pairs in ("auto", "double", "single"):
+        state = small_state()
+        settings = OptimisationSettings(strategy="fast", max_time=1e6, max_sweeps=3,
+                                        fixed_fraction=0.5, curvature_pairs=pairs)
+        final = optimise(state, build_objectives(state), settings, np.random.default_rng(0),
+                         Trace())
+        ends[pairs] = (final, [e.parts[0].positions.copy() for e in state.examples])
+    assert ends["auto"][0] == ends["double"][0]
+    for a, b in zip(ends["auto"][1], ends["double"][1]):
+        np.testing.assert_array_equal(a, b)
+    assert ends["single"][0] != ends["double"][0]
+    assert abs(ends["single"][0] - ends["double"][0]) < 1e-3 * abs(ends["double"][0])
+
+
 def test_fast_round_gradient_matches_finite_differences():
     from mdlshapemodel.correspondence.strategies.fast import FieldRound, gradient_at
 

@@ -27,6 +27,15 @@ WARP_STRATEGIES = ("one-at-a-time", "one-at-a-time-pose")
 CORRESPONDENCES = ("mdl", "cpd")
 BASELINES = ("none", "cpd")
 PLACEMENTS = ("sphere", "surface")
+# The precision of the fast strategy's quasi-Newton curvature pairs (``--curvature-pairs``;
+# correspondence/strategies/quasi_newton.py): "auto" keeps them in single precision in rounds of
+# at least SINGLE_PRECISION_PAIRS_FROM variables, in double below.
+CURVATURE_PAIRS = ("auto", "double", "single")
+# A round's ten pairs of two vectors in double precision take 160 bytes per variable: 640 MB at
+# this many variables (about 2,000 surfaces at the finest field level, 1,930 coefficients each).
+# Below it a build keeps exact double-precision pairs; above it the pairs are the largest
+# holder of a round's memory, and single precision halves them.
+SINGLE_PRECISION_PAIRS_FROM = 4_000_000
 SURFACE_METHODS = ("gaussian", "slicer")
 
 
@@ -64,6 +73,8 @@ class OptimisationSettings:
     # benchmarks/fast_variants.py, integrated1)
     coarse_points: int = 642
     coarse_passes: int = 3
+    # the fast strategy: the precision of the quasi-Newton curvature pairs (CURVATURE_PAIRS)
+    curvature_pairs: str = "auto"
     # the simplex strategies (III-D1, III-D2)
     omega_1: float = 0.25          # multiresolution: width of the level-0 kernels (Table I)
     max_levels: int = 4            # multiresolution: levels per phase (12, 30, 120, 480 kernels)
@@ -328,6 +339,8 @@ class BuildConfig:
     tolerance: float = OptimisationSettings.tolerance
     max_sweeps: int = OptimisationSettings.max_sweeps
     coarse_points: int = OptimisationSettings.coarse_points
+    curvature_pairs: str = field(default=OptimisationSettings.curvature_pairs,
+                                 metadata=rule(choices=CURVATURE_PAIRS))
     landmarks: str | None = None
     landmark_weight: float = LANDMARK_WEIGHT
     check_landmarks: bool = False
@@ -408,6 +421,8 @@ class BuildConfig:
         need(self.max_sweeps >= 1, "max_sweeps", "must be at least 1")
         need(self.coarse_points == 0 or self.coarse_points >= 12, "coarse_points",
              "must be 0 (no coarse stage) or at least 12")
+        need(self.curvature_pairs in CURVATURE_PAIRS, "curvature_pairs",
+             f"must be one of {', '.join(CURVATURE_PAIRS)}")
         need(self.landmarks is None or (isinstance(self.landmarks, str)
                                         and self.landmarks.strip() != ""),
              "landmarks", "must be a folder of landmark files")
@@ -480,6 +495,7 @@ class BuildConfig:
                                     fixed_fraction=self.fixed_fraction,
                                     tolerance=self.tolerance, max_sweeps=self.max_sweeps,
                                     coarse_points=self.coarse_points,
+                                    curvature_pairs=self.curvature_pairs,
                                     warps=tuple(self.warps), threads=self.workers)
 
     def to_dict(self) -> dict:

@@ -164,6 +164,12 @@ BUILD_OPTIONS = {
                         "objective is measured there) and carry the maps over to --points; 0: "
                         "optimise on --points (default %(default)s)",
         metavar="N"),
+    "curvature_pairs": Option(
+        CORRESPONDENCE, "fast strategy: the precision of the quasi-Newton curvature pairs, the "
+                        "largest part of a large build's memory; single halves it and changes "
+                        "the optimisation's path by rounding; auto: single in rounds of 4 "
+                        "million coefficients or more (about 2,000 surfaces), double below "
+                        "(default %(default)s)"),
     "landmarks": Option(
         CORRESPONDENCE, "folder of landmark files that guide the correspondence, one per case "
                         "named after it (3D Slicer .mrk.json or .fcsv, or CSV label,x,y,z; "

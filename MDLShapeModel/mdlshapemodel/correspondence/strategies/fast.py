@@ -34,7 +34,7 @@ from ..trace import Stop
 from .base import PhasePoint, budget_spent, stalled, start_phase
 from .blocks import BlockSet
 from .spread import ExamplesOnCluster
-from .quasi_newton import minimize_box
+from .quasi_newton import minimize_box, pair_dtype
 
 
 #: The bound of the log scale of an example's pose in a round: 0, the size of every example stays
@@ -273,11 +273,13 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
                    max_iterations: int = OptimisationSettings.round_iterations,
                    support: float = 2.0,
                    deadline: float = float("inf"), threads: Threads | None = None,
-                   examples=None) -> float:
+                   examples=None,
+                   curvature_pairs: str = OptimisationSettings.curvature_pairs) -> float:
     """One projected L-BFGS round at one field level; returns F after it.
 
     At ``deadline`` the round stops and keeps the best point it has evaluated. The per-example
     work runs on ``threads`` here, or where ``examples`` has it (:class:`FieldRound`).
+    ``curvature_pairs``: the precision of the quasi-Newton pairs (:func:`.pair_dtype`).
     """
     state.objective = objective
     round_ = FieldRound(state, active, level, support, threads, examples)
@@ -303,7 +305,8 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
     start_value = fun(np.zeros(round_.size))[0]
     try:
         minimize_box(fun, np.zeros(round_.size), -round_.limit, round_.limit, max_iterations,
-                     ftol=1e-9, gtol=1e-10)
+                     ftol=1e-9, gtol=1e-10,
+                     pairs_dtype=pair_dtype(curvature_pairs, round_.size))
     except _RoundOutOfTime:
         pass
     value, x, trial = cache["best"]
@@ -392,7 +395,8 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
             values["before"] = value
             value = optimise_round(state, objective, active, levels[at["level"]],
                                    max_iterations=settings.round_iterations,
-                                   deadline=deadline, threads=threads, examples=examples)
+                                   deadline=deadline, threads=threads, examples=examples,
+                                   curvature_pairs=settings.curvature_pairs)
             values["value"] = value
             trace.record(state, value, phase, sweep)
             report(progress, None, f"{phase}: level {levels[at['level']]}, round {sweep}, "

@@ -7,6 +7,11 @@ by the Armijo condition along the projected path, each rejected step shortened t
 rose, else to the minimiser of the parabola that fits it (within [0.1, 0.5] of it). Curvature
 pairs (s, y) are kept only where s.y > 0, so the implied inverse Hessian stays positive definite.
 
+The pairs are most of a large round's memory (``memory`` pairs of two vectors of the round's
+size). They can be kept in single precision (:func:`pair_dtype`): their products and scalars are
+still formed in double precision, so the direction changes only by the rounding of s and y,
+and the line search, its Armijo test and the bounds work on the double-precision point.
+
 Why not SciPy's L-BFGS-B: a round of the fast strategy has up to about 160,000 parameters (field
 coefficients of every example at the finest level), and there SciPy's routine spends tens of
 milliseconds per iteration in its own bookkeeping (its generalized Cauchy point over all
@@ -22,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...config import CURVATURE_PAIRS, SINGLE_PRECISION_PAIRS_FROM
 from ...errors import ArgumentError
 
 #: Armijo's sufficient-decrease constant (the usual 1e-4)
@@ -66,29 +72,60 @@ def projected_gradient(x: np.ndarray, gradient: np.ndarray, lower: np.ndarray,
     return np.where(held, 0.0, gradient)
 
 
+def pair_dtype(choice: str, size: int) -> type:
+    """The precision of the curvature pairs of a round of ``size`` variables.
+
+    ``choice`` is :data:`~mdlshapemodel.config.CURVATURE_PAIRS`' kind: ``"double"``,
+    ``"single"`` (half the memory; the optimisation's path changes by the rounding of the
+    pairs), or ``"auto"``: single from :data:`~mdlshapemodel.config.SINGLE_PRECISION_PAIRS_FROM`
+    variables, where the pairs in double precision would hold several hundred megabytes.
+
+    Examples
+    --------
+    >>> pair_dtype("auto", 1000).__name__, pair_dtype("single", 1000).__name__
+    ('float64', 'float32')
+    """
+    if choice not in CURVATURE_PAIRS:
+        raise ArgumentError(f"pair_dtype: {choice!r} is not one of {', '.join(CURVATURE_PAIRS)}")
+    if choice == "single" or (choice == "auto" and size >= SINGLE_PRECISION_PAIRS_FROM):
+        return np.float32
+    return np.float64
+
+
+@dataclass
+class CurvaturePair:
+    """One stored step ``s`` and gradient change ``y`` (in the round's pair precision), with
+    ``rho`` = 1 / s.y and ``scale`` = s.y / y.y, both from the double-precision s and y."""
+
+    s: np.ndarray
+    y: np.ndarray
+    rho: float
+    scale: float
+
+
 def _direction(projected: np.ndarray, pairs: list) -> np.ndarray:
-    """-H g by the two-loop recursion over the stored (s, y, 1 / s.y) (oldest first), with the
-    initial scaling s.y / y.y of the newest pair, applied to the projected gradient and held at
-    0 on the variables that the projection holds at a bound."""
+    """-H g by the two-loop recursion over the stored :class:`CurvaturePair` (oldest first),
+    with the initial scaling s.y / y.y of the newest pair, applied to the projected gradient and
+    held at 0 on the variables that the projection holds at a bound. Every product is formed in
+    double precision (single-precision pairs are widened by numpy's type promotion)."""
     q = projected.copy()
     alphas = []
-    for s, y, rho in reversed(pairs):
-        alpha = rho * np.dot(s, q)
-        q -= alpha * y
+    for pair in reversed(pairs):
+        alpha = pair.rho * np.dot(pair.s, q)
+        q -= alpha * pair.y
         alphas.append(alpha)
     if pairs:
-        s, y, _ = pairs[-1]
-        q *= np.dot(s, y) / np.dot(y, y)
-    for (s, y, rho), alpha in zip(pairs, reversed(alphas)):
-        beta = rho * np.dot(y, q)
-        q += (alpha - beta) * s
+        q *= pairs[-1].scale
+    for pair, alpha in zip(pairs, reversed(alphas)):
+        beta = pair.rho * np.dot(pair.y, q)
+        q += (alpha - beta) * pair.s
     q[projected == 0.0] = 0.0
     return -q
 
 
 def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                  max_iterations: int = 30, memory: int = 10, ftol: float = 1e-9,
-                 gtol: float = 1e-10) -> BoxResult:
+                 gtol: float = 1e-10, pairs_dtype: type = np.float64) -> BoxResult:
     """Minimise ``fun`` (x -> (value, gradient)) over lower <= x <= upper (infinite bounds allowed).
 
     Parameters
@@ -107,6 +144,8 @@ def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
         Stop when an iteration lowers F by at most ftol * max(|F|, |F_new|, 1).
     gtol : float
         Stop when the largest component of the projected gradient is at most this.
+    pairs_dtype : numpy type
+        The precision the curvature pairs are kept in (:func:`pair_dtype`).
 
     Returns
     -------
@@ -151,10 +190,12 @@ def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
             step *= _backtrack(value, trial_value, predicted)
         else:
             return BoxResult(x, value, gradient, iteration, "line search")
-        s, y = trial - x, trial_gradient - gradient
+        s, y = trial - x, trial_gradient - gradient     # double precision
         curvature = np.dot(s, y)
         if curvature > 1e-10 * np.linalg.norm(s) * np.linalg.norm(y):
-            pairs.append((s, y, 1.0 / curvature))
+            pairs.append(CurvaturePair(s.astype(pairs_dtype, copy=False),
+                                       y.astype(pairs_dtype, copy=False), 1.0 / curvature,
+                                       curvature / np.dot(y, y)))
             if len(pairs) > memory:
                 pairs.pop(0)
         decrease = value - trial_value
