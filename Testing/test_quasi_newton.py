@@ -194,3 +194,42 @@ def test_double_precision_pairs_are_the_default():
     double = minimize_box(fun, np.zeros(200), lower, upper, max_iterations=6, ftol=0.0,
                           gtol=0.0, pairs_dtype=np.float64)
     np.testing.assert_array_equal(default.x, double.x)
+
+
+def test_each_direction_is_the_dense_bfgs_inverse_hessian_of_the_kept_pairs():
+    """On a convex quadratic without bounds (every pair kept), the first trial of iteration k+1
+    is x_k - H_k g_k, with H_k the BFGS updates of gamma I by the pairs (s_i, y_i) in order
+    (gamma = s.y / y.y of the newest): the two-loop recursion against its direct formula."""
+    rng = np.random.default_rng(6)
+    n = 12
+    m = rng.normal(size=(n, n))
+    a, b = m @ m.T + n * np.eye(n), rng.normal(size=n)
+
+    def quadratic(x):
+        return float(0.5 * x @ a @ x - b @ x), a @ x - b
+
+    free = np.full(n, np.inf)
+
+    def run(iterations):
+        seen = []
+
+        def recorded(x):
+            seen.append(x.copy())
+            return quadratic(x)
+        end = minimize_box(recorded, np.zeros(n), -free, free, max_iterations=iterations,
+                           ftol=0.0, gtol=0.0)
+        return end, seen
+
+    points = [run(k)[0].x for k in range(4)]
+    gradients = [quadratic(x)[1] for x in points]
+    pairs = [(points[i + 1] - points[i], gradients[i + 1] - gradients[i]) for i in range(3)]
+    s_new, y_new = pairs[-1]
+    h = (s_new @ y_new) / (y_new @ y_new) * np.eye(n)
+    for s, y in pairs:
+        rho = 1.0 / (s @ y)
+        left = np.eye(n) - rho * np.outer(s, y)
+        h = left @ h @ left.T + rho * np.outer(s, s)
+    evaluations_to_x3 = len(run(3)[1])
+    trial = run(4)[1][evaluations_to_x3]
+    expected = points[3] - h @ gradients[3]
+    np.testing.assert_allclose(trial, expected, rtol=1e-9, atol=1e-12)
