@@ -612,7 +612,7 @@ MUTANTS = [
            ("test_dask.py",),
            "a lost worker's stretch taken here keeps only the last trial sampled again",
            k="worker_lost_in_a_round or keeps_the_trials_the_round_kept", slow=True),
-    Mutant("carried_fold_rule_ignored", "correspondence/state.py",
+    Mutant("carried_fold_rule_ignored", "correspondence/carried.py",
            "if self.unfolded is not None and folds(self.positions, self.triangles):",
            "if False:",
            ("test_coarse.py",),
