@@ -11,12 +11,16 @@ with glibc (``/proc``, ``mallinfo2``) only.
 
 ``table`` prints, for each SAMPLES file, each stage's wall seconds, the build process's and all
 processes' peak resident memory, the largest child's, and the allocator's peak in use, the
-stages cut at build.log's lines::
+stages cut at build.log's lines, and says where the build compiled the numerical kernels (a
+cold cache: the compiler's memory stays with the build process, about 0.5 GB, so such a run's
+peaks are not those of a warm one). ``rounds`` prints the same peaks for each round of the
+optimisation (the samples up to its build.log line), to see which rounds hold the peak::
 
     nice -n 10 python benchmarks/build_memory.py run /tmp/m250.jsonl -- \\
         build $(ls /tmp/pop1000/labels/*.nii.gz | head -250) --label 1 -o /tmp/m250 -q \\
         --cache-dir /tmp/cache --max-sweeps 1
     python benchmarks/build_memory.py table /tmp/m250.jsonl /tmp/m500.jsonl
+    python benchmarks/build_memory.py rounds /tmp/m500.jsonl
 """
 
 from __future__ import annotations
@@ -88,18 +92,56 @@ def run(samples: str, arguments: list) -> int:
     return code
 
 
+#: build.log's line where a build compiles the numerical kernels (a cold cache)
+COMPILING = "compiling numerical kernels"
+
+
+def samples(path: str) -> list:
+    """The samples of a SAMPLES file (a line cut short by a killed run is left out)."""
+    rows = []
+    with open(path, errors="ignore") as file:
+        for line in file:
+            try:
+                rows.append(json.loads(line))
+            except ValueError:
+                pass
+    return rows
+
+
+def peaks(inside: list) -> tuple:
+    """The build process's and all processes' resident peak (MB) over ``inside``, the largest
+    child's and the allocator's peak in use."""
+    return (max(r["rss"] for r in inside),
+            max(r["rss"] + sum(r["kids"].values()) for r in inside),
+            max(max(r["kids"].values(), default=0) for r in inside),
+            max(r["malloc_used"] for r in inside))
+
+
+def rounds(path: str) -> None:
+    """Each optimisation round's peaks: the samples after the previous build.log line up to the
+    round's own (``... round N, F = ...``)."""
+    rows = samples(path)
+    logged = [row for row in rows if row["kind"] == "log"]
+    print(f"{path}\n| round | ends at s | build process peak MB | all processes peak MB "
+          "| largest child MB | allocator in use, peak MB |\n|---|---|---|---|---|---|")
+    for before, line in zip(logged, logged[1:]):
+        if ", round " not in line["msg"]:
+            continue
+        inside = [row for row in rows if before["t"] <= row["t"] <= line["t"]]
+        name = line["msg"].split(", F =")[0]
+        print(f"| {name} | {line['t']:.0f} | " + " | ".join(f"{v:.0f}" for v in peaks(inside))
+              + " |")
+
+
 def table(paths: list) -> None:
     print("| samples | stage | wall s | build process peak MB | all processes peak MB "
           "| largest child MB | allocator in use, peak MB |\n|---|---|---|---|---|---|---|")
+    compiled = []
     for path in paths:
-        rows = []
-        with open(path, errors="ignore") as file:
-            for line in file:
-                try:
-                    rows.append(json.loads(line))
-                except ValueError:
-                    pass
+        rows = samples(path)
         logged = [row for row in rows if row["kind"] == "log"]
+        if any(COMPILING in row["msg"] for row in logged):
+            compiled.append(path)
         stages = []
         for name, openings, endings in STAGES:
             begin = next((row["t"] for row in logged
@@ -113,10 +155,11 @@ def table(paths: list) -> None:
             stages.append(("the whole build", rows[0]["t"], rows[-1]["t"]))
         for name, begin, end in stages:
             inside = [row for row in rows if begin <= row["t"] <= end]
-            print(f"| {path} | {name} | {end - begin:.0f} | {max(r['rss'] for r in inside):.0f} "
-                  f"| {max(r['rss'] + sum(r['kids'].values()) for r in inside):.0f} "
-                  f"| {max(max(r['kids'].values(), default=0) for r in inside):.0f} "
-                  f"| {max(r['malloc_used'] for r in inside):.0f} |")
+            print(f"| {path} | {name} | {end - begin:.0f} | "
+                  + " | ".join(f"{v:.0f}" for v in peaks(inside)) + " |")
+    for path in compiled:
+        print(f"\n{path}: the build compiled the numerical kernels (a cold cache); its build "
+              "process's peaks include the compiler's memory")
 
 
 def main() -> int:
@@ -128,9 +171,14 @@ def main() -> int:
                          help="after --: the command line's arguments (build ...)")
     tabled = commands.add_parser("table", help="each stage's peaks, from SAMPLES files")
     tabled.add_argument("paths", nargs="+")
+    by_round = commands.add_parser("rounds", help="each optimisation round's peaks")
+    by_round.add_argument("path")
     args = parser.parse_args()
     if args.command == "table":
         table(args.paths)
+        return 0
+    if args.command == "rounds":
+        rounds(args.path)
         return 0
     arguments = args.arguments[1:] if args.arguments[:1] == ["--"] else args.arguments
     return run(args.samples, arguments)
