@@ -232,11 +232,15 @@ def brute_force_specificity(shapes, weights, mean, modes, variances, normal, max
     return squared, distance
 
 
-def test_specificity_on_a_population_with_known_modes(rng):
+@pytest.mark.parametrize("max_modes", [4, 2])
+def test_specificity_on_a_population_with_known_modes(rng, max_modes):
+    """Against the direct formula with every sample's normals from one draw; with more modes
+    than the rank (4) and fewer (2: each sample's first normals, not others of its row)."""
     shapes, weights, mean, modes, variances = sign_symmetric_population(rng)
-    n_samples, seed, max_modes = 3000, 7, 4
+    n_samples, seed = 3000, 7
     result = specificity(shapes, weights, max_modes, n_samples, np.random.default_rng(seed))
-    # the library draws all standard normals at once, one column per model-space axis (rank 3)
+    # the library's samples are those of one draw of all standard normals, one column per
+    # model-space axis (rank 3), though it draws them a block of samples at a time
     normal = np.random.default_rng(seed).standard_normal((n_samples, len(modes)))
     squared, distance = brute_force_specificity(shapes, weights, mean, modes, variances, normal,
                                                 max_modes)
@@ -244,8 +248,8 @@ def test_specificity_on_a_population_with_known_modes(rng):
         expected, se = mean_and_se(values)
         np.testing.assert_allclose(result[key], expected, rtol=1e-8)
         np.testing.assert_allclose(result[key + "_se"], se, rtol=1e-6)
-    # beyond the rank of the population, more modes change nothing
-    assert result["squared"][3] == result["squared"][2]
+    if max_modes > len(modes):      # beyond the rank of the population, more modes change nothing
+        assert result["squared"][3] == result["squared"][2]
 
 
 def test_specificity_agrees_statistically_on_a_random_population(rng):

@@ -676,6 +676,12 @@ MUTANTS = [
            ("test_quasi_newton.py",),
            "the initial inverse Hessian is scaled by the oldest pair, not the newest",
            k="dense_bfgs"),
+    Mutant("sample_scores_last_columns", "model/space.py",
+           "rng.standard_normal((stop - start, rank))[:, :used] * sd[:used]",
+           "rng.standard_normal((stop - start, rank))[:, rank - used:] * sd[:used]",
+           ("test_evaluation.py",),
+           "the specificity's samples take other normals than one draw of them all would",
+           k="known_modes"),
 ]
 
 

@@ -28,7 +28,7 @@ from ..prepare.case import joined_mesh
 from . import evaluation_kernels
 from .shape_model import ShapeModel, kept_variances
 from .space import (ModelSpace, PrincipalAxes, leave_one_out, model_space, principal_axes,
-                    space_of, subspace_coordinates)
+                    sample_scores, space_of, subspace_coordinates)
 from .surface_measures import (joined_generalization, surface_generalization,
                                surface_specificity)
 
@@ -302,10 +302,9 @@ def specificity(shapes: np.ndarray, weights: np.ndarray, max_modes: int, n_sampl
     squared = np.zeros((n_samples, max_modes))
     distance = np.zeros((n_samples, max_modes))
     nearest = np.zeros((n_samples, max_modes), dtype=np.int64)
-    normal = rng.standard_normal((n_samples, rank))
+    scores = sample_scores(rng, n_samples, sd, max_modes)
     train_sq = np.sum(coordinates ** 2, axis=1)
     kept = np.minimum(np.arange(1, max_modes + 1), rank)
-    scores = normal[:, :kept[-1]] * sd[:kept[-1]]
     for m in range(1, max_modes + 1):
         used = kept[m - 1]
         for start in range(0, n_samples, chunk):

@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import ArgumentError
 from ..prepare.nearest import TriangleGrid
 from . import evaluation_kernels
-from .space import ModelSpace, displacements, leave_one_out, space_of
+from .space import ModelSpace, displacements, leave_one_out, sample_scores, space_of
 
 
 #: Points without a guessed triangle are searched on the grid from scratch until this many have
@@ -407,7 +407,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
     n_s, rank = coordinates.shape
     # exactly as specificity(): axis m of the model-space coordinates has variance lambda_m
     sd = np.sqrt(np.sum(coordinates ** 2, axis=0) / n_s)
-    normal = rng.standard_normal((n_samples, rank))
+    scores = sample_scores(rng, n_samples, sd, max_modes)
     true = _TrueSurfaces(surfaces, n_s, SPECIFICITY_SURFACES_KEPT)
     candidates = int(min(max(candidates, 1), n_s))
     mean = shapes.mean(axis=0)
@@ -430,7 +430,7 @@ def surface_specificity(shapes: np.ndarray, weights: np.ndarray, triangles: np.n
             nearest[:, m - 1] = nearest[:, m - 2]
             continue
         sample = np.zeros((n_samples, rank))
-        sample[:, :kept] = normal[:, :kept] * sd[:kept]
+        sample[:, :kept] = scores[:, :kept]
         d2 = (np.sum(sample ** 2, axis=1)[:, None] - 2 * sample @ coordinates.T
               + train_sq[None, :])
         order = np.argsort(d2, axis=1, kind="stable")[:, :candidates]
