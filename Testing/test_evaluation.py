@@ -730,3 +730,59 @@ def test_surface_specificity_keeps_a_bounded_number_of_surfaces_with_the_same_re
     assert bounded > all_kept
     for key in ("distance", "distance_se", "weighted", "weighted_se", "nearest"):
         np.testing.assert_array_equal(results[1][key], results[0][key])
+
+
+# --- more shapes than coordinates: the axes from the covariance ---------------------------------
+
+def test_principal_axes_past_the_switch_are_the_svds_to_rounding(rng):
+    """60 shapes of 6 points (18 coordinates): the axes come from Z^T Z; every singular value,
+    and each kept mode's scores and axis (up to its sign), as the SVD of Z gives them."""
+    from mdlshapemodel.model.space import axes_route, principal_axes
+
+    n_s, n_p = 60, 6
+    weights = normalised_weights(rng, n_p)
+    shapes = rng.normal(size=(n_s, n_p, 3)) * np.linspace(3.0, 0.2, 3 * n_p).reshape(n_p, 3)
+    assert axes_route(n_s, 3 * n_p) == "covariance" and axes_route(18, 18) == "svd"
+    axes = principal_axes(shapes, weights)
+    root = np.repeat(np.sqrt(weights), 3)
+    z = (shapes - shapes.mean(axis=0)).reshape(n_s, -1) * root
+    u, singular, vt = np.linalg.svd(z, full_matrices=False)
+    np.testing.assert_allclose(axes.singular, singular, rtol=1e-10)
+    coordinates, to_points = axes.space.coordinates, axes.space.to_points
+    assert coordinates.shape == (n_s, 3 * n_p)
+    signs = np.sign(np.sum(coordinates * u * singular, axis=0))
+    np.testing.assert_allclose(coordinates * signs, u * singular, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(to_points * signs[:, None], vt / root, rtol=1e-9, atol=1e-12)
+
+
+def test_evaluation_past_the_switch_agrees_with_the_svd_route(rng, monkeypatch):
+    """Compactness and G of 50 shapes of 5 points through the covariance route equal those
+    through the SVD (forced) to rounding. S samples each axis with its sign, which the two
+    decompositions choose alike only by chance: on a population symmetric under every sign
+    (32 shapes of 4 points) S is the same to rounding too, and on the general one it agrees
+    within its standard errors."""
+    import mdlshapemodel.model.space as space
+
+    def both(shapes, weights):
+        ours = evaluate(shapes, weights, None, max_modes=6, n_samples=2000,
+                        rng=np.random.default_rng(3))
+        with monkeypatch.context() as patch:
+            patch.setattr(space, "axes_route", lambda n_shapes, dimension: "svd")
+            theirs = evaluate(shapes, weights, None, max_modes=6, n_samples=2000,
+                              rng=np.random.default_rng(3))
+        return ours, theirs
+
+    weights = normalised_weights(rng, 5)
+    shapes = rng.normal(size=(50, 5, 3)) * np.linspace(2.0, 0.3, 15).reshape(5, 3)
+    ours, theirs = both(shapes, weights)
+    for name in ("compactness", "generalization", "generalization_mm", "generalization_se"):
+        np.testing.assert_allclose(ours[name], theirs[name], rtol=1e-9, err_msg=name)
+    gap = np.abs(np.array(ours["specificity"]) - theirs["specificity"])
+    se = np.hypot(ours["specificity_se"], theirs["specificity_se"])
+    assert np.all(gap < 4 * se)
+    symmetric, weights, *_ = sign_symmetric_population(rng, n_p=4, n_base=4)
+    assert len(symmetric) == 32
+    ours, theirs = both(symmetric, weights)
+    for name in ("specificity", "specificity_mm", "generalization"):
+        np.testing.assert_allclose(ours[name], theirs[name], rtol=1e-9, atol=1e-12,
+                                   err_msg=name)

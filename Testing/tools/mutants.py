@@ -682,6 +682,12 @@ MUTANTS = [
            ("test_evaluation.py",),
            "the specificity's samples take other normals than one draw of them all would",
            k="known_modes"),
+    Mutant("covariance_axes_ascending", "model/space.py",
+           "    return np.sqrt(np.clip(eigenvalues[::-1], 0.0, None)), vectors[:, ::-1]",
+           "    return np.sqrt(np.clip(eigenvalues, 0.0, None)), vectors",
+           ("test_evaluation.py",),
+           "past the switch the model's modes come smallest first",
+           k="past_the_switch"),
 ]
 
 
