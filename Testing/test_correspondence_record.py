@@ -79,6 +79,24 @@ def test_a_checkpoint_replayed_on_a_fresh_state_is_the_same_state(strategy, tmp_
         assert np.array_equal(a.parts[0].positions, b.parts[0].positions)
 
 
+def test_a_record_with_int64_faces_resumes_with_the_parts_own_index_type(tmp_path):
+    """A checkpoint whose located faces (the parts' walk hints) are int64, as older builds
+    wrote them, gives parts whose hints are in their tables' narrow type, with the same values."""
+    state, _ = optimised("fast")
+    record = state_record(state)
+    hints = [key for key in record if key.startswith("hint_")]
+    assert hints and all(record[key].dtype == np.int16 for key in hints)
+    path = tmp_path / "old.npz"
+    np.savez(path, **{key: (value.astype(np.int64) if key in hints else value)
+                      for key, value in record.items()})
+    fresh = small_state()
+    replay_record(fresh, np.load(path))
+    for example, original in zip(fresh.examples, state.examples):
+        part = example.parts[0]
+        assert part.hint.dtype == part.faces.dtype == np.int16
+        assert np.array_equal(part.hint, original.parts[0].hint)
+
+
 def test_a_record_of_other_cases_is_refused():
     state, _ = optimised("fast")
     record = state_record(state)

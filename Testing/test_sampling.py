@@ -3,8 +3,11 @@
 import numpy as np
 import pytest
 
-from mdlshapemodel.correspondence.sampling import (SphereLocator, fibonacci_sphere, grid_order, icosphere,
-                                    orient_triangles, sphere_grid, spherical_triangles)
+from mdlshapemodel.correspondence.sampling import (INT16_INDEX_LIMIT, SphereLocator, fibonacci_sphere,
+                                                   grid_order, icosphere, index_dtype,
+                                                   orient_triangles, sphere_grid,
+                                                   spherical_triangles)
+from mdlshapemodel.errors import ArgumentError
 from mdlshapemodel.prepare.surface import triangle_vertex_areas
 
 
@@ -295,33 +298,66 @@ def test_grid_order_renumbers_the_same_triangulation_in_grid_order(rng):
     assert sorted(renumbered[0]) == [0, 1, 2]
 
 
-def test_locator_index_tables_are_int32_and_walk_as_int64_ones_do(rng):
-    """The locator a build keeps per case holds its index tables in 4 bytes an entry, and a walk
-    over them reaches the same faces and coordinates as over the same tables in int64."""
-    from mdlshapemodel.correspondence import hotloops
-    from mdlshapemodel.correspondence.sampling import face_neighbours
+def test_index_dtype_is_int16_up_to_its_largest_index_then_int32():
+    """Tables over at most 32,767 items (every index and the padding -1 fit) are int16."""
+    assert index_dtype(1) is np.int16 and index_dtype(INT16_INDEX_LIMIT) is np.int16
+    assert INT16_INDEX_LIMIT == 32767
+    assert index_dtype(INT16_INDEX_LIMIT + 1) is np.int32 and index_dtype(10 ** 9) is np.int32
+    with pytest.raises(ArgumentError, match="32-bit"):
+        index_dtype(2 ** 31)
 
-    sphere, faces = icosphere(3)
+
+@pytest.mark.parametrize("mesh, itemsize", [
+    (lambda: icosphere(3), 2),
+    # 31,996 faces: face indices up to the top of int16's range
+    (lambda: fibonacci_sphere(16000), 2),
+    (lambda: icosphere(6), 4),          # 81,920 faces
+])
+def test_locator_index_tables_are_narrow_and_locate_as_int64_ones_do(rng, mesh, itemsize):
+    """The locator a build keeps per case holds its three index tables, and gives the faces it
+    locates (a part's hints), in 2 bytes an entry below 32,768 vertices and faces, 4 above; a
+    walk over them, and a location by the nearest vertices, reach the same faces and coordinates
+    as over the same tables in int64."""
+    from mdlshapemodel.correspondence import hotloops
+    from mdlshapemodel.correspondence.sampling import face_neighbours, vertex_face_table
+
+    sphere, faces = mesh()
     locator = SphereLocator(sphere, faces)
-    assert locator.neighbours.itemsize == 4 and locator.vertex_faces.itemsize == 4
-    assert locator.neighbours.nbytes == 4 * 3 * len(faces)
-    points = rng.normal(size=(500, 3))
+    for table in (locator.faces, locator.neighbours, locator.vertex_faces):
+        assert table.itemsize == itemsize
+    assert locator.neighbours.nbytes == itemsize * 3 * len(faces)
+    faces64 = np.asarray(faces, dtype=np.int64)
+    neighbours64 = face_neighbours(faces64)
+    np.testing.assert_array_equal(locator.neighbours, neighbours64)
+    np.testing.assert_array_equal(locator.vertex_faces, vertex_face_table(faces64, len(sphere)))
+    # hints among the highest-numbered faces, so that the indices walked are the largest, and
+    # points a few triangles from them: some reached within the walk's steps, some not
+    hint = rng.integers(max(len(faces) - 2000, 0), len(faces), 500)
+    edge = np.sqrt(4.0 * np.pi / len(faces))
+    points = sphere[faces64[hint]].mean(axis=1) + rng.normal(scale=3.0 * edge, size=(500, 3))
     points /= np.linalg.norm(points, axis=1, keepdims=True)
-    hint = rng.integers(0, len(faces), len(points))
     results = []
-    for neighbours in (locator.neighbours, face_neighbours(locator.faces)):
+    for tables in ((locator.faces, locator.neighbours), (faces64, neighbours64)):
         face, coords = np.full(len(points), -1), np.zeros((len(points), 3))
         found = np.zeros(len(points), dtype=bool)
-        hotloops.walk(locator.sphere, locator.faces, neighbours, points, hint, 6, -1e-12, face,
-                      coords, found)
+        hotloops.walk(locator.sphere, *tables, points, hint, 4, -1e-12, face, coords, found)
         results.append((face, coords, found))
-    (face32, coords32, found32), (face64, coords64, found64) = results
-    assert found32.any() and not found32.all()
-    np.testing.assert_array_equal(found32, found64)
-    np.testing.assert_array_equal(face32, face64)
-    np.testing.assert_array_equal(coords32, coords64)
+    (face_narrow, coords_narrow, found_narrow), (face64, coords64, found64) = results
+    assert found_narrow.any() and not found_narrow.all()
+    np.testing.assert_array_equal(found_narrow, found64)
+    np.testing.assert_array_equal(face_narrow, face64)
+    np.testing.assert_array_equal(coords_narrow, coords64)
+    assert face_narrow[found_narrow].max() > len(faces) - 200
     face, coords = locator.locate(points, hint)
-    np.testing.assert_array_equal(face[found32], face32[found32])
+    assert face.dtype == locator.faces.dtype         # kept as hints: narrow too
+    np.testing.assert_array_equal(face[found_narrow], face_narrow[found_narrow])
+    unhinted, unhinted_coords = locator.locate(points)
+    np.testing.assert_array_equal(unhinted, face)
+    np.testing.assert_allclose(unhinted_coords, coords, atol=1e-12)
+    a, b, c = (sphere[faces64[face, k]] for k in range(3))
+    corners = np.stack([a, b, c], axis=2)            # columns a, b, c
+    lam = np.linalg.solve(corners, points[:, :, None])[:, :, 0]
+    assert lam.min() > -1e-9
 
 
 def _inverses_by_numpy(sphere, faces):
@@ -342,7 +378,7 @@ def test_locator_computes_each_faces_inverse_as_numpy_does_bit_for_bit(rng):
         meshes.append((points, spherical_triangles(points)))
     for sphere, faces in meshes:
         locator = SphereLocator(sphere, faces)
-        assert locator.faces.dtype == np.int32
+        assert locator.faces.dtype == index_dtype(max(len(sphere), len(faces)))
         assert not any(isinstance(v, np.ndarray) and v.dtype == np.float64 and len(v) == len(faces)
                        for v in vars(locator).values())      # no table of floats per face
         expected = _inverses_by_numpy(np.asarray(sphere, dtype=np.float64), faces)

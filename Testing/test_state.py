@@ -8,6 +8,7 @@ from mdlshapemodel.correspondence.objective import Objective
 from mdlshapemodel.geometry import Pose, centroid_size, rotation_from_vector
 from mdlshapemodel.correspondence.sampling import sphere_grid
 from mdlshapemodel.prepare.sphere import orientation
+from mdlshapemodel.prepare.surface import face_areas
 
 from synthetic import build_objectives, small_state
 
@@ -247,3 +248,18 @@ def test_released_sampling_keeps_the_correspondence_and_refuses_to_move_points()
     part = state.examples[0].parts[0]
     with pytest.raises(RuntimeError, match="release_sampling"):
         part.sample(part.positions)
+
+
+def test_a_part_holds_one_narrow_copy_of_its_triangles(state):
+    """A part's triangles are its locator's table (one array, in the locator's index type), the
+    same surface as given: renumbered vertices, same triangles."""
+    part = state.examples[0].parts[0]
+    assert part.faces is part.locator.faces
+    assert part.faces.dtype == np.int16
+    areas = np.sort(face_areas(part.vertices, part.faces))
+    from mdlshapemodel.correspondence.state import PartState
+
+    again = PartState(part.vertices, part.faces.astype(np.int64), part.sphere, part.grid,
+                      part.grid_triangles)
+    assert again.faces is again.locator.faces and again.faces.dtype == np.int16
+    assert np.array_equal(np.sort(face_areas(again.vertices, again.faces)), areas)

@@ -125,6 +125,28 @@ def spherical_triangles(points: np.ndarray) -> np.ndarray:
     return orient_triangles(points, triangles)
 
 
+#: The largest index an ``int16`` table holds (:func:`index_dtype`)
+INT16_INDEX_LIMIT = int(np.iinfo(np.int16).max)
+
+
+def index_dtype(count: int) -> type:
+    """The integer type of index tables over ``count`` items (vertices or faces): ``int16`` where
+    every index and the padding -1 fit (``count`` <= 32,767), else ``int32``.
+
+    A build holds a surface's triangles and its locator's tables for every case through the
+    optimisation; narrow indices halve them. Arithmetic on the indices must be done in a wider
+    type (numba's kernels widen to ``intp``; numpy does not: index with them, do not multiply).
+
+    Examples
+    --------
+    >>> index_dtype(5000).__name__, index_dtype(40000).__name__
+    ('int16', 'int32')
+    """
+    if count > np.iinfo(np.int32).max:
+        raise ArgumentError(f"index_dtype: {count} items exceed 32-bit indices")
+    return np.int16 if count <= INT16_INDEX_LIMIT else np.int32
+
+
 #: Points located at once among the faces around their nearest vertices (SphereLocator.locate)
 LOCATE_BLOCK = 8192
 
@@ -146,16 +168,20 @@ class SphereLocator:
     coordinates M^-1 u, is computed where a point is located (``hotloops.face_inverses``, the
     same arithmetic as numpy's for the same matrices bit for bit) rather than stored (72 bytes a
     face). The triangles and the two index tables (the faces around each vertex, the face across
-    each edge) are ``int32``, half the bytes of ``int64`` for the same values, so the faces and
-    samples located are the same.
+    each edge) are in the narrowest of ``int16`` and ``int32`` that holds their indices
+    (:func:`index_dtype`): a quarter or half the bytes of ``int64`` for the same values, so the
+    faces and samples located are the same.
     """
 
     def __init__(self, sphere: np.ndarray, faces: np.ndarray):
         self.sphere = np.asarray(sphere, dtype=np.float64)
-        self.faces = np.asarray(faces, dtype=np.int32)
+        faces = np.asarray(faces)
+        # one index type for the three tables (one compiled variant of each kernel a surface size)
+        index = index_dtype(max(len(self.sphere), len(faces)))
+        self.faces = np.asarray(faces, dtype=index)
         self.tree = cKDTree(self.sphere)
-        self.vertex_faces = vertex_face_table(self.faces, len(self.sphere)).astype(np.int32)
-        self.neighbours = face_neighbours(self.faces).astype(np.int32)
+        self.vertex_faces = vertex_face_table(self.faces, len(self.sphere)).astype(index)
+        self.neighbours = face_neighbours(self.faces).astype(index)
 
     def inverses(self, faces: np.ndarray) -> np.ndarray:
         """M^-1 = [a b c]^-1 of each face in ``faces`` (any shape): (..., 3, 3)."""
@@ -169,7 +195,8 @@ class SphereLocator:
 
     def locate(self, points: np.ndarray, hint: np.ndarray | None = None,
                neighbours: int = 4, walk_steps: int = 6) -> tuple[np.ndarray, np.ndarray]:
-        """Triangle index and barycentric coordinates of each point.
+        """Triangle index (in the tables' index type, :func:`index_dtype`) and barycentric
+        coordinates of each point.
 
         ``hint`` (one face index per point, e.g. the previous location) starts a short walk over
         neighbouring triangles, which makes relocating slightly moved points cheap; points not found
@@ -177,7 +204,8 @@ class SphereLocator:
         """
         points = np.asarray(points, dtype=np.float64)
         n = len(points)
-        face = np.full(n, -1, dtype=np.int64)
+        # the faces in the tables' index type: a part keeps them as its next walk's hints
+        face = np.full(n, -1, dtype=self.faces.dtype)
         coords = np.zeros((n, 3))
         todo = np.arange(n)
         if hint is not None:
@@ -185,8 +213,8 @@ class SphereLocator:
             # barycentric coordinate, a few steps at most
             found = np.zeros(n, dtype=np.bool_)
             hotloops.walk(self.sphere, self.faces, self.neighbours, points,
-                          np.asarray(hint, dtype=np.int64), walk_steps, -1e-12, face, coords,
-                          found)
+                          np.asarray(hint, dtype=self.faces.dtype), walk_steps, -1e-12, face,
+                          coords, found)
             todo = np.flatnonzero(~found)
         k = min(neighbours, len(self.sphere))
         # the points not found by walking, a block at a time: each point's candidate faces

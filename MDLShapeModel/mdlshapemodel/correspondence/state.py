@@ -48,13 +48,13 @@ class PartState:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, sphere: np.ndarray,
                  grid: np.ndarray, grid_triangles: np.ndarray):
         # the mesh renumbered in the order the grid visits it (same surface, faster sampling);
-        # its triangles in int32, which the locator shares (SphereLocator)
+        # its triangles are the locator's, in the locator's narrow index type (one copy)
         order, faces = grid_order(np.asarray(sphere, dtype=np.float64),
                                   np.asarray(faces, dtype=np.int64), grid)
-        self.faces = faces.astype(np.int32)
         self.vertices = np.asarray(vertices, dtype=np.float64)[order]
         self.sphere = np.asarray(sphere, dtype=np.float64)[order]
-        self.locator = SphereLocator(self.sphere, self.faces)
+        self.locator = SphereLocator(self.sphere, faces)
+        self.faces = self.locator.faces
         # the surface's area shares, made when a random surface point is first asked for (the
         # fast strategy never asks)
         self.cumulative_area = None
@@ -883,6 +883,8 @@ def replay_record(state: CorrespondenceState, arrays) -> None:
             if f"points_{i}_{j}" in arrays:
                 part.points = np.array(arrays[f"points_{i}_{j}"], dtype=np.float64)
                 part.hint = np.array(arrays[f"hint_{i}_{j}"])
+                if part.kind == "sphere":     # faces (a record may hold them in int64)
+                    part.hint = part.hint.astype(part.faces.dtype)
             elif part.warps is None:
                 part.points, part.hint = part.sample(part.positions)
     if len(arrays["weights"]) != state.n_points:

@@ -55,7 +55,7 @@ class SphereBlock:
         part, basis = self.part, self.basis
         n = len(basis.points)
         phi, norms = np.empty((n, 3)), np.empty(n)
-        face, jac = np.empty(n, dtype=np.int64), np.empty((n, 3, 3))
+        face, jac = np.empty(n, dtype=part.faces.dtype), np.empty((n, 3, 3))
         found = np.empty(n, dtype=np.bool_)
         sampled = raw[self.row, self.rows]
         w = basis.weights
