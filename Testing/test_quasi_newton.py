@@ -111,6 +111,29 @@ def test_the_same_inputs_give_the_same_iterates_bit_for_bit():
     assert np.array_equal(first.x, second.x) and first.value == second.value
 
 
+def test_a_symmetric_box_without_lower_bounds_gives_the_iterates_of_minus_upper():
+    """``lower`` None is the box -upper <= x <= upper: the same evaluations and result bit for
+    bit as with the lower bounds given, every point evaluated inside it."""
+    fun, lower, upper, _ = bounded_problem(2000, 6)
+    runs = []
+    for given in (lower, None):
+        seen = []
+
+        def recorded(x, seen=seen):
+            seen.append(x.copy())
+            return fun(x)
+
+        result = minimize_box(recorded, np.full(2000, 0.05), given, upper, max_iterations=40)
+        runs.append((result, np.array(seen)))
+    (with_lower, points_with), (symmetric, points) = runs
+    assert len(points) > 10 and np.array_equal(points, points_with)
+    assert np.array_equal(symmetric.x, with_lower.x) and symmetric.value == with_lower.value
+    assert np.all(points >= -upper) and np.all(points <= upper)
+    assert np.any(symmetric.x == -upper) and np.any(symmetric.x == upper)   # both sides active
+    with pytest.raises(ArgumentError, match="symmetric box"):
+        minimize_box(fun, np.zeros(2000), None, -upper)
+
+
 def test_exceptions_of_the_function_pass_through_and_bad_bounds_are_refused():
     class Stop(Exception):
         pass

@@ -304,7 +304,8 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
 
     start_value = fun(np.zeros(round_.size))[0]
     try:
-        minimize_box(fun, np.zeros(round_.size), -round_.limit, round_.limit, max_iterations,
+        # the symmetric box |x| <= limit (lower None: no vector of lower bounds held)
+        minimize_box(fun, np.zeros(round_.size), None, round_.limit, max_iterations,
                      ftol=1e-9, gtol=1e-10,
                      pairs_dtype=pair_dtype(curvature_pairs, round_.size))
     except _RoundOutOfTime:

@@ -123,7 +123,7 @@ def _direction(projected: np.ndarray, pairs: list) -> np.ndarray:
     return -q
 
 
-def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+def minimize_box(fun, x0: np.ndarray, lower: np.ndarray | None, upper: np.ndarray,
                  max_iterations: int = 30, memory: int = 10, ftol: float = 1e-9,
                  gtol: float = 1e-10, pairs_dtype: type = np.float64) -> BoxResult:
     """Minimise ``fun`` (x -> (value, gradient)) over lower <= x <= upper (infinite bounds allowed).
@@ -135,7 +135,10 @@ def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
     x0 : ndarray
         The start, projected into the box.
     lower, upper : ndarray
-        The bounds, lower <= upper.
+        The bounds, lower <= upper. ``lower`` None: the symmetric box -upper <= x <= upper, whose
+        lower bounds are formed where they are used rather than held (one vector of the size of
+        x less through the minimisation: a large round's fields have tens of millions of
+        coefficients); the same iterates as with ``lower = -upper`` given.
     max_iterations : int
         Iterations at most (each one line search: usually one evaluation).
     memory : int
@@ -159,15 +162,25 @@ def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
     >>> np.round(result.x, 6).tolist()
     [1.0, 2.0, 2.0]
     """
-    lower = np.asarray(lower, dtype=np.float64)
     upper = np.asarray(upper, dtype=np.float64)
-    if np.any(lower > upper):
-        raise ArgumentError("minimize_box: a lower bound exceeds its upper bound")
-    x = np.clip(np.asarray(x0, dtype=np.float64), lower, upper)
+    if lower is None:
+        if np.any(upper < 0.0):
+            raise ArgumentError("minimize_box: a symmetric box needs upper bounds >= 0")
+
+        def low():
+            return -upper
+    else:
+        lower = np.asarray(lower, dtype=np.float64)
+        if np.any(lower > upper):
+            raise ArgumentError("minimize_box: a lower bound exceeds its upper bound")
+
+        def low():
+            return lower
+    x = np.clip(np.asarray(x0, dtype=np.float64), low(), upper)
     value, gradient = fun(x)
     pairs: list = []
     for iteration in range(max_iterations):
-        projected = projected_gradient(x, gradient, lower, upper)
+        projected = projected_gradient(x, gradient, low(), upper)
         if np.max(np.abs(projected), initial=0.0) <= gtol:
             return BoxResult(x, value, gradient, iteration, "gtol")
         direction = _direction(projected, pairs)
@@ -182,7 +195,7 @@ def minimize_box(fun, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
             step = 1.0
         del projected       # not needed by the line search, whose evaluations hold their own
         for _ in range(MAX_BACKTRACKS):
-            trial = np.clip(x + step * direction, lower, upper)
+            trial = np.clip(x + step * direction, low(), upper)
             trial_value, trial_gradient = fun(trial)
             predicted = np.dot(gradient, trial - x)
             if trial_value <= value + ARMIJO * min(predicted, 0.0) and trial_value < value:
