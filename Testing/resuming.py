@@ -42,6 +42,8 @@ def resumed_from(state, settings, saved):
     rng = np.random.default_rng(0)
     rng.bit_generator.state = generator
     trace = Trace(rows=list(rows))
+    given = dict(record)        # optimise empties the record it resumes from
     value = optimise(state, build_objectives(state), settings, rng, trace,
-                     resume=Resumption(point, record, evaluations, 0.0))
+                     resume=Resumption(point, given, evaluations, 0.0))
+    assert given == {}
     return value, trace

@@ -92,6 +92,7 @@ def optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisati
     and the optimisation carries on from its point (``rng`` must be in the state it had then); a
     run resumed from any checkpoint ends as the uninterrupted run does (bit for bit while the time
     budget is not reached: the phases are deterministic given the state and the generator).
+    The resumption's record is emptied once the state has it (:class:`Resumption`).
 
     BLAS runs single-threaded meanwhile: the objective's linear algebra is on n_s x n_s matrices,
     where threaded BLAS costs more than it gains (measured: a 40 x 40 eigh takes 0.2 ms on one
@@ -133,8 +134,7 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
     staged = phases[0].coarse
     point, coarse = None, None
     if resume is not None and resume.point.phase == PhasePoint.DONE:   # it had converged
-        replay_record(state, resume.record)
-        state.evaluations = resume.evaluations
+        _replay(state, resume)
         trace.stopped_by = Stop.CONVERGED
         return measured_state(state, settings, active, integrated).value()
     if staged:
@@ -147,9 +147,7 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
             raise ArgumentError(f"the checkpoint is of a phase ({point.phase!r}) that these settings "
                              "do not run")
         phases = phases[names.index(point.phase):]
-        resumed = coarse if staged else state
-        replay_record(resumed, resume.record)
-        resumed.evaluations = resume.evaluations
+        _replay(coarse if staged else state, resume)
     try:
         for phase in phases:
             current = coarse if staged else state
@@ -165,6 +163,16 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
             _finish_coarse_stage(coarse, state, settings)
         state.objective = integrated
     return value
+
+
+def _replay(state: CorrespondenceState, resume: Resumption) -> None:
+    """Set ``state`` to the resumption's record and evaluation count, then empty the record:
+    its arrays (every part's positions, samples and faces: gigabytes for a large population)
+    are not needed again, and the build's references to the checkpoint last the whole
+    optimisation."""
+    replay_record(state, resume.record)
+    state.evaluations = resume.evaluations
+    resume.record.clear()
 
 
 def runs_coarse(state: CorrespondenceState, settings: OptimisationSettings,

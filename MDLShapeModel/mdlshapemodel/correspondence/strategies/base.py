@@ -52,7 +52,11 @@ class PhasePoint:
 class Resumption:
     """What an optimisation resumes from: the point a checkpoint reached, the state's record of
     that moment (:func:`~mdlshapemodel.correspondence.state.state_record`), its evaluation count
-    and the optimisation's seconds so far (the time budget goes on from there)."""
+    and the optimisation's seconds so far (the time budget goes on from there).
+
+    :func:`~mdlshapemodel.correspondence.strategies.optimise` empties ``record`` once it has
+    set the state to it (its arrays are large and not needed again): pass a copy of a record
+    that is needed afterwards."""
 
     point: PhasePoint
     record: dict
