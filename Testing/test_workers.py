@@ -20,7 +20,7 @@ from concurrent.futures import Executor, ProcessPoolExecutor
 import numpy as np
 import pytest
 
-from mdlshapemodel import BuildConfig, ShapeModel
+from mdlshapemodel import BuildConfig, ShapeModel, build_model
 from mdlshapemodel import parallel
 from mdlshapemodel.parallel import ProcessPool, Task, map_cases
 from mdlshapemodel.prepare import preprocess
@@ -113,6 +113,53 @@ def test_a_settled_task_lets_its_arguments_go():
         assert pool.submit(abs, -1).result() == 1                       # the others are done
         assert task.settle() and task.arguments == () and task.result() == 25
         assert not failing.settle() and failing.arguments == ("five",)
+
+
+def test_a_rested_pool_ends_its_workers_and_starts_fresh_ones_at_the_next_call():
+    """``rest`` ends the worker processes (their memory with them); the next call starts a new
+    one, which gives the right answer; resting an idle or rested pool does nothing."""
+    with ProcessPool(1) as pool:
+        assert not pool.running()
+        pool.rest()
+        first = pool.submit(os.getpid).result()
+        assert pool.running() and first != os.getpid()
+        pool.rest()
+        assert not pool.running()
+        with pytest.raises(ProcessLookupError):     # ended and reaped
+            os.kill(first, 0)
+        second = pool.submit(os.getpid).result()
+        assert second not in (first, os.getpid())
+        assert pool.submit(square_or_die, 7).result() == 49
+    assert not pool.running()
+
+
+@pytest.mark.parametrize("rests_from", [5, 6])
+def test_a_large_build_ends_its_helper_once_the_baselines_are_evaluated(tmp_path, monkeypatch,
+                                                                         rests_from):
+    """With worker processes and at least ``HELPER_RESTS_FROM`` cases (here made 5, then 6:
+    the build has 5), the helper that evaluated the baselines during the optimisation ends
+    with the first checkpoint after their results came (the log says so) and the model is
+    evaluated on a fresh one; a smaller build keeps it. metrics.json has the baselines'
+    figures and the model's either way."""
+    from mdlshapemodel import build as build_module
+
+    monkeypatch.setattr(build_module, "HELPER_RESTS_FROM", rests_from)
+    write_population(tmp_path / "inputs", 5)
+    output = tmp_path / "out"
+    config = BuildConfig(points=162, coarse_points=42, workers=2, evaluation_modes=2,
+                         specificity_samples=50, surface_samples=5)
+    build_model([tmp_path / "inputs"], output, config)
+    log = (output / "build.log").read_text()
+    rested = log.find("the baselines are evaluated: the helper process ended")
+    if rests_from <= 5:
+        assert 0 < log.find("evaluating the initial (equal-spacing) correspondence") < rested
+        assert rested < log.find("final objective")
+        assert log.count("the helper process ended") == 1
+    else:
+        assert rested == -1
+    metrics = json.loads((output / "metrics.json").read_text())
+    assert len(metrics["baselines"]["none"]["generalization"]) == 2
+    assert len(metrics["generalization"]) == 2 and len(metrics["specificity"]) == 2
 
 
 ENDED_AT_ONCE = """

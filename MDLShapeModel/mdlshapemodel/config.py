@@ -36,6 +36,11 @@ CURVATURE_PAIRS = ("auto", "double", "single")
 # Below it a build keeps exact double-precision pairs; above it the pairs are the largest
 # holder of a round's memory, and single precision halves them.
 SINGLE_PRECISION_PAIRS_FROM = 4_000_000
+# A build of at least this many cases ends its helper process once the baselines are evaluated
+# (build.py): the idle process holds 0.2-0.3 GB, which matters beside a build of several GB; a
+# smaller build keeps it, and saves the second or two a fresh one takes to start for the
+# model's evaluation.
+HELPER_RESTS_FROM = 1000
 SURFACE_METHODS = ("gaussian", "slicer")
 
 

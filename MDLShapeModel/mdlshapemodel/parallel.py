@@ -201,6 +201,18 @@ class ProcessPool(Executor):
         code = next((code for code in dead if code), 0)
         return f"signal {-code}" if code < 0 else f"exit code {code}"
 
+    def running(self) -> bool:
+        """Whether worker processes have been started since the pool's start or its last
+        :meth:`rest`."""
+        return self._pool is not None
+
+    def rest(self) -> None:
+        """End the worker processes now, and their memory with them (a pool idle for a long
+        while); the next :meth:`submit` starts fresh ones. Waits for running calls to end."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool, self._processes = None, {}
+
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False):
         self._closed = True
         if self._pool is not None:
