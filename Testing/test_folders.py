@@ -197,3 +197,37 @@ def test_build_and_fit_write_landmarks_csv_and_scores_csv_in_one_schema(tmp_path
     fit_marks = BuildFolder(tmp_path / "fitted").landmarks()
     assert sorted(r.label for r in fit_marks) == ["end", "tip"]
     assert all(r.case == "n1" and r.given is None for r in fit_marks)
+
+
+def test_the_baselines_evaluations_are_read_back_bit_for_bit_for_the_same_build_only(tmp_path):
+    """baselines.json gives back every number of an evaluation (its jackknife arrays too, and
+    an evaluation without one), for the fingerprint it was written with; for another build's
+    fingerprint, or from a file cut short, nothing (the baselines are then evaluated again)."""
+    from mdlshapemodel.model.evaluation import evaluate
+
+    rng = np.random.default_rng(4)
+    shapes = rng.normal(size=(12, 20, 3))
+    weights = np.full(20, 1 / 20)
+    measured = evaluate(shapes, weights, None, max_modes=3, n_samples=40, rng=rng,
+                        jackknife=True)
+    measured["specificity_se"][0] = float("nan")       # a value JSON writes as NaN
+    small = evaluate(shapes[:3], weights, None, max_modes=1, n_samples=10)
+    assert "jackknife" in measured and "jackknife" not in small
+    folder = BuildFolder(tmp_path)
+    fingerprint = {"settings": {"seed": 0}, "cases": [["a", "d1"], ["b", "d2"]]}
+    folder.write_baselines({"none": measured, "cpd": small}, fingerprint)
+    back = folder.baselines({"cases": [["a", "d1"], ["b", "d2"]], "settings": {"seed": 0}})
+    assert set(back) == {"none", "cpd"} and back["cpd"] == small
+    jackknife = back["none"].pop("jackknife")
+    expected = dict(measured)
+    original = expected.pop("jackknife")
+    assert np.isnan(back["none"]["specificity_se"][0])
+    back["none"]["specificity_se"][0] = expected["specificity_se"][0] = 0.0
+    assert back["none"] == expected
+    assert np.array_equal(jackknife.per_case, original.per_case)
+    assert np.array_equal(jackknife.left_out, original.left_out)
+    assert folder.baselines({**fingerprint, "settings": {"seed": 1}}) == {}
+    text = folder.baselines_file.read_text()
+    folder.baselines_file.write_text(text[: len(text) // 2])
+    assert folder.baselines(fingerprint) == {}
+    assert BuildFolder(tmp_path / "none").baselines(fingerprint) == {}

@@ -81,12 +81,12 @@ def uninterrupted(labels, tmp_path_factory):
     return output
 
 
-def killed_at(labels, output, reached, workers: str, cache) -> list:
-    """Run a build and SIGKILL it as soon as ``reached(output)`` (polled) is true; check that
-    its worker processes end with it, and return their pids."""
+def killed_at(labels, output, reached, workers: str, cache, extra=()) -> list:
+    """Run a build (options ``extra`` added) and SIGKILL it as soon as ``reached(output)``
+    (polled) is true; check that its worker processes end with it, and return their pids."""
     environment = {**os.environ, "MDLSHAPEMODEL_CACHE": str(cache)}
     process = subprocess.Popen([sys.executable, "-m", "mdlshapemodel.cli",
-                                *map(str, command(labels, output, "--workers", workers))],
+                                *map(str, command(labels, output, *extra, "--workers", workers))],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                env=environment)
     try:
@@ -214,3 +214,34 @@ def test_resuming_with_other_settings_is_refused(labels, uninterrupted, tmp_path
     other = run_cli(*command(labels, output, "--resume", "--seed", "3"))
     assert other.returncode == 2
     assert "other inputs or settings (seed)" in other.stderr and "Traceback" not in other.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_resumed_build_takes_the_baselines_evaluation_its_first_run_kept(labels, tmp_path,
+                                                                           workers):
+    """A build killed after its baseline was evaluated (here or on the helper) and resumed does
+    not evaluate it again: it takes the evaluation kept in baselines.json, and metrics.json
+    says of the baseline what the uninterrupted build's says, number for number. Evaluated
+    here, before the optimisation, it is kept at the first checkpoint (on the helper it may
+    come after this small build's last one)."""
+    extra = ("--baselines", "none")
+    whole = tmp_path / "whole"
+    done = run_cli(*command(labels, whole, *extra, "--workers", workers))
+    assert done.returncode == 0, done.stderr
+    output, cache = tmp_path / "out", tmp_path / "cache"
+    kept = checkpoint_at("integrated")
+    killed_at(labels, output,
+              lambda out: (out / "baselines.json").exists() and (workers == "2" or kept(out)),
+              workers, cache, extra)
+    if workers == "1":      # killed while it optimised: kept as it came, not at the build's end
+        assert "final objective" not in (output / "build.log").read_text()
+    resumed = run_cli(*[c for c in command(labels, output, *extra, "--resume", "--workers",
+                                           workers) if c != "-q"],
+                      env={**os.environ, "MDLSHAPEMODEL_CACHE": str(cache)})
+    assert resumed.returncode == 0, resumed.stderr
+    assert "the none baseline's evaluation comes from" in resumed.stderr
+    ours, theirs = (json.loads((folder / "metrics.json").read_text())
+                    for folder in (output, whole))
+    assert ours["baselines"] == theirs["baselines"] and "none" in ours["baselines"]
+    assert ours["generalization"] == theirs["generalization"]

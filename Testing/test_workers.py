@@ -148,7 +148,18 @@ def test_a_large_build_ends_its_helper_once_the_baselines_are_evaluated(tmp_path
     output = tmp_path / "out"
     config = BuildConfig(points=162, coarse_points=42, workers=2, evaluation_modes=2,
                          specificity_samples=50, surface_samples=5)
-    build_model([tmp_path / "inputs"], output, config)
+    rounds = []
+
+    def slow_rounds(fraction, message):
+        """The first rounds made to last a second each: the optimisation then outlasts the
+        helper's start and evaluation on a busy machine too, so that checkpoints come after
+        the results (this build's own rounds may all end first)."""
+        if ", round " in message and len(rounds) < 8:
+            rounds.append(message)
+            time.sleep(1.0)
+
+    build_model([tmp_path / "inputs"], output, config, progress=slow_rounds)
+    assert len(rounds) == 8
     log = (output / "build.log").read_text()
     rested = log.find("the baselines are evaluated: the helper process ended")
     if rests_from <= 5:

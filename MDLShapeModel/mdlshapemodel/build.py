@@ -323,24 +323,48 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
           helper_for(config.workers, executor) as pool):
         release_freed_memory()      # the arrays now in the file
         pending = {}   # baseline -> (objective and notes, its evaluation: running or done)
+        print_of = fingerprint(prepared, config, landmarks)
+        resumed = _resumption(folder, print_of) if resume else None
+        # a resumed build takes the baselines' evaluations its first run kept (the same inputs,
+        # settings and initial correspondence give the same ones)
+        kept = folder.baselines(print_of) if resumed is not None else {}
 
         def evaluate_baseline(name, state, notes):
+            if name in kept:
+                log.info("the %s baseline's evaluation comes from %s", name,
+                         folder.baselines_file)
+                pending[name] = (notes, kept[name])
+                return
             pending[name] = (notes, evaluate_state(state, config, prepared, pool=pool,
                                                    jackknife=True))
 
-        print_of = fingerprint(prepared, config, landmarks)
-        resumed = _resumption(folder, print_of) if resume else None
+        def keep_baselines(outcomes: dict) -> None:
+            """The baselines' evaluations into the folder for --resume (once: not where they
+            all came from it)."""
+            if outcomes and not all(name in kept for name in outcomes):
+                folder.write_baselines(outcomes, print_of)
+                kept.update(outcomes)
+
+        def settled() -> bool:
+            """Whether the helper's evaluations of the baselines have just all come (each
+            baseline's evaluation is kept once all are here)."""
+            tasks = [evaluation for _, evaluation in pending.values()
+                     if isinstance(evaluation, Task)]
+            if not (pending and all([task.settle() for task in tasks])):
+                return False
+            for name, (notes, evaluation) in list(pending.items()):
+                pending[name] = (notes, _outcome(evaluation))
+            keep_baselines({name: outcome for name, (_, outcome) in pending.items()})
+            return bool(tasks)
 
         def checkpoint(state, point, rng, trace):
             folder.save_checkpoint(state, point, rng, trace, print_of)
-            # the baselines' evaluation over: its arguments go, and in a large build the
-            # build's own helper process ends (an idle process's memory through the rest of
-            # the optimisation: about 0.3 GB at 10,000 cases); the model's evaluation starts a
-            # fresh one
-            settled = [evaluation.settle() for _, evaluation in pending.values()
-                       if isinstance(evaluation, Task)]
-            if (pending and all(settled) and len(prepared) >= HELPER_RESTS_FROM
-                    and executor is None and isinstance(pool, ProcessPool) and pool.running()):
+            # the baselines' evaluation over: it is kept for --resume, its arguments go, and in
+            # a large build the build's own helper process ends (an idle process's memory
+            # through the rest of the optimisation: about 0.3 GB at 10,000 cases); the model's
+            # evaluation starts a fresh one
+            if (settled() and len(prepared) >= HELPER_RESTS_FROM and executor is None
+                    and isinstance(pool, ProcessPool) and pool.running()):
                 pool.rest()
                 log.info("the baselines are evaluated: the helper process ended until the "
                          "model's evaluation")
@@ -374,8 +398,9 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
         # then the model's, with the outputs
         report(progress, 0.0, "evaluating the baselines" if pending else "evaluating")
         waited = time.perf_counter()
-        baselines = {name: {**notes, **_outcome(evaluation)}
-                     for name, (notes, evaluation) in pending.items()}
+        outcomes = {name: _outcome(evaluation) for name, (_, evaluation) in pending.items()}
+        keep_baselines(outcomes)        # where they came after the last checkpoint
+        baselines = {name: {**pending[name][0], **outcome} for name, outcome in outcomes.items()}
         if pending:
             log.info("waited %.1f s for the baselines' evaluation", time.perf_counter() - waited)
 

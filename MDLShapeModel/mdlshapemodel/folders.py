@@ -20,6 +20,7 @@ Every file is written whole or not at all (:func:`~.prepare.io.written_whole`).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 from dataclasses import dataclass
@@ -32,6 +33,7 @@ from .correspondence.state import CorrespondenceState, state_record
 from .correspondence.strategies.base import PhasePoint
 from .correspondence.trace import Trace, TraceRow
 from .errors import BuildError, InputError
+from .model.evaluation import GeneralizationJackknife
 from .model.shape_model import ShapeModel
 from .prepare import io
 from .prepare.case import Rejection
@@ -51,13 +53,14 @@ REJECTED = "rejected.csv"
 CONVERGENCE = "convergence.csv"
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.npz"
+BASELINES = "baselines.json"         # the baselines' evaluations, for --resume (kept with it)
 LOG = "build.log"
 SURFACES = "prepared-surfaces.tmp"   # the prepared cases' surfaces while a build runs (removed)
 
 # What a build writes into its output folder. Other entries are not a build's: the inputs/ that the
 # demo and the Slicer module write there first, or anything else a user keeps there.
 BUILD_FILES = (MODEL, MEAN, CORRESPONDENCE, ALIGNED, SCORES, CASES, LANDMARKS, METRICS, REPORT,
-               REJECTED, CONVERGENCE, CONFIG, CHECKPOINT, LOG)
+               REJECTED, CONVERGENCE, CONFIG, CHECKPOINT, BASELINES, LOG)
 
 # The files whose presence makes a folder hold a build that a new one must not replace unasked:
 # a finished build's model, or the checkpoint of one that can be resumed. What a failed or
@@ -220,6 +223,11 @@ def read_checkpoint(path: Path) -> Checkpoint:
         raise BuildError(f"{path}: not a checkpoint to resume from ({error})") from None
 
 
+def _digest(fingerprint: dict) -> str:
+    """A short stand-in of a build's fingerprint (its settings and every case's file digests)."""
+    return hashlib.sha256(json.dumps(fingerprint, sort_keys=True).encode()).hexdigest()
+
+
 # -- the build folder ---------------------------------------------------------------------------
 
 @dataclass
@@ -262,6 +270,7 @@ class BuildFolder:
         self.log_file = self.path / LOG
         self.rejected_file = self.path / REJECTED
         self.checkpoint_file = self.path / CHECKPOINT
+        self.baselines_file = self.path / BASELINES
         self.convergence_file = self.path / CONVERGENCE
         self.surfaces_file = self.path / SURFACES
 
@@ -375,6 +384,26 @@ class BuildFolder:
         when the file is not one)."""
         return read_checkpoint(self.checkpoint_file) if self.checkpoint_file.exists() else None
 
+    def baselines(self, fingerprint: dict) -> dict:
+        """The baselines' evaluations that :meth:`write_baselines` kept for a build of
+        ``fingerprint`` (its inputs and settings): baseline name -> the evaluation as
+        :func:`~.model.evaluation.evaluate` gave it, its ``jackknife`` included. Empty when there
+        is no such file, or when it is of other inputs or settings or not whole (they are then
+        evaluated again)."""
+        try:
+            kept = json.loads(self.baselines_file.read_text())
+            if kept["fingerprint"] != _digest(fingerprint):
+                return {}
+            evaluations = kept["baselines"]
+            for values in evaluations.values():
+                if "jackknife" in values:
+                    values["jackknife"] = GeneralizationJackknife(
+                        np.array(values["jackknife"]["per_case"], dtype=np.float64),
+                        np.array(values["jackknife"]["left_out"], dtype=np.float64))
+            return evaluations
+        except (OSError, ValueError, KeyError, TypeError):
+            return {}
+
     def unfinished(self) -> bool:
         """Whether the folder holds a build that ``resume`` carries on: a checkpoint of an
         optimisation that had not ended (cancelled, killed, out of time), or of one that had
@@ -439,6 +468,20 @@ class BuildFolder:
                         rng=None, trace=None, fingerprint: dict | None = None) -> None:
         """:func:`save_checkpoint` into the folder's checkpoint file."""
         save_checkpoint(self.checkpoint_file, state, point, rng, trace, fingerprint)
+
+    def write_baselines(self, evaluations: dict, fingerprint: dict) -> None:
+        """Keep the baselines' evaluations (name -> :func:`~.model.evaluation.evaluate`'s dict,
+        with its ``jackknife``) of a build of ``fingerprint``, so that a ``--resume``d build
+        takes them (:meth:`baselines`) instead of evaluating them again: JSON, whose numbers
+        read back bit for bit."""
+        kept = {}
+        for name, values in evaluations.items():
+            kept[name] = {key: value for key, value in values.items() if key != "jackknife"}
+            if "jackknife" in values:       # (none with fewer than four cases)
+                kept[name]["jackknife"] = {"per_case": values["jackknife"].per_case.tolist(),
+                                           "left_out": values["jackknife"].left_out.tolist()}
+        io.write_text(self.baselines_file, json.dumps({"fingerprint": _digest(fingerprint),
+                                                       "baselines": kept}))
 
     def write_model(self, model: ShapeModel, normals=None) -> None:
         """The model file and the mean mesh (with the normals' agreement per point, a
