@@ -50,8 +50,10 @@ def test_a_second_build_into_the_same_folder_is_refused_unless_overwrite(labels,
     (output / "notes.txt").write_text("the user's")
     first = build(labels, output)
     assert first.returncode == 0, first.stderr
-    # every file of a build but landmarks.csv, which a build guided by landmarks writes
-    assert {p.name for p in BuildFolder(output).previous_build()} == set(BUILD_FILES) - {"landmarks.csv"}
+    # every file of a build but landmarks.csv and baselines.json, which a build guided by
+    # landmarks and one with baselines write
+    assert ({p.name for p in BuildFolder(output).previous_build()}
+            == set(BUILD_FILES) - {"landmarks.csv", "baselines.json"})
     assert not [p for p in output.rglob("*") if ".partial" in p.name]
     assert not BuildFolder(output).surfaces_file.exists()     # the build's own, removed at its end
     model = (output / "model.h5").read_bytes()
@@ -65,10 +67,11 @@ def test_a_second_build_into_the_same_folder_is_refused_unless_overwrite(labels,
 
     (output / "correspondence" / "stale_case.vtp").write_text("of the earlier build")
     (output / "landmarks.csv").write_text("case,label,x,y,z\n")          # as a guided build's
+    (output / "baselines.json").write_text("{}")               # as a build's with baselines
     replaced = build(labels, output, "--overwrite")
     assert replaced.returncode == 0, replaced.stderr
     assert not (output / "correspondence" / "stale_case.vtp").exists()   # the earlier build's
-    assert not (output / "landmarks.csv").exists()
+    assert not (output / "landmarks.csv").exists() and not (output / "baselines.json").exists()
     assert (output / "notes.txt").read_text() == "the user's"            # not the build's
     assert (output / "inputs" / "mine.txt").read_text() == "the user's"
     (tmp_path / "first.h5").write_bytes(model)
