@@ -3,6 +3,7 @@ folders.py alone, its readers undo the mirroring, and the faces read a build thr
 
 import ast
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -228,6 +229,9 @@ def test_the_baselines_evaluations_are_read_back_bit_for_bit_for_the_same_build_
     assert np.array_equal(jackknife.left_out, original.left_out)
     assert folder.baselines({**fingerprint, "settings": {"seed": 1}}) == {}
     text = folder.baselines_file.read_text()
+    listed = json.loads(text)
+    folder.baselines_file.write_text(json.dumps({**listed, "baselines": list(listed["baselines"])}))
+    assert folder.baselines(fingerprint) == {}        # whole JSON, not a baselines' file
     folder.baselines_file.write_text(text[: len(text) // 2])
     assert folder.baselines(fingerprint) == {}
     assert BuildFolder(tmp_path / "none").baselines(fingerprint) == {}

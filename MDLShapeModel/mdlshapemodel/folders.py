@@ -401,7 +401,7 @@ class BuildFolder:
                         np.array(values["jackknife"]["per_case"], dtype=np.float64),
                         np.array(values["jackknife"]["left_out"], dtype=np.float64))
             return evaluations
-        except (OSError, ValueError, KeyError, TypeError):
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
             return {}
 
     def unfinished(self) -> bool:
