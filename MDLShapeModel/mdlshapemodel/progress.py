@@ -14,10 +14,12 @@ panel.
 
 A report may say what it is: its message is then a :class:`Message`, text with a ``kind``
 (:data:`OBJECTIVE`: an optimisation's objective), which every callback receives as a ``str``
-and which :func:`kind_of` reads. A build's reports say how long is left (:class:`TimeLeft`):
-"(about 3 min left)" where a stage counts its steps (preparing the cases), "(at most about
-9 min left, the time budget)" on the optimisation's reports (those of kind :data:`OBJECTIVE`),
-whose end the convergence rule decides.
+and which :func:`kind_of` reads, and, on an optimisation's report, the most rounds it can still
+make (:func:`rounds_left_of`). A build's reports say how long is left (:class:`TimeLeft`):
+"(about 3 min left)" where a stage counts its steps (preparing the cases); on the
+optimisation's reports (those of kind :data:`OBJECTIVE`), whose end the convergence rule
+decides, "(at most 20 more rounds, about 9 min)" where its schedule bounds the rounds, and
+"(at most about 9 min left, the time budget)" where the time budget comes first.
 
 Ctrl-C is a cancellation too: within :func:`ctrl_c` (a build, the command line) it only sets a
 flag, :class:`Interrupt`, that the work sees at its next report, where it stops as if the
@@ -46,7 +48,7 @@ from .errors import Cancelled
 Progress = Callable[[Optional[float], str], Optional[bool]]
 
 __all__ = ["OBJECTIVE", "Cancelled", "Interrupt", "Message", "Progress", "TimeLeft", "ctrl_c",
-           "kind_of", "report", "time_left_text"]
+           "kind_of", "report", "rounds_left_of", "time_left_text"]
 
 log = logging.getLogger("mdlshapemodel")
 
@@ -57,8 +59,10 @@ OBJECTIVE = "objective"
 
 
 class Message(str):
-    """A report's message that says what it reports: the text itself, and ``kind`` (such as
-    :data:`OBJECTIVE`; None: a report of no particular kind).
+    """A report's message that says what it reports: the text itself, ``kind`` (such as
+    :data:`OBJECTIVE`; None: a report of no particular kind) and, on an optimisation's report,
+    ``rounds_left``: the most rounds the optimisation can still make after it, by its schedule
+    (0: it has ended; None: no schedule bounds them).
 
     It is a ``str`` to every callback (printed, compared and formatted as its text), so that a
     callback that knows nothing of kinds takes it as any message; a callback that passes a
@@ -69,15 +73,17 @@ class Message(str):
     >>> message = Message("fixed: sweep 3, F = 1.000", OBJECTIVE)
     >>> message == "fixed: sweep 3, F = 1.000", kind_of(message), kind_of("prepared 1/4")
     (True, 'objective', None)
+    >>> rounds_left_of(Message("fixed: round 3, F = 1.000", OBJECTIVE, rounds_left=9))
+    9
     """
 
-    def __new__(cls, text: str, kind: str | None = None):
+    def __new__(cls, text: str, kind: str | None = None, rounds_left: int | None = None):
         message = super().__new__(cls, text)
-        message.kind = kind
+        message.kind, message.rounds_left = kind, rounds_left
         return message
 
     def __reduce__(self):
-        return Message, (str(self), self.kind)
+        return Message, (str(self), self.kind, self.rounds_left)
 
 
 def kind_of(message: str) -> str | None:
@@ -85,12 +91,18 @@ def kind_of(message: str) -> str | None:
     return getattr(message, "kind", None)
 
 
+def rounds_left_of(message: str) -> int | None:
+    """The most rounds an optimisation can still make after the report of ``message``
+    (:class:`Message`); None where that is not known (any plain ``str``)."""
+    return getattr(message, "rounds_left", None)
+
+
 def report(progress: Progress | None, fraction: float | None, message: str,
-           kind: str | None = None) -> None:
+           kind: str | None = None, rounds_left: int | None = None) -> None:
     """Pass one report to ``progress`` (if any), its message a :class:`Message` of ``kind``
-    when one is given; raise :class:`Cancelled` if it returns False."""
-    if kind is not None:
-        message = Message(message, kind)
+    (and ``rounds_left``) when one is given; raise :class:`Cancelled` if it returns False."""
+    if kind is not None or rounds_left is not None:
+        message = Message(message, kind, rounds_left)
     if progress is not None and progress(fraction, message) is False:
         raise Cancelled(message)
 
@@ -119,10 +131,14 @@ class TimeLeft:
     carry a fraction (the cases prepared), the stage's rate so far gives the rest: "(about 40 s
     left)". The optimisation's reports (no fraction; of kind :data:`OBJECTIVE`, whatever their
     text says) have no rate that foretells their end, which is for the convergence rule to
-    decide: only the time budget ``budget`` bounds it, counted from the first of a run of them:
-    "(at most about 9 min left, the time budget)", while some of it is left. Any other report
-    ends such a run (a landmark check's fold starts an optimisation of its own, with its own
-    budget) and gets no estimate. Each report goes on with its kind.
+    decide. Two things bound it: the time budget ``budget``, counted from the first of a run of
+    them, and, where a report says the most rounds left (:func:`rounds_left_of`), those rounds
+    at the mean time between the run's reports so far. The nearer bound is said: "(at most 20
+    more rounds, about 9 min)", or "(at most 20 more rounds; at most about 5 min left, the
+    time budget)" ("(at most about 5 min left, the time budget)" where no rounds are bounded),
+    while some of the budget is left; nothing once no rounds are left. Any other report ends
+    such a run (a landmark check's fold starts an optimisation of its own, with its own budget)
+    and gets no estimate. Each report goes on with its kind (and its rounds left).
 
     Parameters
     ----------
@@ -140,27 +156,45 @@ class TimeLeft:
         self.fraction = None
         self.started = self.optimising = False
         self.stage_start = self.last = clock()    # the first stage: from the start of the work
+        self.rounds = 0                           # the optimisation's reports in this run
 
     def __call__(self, fraction, message):
         now = self.clock()
         previous = self.fraction
-        kind = kind_of(message)
+        kind, rounds_left = kind_of(message), rounds_left_of(message)
         optimising = fraction is None and kind == OBJECTIVE
         if self.started and ((fraction is None) != (previous is None)
                              or (fraction is not None and (fraction < previous
                                                            or previous >= 1.0))
                              or (optimising and not self.optimising)):
             self.stage_start = now if fraction is None else self.last
+        self.rounds = self.rounds + 1 if optimising and self.optimising else int(optimising)
         self.started, self.fraction, self.last = True, fraction, now
         self.optimising = optimising
         elapsed = now - self.stage_start
         if fraction is not None and 0.0 < fraction < 1.0 and elapsed > 0.0:
             message = (f"{message} (about {time_left_text(elapsed * (1.0 - fraction) / fraction)}"
                        f" left)")
-        elif optimising and self.budget and self.budget > elapsed:
-            message = (f"{message} (at most about {time_left_text(self.budget - elapsed)} left, "
-                       f"the time budget)")
-        return self.progress(fraction, message if kind is None else Message(message, kind))
+        elif optimising and rounds_left != 0 and not (self.budget and self.budget <= elapsed):
+            bound = self._optimisation_left(elapsed, rounds_left)
+            message = f"{message} ({bound})" if bound else message
+        if kind is None and rounds_left is None:
+            return self.progress(fraction, message)
+        return self.progress(fraction, Message(message, kind, rounds_left))
+
+    def _optimisation_left(self, elapsed: float, rounds_left: int | None) -> str:
+        """The nearer bound of the optimisation's time left, ``elapsed`` s into its run of
+        reports: its rounds left at the mean time between the reports so far, or the budget
+        ("" where neither is known)."""
+        rounds = (None if rounds_left is None else
+                  f"at most {rounds_left} more round{'s' if rounds_left > 1 else ''}")
+        budget = (None if not self.budget else
+                  f"at most about {time_left_text(self.budget - elapsed)} left, the time budget")
+        if rounds is not None and self.rounds > 1:
+            schedule = elapsed / (self.rounds - 1) * rounds_left
+            if budget is None or schedule < self.budget - elapsed:
+                return f"{rounds}, about {time_left_text(schedule)}"
+        return "; ".join(text for text in (rounds, budget) if text is not None)
 
 
 class Interrupt:

@@ -81,10 +81,12 @@ def test_a_build_runs_in_its_own_process_with_progress_and_loads_its_nodes(
     # (each but the last with the estimate of the time left)
     assert [m.split(" (about ")[0] for m in prepared] == [f"prepared {k}/4" for k in range(1, 5)]
     assert all(m.endswith(" left)") for m in prepared[:-1])
-    # the optimisation's reports say what they are, with the time budget's bound
+    # the optimisation's reports say what they are, the first with its rounds at most and the
+    # time budget's bound
     objective = [r.message for r in reports if r.kind == OBJECTIVE]
     assert objective and all("F =" in m for m in objective)
-    assert "(at most about" in objective[0] and objective[0].endswith("the time budget)")
+    assert "more rounds; at most about" in objective[0]
+    assert objective[0].endswith("the time budget)")
     assert not any(r.kind for r in reports if r.message.startswith("prepared"))
     assert all(0 <= r.fraction <= 1 for r in reports if r.fraction is not None)
     result = job.finish()

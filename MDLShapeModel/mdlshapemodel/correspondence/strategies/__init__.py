@@ -41,12 +41,13 @@ import numpy as np
 from ...config import STRATEGIES, OptimisationSettings
 from ...errors import ArgumentError
 from ...parallel import Threads
+from ...progress import Message, kind_of, rounds_left_of
 from ..objective import NoDescription, pooled
 from ..coarse import carry_over, coarse_grid_applies, coarse_view
 from ..state import CorrespondenceState, replay_record
 from ..trace import Stop, Trace
 from .base import PhasePoint, Resumption
-from .fast import optimise_fast
+from .fast import FIELD_LEVELS, most_rounds, optimise_fast
 # (imported under another name: the package's attribute one_at_a_time stays the module)
 from .one_at_a_time import one_at_a_time as _one_at_a_time
 from .one_at_a_time import one_at_a_time_pose
@@ -149,13 +150,14 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
         phases = phases[names.index(point.phase):]
         _replay(coarse if staged else state, resume)
     try:
-        for phase in phases:
+        for index, phase in enumerate(phases):
             current = coarse if staged else state
             trace.stopped_by = None      # the phase sets it as it ends
             saver = None if checkpoint is None else functools.partial(_checkpoint_of, checkpoint,
                                                                       current)
             value = run(current, phase.objective, phase.settings, rng, trace, phase.name,
-                        phase.deadline, progress, saver, active,
+                        phase.deadline, _with_later_rounds(progress, phases[index + 1:]),
+                        saver, active,
                         point if point is not None and phase.name == point.phase else None,
                         **phase.options)
     finally:
@@ -163,6 +165,23 @@ def _optimise(state: CorrespondenceState, objectives: tuple, settings: Optimisat
             _finish_coarse_stage(coarse, state, settings)
         state.objective = integrated
     return value
+
+
+def _with_later_rounds(progress, later: list):
+    """``progress``, to which a phase's reports of the rounds it has left
+    (:func:`~...progress.rounds_left_of`, the fast strategy's) go on counting the most rounds
+    of the ``later`` phases too: the most rounds the whole optimisation can still make."""
+    if progress is None or not later:
+        return progress
+    after = sum(min(most_rounds(phase.settings, phase.options.get("levels", FIELD_LEVELS)),
+                    phase.settings.max_sweeps) for phase in later)
+
+    def passed_on(fraction, message):
+        left = rounds_left_of(message)
+        if left is not None:
+            message = Message(message, kind_of(message), left + after)
+        return progress(fraction, message)
+    return passed_on
 
 
 def _replay(state: CorrespondenceState, resume: Resumption) -> None:

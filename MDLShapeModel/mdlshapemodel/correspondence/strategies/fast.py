@@ -329,10 +329,36 @@ def optimise_round(state: CorrespondenceState, objective, active, level: int,
     return float(state.value())
 
 
+#: the fast strategy's field levels, coarse to fine, and its rounds per level at most
+FIELD_LEVELS = (0, 1, 2, 3)
+ROUNDS_PER_LEVEL = 3
+
+
+def most_rounds(settings: OptimisationSettings, levels=FIELD_LEVELS,
+                rounds_per_level: int = ROUNDS_PER_LEVEL, at: dict | None = None) -> int:
+    """The most rounds a phase of :func:`optimise_fast` can make: ``settings.field_passes``
+    passes over ``levels``, each level at most ``rounds_per_level`` rounds; from the round at
+    ``at`` on (its pass, level index and round in the level; None: the phase's start), that
+    round included. ``settings.max_sweeps`` bounds each phase's rounds too, and the caller
+    knows how many it has made.
+
+    Examples
+    --------
+    >>> from mdlshapemodel.config import OptimisationSettings
+    >>> settings = OptimisationSettings(field_passes=3)
+    >>> most_rounds(settings), most_rounds(settings, at={"pass": 2, "level": 3, "round": 1})
+    (36, 2)
+    """
+    at = at or {"pass": 0, "level": 0, "round": 0}
+    per_pass = len(levels) * rounds_per_level
+    return ((rounds_per_level - at["round"]) + (len(levels) - at["level"] - 1) * rounds_per_level
+            + (settings.field_passes - at["pass"] - 1) * per_pass)
+
+
 def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
                   phase: str, deadline: float, progress=None, checkpoint=None, active=None,
-                  resume: PhasePoint | None = None, levels=(0, 1, 2, 3),
-                  rounds_per_level: int = 3, cluster=None) -> float:
+                  resume: PhasePoint | None = None, levels=FIELD_LEVELS,
+                  rounds_per_level: int = ROUNDS_PER_LEVEL, cluster=None) -> float:
     """Coarse-to-fine rounds until the gain stalls (``settings.tolerance``), ``deadline`` or
     ``settings.max_sweeps`` rounds. At each level, rounds go on until one gains less than the
     tolerance (then the next level starts), at most ``rounds_per_level``. The pass over the levels
@@ -344,7 +370,9 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
     the F at the start of the phase and of the pass, before and after the round); given one as
     ``resume``, with the state of that moment, the phase carries on exactly from there.
     ``trace.stopped_by`` says why the phase ended (a limit reached after the last round of the
-    schedule counts as the limit: that round may have been cut short).
+    schedule counts as the limit: that round may have been cut short). Each round's report
+    says the most rounds the phase can still make (``rounds_left``, :func:`most_rounds` from
+    the next round on, 0 where the phase is over).
 
     ``cluster``, a ``distributed.Client``: the rounds' per-example work runs on its workers,
     which hold their examples for the phase (:class:`~.spread.ExamplesOnCluster`); the same
@@ -400,14 +428,18 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
                                    curvature_pairs=settings.curvature_pairs)
             values["value"] = value
             trace.record(state, value, phase, sweep)
+            upcoming = following(at, values)
+            rounds_left = (0 if upcoming is None else
+                           min(most_rounds(settings, levels, rounds_per_level, upcoming),
+                               settings.max_sweeps - sweep))
             report(progress, None, f"{phase}: level {levels[at['level']]}, round {sweep}, "
-                                   f"F = {value:.3f}", OBJECTIVE)
+                                   f"F = {value:.3f}", OBJECTIVE, rounds_left)
             if checkpoint is not None:
                 checkpoint(PhasePoint(phase, sweep, dict(at), dict(values)))
             trace.stopped_by = budget_spent(deadline, sweep, settings)
             if trace.stopped_by is not None:
                 return value
-            previous, at = at, following(at, values)
+            previous, at = at, upcoming
             if at is not None and at["pass"] != previous["pass"]:
                 values["pass_start"] = value
         trace.stopped_by = Stop.CONVERGED
