@@ -241,6 +241,8 @@ def test_a_resumed_build_takes_the_baselines_evaluation_its_first_run_kept(label
                       env={**os.environ, "MDLSHAPEMODEL_CACHE": str(cache)})
     assert resumed.returncode == 0, resumed.stderr
     assert "the none baseline's evaluation comes from" in resumed.stderr
+    assert "evaluating the none baseline" in (whole / "build.log").read_text()
+    assert "evaluating the none baseline" not in resumed.stderr
     ours, theirs = (json.loads((folder / "metrics.json").read_text())
                     for folder in (output, whole))
     assert ours["baselines"] == theirs["baselines"] and "none" in ours["baselines"]

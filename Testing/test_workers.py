@@ -163,7 +163,7 @@ def test_a_large_build_ends_its_helper_once_the_baselines_are_evaluated(tmp_path
     log = (output / "build.log").read_text()
     rested = log.find("the baselines are evaluated: the helper process ended")
     if rests_from <= 5:
-        assert 0 < log.find("evaluating the initial (equal-spacing) correspondence") < rested
+        assert 0 < log.find("evaluating the none baseline beside the optimisation") < rested
         assert rested < log.find("final objective")
         assert log.count("the helper process ended") == 1
     else:

@@ -335,6 +335,8 @@ def _build_from(cases: list, output: Path, config: BuildConfig, progress, execut
                          folder.baselines_file)
                 pending[name] = (notes, kept[name])
                 return
+            log.info("evaluating the %s baseline%s", name,
+                     "" if pool is None else " beside the optimisation")
             pending[name] = (notes, evaluate_state(state, config, prepared, pool=pool,
                                                    jackknife=True))
 
@@ -754,7 +756,7 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
                  data_range)
         wanted = config.baselines if baselines is not None else []
         if "none" in wanted and (config.strategy != "none" or config.correspondence == "cpd"):
-            log.info("evaluating the initial (equal-spacing) correspondence as a baseline")
+            log.info("the initial (equal-spacing) correspondence is the none baseline")
             baselines("none", state, {"objective": initial})
         cpd = None
         if "cpd" in wanted and curves:
@@ -763,7 +765,7 @@ def correspond(prepared: list, config: BuildConfig, progress: Progress | None = 
         if config.correspondence == "cpd" or "cpd" in wanted:
             cpd, template = cpd_state(state, prepared, config, executor, progress)
             if config.correspondence != "cpd":
-                log.info("evaluating the CPD template correspondence as a baseline")
+                log.info("the CPD template correspondence is the cpd baseline")
                 try:
                     objective = measured(cpd).total
                 except ValueError:      # the coarse grid is not within the build's (not icospheres)
