@@ -173,8 +173,8 @@ def _with_later_rounds(progress, later: list):
     of the ``later`` phases too: the most rounds the whole optimisation can still make."""
     if progress is None or not later:
         return progress
-    after = sum(min(most_rounds(phase.settings, phase.options.get("levels", FIELD_LEVELS)),
-                    phase.settings.max_sweeps) for phase in later)
+    after = sum(most_rounds(phase.settings, phase.options.get("levels", FIELD_LEVELS))
+                for phase in later)
 
     def passed_on(fraction, message):
         left = rounds_left_of(message)

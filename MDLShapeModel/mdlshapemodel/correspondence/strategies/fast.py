@@ -335,12 +335,13 @@ ROUNDS_PER_LEVEL = 3
 
 
 def most_rounds(settings: OptimisationSettings, levels=FIELD_LEVELS,
-                rounds_per_level: int = ROUNDS_PER_LEVEL, at: dict | None = None) -> int:
+                rounds_per_level: int = ROUNDS_PER_LEVEL, at: dict | None = None,
+                made: int = 0) -> int:
     """The most rounds a phase of :func:`optimise_fast` can make: ``settings.field_passes``
     passes over ``levels``, each level at most ``rounds_per_level`` rounds; from the round at
     ``at`` on (its pass, level index and round in the level; None: the phase's start), that
-    round included. ``settings.max_sweeps`` bounds each phase's rounds too, and the caller
-    knows how many it has made.
+    round included; and at most ``settings.max_sweeps`` in the phase, ``made`` of which are
+    made.
 
     Examples
     --------
@@ -351,8 +352,10 @@ def most_rounds(settings: OptimisationSettings, levels=FIELD_LEVELS,
     """
     at = at or {"pass": 0, "level": 0, "round": 0}
     per_pass = len(levels) * rounds_per_level
-    return ((rounds_per_level - at["round"]) + (len(levels) - at["level"] - 1) * rounds_per_level
-            + (settings.field_passes - at["pass"] - 1) * per_pass)
+    schedule = ((rounds_per_level - at["round"])
+                + (len(levels) - at["level"] - 1) * rounds_per_level
+                + (settings.field_passes - at["pass"] - 1) * per_pass)
+    return min(schedule, settings.max_sweeps - made)
 
 
 def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
@@ -430,8 +433,7 @@ def optimise_fast(state: CorrespondenceState, objective, settings, rng, trace,
             trace.record(state, value, phase, sweep)
             upcoming = following(at, values)
             rounds_left = (0 if upcoming is None else
-                           min(most_rounds(settings, levels, rounds_per_level, upcoming),
-                               settings.max_sweeps - sweep))
+                           most_rounds(settings, levels, rounds_per_level, upcoming, sweep))
             report(progress, None, f"{phase}: level {levels[at['level']]}, round {sweep}, "
                                    f"F = {value:.3f}", OBJECTIVE, rounds_left)
             if checkpoint is not None:
